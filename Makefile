@@ -1,0 +1,39 @@
+# The README's two commands: `make run` and `make test`. Each installs what is
+# missing (Debian packages, a venv, the native build) and then acts.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+NATIVE := $(wildcard native/*.cpp native/*.hpp native/CMakeLists.txt)
+HOST   ?= 127.0.0.1
+PORT   ?= 8000
+DATA   ?= data
+
+.PHONY: run test build system-deps bench clean
+
+system-deps:
+	bash scripts/install-system-deps.sh
+
+$(BIN)/.deps: pyproject.toml scripts/install-system-deps.sh
+	bash scripts/install-system-deps.sh
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q "scikit-build-core>=0.10" "nanobind>=2.0"
+	touch $@
+
+$(BIN)/.built: $(BIN)/.deps $(NATIVE) pyproject.toml
+	$(BIN)/python -m pip install -q --no-build-isolation -e ".[test]"
+	touch $@
+
+build: $(BIN)/.built
+
+run: build
+	$(BIN)/flatserve serve --host $(HOST) --port $(PORT) --data-dir $(DATA)
+
+test: build
+	$(BIN)/python -m pytest -q tests
+
+bench: build
+	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
+
+clean:
+	rm -rf build $(VENV)

@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Installs the Debian packages flatserve needs to build and run.
+# Used by the Makefile, .ci/run and docker/Dockerfile alike.
+#   --build    compilers + CGAL/Eigen headers (default)
+#   --runtime  only what the built extension and the service need at run time
+#   --browser  Debian's chromium + chromedriver for the viewer test
+set -euo pipefail
+mode=build
+extra=()
+for arg in "$@"; do
+  case "$arg" in
+    --build) mode=build ;;
+    --runtime) mode=runtime ;;
+    --browser) extra+=(chromium chromium-driver) ;;
+    *) echo "unknown option $arg" >&2; exit 2 ;;
+  esac
+done
+if [ "$mode" = build ]; then
+  # libcgal-demo ships data.tar.gz with the Stanford bunny used by the light-field demo.
+  pkgs=(build-essential cmake ninja-build libcgal-dev libeigen3-dev libgmp-dev libmpfr-dev libcgal-demo python3-venv python3-dev)
+else
+  pkgs=(libgmp10 libmpfr6 libgomp1)
+fi
+pkgs+=("${extra[@]}")
+missing=()
+for p in "${pkgs[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if [ "${#missing[@]}" -eq 0 ]; then
+  exit 0
+fi
+echo "installing Debian packages: ${missing[*]}"
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then SUDO=sudo; fi
+export DEBIAN_FRONTEND=noninteractive
+$SUDO apt-get update -qq
+$SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"

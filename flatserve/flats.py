@@ -1,0 +1,602 @@
+"""Flats (affine subspaces) as quadratic distance fields ``(Q, r)``, batched.
+
+A k-flat in R^d (``0 <= k < d``) is stored as the pair of paper Eq. 2-3::
+
+    Q = N N^T = I - A A^T      (d, d)   symmetric, idempotent, rank d-k   (C1)
+    r = N c   = Q b            (d,)     fixed point of Q: Q r = r         (C2)
+
+where ``A`` (d, k) holds orthonormal spanning vectors, ``N`` (d, d-k)
+orthonormal normals, ``b`` any point of the flat and ``c = N^T b``.  ``r`` is
+the point of the flat closest to the origin.  The squared distance of ``x`` to
+the flat is ``x^T Q x - 2 r^T x + r^T r`` (Eq. 2).
+
+Everything here is batched: ``n`` flats are arrays ``Q`` of shape (n, d, d) and
+``r`` of shape (n, d); a flat is a row.  No function loops over flats in
+Python.
+
+Example
+-------
+>>> import numpy as np
+>>> from flatserve import flats
+>>> Q, r = flats.from_rays([[0.0, 0.0, -3.0]], [[0.0, 0.0, 1.0]])
+>>> flats.squared_distance(Q, r, [[1.0, 0.0, 5.0]])
+array([1.])
+>>> p = flats.affine_combination([[0.5, 0.5]], *flats.from_rays(
+...     [[0, 0, 0], [2, 0, 0]], [[0, 0, 1], [0, 0, 1]]), k=1)
+>>> np.round(p.r, 12)
+array([[1., 0., 0.]])
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from ._validate import as_array
+from .errors import InvalidFlatError, InvalidInputError, WeightsError
+
+__all__ = [
+    "FLAT_TOL",
+    "GAP_TOL",
+    "RANK_TOL",
+    "PINV_RCOND",
+    "WEIGHT_TOL",
+    "Projection",
+    "check_k",
+    "from_parametric",
+    "from_points",
+    "from_normal",
+    "from_rays",
+    "to_parametric",
+    "to_normal",
+    "frames",
+    "closest_point",
+    "squared_distance",
+    "validate",
+    "project",
+    "affine_combination",
+]
+
+#: Absolute tolerance of :func:`validate` for (C1) (``|Q - Q^T|``, ``|Q Q - Q|``,
+#: ``|trace Q - (d-k)|``, max-norm) and (C2) (``|Q r - r| <= FLAT_TOL (1 + |r|)``).
+FLAT_TOL = 1e-8
+#: An eigen-gap ``lambda_{k+1} - lambda_k`` of ``Q*`` below this makes the
+#: projection P (Sec. 2.3) ambiguous: the spanning eigenspace is not determined
+#: (Sec. 3.1, Lemma 2).  Eigenvectors are perturbed by about ``eps / gap``, so
+#: 1e-8 keeps them accurate to ~1e-8 relative.
+GAP_TOL = 1e-8
+#: A spanning matrix ``A`` (or normal matrix ``N``) whose smallest singular
+#: value is below ``RANK_TOL`` times its largest is rank-deficient.
+RANK_TOL = 1e-10
+#: Eigenvalues of ``Q*`` with ``|lambda| <= PINV_RCOND * max|lambda|`` are
+#: treated as zero by the pseudo-inverse of Sec. 2.3.
+PINV_RCOND = 1e-12
+#: Rows of affine weights must satisfy ``|sum w - 1| <= WEIGHT_TOL * max(1, sum|w|)``.
+WEIGHT_TOL = 1e-9
+
+
+class Projection(NamedTuple):
+    """Result of :func:`project` / :func:`affine_combination`.
+
+    Attributes
+    ----------
+    Q : ndarray, shape (n, d, d)
+        Projected ``Q~ = N N^T`` (valid flats, (C1)).
+    r : ndarray, shape (n, d)
+        Projected ``r~ = Q~ (Q*)^+ r*`` ((C2) holds).
+    gap : ndarray, shape (n,)
+        Eigen-gap ``lambda_{k+1} - lambda_k`` of ``Q*`` (ascending eigenvalues,
+        1-based as in the paper; for ``k = 0`` it is ``lambda_1``).
+    ambiguous : ndarray of bool, shape (n,)
+        ``gap < gap_tol``: the projection is not unique and ``Q``, ``r`` of
+        this row must not be trusted.
+    """
+
+    Q: np.ndarray
+    r: np.ndarray
+    gap: np.ndarray
+    ambiguous: np.ndarray
+
+
+# --------------------------------------------------------------------------- checks
+
+
+def check_k(k, d: int, name: str = "k") -> int:
+    """Return ``k`` as int after checking ``0 <= k < d``.
+
+    Raises
+    ------
+    InvalidInputError
+        Naming ``name`` when ``k`` is not an integer in ``[0, d)``.
+    """
+    if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)):
+        raise InvalidInputError(f"{name}: expected an integer, got {k!r}", name)
+    k = int(k)
+    if not 0 <= k < d:
+        raise InvalidInputError(f"{name}: need 0 <= k < d = {d}, got k = {k}", name)
+    return k
+
+
+def _as_flats(Q, r, name_Q: str = "Q", name_r: str = "r"):
+    Q = as_array(Q, name_Q, ("n", None, None))
+    d = Q.shape[1]
+    if d < 1 or Q.shape[2] != d:
+        raise InvalidInputError(f"{name_Q}: expected shape (n, d, d), got {Q.shape}", name_Q)
+    r = as_array(r, name_r, (Q.shape[0], d))
+    return Q, r
+
+
+def _orthonormal_columns(M: np.ndarray, name: str, what: str):
+    """SVD of a batch (n, d, j): returns (U (n,d,j), s (n,j), Vt (n,j,j))."""
+    U, s, Vt = np.linalg.svd(M, full_matrices=False)
+    smax = s[:, 0] if s.shape[1] else np.ones(M.shape[0])
+    bad = (smax <= 0) | (s[:, -1] <= RANK_TOL * smax) if s.shape[1] else np.zeros(M.shape[0], bool)
+    if bad.any():
+        rows = np.nonzero(bad)[0]
+        raise InvalidInputError(
+            f"{name}: {what} are zero or linearly dependent (rank-deficient) in rows "
+            f"{rows[:10].tolist()}" + (" ..." if rows.size > 10 else ""),
+            name,
+        )
+    return U, s, Vt
+
+
+# --------------------------------------------------------------------- constructors
+
+
+def from_parametric(A, b):
+    """Flats ``{A y + b}`` from parametric form (paper Sec. 2.1, Eq. 3).
+
+    Parameters
+    ----------
+    A : array_like, shape (n, d, k)
+        Spanning vectors as columns; need not be orthonormal but must have
+        full column rank ``k`` (``k = 0`` gives points).
+    b : array_like, shape (n, d)
+        A point on each flat.
+
+    Returns
+    -------
+    Q : ndarray, shape (n, d, d)
+        ``I - U U^T`` with ``U`` an orthonormal basis of ``span(A)``.
+    r : ndarray, shape (n, d)
+        ``Q b``, the point of the flat closest to the origin.
+
+    Raises
+    ------
+    InvalidInputError
+        ``"A"`` for wrong shape, NaN, zero or linearly dependent columns,
+        ``k >= d``; ``"b"`` for wrong shape or NaN.
+
+    Examples
+    --------
+    >>> Q, r = from_parametric([[[1.0], [1.0]]], [[0.0, 2.0]])   # line y = x + 2
+    >>> r
+    array([[-1.,  1.]])
+    """
+    A = as_array(A, "A", ("n", None, None))
+    n, d, k = A.shape
+    if d < 1:
+        raise InvalidInputError(f"A: expected shape (n, d, k) with d >= 1, got {A.shape}", "A")
+    check_k(k, d, "A")
+    b = as_array(b, "b", (n, d))
+    I = np.eye(d)
+    if k == 0:
+        return np.broadcast_to(I, (n, d, d)).copy(), b.copy()
+    U, _, _ = _orthonormal_columns(A, "A", "spanning vectors")
+    Q = I - U @ np.swapaxes(U, 1, 2)
+    r = np.einsum("nij,nj->ni", Q, b)
+    return Q, r
+
+
+def from_points(points):
+    """Flats through ``k+1`` affinely independent points each.
+
+    Parameters
+    ----------
+    points : array_like, shape (n, k+1, d)
+
+    Returns
+    -------
+    Q : ndarray, shape (n, d, d)
+    r : ndarray, shape (n, d)
+
+    Raises
+    ------
+    InvalidInputError
+        ``"points"`` for wrong shape, NaN, ``k >= d`` or affinely dependent
+        points.
+
+    Examples
+    --------
+    >>> Q, r = from_points([[[0.0, 1.0], [5.0, 1.0]]])   # the line y = 1
+    >>> r
+    array([[0., 1.]])
+    """
+    P = as_array(points, "points", ("n", None, None))
+    n, kp1, d = P.shape
+    if kp1 < 1 or d < 1:
+        raise InvalidInputError(f"points: expected shape (n, k+1, d), got {P.shape}", "points")
+    check_k(kp1 - 1, d, "points")
+    A = np.swapaxes(P[:, 1:, :] - P[:, :1, :], 1, 2)  # (n, d, k)
+    try:
+        return from_parametric(A, P[:, 0, :])
+    except InvalidInputError as exc:
+        raise InvalidInputError(
+            str(exc).replace("A:", "points:", 1).replace("spanning vectors", "point differences"),
+            "points",
+        ) from None
+
+
+def from_normal(N, c):
+    """Flats ``{x : N^T x = c}`` from normal form (paper Sec. 2.1, Eq. 2-3).
+
+    Parameters
+    ----------
+    N : array_like, shape (n, d, d-k)
+        Normal vectors as columns; full column rank, need not be orthonormal.
+    c : array_like, shape (n, d-k)
+        Right-hand sides (signed distances when ``N`` is orthonormal).
+
+    Returns
+    -------
+    Q : ndarray, shape (n, d, d)
+        ``U U^T`` with ``U`` an orthonormal basis of ``span(N)``.
+    r : ndarray, shape (n, d)
+        The closest point to the origin, ``U S^-1 V^T c`` for ``N = U S V^T``.
+
+    Raises
+    ------
+    InvalidInputError
+        ``"N"`` for wrong shape, NaN, ``d-k < 1`` or dependent normals;
+        ``"c"`` for wrong shape or NaN.
+
+    Examples
+    --------
+    >>> Q, r = from_normal([[[0.0], [2.0]]], [[2.0]])   # 2 y = 2
+    >>> r
+    array([[0., 1.]])
+    """
+    N = as_array(N, "N", ("n", None, None))
+    n, d, j = N.shape
+    if d < 1 or j < 1 or j > d:
+        raise InvalidInputError(
+            f"N: expected shape (n, d, d-k) with 1 <= d-k <= d, got {N.shape}", "N"
+        )
+    c = as_array(c, "c", (n, j))
+    U, s, Vt = _orthonormal_columns(N, "N", "normal vectors")
+    # N^T x = c  <=>  V S U^T x = c  <=>  U^T x = S^-1 V^T c
+    y = np.einsum("nij,nj->ni", Vt, c) / s
+    Q = U @ np.swapaxes(U, 1, 2)
+    r = np.einsum("nij,nj->ni", U, y)
+    return Q, r
+
+
+def from_rays(origins, directions):
+    """Lines (``k = 1``) through ``origins`` along ``directions``.
+
+    Parameters
+    ----------
+    origins : array_like, shape (n, d)
+    directions : array_like, shape (n, d)
+        Non-zero; need not be normalised.
+
+    Returns
+    -------
+    Q : ndarray, shape (n, d, d)
+        ``I - a a^T`` with ``a = direction / |direction|``.
+    r : ndarray, shape (n, d)
+        ``Q origin``.
+
+    Raises
+    ------
+    InvalidInputError
+        ``"origins"``/``"directions"`` for wrong shape or NaN; ``"directions"``
+        for zero (or overflowing) direction vectors; ``"origins"`` for ``d < 2``.
+
+    Examples
+    --------
+    >>> Q, r = from_rays([[1.0, 2.0, 3.0]], [[0.0, 0.0, 2.0]])
+    >>> r
+    array([[1., 2., 0.]])
+    """
+    o = as_array(origins, "origins", ("n", None))
+    d = o.shape[1]
+    if d < 2:
+        raise InvalidInputError(f"origins: lines need d >= 2, got d = {d}", "origins")
+    v = as_array(directions, "directions", (o.shape[0], d))
+    norm = np.sqrt(np.einsum("ni,ni->n", v, v))
+    bad = ~(norm > 0) | ~np.isfinite(norm)
+    if bad.any():
+        rows = np.nonzero(bad)[0]
+        raise InvalidInputError(
+            f"directions: zero (or overflowing) direction vectors in rows {rows[:10].tolist()}"
+            + (" ..." if rows.size > 10 else ""),
+            "directions",
+        )
+    a = v / norm[:, None]
+    Q = np.eye(d) - a[:, :, None] * a[:, None, :]
+    r = o - np.einsum("ni,ni->n", a, o)[:, None] * a
+    return Q, r
+
+
+# ------------------------------------------------------------------ back-conversions
+
+
+def frames(Q, k):
+    """Orthonormal spanning and normal vectors of flats (eigenvectors of ``Q``).
+
+    Parameters
+    ----------
+    Q : array_like, shape (n, d, d)
+    k : int
+
+    Returns
+    -------
+    A : ndarray, shape (n, d, k)
+        Eigenvectors of the ``k`` smallest eigenvalues (the null space, (C1)).
+    N : ndarray, shape (n, d, d-k)
+        Eigenvectors of the ``d-k`` largest eigenvalues (the image, (C1)).
+    """
+    Q = np.asarray(Q, dtype=np.float64)
+    _, V = np.linalg.eigh(Q)
+    return V[:, :, :k], V[:, :, k:]
+
+
+def to_parametric(Q, r, k):
+    """Orthonormal spanning vectors and the closest point to the origin.
+
+    Parameters
+    ----------
+    Q : array_like, shape (n, d, d)
+    r : array_like, shape (n, d)
+    k : int
+
+    Returns
+    -------
+    A : ndarray, shape (n, d, k)
+        Orthonormal, ``span(A) = null(Q)``.
+    b : ndarray, shape (n, d)
+        ``r`` itself: for a valid flat the closest point to the origin (Eq. 3).
+
+    Examples
+    --------
+    >>> Q, r = from_rays([[1.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
+    >>> A, b = to_parametric(Q, r, 1)
+    >>> float(abs(A[0, 2, 0])), b[0]
+    (1.0, array([1., 0., 0.]))
+    """
+    Q, r = _as_flats(Q, r)
+    k = check_k(k, Q.shape[1])
+    A, _ = frames(Q, k)
+    return A, r.copy()
+
+
+def to_normal(Q, r, k):
+    """Orthonormal normals ``N`` and offsets ``c`` with ``flat = {N^T x = c}``.
+
+    Parameters
+    ----------
+    Q : array_like, shape (n, d, d)
+    r : array_like, shape (n, d)
+    k : int
+
+    Returns
+    -------
+    N : ndarray, shape (n, d, d-k)
+        Orthonormal, ``N N^T = Q`` (Eq. 3).
+    c : ndarray, shape (n, d-k)
+        ``N^T r`` (so ``r = N c``).
+    """
+    Q, r = _as_flats(Q, r)
+    k = check_k(k, Q.shape[1])
+    _, N = frames(Q, k)
+    return N, np.einsum("nij,ni->nj", N, r)
+
+
+def closest_point(Q, r):
+    """Point of each flat closest to the origin; this is ``r`` (Eq. 3).
+
+    Parameters
+    ----------
+    Q : array_like, shape (n, d, d)
+    r : array_like, shape (n, d)
+
+    Returns
+    -------
+    ndarray, shape (n, d)
+    """
+    _, r = _as_flats(Q, r)
+    return r.copy()
+
+
+def squared_distance(Q, r, x):
+    """Squared Euclidean distance of points to flats (paper Eq. 1-2).
+
+    Computed as ``|Q x - r|^2``, which equals ``x^T Q x - 2 r^T x + r^T r``
+    under (C1) and (C2) but never goes negative through cancellation.
+
+    Parameters
+    ----------
+    Q : array_like, shape (n, d, d)
+    r : array_like, shape (n, d)
+    x : array_like, shape (n, d)
+        One point per flat.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    Q, r = _as_flats(Q, r)
+    x = as_array(x, "x", r.shape)
+    e = np.einsum("nij,nj->ni", Q, x) - r
+    return np.einsum("ni,ni->n", e, e)
+
+
+def validate(Q, r, k, tol: float = FLAT_TOL):
+    """Check (C1) and (C2) of paper Sec. 2.1 for every row.
+
+    (C1): ``Q`` symmetric, idempotent and of rank ``d - k`` (for a symmetric
+    idempotent matrix the rank is its trace); (C2): ``Q r = r``.  All tests use
+    the max-norm with absolute tolerance ``tol`` (``(C2)`` relative to
+    ``1 + |r|``).
+
+    Parameters
+    ----------
+    Q : array_like, shape (n, d, d)
+    r : array_like, shape (n, d)
+    k : int
+    tol : float
+
+    Returns
+    -------
+    Q, r : ndarray
+        The validated arrays (float64, contiguous).
+
+    Raises
+    ------
+    InvalidFlatError
+        Naming the condition (``(C1) symmetric``, ``(C1) idempotent``,
+        ``(C1) rank``, ``(C2) Qr = r``), the offending rows and the argument
+        (``Q`` or ``r``).
+    InvalidInputError
+        For wrong shapes, NaN, or ``k`` outside ``[0, d)``.
+    """
+    Q, r = _as_flats(Q, r)
+    d = Q.shape[1]
+    k = check_k(k, d)
+
+    def fail(mask, what, arg):
+        rows = np.nonzero(mask)[0]
+        raise InvalidFlatError(
+            f"{arg}: condition {what} violated (tol {tol:g}) in rows {rows[:10].tolist()}"
+            + (" ..." if rows.size > 10 else ""),
+            arg,
+        )
+
+    Qt = np.swapaxes(Q, 1, 2)
+    bad = np.abs(Q - Qt).max(axis=(1, 2)) > tol
+    if bad.any():
+        fail(bad, "(C1) symmetric", "Q")
+    bad = np.abs(Q @ Q - Q).max(axis=(1, 2)) > tol
+    if bad.any():
+        fail(bad, "(C1) idempotent", "Q")
+    bad = np.abs(np.trace(Q, axis1=1, axis2=2) - (d - k)) > tol * max(1, d)
+    if bad.any():
+        fail(bad, f"(C1) rank d-k = {d - k}", "Q")
+    res = np.abs(np.einsum("nij,nj->ni", Q, r) - r).max(axis=1, initial=0.0)
+    bad = res > tol * (1.0 + np.abs(r).max(axis=1, initial=0.0))
+    if bad.any():
+        fail(bad, "(C2) Qr = r", "r")
+    return Q, r
+
+
+# ------------------------------------------------------------------------ projection
+
+
+def _project_unchecked(Qs, rs, k, gap_tol):
+    lam, V = np.linalg.eigh(Qs)
+    if k == 0:
+        gap = lam[:, 0].copy()
+    else:
+        gap = lam[:, k] - lam[:, k - 1]
+    N = V[:, :, k:]
+    lamN = lam[:, k:]
+    scale = np.abs(lam).max(axis=1, keepdims=True)
+    keep = np.abs(lamN) > PINV_RCOND * scale
+    inv = np.where(keep, 1.0 / np.where(keep, lamN, 1.0), 0.0)
+    # r~ = Q~ (Q*)^+ r* = N diag(1/lambda_N) N^T r*  (the k spanning terms vanish)
+    y = np.einsum("nij,ni->nj", N, rs) * inv
+    r = np.einsum("nij,nj->ni", N, y)
+    Q = N @ np.swapaxes(N, 1, 2)
+    return Projection(Q, r, gap, ~(gap >= gap_tol))
+
+
+def project(Qs, rs, k, gap_tol: float = GAP_TOL) -> Projection:
+    """Projection P of ``(Q*, r*)`` onto the closest k-flat (paper Sec. 2.3).
+
+    1. ``Q* = V diag(lambda) V^T`` (ascending); the eigenvectors of the ``k``
+       smallest eigenvalues span the flat, the rest ``N`` are its normals:
+       ``Q~ = N N^T``.
+    2. ``x* = (Q*)^+ r*`` (the extremum of ``q*``), ``r~ = Q~ x*``.
+
+    Parameters
+    ----------
+    Qs : array_like, shape (n, d, d)
+        Symmetric (e.g. an affine combination, Eq. 4, with weights summing
+        to one so that eigenvalues are on the scale of ``[0, 1]``).
+    rs : array_like, shape (n, d)
+    k : int
+    gap_tol : float
+        Rows with eigen-gap ``lambda_{k+1} - lambda_k < gap_tol`` are flagged
+        ``ambiguous`` (Sec. 3.1): their ``Q~`` is not unique.
+
+    Returns
+    -------
+    Projection
+        ``(Q (n,d,d), r (n,d), gap (n,), ambiguous (n,) bool)``.
+
+    Examples
+    --------
+    >>> Q1, r1 = from_rays([[0, 0], [0, 2]], [[1, 0], [1, 0]])
+    >>> p = project(0.5 * (Q1[:1] + Q1[1:]), 0.5 * (r1[:1] + r1[1:]), k=1)
+    >>> p.r.round(12), bool(p.ambiguous[0])
+    (array([[0., 1.]]), False)
+    """
+    Qs, rs = _as_flats(Qs, rs, "Qs", "rs")
+    k = check_k(k, Qs.shape[1])
+    return _project_unchecked(Qs, rs, k, gap_tol)
+
+
+def _check_weights(weights, m):
+    w = as_array(weights, "weights", ("n", m))
+    s = w.sum(axis=1)
+    bad = np.abs(s - 1.0) > WEIGHT_TOL * np.maximum(1.0, np.abs(w).sum(axis=1))
+    if bad.any():
+        rows = np.nonzero(bad)[0]
+        raise WeightsError(
+            f"weights: rows must sum to one (Eq. 4); rows {rows[:10].tolist()}"
+            + (" ..." if rows.size > 10 else "")
+            + f" sum to {s[rows[:3]].tolist()}",
+            "weights",
+        )
+    return w
+
+
+def affine_combination(weights, Q, r, k, gap_tol: float = GAP_TOL) -> Projection:
+    """Projected affine combinations ``P(sum_l w_l q_l)`` (paper Eq. 4, 6).
+
+    Parameters
+    ----------
+    weights : array_like, shape (n, m)
+        Each row sums to one (``WEIGHT_TOL``); negative entries are allowed
+        (affine, not only convex, combinations).
+    Q : array_like, shape (m, d, d)
+        The flats being combined (need not be valid flats: tangent-simplex
+        vertices are not).
+    r : array_like, shape (m, d)
+    k : int
+    gap_tol : float
+        See :func:`project`.
+
+    Returns
+    -------
+    Projection
+
+    Raises
+    ------
+    WeightsError
+        ``"weights"`` when a row does not sum to one.
+
+    Examples
+    --------
+    >>> Q, r = from_rays([[0.0, 0.0], [0.0, 4.0]], [[1.0, 0.0], [1.0, 0.0]])
+    >>> affine_combination([[0.75, 0.25]], Q, r, k=1).r.round(12)
+    array([[0., 1.]])
+    """
+    Q, r = _as_flats(Q, r)
+    k = check_k(k, Q.shape[1])
+    w = _check_weights(weights, Q.shape[0])
+    Qs = np.einsum("nl,lij->nij", w, Q)
+    rs = w @ r
+    return _project_unchecked(Qs, rs, k, gap_tol)

@@ -1,4 +1,33 @@
-"""flatserve: compute with flats (affine subspaces) the way you compute with points."""
+"""flatserve: compute with flats (affine subspaces) the way you compute with points.
+
+Public API
+----------
+flats         (Q, r) flats: constructors, conversions, projection, affine combinations
+Basis         a basis of flats, its checks, the tangent simplex, coordinates
+coordinates   coordinates of flats in a basis (paper Sec. 4), status codes
+embedding     the regular-simplex embedding of affine coordinates (Sec. 5)
+Triangulation CGAL dD Delaunay triangulation with scipy's vocabulary
+Field         a function sampled on flats: basis + triangulation + values
+errors        the one error hierarchy
+"""
 from __future__ import annotations
 
+from . import coordinates, embedding, errors, flats
+from .basis import Basis, select_scale
+from .field import AddResult, Field, QueryResult
+from .triangulation import Triangulation
+
 __version__ = "0.1.0"
+
+__all__ = [
+    "AddResult",
+    "Basis",
+    "Field",
+    "QueryResult",
+    "Triangulation",
+    "coordinates",
+    "embedding",
+    "errors",
+    "flats",
+    "select_scale",
+]

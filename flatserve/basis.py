@@ -41,9 +41,11 @@ Why ``variant="tangent"`` is the default
     ``tan(2 phi) = 2 t``, i.e. ``phi < 45 deg`` for all ``t``); the skewed one
     reaches less.  Measured on the paper's ray set-up (screen z = 0 in
     ``[-1, 1]^2``, eyes in ``[-1, 1]^2 x [-4.5, -1.5]``, basis around the
-    z-axis, scale 0.01, 200k rays): Eq. 14 as printed loses 6.9 % of the rays,
-    the tangent variant 1.76 %, exactly the share of rays steeper than 45
-    degrees (``benchmarks/bench_coordinates.py`` prints both).
+    z-axis, scale 0.01, 1M rays): Eq. 14 as printed loses 6.95 % of the rays,
+    the tangent variant 1.74 %, exactly the share of rays steeper than 45
+    degrees (``benchmarks/bench_coordinates.py`` prints both).  Projecting the
+    Eq. 14 vertices onto the manifold removes the ``a a^T`` component and
+    gives the tangent variant's 1.74 % back.
 
 Example
 -------
@@ -294,6 +296,10 @@ class Basis:
         self.d = d
         self.m = m
         self.dim = (k + 1) * (d - k)
+        #: Set by :meth:`tangent_simplex`: centre flat (Q, r), scale, variant.
+        self.center = None
+        self.scale = None
+        self.variant = None
         self.Q.setflags(write=False)
         self.r.setflags(write=False)
 
@@ -405,7 +411,7 @@ class Basis:
         return _flats.affine_combination(weights, self.Q, self.r, self.k, gap_tol)
 
     def coordinates(self, Q, r, roundtrip_tol: float = _coords.ROUNDTRIP_TOL,
-                    check: bool = True) -> _coords.Coordinates:
+                    check: bool = True, native: bool | None = None) -> _coords.Coordinates:
         """Affine coordinates of targets (Fig. 8); see :func:`flatserve.coordinates.coordinates`.
 
         Parameters
@@ -415,6 +421,8 @@ class Basis:
         roundtrip_tol : float
         check : bool
             Validate the targets' (C1)/(C2).
+        native : bool or None
+            Use the native fast path for lines in R^3 (``None``: when built).
 
         Returns
         -------
@@ -422,7 +430,7 @@ class Basis:
             ``weights (n, m)``, ``status (n,) int8``, ``residual (n,)``.
         """
         return _coords.coordinates(self.Q, self.r, self.k, Q, r, roundtrip_tol=roundtrip_tol,
-                                   check=check)
+                                   check=check, native=native)
 
     def coordinates_rays(self, origins, directions,
                          roundtrip_tol: float = _coords.ROUNDTRIP_TOL) -> _coords.Coordinates:

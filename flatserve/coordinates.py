@@ -258,6 +258,7 @@ def coordinates(
     gap_tol: float = _flats.GAP_TOL,
     check: bool = True,
     flat_tol: float = _flats.FLAT_TOL,
+    native: bool | None = None,
 ) -> Coordinates:
     """Affine coordinates of target flats in a basis (Fig. 8, Eq. 9, 12).
 
@@ -277,6 +278,10 @@ def coordinates(
         Validate (C1)/(C2) of the targets (raises ``InvalidFlatError``).
     flat_tol : float
         Tolerance of that validation.
+    native : bool or None
+        Lines in R^3 with a 5-element basis go through the native fast path
+        (see :func:`coordinates_rays`; the line's direction is the largest
+        column of ``I - Q``, its origin ``r``) unless ``native`` is False.
 
     Returns
     -------
@@ -295,6 +300,11 @@ def coordinates(
     r = as_array(r, "r", (Q.shape[0], d))
     if check:
         _flats.validate(Q, r, k, flat_tol)
+    if native is not False and (k, d, m) == (1, 3, 5) and Q.shape[0]:
+        P = np.eye(3) - Q  # = a a^T
+        col = np.argmax(np.diagonal(P, axis1=1, axis2=2), axis=1)
+        directions = np.ascontiguousarray(np.take_along_axis(P, col[:, None, None], 2)[:, :, 0])
+        return coordinates_rays(Qb, rb, r, directions, roundtrip_tol, rcond, gap_tol, native)
     return _coordinates_unchecked(Qb, rb, k, Q, r, roundtrip_tol, rcond, gap_tol)
 
 
@@ -340,24 +350,33 @@ def coordinates_rays(Qb, rb, origins, directions, roundtrip_tol: float = ROUNDTR
     Qb = as_array(Qb, "Qb", ("m", None, None))
     m, d, _ = Qb.shape
     rb = as_array(rb, "rb", (m, d))
-    Q, r = _flats.from_rays(origins, directions)
-    if Q.shape[1] != d:
-        raise InvalidInputError(f"origins: basis is in R^{d}, rays in R^{Q.shape[1]}", "origins")
+    o, v, _ = _flats._check_rays(origins, directions)
+    if o.shape[1] != d:
+        raise InvalidInputError(f"origins: basis is in R^{d}, rays in R^{o.shape[1]}", "origins")
     fast = _fast_rays() if native is not False and (m, d) == (5, 3) else None
     if native and fast is None:
         raise RuntimeError("the native coordinates fast path is not available "
                            "(needs the built extension, d = 3 and m = 5)")
     if fast is not None:
-        o = as_array(origins, "origins", (Q.shape[0], 3))
-        v = as_array(directions, "directions", (Q.shape[0], 3))
         w, status, residual = fast(Qb, rb, o, v, roundtrip_tol, rcond, gap_tol)
         return Coordinates(w, status, residual)
+    Q, r = _flats.from_rays(o, v)
     return _coordinates_unchecked(Qb, rb, 1, Q, r, roundtrip_tol, rcond, gap_tol)
 
 
 def _fast_rays():
+    """The native kernel wrapped to take validated float64 arrays, or None."""
     try:
         from . import _native
     except ImportError:  # pragma: no cover - extension not built
         return None
-    return getattr(_native, "coordinates_rays3", None)
+    kernel = getattr(_native, "coordinates_rays3", None)
+    if kernel is None:
+        return None
+
+    def fast(Qb, rb, o, v, roundtrip_tol, rcond, gap_tol):
+        return kernel(np.ascontiguousarray(Qb), np.ascontiguousarray(rb), o, v,
+                      float(roundtrip_tol), float(rcond), float(gap_tol),
+                      float(_flats.PINV_RCOND))
+
+    return fast

@@ -272,6 +272,25 @@ def from_normal(N, c):
     return Q, r
 
 
+def _check_rays(origins, directions):
+    """Validate rays; returns (origins (n,d), directions (n,d), |directions| (n,))."""
+    o = as_array(origins, "origins", ("n", None))
+    d = o.shape[1]
+    if d < 2:
+        raise InvalidInputError(f"origins: lines need d >= 2, got d = {d}", "origins")
+    v = as_array(directions, "directions", (o.shape[0], d))
+    norm = np.sqrt(np.einsum("ni,ni->n", v, v))
+    bad = ~(norm > 0) | ~np.isfinite(norm)
+    if bad.any():
+        rows = np.nonzero(bad)[0]
+        raise InvalidInputError(
+            f"directions: zero (or overflowing) direction vectors in rows {rows[:10].tolist()}"
+            + (" ..." if rows.size > 10 else ""),
+            "directions",
+        )
+    return o, v, norm
+
+
 def from_rays(origins, directions):
     """Lines (``k = 1``) through ``origins`` along ``directions``.
 
@@ -300,20 +319,8 @@ def from_rays(origins, directions):
     >>> r
     array([[1., 2., 0.]])
     """
-    o = as_array(origins, "origins", ("n", None))
+    o, v, norm = _check_rays(origins, directions)
     d = o.shape[1]
-    if d < 2:
-        raise InvalidInputError(f"origins: lines need d >= 2, got d = {d}", "origins")
-    v = as_array(directions, "directions", (o.shape[0], d))
-    norm = np.sqrt(np.einsum("ni,ni->n", v, v))
-    bad = ~(norm > 0) | ~np.isfinite(norm)
-    if bad.any():
-        rows = np.nonzero(bad)[0]
-        raise InvalidInputError(
-            f"directions: zero (or overflowing) direction vectors in rows {rows[:10].tolist()}"
-            + (" ..." if rows.size > 10 else ""),
-            "directions",
-        )
     a = v / norm[:, None]
     Q = np.eye(d) - a[:, :, None] * a[:, None, :]
     r = o - np.einsum("ni,ni->n", a, o)[:, None] * a

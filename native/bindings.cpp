@@ -1,11 +1,314 @@
 // The one file that knows about Python. Everything CGAL lives in headers
 // beside it (triangulation.hpp, ...); this file only converts arrays.
+//
+// Layout: one delimited block per topic (`// ---- <topic> ----`), each with a
+// `bind_<topic>(nb::module_&)` function called from NB_MODULE at the bottom.
+// Arrays arrive validated and C-contiguous from the Python wrappers.
 #include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
 #include <nanobind/stl/string.h>
+#include <nanobind/stl/tuple.h>
+#include <nanobind/stl/optional.h>
 #include <CGAL/version.h>
 #include <Eigen/Core>
 
+#include <cstdint>
+#include <cstring>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
 namespace nb = nanobind;
+
+namespace {
+
+// A new NumPy array of the given shape owning a heap buffer.
+template <class T>
+struct OutArray {
+  T* data;
+  std::vector<std::size_t> shape;
+  explicit OutArray(std::vector<std::size_t> s) : shape(std::move(s)) {
+    std::size_t n = 1;
+    for (std::size_t d : shape) n *= d;
+    data = new T[n ? n : 1];
+  }
+  // Hands ownership to Python (call with the GIL held).
+  nb::ndarray<nb::numpy, T> release() {
+    T* p = data;
+    data = nullptr;
+    nb::capsule owner(p, [](void* q) noexcept { delete[] static_cast<T*>(q); });
+    return nb::ndarray<nb::numpy, T>(p, shape.size(), shape.data(), owner);
+  }
+  ~OutArray() { delete[] data; }
+  OutArray(const OutArray&) = delete;
+  OutArray& operator=(const OutArray&) = delete;
+};
+
+}  // namespace
+
+// ---- triangulation ----
+#include "triangulation.hpp"
+
+namespace {
+
+using CArr2 = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+
+struct PyTriangulation {
+  std::unique_ptr<fs::TriangulationBase> t;
+};
+
+void check_cols(const CArr2& a, std::size_t want, const char* name) {
+  if (a.shape(1) != want)
+    throw std::invalid_argument(std::string(name) + ": expected " + std::to_string(want) +
+                                " columns, got " + std::to_string(a.shape(1)));
+}
+
+nb::object values_or_none(std::vector<double>& v, std::size_t n, std::size_t C) {
+  if (C == 0) return nb::none();
+  OutArray<double> out({n, C});
+  std::memcpy(out.data, v.data(), sizeof(double) * n * C);
+  return nb::cast(out.release());
+}
+
+void bind_triangulation(nb::module_& m) {
+  nb::exception<fs::snapshot_error>(m, "SnapshotError");
+  m.attr("KIND_IN_CELL") = static_cast<int>(fs::IN_CELL);
+  m.attr("KIND_ON_FACET") = static_cast<int>(fs::ON_FACET);
+  m.attr("KIND_ON_FACE") = static_cast<int>(fs::ON_FACE);
+  m.attr("KIND_ON_VERTEX") = static_cast<int>(fs::ON_VERTEX);
+  m.attr("KIND_OUTSIDE_CONVEX_HULL") = static_cast<int>(fs::OUTSIDE_CONVEX_HULL);
+  m.attr("KIND_OUTSIDE_AFFINE_HULL") = static_cast<int>(fs::OUTSIDE_AFFINE_HULL);
+  m.attr("QUERY_CHUNK") = fs::kChunk;
+  m.def("default_threads", &fs::default_threads);
+
+  nb::class_<PyTriangulation>(m, "Triangulation")
+      .def("__init__",
+           [](PyTriangulation* self, int ndim) {
+             new (self) PyTriangulation{fs::make_triangulation(ndim)};
+           },
+           nb::arg("ndim"))
+      .def_prop_ro("ndim", [](const PyTriangulation& s) { return s.t->dimension(); })
+      .def_prop_ro("current_dimension",
+                   [](const PyTriangulation& s) { return s.t->current_dimension(); })
+      .def_prop_ro("nvertices",
+                   [](const PyTriangulation& s) { return s.t->number_of_vertices(); })
+      .def_prop_ro("nfullcells",
+                   [](const PyTriangulation& s) { return s.t->number_of_full_cells(); })
+      .def("nfinite_cells",
+           [](const PyTriangulation& s) {
+             nb::gil_scoped_release r;
+             return s.t->number_of_finite_cells();
+           })
+      .def("insert",
+           [](PyTriangulation& s, CArr2 pts) {
+             check_cols(pts, s.t->dimension(), "points");
+             const std::size_t n = pts.shape(0);
+             OutArray<std::int64_t> ids({n});
+             std::size_t added;
+             {
+               nb::gil_scoped_release r;
+               added = s.t->insert(pts.data(), n, ids.data);
+             }
+             return std::make_tuple(ids.release(), added);
+           },
+           nb::arg("points"))
+      .def("locate",
+           [](const PyTriangulation& s, CArr2 q, bool hilbert, int threads) {
+             const int D = s.t->dimension();
+             check_cols(q, D, "xi");
+             const std::size_t n = q.shape(0), D1 = D + 1;
+             OutArray<std::int64_t> ids({n, D1});
+             OutArray<double> w({n, D1});
+             OutArray<std::int8_t> kind({n});
+             OutArray<std::int64_t> simplex({n});
+             {
+               nb::gil_scoped_release r;
+               s.t->locate(q.data(), n, hilbert, threads, ids.data, w.data, kind.data,
+                           simplex.data);
+             }
+             return std::make_tuple(ids.release(), w.release(), kind.release(),
+                                    simplex.release());
+           },
+           nb::arg("xi"), nb::arg("hilbert") = true, nb::arg("threads") = 0)
+      .def("interpolate",
+           [](const PyTriangulation& s, CArr2 q, CArr2 values, bool clamp, bool hilbert,
+              int threads) {
+             check_cols(q, s.t->dimension(), "xi");
+             const std::size_t n = q.shape(0), C = values.shape(1);
+             OutArray<double> out({n, C});
+             OutArray<bool> inside({n});
+             {
+               nb::gil_scoped_release r;
+               s.t->interpolate(q.data(), n, values.data(), values.shape(0), C, clamp, hilbert,
+                                threads, out.data, reinterpret_cast<std::uint8_t*>(inside.data));
+             }
+             return std::make_tuple(out.release(), inside.release());
+           },
+           nb::arg("xi"), nb::arg("values"), nb::arg("clamp") = false, nb::arg("hilbert") = true,
+           nb::arg("threads") = 0)
+      .def("points",
+           [](const PyTriangulation& s) {
+             OutArray<double> out({s.t->number_of_vertices(), (std::size_t)s.t->dimension()});
+             {
+               nb::gil_scoped_release r;
+               s.t->points(out.data);
+             }
+             return out.release();
+           })
+      .def("simplices",
+           [](const PyTriangulation& s) {
+             std::size_t m;
+             {
+               nb::gil_scoped_release r;
+               m = s.t->number_of_finite_cells();
+             }
+             OutArray<std::int64_t> out({m, (std::size_t)s.t->dimension() + 1});
+             {
+               nb::gil_scoped_release r;
+               s.t->simplices(out.data);
+             }
+             return out.release();
+           })
+      .def("is_valid",
+           [](const PyTriangulation& s, bool verbose) {
+             nb::gil_scoped_release r;
+             return s.t->is_valid(verbose);
+           },
+           nb::arg("verbose") = false)
+      .def("save",
+           [](const PyTriangulation& s, const std::string& path, std::optional<CArr2> values) {
+             const double* v = values ? values->data() : nullptr;
+             const std::size_t C = values ? values->shape(1) : 0;
+             if (values && values->shape(0) != s.t->number_of_vertices())
+               throw std::invalid_argument("values: one row per vertex expected");
+             nb::gil_scoped_release r;
+             fs::FileSink sink(path);
+             fs::save_snapshot(*s.t, sink, v, C);
+             sink.close();
+           },
+           nb::arg("path"), nb::arg("values").none())
+      .def("to_bytes",
+           [](const PyTriangulation& s, std::optional<CArr2> values) {
+             const double* v = values ? values->data() : nullptr;
+             const std::size_t C = values ? values->shape(1) : 0;
+             if (values && values->shape(0) != s.t->number_of_vertices())
+               throw std::invalid_argument("values: one row per vertex expected");
+             fs::VectorSink sink;
+             {
+               nb::gil_scoped_release r;
+               fs::save_snapshot(*s.t, sink, v, C);
+             }
+             return nb::bytes(sink.buf.data(), sink.buf.size());
+           },
+           nb::arg("values").none())
+      .def_static("load",
+                  [](const std::string& path) {
+                    fs::LoadedSnapshot ls;
+                    {
+                      nb::gil_scoped_release r;
+                      fs::FileSource src(path);
+                      ls = fs::load_snapshot(src);
+                    }
+                    std::size_t n = ls.tri->number_of_vertices();
+                    nb::object vals = values_or_none(ls.values, n, ls.channels);
+                    return std::make_tuple(PyTriangulation{std::move(ls.tri)}, vals);
+                  },
+                  nb::arg("path"))
+      .def_static("from_bytes",
+                  [](nb::bytes data) {
+                    fs::LoadedSnapshot ls;
+                    {
+                      const char* p = data.c_str();
+                      std::size_t len = data.size();
+                      nb::gil_scoped_release r;
+                      fs::MemorySource src(p, len);
+                      ls = fs::load_snapshot(src);
+                    }
+                    std::size_t n = ls.tri->number_of_vertices();
+                    nb::object vals = values_or_none(ls.values, n, ls.channels);
+                    return std::make_tuple(PyTriangulation{std::move(ls.tri)}, vals);
+                  },
+                  nb::arg("data"));
+}
+
+}  // namespace
+// ---- end triangulation ----
+
+// ---- raycast ----
+// Ray casting against a triangle mesh (CGAL AABB tree); C++ in raycast.hpp.
+// Python face: flatserve.lightfield.scene (LIGHTFIELD helper).
+#include "raycast.hpp"
+
+namespace {
+using RaycastRows = nb::ndarray<const double, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
+using RaycastFaces = nb::ndarray<const std::int64_t, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
+
+void bind_raycast(nb::module_& m) {
+  using flatserve::RayCaster;
+  nb::class_<RayCaster>(m, "RayCaster")
+      .def("__init__",
+           [](RayCaster* self, RaycastRows vertices, RaycastFaces faces) {
+             nb::gil_scoped_release unlocked;
+             new (self) RayCaster(vertices.data(), vertices.shape(0), faces.data(), faces.shape(0));
+           },
+           nb::arg("vertices"), nb::arg("faces"))
+      .def_prop_ro("size", &RayCaster::size)
+      .def("cast",
+           [](const RayCaster& rc, RaycastRows origins, RaycastRows directions, int threads) {
+             if (origins.shape(0) != directions.shape(0))
+               throw std::invalid_argument("origins and directions need the same number of rows");
+             const std::size_t n = origins.shape(0);
+             double* t = new double[n ? n : 1];
+             nb::capsule t_owner(t, [](void* p) noexcept { delete[] static_cast<double*>(p); });
+             std::int64_t* face = new std::int64_t[n ? n : 1];
+             nb::capsule f_owner(face, [](void* p) noexcept { delete[] static_cast<std::int64_t*>(p); });
+             {
+               nb::gil_scoped_release unlocked;
+               rc.cast(origins.data(), directions.data(), n, t, face, threads);
+             }
+             return nb::make_tuple(nb::ndarray<nb::numpy, double, nb::ndim<1>>(t, {n}, t_owner),
+                                   nb::ndarray<nb::numpy, std::int64_t, nb::ndim<1>>(face, {n}, f_owner));
+           },
+           nb::arg("origins"), nb::arg("directions"), nb::arg("threads") = 0);
+}
+}  // namespace
+// ---- /raycast ----
+
+// ---- coordinates ----
+// Hot path of flatserve.coordinates.coordinates_rays (k = 1, d = 3, m = 5);
+// the math is in coordinates.hpp, the NumPy reference in coordinates.py.
+#include "coordinates.hpp"
+
+namespace {
+using CoordRows = nb::ndarray<const double, nb::c_contig, nb::device::cpu>;
+
+void bind_coordinates(nb::module_& m) {
+  m.def("coordinates_rays3",
+        [](CoordRows Qb, CoordRows rb, CoordRows origins, CoordRows directions,
+           double roundtrip_tol, double rcond, double gap_tol, double pinv_rcond) {
+          if (Qb.size() != 45 || rb.size() != 15)
+            throw std::invalid_argument("Qb, rb: expected 5 flats in R^3 (5x3x3, 5x3)");
+          if (origins.ndim() != 2 || origins.shape(1) != 3 || directions.ndim() != 2 ||
+              directions.shape(1) != 3 || directions.shape(0) != origins.shape(0))
+            throw std::invalid_argument("origins, directions: expected (n, 3) each");
+          const std::size_t n = origins.shape(0);
+          OutArray<double> w({n, 5});
+          OutArray<std::int8_t> status({n});
+          OutArray<double> residual({n});
+          {
+            nb::gil_scoped_release unlocked;
+            fs::coordinates_rays3(Qb.data(), rb.data(), origins.data(), directions.data(), n,
+                                  {roundtrip_tol, rcond, gap_tol, pinv_rcond}, w.data,
+                                  status.data, residual.data);
+          }
+          return nb::make_tuple(w.release(), status.release(), residual.release());
+        },
+        nb::arg("Qb"), nb::arg("rb"), nb::arg("origins"), nb::arg("directions"),
+        nb::arg("roundtrip_tol"), nb::arg("rcond"), nb::arg("gap_tol"), nb::arg("pinv_rcond"));
+}
+}  // namespace
+// ---- /coordinates ----
 
 NB_MODULE(_core, m) {
   m.doc() = "flatserve private native core (CGAL dD Delaunay). Not a public API.";
@@ -13,4 +316,7 @@ NB_MODULE(_core, m) {
   m.attr("eigen_version") = std::to_string(EIGEN_WORLD_VERSION) + "." +
                             std::to_string(EIGEN_MAJOR_VERSION) + "." +
                             std::to_string(EIGEN_MINOR_VERSION);
+  bind_triangulation(m);
+  bind_raycast(m);
+  bind_coordinates(m);
 }

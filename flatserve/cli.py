@@ -1,0 +1,92 @@
+"""The ``flatserve`` command line (console script ``flatserve``).
+
+Subcommands register themselves in :data:`COMMANDS`: a name mapped to a pair
+``(add_arguments(parser), run(args) -> int)``.  To add one, define the two
+functions and add an entry (``serve`` and ``lightfield`` are added by their
+owners).
+
+Example
+-------
+$ flatserve experiment --trials 1000 --seed 0
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Callable
+
+
+# ---- experiment ----
+def _experiment_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--trials", type=int, default=1000, help="trials per (d, k) (default 1000)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random generator (default 0)")
+
+
+def _experiment_run(args: argparse.Namespace) -> int:
+    from .experiment import EXPERIMENT_TOL, format_table, run_all
+
+    if args.trials < 1:
+        print("flatserve experiment: --trials must be >= 1", file=sys.stderr)
+        return 2
+    rows = run_all(args.trials, args.seed)
+    print("Paper Sec. 4.3: recover random convex coefficients of a basis of flats")
+    print(format_table(rows))
+    print(f"(failure: a coefficient off by more than {EXPERIMENT_TOL:g} or a failed round trip)")
+    return 1 if any(r.failures for r in rows) else 0
+# ---- /experiment ----
+
+
+# ---- lightfield ----
+def _lightfield_args(p: argparse.ArgumentParser) -> None:
+    from .lightfield.cli import add_arguments
+
+    add_arguments(p)
+
+
+def _lightfield_run(args: argparse.Namespace) -> int:
+    from .lightfield.cli import run
+
+    return run(args)
+# ---- /lightfield ----
+
+
+# ---- serve ----
+def _serve_args(p: argparse.ArgumentParser) -> None:
+    from .service.server import add_arguments
+
+    add_arguments(p)
+
+
+def _serve_run(args: argparse.Namespace) -> int:
+    from .service.server import serve, settings_from_args
+
+    serve(settings_from_args(args))
+    return 0
+# ---- /serve ----
+
+
+#: name -> (help, add_arguments, run)
+COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None],
+                          Callable[[argparse.Namespace], int]]] = {
+    "experiment": ("reproduce the paper's Sec. 4.3 experiment", _experiment_args, _experiment_run),
+    "lightfield": ("light fields: reproduce the paper's Fig. 11 (bunny)", _lightfield_args, _lightfield_run),
+    "serve": ("run the HTTP service (options also from FLATSERVE_* variables)", _serve_args, _serve_run),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="flatserve", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name, (help_, add_args, _) in COMMANDS.items():
+        add_args(sub.add_parser(name, help=help_, description=help_))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``flatserve`` console script."""
+    args = build_parser().parse_args(argv)
+    return COMMANDS[args.command][2](args)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,521 @@
+"""Delaunay triangulation of points in R^D with values at the vertices.
+
+:class:`Triangulation` wraps CGAL's dD Delaunay triangulation (``Epick_d``,
+static dimensions 2..6, dynamic beyond) in scipy.spatial's vocabulary:
+``points``, ``simplices``, ``find_simplex`` (-1 outside), ``barycentric``
+(shape (..., D+1)). Queries walk the triangulation from a hint (the previous
+answer), in Hilbert order by default, release the GIL and run on several
+threads; answers do not depend on the number of threads.
+
+Policies
+--------
+Sample ids
+    Every vertex has a sample id: 0, 1, 2, ... in the order the points were
+    first inserted (input row order within a batch). ``points[i]`` and
+    ``values[i]`` belong to sample id ``i``.
+Duplicates
+    Inserting a point equal to an existing vertex (or to an earlier row of the
+    same batch) adds no vertex: the row is answered with the existing sample
+    id, and its value *replaces* the stored one (the later value wins). The
+    count is reported in :class:`InsertResult`.
+Outside the convex hull
+    ``interpolate(..., outside="nan")`` (default) gives NaN;
+    ``outside="clamp"`` gives the value interpolated on the hull facet the walk
+    ended at: the query's barycentric coordinates on that facet's hyperplane,
+    clamped to >= 0 and renormalised (a cheap, continuous-enough extension, not
+    the nearest point of the hull). ``inside`` is False there either way.
+Degenerate point sets
+    Until the points span R^D (D+1 affinely independent points), every query
+    is ``OUTSIDE_AFFINE_HULL``: ids -1, weights NaN, values NaN.
+Thread safety
+    Queries may run concurrently with each other; :meth:`insert` waits for
+    running queries and blocks new ones (readers/writer lock).
+"""
+from __future__ import annotations
+
+import os
+import threading
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from . import _native
+from ._validate import as_array
+from .errors import InvalidInputError, SnapshotError
+
+__all__ = ["Triangulation", "InsertResult", "Location", "LocateKind"]
+
+_core = _native.core
+
+
+class LocateKind(IntEnum):
+    """Where a query landed (``Location.kind``)."""
+
+    IN_CELL = _core.KIND_IN_CELL
+    ON_FACET = _core.KIND_ON_FACET
+    ON_FACE = _core.KIND_ON_FACE
+    ON_VERTEX = _core.KIND_ON_VERTEX
+    OUTSIDE_CONVEX_HULL = _core.KIND_OUTSIDE_CONVEX_HULL
+    OUTSIDE_AFFINE_HULL = _core.KIND_OUTSIDE_AFFINE_HULL
+
+
+#: ``kind <= INSIDE_MAX`` means the query is in the closed convex hull.
+INSIDE_MAX = int(LocateKind.ON_VERTEX)
+
+_ORDERS = ("hilbert", "given")
+_OUTSIDE = ("nan", "clamp")
+
+
+@dataclass(frozen=True)
+class InsertResult:
+    """Outcome of :meth:`Triangulation.insert`.
+
+    Attributes
+    ----------
+    ids : ndarray, shape (n,), int64
+        Sample id each input row landed on (a new id, or an existing one for a
+        duplicate point).
+    n_new : int
+        Vertices added.
+    n_duplicates : int
+        Rows that landed on an existing vertex (``n - n_new``).
+    """
+
+    ids: np.ndarray
+    n_new: int
+    n_duplicates: int
+
+
+@dataclass(frozen=True)
+class Location:
+    """Answer of :meth:`Triangulation.locate` for q queries.
+
+    Attributes
+    ----------
+    ids : ndarray, shape (q, D+1), int64
+        Sample ids of the vertices of the full cell the walk ended in; -1 for
+        the infinite vertex (outside the hull) and everywhere when outside the
+        affine hull.
+    weights : ndarray, shape (q, D+1), float64
+        Barycentric weights over ``ids`` (sum 1). Outside the convex hull: the
+        clamped, renormalised weights on the hull facet (0 at the infinite
+        vertex); outside the affine hull: NaN.
+    kind : ndarray, shape (q,), int8
+        :class:`LocateKind` codes.
+    simplex : ndarray, shape (q,), int64
+        Row of :attr:`Triangulation.simplices` containing the query, -1 outside.
+    """
+
+    ids: np.ndarray
+    weights: np.ndarray
+    kind: np.ndarray
+    simplex: np.ndarray
+
+    @property
+    def inside(self) -> np.ndarray:
+        """(q,) bool: the query lies in the closed convex hull."""
+        return self.kind <= INSIDE_MAX
+
+
+class _RWLock:
+    """Readers/writer lock, writer-preferring (queries share, insert excludes)."""
+
+    def __init__(self):
+        self._cond = threading.Condition(threading.Lock())
+        self._readers = 0
+        self._writer = False
+        self._waiting_writers = 0
+
+    def acquire_read(self):
+        with self._cond:
+            while self._writer or self._waiting_writers:
+                self._cond.wait()
+            self._readers += 1
+
+    def release_read(self):
+        with self._cond:
+            self._readers -= 1
+            if self._readers == 0:
+                self._cond.notify_all()
+
+    def acquire_write(self):
+        with self._cond:
+            self._waiting_writers += 1
+            while self._writer or self._readers:
+                self._cond.wait()
+            self._waiting_writers -= 1
+            self._writer = True
+
+    def release_write(self):
+        with self._cond:
+            self._writer = False
+            self._cond.notify_all()
+
+
+class _Reading:
+    def __init__(self, lock):
+        self._lock = lock
+
+    def __enter__(self):
+        self._lock.acquire_read()
+
+    def __exit__(self, *exc):
+        self._lock.release_read()
+
+
+class _Writing(_Reading):
+    def __enter__(self):
+        self._lock.acquire_write()
+
+    def __exit__(self, *exc):
+        self._lock.release_write()
+
+
+def _threads_arg(threads) -> int:
+    if threads is None:
+        return 0
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise InvalidInputError(f"threads: expected a positive integer or None, got {threads!r}", "threads")
+    return int(threads)
+
+
+def _choice(value, name, allowed):
+    if value not in allowed:
+        raise InvalidInputError(f"{name}: expected one of {allowed}, got {value!r}", name)
+    return value
+
+
+class Triangulation:
+    """Delaunay triangulation of samples in R^D carrying values.
+
+    Parameters
+    ----------
+    ndim : int
+        Dimension D of the points (>= 2). Dimensions 2..6 use CGAL's static
+        kernels; higher ones the dynamic kernel.
+
+    Examples
+    --------
+    >>> tri = Triangulation(2)
+    >>> res = tri.insert([[0, 0], [1, 0], [0, 1]], values=[[0.0], [1.0], [2.0]])
+    >>> values, inside = tri.interpolate([[0.25, 0.25]])
+    """
+
+    def __init__(self, ndim: int):
+        if isinstance(ndim, bool) or not isinstance(ndim, (int, np.integer)) or ndim < 2:
+            raise InvalidInputError(f"ndim: expected an integer >= 2, got {ndim!r}", "ndim")
+        self._init(_core.Triangulation(int(ndim)), None)
+
+    def _init(self, core, values):
+        self._core = core
+        self._ndim = int(core.ndim)
+        self._lock = _RWLock()
+        n = int(core.nvertices)
+        self._n = n
+        self._points_buf = np.ascontiguousarray(core.points()) if n else np.empty((0, self._ndim))
+        if values is None:
+            self._values_buf = None
+        else:
+            self._values_buf = np.ascontiguousarray(values, dtype=np.float64)
+        self._simplices = None
+
+    # ------------------------------------------------------------------ access
+    @property
+    def ndim(self) -> int:
+        """Dimension D of the points."""
+        return self._ndim
+
+    @property
+    def npoints(self) -> int:
+        """Number of samples (= finite vertices)."""
+        return self._n
+
+    @property
+    def points(self) -> np.ndarray:
+        """(npoints, D) float64, row = sample id (read-only view)."""
+        v = self._points_buf[: self._n]
+        v.flags.writeable = False
+        return v
+
+    @property
+    def values(self) -> np.ndarray | None:
+        """(npoints, C) float64 sample values, or None if none were given."""
+        if self._values_buf is None:
+            return None
+        v = self._values_buf[: self._n]
+        v.flags.writeable = False
+        return v
+
+    @property
+    def nchannels(self) -> int:
+        """Number of value channels C (0 without values)."""
+        return 0 if self._values_buf is None else self._values_buf.shape[1]
+
+    @property
+    def simplices(self) -> np.ndarray:
+        """(nsimplex, D+1) int64: finite full cells as sample ids.
+
+        Row order matches :meth:`find_simplex`; cells are positively oriented.
+        """
+        with _Reading(self._lock):
+            s = self._simplices
+            if s is None:
+                s = self._core.simplices()
+                s.flags.writeable = False
+                self._simplices = s
+            return s
+
+    @property
+    def nsimplex(self) -> int:
+        """Number of finite full cells."""
+        with _Reading(self._lock):
+            if self._simplices is not None:
+                return self._simplices.shape[0]
+            return int(self._core.nfinite_cells())
+
+    @property
+    def current_dimension(self) -> int:
+        """Dimension of the affine hull of the points (-1 when empty)."""
+        return int(self._core.current_dimension)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __repr__(self) -> str:
+        return (f"Triangulation(ndim={self._ndim}, npoints={self._n}, "
+                f"nchannels={self.nchannels})")
+
+    # ------------------------------------------------------------------ insert
+    def insert(self, points, values=None) -> InsertResult:
+        """Insert a batch of samples.
+
+        Parameters
+        ----------
+        points : array_like, shape (n, D)
+            Finite coordinates.
+        values : array_like, shape (n, C) or (n,), optional
+            Values at the points (float64; float32 accepted). Required once the
+            triangulation has values; C must match earlier batches. A 1-D array
+            means C = 1.
+
+        Returns
+        -------
+        InsertResult
+            Per-row sample ids, number of new vertices and of duplicates (whose
+            values replace the stored ones, the later row winning).
+        """
+        pts = as_array(points, "points", ("n", self._ndim))
+        n = pts.shape[0]
+        vals = None
+        if values is not None:
+            v = np.asarray(values)
+            if v.ndim == 1:
+                v = v.reshape(-1, 1)
+            C = self.nchannels if self._values_buf is not None else (v.shape[1] if v.ndim == 2 else None)
+            vals = as_array(v, "values", (n, C if C else "C"))
+            if self._values_buf is None and self._n > 0:
+                raise InvalidInputError(
+                    "values: this triangulation was built without values", "values")
+        elif self._values_buf is not None:
+            raise InvalidInputError(
+                f"values: required, shape ({n}, {self.nchannels})", "values")
+        with _Writing(self._lock):
+            ids, n_new = self._core.insert(pts)
+            n_new = int(n_new)
+            old = self._n
+            new_n = old + n_new
+            self._points_buf = _grow(self._points_buf, new_n)
+            if vals is not None:
+                if self._values_buf is None:
+                    self._values_buf = np.empty((0, vals.shape[1]))
+                self._values_buf = _grow(self._values_buf, new_n)
+            # New ids are old..new_n-1 in input row order.
+            fresh = ids >= old
+            self._points_buf[ids[fresh]] = pts[fresh]
+            if vals is not None:
+                # later row wins: keep the last occurrence of each id
+                rev_ids = ids[::-1]
+                uniq, first_in_rev = np.unique(rev_ids, return_index=True)
+                last_rows = n - 1 - first_in_rev
+                self._values_buf[uniq] = vals[last_rows]
+            self._n = new_n
+            self._simplices = None
+        ids.flags.writeable = False
+        return InsertResult(ids=ids, n_new=n_new, n_duplicates=n - n_new)
+
+    # ------------------------------------------------------------------ queries
+    def _queries(self, xi, name="xi"):
+        arr = np.asarray(xi, dtype=np.float64) if not isinstance(xi, np.ndarray) else xi
+        if arr.ndim == 0 or arr.shape[-1] != self._ndim:
+            raise InvalidInputError(
+                f"{name}: expected shape (..., {self._ndim}), got {np.shape(arr)}", name)
+        lead = arr.shape[:-1]
+        flat = as_array(np.reshape(arr, (-1, self._ndim)), name, (None, self._ndim))
+        return flat, lead
+
+    def locate(self, xi, order: str = "hilbert", threads: int | None = None) -> Location:
+        """Locate queries: containing cell, barycentric weights, kind.
+
+        Parameters
+        ----------
+        xi : array_like, shape (..., D)
+            Query points.
+        order : {"hilbert", "given"}
+            "hilbert" sorts the batch along a Hilbert curve and starts each
+            walk from the previous answer (best for random order); "given"
+            keeps the caller's order (e.g. image scanlines) and still chains.
+        threads : int, optional
+            Worker threads (default: all cores). Answers do not depend on it.
+
+        Returns
+        -------
+        Location
+            Arrays shaped (..., D+1) / (...,).
+        """
+        q, lead = self._queries(xi)
+        _choice(order, "order", _ORDERS)
+        th = _threads_arg(threads)
+        with _Reading(self._lock):
+            ids, w, kind, simplex = self._core.locate(q, order == "hilbert", th)
+        D1 = self._ndim + 1
+        return Location(ids=ids.reshape(lead + (D1,)), weights=w.reshape(lead + (D1,)),
+                        kind=kind.reshape(lead), simplex=simplex.reshape(lead))
+
+    def find_simplex(self, xi, order: str = "hilbert", threads: int | None = None) -> np.ndarray:
+        """Row of :attr:`simplices` containing each query, -1 outside (shape (...,))."""
+        return self.locate(xi, order=order, threads=threads).simplex
+
+    def barycentric(self, xi, order: str = "hilbert", threads: int | None = None) -> np.ndarray:
+        """Barycentric coordinates (..., D+1) in the simplex ``find_simplex(xi)``.
+
+        Weights follow the vertex order of ``simplices[find_simplex(xi)]``;
+        NaN rows for queries outside the convex hull.
+        """
+        loc = self.locate(xi, order=order, threads=threads)
+        w = loc.weights.copy()
+        w[~loc.inside] = np.nan
+        return w
+
+    def interpolate(self, xi, outside: str = "nan", order: str = "hilbert",
+                    threads: int | None = None, values=None):
+        """Piecewise-linear interpolation of the sample values.
+
+        Parameters
+        ----------
+        xi : array_like, shape (..., D)
+            Query points.
+        outside : {"nan", "clamp"}
+            Policy beyond the convex hull (see module docstring).
+        order : {"hilbert", "given"}
+            See :meth:`locate`.
+        threads : int, optional
+            Worker threads (default all cores); results are identical.
+        values : array_like, shape (npoints, C), optional
+            Interpolate these per-sample values instead of :attr:`values`.
+
+        Returns
+        -------
+        values : ndarray, shape (..., C), float64
+        inside : ndarray, shape (...,), bool
+        """
+        q, lead = self._queries(xi)
+        _choice(outside, "outside", _OUTSIDE)
+        _choice(order, "order", _ORDERS)
+        th = _threads_arg(threads)
+        with _Reading(self._lock):
+            if values is None:
+                if self._values_buf is None:
+                    raise InvalidInputError(
+                        "values: the triangulation has no values; pass values=", "values")
+                vals = self._values_buf[: self._n]
+            else:
+                v = np.asarray(values)
+                if v.ndim == 1:
+                    v = v.reshape(-1, 1)
+                vals = as_array(v, "values", (self._n, "C"))
+            out, inside = self._core.interpolate(q, vals, outside == "clamp", order == "hilbert", th)
+        return out.reshape(lead + (vals.shape[1],)), inside.reshape(lead)
+
+    # ------------------------------------------------------------------ checks
+    def is_valid(self, verbose: bool = False) -> bool:
+        """Full CGAL validity check (combinatorics, orientation, Delaunay) and ids."""
+        with _Reading(self._lock):
+            return bool(self._core.is_valid(verbose))
+
+    # ------------------------------------------------------------------ snapshots
+    def _values_arg(self):
+        return None if self._values_buf is None else self._values_buf[: self._n]
+
+    def save(self, path) -> None:
+        """Write a snapshot (points, ids, cells, neighbours, values) to ``path``.
+
+        Written to a temporary file beside ``path`` then renamed (atomic).
+        """
+        path = os.fspath(path)
+        tmp = f"{path}.tmp-{os.getpid()}-{threading.get_ident()}"
+        with _Reading(self._lock):
+            try:
+                self._core.save(tmp, self._values_arg())
+                os.replace(tmp, path)
+            except _core.SnapshotError as exc:
+                _unlink_quietly(tmp)
+                raise SnapshotError(str(exc)) from None
+            except BaseException:
+                _unlink_quietly(tmp)
+                raise
+
+    def to_bytes(self) -> bytes:
+        """The snapshot as bytes (same format as :meth:`save`)."""
+        with _Reading(self._lock):
+            try:
+                return self._core.to_bytes(self._values_arg())
+            except _core.SnapshotError as exc:
+                raise SnapshotError(str(exc)) from None
+
+    @classmethod
+    def load(cls, path) -> "Triangulation":
+        """Read a snapshot written by :meth:`save` (no geometric recomputation).
+
+        Raises
+        ------
+        SnapshotError
+            Missing, truncated or corrupted file, or another format version.
+        """
+        try:
+            core, values = _core.Triangulation.load(os.fspath(path))
+        except _core.SnapshotError as exc:
+            raise SnapshotError(str(exc)) from None
+        return cls._from_core(core, values)
+
+    @classmethod
+    def from_bytes(cls, data) -> "Triangulation":
+        """Inverse of :meth:`to_bytes`."""
+        try:
+            core, values = _core.Triangulation.from_bytes(bytes(data))
+        except _core.SnapshotError as exc:
+            raise SnapshotError(str(exc)) from None
+        return cls._from_core(core, values)
+
+    @classmethod
+    def _from_core(cls, core, values) -> "Triangulation":
+        self = cls.__new__(cls)
+        self._init(core, values)
+        return self
+
+
+def _grow(buf: np.ndarray, n: int) -> np.ndarray:
+    """Return a buffer with at least n rows, keeping the content (amortised doubling)."""
+    if buf.shape[0] >= n:
+        return buf
+    cap = max(n, 2 * buf.shape[0], 16)
+    new = np.empty((cap,) + buf.shape[1:], dtype=buf.dtype)
+    new[: buf.shape[0]] = buf
+    return new
+
+
+def _unlink_quietly(path):
+    try:
+        os.unlink(path)
+    except OSError:
+        pass

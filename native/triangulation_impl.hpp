@@ -1,0 +1,585 @@
+// The CGAL side of triangulation.hpp: the class template, included only by
+// triangulation.cpp (one translation unit per dimension, so that editing the
+// bindings never recompiles CGAL and the dimensions compile in parallel).
+#pragma once
+
+#include <CGAL/Delaunay_triangulation.h>
+#include <CGAL/Epick_d.h>
+#include <CGAL/Spatial_sort_traits_adapter_d.h>
+#include <CGAL/Triangulation_full_cell.h>
+#include <CGAL/Triangulation_vertex.h>
+#include <CGAL/hilbert_sort.h>
+#include <CGAL/property_map.h>
+#include <CGAL/spatial_sort.h>
+
+#include <Eigen/Dense>
+#include <boost/iterator/indirect_iterator.hpp>
+
+#include "triangulation.hpp"
+
+namespace fs {
+
+struct VertexInfo {
+  std::int64_t id = -1;
+};
+
+template <class DimTag>
+struct EigenDim {
+  static constexpr int value = Eigen::Dynamic;
+};
+template <int D>
+struct EigenDim<CGAL::Dimension_tag<D>> {
+  static constexpr int value = D;
+};
+
+template <class DimTag>
+class Triangulation final : public TriangulationBase {
+ public:
+  using K = CGAL::Epick_d<DimTag>;
+  using Vb = CGAL::Triangulation_vertex<K, VertexInfo>;
+  using Cb = CGAL::Triangulation_full_cell<K, std::uint32_t>;  // data: index while writing
+  using TDS = CGAL::Triangulation_data_structure<DimTag, Vb, Cb>;
+  using DT = CGAL::Delaunay_triangulation<K, TDS>;
+  using Point = typename K::Point_d;
+  using Vertex_handle = typename DT::Vertex_handle;
+  using Full_cell_handle = typename DT::Full_cell_handle;
+  static constexpr int E = EigenDim<DimTag>::value;
+  static constexpr int EM1 = (E == Eigen::Dynamic) ? Eigen::Dynamic : E - 1;
+  using Mat = Eigen::Matrix<double, E, E>;
+  using Vec = Eigen::Matrix<double, E, 1>;
+  using MatF = Eigen::Matrix<double, E, EM1>;       // facet edge vectors
+  using MatFF = Eigen::Matrix<double, EM1, EM1>;
+  using VecF = Eigen::Matrix<double, EM1, 1>;
+
+  explicit Triangulation(int D) : D_(D), dt_(D) {}
+
+  int dimension() const override { return D_; }
+  int current_dimension() const override { return dt_.current_dimension(); }
+  std::size_t number_of_vertices() const override { return by_id_.size(); }
+  std::size_t number_of_full_cells() const override { return dt_.number_of_full_cells(); }
+  std::size_t number_of_finite_cells() const override {
+    if (dt_.current_dimension() < D_) return 0;
+    ensure_numbered();
+    return n_finite_;
+  }
+
+  // ------------------------------------------------------------ insertion
+  std::size_t insert(const double* pts, std::size_t n, std::int64_t* out_ids) override {
+    std::vector<Point> P;
+    P.reserve(n);
+    for (std::size_t i = 0; i < n; ++i) P.emplace_back(pts + i * D_, pts + (i + 1) * D_);
+    std::vector<std::size_t> order(n);
+    std::iota(order.begin(), order.end(), std::size_t(0));
+    using Pmap = typename CGAL::Pointer_property_map<Point>::type;
+    using SortTraits = CGAL::Spatial_sort_traits_adapter_d<K, Pmap>;
+    if (n > 1)
+      CGAL::spatial_sort(order.begin(), order.end(),
+                         SortTraits(CGAL::make_property_map(P), dt_.geom_traits()));
+    // Insert in spatial order; number the new vertices afterwards in input
+    // row order (ids then follow the caller's rows, not CGAL's sort).
+    constexpr std::int64_t kNew = -2;
+    std::vector<Vertex_handle> row_vertex(n);
+    Full_cell_handle hint;
+    for (std::size_t idx : order) {
+      Vertex_handle v = dt_.insert(P[idx], hint);
+      if (v->data().id == -1) v->data().id = kNew;
+      row_vertex[idx] = v;
+      hint = v->full_cell();
+    }
+    numbered_.store(false);
+    std::size_t added = 0;
+    for (std::size_t idx = 0; idx < n; ++idx) {
+      Vertex_handle v = row_vertex[idx];
+      if (v->data().id == kNew) {
+        v->data().id = static_cast<std::int64_t>(by_id_.size());
+        by_id_.push_back(v);
+        ++added;
+      }
+      out_ids[idx] = v->data().id;
+    }
+    ensure_numbered();
+    return added;
+  }
+
+  // ------------------------------------------------------------ locate
+  void locate(const double* q, std::size_t n, bool hilbert, int threads, std::int64_t* ids,
+              double* w, std::int8_t* kind, std::int64_t* simplex) const override {
+    const int D1 = D_ + 1;
+    if (simplex && dt_.current_dimension() == D_) ensure_numbered();
+    for_each_query(q, n, hilbert, threads,
+                   [&](std::size_t qi, Scratch& s) {
+                     std::copy(s.ids.begin(), s.ids.end(), ids + qi * D1);
+                     std::copy(s.w.begin(), s.w.end(), w + qi * D1);
+                     kind[qi] = s.kind;
+                     if (simplex)
+                       simplex[qi] = s.kind <= ON_VERTEX ? static_cast<std::int64_t>(s.cell->data()) : -1;
+                   });
+  }
+
+  void interpolate(const double* q, std::size_t n, const double* values, std::size_t nvalues,
+                   std::size_t C, bool clamp, bool hilbert, int threads, double* out,
+                   std::uint8_t* inside) const override {
+    if (nvalues < by_id_.size())
+      throw std::invalid_argument("values has fewer rows than the triangulation has vertices");
+    const double nan = std::numeric_limits<double>::quiet_NaN();
+    const int D1 = D_ + 1;
+    for_each_query(q, n, hilbert, threads, [&](std::size_t qi, Scratch& s) {
+      double* o = out + qi * C;
+      const bool in = s.kind <= ON_VERTEX;
+      inside[qi] = in ? 1 : 0;
+      if (!(in || (clamp && s.kind == OUTSIDE_CONVEX_HULL))) {
+        std::fill(o, o + C, nan);
+        return;
+      }
+      std::fill(o, o + C, 0.0);
+      for (int k = 0; k < D1; ++k) {
+        const double wk = s.w[k];
+        if (s.ids[k] < 0 || wk == 0.0) continue;
+        const double* v = values + static_cast<std::size_t>(s.ids[k]) * C;
+        for (std::size_t c = 0; c < C; ++c) o[c] += wk * v[c];
+      }
+    });
+  }
+
+  // ------------------------------------------------------------ access
+  void points(double* out) const override {
+    for (std::size_t i = 0; i < by_id_.size(); ++i) {
+      const Point& p = by_id_[i]->point();
+      for (int k = 0; k < D_; ++k) out[i * D_ + k] = p[k];
+    }
+  }
+
+  // Rows in cell-number order (= find_simplex indices).
+  void simplices(std::int64_t* out) const override {
+    if (dt_.current_dimension() < D_) return;
+    ensure_numbered();
+    std::size_t r = 0;
+    for (auto it = dt_.full_cells_begin(); it != dt_.full_cells_end(); ++it) {
+      if (dt_.is_infinite(it)) continue;
+      for (int k = 0; k <= D_; ++k) out[r * (D_ + 1) + k] = it->vertex(k)->data().id;
+      ++r;
+    }
+  }
+
+  bool is_valid(bool verbose) const override {
+    if (!dt_.is_valid(verbose)) return false;
+    // ids: a permutation 0..n-1 matching by_id_.
+    if (dt_.number_of_vertices() != by_id_.size()) return false;
+    for (std::size_t i = 0; i < by_id_.size(); ++i)
+      if (by_id_[i]->data().id != static_cast<std::int64_t>(i)) return false;
+    return true;
+  }
+
+  // ------------------------------------------------------------ snapshot
+  void write_snapshot(Sink& sink, const double* values, std::size_t C) const override {
+    DT& dt = const_cast<DT&>(dt_);
+    const bool full = dt.current_dimension() == D_;
+    SnapshotHeader h;
+    h.dim = D_;
+    h.current_dim = dt.current_dimension();
+    h.n_vertices = by_id_.size();
+    h.n_cells = full ? dt.number_of_full_cells() : 0;
+    h.n_channels = values ? C : 0;
+    if (h.n_cells > 0xffffffffull) throw snapshot_error("too many full cells for format version 1");
+    if (!payload_size(h, h.payload_bytes)) throw snapshot_error("snapshot too large");
+    unsigned char raw[kHeaderSize];
+    encode_header(h, raw);  // placeholder; patched with the checksum below
+    sink.write(raw, kHeaderSize);
+
+    PayloadWriter out(sink);
+    {
+      std::vector<double> row(D_);
+      for (const Vertex_handle& v : by_id_) {
+        for (int k = 0; k < D_; ++k) row[k] = v->point()[k];
+        out.write(row.data(), sizeof(double) * D_);
+      }
+      for (std::size_t i = 0; i < by_id_.size(); ++i) out.put(static_cast<std::int64_t>(i));
+    }
+    if (full) {
+      // Cells in number order: finite ones (container order), then infinite
+      // ones; a loaded snapshot keeps this order, hence the same numbers.
+      ensure_numbered();
+      const Vertex_handle inf = dt.infinite_vertex();
+      std::vector<std::uint32_t> buf;
+      buf.reserve(static_cast<std::size_t>(D_ + 1) * 4096);
+      auto flush = [&]() {
+        out.write(buf.data(), buf.size() * sizeof(std::uint32_t));
+        buf.clear();
+      };
+      auto each_cell = [&](auto&& f) {
+        for (int pass = 0; pass < 2; ++pass)
+          for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it)
+            if (dt.is_infinite(it) == (pass == 1)) f(it);
+      };
+      each_cell([&](auto it) {
+        for (int k = 0; k <= D_; ++k) {
+          Vertex_handle v = it->vertex(k);
+          buf.push_back(v == inf ? 0u : static_cast<std::uint32_t>(v->data().id + 1));
+        }
+        if (buf.size() >= static_cast<std::size_t>(D_ + 1) * 4096) flush();
+      });
+      flush();
+      each_cell([&](auto it) {
+        for (int k = 0; k <= D_; ++k) buf.push_back(it->neighbor(k)->data());
+        if (buf.size() >= static_cast<std::size_t>(D_ + 1) * 4096) flush();
+      });
+      flush();
+    }
+    if (h.n_channels) out.write(values, sizeof(double) * by_id_.size() * C);
+    out.flush();
+    if (out.bytes() != h.payload_bytes) throw snapshot_error("internal error: payload size");
+    h.payload_checksum = out.checksum();
+    encode_header(h, raw);
+    sink.patch_front(raw, kHeaderSize);
+  }
+
+  void read_snapshot(Source& src, const SnapshotHeader& h, std::vector<double>& values) override {
+    if (h.dim != D_) throw snapshot_error("internal error: dimension");
+    if (!by_id_.empty()) throw snapshot_error("internal error: reading into a non-empty triangulation");
+    PayloadReader in(src);
+    const std::size_t n = static_cast<std::size_t>(h.n_vertices);
+    std::vector<Point> P;
+    P.reserve(n);
+    {
+      constexpr std::size_t kRows = 8192;
+      std::vector<double> buf(kRows * D_);
+      for (std::size_t i = 0; i < n; i += kRows) {
+        std::size_t r = std::min(kRows, n - i);
+        in.read(buf.data(), r * D_ * sizeof(double), "points");
+        for (std::size_t j = 0; j < r; ++j) {
+          for (int k = 0; k < D_; ++k)
+            if (!std::isfinite(buf[j * D_ + k])) throw snapshot_error("corrupted snapshot (non-finite point)");
+          P.emplace_back(buf.data() + j * D_, buf.data() + (j + 1) * D_);
+        }
+      }
+      std::vector<std::int64_t> ids(kRows);
+      for (std::size_t i = 0; i < n; i += kRows) {
+        std::size_t r = std::min(kRows, n - i);
+        in.read(ids.data(), r * sizeof(std::int64_t), "ids");
+        for (std::size_t j = 0; j < r; ++j)
+          if (ids[j] != static_cast<std::int64_t>(i + j)) throw snapshot_error("corrupted snapshot (ids)");
+      }
+    }
+    const bool full = h.current_dim == D_;
+    numbered_.store(false);
+    if (full) {
+      TDS& tds = dt_.tds();
+      dt_.clear();  // infinite vertex + one full cell, dimension -1
+      dt_.set_current_dimension(h.current_dim);
+      std::vector<Vertex_handle> vh(n + 1);
+      vh[0] = dt_.infinite_vertex();
+      by_id_.reserve(n);
+      for (std::size_t i = 0; i < n; ++i) {
+        Vertex_handle v = tds.new_vertex();
+        v->set_point(P[i]);
+        v->data().id = static_cast<std::int64_t>(i);
+        vh[i + 1] = v;
+        by_id_.push_back(v);
+      }
+      std::vector<Point>().swap(P);
+      const std::size_t m = static_cast<std::size_t>(h.n_cells);
+      const int D1 = D_ + 1;
+      std::vector<Full_cell_handle> cells;
+      cells.reserve(m);
+      constexpr std::size_t kCells = 8192;
+      std::vector<std::uint32_t> buf(kCells * D1);
+      for (std::size_t i = 0; i < m; i += kCells) {
+        std::size_t r = std::min(kCells, m - i);
+        in.read(buf.data(), r * D1 * sizeof(std::uint32_t), "cells");
+        for (std::size_t j = 0; j < r; ++j) {
+          Full_cell_handle s = (i + j == 0) ? dt_.full_cells_begin() : tds.new_full_cell();
+          cells.push_back(s);
+          for (int k = 0; k < D1; ++k) {
+            std::uint32_t vi = buf[j * D1 + k];
+            if (vi > n) throw snapshot_error("corrupted snapshot (cell vertex index out of range)");
+            s->set_vertex(k, vh[vi]);
+            vh[vi]->set_full_cell(s);
+          }
+        }
+      }
+      for (std::size_t i = 0; i < m; i += kCells) {
+        std::size_t r = std::min(kCells, m - i);
+        in.read(buf.data(), r * D1 * sizeof(std::uint32_t), "neighbours");
+        for (std::size_t j = 0; j < r; ++j) {
+          Full_cell_handle s = cells[i + j];
+          for (int k = 0; k < D1; ++k) {
+            std::uint32_t ci = buf[j * D1 + k];
+            if (ci >= m) throw snapshot_error("corrupted snapshot (neighbour index out of range)");
+            s->set_neighbor(k, cells[ci]);
+          }
+        }
+      }
+      for (std::size_t i = 0; i <= n; ++i)
+        if (vh[i]->full_cell() == Full_cell_handle())
+          throw snapshot_error("corrupted snapshot (vertex in no full cell)");
+    }
+    values.resize(static_cast<std::size_t>(h.n_vertices * h.n_channels));
+    if (!values.empty()) in.read(values.data(), values.size() * sizeof(double), "values");
+    if (in.checksum() != h.payload_checksum)
+      throw snapshot_error("corrupted snapshot (payload checksum mismatch)");
+    if (!full) {
+      // Degenerate (cd < D): few coplanar points; re-insert them in id order.
+      Full_cell_handle hint;
+      for (std::size_t i = 0; i < n; ++i) {
+        Vertex_handle v = dt_.insert(P[i], hint);
+        if (v->data().id >= 0) throw snapshot_error("corrupted snapshot (duplicate points)");
+        v->data().id = static_cast<std::int64_t>(i);
+        by_id_.push_back(v);
+        hint = v->full_cell();
+      }
+      if (dt_.current_dimension() != h.current_dim)
+        throw snapshot_error("corrupted snapshot (current dimension)");
+    }
+    ensure_numbered();
+  }
+
+ private:
+  struct Scratch {
+    std::vector<const Point*> pts;
+    std::vector<int> ori;
+    std::vector<std::int64_t> ids;
+    std::vector<double> w;
+    std::int8_t kind = OUTSIDE_AFFINE_HULL;
+    Full_cell_handle cell;
+    Mat T;
+    Vec rhs;
+    MatF F;
+    explicit Scratch(int D)
+        : pts(D + 1), ori(D + 1), ids(D + 1), w(D + 1), T(D, D), rhs(D), F(D, D - 1) {}
+  };
+
+  // Visits every query (in Hilbert or given order, chunked), locating it into
+  // a per-chunk Scratch; emit(query_index, scratch) consumes the answer.
+  template <class Emit>
+  void for_each_query(const double* q, std::size_t n, bool hilbert, int threads,
+                      Emit&& emit) const {
+    if (n == 0) return;
+    const int D = D_;
+    ensure_numbered();  // also fixes each vertex's full cell (walk starts)
+    if (dt_.current_dimension() < D) {
+      Scratch s(D);
+      s.kind = OUTSIDE_AFFINE_HULL;
+      std::fill(s.ids.begin(), s.ids.end(), -1);
+      std::fill(s.w.begin(), s.w.end(), std::numeric_limits<double>::quiet_NaN());
+      for (std::size_t i = 0; i < n; ++i) emit(i, s);
+      return;
+    }
+    // Hint samples: every stride-th vertex by id.
+    std::vector<Vertex_handle> sample;
+    const std::size_t nv = by_id_.size();
+    const std::size_t stride = std::max<std::size_t>(1, nv / kHintSamples);
+    for (std::size_t i = 0; i < nv; i += stride) sample.push_back(by_id_[i]);
+
+    std::vector<std::size_t> order;
+    std::vector<Point> Q;
+    if (hilbert && n > 1) {
+      Q.reserve(n);
+      for (std::size_t i = 0; i < n; ++i) Q.emplace_back(q + i * D, q + (i + 1) * D);
+      order.resize(n);
+      std::iota(order.begin(), order.end(), std::size_t(0));
+      using Pmap = typename CGAL::Pointer_property_map<Point>::type;
+      using SortTraits = CGAL::Spatial_sort_traits_adapter_d<K, Pmap>;
+      CGAL::hilbert_sort(order.begin(), order.end(),
+                         SortTraits(CGAL::make_property_map(Q), dt_.geom_traits()));
+    }
+    run_chunks(n, threads, [&](std::size_t b, std::size_t e) {
+      Scratch s(D);
+      Full_cell_handle hint;
+      for (std::size_t pos = b; pos < e; ++pos) {
+        const std::size_t qi = order.empty() ? pos : order[pos];
+        const double* qc = q + qi * D;
+        if (Q.empty()) {
+          Point p(qc, qc + D);
+          if (pos == b) hint = sample_hint(qc, sample);
+          hint = locate_one(p, qc, hint, s);
+        } else {
+          if (pos == b) hint = sample_hint(qc, sample);
+          hint = locate_one(Q[qi], qc, hint, s);
+        }
+        emit(qi, s);
+      }
+    });
+  }
+
+  Full_cell_handle sample_hint(const double* qc, const std::vector<Vertex_handle>& sample) const {
+    double best = std::numeric_limits<double>::infinity();
+    Vertex_handle bv;
+    for (const Vertex_handle& v : sample) {
+      const Point& p = v->point();
+      double d2 = 0;
+      for (int k = 0; k < D_; ++k) {
+        double t = p[k] - qc[k];
+        d2 += t * t;
+      }
+      if (d2 < best) {
+        best = d2;
+        bv = v;
+      }
+    }
+    return bv == Vertex_handle() ? Full_cell_handle() : bv->full_cell();
+  }
+
+  // Visibility walk from `start` (full dimension only). Fills s.ids, s.w,
+  // s.kind; returns the full cell it ended in (the next hint).
+  Full_cell_handle locate_one(const Point& p, const double* qc, Full_cell_handle start,
+                              Scratch& s) const {
+    const int D = D_;
+    const Vertex_handle inf = dt_.infinite_vertex();
+    auto is_inf = [&](Full_cell_handle c) {
+      for (int k = 0; k <= D; ++k)
+        if (c->vertex(k) == inf) return k;
+      return -1;
+    };
+    Full_cell_handle c = start;
+    if (c == Full_cell_handle()) c = dt_.infinite_full_cell();
+    int fi = is_inf(c);
+    if (fi >= 0) c = c->neighbor(fi);
+    auto orient = dt_.geom_traits().orientation_d_object();
+    Full_cell_handle previous;
+    std::uint64_t rng = 0x9E3779B97F4A7C15ull;  // same sequence for every query
+    bool outside = false;
+    for (;;) {
+      rng ^= rng << 13;
+      rng ^= rng >> 7;
+      rng ^= rng << 17;
+      const int i0 = static_cast<int>(rng % static_cast<std::uint64_t>(D + 1));
+      bool moved = false;
+      for (int j = 0; j <= D; ++j) {
+        const int i = (i0 + j) % (D + 1);
+        Full_cell_handle next = c->neighbor(i);
+        if (next == previous) {
+          s.ori[i] = CGAL::POSITIVE;
+          continue;
+        }
+        for (int k = 0; k <= D; ++k) s.pts[k] = &c->vertex(k)->point();
+        s.pts[i] = &p;
+        s.ori[i] = orient(boost::make_indirect_iterator(s.pts.data()),
+                          boost::make_indirect_iterator(s.pts.data() + D + 1));
+        if (s.ori[i] == CGAL::NEGATIVE) {
+          previous = c;
+          c = next;
+          moved = true;
+          break;
+        }
+      }
+      if (!moved) break;
+      fi = is_inf(c);
+      if (fi >= 0) {
+        outside = true;
+        break;
+      }
+    }
+    for (int k = 0; k <= D; ++k) s.ids[k] = c->vertex(k)->data().id;
+    s.cell = c;
+    if (outside) {
+      s.kind = OUTSIDE_CONVEX_HULL;
+      facet_weights(c, fi, qc, s);
+      return c;
+    }
+    int zeros = 0;
+    for (int k = 0; k <= D; ++k) zeros += (s.ori[k] == CGAL::ZERO);
+    s.kind = zeros == 0 ? IN_CELL : zeros == D ? ON_VERTEX : zeros == 1 ? ON_FACET : ON_FACE;
+    // Barycentric weights: T lambda' = q - v0 with T = [v1-v0 ... vD-v0].
+    const Point& v0 = c->vertex(0)->point();
+    for (int k = 1; k <= D; ++k) {
+      const Point& vk = c->vertex(k)->point();
+      for (int r = 0; r < D; ++r) s.T(r, k - 1) = vk[r] - v0[r];
+    }
+    for (int r = 0; r < D; ++r) s.rhs(r) = qc[r] - v0[r];
+    Vec lam = s.T.partialPivLu().solve(s.rhs);
+    double sum = 0;
+    for (int k = 1; k <= D; ++k) {
+      s.w[k] = lam(k - 1);
+      sum += lam(k - 1);
+    }
+    s.w[0] = 1.0 - sum;
+    if (zeros)  // exact knowledge from the predicate: these weights are 0
+      for (int k = 0; k <= D; ++k)
+        if (s.ori[k] == CGAL::ZERO) s.w[k] = 0.0;
+    return c;
+  }
+
+  // Outside the hull: least-squares barycentrics of the query's projection on
+  // the hull facet opposite the infinite vertex (index fi), clamped to >= 0,
+  // renormalised; 0 at the infinite vertex.
+  void facet_weights(Full_cell_handle c, int fi, const double* qc, Scratch& s) const {
+    const int D = D_;
+    int fv[64];
+    std::vector<int> fv_dyn;
+    int* f = fv;
+    if (D > 64) {
+      fv_dyn.resize(D);
+      f = fv_dyn.data();
+    }
+    int nf = 0;
+    for (int k = 0; k <= D; ++k)
+      if (k != fi) f[nf++] = k;
+    const Point& a = c->vertex(f[0])->point();
+    for (int j = 1; j < D; ++j) {
+      const Point& vj = c->vertex(f[j])->point();
+      for (int r = 0; r < D; ++r) s.F(r, j - 1) = vj[r] - a[r];
+    }
+    for (int r = 0; r < D; ++r) s.rhs(r) = qc[r] - a[r];
+    VecF mu;
+    if (D > 1) {
+      MatFF G = s.F.transpose() * s.F;
+      VecF g = s.F.transpose() * s.rhs;
+      mu = G.ldlt().solve(g);
+    }
+    std::fill(s.w.begin(), s.w.end(), 0.0);
+    double sum = 0;
+    for (int j = 1; j < D; ++j) {
+      double x = std::max(0.0, mu(j - 1));
+      s.w[f[j]] = x;
+      sum += mu(j - 1);
+    }
+    s.w[f[0]] = std::max(0.0, 1.0 - sum);
+    double tot = 0;
+    for (int k = 0; k <= D; ++k) tot += s.w[k];
+    if (tot > 0)
+      for (int k = 0; k <= D; ++k) s.w[k] /= tot;
+  }
+
+  // Numbers the full cells (the data slot): finite cells 0..F-1 in container
+  // order, then the infinite ones; and points every vertex at the first cell
+  // (in that order) containing it. Walk starts thus depend only on the
+  // numbered structure, which a snapshot reproduces exactly: a loaded
+  // triangulation answers bit-identically. Run after each insertion and load;
+  // readers call it too (the mutex serialises, the flag publishes; no reader
+  // touches the structure before the flag is set).
+  void ensure_numbered() const {
+    if (numbered_.load(std::memory_order_acquire)) return;
+    std::lock_guard<std::mutex> lk(number_mutex_);
+    if (numbered_.load(std::memory_order_relaxed)) return;
+    DT& dt = const_cast<DT&>(dt_);
+    std::vector<char> seen(by_id_.size() + 1, 0);  // [0]: infinite vertex
+    const Vertex_handle inf = dt.infinite_vertex();
+    const int cd = dt.current_dimension();
+    std::uint32_t idx = 0;
+    for (int pass = 0; pass < 2; ++pass) {
+      for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it) {
+        if (dt.is_infinite(it) != (pass == 1)) continue;
+        it->data() = idx++;
+        for (int k = 0; k <= cd; ++k) {
+          Vertex_handle v = it->vertex(k);
+          std::size_t slot = v == inf ? 0 : static_cast<std::size_t>(v->data().id + 1);
+          if (slot < seen.size() && !seen[slot]) {
+            seen[slot] = 1;
+            v->set_full_cell(it);
+          }
+        }
+      }
+      if (pass == 0) n_finite_ = idx;
+    }
+    numbered_.store(true, std::memory_order_release);
+  }
+
+  int D_;
+  DT dt_;
+  std::vector<Vertex_handle> by_id_;
+  mutable std::mutex number_mutex_;
+  mutable std::atomic<bool> numbered_{false};
+  mutable std::size_t n_finite_ = 0;
+};
+
+}  // namespace fs

@@ -1,0 +1,123 @@
+"""Field = basis + triangulation + values, checked with oracles:
+sample rays come back exactly, affine functions of the chart are reproduced,
+non-round-tripping rays are rejected with reasons, snapshots round-trip."""
+import numpy as np
+import pytest
+
+import flatserve
+from flatserve import Basis, Field
+from flatserve.coordinates import OK
+from flatserve.embedding import embed
+
+
+def paper_rays(rng, n):
+    """The paper's set-up: screen z=0 in [-1,1]^2, eyes in [-1,1]^2 x [-4.5,-1.5]."""
+    eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (n, 3))
+    screen = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
+    return eyes, screen - eyes
+
+
+@pytest.fixture(scope="module")
+def basis():
+    return Basis.around_axis(axis=2, scale=0.01)
+
+
+def test_sample_rays_come_back_exactly(basis):
+    rng = np.random.default_rng(1)
+    o, dirs = paper_rays(rng, 3000)
+    vals = rng.uniform(0, 1, (3000, 3))
+    field = Field(basis, channels=3)
+    res = field.add_rays(o, dirs, vals)
+    assert res.accepted + res.rejected.size == 3000
+    assert res.accepted > 2500
+    accepted = np.setdiff1d(np.arange(3000), res.rejected)
+    out = field.query_rays(o[accepted], dirs[accepted])
+    assert out.inside.all()
+    np.testing.assert_allclose(out.values, vals[accepted], atol=1e-9)
+
+
+def test_affine_function_of_the_chart_is_reproduced(basis):
+    """Piecewise-linear interpolation reproduces affine functions exactly."""
+    rng = np.random.default_rng(2)
+    o, dirs = paper_rays(rng, 4000)
+    Q, r = flatserve.flats.from_rays(o, dirs)
+    coords = basis.coordinates(Q, r)
+    x = embed(coords.weights)
+    c = rng.normal(size=(x.shape[1], 2))
+    vals = x @ c + np.array([0.5, -1.0])
+    field = Field(basis, channels=2)
+    field.add(Q, r, vals)
+
+    qo, qd = paper_rays(rng, 2000)
+    out = field.query_rays(qo, qd)
+    Qq, rq = flatserve.flats.from_rays(qo, qd)
+    cq = basis.coordinates(Qq, rq)
+    expect = embed(cq.weights) @ c + np.array([0.5, -1.0])
+    assert out.inside.sum() > 1000
+    np.testing.assert_allclose(out.values[out.inside], expect[out.inside], atol=1e-8)
+    assert np.isnan(out.values[~out.inside]).all()
+    assert (out.status[out.inside] == OK).all()
+
+
+def test_rays_outside_the_chart_are_rejected_with_reasons(basis):
+    rng = np.random.default_rng(3)
+    o, dirs = paper_rays(rng, 500)
+    # Rays lying in the screen plane are far from the chart around the z-axis.
+    bad_o = np.c_[rng.uniform(-1, 1, (20, 2)), np.zeros(20)]
+    bad_d = np.c_[rng.normal(size=(20, 2)), np.zeros(20)]
+    field = Field(basis)
+    res = field.add_rays(np.r_[o, bad_o], np.r_[dirs, bad_d], rng.uniform(size=520))
+    assert set(range(500, 520)) <= set(res.rejected.tolist())
+    assert len(res.reasons) == res.rejected.size
+    assert all("round-trip" in s or "singular" in s for s in res.reasons)
+    assert field.nrejected == res.rejected.size
+    assert field.nsamples == res.accepted - res.duplicates
+
+
+def test_save_load_answers_identically(basis, tmp_path):
+    rng = np.random.default_rng(4)
+    o, dirs = paper_rays(rng, 2000)
+    field = Field(basis, channels=1)
+    field.add_rays(o, dirs, rng.uniform(size=2000))
+    path = tmp_path / "f.field"
+    field.save(path)
+    again = Field.load(path)
+    assert (again.nsamples, again.nsimplex, again.nrejected) == (field.nsamples, field.nsimplex, field.nrejected)
+    qo, qd = paper_rays(rng, 1000)
+    a, b = field.query_rays(qo, qd), again.query_rays(qo, qd)
+    np.testing.assert_array_equal(a.inside, b.inside)
+    np.testing.assert_array_equal(a.values, b.values)
+
+
+def test_damaged_field_file_raises(basis, tmp_path):
+    field = Field(basis)
+    rng = np.random.default_rng(5)
+    o, dirs = paper_rays(rng, 300)
+    field.add_rays(o, dirs, rng.uniform(size=300))
+    path = tmp_path / "f.field"
+    field.save(path)
+    data = path.read_bytes()
+    (tmp_path / "t.field").write_bytes(data[: len(data) // 2])
+    with pytest.raises(flatserve.errors.SnapshotError):
+        Field.load(tmp_path / "t.field")
+    (tmp_path / "m.field").write_bytes(b"garbage" + data[7:])
+    with pytest.raises(flatserve.errors.SnapshotError):
+        Field.load(tmp_path / "m.field")
+
+
+def test_bad_input_names_the_argument(basis):
+    field = Field(basis, channels=2)
+    rng = np.random.default_rng(6)
+    o, dirs = paper_rays(rng, 10)
+    with pytest.raises(ValueError, match="values"):
+        field.add_rays(o, dirs, np.ones((10, 3)))
+    with pytest.raises(ValueError, match="origins|directions"):
+        field.add_rays(o[:, :2], dirs, np.ones((10, 2)))
+    with pytest.raises(ValueError, match="outside"):
+        field.query_rays(o, dirs, outside="zero")
+    bad = o.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="origins"):
+        field.query_rays(bad, dirs)
+    with pytest.raises(ValueError, match="channels"):
+        Field(basis, channels=0)

@@ -1,0 +1,472 @@
+"""flatserve.Triangulation against scipy (an independent oracle) and invariants."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from flatserve import _native
+from flatserve.errors import InvalidInputError, SnapshotError
+from flatserve.triangulation import LocateKind, Triangulation
+
+scipy_spatial = pytest.importorskip("scipy.spatial")
+scipy_interp = pytest.importorskip("scipy.interpolate")
+
+VALUE_TOL = 1e-9          # issue 3: agreement with LinearNDInterpolator
+WEIGHT_TOL = 1e-9         # weights >= -WEIGHT_TOL
+RECON_TOL = 1e-9          # sum w_i p_i reproduces the query
+CHUNK = int(_native.core.QUERY_CHUNK)
+
+# points per dimension: enough cells to walk, small enough for scipy.
+NPTS = {2: 1500, 3: 1000, 4: 600, 5: 250}
+
+
+def _sample(rng, D, n, C=2):
+    return rng.random((n, D)), rng.standard_normal((n, C))
+
+
+def _queries(rng, D, q, margin=0.15):
+    return rng.random((q, D)) * (1 + 2 * margin) - margin
+
+
+@pytest.mark.parametrize("D", [2, 3, 4, 5])
+def test_interpolation_matches_scipy(D):
+    rng = np.random.default_rng(100 + D)
+    P, V = _sample(rng, D, NPTS[D])
+    tri = Triangulation(D)
+    res = tri.insert(P, V)
+    assert res.n_new == len(P) and res.n_duplicates == 0
+    np.testing.assert_array_equal(res.ids, np.arange(len(P)))
+    q = _queries(rng, D, 4000)
+    ours, inside = tri.interpolate(q)
+    ref = scipy_interp.LinearNDInterpolator(P, V)(q)
+    ref_inside = ~np.isnan(ref).any(axis=1)
+    np.testing.assert_array_equal(inside, ref_inside)
+    assert inside.any() and (~inside).any()
+    np.testing.assert_allclose(ours[inside], ref[inside], rtol=0, atol=VALUE_TOL)
+    assert np.isnan(ours[~inside]).all()
+
+
+@pytest.mark.parametrize("D", [2, 3, 4])
+def test_simplices_match_scipy_delaunay(D):
+    rng = np.random.default_rng(200 + D)
+    P, _ = _sample(rng, D, NPTS[D] // 2)
+    tri = Triangulation(D)
+    tri.insert(P)
+    ours = {tuple(sorted(s)) for s in tri.simplices.tolist()}
+    ref = {tuple(sorted(s)) for s in scipy_spatial.Delaunay(P).simplices.tolist()}
+    assert ours == ref
+    assert tri.nsimplex == len(ours)
+    assert tri.is_valid()
+
+
+@pytest.mark.parametrize("D", [2, 3, 4, 5])
+def test_located_queries_lie_in_their_simplex(D):
+    rng = np.random.default_rng(300 + D)
+    P, V = _sample(rng, D, NPTS[D])
+    tri = Triangulation(D)
+    tri.insert(P, V)
+    q = _queries(rng, D, 3000)
+    loc = tri.locate(q)
+    ins = loc.inside
+    w, ids = loc.weights[ins], loc.ids[ins]
+    assert (ids >= 0).all()
+    assert (w >= -WEIGHT_TOL).all()
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
+    recon = np.einsum("qk,qkd->qd", w, tri.points[ids])
+    np.testing.assert_allclose(recon, q[ins], atol=RECON_TOL)
+    # find_simplex / barycentric agree with locate and with simplices
+    s = tri.find_simplex(q)
+    np.testing.assert_array_equal(s, loc.simplex)
+    assert (s[~ins] == -1).all()
+    np.testing.assert_array_equal(tri.simplices[s[ins]], ids)
+    b = tri.barycentric(q)
+    np.testing.assert_array_equal(b[ins], w)
+    assert np.isnan(b[~ins]).all()
+    # outside the hull: exactly one infinite vertex in the answer
+    out = loc.kind == LocateKind.OUTSIDE_CONVEX_HULL
+    np.testing.assert_array_equal(out, ~ins)
+    assert ((loc.ids[out] == -1).sum(axis=1) == 1).all()
+    # scipy agrees on which queries are inside
+    ref = scipy_spatial.Delaunay(P).find_simplex(q) >= 0
+    np.testing.assert_array_equal(ins, ref)
+
+
+@pytest.mark.parametrize("order", ["hilbert", "given"])
+def test_threads_give_identical_results(order):
+    D = 4
+    rng = np.random.default_rng(7)
+    P, V = _sample(rng, D, 800, C=3)
+    tri = Triangulation(D)
+    tri.insert(P, V)
+    q = _queries(rng, D, 5 * CHUNK + 123)
+    base = tri.locate(q, order=order, threads=1)
+    v1, i1 = tri.interpolate(q, order=order, threads=1, outside="clamp")
+    for th in (2, 3, 8):
+        loc = tri.locate(q, order=order, threads=th)
+        np.testing.assert_array_equal(loc.ids, base.ids)
+        np.testing.assert_array_equal(loc.weights, base.weights)
+        np.testing.assert_array_equal(loc.kind, base.kind)
+        np.testing.assert_array_equal(loc.simplex, base.simplex)
+        v, i = tri.interpolate(q, order=order, threads=th, outside="clamp")
+        np.testing.assert_array_equal(v, v1)
+        np.testing.assert_array_equal(i, i1)
+    vd, _ = tri.interpolate(q)  # default threads
+    np.testing.assert_allclose(vd[i1], v1[i1], atol=1e-12)
+
+
+def test_orders_agree():
+    D = 3
+    rng = np.random.default_rng(8)
+    P, V = _sample(rng, D, 700)
+    tri = Triangulation(D)
+    tri.insert(P, V)
+    q = _queries(rng, D, 2 * CHUNK + 5)
+    a, ia = tri.interpolate(q, order="hilbert")
+    b, ib = tri.interpolate(q, order="given")
+    np.testing.assert_array_equal(ia, ib)
+    np.testing.assert_allclose(a[ia], b[ib], atol=1e-12)
+
+
+def test_leading_query_shape_and_single_point():
+    rng = np.random.default_rng(9)
+    P, V = _sample(rng, 2, 100)
+    tri = Triangulation(2)
+    tri.insert(P, V)
+    q = rng.random((4, 5, 2)) * 0.5 + 0.25
+    v, ins = tri.interpolate(q)
+    assert v.shape == (4, 5, 2) and ins.shape == (4, 5)
+    v0, _ = tri.interpolate(q[1, 2])
+    np.testing.assert_array_equal(v0, v[1, 2])
+    assert tri.locate(q).weights.shape == (4, 5, 3)
+
+
+def test_later_batches_equal_one_batch():
+    D = 3
+    rng = np.random.default_rng(10)
+    P, V = _sample(rng, D, 900)
+    one = Triangulation(D)
+    one.insert(P, V)
+    parts = Triangulation(D)
+    for lo, hi in [(0, 2), (2, 50), (50, 400), (400, 900)]:
+        r = parts.insert(P[lo:hi], V[lo:hi])
+        np.testing.assert_array_equal(r.ids, np.arange(lo, hi))
+    assert parts.npoints == 900
+    np.testing.assert_array_equal(parts.points, P)
+    np.testing.assert_array_equal(parts.values, V)
+    key = lambda t: {tuple(sorted(s)) for s in t.simplices.tolist()}  # noqa: E731
+    assert key(one) == key(parts)
+    q = _queries(rng, D, 2000)
+    a, ia = one.interpolate(q)
+    b, ib = parts.interpolate(q)
+    np.testing.assert_array_equal(ia, ib)
+    np.testing.assert_allclose(a[ia], b[ib], atol=1e-12)
+    assert parts.is_valid()
+
+
+def test_duplicates_later_value_wins():
+    D = 2
+    rng = np.random.default_rng(11)
+    P, V = _sample(rng, D, 50, C=1)
+    tri = Triangulation(D)
+    tri.insert(P, V)
+    # batch: 3 new points, 2 repeats of old points, one new point repeated
+    new = rng.random((3, D)) + 2.0
+    batch = np.vstack([new[0], P[7], new[1], P[7], new[2], new[1], P[3]])
+    bv = np.arange(7, dtype=float).reshape(-1, 1) + 100
+    r = tri.insert(batch, bv)
+    assert r.n_new == 3 and r.n_duplicates == 4
+    np.testing.assert_array_equal(r.ids, [50, 7, 51, 7, 52, 51, 3])
+    assert tri.npoints == 53 and tri.values.shape == (53, 1)
+    np.testing.assert_array_equal(tri.points[50:], new)
+    assert tri.values[7, 0] == 103      # last of the two rows for P[7]
+    assert tri.values[51, 0] == 105     # last of the two rows for new[1]
+    assert tri.values[3, 0] == 106
+    assert tri.values[50, 0] == 100 and tri.values[52, 0] == 104
+    np.testing.assert_array_equal(tri.values[:3], V[:3])
+    # interpolating exactly at a duplicated vertex returns the new value
+    v, ins = tri.interpolate(P[7])
+    assert ins and v[0] == 103
+    loc = tri.locate(P[7][None])
+    assert loc.kind[0] == LocateKind.ON_VERTEX
+    assert tri.is_valid()
+
+
+def test_locate_kinds_on_faces():
+    # 2D: a square split in two; query a vertex, an edge midpoint, the inside
+    tri = Triangulation(2)
+    pts = np.array([[0, 0], [1, 0], [0, 1], [1.1, 1.2]], float)
+    tri.insert(pts, np.arange(4.0))
+    q = np.array([[0, 0], [0.5, 0], [0.2, 0.2], [5, 5]], float)
+    loc = tri.locate(q, order="given")
+    assert loc.kind.tolist() == [LocateKind.ON_VERTEX, LocateKind.ON_FACET,
+                                 LocateKind.IN_CELL, LocateKind.OUTSIDE_CONVEX_HULL]
+    w0 = dict(zip(loc.ids[0].tolist(), loc.weights[0].tolist()))
+    assert w0[0] == 1.0 and sum(w0.values()) == 1.0
+    assert (loc.weights[1] == 0).sum() == 1
+    # 3D: a point on an edge of a tetrahedron is ON_FACE
+    tri3 = Triangulation(3)
+    tri3.insert(np.vstack([np.eye(3), np.zeros(3)]))
+    loc3 = tri3.locate([[0.5, 0.5, 0.0], [0.5, 0, 0]])
+    assert loc3.kind.tolist() == [LocateKind.ON_FACE, LocateKind.ON_FACE]
+
+
+def test_outside_policies():
+    D = 3
+    rng = np.random.default_rng(12)
+    P, V = _sample(rng, D, 400, C=2)
+    tri = Triangulation(D)
+    tri.insert(P, V)
+    q = _queries(rng, D, 3000, margin=0.5)
+    vn, ins = tri.interpolate(q)
+    vc, insc = tri.interpolate(q, outside="clamp")
+    np.testing.assert_array_equal(ins, insc)
+    assert (~ins).sum() > 100
+    np.testing.assert_array_equal(vc[ins], vn[ins])
+    assert np.isnan(vn[~ins]).all() and np.isfinite(vc[~ins]).all()
+    # clamped values are convex combinations of sample values
+    assert (vc[~ins] >= V.min(axis=0) - 1e-12).all()
+    assert (vc[~ins] <= V.max(axis=0) + 1e-12).all()
+    loc = tri.locate(q)
+    out = ~loc.inside
+    w = loc.weights[out]
+    assert (w >= 0).all()
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
+    assert (w[loc.ids[out] == -1] == 0).all()
+    # a query far beyond a hull facet of a simplex gets that facet's values
+    t2 = Triangulation(2)
+    t2.insert([[0, 0], [1, 0], [0, 1]], [[0.0], [1.0], [3.0]])
+    v, inside = t2.interpolate([[0.5, -2.0], [0.25, -1.0]], outside="clamp")
+    assert not inside.any()
+    np.testing.assert_allclose(v[:, 0], [0.5, 0.25], atol=1e-15)
+
+
+def test_degenerate_and_empty():
+    tri = Triangulation(3)
+    assert tri.npoints == 0 and tri.nsimplex == 0 and tri.simplices.shape == (0, 4)
+    v, ins = tri.interpolate(np.zeros((3, 3)), values=np.zeros((0, 1)))
+    assert not ins.any() and np.isnan(v).all()
+    tri.insert([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[1.0], [2.0], [3.0]])  # a plane
+    assert tri.current_dimension == 2
+    loc = tri.locate([[0.1, 0.1, 0.0], [0.1, 0.1, 1.0]])
+    assert (loc.kind == LocateKind.OUTSIDE_AFFINE_HULL).all()
+    assert (loc.ids == -1).all() and np.isnan(loc.weights).all()
+    v, ins = tri.interpolate([[0.1, 0.1, 0.0]], outside="clamp")
+    assert not ins.any() and np.isnan(v).all()
+    for t2 in (Triangulation.from_bytes(tri.to_bytes()), Triangulation.from_bytes(Triangulation(3).to_bytes())):
+        assert t2.current_dimension in (2, -1)
+    t2 = Triangulation.from_bytes(tri.to_bytes())
+    np.testing.assert_array_equal(t2.points, tri.points)
+    np.testing.assert_array_equal(t2.values, tri.values)
+    t2.insert([[0, 0, 1.0]], [[4.0]])
+    assert t2.nsimplex == 1 and t2.is_valid()
+
+
+def test_dynamic_dimension_matches_scipy():
+    D = 7
+    rng = np.random.default_rng(13)
+    P, V = _sample(rng, D, 40)
+    tri = Triangulation(D)
+    tri.insert(P, V)
+    q = 0.3 + 0.4 * rng.random((300, D))
+    ours, inside = tri.interpolate(q)
+    ref = scipy_interp.LinearNDInterpolator(P, V)(q)
+    ref_inside = ~np.isnan(ref).any(axis=1)
+    np.testing.assert_array_equal(inside, ref_inside)
+    assert inside.any()
+    np.testing.assert_allclose(ours[inside], ref[inside], atol=VALUE_TOL)
+    assert tri.is_valid()
+    t2 = Triangulation.from_bytes(tri.to_bytes())
+    v2, i2 = t2.interpolate(q)
+    np.testing.assert_array_equal(i2, inside)
+    np.testing.assert_array_equal(v2, ours)
+
+
+def test_float32_values_and_values_argument():
+    rng = np.random.default_rng(14)
+    P, V = _sample(rng, 2, 200)
+    tri = Triangulation(2)
+    tri.insert(P, V.astype(np.float32))
+    assert tri.values.dtype == np.float64
+    q = _queries(rng, 2, 100, margin=0)
+    a, _ = tri.interpolate(q)
+    b, _ = tri.interpolate(q, values=V.astype(np.float32).astype(np.float64))
+    np.testing.assert_array_equal(a, b)
+    c, ins = tri.interpolate(q, values=np.ones(200))
+    assert ins.any()
+    np.testing.assert_allclose(c[ins, 0], 1.0, atol=1e-12)
+
+
+# ---------------------------------------------------------------- snapshots
+def _built(D=4, n=600, C=2, seed=15):
+    rng = np.random.default_rng(seed)
+    P, V = _sample(rng, D, n, C)
+    tri = Triangulation(D)
+    tri.insert(P[: n // 2], V[: n // 2])
+    tri.insert(P[n // 2:], V[n // 2:])
+    return tri, rng
+
+
+def _assert_same_answers(a, b, q):
+    la, lb = a.locate(q), b.locate(q)
+    for f in ("ids", "weights", "kind", "simplex"):
+        np.testing.assert_array_equal(getattr(la, f), getattr(lb, f))
+    va, ia = a.interpolate(q, outside="clamp")
+    vb, ib = b.interpolate(q, outside="clamp")
+    np.testing.assert_array_equal(va, vb)
+    np.testing.assert_array_equal(ia, ib)
+
+
+@pytest.mark.parametrize("D", [2, 4, 6])
+def test_snapshot_roundtrip_file(tmp_path, D):
+    tri, rng = _built(D=D, n=300 if D == 6 else 600)
+    path = tmp_path / "t.fstri"
+    tri.save(path)
+    back = Triangulation.load(path)
+    assert back.ndim == D and back.npoints == tri.npoints
+    np.testing.assert_array_equal(back.points, tri.points)
+    np.testing.assert_array_equal(back.values, tri.values)
+    np.testing.assert_array_equal(back.simplices, tri.simplices)
+    _assert_same_answers(tri, back, _queries(rng, D, 3 * CHUNK))
+    assert back.is_valid()
+    assert back.to_bytes() == tri.to_bytes() == path.read_bytes()
+    # the loaded triangulation keeps growing like the original (same cells;
+    # CGAL's insertion may order a new cell's vertices differently)
+    P2 = rng.random((100, D))
+    back.insert(P2, np.zeros((100, 2)))
+    tri.insert(P2, np.zeros((100, 2)))
+    assert back.is_valid()
+    key = lambda t: {tuple(sorted(s)) for s in t.simplices.tolist()}  # noqa: E731
+    assert key(back) == key(tri)
+    q = _queries(rng, D, 1000)
+    va, ia = tri.interpolate(q)
+    vb, ib = back.interpolate(q)
+    np.testing.assert_array_equal(ia, ib)
+    np.testing.assert_allclose(va[ia], vb[ib], atol=1e-12)
+
+
+def test_snapshot_without_values(tmp_path):
+    rng = np.random.default_rng(16)
+    tri = Triangulation(3)
+    tri.insert(rng.random((200, 3)))
+    back = Triangulation.from_bytes(tri.to_bytes())
+    assert back.values is None and back.nchannels == 0
+    np.testing.assert_array_equal(back.simplices, tri.simplices)
+
+
+def test_snapshot_truncated_raises(tmp_path):
+    tri, _ = _built(D=3, n=300)
+    data = tri.to_bytes()
+    for cut in [0, 7, 40, 79, 80, 81, len(data) // 3, len(data) // 2, len(data) - 8, len(data) - 1]:
+        with pytest.raises(SnapshotError):
+            Triangulation.from_bytes(data[:cut])
+        p = tmp_path / f"cut{cut}"
+        p.write_bytes(data[:cut])
+        with pytest.raises(SnapshotError):
+            Triangulation.load(p)
+    with pytest.raises(SnapshotError):
+        Triangulation.load(tmp_path / "missing")
+
+
+def test_snapshot_corrupted_raises(tmp_path):
+    tri, rng = _built(D=3, n=300)
+    data = bytearray(tri.to_bytes())
+    positions = [0, 9, 17, 25, 49, 57, 73]  # header fields
+    positions += sorted(rng.integers(80, len(data), 40).tolist())  # payload
+    positions += [80, 80 + 300 * 3 * 8 + 5, len(data) - 1]  # points, ids, values
+    for pos in positions:
+        bad = bytearray(data)
+        bad[pos] ^= 0x5A
+        with pytest.raises(SnapshotError):
+            Triangulation.from_bytes(bytes(bad))
+    p = tmp_path / "bad"
+    bad = bytearray(data)
+    bad[len(data) // 2] ^= 1
+    p.write_bytes(bytes(bad))
+    with pytest.raises(SnapshotError):
+        Triangulation.load(p)
+    with pytest.raises(SnapshotError):
+        Triangulation.from_bytes(b"not a snapshot at all" * 10)
+    # extra trailing bytes are tolerated? no: announced payload must match
+    Triangulation.from_bytes(bytes(data))  # the pristine copy still loads
+
+
+def test_save_is_atomic_and_overwrites(tmp_path):
+    tri, _ = _built(D=2, n=100)
+    p = tmp_path / "s"
+    p.write_bytes(b"old")
+    tri.save(p)
+    assert Triangulation.load(p).npoints == 100
+    assert [x.name for x in tmp_path.iterdir()] == ["s"]
+
+
+# ---------------------------------------------------------------- input errors
+def test_bad_input_names_the_argument():
+    tri = Triangulation(3)
+    cases = [
+        (lambda: tri.insert(np.zeros((4, 2))), "points"),
+        (lambda: tri.insert([[0, 0, np.nan]]), "points"),
+        (lambda: tri.insert("abc"), "points"),
+        (lambda: tri.insert(np.eye(3), np.zeros((2, 1))), "values"),
+        (lambda: tri.insert(np.eye(3), [[0.0], [np.inf], [1.0]]), "values"),
+    ]
+    for call, arg in cases:
+        with pytest.raises(InvalidInputError) as ei:
+            call()
+        assert ei.value.argument == arg, (arg, ei.value)
+        assert arg in str(ei.value)
+    rng = np.random.default_rng(17)
+    tri.insert(rng.random((50, 3)), rng.random((50, 2)))
+    more = [
+        (lambda: tri.insert(rng.random((5, 3))), "values"),
+        (lambda: tri.insert(rng.random((5, 3)), rng.random((5, 3))), "values"),
+        (lambda: tri.interpolate(np.zeros((2, 4))), "xi"),
+        (lambda: tri.interpolate([[0, 0, np.nan]]), "xi"),
+        (lambda: tri.interpolate(np.zeros((2, 3)), outside="zero"), "outside"),
+        (lambda: tri.interpolate(np.zeros((2, 3)), order="random"), "order"),
+        (lambda: tri.interpolate(np.zeros((2, 3)), threads=0), "threads"),
+        (lambda: tri.interpolate(np.zeros((2, 3)), values=np.zeros((3, 1))), "values"),
+        (lambda: tri.locate(np.zeros(2)), "xi"),
+        (lambda: tri.find_simplex(np.zeros((1, 2))), "xi"),
+        (lambda: Triangulation(1), "ndim"),
+    ]
+    for call, arg in more:
+        with pytest.raises(InvalidInputError) as ei:
+            call()
+        assert ei.value.argument == arg, (arg, ei.value)
+    assert isinstance(InvalidInputError("x"), ValueError)
+
+
+# ---------------------------------------------------------------- concurrency
+def test_queries_concurrent_with_inserts():
+    D = 3
+    rng = np.random.default_rng(18)
+    P, V = _sample(rng, D, 2000, C=1)
+    tri = Triangulation(D)
+    tri.insert(P[:500], V[:500])
+    q = _queries(rng, D, 3 * CHUNK)
+    errors = []
+    stop = threading.Event()
+
+    def reader():
+        try:
+            while not stop.is_set():
+                v, ins = tri.interpolate(q, threads=1)
+                assert np.isfinite(v[ins]).all()
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    readers = [threading.Thread(target=reader) for _ in range(3)]
+    for t in readers:
+        t.start()
+    for lo in range(500, 2000, 100):
+        tri.insert(P[lo:lo + 100], V[lo:lo + 100])
+    stop.set()
+    for t in readers:
+        t.join()
+    assert not errors
+    assert tri.npoints == 2000 and tri.is_valid()
+    ref = scipy_interp.LinearNDInterpolator(P, V)(q)
+    ours, inside = tri.interpolate(q)
+    np.testing.assert_allclose(ours[inside], ref[inside], atol=VALUE_TOL)

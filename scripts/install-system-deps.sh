@@ -19,7 +19,7 @@ if [ "$mode" = build ]; then
   # libcgal-demo ships data.tar.gz with the Stanford bunny used by the light-field demo.
   pkgs=(build-essential cmake ninja-build libcgal-dev libeigen3-dev libgmp-dev libmpfr-dev libcgal-demo python3-venv python3-dev)
 else
-  pkgs=(libgmp10 libmpfr6 libgomp1)
+  pkgs=(python3 libgmp10 libmpfr6 libgomp1 libstdc++6)
 fi
 pkgs+=("${extra[@]}")
 missing=()

@@ -1,0 +1,351 @@
+"""Python client of the flatserve HTTP service: NumPy in, NumPy out.
+
+Bulk arrays travel as ``.npy`` / ``.npz`` bodies (see
+:mod:`flatserve.service.codec` for the layouts); JSON only for small documents.
+
+Example
+-------
+>>> from flatserve.client import Client                      # doctest: +SKIP
+>>> with Client("http://127.0.0.1:8000") as c:               # doctest: +SKIP
+...     c.create_field("scene", channels=3)
+...     c.upload_rays("scene", origins, directions, colours)
+...     res = c.query_rays("scene", origins2, directions2)
+...     res.values, res.inside
+"""
+from __future__ import annotations
+
+import functools
+import io
+import math
+import time
+import uuid
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+import numpy as np
+
+from .errors import (FieldExistsError, FieldNotFoundError, FlatserveError, InvalidInputError,
+                     LimitExceededError)
+
+NPY = "application/x-npy"
+NPZ = "application/x-npz"
+
+
+class ServiceError(FlatserveError):
+    """An error response of the service (``status``, ``detail`` as sent)."""
+
+    def __init__(self, status: int, detail: Any):
+        self.status = status
+        self.detail = detail
+        super().__init__(f"HTTP {status}: {detail}")
+
+
+class NotFoundError(ServiceError, FieldNotFoundError):
+    pass
+
+
+class ConflictError(ServiceError, FieldExistsError):
+    pass
+
+
+class InvalidError(ServiceError, InvalidInputError):
+    def __init__(self, status: int, detail: Any):
+        ServiceError.__init__(self, status, detail)
+        loc = None
+        if isinstance(detail, list) and detail and isinstance(detail[0], dict):
+            loc = detail[0].get("loc")
+        self.argument = loc[-1] if loc else None
+
+
+class TooLargeError(ServiceError, LimitExceededError):
+    pass
+
+
+_BY_STATUS = {404: NotFoundError, 409: ConflictError, 413: TooLargeError, 422: InvalidError}
+
+
+@dataclass
+class QueryResult:
+    """Values (q, C) (NaN outside), inside (q,), and when asked status, ids, weights."""
+
+    values: np.ndarray
+    inside: np.ndarray
+    status: np.ndarray | None = None
+    ids: np.ndarray | None = None
+    weights: np.ndarray | None = None
+
+
+@functools.lru_cache(maxsize=64)
+def _npy_head(descr: str, shape: tuple) -> bytes:
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        head, {"descr": descr, "fortran_order": False, "shape": shape})
+    return head.getvalue()
+
+
+def _npy(arr: np.ndarray) -> bytes:
+    arr = np.ascontiguousarray(arr)
+    return _npy_head(np.lib.format.dtype_to_descr(arr.dtype), arr.shape) + arr.tobytes()
+
+
+@functools.lru_cache(maxsize=64)
+def _npy_header(head: bytes):
+    buf = io.BytesIO(head)
+    version = np.lib.format.read_magic(buf)
+    read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+            else np.lib.format.read_array_header_2_0)
+    shape, fortran, dtype = read(buf)
+    return shape, fortran, dtype, buf.tell()
+
+
+def _load_npy(data: bytes) -> np.ndarray:
+    """An .npy response as an array (no pickles; the header parse is cached)."""
+    n = (10 + int.from_bytes(data[8:10], "little")) if data[6] == 1 else \
+        (12 + int.from_bytes(data[8:12], "little"))
+    shape, fortran, dtype, off = _npy_header(bytes(data[:n]))
+    if dtype.hasobject:
+        raise ValueError("object arrays are not accepted")
+    arr = np.frombuffer(data, dtype=dtype, count=math.prod(shape), offset=off)
+    return arr.reshape(shape, order="F" if fortran else "C")
+
+
+def _npz(arrays: dict[str, np.ndarray]) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def _flat_arrays(origins, directions, A, b, Q, r) -> tuple[str, dict[str, np.ndarray]]:
+    if origins is not None or directions is not None:
+        return "rays", {"origins": np.asarray(origins, np.float64),
+                        "directions": np.asarray(directions, np.float64)}
+    if A is not None or b is not None:
+        return "parametric", {"A": np.asarray(A, np.float64), "b": np.asarray(b, np.float64)}
+    if Q is not None or r is not None:
+        return "flats", {"Q": np.asarray(Q, np.float64), "r": np.asarray(r, np.float64)}
+    raise InvalidInputError("give origins+directions, A+b or Q+r", "origins")
+
+
+def server_timing(resp: httpx.Response) -> dict[str, float]:
+    """Seconds per phase from a response's ``Server-Timing`` header."""
+    out = {}
+    for part in resp.headers.get("server-timing", "").split(","):
+        name, _, dur = part.strip().partition(";dur=")
+        if name and dur:
+            out[name] = float(dur) / 1e3
+    return out
+
+
+class Client:
+    """Talks to one flatserve server.
+
+    Parameters
+    ----------
+    base_url : str
+        ``http://host:port``.
+    api_key : str, optional
+        Sent as ``Authorization: Bearer <key>``.
+    timeout : float
+        Seconds per request.
+    retries : int
+        Uploads and reads retried this many times on connection errors
+        (uploads carry an ``Idempotency-Key``, so a retry never stores twice).
+    http : httpx.Client, optional
+        Use this client instead (e.g. a ``fastapi.testclient.TestClient``).
+    """
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, api_key: str | None = None,
+                 timeout: float = 120.0, retries: int = 2, http: httpx.Client | None = None):
+        headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+        if http is None:
+            self._http = httpx.Client(base_url=base_url, timeout=timeout, headers=headers)
+            self._own = True
+        else:
+            self._http = http
+            self._http.headers.update(headers)
+            self._own = False
+        self.retries = retries
+        #: the last httpx.Response (headers such as ``Server-Timing``)
+        self.last_response: httpx.Response | None = None
+
+    def close(self) -> None:
+        if self._own:
+            self._http.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- plumbing -----------------------------------------------------------
+    def _request(self, method: str, url: str, *, retry: bool = True, **kw) -> httpx.Response:
+        attempts = 1 + (self.retries if retry else 0)
+        for i in range(attempts):
+            try:
+                resp = self._http.request(method, url, **kw)
+            except httpx.TransportError:
+                if i + 1 == attempts:
+                    raise
+                time.sleep(0.2 * (i + 1))
+                continue
+            self.last_response = resp
+            if resp.status_code >= 400:
+                try:
+                    detail = resp.json().get("detail")
+                except Exception:
+                    detail = resp.text
+                raise _BY_STATUS.get(resp.status_code, ServiceError)(resp.status_code, detail)
+            return resp
+        raise AssertionError("unreachable")
+
+    # -- service ------------------------------------------------------------
+    def health(self) -> dict:
+        return self._request("GET", "/healthz").json()
+
+    def ready(self) -> bool:
+        try:
+            return self._http.get("/readyz").status_code == 200
+        except httpx.TransportError:
+            return False
+
+    def wait_ready(self, timeout: float = 60.0, interval: float = 0.05) -> None:
+        """Block until ``/readyz`` answers 200 (raises TimeoutError)."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if self.ready():
+                return
+            time.sleep(interval)
+        raise TimeoutError(f"server not ready after {timeout} s")
+
+    def metrics(self) -> str:
+        return self._request("GET", "/metrics").text
+
+    # -- fields -------------------------------------------------------------
+    def create_field(self, name: str, *, k: int = 1, d: int = 3, channels: int = 1,
+                     basis: dict | None = None, roundtrip_tol: float | None = None) -> dict:
+        """Create a field. ``basis``: e.g. ``{"kind": "tangent_simplex", "scale": 0.01}`` or
+        ``{"kind": "flats", "Q": Q.tolist(), "r": r.tolist()}``; default tangent simplex."""
+        body: dict[str, Any] = {"name": name, "k": k, "d": d, "channels": channels}
+        if basis is not None:
+            body["basis"] = basis
+        if roundtrip_tol is not None:
+            body["roundtrip_tol"] = roundtrip_tol
+        return self._request("POST", "/v1/fields", json=body, retry=False).json()
+
+    def list_fields(self) -> list[dict]:
+        return self._request("GET", "/v1/fields").json()["fields"]
+
+    def describe(self, name: str) -> dict:
+        return self._request("GET", f"/v1/fields/{name}").json()
+
+    def delete_field(self, name: str) -> None:
+        self._request("DELETE", f"/v1/fields/{name}", retry=False)
+
+    def batches(self, name: str) -> list[dict]:
+        return self._request("GET", f"/v1/fields/{name}/batches").json()["batches"]
+
+    def snapshot(self, name: str) -> dict:
+        return self._request("POST", f"/v1/fields/{name}/snapshot").json()
+
+    # -- samples ------------------------------------------------------------
+    def upload(self, name: str, values, *, origins=None, directions=None, A=None, b=None,
+               Q=None, r=None, idempotency_key: str | None = None, binary: bool = True) -> dict:
+        """Upload one batch of samples; returns the service's report (accepted,
+        rejected indices and reasons, nsamples, batch). A fresh Idempotency-Key
+        is generated when none is given, so retries are safe."""
+        form, arrays = _flat_arrays(origins, directions, A, b, Q, r)
+        values = np.asarray(values, np.float64)
+        if values.ndim == 1:
+            values = values[:, None]
+        key = idempotency_key or uuid.uuid4().hex
+        headers = {"Idempotency-Key": key}
+        if not binary:
+            body = {"form": form, **{k: v.tolist() for k, v in arrays.items()},
+                    "values": values.tolist()}
+            return self._request("POST", f"/v1/fields/{name}/samples", json=body,
+                                 headers=headers).json()
+        content, ctype = self._encode(form, arrays, values)
+        headers["Content-Type"] = ctype
+        return self._request("POST", f"/v1/fields/{name}/samples", params={"form": form},
+                             content=content, headers=headers).json()
+
+    def upload_rays(self, name: str, origins, directions, values, **kw) -> dict:
+        return self.upload(name, values, origins=origins, directions=directions, **kw)
+
+    def upload_parametric(self, name: str, A, b, values, **kw) -> dict:
+        return self.upload(name, values, A=A, b=b, **kw)
+
+    def upload_flats(self, name: str, Q, r, values, **kw) -> dict:
+        return self.upload(name, values, Q=Q, r=r, **kw)
+
+    @staticmethod
+    def _encode(form, arrays, values=None) -> tuple[bytes, str]:
+        if form == "rays":
+            cols = [arrays["origins"], arrays["directions"]]
+            if values is not None:
+                cols.append(values)
+            n = {c.shape[0] for c in cols if c.ndim == 2}
+            if len(n) == 1 and all(c.ndim == 2 for c in cols):
+                return _npy(np.concatenate(cols, axis=1)), NPY
+        out = dict(arrays)
+        if values is not None:
+            out["values"] = values
+        return _npz(out), NPZ
+
+    def query(self, name: str, *, origins=None, directions=None, A=None, b=None, Q=None, r=None,
+              weights: bool = False, outside: str = "nan", order: str = "hilbert",
+              binary: bool = True) -> QueryResult:
+        """Interpolate the field at a batch of flats."""
+        form, arrays = _flat_arrays(origins, directions, A, b, Q, r)
+        params = {"form": form, "outside": outside, "order": order,
+                  "weights": "true" if weights else "false"}
+        url = f"/v1/fields/{name}/query"
+        if not binary:
+            body = {"form": form, **{k: v.tolist() for k, v in arrays.items()}}
+            j = self._request("POST", url, params=params, json=body).json()
+            vals = np.array([[np.nan if x is None else x for x in row] for row in j["values"]],
+                            dtype=np.float64).reshape(len(j["inside"]), -1)
+            res = QueryResult(vals, np.asarray(j["inside"], bool), np.asarray(j["status"], np.int8))
+            if weights:
+                res.ids = np.asarray(j["ids"], np.int64)
+                res.weights = np.array(j["weights"], dtype=np.float64)
+            return res
+        content, ctype = self._encode(form, arrays)
+        accept = NPZ if weights else NPY
+        resp = self._request("POST", url, params=params, content=content,
+                             headers={"Content-Type": ctype, "Accept": accept})
+        if weights:
+            with np.load(io.BytesIO(resp.content), allow_pickle=False) as z:
+                return QueryResult(z["values"], z["inside"], z["status"], z["ids"], z["weights"])
+        arr = _load_npy(resp.content)
+        return QueryResult(arr[:, :-1], arr[:, -1] != 0)
+
+    def query_rays(self, name: str, origins, directions, **kw) -> QueryResult:
+        return self.query(name, origins=origins, directions=directions, **kw)
+
+    def query_parametric(self, name: str, A, b, **kw) -> QueryResult:
+        return self.query(name, A=A, b=b, **kw)
+
+    def query_flats(self, name: str, Q, r, **kw) -> QueryResult:
+        return self.query(name, Q=Q, r=r, **kw)
+
+    # -- stateless math ---------------------------------------------------------
+    def coordinates(self, *, k: int = 1, d: int = 3, basis: dict | None = None,
+                    embed: bool = False, **flats) -> dict:
+        """Coordinates of flats (``Q``/``r``, ``A``/``b`` or ``origins``/``directions``)."""
+        body = {"k": k, "d": d, "embed": embed,
+                "flats": {kk: np.asarray(v, np.float64).tolist() for kk, v in flats.items()}}
+        if basis is not None:
+            body["basis"] = basis
+        j = self._request("POST", "/v1/math/coordinates", json=body).json()
+        return {kk: (np.array(v, dtype=np.float64) if kk != "status" else np.asarray(v, np.int8))
+                for kk, v in j.items() if v is not None}
+
+    def project(self, weights, *, k: int = 1, d: int = 3, **flats) -> dict:
+        body = {"k": k, "d": d, "weights": np.asarray(weights, np.float64).tolist(),
+                "flats": {kk: np.asarray(v, np.float64).tolist() for kk, v in flats.items()}}
+        j = self._request("POST", "/v1/math/project", json=body).json()
+        return {kk: np.array(v, dtype=bool if kk == "ambiguous" else np.float64)
+                for kk, v in j.items()}

@@ -1,0 +1,110 @@
+"""``create_app(settings)``: the FastAPI application; state is built in ``lifespan``."""
+from __future__ import annotations
+
+import logging
+import threading
+from contextlib import asynccontextmanager
+
+import anyio.to_thread
+from fastapi import FastAPI
+
+from .. import __version__
+from . import errors
+from .metrics import Metrics, MetricsMiddleware
+from .registry import Registry
+from .routes import api, health
+from .settings import Settings
+from .storage import Storage
+
+log = logging.getLogger("flatserve.service")
+
+DESCRIPTION = """\
+Named **fields** of samples over affine subspaces (flats): a basis, a Delaunay
+triangulation of the samples' coordinates, and values interpolated at query
+flats. Bulk arrays travel as `application/x-npy` / `application/x-npz`; JSON is
+for small requests. Uploads are acknowledged only once durably stored.
+"""
+
+
+class BodyLimitMiddleware:
+    """413 before reading anything when Content-Length exceeds the limit."""
+
+    def __init__(self, app, limit: int):
+        self.app = app
+        self.limit = limit
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] == "http":
+            for k, v in scope.get("headers", ()):
+                if k == b"content-length":
+                    if v.isdigit() and int(v) > self.limit:
+                        resp = errors.error_response(errors.BodyTooLargeError(
+                            f"body of {int(v)} bytes exceeds the limit of {self.limit} bytes"))
+                        return await resp(scope, receive, send)
+                    break
+        return await self.app(scope, receive, send)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        # Several clients (TestClient, schemathesis) may run the lifespan of one app at
+        # once: the first builds the state, the last one out closes it.
+        st = app.state
+        st.lifespans = getattr(st, "lifespans", 0) + 1
+        if st.lifespans == 1:
+            _start(app, settings)
+        try:
+            yield
+        finally:
+            st.lifespans -= 1
+            if st.lifespans == 0:
+                _stop(app)
+
+    app = FastAPI(title="flatserve", version=__version__, description=DESCRIPTION,
+                  lifespan=lifespan)
+    app.state.settings = settings
+    app.state.metrics = Metrics()
+    app.state.metrics.watch(_EntriesOf(app))
+    errors.install(app)
+    app.include_router(api)
+    app.include_router(health)
+    from .routes_lightfield import lightfield_api, viewer  # light-field render + viewer page
+    app.include_router(lightfield_api)
+    app.include_router(viewer)
+    app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
+    app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    return app
+
+
+def _start(app: FastAPI, settings: Settings) -> None:
+    anyio.to_thread.current_default_thread_limiter().total_tokens = settings.workers
+    storage = Storage(settings.data_dir)
+    registry = Registry(settings, storage, app.state.metrics)
+    app.state.registry = registry
+    if not settings.auth_enabled:
+        log.warning("no API key set: no authentication; listen on loopback only "
+                    "(set FLATSERVE_API_KEY to serve other hosts)")
+    loader = threading.Thread(target=registry.load_stored, name="flatserve-restore",
+                              daemon=True)
+    app.state.loader = loader
+    loader.start()
+
+
+def _stop(app: FastAPI) -> None:
+    registry = app.state.registry
+    registry.close()
+    app.state.loader.join(timeout=30)
+    registry.storage.close()
+    del app.state.registry
+
+
+class _EntriesOf:
+    def __init__(self, app):
+        self.app = app
+
+    def snapshot_entries(self):
+        reg = getattr(self.app.state, "registry", None)
+        return reg.snapshot_entries() if reg is not None else []

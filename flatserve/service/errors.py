@@ -1,0 +1,158 @@
+"""The ONE place where exceptions become HTTP statuses.
+
+Library code raises :mod:`flatserve.errors`; the service raises :class:`ApiError`
+for HTTP-only conditions (content type, body size, auth). Bad input is always a
+4xx: a 422 names the offending argument in ``detail[].loc`` (FastAPI's
+``HTTPValidationError`` shape, so it matches the documented schema).
+"""
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from .responses import JSONBytes as ORJSONResponse
+from pydantic import BaseModel
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from .. import errors as fe
+
+log = logging.getLogger("flatserve.service")
+
+
+class ApiError(Exception):
+    """An HTTP-level refusal raised by the service itself."""
+
+    def __init__(self, status: int, detail: str, *, argument: str | None = None,
+                 headers: dict[str, str] | None = None):
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+        self.argument = argument
+        self.headers = headers
+
+
+class TooManyFieldsError(fe.LimitExceededError):
+    """The configured number of fields is reached."""
+
+    status = 409
+
+
+class BatchTooLargeError(fe.LimitExceededError):
+    """Too many rows in one upload or query."""
+
+    status = 413
+
+
+class BodyTooLargeError(fe.LimitExceededError):
+    """Request body larger than ``max_body_bytes``."""
+
+    status = 413
+
+
+class NotReadyError(fe.FlatserveError):
+    """Stored fields are still being restored."""
+
+
+class IdempotencyConflictError(fe.FlatserveError):
+    """Idempotency-Key reused with a different request body."""
+
+
+class ErrorBody(BaseModel):
+    """Body of every non-422 error response."""
+
+    detail: str
+
+
+# Documented on every route (OpenAPI); 422 is FastAPI's HTTPValidationError.
+COMMON_RESPONSES: dict[int | str, dict] = {
+    401: {"model": ErrorBody, "description": "Missing or wrong API key."},
+    403: {"model": ErrorBody, "description": "The read-only key cannot write."},
+    413: {"model": ErrorBody, "description": "Body or batch too large."},
+    503: {"model": ErrorBody, "description": "Stored fields are still loading, or storage failed."},
+}
+FIELD_RESPONSES: dict[int | str, dict] = {
+    **COMMON_RESPONSES,
+    404: {"model": ErrorBody, "description": "No field with this name."},
+}
+BODY_RESPONSES: dict[int | str, dict] = {
+    **FIELD_RESPONSES,
+    409: {"model": ErrorBody, "description": "Conflict (existing name, field limit)."},
+    415: {"model": ErrorBody, "description": "Unsupported Content-Type."},
+}
+
+
+def status_of(exc: BaseException) -> int:
+    """HTTP status for a library or service exception (the mapping table)."""
+    if isinstance(exc, ApiError):
+        return exc.status
+    if isinstance(exc, fe.FieldNotFoundError):
+        return 404
+    if isinstance(exc, (fe.FieldExistsError, IdempotencyConflictError)):
+        return 409 if isinstance(exc, fe.FieldExistsError) else 422
+    if isinstance(exc, fe.LimitExceededError):
+        return getattr(exc, "status", 413)
+    if isinstance(exc, (fe.InvalidInputError, fe.BasisError)):
+        return 422
+    if isinstance(exc, NotReadyError):
+        return 503
+    if isinstance(exc, (fe.StorageError, fe.SnapshotError)):
+        return 503
+    if isinstance(exc, ValueError):  # bad input reported by NumPy or other libraries
+        return 422
+    return 500
+
+
+def _message(exc: BaseException) -> str:
+    if isinstance(exc, KeyError) and exc.args:
+        return str(exc.args[0])
+    return str(exc) or type(exc).__name__
+
+
+def error_response(exc: BaseException) -> ORJSONResponse:
+    status = status_of(exc)
+    msg = _message(exc)
+    headers = getattr(exc, "headers", None)
+    if status == 503 and isinstance(exc, NotReadyError):
+        headers = {"Retry-After": "1"}
+    if status == 422:
+        arg = getattr(exc, "argument", None)
+        loc = ["body", arg] if arg else ["body"]
+        body = {"detail": [{"loc": loc, "msg": msg, "type": type(exc).__name__}]}
+    else:
+        body = {"detail": msg}
+    return ORJSONResponse(body, status_code=status, headers=headers)
+
+
+def install(app: FastAPI) -> None:
+    """Register the handlers on ``app``."""
+
+    async def _handle(request: Request, exc: Exception):
+        status = status_of(exc)
+        if status >= 500:
+            log.error("%s %s failed: %s", request.method, request.url.path, exc,
+                      exc_info=status == 500)
+        elif isinstance(exc, ValueError) and not isinstance(exc, fe.FlatserveError):
+            log.warning("%s %s: unclassified ValueError mapped to 422: %s",
+                        request.method, request.url.path, exc)
+        return error_response(exc)
+
+    for cls in (ApiError, fe.FlatserveError, ValueError):
+        app.add_exception_handler(cls, _handle)
+
+    async def _validation(request: Request, exc: RequestValidationError):
+        # FastAPI's own format, orjson'd; input values can be non-JSON bytes.
+        errs = [{"loc": list(e.get("loc", ())), "msg": str(e.get("msg", "")),
+                 "type": str(e.get("type", ""))} for e in exc.errors()]
+        return ORJSONResponse({"detail": errs}, status_code=422)
+
+    app.add_exception_handler(RequestValidationError, _validation)
+
+    async def _http(request: Request, exc: StarletteHTTPException):
+        if exc.status_code == 400:  # FastAPI could not decode the body: same shape as a 422
+            return ORJSONResponse({"detail": [{"loc": ["body"], "msg": str(exc.detail),
+                                               "type": "body_decode_error"}]}, status_code=422)
+        return ORJSONResponse({"detail": str(exc.detail)}, status_code=exc.status_code,
+                              headers=getattr(exc, "headers", None))
+
+    app.add_exception_handler(StarletteHTTPException, _http)

@@ -1,0 +1,252 @@
+"""HTTP routes under ``/v1`` (plus health and metrics at the root).
+
+CPU-heavy handlers are plain ``def`` (FastAPI runs them in the thread pool of
+``workers`` threads; the native core releases the GIL); the body is read by an
+``async`` dependency first.
+"""
+from __future__ import annotations
+
+import time
+from typing import Annotated, Literal, Optional
+
+import numpy as np
+from fastapi import APIRouter, Header, Query, Request, Response
+
+from .. import errors as fe
+from . import codec, specs
+from .codec import JSONBytes
+from .deps import BodyDep, FieldNamePath, ReadAccess, RegistryDep, SettingsDep, WriteAccess
+from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, ErrorBody
+from .registry import FieldEntry
+from .schemas import (BatchInfo, BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
+                      FieldInfo, FieldList, FieldSummary, Health, ProjectRequest, ProjectResult,
+                      QueryBody, QueryResult, SnapshotResult, UploadBody, UploadResult)
+
+Form = Literal["rays", "parametric", "flats"]
+FormQuery = Annotated[Optional[Form], Query(
+    description="Flat form of the body. JSON/.npz: inferred from the array names. "
+                "`.npy`: required unless the field holds lines (k = 1; default `rays`).")]
+
+_BINARY = {"schema": {"type": "string", "format": "binary"}}
+_LAYOUT = (
+    "Bodies: `application/json` (small batches; arrays as nested lists), "
+    "`application/x-npy` (ONE float32/float64 array of shape (n, W): per row the flat - "
+    "rays: origin(d) | direction(d); parametric: A(d x k, row-major) | b(d); flats: "
+    "Q(d x d, row-major) | r(d) - then, for uploads, the C values), or `application/x-npz` "
+    "(named arrays origins+directions | A+b | Q+r, and values)."
+)
+
+
+def _body_doc(model) -> dict:
+    schema = model.model_json_schema()
+    schema.pop("title", None)
+    return {"requestBody": {"required": True, "content": {
+        "application/json": {"schema": schema},
+        codec.NPY: _BINARY,
+        codec.NPZ: _BINARY,
+    }}}
+
+
+api = APIRouter(prefix="/v1")
+health = APIRouter()
+
+
+# -- fields -------------------------------------------------------------------
+def _summary(e: FieldEntry) -> dict:
+    f = e.field
+    return {"name": e.name, "k": e.k, "d": e.d, "channels": e.channels, "state": e.state,
+            "nsamples": int(f.nsamples) if f is not None else None}
+
+
+@api.post("/fields", status_code=201, response_model=FieldInfo, tags=["fields"],
+          dependencies=[WriteAccess], responses=BODY_RESPONSES,
+          summary="Create a field (basis + empty triangulation)")
+def create_field(spec: FieldCreate, registry: RegistryDep) -> Response:
+    basis = specs.build_basis(spec.basis, spec.k, spec.d)
+    specs.check_field_basis(basis, spec.k, spec.d)
+    stored = {"k": spec.k, "d": spec.d, "channels": spec.channels,
+              "basis": specs.spec_dict(spec.basis), "roundtrip_tol": spec.roundtrip_tol}
+    e = registry.create(spec.name, stored, basis)
+    return JSONBytes(_describe(registry, e), status_code=201)
+
+
+@api.get("/fields", response_model=FieldList, tags=["fields"], dependencies=[ReadAccess],
+         responses=COMMON_RESPONSES, summary="List fields")
+def list_fields(registry: RegistryDep) -> Response:
+    return JSONBytes({"fields": [_summary(e) for e in registry.snapshot_entries()]})
+
+
+def _describe(registry, e: FieldEntry) -> dict:
+    nb, nrows, nbytes, last = registry.storage.batch_stats(e.id)
+    snap_bytes = registry.storage.snapshot_bytes(e.snapshot_file)
+    out = _summary(e)
+    f = e.field
+    m = int(e.basis_arrays["Q"].shape[0])
+    out.update({
+        "ndim": m - 1,
+        "nrejected": int(f.nrejected) if f is not None else None,
+        "nvertices": int(f.nvertices) if f is not None else None,
+        "nsimplex": int(f.nsimplex) if f is not None else None,
+        "created": e.created,
+        "error": e.error,
+        "basis": {"m": m, "dim": m - 1, "spec": e.spec.get("basis", {}),
+                  "Q": e.basis_arrays["Q"], "r": e.basis_arrays["r"]},
+        "storage": {"batches": nb, "batch_rows": nrows, "batch_bytes": nbytes, "last_batch": last,
+                    "snapshot_batch": e.snapshot_seq if e.snapshot_file else 0,
+                    "snapshot_bytes": snap_bytes, "total_bytes": nbytes + snap_bytes},
+    })
+    return out
+
+
+@api.get("/fields/{name}", response_model=FieldInfo, tags=["fields"], dependencies=[ReadAccess],
+         responses=FIELD_RESPONSES, summary="Describe a field")
+def describe_field(name: FieldNamePath, registry: RegistryDep) -> Response:
+    e = registry.get(name, need_ready=False)
+    with e.lock.read():
+        return JSONBytes(_describe(registry, e))
+
+
+@api.delete("/fields/{name}", status_code=204, tags=["fields"], dependencies=[WriteAccess],
+            responses=FIELD_RESPONSES, summary="Delete a field and its stored batches")
+def delete_field(name: FieldNamePath, registry: RegistryDep) -> Response:
+    registry.delete(name)
+    return Response(status_code=204)
+
+
+@api.get("/fields/{name}/batches", response_model=BatchList, tags=["fields"],
+         dependencies=[ReadAccess], responses=FIELD_RESPONSES, summary="List stored batches")
+def list_batches(name: FieldNamePath, registry: RegistryDep) -> Response:
+    e = registry.get(name, need_ready=False)
+    rows = registry.storage.batches(e.id)
+    return JSONBytes({"batches": [
+        {"batch": b.seq, "idempotency_key": b.idem_key, "rows": b.nrows,
+         "accepted": int(b.result.get("accepted", 0)), "form": b.form} for b in rows]})
+
+
+@api.post("/fields/{name}/snapshot", response_model=SnapshotResult, tags=["fields"],
+          dependencies=[WriteAccess], responses=FIELD_RESPONSES, summary="Write a snapshot now")
+def snapshot_field(name: FieldNamePath, registry: RegistryDep) -> Response:
+    return JSONBytes(registry.snapshot(registry.get(name)))
+
+
+# -- samples and queries --------------------------------------------------------
+@api.post(
+    "/fields/{name}/samples", response_model=UploadResult, tags=["samples"],
+    dependencies=[WriteAccess], responses=BODY_RESPONSES, openapi_extra=_body_doc(UploadBody),
+    summary="Upload a batch of samples",
+    description="Stores the batch durably (acknowledged after commit) and inserts it. "
+                + _LAYOUT + " With `Idempotency-Key`, a retried batch is stored once; the same "
+                "key with different content is a 422.",
+)
+def upload_samples(
+    name: FieldNamePath, registry: RegistryDep, settings: SettingsDep, body: BodyDep,
+    form: FormQuery = None,
+    content_type: Annotated[Optional[str], Header()] = None,
+    idempotency_key: Annotated[Optional[str], Header(max_length=256)] = None,
+) -> Response:
+    e = registry.get(name)
+    t0 = time.perf_counter()
+    form, arrays, values, _ = codec.decode(body, content_type, form, k=e.k, d=e.d,
+                                           channels=e.channels, max_rows=settings.max_batch_rows)
+    timings = {"decode": time.perf_counter() - t0}
+    out = registry.upload(e, form, arrays, values, idempotency_key, timings)
+    return JSONBytes(out, headers={"Server-Timing": server_timing(timings)})
+
+
+def server_timing(t: dict) -> str:
+    """``Server-Timing`` header (milliseconds) of the phases of a request."""
+    return ", ".join(f"{k};dur={v * 1e3:.3f}" for k, v in t.items())
+
+
+@api.post(
+    "/fields/{name}/query", response_model=QueryResult, tags=["samples"],
+    dependencies=[ReadAccess], openapi_extra=_body_doc(QueryBody),
+    responses={**BODY_RESPONSES, 200: {"content": {codec.NPY: _BINARY, codec.NPZ: _BINARY},
+                                       "description": "Interpolated values."}},
+    summary="Interpolate values at a batch of flats",
+    description=_LAYOUT + " Response per `Accept`: JSON (default), `application/x-npy` "
+                "(q, C + 1 [+ 2 (D+1)]) float64: values, inside as 0/1, then with "
+                "`weights=true` sample ids and barycentric weights; or `application/x-npz`.",
+)
+def query_field(
+    name: FieldNamePath, registry: RegistryDep, settings: SettingsDep, body: BodyDep,
+    form: FormQuery = None,
+    outside: Annotated[Literal["nan", "clamp"], Query()] = "nan",
+    order: Annotated[Literal["hilbert", "given"], Query()] = "hilbert",
+    weights: Annotated[bool, Query(description="Also return sample ids and weights.")] = False,
+    content_type: Annotated[Optional[str], Header()] = None,
+    accept: Annotated[Optional[str], Header()] = None,
+) -> Response:
+    e = registry.get(name)
+    t0 = time.perf_counter()
+    form, arrays, _, _ = codec.decode(body, content_type, form, k=e.k, d=e.d, channels=None,
+                                      max_rows=settings.max_batch_rows)
+    t1 = time.perf_counter()
+    res = registry.query(e, form, arrays, outside=outside, order=order, return_weights=weights)
+    t2 = time.perf_counter()
+    resp = codec.query_response(
+        accept, res.values, res.inside, res.status,
+        res.ids if weights else None, res.weights if weights else None)
+    resp.headers["Server-Timing"] = server_timing(
+        {"decode": t1 - t0, "query": t2 - t1, "encode": time.perf_counter() - t2})
+    return resp
+
+
+# -- stateless math ---------------------------------------------------------------
+@api.post("/math/coordinates", response_model=CoordinatesResult, tags=["math"],
+          dependencies=[ReadAccess], responses=COMMON_RESPONSES,
+          summary="Coordinates of flats in a basis (paper Eq. 9/12)")
+def math_coordinates(req: CoordinatesRequest, settings: SettingsDep) -> Response:
+    basis = specs.build_basis(req.basis, req.k, req.d)
+    Q, r = specs.flats_from(req.flats, req.k, req.d, "flats", settings.max_batch_rows)
+    c = basis.coordinates(Q, r)
+    out = {"weights": c.weights, "status": c.status, "residual": c.residual}
+    if req.embed:
+        from ..embedding import embed
+        out["embedded"] = embed(c.weights)
+    return JSONBytes(out)
+
+
+@api.post("/math/project", response_model=ProjectResult, tags=["math"],
+          dependencies=[ReadAccess], responses=COMMON_RESPONSES,
+          summary="Projection of an affine combination of flats (paper Eq. 4-6)")
+def math_project(req: ProjectRequest, settings: SettingsDep) -> Response:
+    from .. import flats
+    from .._validate import as_array
+
+    Q, r = specs.flats_from(req.flats, req.k, req.d, "flats", settings.max_batch_rows,
+                            validate=False)
+    w = as_array(req.weights, "weights", ("n", Q.shape[0]))
+    if w.shape[0] > settings.max_batch_rows:
+        from .errors import BatchTooLargeError
+        raise BatchTooLargeError(f"{w.shape[0]} weight rows; the limit is {settings.max_batch_rows}")
+    p = flats.affine_combination(w, Q, r, req.k)
+    A, b = flats.to_parametric(p.Q, p.r, req.k)
+    return JSONBytes({"Q": p.Q, "r": p.r, "A": A, "b": b, "gap": p.gap, "ambiguous": p.ambiguous})
+
+
+# -- health and metrics -------------------------------------------------------------
+@health.get("/healthz", response_model=Health, tags=["health"], summary="Liveness")
+def healthz() -> Response:
+    return JSONBytes({"status": "ok"})
+
+
+@health.get("/readyz", response_model=Health, tags=["health"], summary="Readiness",
+            responses={503: {"model": Health, "description": "Stored fields still loading."}})
+def readyz(registry: RegistryDep) -> Response:
+    entries = registry.snapshot_entries()
+    loading = sum(e.state == "loading" for e in entries)
+    if not registry.ready.is_set():
+        return JSONBytes({"status": "loading", "fields": len(entries), "loading": loading},
+                         status_code=503)
+    return JSONBytes({"status": "ready", "fields": len(entries), "loading": loading})
+
+
+@health.get("/metrics", tags=["health"], summary="Prometheus metrics",
+            response_class=Response,
+            responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}},
+                             "description": "Prometheus text format."}})
+def metrics(request: Request) -> Response:
+    from .metrics import CONTENT_TYPE
+
+    return Response(request.app.state.metrics.render(), media_type=CONTENT_TYPE)

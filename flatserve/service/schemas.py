@@ -1,0 +1,233 @@
+"""Pydantic models of the small JSON documents (field definitions, reports).
+
+Bulk arrays (upload and query bodies) are NOT parsed through these models: the
+``*Body`` models below only document the JSON form in OpenAPI; the service
+decodes them with orjson + NumPy (see :mod:`.codec`).
+"""
+from __future__ import annotations
+
+from typing import Annotated, Literal, Optional, Union
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from .settings import FIELD_NAME_PATTERN
+
+Vec = list[float]
+Mat = list[list[float]]
+Mats = list[list[list[float]]]
+FieldName = Annotated[str, Field(pattern=FIELD_NAME_PATTERN, description="Field name.")]
+
+MAX_D = 8
+MAX_DIM = 8  # triangulation dimension (k+1)(d-k)
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class CenterFlat(_Strict):
+    """One flat: (Q, r), or (A, b) with A (d, k), or a line as origin + direction."""
+
+    Q: Optional[Mat] = None
+    r: Optional[Vec] = None
+    A: Optional[Mat] = None
+    b: Optional[Vec] = None
+    origin: Optional[Vec] = None
+    direction: Optional[Vec] = None
+
+
+class TangentSimplexBasis(_Strict):
+    """Tangent-space base simplex around a centre flat (paper Sec. 5.1, Eq. 13-15)."""
+
+    kind: Literal["tangent_simplex"] = "tangent_simplex"
+    center: Optional[CenterFlat] = Field(
+        None, description="Centre flat; default: the span of the last k axes through the origin "
+                          "(the z-axis for lines in R^3)."
+    )
+    scale: float = Field(0.01, gt=0, le=1e3, allow_inf_nan=False)
+    variant: Literal["tangent", "paper"] = "tangent"
+
+
+class FlatsBasis(_Strict):
+    """A basis given explicitly: m flats as Q (m,d,d) + r (m,d), A (m,d,k) + b (m,d),
+    or (k = 1) origins + directions (m,d)."""
+
+    kind: Literal["flats"] = "flats"
+    Q: Optional[Mats] = None
+    r: Optional[Mat] = None
+    A: Optional[Mats] = None
+    b: Optional[Mat] = None
+    origins: Optional[Mat] = None
+    directions: Optional[Mat] = None
+
+
+BasisSpec = Annotated[Union[TangentSimplexBasis, FlatsBasis], Field(discriminator="kind")]
+
+
+class _KD(_Strict):
+    k: int = Field(1, ge=0, le=MAX_D - 1, description="Dimension of the flats (1: lines).")
+    d: int = Field(3, ge=1, le=MAX_D, description="Dimension of the ambient space.")
+
+    @model_validator(mode="after")
+    def _kd(self):
+        if self.k >= self.d:
+            raise ValueError(f"k must be smaller than d (k={self.k}, d={self.d})")
+        if (self.k + 1) * (self.d - self.k) > MAX_DIM:
+            raise ValueError(
+                f"(k+1)(d-k) = {(self.k + 1) * (self.d - self.k)} exceeds {MAX_DIM}: "
+                "triangulations of that dimension are not supported"
+            )
+        return self
+
+
+class FieldCreate(_KD):
+    name: FieldName
+    channels: int = Field(1, ge=1, le=64, description="Values per sample (3 for RGB).")
+    basis: Optional[BasisSpec] = Field(None, description="Default: tangent simplex around the default centre.")
+    roundtrip_tol: Optional[float] = Field(None, gt=0, le=1.0, allow_inf_nan=False)
+
+
+class BasisInfo(BaseModel):
+    m: int
+    dim: int = Field(description="(k+1)(d-k): dimension of the coordinate space.")
+    spec: dict
+    Q: Mats
+    r: Mat
+
+
+class StorageInfo(BaseModel):
+    batches: int
+    batch_rows: int
+    batch_bytes: int
+    last_batch: int
+    snapshot_batch: int = Field(description="Last batch included in the snapshot (0: none).")
+    snapshot_bytes: int
+    total_bytes: int
+
+
+class FieldSummary(BaseModel):
+    name: str
+    k: int
+    d: int
+    channels: int
+    state: Literal["loading", "ready", "failed"]
+    nsamples: Optional[int] = None
+
+
+class FieldList(BaseModel):
+    fields: list[FieldSummary]
+
+
+class FieldInfo(FieldSummary):
+    ndim: int
+    nrejected: Optional[int] = None
+    nvertices: Optional[int] = None
+    nsimplex: Optional[int] = None
+    created: float
+    error: Optional[str] = None
+    basis: BasisInfo
+    storage: StorageInfo
+
+
+class UploadResult(BaseModel):
+    batch: int = Field(description="Sequence number of the stored batch.")
+    accepted: int
+    rejected: list[int] = Field(description="Row indices not triangulated (outside the chart).")
+    reasons: list[str]
+    duplicates: int
+    nsamples: int = Field(description="Samples in the field after this batch.")
+    replayed: bool = Field(False, description="True: the Idempotency-Key was seen; nothing stored.")
+
+
+class BatchInfo(BaseModel):
+    batch: int
+    idempotency_key: Optional[str]
+    rows: int
+    accepted: int
+    form: str
+
+
+class BatchList(BaseModel):
+    batches: list[BatchInfo]
+
+
+class SnapshotResult(BaseModel):
+    batch: int = Field(description="Last batch included in the snapshot.")
+    bytes: int
+    seconds: float
+
+
+class UploadBody(_Strict):
+    """JSON upload (small batches): one flat form plus values (n, C)."""
+
+    form: Optional[Literal["rays", "parametric", "flats"]] = None
+    origins: Optional[Mat] = None
+    directions: Optional[Mat] = None
+    A: Optional[Mats] = None
+    b: Optional[Mat] = None
+    Q: Optional[Mats] = None
+    r: Optional[Mat] = None
+    values: Mat
+
+
+class QueryBody(_Strict):
+    """JSON query (small batches): one flat form."""
+
+    form: Optional[Literal["rays", "parametric", "flats"]] = None
+    origins: Optional[Mat] = None
+    directions: Optional[Mat] = None
+    A: Optional[Mats] = None
+    b: Optional[Mat] = None
+    Q: Optional[Mats] = None
+    r: Optional[Mat] = None
+
+
+class QueryResult(BaseModel):
+    values: list[list[Optional[float]]] = Field(description="(q, C); null outside (outside=nan).")
+    inside: list[bool]
+    status: list[int] = Field(description="Coordinate status per row (0 OK, 1 not representable, "
+                                          "2 singular, 3 ambiguous).")
+    ids: Optional[list[list[int]]] = Field(None, description="(q, D+1) sample ids, -1 for none.")
+    weights: Optional[list[list[Optional[float]]]] = Field(None, description="(q, D+1) barycentric.")
+
+
+class FlatsInput(_Strict):
+    Q: Optional[Mats] = None
+    r: Optional[Mat] = None
+    A: Optional[Mats] = None
+    b: Optional[Mat] = None
+    origins: Optional[Mat] = None
+    directions: Optional[Mat] = None
+
+
+class CoordinatesRequest(_KD):
+    basis: Optional[BasisSpec] = None
+    flats: FlatsInput
+    embed: bool = Field(False, description="Also return the embedded coordinates (n, m-1).")
+
+
+class CoordinatesResult(BaseModel):
+    weights: list[list[Optional[float]]]
+    status: list[int]
+    residual: list[Optional[float]]
+    embedded: Optional[list[list[Optional[float]]]] = None
+
+
+class ProjectRequest(_KD):
+    flats: FlatsInput = Field(description="The m flats combined.")
+    weights: Mat = Field(description="(n, m) affine weights, each row summing to 1.")
+
+
+class ProjectResult(BaseModel):
+    Q: list[list[list[Optional[float]]]]
+    r: list[list[Optional[float]]]
+    A: list[list[list[Optional[float]]]]
+    b: list[list[Optional[float]]]
+    gap: list[Optional[float]]
+    ambiguous: list[bool]
+
+
+class Health(BaseModel):
+    status: str
+    fields: Optional[int] = None
+    loading: Optional[int] = None

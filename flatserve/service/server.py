@@ -1,0 +1,58 @@
+"""Run the service with uvicorn (``flatserve serve`` / ``python -m flatserve.service``)."""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from .settings import Settings
+
+log = logging.getLogger("flatserve.service")
+
+
+def serve(settings: Settings | None = None) -> None:
+    import uvicorn
+
+    from .app import create_app
+
+    settings = settings or Settings()
+    level = settings.log_level.upper()
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("flatserve").setLevel(level)
+    host = settings.bind_host()
+    if host != settings.host:
+        log.warning("no API key set: binding to %s instead of %s", host, settings.host)
+    log.info("flatserve on http://%s:%d, data in %s, %d worker threads", host, settings.port,
+             settings.data_dir, settings.workers)
+    uvicorn.run(create_app(settings), host=host, port=settings.port, workers=1,
+                log_level=settings.log_level.lower(), access_log=False,
+                timeout_graceful_shutdown=10)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Options of ``flatserve serve``; unset ones come from FLATSERVE_* / defaults."""
+    p.add_argument("--host", help="interface (default 127.0.0.1; FLATSERVE_HOST)")
+    p.add_argument("--port", type=int, help="port (default 8000; FLATSERVE_PORT)")
+    p.add_argument("--data-dir", help="data directory (default ./data; FLATSERVE_DATA_DIR)")
+    p.add_argument("--workers", type=int, help="handler threads (FLATSERVE_WORKERS)")
+    p.add_argument("--api-key", help="read-write API key (FLATSERVE_API_KEY)")
+    p.add_argument("--read-only-key", help="read-only API key (FLATSERVE_READ_ONLY_KEY)")
+    p.add_argument("--snapshot-every", type=int, help="samples between background snapshots")
+    p.add_argument("--log-level", help="debug, info, warning (FLATSERVE_LOG_LEVEL)")
+
+
+def settings_from_args(args: argparse.Namespace) -> Settings:
+    over = {k: v for k, v in vars(args).items()
+            if k in Settings.model_fields and v is not None}
+    return Settings(**over)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m flatserve.service", description=__doc__)
+    add_arguments(p)
+    serve(settings_from_args(p.parse_args(argv)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

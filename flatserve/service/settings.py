@@ -1,0 +1,82 @@
+"""Service settings (pydantic-settings, environment prefix ``FLATSERVE_``).
+
+Every option can be given as an environment variable, e.g.
+``FLATSERVE_DATA_DIR=/var/lib/flatserve FLATSERVE_API_KEY=... flatserve serve``.
+"""
+from __future__ import annotations
+
+import ipaddress
+from pathlib import Path
+
+from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+#: Field names: a letter or digit, then up to 63 letters, digits, ``_ . -``.
+#: No ``/``, no leading dot: a name can never become a path.
+FIELD_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+
+MiB = 1 << 20
+
+
+class Settings(BaseSettings):
+    """Configuration of one flatserve server process."""
+
+    model_config = SettingsConfigDict(env_prefix="FLATSERVE_", extra="ignore")
+
+    host: str = Field("127.0.0.1", description="Interface to bind.")
+    port: int = Field(8000, ge=0, le=65535)
+    data_dir: Path = Field(Path("data"), description="SQLite database and snapshots live here.")
+    workers: int = Field(
+        8,
+        ge=1,
+        le=256,
+        description=(
+            "Threads running CPU-heavy handlers (upload, query, math) in parallel. "
+            "The service runs ONE process: fields live in memory, and several "
+            "processes would each hold a diverging copy."
+        ),
+    )
+    api_key: SecretStr | None = Field(None, description="Read-write API key.")
+    read_only_key: SecretStr | None = Field(None, description="Read-only API key (queries, GETs).")
+    max_body_bytes: int = Field(512 * MiB, ge=1, description="Largest accepted request body (413).")
+    max_batch_rows: int = Field(1_000_000, ge=1, description="Most rows in one upload or query (413).")
+    max_fields: int = Field(256, ge=1, description="Most fields on this server (409).")
+    snapshot_every: int = Field(
+        100_000,
+        ge=0,
+        description="Write a snapshot in the background after this many new samples (0: never).",
+    )
+    log_level: str = Field("info")
+
+    @field_validator("api_key", "read_only_key", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, v):
+        return None if v is None or (isinstance(v, str) and not v.strip()) else v
+
+    @model_validator(mode="after")
+    def _keys(self) -> "Settings":
+        if self.read_only_key is not None and self.api_key is None:
+            raise ValueError("read_only_key needs api_key (the read-write key) to be set too")
+        if self.api_key is not None and self.read_only_key is not None:
+            if self.api_key.get_secret_value() == self.read_only_key.get_secret_value():
+                raise ValueError("api_key and read_only_key must differ")
+        return self
+
+    @property
+    def auth_enabled(self) -> bool:
+        return self.api_key is not None
+
+    def bind_host(self) -> str:
+        """The host actually bound: loopback only when no API key is set."""
+        if self.auth_enabled or is_loopback(self.host):
+            return self.host
+        return "127.0.0.1"
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False

@@ -1,0 +1,130 @@
+// flatserve light-field viewer: no build step, no dependencies.
+// Camera: eye on a sphere around the origin (yaw, pitch, distance), focal length.
+// Each change POSTs the camera to /v1/fields/{name}/render and shows the PNG.
+// While dragging, frames use 1 ray per pixel; at rest, 4 (the paper's 4x).
+(function () {
+  "use strict";
+  const parts = location.pathname.split("/").filter(Boolean);
+  const name = decodeURIComponent(parts[parts.length - 1] || "");
+  const hash = new URLSearchParams(location.hash.slice(1));
+  const apiKey = hash.get("key");                       // #key=... when the server needs one
+  const DEFAULT = { yaw: 0, pitch: 0, distance: 3, focal: 4 };
+  // the samples see the bunny from eyes in [-1,1]^2 x [-4.5,-1.5]: beyond ~20 degrees the views
+  // nothing is covered, so the orbit stays within that
+  const LIMITS = { yaw: 20, pitch: 20, focalMin: 1.5, focalMax: 12 };
+  const DEG_PER_PX = 0.15;                              // drag sensitivity
+  const WHEEL_STEP = 1.1;                               // focal factor per wheel notch
+  const SIZE = 250;                                     // frame resolution (shown at 2x)
+
+  const cam = Object.assign({}, DEFAULT);
+  const img = document.getElementById("frame");
+  const stage = document.getElementById("stage");
+  const $ = (id) => document.getElementById(id);
+  $("field-name").textContent = name;
+  document.title = "flatserve viewer: " + name;
+
+  let inFlight = false, pending = null, renders = 0, lastUrl = null;
+
+  function request(supersample) {
+    pending = { supersample: supersample, cam: Object.assign({}, cam) };
+    if (!inFlight) pump();
+  }
+
+  async function pump() {
+    if (!pending) return;
+    const job = pending; pending = null; inFlight = true;
+    $("busy").hidden = false;
+    const body = {
+      orbit: { yaw: job.cam.yaw, pitch: job.cam.pitch, distance: job.cam.distance },
+      focal: job.cam.focal, width: SIZE, height: SIZE, supersample: job.supersample, format: "png",
+    };
+    const headers = { "Content-Type": "application/json", "Accept": "image/png" };
+    if (apiKey) headers["api-key"] = apiKey;
+    const t0 = performance.now();
+    try {
+      const resp = await fetch("/v1/fields/" + encodeURIComponent(name) + "/render",
+                               { method: "POST", headers: headers, body: JSON.stringify(body) });
+      if (!resp.ok) {
+        let msg = resp.status + " " + resp.statusText;
+        try { const j = await resp.json(); msg += ": " + JSON.stringify(j.detail); } catch (e) {}
+        throw new Error(msg);
+      }
+      const blob = await resp.blob();
+      const url = URL.createObjectURL(blob);
+      await new Promise((ok, fail) => { img.onload = ok; img.onerror = fail; img.src = url; });
+      if (lastUrl) URL.revokeObjectURL(lastUrl);
+      lastUrl = url;
+      const ms = performance.now() - t0;
+      renders += 1;
+      img.dataset.renders = String(renders);
+      img.dataset.supersample = String(job.supersample);
+      $("render-time").textContent = ms.toFixed(0) + " ms round trip (" + (SIZE * SIZE * job.supersample).toLocaleString() +
+        " rays, " + job.supersample + " per pixel)";
+      $("server-timing").textContent = (resp.headers.get("Server-Timing") || "")
+        .split(",").map((s) => s.trim().replace(";dur=", " ") + " ms").join(", ");
+      const cov = parseFloat(resp.headers.get("X-Coverage") || "NaN");
+      $("coverage").textContent = isNaN(cov) ? "–" : (100 * cov).toFixed(1) + " % of pixels inside the samples";
+      $("camera").textContent = "yaw " + job.cam.yaw.toFixed(1) + "°, pitch " + job.cam.pitch.toFixed(1) +
+        "°, distance " + job.cam.distance.toFixed(2) + ", focal " + job.cam.focal.toFixed(2);
+      $("status").textContent = "";
+    } catch (err) {
+      $("status").textContent = "render failed: " + err.message;
+    } finally {
+      inFlight = false;
+      $("busy").hidden = true;
+      if (pending) pump();
+    }
+  }
+
+  // drag: orbit the eye
+  let drag = null;
+  stage.addEventListener("pointerdown", (ev) => {
+    drag = { x: ev.clientX, y: ev.clientY, yaw: cam.yaw, pitch: cam.pitch };
+    stage.setPointerCapture(ev.pointerId);
+    stage.classList.add("dragging");
+    ev.preventDefault();
+  });
+  stage.addEventListener("pointermove", (ev) => {
+    if (!drag) return;
+    cam.yaw = Math.max(-LIMITS.yaw, Math.min(LIMITS.yaw, drag.yaw - (ev.clientX - drag.x) * DEG_PER_PX));
+    cam.pitch = Math.max(-LIMITS.pitch, Math.min(LIMITS.pitch, drag.pitch + (ev.clientY - drag.y) * DEG_PER_PX));
+    request(1);
+  });
+  const endDrag = (ev) => {
+    if (!drag) return;
+    drag = null;
+    stage.classList.remove("dragging");
+    request(4);
+  };
+  stage.addEventListener("pointerup", endDrag);
+  stage.addEventListener("pointercancel", endDrag);
+
+  // wheel: focal length (zoom)
+  let wheelTimer = null;
+  stage.addEventListener("wheel", (ev) => {
+    ev.preventDefault();
+    const f = ev.deltaY > 0 ? 1 / WHEEL_STEP : WHEEL_STEP;
+    cam.focal = Math.max(LIMITS.focalMin, Math.min(LIMITS.focalMax, cam.focal * f));
+    request(1);
+    clearTimeout(wheelTimer);
+    wheelTimer = setTimeout(() => request(4), 250);
+  }, { passive: false });
+
+  stage.addEventListener("dblclick", () => { Object.assign(cam, DEFAULT); request(4); });
+
+  // keyboard: arrows orbit, +/- zoom
+  stage.addEventListener("keydown", (ev) => {
+    const step = 5;
+    if (ev.key === "ArrowLeft") cam.yaw = Math.min(LIMITS.yaw, cam.yaw + step);
+    else if (ev.key === "ArrowRight") cam.yaw = Math.max(-LIMITS.yaw, cam.yaw - step);
+    else if (ev.key === "ArrowUp") cam.pitch = Math.min(LIMITS.pitch, cam.pitch + step);
+    else if (ev.key === "ArrowDown") cam.pitch = Math.max(-LIMITS.pitch, cam.pitch - step);
+    else if (ev.key === "+" || ev.key === "=") cam.focal = Math.min(LIMITS.focalMax, cam.focal * WHEEL_STEP);
+    else if (ev.key === "-") cam.focal = Math.max(LIMITS.focalMin, cam.focal / WHEEL_STEP);
+    else return;
+    ev.preventDefault();
+    request(4);
+  });
+
+  request(4);
+})();

@@ -1,0 +1,344 @@
+"""Durable storage: SQLite (WAL, ``synchronous=FULL``) plus snapshot files.
+
+Layout of ``data_dir``::
+
+    flatserve.sqlite3            field definitions + every accepted sample batch
+    snapshots/f<id>-s<seq>.snap  Field.save() of field <id> after batch <seq>
+
+A batch row holds the raw input arrays (an uncompressed ``.npz`` blob), its form
+(``rays``, ``parametric`` or ``flats``), the idempotency key, a hash of the
+content and the response sent to the client. A batch is acknowledged only after
+its transaction has committed (fsync'd by SQLite). Snapshots are written to a
+temporary file, fsync'd, renamed into place and the directory fsync'd; only then
+does the database point at them.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import logging
+import os
+import sqlite3
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from ..errors import FieldExistsError, FieldNotFoundError, StorageError
+
+log = logging.getLogger("flatserve.service.storage")
+
+SCHEMA_VERSION = 1
+DB_NAME = "flatserve.sqlite3"
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS fields (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    name TEXT NOT NULL UNIQUE,
+    spec TEXT NOT NULL,
+    basis BLOB NOT NULL,
+    created REAL NOT NULL,
+    snapshot_file TEXT,
+    snapshot_seq INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS batches (
+    field_id INTEGER NOT NULL REFERENCES fields(id) ON DELETE CASCADE,
+    seq INTEGER NOT NULL,
+    idem_key TEXT,
+    content_hash TEXT NOT NULL,
+    form TEXT NOT NULL,
+    nrows INTEGER NOT NULL,
+    arrays BLOB NOT NULL,
+    result TEXT NOT NULL,
+    created REAL NOT NULL,
+    PRIMARY KEY (field_id, seq)
+);
+CREATE UNIQUE INDEX IF NOT EXISTS batches_idem ON batches(field_id, idem_key)
+    WHERE idem_key IS NOT NULL;
+"""
+
+
+def pack_arrays(arrays: dict[str, np.ndarray]) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def unpack_arrays(blob: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(blob), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def content_hash(form: str, arrays: dict[str, np.ndarray]) -> str:
+    """Hash of a batch's content, independent of its transport encoding."""
+    h = hashlib.sha256(form.encode())
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name], dtype=np.float64)
+        h.update(f"|{name}{a.shape}|".encode())
+        h.update(a.data)
+    return h.hexdigest()
+
+
+@dataclass
+class FieldRow:
+    id: int
+    name: str
+    spec: dict
+    basis: dict[str, np.ndarray]
+    created: float
+    snapshot_file: str | None
+    snapshot_seq: int
+
+
+@dataclass
+class BatchRow:
+    seq: int
+    idem_key: str | None
+    content_hash: str
+    form: str
+    nrows: int
+    result: dict
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class Storage:
+    """All durable state of a server. Thread-safe (one connection, one lock)."""
+
+    def __init__(self, data_dir: Path | str):
+        self.data_dir = Path(data_dir)
+        self.snapshot_dir = self.data_dir / "snapshots"
+        try:
+            self.snapshot_dir.mkdir(parents=True, exist_ok=True)
+            self._db = sqlite3.connect(
+                self.data_dir / DB_NAME, check_same_thread=False, isolation_level=None
+            )
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            ver = self._db.execute("PRAGMA user_version").fetchone()[0]
+            if ver not in (0, SCHEMA_VERSION):
+                raise StorageError(f"database schema version {ver}; this server knows {SCHEMA_VERSION}")
+            self._db.executescript(_SCHEMA)
+            self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+        except sqlite3.Error as exc:
+            raise StorageError(f"cannot open storage in {self.data_dir}: {exc}") from exc
+        self._lock = threading.RLock()
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    # -- transactions -----------------------------------------------------
+    def _tx(self, fn: Callable[[sqlite3.Connection], object]):
+        with self._lock:
+            try:
+                self._db.execute("BEGIN IMMEDIATE")
+                try:
+                    out = fn(self._db)
+                except BaseException:
+                    self._db.execute("ROLLBACK")
+                    raise
+                self._db.execute("COMMIT")
+                return out
+            except sqlite3.Error as exc:
+                raise StorageError(f"storage failed: {exc}") from exc
+
+    def _query(self, sql: str, args: tuple = ()) -> list[tuple]:
+        with self._lock:
+            try:
+                return self._db.execute(sql, args).fetchall()
+            except sqlite3.Error as exc:
+                raise StorageError(f"storage failed: {exc}") from exc
+
+    # -- fields -----------------------------------------------------------
+    def create_field(self, name: str, spec: dict, basis: dict[str, np.ndarray]) -> int:
+        def fn(db):
+            try:
+                cur = db.execute(
+                    "INSERT INTO fields(name, spec, basis, created) VALUES (?, ?, ?, ?)",
+                    (name, json.dumps(spec), pack_arrays(basis), time.time()),
+                )
+            except sqlite3.IntegrityError:
+                raise FieldExistsError(f"field {name!r} already exists") from None
+            return cur.lastrowid
+
+        return self._tx(fn)
+
+    def delete_field(self, field_id: int) -> None:
+        rows = self._query("SELECT snapshot_file FROM fields WHERE id=?", (field_id,))
+
+        def fn(db):
+            db.execute("DELETE FROM batches WHERE field_id=?", (field_id,))
+            db.execute("DELETE FROM fields WHERE id=?", (field_id,))
+
+        self._tx(fn)
+        if rows and rows[0][0]:
+            self._unlink(rows[0][0])
+
+    def fields(self) -> list[FieldRow]:
+        rows = self._query(
+            "SELECT id, name, spec, basis, created, snapshot_file, snapshot_seq FROM fields ORDER BY id"
+        )
+        return [
+            FieldRow(r[0], r[1], json.loads(r[2]), unpack_arrays(r[3]), r[4], r[5], r[6])
+            for r in rows
+        ]
+
+    def field(self, field_id: int) -> FieldRow:
+        for f in self.fields():
+            if f.id == field_id:
+                return f
+        raise FieldNotFoundError(f"field id {field_id} not stored")
+
+    # -- batches ----------------------------------------------------------
+    def find_batch(self, field_id: int, idem_key: str) -> BatchRow | None:
+        rows = self._query(
+            "SELECT seq, idem_key, content_hash, form, nrows, result FROM batches "
+            "WHERE field_id=? AND idem_key=?",
+            (field_id, idem_key),
+        )
+        if not rows:
+            return None
+        r = rows[0]
+        return BatchRow(r[0], r[1], r[2], r[3], r[4], json.loads(r[5]))
+
+    def add_batch(self, field_id: int, *, idem_key: str | None, chash: str, form: str,
+                  nrows: int, blob: bytes,
+                  result_fn: Callable[[int], dict]) -> tuple[int, dict]:
+        """Store one batch; commit (durable) before returning ``(seq, result)``.
+
+        ``result_fn(seq)`` builds the response stored with the batch (so a retry
+        with the same idempotency key gets the same answer).
+        """
+        def fn(db):
+            seq = db.execute(
+                "SELECT COALESCE(MAX(seq), 0) + 1 FROM batches WHERE field_id=?", (field_id,)
+            ).fetchone()[0]
+            snap = db.execute("SELECT snapshot_seq FROM fields WHERE id=?", (field_id,)).fetchone()
+            if snap is None:
+                raise FieldNotFoundError(f"field id {field_id} was deleted")
+            seq = max(seq, snap[0] + 1)
+            result = result_fn(seq)
+            db.execute(
+                "INSERT INTO batches(field_id, seq, idem_key, content_hash, form, nrows, arrays,"
+                " result, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (field_id, seq, idem_key, chash, form, nrows, blob, json.dumps(result), time.time()),
+            )
+            return seq, result
+
+        return self._tx(fn)
+
+    def batches(self, field_id: int) -> list[BatchRow]:
+        rows = self._query(
+            "SELECT seq, idem_key, content_hash, form, nrows, result FROM batches "
+            "WHERE field_id=? ORDER BY seq",
+            (field_id,),
+        )
+        return [BatchRow(r[0], r[1], r[2], r[3], r[4], json.loads(r[5])) for r in rows]
+
+    def iter_batch_arrays(self, field_id: int, after_seq: int = 0
+                          ) -> Iterator[tuple[int, str, dict[str, np.ndarray]]]:
+        """Yield ``(seq, form, arrays)`` of the batches after ``after_seq``, in order."""
+        seqs = self._query(
+            "SELECT seq FROM batches WHERE field_id=? AND seq>? ORDER BY seq", (field_id, after_seq)
+        )
+        for (seq,) in seqs:
+            rows = self._query(
+                "SELECT form, arrays FROM batches WHERE field_id=? AND seq=?", (field_id, seq)
+            )
+            if rows:
+                yield seq, rows[0][0], unpack_arrays(rows[0][1])
+
+    def batch_stats(self, field_id: int) -> tuple[int, int, int, int]:
+        """(number of batches, rows, bytes of stored arrays, last seq)."""
+        r = self._query(
+            "SELECT COUNT(*), COALESCE(SUM(nrows), 0), COALESCE(SUM(LENGTH(arrays)), 0),"
+            " COALESCE(MAX(seq), 0) FROM batches WHERE field_id=?",
+            (field_id,),
+        )[0]
+        return int(r[0]), int(r[1]), int(r[2]), int(r[3])
+
+    # -- snapshots --------------------------------------------------------
+    def snapshot_path(self, file: str) -> Path:
+        return self.snapshot_dir / file
+
+    def write_snapshot(self, field_id: int, seq: int, save: Callable[[Path], None]) -> Path:
+        """Write a snapshot atomically and make the database point at it."""
+        name = f"f{field_id}-s{seq}.snap"
+        final = self.snapshot_dir / name
+        tmp = self.snapshot_dir / f".tmp-{name}-{threading.get_ident()}"
+        try:
+            save(tmp)
+            if not tmp.exists():  # a writer that appended an extension
+                cands = list(self.snapshot_dir.glob(tmp.name + ".*"))
+                if len(cands) != 1:
+                    raise StorageError(f"snapshot writer did not create {tmp}")
+                tmp = cands[0]
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            os.replace(tmp, final)
+            _fsync_dir(self.snapshot_dir)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise StorageError(f"snapshot failed: {exc}") from exc
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        old: list[str] = []
+
+        def fn(db):
+            row = db.execute("SELECT snapshot_file FROM fields WHERE id=?", (field_id,)).fetchone()
+            if row is None:
+                raise FieldNotFoundError(f"field id {field_id} was deleted")
+            if row[0] and row[0] != name:
+                old.append(row[0])
+            db.execute(
+                "UPDATE fields SET snapshot_file=?, snapshot_seq=? WHERE id=?", (name, seq, field_id)
+            )
+
+        try:
+            self._tx(fn)
+        except BaseException:
+            final.unlink(missing_ok=True)
+            raise
+        for o in old:
+            self._unlink(o)
+        return final
+
+    def snapshot_bytes(self, file: str | None) -> int:
+        if not file:
+            return 0
+        try:
+            return self.snapshot_path(file).stat().st_size
+        except OSError:
+            return 0
+
+    def clean_orphans(self) -> int:
+        """Remove snapshot files no field points at (left by a crash)."""
+        keep = {f.snapshot_file for f in self.fields() if f.snapshot_file}
+        n = 0
+        for p in self.snapshot_dir.iterdir():
+            if p.name not in keep:
+                p.unlink(missing_ok=True)
+                n += 1
+        return n
+
+    def _unlink(self, file: str) -> None:
+        try:
+            self.snapshot_path(file).unlink(missing_ok=True)
+        except OSError as exc:  # pragma: no cover - best effort
+            log.warning("could not remove snapshot %s: %s", file, exc)

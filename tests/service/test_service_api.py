@@ -1,0 +1,349 @@
+"""The HTTP API in-process (TestClient): fields, uploads, queries, errors, keys."""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from flatserve.client import Client, ConflictError, InvalidError, NotFoundError
+from flatserve.service import specs
+
+from .conftest import paper_rays
+
+C = 3
+
+
+def in_process_field(channels=C):
+    from flatserve.field import Field
+
+    return Field(specs.build_basis(None, 1, 3), channels=channels)
+
+
+def npy(arr) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(arr))
+    return buf.getvalue()
+
+
+def npz(**arrays) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def test_field_lifecycle(api):
+    tc, c = api
+    info = c.create_field("scene", channels=C)
+    assert (info["k"], info["d"], info["channels"], info["nsamples"]) == (1, 3, C, 0)
+    assert info["basis"]["m"] == 5 and np.asarray(info["basis"]["Q"]).shape == (5, 3, 3)
+    assert [f["name"] for f in c.list_fields()] == ["scene"]
+    with pytest.raises(ConflictError):
+        c.create_field("scene")
+    c.delete_field("scene")
+    assert c.list_fields() == []
+    with pytest.raises(NotFoundError):
+        c.describe("scene")
+    with pytest.raises(NotFoundError):
+        c.delete_field("scene")
+
+
+def test_explicit_bases(api):
+    tc, c = api
+    ref = specs.build_basis(None, 1, 3)
+    info = c.create_field("qr", basis={"kind": "flats", "Q": ref.Q.tolist(), "r": ref.r.tolist()})
+    assert np.allclose(info["basis"]["Q"], ref.Q)
+    ts = c.create_field("ts", basis={"kind": "tangent_simplex", "scale": 0.02,
+                                     "center": {"origin": [0, 0, 0], "direction": [0, 0, 1]}})
+    assert ts["basis"]["spec"]["scale"] == 0.02
+    r = tc.post("/v1/fields", json={"name": "bad", "basis": {"kind": "flats", "Q": ref.Q[:3].tolist(),
+                                                              "r": ref.r[:3].tolist()}})
+    assert r.status_code == 422 and "basis" in r.text
+
+
+def test_upload_forms_match_in_process_field(api, rng):
+    """JSON, .npy and .npz uploads of the same batches give the in-process Field's answers."""
+    tc, c = api
+    ref = in_process_field()
+    batches = [paper_rays(rng, 300) + (rng.uniform(size=(300, C)),) for _ in range(3)]
+    for name in ("json", "npy", "npz"):
+        c.create_field(name, channels=C)
+    for o, v, val in batches:
+        want = ref.add_rays(o, v, val)
+        got_json = c.upload_rays("json", o, v, val, binary=False)
+        r = tc.post("/v1/fields/npy/samples", content=npy(np.c_[o, v, val].astype(np.float32)),
+                    headers={"Content-Type": "application/x-npy"})
+        assert r.status_code == 200, r.text
+        got_npy = r.json()
+        r = tc.post("/v1/fields/npz/samples", content=npz(origins=o, directions=v, values=val),
+                    headers={"Content-Type": "application/x-npz"})
+        got_npz = r.json()
+        for got in (got_json, got_npz):
+            assert got["accepted"] == want.accepted
+            assert got["rejected"] == want.rejected.tolist()
+            assert len(got["reasons"]) == len(got["rejected"])
+            assert got["nsamples"] == want.nsamples
+        # float32 transport rounds the rays: only the counts are comparable
+        assert abs(got_npy["accepted"] - want.accepted) <= 3
+    qo, qv = paper_rays(rng, 500)
+    want = ref.query_rays(qo, qv, return_weights=True)
+    for name in ("json", "npz"):
+        for binary in (True, False):
+            got = c.query_rays(name, qo, qv, binary=binary)
+            np.testing.assert_array_equal(got.inside, want.inside)
+            np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12)
+        got = c.query_rays(name, qo, qv, weights=True)
+        np.testing.assert_array_equal(got.ids, want.ids)
+        np.testing.assert_allclose(got.weights, want.weights, atol=1e-12)
+        np.testing.assert_array_equal(got.status, want.status)
+
+
+def test_query_at_samples_returns_their_values(api, rng):
+    tc, c = api
+    c.create_field("f", channels=C)
+    o, v = paper_rays(rng, 1000)
+    val = rng.uniform(size=(1000, C))
+    rep = c.upload_rays("f", o, v, val)
+    ok = np.setdiff1d(np.arange(1000), rep["rejected"])
+    assert rep["nsamples"] == ok.size == rep["accepted"]
+    res = c.query_rays("f", o[ok], v[ok], weights=True)
+    assert res.inside.all()
+    np.testing.assert_allclose(res.values, val[ok], atol=1e-9)
+    # barycentric weights sum to one; ids are sample ids
+    np.testing.assert_allclose(res.weights.sum(axis=1), 1.0, atol=1e-9)
+    assert res.ids.max() < rep["nsamples"]
+    # the rejected rays are reported NOT inside (outside the chart)
+    bad = np.asarray(rep["rejected"])
+    if bad.size:
+        assert not c.query_rays("f", o[bad], v[bad]).inside.any()
+
+
+def test_query_response_formats_agree(api, rng):
+    tc, c = api
+    c.create_field("f", channels=2)
+    o, v = paper_rays(rng, 400)
+    c.upload_rays("f", o, v, rng.normal(size=(400, 2)))
+    qo, qv = paper_rays(rng, 50)
+    body = npy(np.c_[qo, qv])
+    j = tc.post("/v1/fields/f/query", content=body, headers={"Content-Type": "application/x-npy"})
+    assert j.headers["content-type"].startswith("application/json")
+    jj = j.json()
+    n = tc.post("/v1/fields/f/query?weights=true", content=body,
+                headers={"Content-Type": "application/x-npy", "Accept": "application/x-npy"})
+    arr = np.load(io.BytesIO(n.content))
+    assert arr.shape == (50, 2 + 1 + 2 * 5)
+    assert "query;dur=" in n.headers["server-timing"]
+    vals = np.array([[np.nan if x is None else x for x in row] for row in jj["values"]])
+    np.testing.assert_allclose(arr[:, :2], vals, atol=0, equal_nan=True)
+    np.testing.assert_array_equal(arr[:, 2] == 1, jj["inside"])
+
+
+def test_parametric_and_qr_forms(api, rng):
+    """(A, b) and (Q, r) forms give the in-process Field's answers; inside the hull the
+    value at a sample is the sample's value."""
+    from flatserve import flats
+
+    tc, c = api
+    ref = in_process_field(1)
+    c.create_field("f", channels=1)
+    o, v = paper_rays(rng, 300)
+    Q, r = flats.from_rays(o, v)
+    A, b = flats.to_parametric(Q, r, 1)
+    val = rng.uniform(size=(300, 1))
+    rep = c.upload_parametric("f", A, b, val)
+    want_add = ref.add_parametric(A, b, val)
+    assert rep["rejected"] == want_add.rejected.tolist()
+    ok = np.setdiff1d(np.arange(300), rep["rejected"])
+    want = ref.query(Q[ok], r[ok])
+    assert want.inside.mean() > 0.8
+    np.testing.assert_allclose(want.values[want.inside], val[ok][want.inside], atol=1e-9)
+    for res in (c.query_flats("f", Q[ok], r[ok]), c.query_flats("f", Q[ok], r[ok], binary=False)):
+        np.testing.assert_array_equal(res.inside, want.inside)
+        np.testing.assert_allclose(res.values, want.values, atol=1e-12, equal_nan=True)
+    want = ref.query_parametric(A[ok], b[ok])
+    res = c.query_parametric("f", A[ok], b[ok])
+    np.testing.assert_array_equal(res.inside, want.inside)
+    np.testing.assert_allclose(res.values, want.values, atol=1e-12, equal_nan=True)
+
+
+def test_idempotency_key(api, rng):
+    tc, c = api
+    c.create_field("f", channels=1)
+    o, v = paper_rays(rng, 200)
+    val = rng.uniform(size=(200, 1))
+    first = c.upload_rays("f", o, v, val, idempotency_key="batch-1")
+    again = c.upload_rays("f", o, v, val, idempotency_key="batch-1", binary=False)
+    assert again["replayed"] and not first["replayed"]
+    assert {k: again[k] for k in first if k != "replayed"} == \
+        {k: first[k] for k in first if k != "replayed"}
+    assert len(c.batches("f")) == 1
+    assert c.describe("f")["nsamples"] == first["nsamples"]
+    with pytest.raises(InvalidError) as err:
+        c.upload_rays("f", o, v, val + 1, idempotency_key="batch-1")
+    assert err.value.status == 422 and "Idempotency-Key" in str(err.value)
+    assert len(c.batches("f")) == 1
+
+
+@pytest.mark.parametrize("body, ctype, status, where", [
+    (b'{"origins": [[0,0,0]], "directions": [[0,0,1]], "values": [[1], [2]]}',
+     "application/json", 422, "values"),
+    (b'{"origins": [[0,0]], "directions": [[0,0,1]], "values": [[1]]}', "application/json", 422,
+     "origins"),
+    (b'{"origins": [[0,0,0]], "directions": [[0,0,1e999]], "values": [[1]]}', "application/json",
+     422, "body"),
+    (b'{"origins": [[0,0,0]], "directions": [[0,0,0]], "values": [[1]]}', "application/json",
+     422, "directions"),
+    (b'{"origins": [[0,0,0]], "directions": [[0,0,1]], "values": [["x"]]}', "application/json", 422,
+     "values"),
+    (b'{"A": [[0,0,0]]}', "application/json", 422, "A"),
+    (b"not json", "application/json", 422, "body"),
+    (b"[1, 2]", "application/json", 422, "body"),
+    (b"\x93NUMPY garbage", "application/x-npy", 422, "body"),
+    (b"PK garbage", "application/x-npz", 422, "body"),
+    (b"hello", "text/plain", 415, None),
+    (b"hello", "multipart/form-data", 415, None),
+])
+def test_bad_uploads_are_4xx_naming_the_argument(api, body, ctype, status, where):
+    tc, c = api
+    c.create_field("f", channels=1)
+    r = tc.post("/v1/fields/f/samples", content=body, headers={"Content-Type": ctype})
+    assert r.status_code == status, r.text
+    if where:
+        assert r.json()["detail"][0]["loc"][-1] == where
+    assert c.describe("f")["nsamples"] == 0
+
+
+def test_non_finite_npy_and_wrong_width(api):
+    tc, c = api
+    c.create_field("f", channels=1)
+    a = np.zeros((4, 7))
+    a[2, 3] = np.nan
+    r = tc.post("/v1/fields/f/samples", content=npy(a), headers={"Content-Type": "application/x-npy"})
+    assert r.status_code == 422 and "directions" in r.text and "[2]" in r.text
+    r = tc.post("/v1/fields/f/samples", content=npy(np.zeros((4, 9))),
+                headers={"Content-Type": "application/x-npy"})
+    assert r.status_code == 422 and "(n, 7)" in r.text
+    r = tc.post("/v1/fields/f/samples", content=npy(np.array(["a", "b"])),
+                headers={"Content-Type": "application/x-npy"})
+    assert r.status_code == 422
+
+
+def test_names_and_unknown_fields(api):
+    tc, c = api
+    for bad in ["../etc", ".hidden", "a/b", "x" * 65, "", "a b"]:
+        r = tc.post("/v1/fields", json={"name": bad})
+        assert r.status_code == 422, bad
+    assert tc.get("/v1/fields/..%2Fetc").status_code in (404, 422)
+    assert tc.get("/v1/fields/nope").status_code == 404
+    assert tc.post("/v1/fields/nope/query", json={"origins": [[0, 0, 0]],
+                                                  "directions": [[0, 0, 1]]}).status_code == 404
+    assert tc.post("/v1/fields", json={"name": "ok", "k": 3, "d": 3}).status_code == 422
+
+
+def test_limits(make_app, rng):
+    app = make_app(max_body_bytes=20_000, max_batch_rows=100, max_fields=2)
+    with TestClient(app) as tc:
+        c = Client(http=tc)
+        c.wait_ready()
+        c.create_field("a")
+        c.create_field("b")
+        with pytest.raises(ConflictError) as e:
+            c.create_field("c")
+        assert "limit" in str(e.value)
+        o, v = paper_rays(rng, 101)
+        r = tc.post("/v1/fields/a/samples", content=npy(np.c_[o, v, np.ones(101)]),
+                    headers={"Content-Type": "application/x-npy"})
+        assert r.status_code == 413 and "100" in r.text
+        o, v = paper_rays(rng, 400)
+        r = tc.post("/v1/fields/a/samples", content=npy(np.c_[o, v, np.ones(400)]),
+                    headers={"Content-Type": "application/x-npy"})
+        assert r.status_code == 413 and "bytes" in r.text
+
+        def chunks():
+            for _ in range(30):
+                yield b"x" * 1000
+
+        r = tc.post("/v1/fields/a/samples", content=chunks(),
+                    headers={"Content-Type": "application/x-npy"})
+        assert r.status_code == 413
+
+
+def test_api_keys(make_app):
+    app = make_app(api_key="rw-secret", read_only_key="ro-secret")
+    with TestClient(app) as tc:
+        assert tc.get("/healthz").status_code == 200
+        assert tc.get("/v1/fields").status_code == 401
+        assert tc.get("/v1/fields", headers={"api-key": "wrong"}).status_code == 401
+        ro = {"Authorization": "Bearer ro-secret"}
+        rw = {"api-key": "rw-secret"}
+        assert tc.get("/v1/fields", headers=ro).status_code == 200
+        assert tc.post("/v1/fields", json={"name": "f"}, headers=ro).status_code == 403
+        assert tc.post("/v1/fields", json={"name": "f"}, headers=rw).status_code == 201
+        body = {"origins": [[0, 0, -3]], "directions": [[0, 0, 1]]}
+        assert tc.post("/v1/fields/f/query", json=body, headers=ro).status_code == 200
+        assert tc.post("/v1/fields/f/samples", json={**body, "values": [[1]]},
+                       headers=ro).status_code == 403
+        assert tc.delete("/v1/fields/f", headers=ro).status_code == 403
+        assert tc.delete("/v1/fields/f", headers=rw).status_code == 204
+
+
+def test_settings_reject_bad_key_setups():
+    from pydantic import ValidationError
+
+    from flatserve.service import Settings
+
+    with pytest.raises(ValidationError):
+        Settings(read_only_key="x")
+    with pytest.raises(ValidationError):
+        Settings(api_key="x", read_only_key="x")
+    assert Settings(host="0.0.0.0").bind_host() == "127.0.0.1"
+    assert Settings(host="0.0.0.0", api_key="k").bind_host() == "0.0.0.0"
+
+
+def test_settings_from_environment(monkeypatch, tmp_path):
+    from flatserve.service import Settings
+
+    monkeypatch.setenv("FLATSERVE_PORT", "9123")
+    monkeypatch.setenv("FLATSERVE_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("FLATSERVE_MAX_FIELDS", "7")
+    s = Settings()
+    assert (s.port, s.data_dir, s.max_fields) == (9123, tmp_path, 7)
+
+
+def test_metrics_and_health(api, rng):
+    tc, c = api
+    assert c.health() == {"status": "ok"}
+    assert tc.get("/readyz").json()["status"] == "ready"
+    c.create_field("f")
+    o, v = paper_rays(rng, 100)
+    rep = c.upload_rays("f", o, v, np.ones(100))
+    c.query_rays("f", o, v)
+    text = c.metrics()
+    assert f'flatserve_samples_accepted_total{{field="f"}} {float(rep["accepted"])}' in text
+    assert 'flatserve_query_rows_total{field="f"} 100.0' in text
+    assert 'flatserve_requests_total{method="POST",route="/v1/fields/{name}/query",status="200"}' \
+        in text
+    assert "flatserve_request_seconds_bucket" in text
+    assert f'flatserve_field_samples{{field="f"}} {float(rep["nsamples"])}' in text
+
+
+def test_math_endpoints_match_library(api, rng):
+    from flatserve import flats
+
+    tc, c = api
+    o, v = paper_rays(rng, 20)
+    basis = specs.build_basis(None, 1, 3)
+    want = basis.coordinates(*flats.from_rays(o, v))
+    got = c.coordinates(origins=o, directions=v, embed=True)
+    np.testing.assert_allclose(got["weights"], want.weights, atol=1e-12)
+    np.testing.assert_array_equal(got["status"], want.status)
+    assert got["embedded"].shape == (20, 4)
+    w = rng.dirichlet(np.ones(5), size=7)
+    p = c.project(w, Q=basis.Q, r=basis.r)
+    ref = flats.affine_combination(w, basis.Q, basis.r, 1)
+    np.testing.assert_allclose(p["Q"], ref.Q, atol=1e-12)
+    np.testing.assert_allclose(p["r"], ref.r, atol=1e-12)
+    r = tc.post("/v1/math/project", json={"weights": [[0.5, 0.6, 0, 0, 0]],
+                                          "flats": {"Q": basis.Q.tolist(), "r": basis.r.tolist()}})
+    assert r.status_code == 422

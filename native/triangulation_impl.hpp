@@ -8,16 +8,98 @@
 #include <CGAL/Spatial_sort_traits_adapter_d.h>
 #include <CGAL/Triangulation_full_cell.h>
 #include <CGAL/Triangulation_vertex.h>
-#include <CGAL/hilbert_sort.h>
 #include <CGAL/property_map.h>
 #include <CGAL/spatial_sort.h>
 
 #include <Eigen/Dense>
 #include <boost/iterator/indirect_iterator.hpp>
 
+#include <optional>
+
 #include "triangulation.hpp"
 
 namespace fs {
+
+// Walk tolerances (see Triangulation::locate_one).
+constexpr double kLambdaEps = 1e-10;   // |barycentric| below this (relative) -> exact predicate
+constexpr double kPivotRatio = 1e-8;   // LU pivot ratio below this -> exact predicates only
+constexpr std::size_t kMaxFloatSteps = 4096;
+
+// Hilbert index of a point quantised to `bits` bits per axis (Skilling,
+// "Programming the Hilbert curve", AIP Conf. Proc. 707, 2004), as a key of
+// D*bits <= 64 bits.
+inline std::uint64_t hilbert_key(std::uint32_t* X, int bits, int n) {
+  const std::uint32_t M = 1u << (bits - 1);
+  for (std::uint32_t Q = M; Q > 1; Q >>= 1) {
+    const std::uint32_t P = Q - 1;
+    for (int i = 0; i < n; ++i) {  // branch-free: invert if bit Q set, else exchange
+      const std::uint32_t set = 0u - ((X[i] & Q) != 0);
+      const std::uint32_t t = (X[0] ^ X[i]) & P & ~set;
+      X[0] ^= (P & set) | t;
+      X[i] ^= t;
+    }
+  }
+  for (int i = 1; i < n; ++i) X[i] ^= X[i - 1];
+  std::uint32_t t = 0;
+  for (std::uint32_t Q = M; Q > 1; Q >>= 1)
+    if (X[n - 1] & Q) t ^= Q - 1;
+  for (int i = 0; i < n; ++i) X[i] ^= t;
+  std::uint64_t key = 0;
+  for (int b = bits - 1; b >= 0; --b)
+    for (int i = 0; i < n; ++i) key = (key << 1) | ((X[i] >> b) & 1u);
+  return key;
+}
+
+// Query order along a Hilbert curve over the batch's bounding box. Keys are
+// computed and sorted in parallel; ties broken by index, so the order is
+// unique (independent of the thread count).
+inline std::vector<std::uint32_t> hilbert_order(const double* q, std::size_t n, int D,
+                                                int threads) {
+  std::vector<double> lo(D, std::numeric_limits<double>::infinity());
+  std::vector<double> hi(D, -std::numeric_limits<double>::infinity());
+  for (std::size_t i = 0; i < n; ++i)
+    for (int k = 0; k < D; ++k) {
+      lo[k] = std::min(lo[k], q[i * D + k]);
+      hi[k] = std::max(hi[k], q[i * D + k]);
+    }
+  // a few bits per axis beyond what separates n points suffice
+  int need = 0;
+  while (need < 63 && (std::size_t(1) << need) < n) ++need;
+  const int bits = std::max(1, std::min({31, 64 / std::max(1, std::min(D, 64)), (need + D - 1) / D + 3}));
+  const int axes = std::min(D, 64);  // beyond 64 axes only the first 64 count
+  const double cells = std::ldexp(1.0, bits);
+  std::vector<double> scale(D);
+  for (int k = 0; k < D; ++k) scale[k] = hi[k] > lo[k] ? (cells - 1) / (hi[k] - lo[k]) : 0.0;
+  std::vector<std::pair<std::uint64_t, std::uint32_t>> keyed(n);
+  run_chunks(n, threads, [&](std::size_t b, std::size_t e) {
+    std::vector<std::uint32_t> X(axes);
+    for (std::size_t i = b; i < e; ++i) {
+      for (int k = 0; k < axes; ++k)
+        X[k] = static_cast<std::uint32_t>((q[i * D + k] - lo[k]) * scale[k]);
+      keyed[i] = {hilbert_key(X.data(), bits, axes), static_cast<std::uint32_t>(i)};
+    }
+  });
+  // parallel sort: sort T slices, then merge them pairwise
+  std::size_t T = threads <= 0 ? static_cast<std::size_t>(default_threads())
+                               : static_cast<std::size_t>(threads);
+  T = std::max<std::size_t>(1, std::min<std::size_t>(T, n / 4096 + 1));
+  std::vector<std::size_t> cut(T + 1);
+  for (std::size_t t = 0; t <= T; ++t) cut[t] = n * t / T;
+  {
+    std::vector<std::thread> pool;
+    for (std::size_t t = 1; t < T; ++t)
+      pool.emplace_back([&, t]() { std::sort(keyed.begin() + cut[t], keyed.begin() + cut[t + 1]); });
+    std::sort(keyed.begin() + cut[0], keyed.begin() + cut[1]);
+    for (auto& th : pool) th.join();
+  }
+  for (std::size_t width = 1; width < T; width *= 2)
+    for (std::size_t t = 0; t + width < T; t += 2 * width)
+      std::inplace_merge(keyed.begin() + cut[t], keyed.begin() + cut[t + width],
+                         keyed.begin() + cut[std::min(T, t + 2 * width)]);
+  std::vector<std::uint32_t> order(n);
+  for (std::size_t i = 0; i < n; ++i) order[i] = keyed[i].second;
+  return order;
+}
 
 struct VertexInfo {
   std::int64_t id = -1;
@@ -370,32 +452,16 @@ class Triangulation final : public TriangulationBase {
     const std::size_t stride = std::max<std::size_t>(1, nv / kHintSamples);
     for (std::size_t i = 0; i < nv; i += stride) sample.push_back(by_id_[i]);
 
-    std::vector<std::size_t> order;
-    std::vector<Point> Q;
-    if (hilbert && n > 1) {
-      Q.reserve(n);
-      for (std::size_t i = 0; i < n; ++i) Q.emplace_back(q + i * D, q + (i + 1) * D);
-      order.resize(n);
-      std::iota(order.begin(), order.end(), std::size_t(0));
-      using Pmap = typename CGAL::Pointer_property_map<Point>::type;
-      using SortTraits = CGAL::Spatial_sort_traits_adapter_d<K, Pmap>;
-      CGAL::hilbert_sort(order.begin(), order.end(),
-                         SortTraits(CGAL::make_property_map(Q), dt_.geom_traits()));
-    }
+    std::vector<std::uint32_t> order;
+    if (hilbert && n > 1 && n <= 0xffffffffull) order = hilbert_order(q, n, D, threads);
     run_chunks(n, threads, [&](std::size_t b, std::size_t e) {
       Scratch s(D);
       Full_cell_handle hint;
       for (std::size_t pos = b; pos < e; ++pos) {
         const std::size_t qi = order.empty() ? pos : order[pos];
         const double* qc = q + qi * D;
-        if (Q.empty()) {
-          Point p(qc, qc + D);
-          if (pos == b) hint = sample_hint(qc, sample);
-          hint = locate_one(p, qc, hint, s);
-        } else {
-          if (pos == b) hint = sample_hint(qc, sample);
-          hint = locate_one(Q[qi], qc, hint, s);
-        }
+        if (pos == b) hint = sample_hint(qc, sample);
+        hint = locate_one(qc, hint, s);
         emit(qi, s);
       }
     });
@@ -419,51 +485,112 @@ class Triangulation final : public TriangulationBase {
     return bv == Vertex_handle() ? Full_cell_handle() : bv->full_cell();
   }
 
+  // Barycentric coordinates of qc in finite cell c into s.w. False when the
+  // cell is too ill-conditioned for their signs to be trusted.
+  bool barycentric(Full_cell_handle c, const double* qc, Scratch& s) const {
+    const int D = D_;
+    const Point& v0 = c->vertex(0)->point();
+    for (int k = 1; k <= D; ++k) {
+      const Point& vk = c->vertex(k)->point();
+      for (int r = 0; r < D; ++r) s.T(r, k - 1) = vk[r] - v0[r];
+    }
+    for (int r = 0; r < D; ++r) s.rhs(r) = qc[r] - v0[r];
+    Eigen::PartialPivLU<Mat> lu(s.T);
+    Vec lam = lu.solve(s.rhs);
+    double sum = 0;
+    for (int k = 1; k <= D; ++k) {
+      s.w[k] = lam(k - 1);
+      sum += lam(k - 1);
+    }
+    s.w[0] = 1.0 - sum;
+    double dmin = std::numeric_limits<double>::infinity(), dmax = 0;
+    for (int k = 0; k < D; ++k) {
+      double u = std::abs(lu.matrixLU()(k, k));
+      dmin = std::min(dmin, u);
+      dmax = std::max(dmax, u);
+    }
+    return dmin > dmax * kPivotRatio && std::isfinite(sum);
+  }
+
+  // Exact sign of the orientation of cell c with vertex i replaced by p
+  // (POSITIVE: p on the same side of facet i as vertex i).
+  int exact_side(Full_cell_handle c, int i, const Point& p, Scratch& s) const {
+    const int D = D_;
+    for (int k = 0; k <= D; ++k) s.pts[k] = &c->vertex(k)->point();
+    s.pts[i] = &p;
+    auto orient = dt_.geom_traits().orientation_d_object();
+    return orient(boost::make_indirect_iterator(s.pts.data()),
+                  boost::make_indirect_iterator(s.pts.data() + D + 1));
+  }
+
   // Visibility walk from `start` (full dimension only). Fills s.ids, s.w,
   // s.kind; returns the full cell it ended in (the next hint).
-  Full_cell_handle locate_one(const Point& p, const double* qc, Full_cell_handle start,
-                              Scratch& s) const {
+  //
+  // Each step computes the query's barycentric coordinates in the current
+  // cell (one small LU) and crosses the facet of the most negative one. Signs
+  // are trusted in floating point only when clearly away from zero
+  // (|lambda| > kLambdaEps * max(1, max|lambda|)) in a well-conditioned cell;
+  // every other sign is decided by CGAL's exact Orientation_d, so the final
+  // cell and the on-facet/face/vertex kinds are exact. Any choice of a
+  // separating facet terminates in a Delaunay triangulation (Edelsbrunner's
+  // acyclicity theorem); after kMaxFloatSteps the walk goes exact-only.
+  Full_cell_handle locate_one(const double* qc, Full_cell_handle start, Scratch& s) const {
     const int D = D_;
     const Vertex_handle inf = dt_.infinite_vertex();
-    auto is_inf = [&](Full_cell_handle c) {
+    auto inf_index = [&](Full_cell_handle c) {
       for (int k = 0; k <= D; ++k)
         if (c->vertex(k) == inf) return k;
       return -1;
     };
     Full_cell_handle c = start;
-    if (c == Full_cell_handle()) c = dt_.infinite_full_cell();
-    int fi = is_inf(c);
+    if (c == Full_cell_handle()) c = inf->full_cell();
+    int fi = inf_index(c);
     if (fi >= 0) c = c->neighbor(fi);
-    auto orient = dt_.geom_traits().orientation_d_object();
-    Full_cell_handle previous;
-    std::uint64_t rng = 0x9E3779B97F4A7C15ull;  // same sequence for every query
+    std::optional<Point> exact_p;  // built only if an exact predicate is needed
+    auto P = [&]() -> const Point& {
+      if (!exact_p) exact_p.emplace(qc, qc + D);
+      return *exact_p;
+    };
     bool outside = false;
-    for (;;) {
-      rng ^= rng << 13;
-      rng ^= rng >> 7;
-      rng ^= rng << 17;
-      const int i0 = static_cast<int>(rng % static_cast<std::uint64_t>(D + 1));
-      bool moved = false;
-      for (int j = 0; j <= D; ++j) {
-        const int i = (i0 + j) % (D + 1);
-        Full_cell_handle next = c->neighbor(i);
-        if (next == previous) {
-          s.ori[i] = CGAL::POSITIVE;
-          continue;
+    std::size_t steps = 0;
+    for (;; ++steps) {
+      const bool ok = barycentric(c, qc, s) && steps < kMaxFloatSteps;
+      int move = -1;
+      if (ok) {
+        double big = 1.0;
+        for (int k = 0; k <= D; ++k) big = std::max(big, std::abs(s.w[k]));
+        const double eps = kLambdaEps * big;
+        double most = -eps;
+        for (int k = 0; k <= D; ++k)
+          if (s.w[k] < most) {
+            most = s.w[k];
+            move = k;
+          }
+        if (move < 0) {
+          for (int k = 0; k <= D; ++k) {
+            if (s.w[k] > eps) {
+              s.ori[k] = CGAL::POSITIVE;
+              continue;
+            }
+            s.ori[k] = exact_side(c, k, P(), s);
+            if (s.ori[k] == CGAL::NEGATIVE) {
+              move = k;
+              break;
+            }
+          }
         }
-        for (int k = 0; k <= D; ++k) s.pts[k] = &c->vertex(k)->point();
-        s.pts[i] = &p;
-        s.ori[i] = orient(boost::make_indirect_iterator(s.pts.data()),
-                          boost::make_indirect_iterator(s.pts.data() + D + 1));
-        if (s.ori[i] == CGAL::NEGATIVE) {
-          previous = c;
-          c = next;
-          moved = true;
-          break;
+      } else {
+        for (int k = 0; k <= D; ++k) {
+          s.ori[k] = exact_side(c, k, P(), s);
+          if (s.ori[k] == CGAL::NEGATIVE) {
+            move = k;
+            break;
+          }
         }
       }
-      if (!moved) break;
-      fi = is_inf(c);
+      if (move < 0) break;
+      c = c->neighbor(move);
+      fi = inf_index(c);
       if (fi >= 0) {
         outside = true;
         break;
@@ -479,20 +606,6 @@ class Triangulation final : public TriangulationBase {
     int zeros = 0;
     for (int k = 0; k <= D; ++k) zeros += (s.ori[k] == CGAL::ZERO);
     s.kind = zeros == 0 ? IN_CELL : zeros == D ? ON_VERTEX : zeros == 1 ? ON_FACET : ON_FACE;
-    // Barycentric weights: T lambda' = q - v0 with T = [v1-v0 ... vD-v0].
-    const Point& v0 = c->vertex(0)->point();
-    for (int k = 1; k <= D; ++k) {
-      const Point& vk = c->vertex(k)->point();
-      for (int r = 0; r < D; ++r) s.T(r, k - 1) = vk[r] - v0[r];
-    }
-    for (int r = 0; r < D; ++r) s.rhs(r) = qc[r] - v0[r];
-    Vec lam = s.T.partialPivLu().solve(s.rhs);
-    double sum = 0;
-    for (int k = 1; k <= D; ++k) {
-      s.w[k] = lam(k - 1);
-      sum += lam(k - 1);
-    }
-    s.w[0] = 1.0 - sum;
     if (zeros)  // exact knowledge from the predicate: these weights are 0
       for (int k = 0; k <= D; ++k)
         if (s.ori[k] == CGAL::ZERO) s.w[k] = 0.0;

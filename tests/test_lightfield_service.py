@@ -1,0 +1,115 @@
+"""The render route, the viewer page and the demo field, over HTTP (TestClient)."""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from flatserve.lightfield import Camera
+from flatserve.lightfield.demo import ensure_demo_field, viewer_url
+from flatserve.lightfield.mesh import CGAL_DATA_TARBALL
+from flatserve.lightfield.quality import psnr
+from flatserve.lightfield.render import render_truth
+from flatserve.lightfield.sampling import bunny_scene
+from flatserve.service import Settings, create_app
+
+pytestmark = pytest.mark.skipif(not CGAL_DATA_TARBALL.is_file(), reason="Debian libcgal-demo not installed")
+
+DEMO_N = 50  # 2500 samples: a coarse but recognisable field for the API tests
+CONSTANT_MARGIN_DB = 2.0
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    settings = Settings(data_dir=tmp_path_factory.mktemp("lf") / "data", snapshot_every=0, max_batch_rows=200_000)
+    with TestClient(create_app(settings)) as tc:
+        reg = tc.app.state.registry
+        e = ensure_demo_field(reg, n=DEMO_N, batch=1000, progress=False)
+        assert e.field.nsamples > 0.9 * DEMO_N**2
+        yield tc
+
+
+def png_array(content: bytes) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(content)), dtype=np.float64) / 255.0
+
+
+def test_demo_field_is_created_once(client):
+    reg = client.app.state.registry
+    e = reg.get("bunny")
+    n_before = e.field.nsamples
+    batches = reg.storage.batch_stats(e.id)[0]
+    assert ensure_demo_field(reg, n=DEMO_N, batch=1000, progress=False) is e
+    assert e.field.nsamples == n_before and reg.storage.batch_stats(e.id)[0] == batches
+    assert viewer_url("127.0.0.1", 8000) == "http://127.0.0.1:8000/viewer/bunny"
+    assert viewer_url("0.0.0.0", 9, "x") == "http://127.0.0.1:9/viewer/x"
+
+
+def test_render_png_matches_ground_truth(client):
+    body = {"eye": [0, 0, -3], "focal": 3.5, "width": 48, "height": 40, "supersample": 4}
+    r = client.post("/v1/fields/bunny/render", json=body)
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "image/png"
+    timing = r.headers["server-timing"]
+    for stage in ("rays", "coordinates", "locate", "encode", "total"):
+        assert f"{stage};dur=" in timing
+    coverage = float(r.headers["x-coverage"])
+    assert 0.8 < coverage <= 1.0
+    img = png_array(r.content)
+    assert img.shape == (40, 48)
+    truth = render_truth(bunny_scene(1), Camera(eye=(0, 0, -3), focal=3.5, width=48, height=40)).image[..., 0]
+    constant = np.full_like(truth, truth.mean())
+    assert psnr(img, truth) > psnr(constant, truth) + CONSTANT_MARGIN_DB
+
+
+def test_render_npy_and_orbit(client):
+    r = client.post("/v1/fields/bunny/render",
+                    json={"orbit": {"yaw": 5, "pitch": -5}, "focal": 4, "width": 20, "height": 20,
+                          "supersample": 1}, headers={"Accept": "application/x-npy"})
+    assert r.status_code == 200, r.text
+    arr = np.load(io.BytesIO(r.content))
+    assert arr.shape == (20, 20, 1) and arr.dtype == np.float32
+    assert np.isfinite(arr).mean() > 0.8
+    # another view gives another image
+    r2 = client.post("/v1/fields/bunny/render",
+                     json={"orbit": {"yaw": -15, "pitch": 10}, "focal": 4, "width": 20, "height": 20,
+                           "supersample": 1, "format": "npy"})
+    arr2 = np.load(io.BytesIO(r2.content))
+    both = np.isfinite(arr) & np.isfinite(arr2)
+    assert np.abs(arr[both] - arr2[both]).max() > 0.1
+
+
+@pytest.mark.parametrize("body, status", [
+    ({"supersample": 2}, 422),
+    ({"width": 0}, 422),
+    ({"eye": [0, 0]}, 422),
+    ({"orbit": {"yaw": 0}, "eye": [0, 0, -3]}, 422),
+    ({"width": 500, "height": 500, "supersample": 4}, 413),  # 1M rays > max_batch_rows
+])
+def test_render_rejects_bad_cameras(client, body, status):
+    r = client.post("/v1/fields/bunny/render", json=body)
+    assert r.status_code == status, r.text
+
+
+def test_render_unknown_field_is_404(client):
+    assert client.post("/v1/fields/nope/render", json={}).status_code == 404
+
+
+def test_render_needs_lines_in_3d(client):
+    r = client.post("/v1/fields", json={"name": "planes", "k": 2, "d": 3})
+    assert r.status_code == 201, r.text
+    r = client.post("/v1/fields/planes/render", json={"width": 4, "height": 4})
+    assert r.status_code == 422
+
+
+def test_viewer_page_and_assets(client):
+    r = client.get("/viewer/bunny")
+    assert r.status_code == 200 and "text/html" in r.headers["content-type"]
+    assert "/viewer/assets/viewer.js" in r.text
+    js = client.get("/viewer/assets/viewer.js")
+    assert js.status_code == 200 and "render" in js.text
+    assert client.get("/viewer/assets/other.js").status_code in (404, 422)
+    assert client.get("/viewer/bad%2Fname").status_code in (404, 422)

@@ -26,11 +26,17 @@ $(BIN)/.built: $(BIN)/.deps $(NATIVE) pyproject.toml
 
 build: $(BIN)/.built
 
-run: build
-	$(BIN)/flatserve serve --host $(HOST) --port $(PORT) --data-dir $(DATA)
+# Debian's chromium + chromedriver, for the viewer test only.
+$(BIN)/.browser: scripts/install-system-deps.sh
+	bash scripts/install-system-deps.sh --browser
+	touch $@
 
-test: build
-	$(BIN)/python -m pytest -q tests
+run: build
+	$(BIN)/flatserve serve --demo --host $(HOST) --port $(PORT) --data-dir $(DATA)
+
+# FLATSERVE_STRICT=1: a skipped test counts as failed (see tests/conftest.py).
+test: build $(BIN)/.browser
+	FLATSERVE_STRICT=1 $(BIN)/python -m pytest -q tests
 
 bench: build
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done

@@ -10,6 +10,7 @@ from fastapi import FastAPI
 
 from .. import __version__
 from . import errors
+from .fastpath import FastQueryMiddleware
 from .metrics import Metrics, MetricsMiddleware
 from .registry import Registry
 from .routes import api, health
@@ -74,6 +75,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     from .routes_lightfield import lightfield_api, viewer  # light-field render + viewer page
     app.include_router(lightfield_api)
     app.include_router(viewer)
+    app.add_middleware(FastQueryMiddleware, fastapi_app=app)  # innermost: metrics see it
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     return app
@@ -91,6 +93,10 @@ def _start(app: FastAPI, settings: Settings) -> None:
                               daemon=True)
     app.state.loader = loader
     loader.start()
+    if settings.demo:
+        from ..lightfield.demo import start_demo_field
+
+        start_demo_field(registry, settings.bind_host(), settings.port)
 
 
 def _stop(app: FastAPI) -> None:

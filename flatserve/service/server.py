@@ -39,6 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--read-only-key", help="read-only API key (FLATSERVE_READ_ONLY_KEY)")
     p.add_argument("--snapshot-every", type=int, help="samples between background snapshots")
     p.add_argument("--log-level", help="debug, info, warning (FLATSERVE_LOG_LEVEL)")
+    p.add_argument("--demo", action="store_true", default=None,
+                   help="create the bunny light-field demo field on first start (FLATSERVE_DEMO)")
 
 
 def settings_from_args(args: argparse.Namespace) -> Settings:

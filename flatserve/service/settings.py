@@ -47,6 +47,11 @@ class Settings(BaseSettings):
         description="Write a snapshot in the background after this many new samples (0: never).",
     )
     log_level: str = Field("info")
+    demo: bool = Field(
+        False,
+        description="On start, create the bunny light-field demo field unless stored "
+        "(background, with progress) and print the viewer URL (`make run` sets it).",
+    )
 
     @field_validator("api_key", "read_only_key", mode="before")
     @classmethod

@@ -15,7 +15,7 @@
 #include <cstdio>
 #include <fstream>
 #include <iostream>
-#include <sys/resource.h>
+#include <string>
 #include <vector>
 
 #ifndef PEER_DIM
@@ -59,8 +59,12 @@ int main(int argc, char** argv) {
                 dt.number_of_full_cells());
     std::fflush(stdout);
   }
-  struct rusage ru;
-  getrusage(RUSAGE_SELF, &ru);
-  std::printf("peak_rss_kb %ld\n", ru.ru_maxrss);
+  // VmHWM: this process image's peak RSS (ru_maxrss would include the
+  // parent's peak, which Linux carries across fork + exec).
+  long hwm = -1;
+  std::ifstream status("/proc/self/status");
+  for (std::string line; std::getline(status, line);)
+    if (line.rfind("VmHWM:", 0) == 0) hwm = std::atol(line.c_str() + 6);
+  std::printf("peak_rss_kb %ld\n", hwm);
   return 0;
 }

@@ -24,6 +24,7 @@ from typing import Any
 
 import httpx
 import numpy as np
+import orjson
 
 from .errors import (FieldExistsError, FieldNotFoundError, FlatserveError, InvalidInputError,
                      LimitExceededError)
@@ -251,25 +252,51 @@ class Client:
 
     # -- samples ------------------------------------------------------------
     def upload(self, name: str, values, *, origins=None, directions=None, A=None, b=None,
-               Q=None, r=None, idempotency_key: str | None = None, binary: bool = True) -> dict:
+               Q=None, r=None, idempotency_key: str | None = None, binary: bool = True,
+               wait: bool = True) -> dict:
         """Upload one batch of samples; returns the service's report (accepted,
-        rejected indices and reasons, nsamples, batch). A fresh Idempotency-Key
-        is generated when none is given, so retries are safe."""
+        rejected indices and reasons, nsamples, batch, indexed). A fresh
+        Idempotency-Key is generated when none is given, so retries are safe.
+
+        ``wait=False``: the service acknowledges once the batch is durably stored
+        and its coordinates known, and triangulates it in the background
+        (``report["indexed"]`` is False); see :meth:`wait_indexed`.
+        """
         form, arrays = _flat_arrays(origins, directions, A, b, Q, r)
         values = np.asarray(values, np.float64)
         if values.ndim == 1:
             values = values[:, None]
         key = idempotency_key or uuid.uuid4().hex
         headers = {"Idempotency-Key": key}
+        params = {"form": form}
+        if not wait:
+            params["wait"] = "false"
         if not binary:
-            body = {"form": form, **{k: v.tolist() for k, v in arrays.items()},
-                    "values": values.tolist()}
-            return self._request("POST", f"/v1/fields/{name}/samples", json=body,
+            body = {"form": form, "values": np.ascontiguousarray(values),
+                    **{k: np.ascontiguousarray(v) for k, v in arrays.items()}}
+            headers["Content-Type"] = "application/json"
+            return self._request("POST", f"/v1/fields/{name}/samples", params=params,
+                                 content=orjson.dumps(body, option=orjson.OPT_SERIALIZE_NUMPY),
                                  headers=headers).json()
         content, ctype = self._encode(form, arrays, values)
         headers["Content-Type"] = ctype
-        return self._request("POST", f"/v1/fields/{name}/samples", params={"form": form},
+        return self._request("POST", f"/v1/fields/{name}/samples", params=params,
                              content=content, headers=headers).json()
+
+    def wait_indexed(self, name: str, batch: int | None = None, timeout: float = 60.0,
+                     interval: float = 0.02) -> dict:
+        """Poll the field until batch ``batch`` (default: every stored batch) is
+        indexed, i.e. visible to queries; returns the field's description."""
+        end = time.monotonic() + timeout
+        while True:
+            info = self.describe(name)
+            target = info["storage"]["last_batch"] if batch is None else batch
+            if info["indexed_batch"] >= target:
+                return info
+            if time.monotonic() > end:
+                raise TimeoutError(f"batch {target} of {name!r} not indexed after {timeout} s "
+                                   f"(indexed up to {info['indexed_batch']})")
+            time.sleep(interval)
 
     def upload_rays(self, name: str, origins, directions, values, **kw) -> dict:
         return self.upload(name, values, origins=origins, directions=directions, **kw)

@@ -50,32 +50,56 @@ inline std::uint64_t hilbert_key(std::uint32_t* X, int bits, int n) {
   return key;
 }
 
-// Query order along a Hilbert curve over the batch's bounding box. Keys are
-// computed and sorted in parallel; ties broken by index, so the order is
-// unique (independent of the thread count).
+// Query order along a Hilbert curve. Each axis is quantised through its
+// empirical quantiles (a deterministic sample of up to kQuantiles values), so
+// heavy-tailed data (embedded ray coordinates span 1e-2 .. 1e5) still spreads
+// over the grid. Keys are computed and sorted in parallel; ties broken by
+// index, so the order is unique (independent of the thread count).
+constexpr std::size_t kQuantiles = 1024;
+
 inline std::vector<std::uint32_t> hilbert_order(const double* q, std::size_t n, int D,
                                                 int threads) {
-  std::vector<double> lo(D, std::numeric_limits<double>::infinity());
-  std::vector<double> hi(D, -std::numeric_limits<double>::infinity());
-  for (std::size_t i = 0; i < n; ++i)
-    for (int k = 0; k < D; ++k) {
-      lo[k] = std::min(lo[k], q[i * D + k]);
-      hi[k] = std::max(hi[k], q[i * D + k]);
-    }
-  // a few bits per axis beyond what separates n points suffice
+  const int axes = std::min(D, 64);  // beyond 64 axes only the first 64 count
+  // a few bits per axis beyond what separates n points (the quantiles make
+  // the marginals uniform, so no bits are wasted on empty ranges)
   int need = 0;
   while (need < 63 && (std::size_t(1) << need) < n) ++need;
-  const int bits = std::max(1, std::min({31, 64 / std::max(1, std::min(D, 64)), (need + D - 1) / D + 3}));
-  const int axes = std::min(D, 64);  // beyond 64 axes only the first 64 count
+  const int bits = std::max(1, std::min({16, 64 / axes, (need + axes - 1) / axes + 3}));
   const double cells = std::ldexp(1.0, bits);
-  std::vector<double> scale(D);
-  for (int k = 0; k < D; ++k) scale[k] = hi[k] > lo[k] ? (cells - 1) / (hi[k] - lo[k]) : 0.0;
+  const std::size_t ns = std::min(n, kQuantiles);
+  std::size_t np2 = 1;
+  while (np2 < ns) np2 *= 2;
+  std::vector<std::vector<double>> table(axes);
+  for (int k = 0; k < axes; ++k) {
+    auto& t = table[k];
+    t.resize(ns);
+    for (std::size_t j = 0; j < ns; ++j) t[j] = q[(j * n / ns) * D + k];
+    std::sort(t.begin(), t.end());
+    t.resize(np2, std::numeric_limits<double>::infinity());  // pad for the branch-free search
+  }
+  // x -> position in [0, cells): bin of the sorted sample, interpolated inside
+  auto quantise = [&](int k, double x) -> std::uint32_t {
+    const double* t = table[k].data();
+    std::size_t j = 0;  // number of sample values <= x (upper bound), branch-free
+    for (std::size_t step = np2 / 2; step; step /= 2) j += (t[j + step - 1] <= x) ? step : 0;
+    j += (j < ns && t[j] <= x) ? 1 : 0;
+    double pos;
+    if (j == 0) {
+      pos = 0.0;
+    } else if (j >= ns) {
+      pos = static_cast<double>(ns);
+    } else {
+      double lo = t[j - 1], hi = t[j];
+      pos = static_cast<double>(j) + (hi > lo ? (x - lo) / (hi - lo) : 0.0);
+    }
+    double c = pos * (cells / static_cast<double>(ns + 1));
+    return static_cast<std::uint32_t>(std::min(c, cells - 1));
+  };
   std::vector<std::pair<std::uint64_t, std::uint32_t>> keyed(n);
   run_chunks(n, threads, [&](std::size_t b, std::size_t e) {
     std::vector<std::uint32_t> X(axes);
     for (std::size_t i = b; i < e; ++i) {
-      for (int k = 0; k < axes; ++k)
-        X[k] = static_cast<std::uint32_t>((q[i * D + k] - lo[k]) * scale[k]);
+      for (int k = 0; k < axes; ++k) X[k] = quantise(k, q[i * D + k]);
       keyed[i] = {hilbert_key(X.data(), bits, axes), static_cast<std::uint32_t>(i)};
     }
   });
@@ -344,6 +368,8 @@ class Triangulation final : public TriangulationBase {
     }
     const bool full = h.current_dim == D_;
     numbered_.store(false);
+    if (full && (n < static_cast<std::size_t>(D_) + 1 || h.n_cells < static_cast<std::uint64_t>(D_) + 2))
+      throw snapshot_error("corrupted snapshot (too few vertices or cells for its dimension)");
     if (full) {
       TDS& tds = dt_.tds();
       dt_.clear();  // infinite vertex + one full cell, dimension -1
@@ -371,8 +397,12 @@ class Triangulation final : public TriangulationBase {
         for (std::size_t j = 0; j < r; ++j) {
           Full_cell_handle s = (i + j == 0) ? dt_.full_cells_begin() : tds.new_full_cell();
           cells.push_back(s);
+          const std::uint32_t* cv = &buf[j * D1];
+          for (int k = 0; k < D1; ++k)
+            for (int l = 0; l < k; ++l)
+              if (cv[k] == cv[l]) throw snapshot_error("corrupted snapshot (repeated vertex in a cell)");
           for (int k = 0; k < D1; ++k) {
-            std::uint32_t vi = buf[j * D1 + k];
+            std::uint32_t vi = cv[k];
             if (vi > n) throw snapshot_error("corrupted snapshot (cell vertex index out of range)");
             s->set_vertex(k, vh[vi]);
             vh[vi]->set_full_cell(s);
@@ -386,7 +416,8 @@ class Triangulation final : public TriangulationBase {
           Full_cell_handle s = cells[i + j];
           for (int k = 0; k < D1; ++k) {
             std::uint32_t ci = buf[j * D1 + k];
-            if (ci >= m) throw snapshot_error("corrupted snapshot (neighbour index out of range)");
+            if (ci >= m || ci == i + j)
+              throw snapshot_error("corrupted snapshot (neighbour index out of range)");
             s->set_neighbor(k, cells[ci]);
           }
         }

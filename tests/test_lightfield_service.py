@@ -113,3 +113,16 @@ def test_viewer_page_and_assets(client):
     assert js.status_code == 200 and "render" in js.text
     assert client.get("/viewer/assets/other.js").status_code in (404, 422)
     assert client.get("/viewer/bad%2Fname").status_code in (404, 422)
+
+
+def test_start_demo_field_in_the_background(client):
+    from flatserve.lightfield.demo import start_demo_field
+
+    lines = []
+    th = start_demo_field(client.app.state.registry, "127.0.0.1", 8000, name="bunny2", n=20,
+                          announce=lines.append)
+    th.join(timeout=120)
+    assert not th.is_alive()
+    assert client.app.state.registry.get("bunny2").field.nsamples > 300
+    assert lines and all("http://127.0.0.1:8000/viewer/bunny2" in s for s in lines)
+    assert "ready" in lines[-1]

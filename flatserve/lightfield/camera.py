@@ -256,7 +256,7 @@ class Camera:
         if weights is None:
             return v.mean(axis=(1, 3))
         w = np.asarray(weights, dtype=np.float64).reshape(self.height, s, self.width, s, 1)
-        num = np.where(w > 0, v, 0.0).__mul__(w).sum(axis=(1, 3))
+        num = (np.where(w > 0, v, 0.0) * w).sum(axis=(1, 3))
         den = w.sum(axis=(1, 3))
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)

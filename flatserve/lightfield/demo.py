@@ -16,7 +16,7 @@ import numpy as np
 
 from .sampling import BASIS_SCALE, ProgressBar, bunny_scene, sample_scene
 
-__all__ = ["DEMO_FIELD", "DEMO_N", "DEMO_BATCH", "ensure_demo_field", "viewer_url"]
+__all__ = ["DEMO_FIELD", "DEMO_N", "DEMO_BATCH", "ensure_demo_field", "start_demo_field", "viewer_url"]
 
 log = logging.getLogger("flatserve.lightfield")
 
@@ -103,3 +103,39 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, n: int = DEMO_N, seed: i
     log.info("demo field %r: %d samples in %.1f s", name, e.field.nsamples, time.perf_counter() - t0)
     return e
 
+
+
+def start_demo_field(registry, host: str, port: int, *, name: str = DEMO_FIELD, n: int = DEMO_N,
+                     announce=print):
+    """Run :func:`ensure_demo_field` in a daemon thread and announce the viewer URL.
+
+    For the service's start-up (``make run``): the server answers at once
+    while the field builds (the viewer page waits for it).
+
+    Parameters
+    ----------
+    registry : Registry
+    host, port : the address the server listens on (for the URL)
+    name, n : see :func:`ensure_demo_field`
+    announce : callable(str)
+        Receives the "open the viewer at ..." line (default print).
+
+    Returns
+    -------
+    threading.Thread
+    """
+    import threading
+
+    url = viewer_url(host, port, name)
+
+    def run():
+        try:
+            announce(f"flatserve: preparing the demo light field {name!r}; viewer: {url}")
+            ensure_demo_field(registry, name, n)
+            announce(f"flatserve: demo field {name!r} ready - open {url}")
+        except Exception:  # the server keeps serving; the log says why
+            log.exception("demo field %r could not be built", name)
+
+    th = threading.Thread(target=run, name="flatserve-demo", daemon=True)
+    th.start()
+    return th

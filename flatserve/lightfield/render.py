@@ -16,7 +16,7 @@ none get ``fill``.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
@@ -49,7 +49,7 @@ class Frame:
 
     image: np.ndarray
     covered: np.ndarray
-    timings: dict = field(default_factory=dict)
+    timings: dict = dc_field(default_factory=dict)
     ray_inside: np.ndarray | None = None
     chart: "ChartPoints | None" = None
 

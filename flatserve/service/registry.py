@@ -8,15 +8,29 @@ Concurrency per field
 * ``upload_lock``: serialises uploads (and snapshots, which must see a field
   that no upload changes) without blocking queries.
 
-Durability of an upload: the batch is applied to the in-memory field and its
-arrays are committed to SQLite under the write lock; the response is sent only
-after the commit. If the commit fails the field is reloaded from storage.
+* ``index_lock``: serialises changes of the in-memory field (inserts, the
+  background indexer, snapshots, reloads).
+
+Durability of an upload (Qdrant's ``wait`` convention):
+
+* ``wait=True`` (default): once every earlier batch is indexed, the batch is
+  applied to the in-memory field and its arrays are committed to SQLite under the
+  write lock; the response is sent only after the commit. If the commit fails the
+  field is reloaded from storage.
+* ``wait=False``: the batch is validated and its coordinates computed (so the
+  accepted / rejected rows and reasons are exact), it is committed to SQLite, and
+  the response is sent; the Delaunay insert then happens in the field's
+  background indexer, batch by batch in commit order, each whole batch under the
+  write lock. ``indexed_seq`` is the last batch in the triangulation; snapshots
+  only ever cover indexed batches, and a restart replays every committed batch,
+  so nothing acknowledged is lost whenever the process dies.
 """
 from __future__ import annotations
 
 import logging
 import threading
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field as dc_field
 
@@ -24,6 +38,7 @@ import numpy as np
 
 from ..errors import FieldExistsError, FieldNotFoundError, StorageError
 from .errors import IdempotencyConflictError, NotReadyError, TooManyFieldsError
+from .ingest import insert_prepared, prepare
 from .rwlock import RWLock
 from .settings import Settings
 from .storage import FieldRow, Storage, content_hash, pack_arrays
@@ -33,6 +48,20 @@ log = logging.getLogger("flatserve.service")
 PROGRESS_EVERY_S = 2.0
 #: queries with fewer rows run on one native thread (the request is the unit of parallelism)
 SMALL_QUERY_ROWS = 2048
+#: on shutdown, keep indexing pending batches this long; the rest are replayed on start
+DRAIN_TIMEOUT_S = 10.0
+#: wait=false batches at least this long hash + pack while their coordinates compute
+PACK_ASIDE_ROWS = 8192
+_pack_executor: ThreadPoolExecutor | None = None
+_pack_executor_lock = threading.Lock()
+
+
+def _pack_pool() -> ThreadPoolExecutor:
+    global _pack_executor
+    with _pack_executor_lock:
+        if _pack_executor is None:
+            _pack_executor = ThreadPoolExecutor(2, thread_name_prefix="flatserve-pack")
+        return _pack_executor
 
 
 def _Field():
@@ -82,6 +111,16 @@ class FieldEntry:
     deleted: bool = False
     lock: RWLock = dc_field(default_factory=RWLock)
     upload_lock: threading.Lock = dc_field(default_factory=threading.Lock)
+    index_lock: threading.Lock = dc_field(default_factory=threading.Lock)
+    #: last batch inserted into the triangulation (<= last_seq)
+    indexed_seq: int = 0
+    #: committed, acknowledged batches not yet indexed: (seq, Prepared), commit order
+    pending: deque = dc_field(default_factory=deque)
+    pending_samples: int = 0
+    #: guards ``pending``, ``pending_samples``, ``indexer``; notified on every change
+    cond: threading.Condition = dc_field(default_factory=threading.Condition)
+    indexer: threading.Thread | None = None
+    stop_indexing: bool = False
 
     @property
     def k(self) -> int:
@@ -152,11 +191,15 @@ class Registry:
 
     def delete(self, name: str) -> None:
         e = self.get(name, need_ready=False)
-        with e.upload_lock, e.lock.write():
+        with e.upload_lock, e.index_lock, e.lock.write():
             if e.deleted:
                 raise FieldNotFoundError(f"no field named {name!r}")
             self.storage.delete_field(e.id)
             e.deleted = True
+            with e.cond:
+                e.pending.clear()
+                e.pending_samples = 0
+                e.cond.notify_all()
             with self._lock:
                 if self._entries.get(name) is e:
                     del self._entries[name]
@@ -218,6 +261,7 @@ class Registry:
             with e.lock.write():
                 e.field = fld
                 e.last_seq = max(last, start)
+                e.indexed_seq = e.last_seq
                 e.snapshot_seq = start
                 e.new_samples = replayed
                 e.state, e.error = "ready", None
@@ -230,20 +274,29 @@ class Registry:
 
     # -- upload -----------------------------------------------------------
     def upload(self, e: FieldEntry, form: str, arrays: dict, values: np.ndarray,
-               idem_key: str | None, timings: dict | None = None) -> dict:
-        """Insert and durably store one batch; ``timings`` (if given) receives the
-        seconds spent inserting (``insert``) and committing (``store``)."""
+               idem_key: str | None, timings: dict | None = None, *, wait: bool = True) -> dict:
+        """Durably store one batch and index it (``wait=True``) or have it indexed
+        in the background (``wait=False``); see the module doc. ``timings`` (if
+        given) receives the seconds spent on coordinates / inserting (``insert``
+        or ``prepare``) and committing (``store``)."""
         timings = {} if timings is None else timings
         t0 = time.perf_counter()
-        stored = dict(arrays, values=values)
-        chash = content_hash(form, stored)
-        blob = pack_arrays(stored)
         n = int(values.shape[0])
+        stored = dict(arrays, values=values)
+        prep = None
+        if not wait and n >= PACK_ASIDE_ROWS:
+            # coordinates (GIL released) in this thread, hash + pack meanwhile in another
+            packed = _pack_pool().submit(lambda: (content_hash(form, stored),
+                                                  pack_arrays(stored)))
+            prep = prepare(e.field, form, arrays, values)
+            timings["prepare"] = time.perf_counter() - t0
+            chash, blob = packed.result()
+        else:
+            chash = content_hash(form, stored)
+            blob = pack_arrays(stored)
+        timings["pack"] = time.perf_counter() - t0 - timings.get("prepare", 0.0)
         with e.upload_lock:
-            if e.deleted:
-                raise FieldNotFoundError(f"no field named {e.name!r}")
-            if e.state != "ready":
-                raise StorageError(f"field {e.name!r} is not ready ({e.state})")
+            self._check_writable(e)
             if idem_key is not None:
                 prev = self.storage.find_batch(e.id, idem_key)
                 if prev is not None:
@@ -251,40 +304,158 @@ class Registry:
                         raise IdempotencyConflictError(
                             f"Idempotency-Key {idem_key!r} was used for a different batch"
                         )
-                    return dict(prev.result, replayed=True)
-            with e.lock.write():
-                t1 = time.perf_counter()
-                res = apply_batch(e.field, form, arrays, values)
-                t2 = time.perf_counter()
-                timings["insert"] = t2 - t1
-                rejected = np.asarray(res.rejected, np.int64).tolist()
-                accepted = int(res.accepted)
-
-                def result(seq):
-                    return {"batch": seq, "accepted": accepted, "rejected": rejected,
-                            "reasons": [str(x) for x in res.reasons],
-                            "duplicates": int(res.duplicates), "nsamples": int(res.nsamples),
-                            "replayed": False}
-
-                try:
-                    seq, out = self.storage.add_batch(
-                        e.id, idem_key=idem_key, chash=chash, form=form, nrows=n, blob=blob,
-                        result_fn=result)
-                except BaseException as exc:
-                    # memory is ahead of storage: reload this field from storage
-                    if not isinstance(exc, FieldNotFoundError):
-                        e.state, e.error = "loading", f"reloading after storage failure: {exc}"
-                        self._bg.submit(self._reload, e)
-                    raise
-                e.last_seq = seq
-                e.new_samples += accepted
-                timings["store"] = time.perf_counter() - t2 + (t1 - t0)
+                    return dict(prev.result, replayed=True,
+                                indexed=prev.seq <= e.indexed_seq)
+            if wait:
+                out = self._upload_indexed(e, form, arrays, values, idem_key, chash, blob, n,
+                                           timings)
+            else:
+                out = self._upload_deferred(e, form, arrays, values, idem_key, chash, blob, n,
+                                            timings, prep)
         if self.metrics is not None:
-            self.metrics.samples_accepted.labels(e.name).inc(accepted)
-            self.metrics.samples_rejected.labels(e.name).inc(len(rejected))
             self.metrics.batches.labels(e.name).inc()
-        self._maybe_snapshot(e)
+            self.metrics.samples_rejected.labels(e.name).inc(len(out["rejected"]))
+            if wait:
+                self.metrics.samples_accepted.labels(e.name).inc(out["accepted"])
+        if wait:
+            self._maybe_snapshot(e)
         return out
+
+    @staticmethod
+    def _check_writable(e: FieldEntry) -> None:
+        if e.deleted:
+            raise FieldNotFoundError(f"no field named {e.name!r}")
+        if e.state != "ready":
+            raise StorageError(f"field {e.name!r} is not ready ({e.state})")
+
+    def _upload_indexed(self, e, form, arrays, values, idem_key, chash, blob, n, timings):
+        """wait=True: insert, then commit (memory ahead of storage -> reload on failure)."""
+        if not self.wait_indexed(e):  # commit order: every earlier batch first
+            raise NotReadyError(f"field {e.name!r}: the server is shutting down")
+        self._check_writable(e)
+        with e.index_lock, e.lock.write():
+            t1 = time.perf_counter()
+            res = apply_batch(e.field, form, arrays, values)
+            t2 = time.perf_counter()
+            timings["insert"] = t2 - t1
+            rejected = np.asarray(res.rejected, np.int64).tolist()
+            accepted = int(res.accepted)
+
+            def result(seq):
+                return {"batch": seq, "accepted": accepted, "rejected": rejected,
+                        "reasons": [str(x) for x in res.reasons],
+                        "duplicates": int(res.duplicates), "nsamples": int(res.nsamples),
+                        "indexed": True, "pending_samples": 0, "replayed": False}
+
+            try:
+                seq, out = self.storage.add_batch(
+                    e.id, idem_key=idem_key, chash=chash, form=form, nrows=n, blob=blob,
+                    result_fn=result)
+            except BaseException as exc:
+                # memory is ahead of storage: reload this field from storage
+                if not isinstance(exc, FieldNotFoundError):
+                    e.state, e.error = "loading", f"reloading after storage failure: {exc}"
+                    self._bg.submit(self._reload, e)
+                raise
+            e.last_seq = e.indexed_seq = seq
+            e.new_samples += accepted
+            timings["store"] = time.perf_counter() - t2
+        return out
+
+    def _upload_deferred(self, e, form, arrays, values, idem_key, chash, blob, n, timings,
+                         prep=None):
+        """wait=False: coordinates, commit, acknowledge; the indexer inserts later."""
+        t1 = time.perf_counter()
+        if prep is None:
+            prep = prepare(e.field, form, arrays, values)
+            timings["prepare"] = time.perf_counter() - t1
+        t2 = time.perf_counter()
+        rejected = prep.rejected.tolist()
+        accepted = prep.accepted
+        with e.cond:
+            pending = e.pending_samples + accepted
+
+        def result(seq):
+            return {"batch": seq, "accepted": accepted, "rejected": rejected,
+                    "reasons": prep.reasons, "duplicates": None,
+                    "nsamples": int(e.field.nsamples), "indexed": False,
+                    "pending_samples": pending, "replayed": False}
+
+        seq, out = self.storage.add_batch(  # nothing in memory changed if this fails
+            e.id, idem_key=idem_key, chash=chash, form=form, nrows=n, blob=blob,
+            result_fn=result)
+        timings["store"] = time.perf_counter() - t2
+        e.last_seq = seq
+        with e.cond:
+            e.pending.append((seq, prep))
+            e.pending_samples += accepted
+            if e.indexer is None and not self._closed:
+                e.indexer = threading.Thread(target=self._index_pending, args=(e,),
+                                             name=f"flatserve-index-{e.id}", daemon=True)
+                e.indexer.start()
+        return out
+
+    def _index_pending(self, e: FieldEntry) -> None:
+        """The field's background indexer: insert pending batches in commit order."""
+        while True:
+            with e.cond:
+                if not e.pending or e.stop_indexing or e.state != "ready":
+                    e.indexer = None
+                    e.cond.notify_all()
+                    return
+                seq, prep = e.pending[0]
+            accepted = 0
+            try:
+                self._before_index(e, seq)
+                with e.index_lock, e.lock.write():
+                    if e.deleted:
+                        continue  # delete() cleared the queue
+                    if seq > e.indexed_seq:  # (a reload may have replayed it already)
+                        insert_prepared(e.field, prep)
+                        e.indexed_seq = seq
+                        e.new_samples += prep.accepted
+                        accepted = prep.accepted
+                    with e.cond:
+                        if e.pending and e.pending[0][0] == seq:
+                            e.pending.popleft()
+                            e.pending_samples -= prep.accepted
+                        e.cond.notify_all()
+            except Exception as exc:
+                # memory may hold part of the batch: rebuild the field from storage,
+                # which holds every committed batch (the reload indexes them all)
+                log.exception("field %r: indexing batch %d failed; reloading", e.name, seq)
+                with e.cond:
+                    e.state, e.error = "loading", f"reloading after indexing failure: {exc}"
+                    e.pending.clear()
+                    e.pending_samples = 0
+                    e.indexer = None
+                    e.cond.notify_all()
+                if not self._closed:
+                    self._bg.submit(self._reload, e)
+                return
+            if accepted and self.metrics is not None:
+                self.metrics.samples_accepted.labels(e.name).inc(accepted)
+            self._maybe_snapshot(e)
+
+    @staticmethod
+    def _before_index(e: FieldEntry, seq: int) -> None:
+        """Called by the indexer before it takes the field's locks (a test hook)."""
+
+    def wait_indexed(self, e: FieldEntry, seq: int | None = None,
+                     timeout: float | None = None) -> bool:
+        """Block until batch ``seq`` (default: every acknowledged batch) is indexed."""
+        target = e.last_seq if seq is None else seq
+        end = None if timeout is None else time.monotonic() + timeout
+        with e.cond:
+            while e.pending and e.pending[0][0] <= target and e.state == "ready" \
+                    and not e.deleted:
+                if e.indexer is None:  # stopped (shutdown): left for the replay on start
+                    return False
+                left = None if end is None else end - time.monotonic()
+                if left is not None and left <= 0:
+                    return False
+                e.cond.wait(left)
+        return True
 
     def _reload(self, e: FieldEntry) -> None:
         try:
@@ -292,7 +463,11 @@ class Registry:
         except Exception as exc:
             e.state, e.error = "failed", str(exc)
             return
-        with e.upload_lock:
+        with e.upload_lock, e.index_lock:
+            with e.cond:
+                e.pending.clear()
+                e.pending_samples = 0
+                e.cond.notify_all()
             self._restore(e, row)
 
     # -- query ------------------------------------------------------------
@@ -309,13 +484,32 @@ class Registry:
             self.metrics.query_rows.labels(e.name).inc(len(res.inside))
         return res
 
+    def query_nowait(self, e: FieldEntry, form: str, arrays: dict, **kw):
+        """:meth:`query` if the field's read lock is free right now, else None
+        (for callers on the event loop, which must never wait for an insert)."""
+        if not e.lock.try_acquire_read():
+            return None
+        try:
+            if e.deleted:
+                raise FieldNotFoundError(f"no field named {e.name!r}")
+            res = query_batch(e.field, form, arrays, **kw)
+        finally:
+            e.lock.release_read()
+        if self.metrics is not None:
+            self.metrics.queries.labels(e.name).inc()
+            self.metrics.query_rows.labels(e.name).inc(len(res.inside))
+        return res
+
     # -- snapshots --------------------------------------------------------
     def _maybe_snapshot(self, e: FieldEntry) -> None:
         every = self.settings.snapshot_every
         if not every or e.new_samples < every or e.snapshot_pending or self._closed:
             return
         e.snapshot_pending = True
-        self._bg.submit(self._background_snapshot, e)
+        try:
+            self._bg.submit(self._background_snapshot, e)
+        except RuntimeError:  # shut down meanwhile
+            e.snapshot_pending = False
 
     def _background_snapshot(self, e: FieldEntry) -> None:
         try:
@@ -328,12 +522,12 @@ class Registry:
     def snapshot(self, e: FieldEntry) -> dict:
         """Write a snapshot now (uploads wait; queries go on)."""
         t0 = time.perf_counter()
-        with e.upload_lock:
+        with e.index_lock:  # the field cannot change meanwhile; queries go on
             if e.deleted:
                 raise FieldNotFoundError(f"no field named {e.name!r}")
             if e.state != "ready":
                 raise StorageError(f"field {e.name!r} is not ready ({e.state})")
-            seq = e.last_seq
+            seq = e.indexed_seq  # only indexed batches are in the snapshot
             if e.snapshot_file and e.snapshot_seq == seq and \
                     self.storage.snapshot_bytes(e.snapshot_file):
                 return {"batch": seq, "bytes": self.storage.snapshot_bytes(e.snapshot_file),
@@ -348,6 +542,23 @@ class Registry:
             self.metrics.snapshots.labels(e.name).inc()
         return {"batch": seq, "bytes": size, "seconds": dt}
 
-    def close(self) -> None:
+    def close(self, drain_timeout: float | None = None) -> None:
+        """Stop: index pending batches for up to ``drain_timeout`` seconds (default
+        :data:`DRAIN_TIMEOUT_S`; the rest are committed and replayed on the next
+        start), stop background work."""
         self._closed = True
+        end = time.monotonic() + (DRAIN_TIMEOUT_S if drain_timeout is None else drain_timeout)
+        for e in self.snapshot_entries():
+            left = max(0.0, end - time.monotonic())
+            if not self.wait_indexed(e, timeout=left):
+                with e.cond:
+                    log.warning("field %r: %d batch(es) not indexed at shutdown; they are "
+                                "stored and will be replayed on start", e.name, len(e.pending))
+            with e.cond:
+                e.stop_indexing = True
+                e.cond.notify_all()
         self._bg.shutdown(wait=True, cancel_futures=True)
+        for e in self.snapshot_entries():
+            t = e.indexer
+            if t is not None:  # finishing its current batch (under the field's locks)
+                t.join(max(0.0, end - time.monotonic()) + 1.0)

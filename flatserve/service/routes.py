@@ -82,8 +82,13 @@ def _describe(registry, e: FieldEntry) -> dict:
     out = _summary(e)
     f = e.field
     m = int(e.basis_arrays["Q"].shape[0])
+    with e.cond:
+        pending_batches, pending_samples = len(e.pending), e.pending_samples
     out.update({
         "ndim": m - 1,
+        "indexed_batch": e.indexed_seq,
+        "pending_batches": pending_batches,
+        "pending_samples": pending_samples,
         "nrejected": int(f.nrejected) if f is not None else None,
         "nvertices": int(f.nvertices) if f is not None else None,
         "nsimplex": int(f.nsimplex) if f is not None else None,
@@ -134,13 +139,22 @@ def snapshot_field(name: FieldNamePath, registry: RegistryDep) -> Response:
     "/fields/{name}/samples", response_model=UploadResult, tags=["samples"],
     dependencies=[WriteAccess], responses=BODY_RESPONSES, openapi_extra=_body_doc(UploadBody),
     summary="Upload a batch of samples",
-    description="Stores the batch durably (acknowledged after commit) and inserts it. "
+    description="Stores the batch durably (acknowledged only after its SQLite commit). "
+                "`wait=true` (default): acknowledged once the batch is also inserted into the "
+                "triangulation (visible to queries). `wait=false`: acknowledged as soon as the "
+                "batch's coordinates are computed (accepted/rejected rows and reasons are "
+                "exact) and it is committed; it is then inserted in the background in commit "
+                "order, a whole batch at once (`indexed: false` in the response; the field's "
+                "`indexed_batch` / `pending_samples` tell when it is visible; a later "
+                "`wait=true` upload or a query with `wait=true` waits for it). "
                 + _LAYOUT + " With `Idempotency-Key`, a retried batch is stored once; the same "
                 "key with different content is a 422.",
 )
 def upload_samples(
     name: FieldNamePath, registry: RegistryDep, settings: SettingsDep, body: BodyDep,
     form: FormQuery = None,
+    wait: Annotated[bool, Query(description="Acknowledge after indexing (true) or after "
+                                            "the durable commit (false).")] = True,
     content_type: Annotated[Optional[str], Header()] = None,
     idempotency_key: Annotated[Optional[str], Header(max_length=256)] = None,
 ) -> Response:
@@ -149,7 +163,7 @@ def upload_samples(
     form, arrays, values, _ = codec.decode(body, content_type, form, k=e.k, d=e.d,
                                            channels=e.channels, max_rows=settings.max_batch_rows)
     timings = {"decode": time.perf_counter() - t0}
-    out = registry.upload(e, form, arrays, values, idempotency_key, timings)
+    out = registry.upload(e, form, arrays, values, idempotency_key, timings, wait=wait)
     return JSONBytes(out, headers={"Server-Timing": server_timing(timings)})
 
 
@@ -174,13 +188,19 @@ def query_field(
     outside: Annotated[Literal["nan", "clamp"], Query()] = "nan",
     order: Annotated[Literal["hilbert", "given"], Query()] = "hilbert",
     weights: Annotated[bool, Query(description="Also return sample ids and weights.")] = False,
+    wait: Annotated[bool, Query(description="First wait until every batch acknowledged "
+                                            "so far (also with wait=false) is indexed.")] = False,
     content_type: Annotated[Optional[str], Header()] = None,
     accept: Annotated[Optional[str], Header()] = None,
 ) -> Response:
+    # Served by flatserve.service.fastpath.FastQueryMiddleware unless a parameter or the
+    # key needs FastAPI's judgement; this route is the documented reference.
     e = registry.get(name)
     t0 = time.perf_counter()
     form, arrays, _, _ = codec.decode(body, content_type, form, k=e.k, d=e.d, channels=None,
                                       max_rows=settings.max_batch_rows)
+    if wait:
+        registry.wait_indexed(e)
     t1 = time.perf_counter()
     res = registry.query(e, form, arrays, outside=outside, order=order, return_weights=weights)
     t2 = time.perf_counter()

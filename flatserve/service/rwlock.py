@@ -31,6 +31,21 @@ class RWLock:
                 if not self._readers:
                     self._cond.notify_all()
 
+    def try_acquire_read(self) -> bool:
+        """Take the read side only if no writer holds or awaits it (never blocks
+        beyond the short internal mutex); pair with :meth:`release_read`."""
+        with self._cond:
+            if self._writer or self._waiting_writers:
+                return False
+            self._readers += 1
+            return True
+
+    def release_read(self) -> None:
+        with self._cond:
+            self._readers -= 1
+            if not self._readers:
+                self._cond.notify_all()
+
     @contextmanager
     def write(self):
         with self._cond:

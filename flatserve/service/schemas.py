@@ -120,6 +120,11 @@ class FieldList(BaseModel):
 
 class FieldInfo(FieldSummary):
     ndim: int
+    indexed_batch: int = Field(0, description="Last batch inserted into the triangulation "
+                                              "(batches up to it are visible to queries).")
+    pending_batches: int = Field(0, description="Acknowledged (stored) batches not yet "
+                                                "indexed (uploads with wait=false).")
+    pending_samples: int = Field(0, description="Accepted samples of the pending batches.")
     nrejected: Optional[int] = None
     nvertices: Optional[int] = None
     nsimplex: Optional[int] = None
@@ -134,8 +139,16 @@ class UploadResult(BaseModel):
     accepted: int
     rejected: list[int] = Field(description="Row indices not triangulated (outside the chart).")
     reasons: list[str]
-    duplicates: int
-    nsamples: int = Field(description="Samples in the field after this batch.")
+    duplicates: Optional[int] = Field(
+        description="Accepted rows that coincided with an existing sample; null until indexed "
+                    "(wait=false).")
+    nsamples: int = Field(description="Samples in the field after this batch (wait=true); with "
+                                      "wait=false the samples indexed when it was acknowledged.")
+    indexed: bool = Field(True, description="The batch is in the triangulation (visible to "
+                                            "queries). wait=false: false when acknowledged; see "
+                                            "`indexed_batch` of the field.")
+    pending_samples: int = Field(0, description="Accepted samples stored but not yet indexed "
+                                                "when acknowledged (this batch included).")
     replayed: bool = Field(False, description="True: the Idempotency-Key was seen; nothing stored.")
 
 

@@ -10,6 +10,44 @@ from .settings import Settings
 log = logging.getLogger("flatserve.service")
 
 
+def limit_blas_threads(n: int = 1) -> str | None:
+    """Cap NumPy's BLAS (OpenBLAS) at ``n`` threads in this process; returns what
+    was capped, or None.
+
+    The service's NumPy products are tall and thin ((n, m) @ (m, m-1) in the
+    embedding): a threaded BLAS wakes its threads for them and leaves them
+    spinning, which made a 50,000-row embedding take 16 ms instead of 0.3 ms and
+    stole the cores from the native code (which has its own threads). Uses
+    ``threadpoolctl`` when installed, else OpenBLAS's own setter (NumPy wheels).
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        pass
+    else:
+        threadpool_limits(n, user_api="blas")
+        return "threadpoolctl"
+    import ctypes
+    import glob
+    import os
+
+    import numpy as np
+
+    libs = os.path.join(os.path.dirname(np.__file__), os.pardir, "numpy.libs")
+    for path in sorted(glob.glob(os.path.join(libs, "*openblas*"))):
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for sym in ("scipy_openblas_set_num_threads64_", "openblas_set_num_threads64_",
+                    "openblas_set_num_threads"):
+            fn = getattr(lib, sym, None)
+            if fn is not None:
+                fn(ctypes.c_int(n))
+                return f"{os.path.basename(path)}:{sym}"
+    return None
+
+
 def serve(settings: Settings | None = None) -> None:
     import uvicorn
 
@@ -19,6 +57,9 @@ def serve(settings: Settings | None = None) -> None:
     level = settings.log_level.upper()
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("flatserve").setLevel(level)
+    if settings.blas_threads:
+        how = limit_blas_threads(settings.blas_threads)
+        log.debug("BLAS threads capped at %d (%s)", settings.blas_threads, how)
     host = settings.bind_host()
     if host != settings.host:
         log.warning("no API key set: binding to %s instead of %s", host, settings.host)

@@ -36,6 +36,15 @@ class Settings(BaseSettings):
             "processes would each hold a diverging copy."
         ),
     )
+    blas_threads: int = Field(
+        1,
+        ge=0,
+        le=256,
+        description=(
+            "Threads of NumPy's BLAS in the server process (0: leave as is). The service's "
+            "NumPy products are thin; a threaded BLAS only spins on them."
+        ),
+    )
     api_key: SecretStr | None = Field(None, description="Read-write API key.")
     read_only_key: SecretStr | None = Field(None, description="Read-only API key (queries, GETs).")
     max_body_bytes: int = Field(512 * MiB, ge=1, description="Largest accepted request body (413).")

@@ -70,8 +70,9 @@ def _uploader(url, rnd, rng, sent, acked, stop):
             key = f"r{rnd}-b{i}"
             sent[key] = (o, v, val)
             try:
+                # every other batch acknowledged before it is indexed (wait=false)
                 acked[key] = c.upload_rays("crash", o, v, val, idempotency_key=key,
-                                           binary=bool(i % 4))
+                                           binary=bool(i % 4), wait=bool(i % 2))
             except Exception:
                 return  # the server died under us
             i += 1
@@ -151,12 +152,14 @@ def test_kill9_loses_nothing_acknowledged(tmp_path):
         raise
     text = log.read_text(errors="replace")
     inflight = len(sent) - len(acked)
+    deferred = sum(not a["indexed"] for a in acked.values())
     print(f"\ncrash test: {rounds} kill -9 rounds, {len(sent)} batches sent, {len(acked)} "
-          f"acknowledged, {nstored} stored, {inflight} in flight at a kill; "
+          f"acknowledged ({deferred} with wait=false, before indexing), {nstored} stored, "
+          f"{inflight} in flight at a kill; "
           f"{text.count('snapshot after batch') // 1} snapshot log lines, "
           f"{text.count('replaying')} restores")
     assert rounds >= 2
-    assert acked and nstored >= len(acked)
+    assert acked and nstored >= len(acked) and deferred
 
 
 def test_flatserve_serve_command_binds_loopback_without_key(tmp_path):

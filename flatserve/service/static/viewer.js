@@ -15,6 +15,7 @@
   const DEG_PER_PX = 0.15;                              // drag sensitivity
   const WHEEL_STEP = 1.1;                               // focal factor per wheel notch
   const SIZE = 250;                                     // frame resolution (shown at 2x)
+  const RETRY_MS = 2000;                                // while the field is not there yet
 
   const cam = Object.assign({}, DEFAULT);
   const img = document.getElementById("frame");
@@ -44,6 +45,13 @@
     try {
       const resp = await fetch("/v1/fields/" + encodeURIComponent(name) + "/render",
                                { method: "POST", headers: headers, body: JSON.stringify(body) });
+      if (resp.status === 404 || resp.status === 503) {
+        // the field may still be building (first start): keep the request and retry
+        $("status").textContent = "waiting for field " + name + " (" + resp.status + ") ...";
+        if (!pending) pending = job;
+        await new Promise((r) => setTimeout(r, RETRY_MS));
+        return;
+      }
       if (!resp.ok) {
         let msg = resp.status + " " + resp.statusText;
         try { const j = await resp.json(); msg += ": " + JSON.stringify(j.detail); } catch (e) {}

@@ -1,0 +1,235 @@
+"""Uploads with ``?wait=false`` (acknowledged once stored and charted, indexed in the
+background), the two-phase insert behind them, and readiness during a restore."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from flatserve import flats
+from flatserve.client import Client
+from flatserve.field import Field
+from flatserve.service import registry as registry_mod
+from flatserve.service import ingest, specs
+from flatserve.service.ingest import insert_prepared, prepare
+
+from .conftest import paper_rays
+
+C = 2
+
+
+def _started(app):
+    tc = TestClient(app)
+    tc.__enter__()
+    c = Client(http=tc)
+    c.wait_ready(60)
+    return tc, c
+
+
+def _ref():
+    return Field(specs.build_basis(None, 1, 3), channels=C)
+
+
+def _rays_with_rejects(rng, n):
+    """Paper rays, a tenth of them turned parallel to the screen (outside the chart)."""
+    o, v = paper_rays(rng, n)
+    bad = rng.choice(n, n // 10, replace=False)
+    v[bad, 2] = 0.0
+    return o, v, rng.normal(size=(n, C))
+
+
+def _same_answers(got, want):
+    """Same inside mask, values and (inside the hull) simplices. Outside it, the hull
+    facet reported depends on where the walk starts, which a snapshot load changes."""
+    np.testing.assert_array_equal(got.inside, want.inside)
+    np.testing.assert_array_equal(got.ids[got.inside], want.ids[want.inside])
+    np.testing.assert_allclose(got.values, want.values, atol=1e-12, equal_nan=True)
+
+
+@pytest.mark.parametrize("form", ["rays", "rays-parallel", "parametric", "flats"])
+def test_prepare_then_insert_equals_field_add(rng, form, monkeypatch):
+    """The service's two-phase insert leaves the field exactly as Field.add* does
+    (bit for bit: the restore replays batches through Field.add*)."""
+    if form == "rays-parallel":  # coordinates in chunks on threads
+        monkeypatch.setattr(ingest, "PARALLEL_ROWS", 100)
+        monkeypatch.setattr(ingest, "_THREADS", 3)
+        form = "rays"
+    a, b = _ref(), _ref()
+    for _ in range(3):
+        o, v, val = _rays_with_rejects(rng, 300)
+        if form == "rays":
+            arrays, want = {"origins": o, "directions": v}, a.add_rays(o, v, val)
+        elif form == "parametric":
+            A = (v / np.linalg.norm(v, axis=1, keepdims=True))[:, :, None]
+            arrays, want = {"A": A, "b": o}, a.add_parametric(A, o, val)
+        else:
+            Q, r = flats.from_rays(o, v)
+            arrays, want = {"Q": Q, "r": r}, a.add(Q, r, val)
+        p = prepare(b, form, arrays, val)
+        assert p.accepted == want.accepted and p.accepted < 300
+        np.testing.assert_array_equal(p.rejected, want.rejected)
+        assert p.reasons == want.reasons
+        dup, n = insert_prepared(b, p)
+        assert (dup, n) == (want.duplicates, want.nsamples)
+    assert (b.nsamples, b.nrejected, b.nsimplex) == (a.nsamples, a.nrejected, a.nsimplex)
+    np.testing.assert_array_equal(b.triangulation.points, a.triangulation.points)
+    qo, qv = paper_rays(rng, 300)
+    _same_answers(b.query_rays(qo, qv, return_weights=True),
+                  a.query_rays(qo, qv, return_weights=True))
+
+
+class _Gate:
+    """Holds the background indexer (before it locks the field) until ``open()``."""
+
+    def __init__(self, monkeypatch):
+        self.event = threading.Event()
+        self.entered = threading.Event()
+
+        def gated(e, seq):
+            self.entered.set()
+            self.event.wait(30)
+
+        monkeypatch.setattr(registry_mod.Registry, "_before_index", staticmethod(gated))
+
+    def open(self):
+        self.event.set()
+
+
+def test_wait_false_acknowledges_then_indexes_in_commit_order(make_app, rng, monkeypatch):
+    gate = _Gate(monkeypatch)
+    ref = _ref()
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=C)
+        o, v, val = _rays_with_rejects(rng, 400)
+        base = c.upload_rays("f", o, v, val)  # wait=true: indexed in the request
+        ref.add_rays(o, v, val)
+        assert base["indexed"] and base["nsamples"] == ref.nsamples
+        probe = paper_rays(rng, 300)
+        before = ref.query_rays(*probe, return_weights=True)
+
+        sent, reps = [], []
+        for i in range(3):
+            o, v, val = _rays_with_rejects(rng, 300)
+            rep = c.upload_rays("f", o, v, val, wait=False, idempotency_key=f"k{i}",
+                                binary=bool(i % 2))
+            want = _ref().add_rays(o, v, val)  # accepted/rejected depend on the basis only
+            assert not rep["indexed"] and rep["duplicates"] is None
+            assert rep["accepted"] == want.accepted
+            assert rep["rejected"] == want.rejected.tolist()
+            assert rep["reasons"] == want.reasons
+            sent.append((o, v, val))
+            reps.append(rep)
+        assert [r["batch"] for r in reps] == [2, 3, 4]
+        gate.entered.wait(30)
+        info = c.describe("f")
+        assert info["indexed_batch"] == 1 and info["storage"]["last_batch"] == 4
+        assert info["pending_batches"] == 3
+        assert info["pending_samples"] == sum(r["accepted"] for r in reps)
+        assert info["nsamples"] == ref.nsamples
+        # queries see the indexed batches only; a snapshot covers only them
+        _same_answers(c.query_rays("f", *probe, weights=True), before)
+        assert c.snapshot("f")["batch"] == 1
+        # a retry is recognised while pending
+        again = c.upload_rays("f", *sent[0], wait=False, idempotency_key="k0")
+        assert again["replayed"] and again["batch"] == 2
+        gate.open()
+        info = c.wait_indexed("f", timeout=30)
+        for o, v, val in sent:
+            ref.add_rays(o, v, val)
+        assert info["indexed_batch"] == 4 and info["pending_samples"] == 0
+        assert (info["nsamples"], info["nrejected"]) == (ref.nsamples, ref.nrejected)
+        want = ref.query_rays(*probe, return_weights=True)
+        _same_answers(c.query_rays("f", *probe, weights=True), want)
+        assert c.upload_rays("f", *sent[0], idempotency_key="k0")["indexed"]
+    finally:
+        tc.__exit__(None, None, None)
+    # restart: from the snapshot after batch 1 plus the replayed batches 2-4
+    tc, c = _started(make_app())
+    try:
+        info = c.describe("f")
+        assert info["storage"]["snapshot_batch"] == 1 and info["indexed_batch"] == 4
+        assert info["nsamples"] == ref.nsamples
+        _same_answers(c.query_rays("f", *probe, weights=True), want)
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_wait_true_after_wait_false_sees_every_earlier_batch(make_app, rng):
+    ref = _ref()
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=C)
+        for i in range(4):
+            o, v, val = _rays_with_rejects(rng, 300)
+            ref.add_rays(o, v, val)
+            rep = c.upload_rays("f", o, v, val, wait=i == 3)
+        assert rep["indexed"] and rep["batch"] == 4 and rep["nsamples"] == ref.nsamples
+        info = c.describe("f")
+        assert info["pending_batches"] == 0 and info["indexed_batch"] == 4
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_shutdown_leaves_pending_batches_to_the_replay(make_app, rng, monkeypatch):
+    """A batch acknowledged with wait=false but not indexed at shutdown is replayed."""
+    monkeypatch.setattr(registry_mod, "DRAIN_TIMEOUT_S", 0.2)
+    gate = _Gate(monkeypatch)
+    ref = _ref()
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=C)
+        for i in range(2):
+            o, v, val = _rays_with_rejects(rng, 300)
+            ref.add_rays(o, v, val)
+            assert not c.upload_rays("f", o, v, val, wait=False)["indexed"]
+        gate.entered.wait(30)
+        assert c.describe("f")["indexed_batch"] == 0
+    finally:
+        tc.__exit__(None, None, None)  # drains for 0.2 s only: the gate is still shut
+        gate.open()
+    monkeypatch.undo()
+    tc, c = _started(make_app())
+    try:
+        info = c.describe("f")
+        assert info["indexed_batch"] == 2 and info["nsamples"] == ref.nsamples
+        probe = paper_rays(rng, 200)
+        _same_answers(c.query_rays("f", *probe, weights=True),
+                      ref.query_rays(*probe, return_weights=True))
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_readyz_is_503_while_stored_fields_restore(make_app, rng, monkeypatch):
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=C)
+        o, v, val = _rays_with_rejects(rng, 200)
+        c.upload_rays("f", o, v, val)
+    finally:
+        tc.__exit__(None, None, None)
+    release, entered = threading.Event(), threading.Event()
+    real = registry_mod.Registry._restore
+
+    def slow_restore(self, e, row):
+        entered.set()
+        release.wait(30)
+        return real(self, e, row)
+
+    monkeypatch.setattr(registry_mod.Registry, "_restore", slow_restore)
+    with TestClient(make_app()) as tc:
+        try:
+            assert entered.wait(30)
+            r = tc.get("/readyz")
+            assert r.status_code == 503 and r.json()["status"] == "loading"
+            assert tc.get("/healthz").status_code == 200
+            r = tc.post("/v1/fields/f/query", json={"origins": o[:2].tolist(),
+                                                    "directions": v[:2].tolist()})
+            assert r.status_code == 503 and r.headers.get("Retry-After")
+        finally:
+            release.set()
+        Client(http=tc).wait_ready(30)
+        assert tc.get("/readyz").status_code == 200
+        assert tc.get("/v1/fields/f").json()["nsamples"] > 0

@@ -50,18 +50,6 @@ PROGRESS_EVERY_S = 2.0
 SMALL_QUERY_ROWS = 2048
 #: on shutdown, keep indexing pending batches this long; the rest are replayed on start
 DRAIN_TIMEOUT_S = 10.0
-#: wait=false batches at least this long hash + pack while their coordinates compute
-PACK_ASIDE_ROWS = 8192
-_pack_executor: ThreadPoolExecutor | None = None
-_pack_executor_lock = threading.Lock()
-
-
-def _pack_pool() -> ThreadPoolExecutor:
-    global _pack_executor
-    with _pack_executor_lock:
-        if _pack_executor is None:
-            _pack_executor = ThreadPoolExecutor(2, thread_name_prefix="flatserve-pack")
-        return _pack_executor
 
 
 def _Field():
@@ -283,18 +271,9 @@ class Registry:
         t0 = time.perf_counter()
         n = int(values.shape[0])
         stored = dict(arrays, values=values)
-        prep = None
-        if not wait and n >= PACK_ASIDE_ROWS:
-            # coordinates (GIL released) in this thread, hash + pack meanwhile in another
-            packed = _pack_pool().submit(lambda: (content_hash(form, stored),
-                                                  pack_arrays(stored)))
-            prep = prepare(e.field, form, arrays, values)
-            timings["prepare"] = time.perf_counter() - t0
-            chash, blob = packed.result()
-        else:
-            chash = content_hash(form, stored)
-            blob = pack_arrays(stored)
-        timings["pack"] = time.perf_counter() - t0 - timings.get("prepare", 0.0)
+        chash = content_hash(form, stored)
+        blob = pack_arrays(stored)
+        timings["pack"] = time.perf_counter() - t0
         with e.upload_lock:
             self._check_writable(e)
             if idem_key is not None:
@@ -311,7 +290,7 @@ class Registry:
                                            timings)
             else:
                 out = self._upload_deferred(e, form, arrays, values, idem_key, chash, blob, n,
-                                            timings, prep)
+                                            timings)
         if self.metrics is not None:
             self.metrics.batches.labels(e.name).inc()
             self.metrics.samples_rejected.labels(e.name).inc(len(out["rejected"]))
@@ -362,22 +341,20 @@ class Registry:
             timings["store"] = time.perf_counter() - t2
         return out
 
-    def _upload_deferred(self, e, form, arrays, values, idem_key, chash, blob, n, timings,
-                         prep=None):
+    def _upload_deferred(self, e, form, arrays, values, idem_key, chash, blob, n, timings):
         """wait=False: coordinates, commit, acknowledge; the indexer inserts later."""
         t1 = time.perf_counter()
-        if prep is None:
-            prep = prepare(e.field, form, arrays, values)
-            timings["prepare"] = time.perf_counter() - t1
+        prepared = prepare(e.field, form, arrays, values)  # no lock: reads the basis only
         t2 = time.perf_counter()
-        rejected = prep.rejected.tolist()
-        accepted = prep.accepted
+        timings["prepare"] = t2 - t1
+        accepted = prepared.accepted
+        rejected = prepared.rejected.tolist()
         with e.cond:
             pending = e.pending_samples + accepted
 
         def result(seq):
             return {"batch": seq, "accepted": accepted, "rejected": rejected,
-                    "reasons": prep.reasons, "duplicates": None,
+                    "reasons": prepared.reasons, "duplicates": None,
                     "nsamples": int(e.field.nsamples), "indexed": False,
                     "pending_samples": pending, "replayed": False}
 
@@ -387,7 +364,7 @@ class Registry:
         timings["store"] = time.perf_counter() - t2
         e.last_seq = seq
         with e.cond:
-            e.pending.append((seq, prep))
+            e.pending.append((seq, prepared))
             e.pending_samples += accepted
             if e.indexer is None and not self._closed:
                 e.indexer = threading.Thread(target=self._index_pending, args=(e,),

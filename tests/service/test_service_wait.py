@@ -233,3 +233,58 @@ def test_readyz_is_503_while_stored_fields_restore(make_app, rng, monkeypatch):
         Client(http=tc).wait_ready(30)
         assert tc.get("/readyz").status_code == 200
         assert tc.get("/v1/fields/f").json()["nsamples"] > 0
+
+
+def test_wait_false_refuses_bad_rays_and_stores_nothing(make_app, rng):
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=C)
+        o, v, val = _rays_with_rejects(rng, 50)
+        v[7] = 0.0  # a zero direction: refused when the coordinates are computed
+        r = tc.post("/v1/fields/f/samples", params={"wait": "false"},
+                    json={"origins": o.tolist(), "directions": v.tolist(),
+                          "values": val.tolist()})
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "directions"]
+        info = c.describe("f")
+        assert info["storage"]["batches"] == 0 and info["pending_batches"] == 0
+        v[7] = 1.0
+        assert c.upload_rays("f", o, v, val, wait=False)["batch"] == 1
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_storage_reads_batches_of_earlier_versions(tmp_path, rng):
+    """Batches stored before the FSARRAY1 blob layout (arrays as .npz) read back
+    unchanged; new ones round-trip."""
+    import io
+    import json
+
+    from flatserve.service.storage import Storage, pack_arrays, unpack_arrays
+
+    st = Storage(tmp_path)
+    fid = st.create_field("f", {"k": 1, "d": 3, "channels": 1},
+                          {"Q": np.eye(3)[None], "r": np.zeros((1, 3))})
+    arrays = {"origins": rng.normal(size=(5, 3)), "directions": rng.normal(size=(5, 3)),
+              "values": rng.normal(size=(5, 1))}
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    old = {"batch": 1, "accepted": 5, "rejected": [], "reasons": []}
+
+    def fn(db):
+        db.execute("INSERT INTO batches(field_id, seq, idem_key, content_hash, form, nrows,"
+                   " arrays, result, created) VALUES (?, 1, 'k1', 'h', 'rays', 5, ?, ?, 0)",
+                   (fid, buf.getvalue(), json.dumps(old)))
+
+    st._tx(fn)
+    new = dict(old, batch=2)
+    seq, _ = st.add_batch(fid, idem_key="k2", chash="h2", form="rays", nrows=5,
+                          blob=pack_arrays(arrays), result_fn=lambda s: dict(new, batch=s))
+    assert seq == 2
+    assert [b.result for b in st.batches(fid)] == [old, new]
+    assert st.find_batch(fid, "k1").result == old and st.find_batch(fid, "k2").result == new
+    for _, _, got in st.iter_batch_arrays(fid):
+        for k, a in arrays.items():
+            np.testing.assert_array_equal(got[k], a)
+    empty = unpack_arrays(pack_arrays({"e": np.zeros((0, 3), np.float32)}))["e"]
+    assert empty.shape == (0, 3) and empty.dtype == np.float32
+    st.close()

@@ -433,7 +433,8 @@ class Basis:
                                    check=check, native=native)
 
     def coordinates_rays(self, origins, directions,
-                         roundtrip_tol: float = _coords.ROUNDTRIP_TOL) -> _coords.Coordinates:
+                         roundtrip_tol: float = _coords.ROUNDTRIP_TOL,
+                         threads: int | None = None) -> _coords.Coordinates:
         """Coordinates of lines given as origins + directions (``k = 1``).
 
         Uses the fast path of :func:`flatserve.coordinates.coordinates_rays`
@@ -442,6 +443,10 @@ class Basis:
         Parameters
         ----------
         origins, directions : array_like, shape (n, d)
+        roundtrip_tol : float
+        threads : int, optional
+            Threads of the native fast path (default: automatic); results do
+            not depend on it.
 
         Returns
         -------
@@ -451,7 +456,7 @@ class Basis:
             raise InvalidInputError(f"origins: rays are lines, but this basis has k = {self.k}",
                                     "origins")
         return _coords.coordinates_rays(self.Q, self.r, origins, directions,
-                                        roundtrip_tol=roundtrip_tol)
+                                        roundtrip_tol=roundtrip_tol, threads=threads)
 
     def check(self, rcond: float = _coords.SINGULAR_RCOND,
               orthogonal_tol: float = ORTHOGONAL_TOL) -> BasisReport:

@@ -324,14 +324,17 @@ def _coordinates_unchecked(Qb, rb, k, Q, r, roundtrip_tol=ROUNDTRIP_TOL,
 
 def coordinates_rays(Qb, rb, origins, directions, roundtrip_tol: float = ROUNDTRIP_TOL,
                      rcond: float = SINGULAR_RCOND, gap_tol: float = _flats.GAP_TOL,
-                     native: bool | None = None) -> Coordinates:
+                     native: bool | None = None, threads: int | None = None) -> Coordinates:
     """Coordinates of lines given as ``origins + t directions`` (``k = 1``).
 
     Same result as ``coordinates(Qb, rb, 1, *from_rays(origins, directions))``.
-    For ``d = 3`` and ``m = 5`` a fast path (native C++,
+    For ``d = 3`` and ``m = 5`` the fast path (native C++,
     ``native/coordinates.hpp``: one pass per ray, no temporaries, the GIL
-    released) is used when the extension provides it and ``native`` is not
-    False.  It agrees with the NumPy reference to rounding (tested).
+    released, rows split over ``threads``) is used unless ``native`` is
+    False.  It agrees with the NumPy reference to rounding and gives
+    bit-identical results for any thread count (tested).  The extension
+    always provides it: a build without it raises ``RuntimeError`` rather
+    than silently taking the slow path.
 
     Parameters
     ----------
@@ -340,8 +343,12 @@ def coordinates_rays(Qb, rb, origins, directions, roundtrip_tol: float = ROUNDTR
     origins, directions : array_like, shape (n, d)
     roundtrip_tol, rcond, gap_tol : float
     native : bool or None
-        ``None``: use the fast path when available; ``False``: the NumPy
-        reference; ``True``: require the fast path (``RuntimeError`` if absent).
+        ``None``: the fast path for ``d = 3, m = 5``, else the reference;
+        ``False``: the NumPy reference; ``True``: require the fast path
+        (``RuntimeError`` when ``(m, d) != (5, 3)``).
+    threads : int, optional
+        Worker threads of the fast path (default: all cores for big batches,
+        one for small ones). Results do not depend on it.
 
     Returns
     -------
@@ -353,30 +360,47 @@ def coordinates_rays(Qb, rb, origins, directions, roundtrip_tol: float = ROUNDTR
     o, v, _ = _flats._check_rays(origins, directions)
     if o.shape[1] != d:
         raise InvalidInputError(f"origins: basis is in R^{d}, rays in R^{o.shape[1]}", "origins")
+    th = _threads_arg(threads)
     fast = _fast_rays() if native is not False and (m, d) == (5, 3) else None
     if native and fast is None:
-        raise RuntimeError("the native coordinates fast path is not available "
-                           "(needs the built extension, d = 3 and m = 5)")
+        raise RuntimeError("the native coordinates fast path needs d = 3 and m = 5, "
+                           f"got d = {d}, m = {m}")
     if fast is not None:
-        w, status, residual = fast(Qb, rb, o, v, roundtrip_tol, rcond, gap_tol)
+        w, status, residual = fast(Qb, rb, o, v, roundtrip_tol, rcond, gap_tol, th)
         return Coordinates(w, status, residual)
     Q, r = _flats.from_rays(o, v)
     return _coordinates_unchecked(Qb, rb, 1, Q, r, roundtrip_tol, rcond, gap_tol)
 
 
+def _threads_arg(threads) -> int:
+    """``threads`` for the native kernel: 0 (automatic) for None, else a positive int."""
+    if threads is None:
+        return 0
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise InvalidInputError(f"threads: expected a positive integer or None, got {threads!r}",
+                                "threads")
+    return int(threads)
+
+
 def _fast_rays():
-    """The native kernel wrapped to take validated float64 arrays, or None."""
-    try:
-        from . import _native
-    except ImportError:  # pragma: no cover - extension not built
-        return None
+    """The native kernel wrapped to take validated float64 arrays.
+
+    Raises
+    ------
+    RuntimeError
+        The extension lacks ``coordinates_rays3`` (a stale or broken build:
+        every build of this project has it); never a silent slow fallback.
+    """
+    from . import _native
+
     kernel = getattr(_native, "coordinates_rays3", None)
     if kernel is None:
-        return None
+        raise RuntimeError("flatserve._core lacks coordinates_rays3 (stale native build?); "
+                           "rebuild the extension (make build)")
 
-    def fast(Qb, rb, o, v, roundtrip_tol, rcond, gap_tol):
+    def fast(Qb, rb, o, v, roundtrip_tol, rcond, gap_tol, threads=0):
         return kernel(np.ascontiguousarray(Qb), np.ascontiguousarray(rb), o, v,
                       float(roundtrip_tol), float(rcond), float(gap_tol),
-                      float(_flats.PINV_RCOND))
+                      float(_flats.PINV_RCOND), int(threads))
 
     return fast

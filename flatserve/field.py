@@ -29,7 +29,7 @@ from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
 from .triangulation import Triangulation
 
-__all__ = ["Field", "AddResult", "QueryResult"]
+__all__ = ["Field", "AddResult", "PreparedBatch", "QueryResult"]
 
 _MAGIC = b"FSFIELD\x00"
 _VERSION = 1
@@ -69,6 +69,35 @@ class AddResult:
     reasons: list[str]
     duplicates: int
     nsamples: int
+
+
+@dataclass(frozen=True)
+class PreparedBatch:
+    """A batch charted by :meth:`Field.prepare` and not yet inserted.
+
+    Attributes
+    ----------
+    nrows : int
+        Rows in the input batch.
+    x : (a, D) float64
+        Embedded coordinates of the accepted rows.
+    values : (a, C) float64
+        Their values.
+    rejected : (j,) int64
+        Indices (into the input batch) of rows that will not be inserted.
+    reasons : list of str
+        One reason per rejected row.
+    """
+
+    nrows: int
+    x: np.ndarray
+    values: np.ndarray
+    rejected: np.ndarray
+    reasons: list[str]
+
+    @property
+    def accepted(self) -> int:
+        return int(self.x.shape[0])
 
 
 @dataclass(frozen=True)
@@ -198,54 +227,100 @@ class Field:
         return status, ok, x, coords
 
     # --------------------------------------------------------------- writers
-    def add(self, Q, r, values) -> AddResult:
-        """Add samples given as flats (Q, r) with their values.
+    def prepare(self, Q, r, values) -> "PreparedBatch":
+        """First half of :meth:`add`: validate and chart a batch, without inserting.
+
+        Computes the coordinates (paper Sec. 4) and their embedding, and decides
+        which rows are accepted and why the others are not. Reads only the
+        basis, so it needs no lock and may run while the field is queried or
+        written. :meth:`insert_prepared` completes it. (The service uses the
+        split to acknowledge an upload before the slower Delaunay insert.)
 
         Parameters
         ----------
         Q : (n, d, d) float
-            Flats' quadrics (paper Eq. 3), (C1) must hold.
+            Flats' quadrics (paper Eq. 3); (C1) must hold.
         r : (n, d) float
-            Flats' offsets, (C2) must hold.
-        values : (n, C) float or (n,) when C == 1
+            Flats' offsets; (C2) must hold.
+        values : (n, C) float, or (n,) when C == 1
+
+        Returns
+        -------
+        PreparedBatch
+        """
+        Q, r = self._check_flats(Q, r)
+        _flats.validate(Q, r, self.k)
+        return self._prepare(self._values(values, Q.shape[0]), Q=Q, r=r)
+
+    def prepare_parametric(self, A, b, values) -> "PreparedBatch":
+        """:meth:`prepare` for flats in parametric form, A (n, d, k) and b (n, d)."""
+        Q, r = _flats.from_parametric(A, b)
+        return self.prepare(Q, r, values)
+
+    def prepare_rays(self, origins, directions, values) -> "PreparedBatch":
+        """:meth:`prepare` for lines (k = 1): origins, directions (n, d); values (n, C)."""
+        self._require_lines()
+        o, v, _ = _flats._check_rays(origins, directions)
+        return self._prepare(self._values(values, o.shape[0]), rays=(o, v))
+
+    def _prepare(self, values, **chart) -> "PreparedBatch":
+        status, ok, x, coords = self._chart(**chart)
+        rejected = np.flatnonzero(~ok).astype(np.int64)
+        return PreparedBatch(
+            nrows=int(status.shape[0]),
+            x=np.ascontiguousarray(x),
+            values=np.ascontiguousarray(values[ok]),
+            rejected=rejected,
+            reasons=[self._reason(status[i], coords, i) for i in rejected],
+        )
+
+    def insert_prepared(self, batch: "PreparedBatch") -> AddResult:
+        """Second half of :meth:`add`: insert a :meth:`prepare`-d batch.
+
+        The whole batch is inserted under the triangulation's write lock, so a
+        concurrent query sees all of it or none of it.
+        """
+        if not isinstance(batch, PreparedBatch) or batch.x.shape[1:] != (self.ndim,) or (
+            batch.values.shape[1:] != (self.channels,)
+        ):
+            raise InvalidInputError("batch: expected a PreparedBatch made by this field", "batch")
+        with self._lock:
+            duplicates = 0
+            if batch.accepted:
+                duplicates = int(self._tri.insert(batch.x, batch.values).n_duplicates)
+            self._nrejected += int(batch.rejected.size)
+            return AddResult(
+                accepted=batch.accepted,
+                rejected=batch.rejected,
+                reasons=batch.reasons,
+                duplicates=duplicates,
+                nsamples=self.nsamples,
+            )
+
+    def add(self, Q, r, values) -> AddResult:
+        """Add samples given as flats (Q, r) with their values.
+
+        Rows whose coordinates do not round-trip are rejected with a reason
+        (they lie outside the chart the basis spans); the others are embedded
+        and inserted. Equivalent to ``insert_prepared(prepare(Q, r, values))``.
+
+        Parameters
+        ----------
+        Q : (n, d, d) float
+            Flats' quadrics (paper Eq. 3); (C1) must hold.
+        r : (n, d) float
+            Flats' offsets; (C2) must hold.
+        values : (n, C) float, or (n,) when C == 1
 
         Returns
         -------
         AddResult
         """
-        Q, r = self._check_flats(Q, r)
-        _flats.validate(Q, r, self.k)
-        return self._add(self._values(values, Q.shape[0]), Q=Q, r=r)
-
-    def _add(self, values, **chart) -> AddResult:
-        with self._lock:
-            status, ok, x, coords = self._chart(**chart)
-            duplicates = 0
-            if ok.any():
-                res = self._tri.insert(x, values[ok])
-                duplicates = int(res.n_duplicates)
-            rejected = np.flatnonzero(~ok).astype(np.int64)
-            reasons = [self._reason(status[i], coords, i) for i in rejected]
-            self._nrejected += rejected.size
-            return AddResult(
-                accepted=int(ok.sum()),
-                rejected=rejected,
-                reasons=reasons,
-                duplicates=duplicates,
-                nsamples=self.nsamples,
-            )
-
-    def _reason(self, status: int, coords, i: int) -> str:
-        text = _REASONS.get(int(status), f"status {int(status)}")
-        resid = getattr(coords, "residual", None)
-        if resid is not None and np.isfinite(resid[i]):
-            text += f" (residual {resid[i]:.3g}, tolerance {self.roundtrip_tol:.3g})"
-        return text
+        return self.insert_prepared(self.prepare(Q, r, values))
 
     def add_parametric(self, A, b, values) -> AddResult:
         """Add samples given in parametric form; see :func:`flatserve.flats.from_parametric`."""
-        Q, r = _flats.from_parametric(A, b)
-        return self.add(Q, r, values)
+        return self.insert_prepared(self.prepare_parametric(A, b, values))
 
     def add_rays(self, origins, directions, values) -> AddResult:
         """Add samples on lines (k = 1) through ``origins`` along ``directions``.
@@ -253,11 +328,16 @@ class Field:
         Parameters
         ----------
         origins, directions : (n, d) float
-        values : (n, C) float
+        values : (n, C) float, or (n,) when C == 1
         """
-        self._require_lines()
-        o, v, _ = _flats._check_rays(origins, directions)
-        return self._add(self._values(values, o.shape[0]), rays=(o, v))
+        return self.insert_prepared(self.prepare_rays(origins, directions, values))
+
+    def _reason(self, status: int, coords, i: int) -> str:
+        text = _REASONS.get(int(status), f"status {int(status)}")
+        resid = getattr(coords, "residual", None)
+        if resid is not None and np.isfinite(resid[i]):
+            text += f" (residual {resid[i]:.3g}, tolerance {self.roundtrip_tol:.3g})"
+        return text
 
     def _require_lines(self):
         if self.k != 1:

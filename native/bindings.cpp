@@ -286,7 +286,7 @@ using CoordRows = nb::ndarray<const double, nb::c_contig, nb::device::cpu>;
 void bind_coordinates(nb::module_& m) {
   m.def("coordinates_rays3",
         [](CoordRows Qb, CoordRows rb, CoordRows origins, CoordRows directions,
-           double roundtrip_tol, double rcond, double gap_tol, double pinv_rcond) {
+           double roundtrip_tol, double rcond, double gap_tol, double pinv_rcond, int threads) {
           if (Qb.size() != 45 || rb.size() != 15)
             throw std::invalid_argument("Qb, rb: expected 5 flats in R^3 (5x3x3, 5x3)");
           if (origins.ndim() != 2 || origins.shape(1) != 3 || directions.ndim() != 2 ||
@@ -298,14 +298,15 @@ void bind_coordinates(nb::module_& m) {
           OutArray<double> residual({n});
           {
             nb::gil_scoped_release unlocked;
-            fs::coordinates_rays3(Qb.data(), rb.data(), origins.data(), directions.data(), n,
-                                  {roundtrip_tol, rcond, gap_tol, pinv_rcond}, w.data,
-                                  status.data, residual.data);
+            fs::coordinates_rays3_mt(Qb.data(), rb.data(), origins.data(), directions.data(), n,
+                                     {roundtrip_tol, rcond, gap_tol, pinv_rcond}, w.data,
+                                     status.data, residual.data, threads);
           }
           return nb::make_tuple(w.release(), status.release(), residual.release());
         },
         nb::arg("Qb"), nb::arg("rb"), nb::arg("origins"), nb::arg("directions"),
-        nb::arg("roundtrip_tol"), nb::arg("rcond"), nb::arg("gap_tol"), nb::arg("pinv_rcond"));
+        nb::arg("roundtrip_tol"), nb::arg("rcond"), nb::arg("gap_tol"), nb::arg("pinv_rcond"),
+        nb::arg("threads") = 0);
 }
 }  // namespace
 // ---- /coordinates ----

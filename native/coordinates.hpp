@@ -22,10 +22,14 @@
 
 #include <Eigen/Dense>
 
+#include <algorithm>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <exception>
 #include <limits>
+#include <thread>
+#include <vector>
 
 namespace fs {
 
@@ -39,9 +43,14 @@ struct CoordinateTolerances {
 enum CoordinateStatus : std::int8_t { COORD_OK = 0, COORD_NOT_REPRESENTABLE = 1,
                                       COORD_SINGULAR = 2, COORD_AMBIGUOUS = 3 };
 
+// Rows per thread below which extra threads do not pay for their start-up
+// (threads <= 0 picks min(cores, n / kCoordRowsPerThread), at least 1).
+constexpr std::size_t kCoordRowsPerThread = 16384;
+constexpr std::size_t kCoordMaxThreads = 256;  // explicit requests are capped here
+
 // Qb: 5 row-major 3x3 matrices; rb: 5x3; origins, directions: n x 3 (row-major,
 // validated: finite, non-zero directions).  Outputs: w n x 5, status n,
-// residual n.
+// residual n.  One thread; see coordinates_rays3_mt.
 inline void coordinates_rays3(const double* Qb, const double* rb, const double* origins,
                               const double* directions, std::size_t n,
                               const CoordinateTolerances& tol, double* w_out,
@@ -150,6 +159,58 @@ inline void coordinates_rays3(const double* Qb, const double* rb, const double* 
     status_out[t] = st;
     residual_out[t] = res;
   }
+}
+
+// coordinates_rays3 over contiguous row ranges on `threads` std::threads
+// (<= 0: all cores for big batches, one for small ones).  Rows are
+// independent and every row runs the same instructions, so the result is
+// bit-identical for any thread count.  Call without the GIL.
+inline void coordinates_rays3_mt(const double* Qb, const double* rb, const double* origins,
+                                 const double* directions, std::size_t n,
+                                 const CoordinateTolerances& tol, double* w_out,
+                                 std::int8_t* status_out, double* residual_out, int threads) {
+  std::size_t T;
+  if (threads > 0) {
+    T = static_cast<std::size_t>(threads);
+  } else {
+    const unsigned hw = std::thread::hardware_concurrency();
+    T = std::min<std::size_t>(hw ? hw : 1, n / kCoordRowsPerThread);
+  }
+  T = std::max<std::size_t>(1, std::min({T, n, kCoordMaxThreads}));
+  if (T == 1) {
+    coordinates_rays3(Qb, rb, origins, directions, n, tol, w_out, status_out, residual_out);
+    return;
+  }
+  auto run = [&](std::size_t b, std::size_t e) {
+    coordinates_rays3(Qb, rb, origins + 3 * b, directions + 3 * b, e - b, tol, w_out + 5 * b,
+                      status_out + b, residual_out + b);
+  };
+  std::vector<std::thread> pool;
+  std::vector<std::exception_ptr> errors(T);
+  pool.reserve(T - 1);
+  for (std::size_t t = 1; t < T; ++t) {
+    const std::size_t b = n * t / T, e = n * (t + 1) / T;
+    auto job = [&, t, b, e] {
+      try {
+        run(b, e);
+      } catch (...) {
+        errors[t] = std::current_exception();
+      }
+    };
+    try {
+      pool.emplace_back(job);
+    } catch (...) {  // no thread to be had: do this range here (same result)
+      job();
+    }
+  }
+  try {
+    run(0, n / T);
+  } catch (...) {
+    errors[0] = std::current_exception();
+  }
+  for (auto& th : pool) th.join();
+  for (auto& err : errors)
+    if (err) std::rethrow_exception(err);
 }
 
 }  // namespace fs

@@ -24,7 +24,12 @@
 //                                i + 1 = the vertex in row i above
 //     neighbours  m x (D+1) u32 full-cell index of the neighbour opposite
 //                                each vertex of the cell
+//     vertex cells (n+1)  u32   a full cell of each vertex (infinite first);
+//                                walks start there (only when m > 0)
 //     values      n x C   f64   sample values (row = sample id)
+//
+//   Cells are numbered in file order: the finite ones first (their index is
+//   the row of Triangulation.simplices), then the infinite ones.
 //
 // Reading rebuilds CGAL's triangulation data structure directly (vertices,
 // full cells, neighbours, current dimension), like CGAL's operator>> for
@@ -316,8 +321,10 @@ inline bool payload_size(const SnapshotHeader& h, std::uint64_t& out) {
   if (!mul_ok(h.n_vertices, 8, ids)) return false;
   if (!mul_ok(h.n_cells, D + 1, tmp) || !mul_ok(tmp, 8, cells)) return false;  // 2 x u32
   if (!mul_ok(h.n_vertices, h.n_channels, tmp) || !mul_ok(tmp, 8, vals)) return false;
+  std::uint64_t vcells = 0;
+  if (h.n_cells && (!add_ok(h.n_vertices, 1, tmp) || !mul_ok(tmp, 4, vcells))) return false;
   if (!add_ok(total, pts, total) || !add_ok(total, ids, total) || !add_ok(total, cells, total) ||
-      !add_ok(total, vals, total))
+      !add_ok(total, vcells, total) || !add_ok(total, vals, total))
     return false;
   out = total;
   return true;

@@ -11,9 +11,10 @@
 //   replaces that sample's value: the later value wins).
 // - Locate answers, per query, the D+1 vertex ids of the full cell the walk
 //   ends in (-1 for the infinite vertex), barycentric weights and a kind
-//   (LocateKind). The walk is our own visibility walk with CGAL's exact
-//   Orientation_d predicate (CGAL's locate keeps a shared random generator
-//   in the triangulation, which is a data race across threads). Queries are
+//   (LocateKind). The walk is our own visibility walk: floating-point
+//   barycentrics where their signs are clear, CGAL's exact Orientation_d
+//   otherwise (CGAL's locate keeps a shared random generator in the
+//   triangulation, a data race across threads). Queries are
 //   processed in fixed chunks of kChunk; each chunk starts from a hint that
 //   depends only on the triangulation and the chunk's first query, then chains
 //   the previous answer's full cell. Hence the answers do not depend on the

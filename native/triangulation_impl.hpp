@@ -203,7 +203,6 @@ class Triangulation final : public TriangulationBase {
       }
       out_ids[idx] = v->data().id;
     }
-    ensure_numbered();
     return added;
   }
 
@@ -330,6 +329,14 @@ class Triangulation final : public TriangulationBase {
         if (buf.size() >= static_cast<std::size_t>(D_ + 1) * 4096) flush();
       });
       flush();
+      // each vertex's full cell (the infinite vertex first): walks start there,
+      // so a loaded triangulation answers exactly like the original
+      buf.push_back(inf->full_cell()->data());
+      for (const Vertex_handle& v : by_id_) {
+        buf.push_back(v->full_cell()->data());
+        if (buf.size() >= 4096) flush();
+      }
+      flush();
     }
     if (h.n_channels) out.write(values, sizeof(double) * by_id_.size() * C);
     out.flush();
@@ -391,28 +398,45 @@ class Triangulation final : public TriangulationBase {
       cells.reserve(m);
       constexpr std::size_t kCells = 8192;
       std::vector<std::uint32_t> buf(kCells * D1);
+      // Cells in file order = number order (finite ones first); the vertex
+      // handles are set from the indices, never by touching the vertices.
+      std::size_t n_finite = 0;
+      bool seen_infinite = false;
       for (std::size_t i = 0; i < m; i += kCells) {
         std::size_t r = std::min(kCells, m - i);
         in.read(buf.data(), r * D1 * sizeof(std::uint32_t), "cells");
         for (std::size_t j = 0; j < r; ++j) {
           Full_cell_handle s = (i + j == 0) ? dt_.full_cells_begin() : tds.new_full_cell();
           cells.push_back(s);
+          s->data() = static_cast<std::uint32_t>(i + j);
           const std::uint32_t* cv = &buf[j * D1];
-          for (int k = 0; k < D1; ++k)
-            for (int l = 0; l < k; ++l)
-              if (cv[k] == cv[l]) throw snapshot_error("corrupted snapshot (repeated vertex in a cell)");
+          bool infinite = false;
           for (int k = 0; k < D1; ++k) {
             std::uint32_t vi = cv[k];
             if (vi > n) throw snapshot_error("corrupted snapshot (cell vertex index out of range)");
+            for (int l = 0; l < k; ++l)
+              if (vi == cv[l]) throw snapshot_error("corrupted snapshot (repeated vertex in a cell)");
+            infinite |= (vi == 0);
             s->set_vertex(k, vh[vi]);
-            vh[vi]->set_full_cell(s);
+          }
+          if (infinite) {
+            seen_infinite = true;
+          } else {
+            if (seen_infinite) throw snapshot_error("corrupted snapshot (cell order)");
+            ++n_finite;
           }
         }
       }
       for (std::size_t i = 0; i < m; i += kCells) {
         std::size_t r = std::min(kCells, m - i);
         in.read(buf.data(), r * D1 * sizeof(std::uint32_t), "neighbours");
+        constexpr std::size_t kAhead = 16;  // prefetch distance (cells) for cells[ci]
         for (std::size_t j = 0; j < r; ++j) {
+          if (j + kAhead < r)
+            for (int k = 0; k < D1; ++k) {
+              std::uint32_t cp = buf[(j + kAhead) * D1 + k];
+              if (cp < m) __builtin_prefetch(&cells[cp]);
+            }
           Full_cell_handle s = cells[i + j];
           for (int k = 0; k < D1; ++k) {
             std::uint32_t ci = buf[j * D1 + k];
@@ -422,9 +446,16 @@ class Triangulation final : public TriangulationBase {
           }
         }
       }
-      for (std::size_t i = 0; i <= n; ++i)
-        if (vh[i]->full_cell() == Full_cell_handle())
-          throw snapshot_error("corrupted snapshot (vertex in no full cell)");
+      std::vector<std::uint32_t> vcell(n + 1);
+      in.read(vcell.data(), vcell.size() * sizeof(std::uint32_t), "vertex cells");
+      for (std::size_t i = 0; i <= n; ++i) {
+        if (vcell[i] >= m) throw snapshot_error("corrupted snapshot (vertex cell index out of range)");
+        Full_cell_handle c = cells[vcell[i]];
+        if (!c->has_vertex(vh[i])) throw snapshot_error("corrupted snapshot (vertex cell)");
+        vh[i]->set_full_cell(c);
+      }
+      n_finite_ = n_finite;
+      numbered_.store(true, std::memory_order_release);
     }
     values.resize(static_cast<std::size_t>(h.n_vertices * h.n_channels));
     if (!values.empty()) in.read(values.data(), values.size() * sizeof(double), "values");
@@ -443,7 +474,6 @@ class Triangulation final : public TriangulationBase {
       if (dt_.current_dimension() != h.current_dim)
         throw snapshot_error("corrupted snapshot (current dimension)");
     }
-    ensure_numbered();
   }
 
  private:
@@ -468,7 +498,6 @@ class Triangulation final : public TriangulationBase {
                       Emit&& emit) const {
     if (n == 0) return;
     const int D = D_;
-    ensure_numbered();  // also fixes each vertex's full cell (walk starts)
     if (dt_.current_dimension() < D) {
       Scratch s(D);
       s.kind = OUTSIDE_AFFINE_HULL;
@@ -685,34 +714,20 @@ class Triangulation final : public TriangulationBase {
   }
 
   // Numbers the full cells (the data slot): finite cells 0..F-1 in container
-  // order, then the infinite ones; and points every vertex at the first cell
-  // (in that order) containing it. Walk starts thus depend only on the
-  // numbered structure, which a snapshot reproduces exactly: a loaded
-  // triangulation answers bit-identically. Run after each insertion and load;
-  // readers call it too (the mutex serialises, the flag publishes; no reader
-  // touches the structure before the flag is set).
+  // order, then the infinite ones (= simplices() rows, find_simplex values,
+  // snapshot order). Lazy: the first reader that needs numbers after an
+  // insertion pays one pass over the cells (the mutex serialises, the flag
+  // publishes; only readers that called this read the slot). A loaded
+  // snapshot is numbered already (file order).
   void ensure_numbered() const {
     if (numbered_.load(std::memory_order_acquire)) return;
     std::lock_guard<std::mutex> lk(number_mutex_);
     if (numbered_.load(std::memory_order_relaxed)) return;
     DT& dt = const_cast<DT&>(dt_);
-    std::vector<char> seen(by_id_.size() + 1, 0);  // [0]: infinite vertex
-    const Vertex_handle inf = dt.infinite_vertex();
-    const int cd = dt.current_dimension();
     std::uint32_t idx = 0;
     for (int pass = 0; pass < 2; ++pass) {
-      for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it) {
-        if (dt.is_infinite(it) != (pass == 1)) continue;
-        it->data() = idx++;
-        for (int k = 0; k <= cd; ++k) {
-          Vertex_handle v = it->vertex(k);
-          std::size_t slot = v == inf ? 0 : static_cast<std::size_t>(v->data().id + 1);
-          if (slot < seen.size() && !seen[slot]) {
-            seen[slot] = 1;
-            v->set_full_cell(it);
-          }
-        }
-      }
+      for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it)
+        if (dt.is_infinite(it) == (pass == 1)) it->data() = idx++;
       if (pass == 0) n_finite_ = idx;
     }
     numbered_.store(true, std::memory_order_release);

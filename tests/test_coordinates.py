@@ -159,12 +159,52 @@ def test_targets_are_validated():
     assert e.value.argument == "Q"
 
 
-def _native_available():
+def test_native_rays_kernel_is_built():
+    # the extension is always built in this project: a missing kernel is a
+    # stale/broken build and must fail loudly, never fall back silently
+    from flatserve import _native
     from flatserve.coordinates import _fast_rays
-    return _fast_rays() is not None
+    assert _native.coordinates_rays3 is not None
+    assert callable(_fast_rays())
 
 
-@pytest.mark.skipif(not _native_available(), reason="native extension without coordinates")
+def test_missing_native_kernel_is_an_error(monkeypatch):
+    from flatserve import _native
+    monkeypatch.setattr(_native, "coordinates_rays3", None)
+    B = Basis.around_axis(2, scale=0.01)
+    with pytest.raises(RuntimeError, match="coordinates_rays3"):
+        coordinates_rays(B.Q, B.r, np.zeros((1, 3)), [[0.0, 0.0, 1.0]])
+    # the explicit reference path does not need it
+    assert coordinates_rays(B.Q, B.r, np.zeros((1, 3)), [[0.0, 0.0, 1.0]], native=False).status[0] == OK
+
+
+@pytest.mark.parametrize("n", [1, 7, 5000, 40001])
+def test_native_rays_threads_bit_identical(n):
+    rng = np.random.default_rng(12)
+    B = Basis.around_axis(2, scale=0.01)
+    eye = np.c_[rng.uniform(-1, 1, (n, 2)), rng.uniform(-4.5, -1.5, n)]
+    scr = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
+    v = scr - eye
+    v[3::97] = rng.normal(size=v[3::97].shape)  # some rays far off the chart
+    one = coordinates_rays(B.Q, B.r, eye, v, native=True, threads=1)
+    assert set(np.unique(one.status)) >= {OK}
+    for th in (None, 2, 3, 8, n + 5):
+        got = coordinates_rays(B.Q, B.r, eye, v, native=True, threads=th)
+        np.testing.assert_array_equal(got.status, one.status)
+        assert got.weights.tobytes() == one.weights.tobytes()
+        assert got.residual.tobytes() == one.residual.tobytes()
+    got = B.coordinates_rays(eye, v, threads=3)
+    assert got.weights.tobytes() == one.weights.tobytes()
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+def test_native_rays_bad_threads(bad):
+    B = Basis.around_axis(2)
+    with pytest.raises(InvalidInputError) as e:
+        coordinates_rays(B.Q, B.r, np.zeros((1, 3)), [[0.0, 0.0, 1.0]], threads=bad)
+    assert e.value.argument == "threads"
+
+
 @pytest.mark.parametrize("variant", ["tangent", "paper"])
 def test_native_rays_path_matches_numpy_reference(variant):
     rng = np.random.default_rng(8)
@@ -190,7 +230,6 @@ def test_native_rays_path_matches_numpy_reference(variant):
     np.testing.assert_allclose(nat.weights[ok], gen.weights[ok], rtol=1e-8, atol=1e-8)
 
 
-@pytest.mark.skipif(not _native_available(), reason="native extension without coordinates")
 def test_native_rays_path_singular_and_edge_cases():
     Qb, rb = flats.from_rays(np.zeros((5, 3)), [[0, 0, 1.0], [0, 0.1, 1], [0.1, 0, 1],
                                                 [0.1, 0.1, 1], [0.1, 0.1, 1]])  # duplicate

@@ -149,7 +149,7 @@ class Camera:
         object.__setattr__(self, "eye", as_array(self.eye, "eye", (3,)))
         R = np.eye(3) if self.rotation is None else self.rotation
         R = as_array(R, "rotation", (3, 3))
-        if not np.allclose(R.T @ R, np.eye(3), atol=ORTHONORMAL_TOL) or np.linalg.det(R) < 0:
+        if np.abs(R).max() > 1 + ORTHONORMAL_TOL or not np.allclose(R.T @ R, np.eye(3), atol=ORTHONORMAL_TOL) or np.linalg.det(R) < 0:
             raise InvalidInputError("rotation: expected a proper rotation matrix (orthonormal, det +1)", "rotation")
         object.__setattr__(self, "rotation", R)
         if not (np.isfinite(self.focal) and self.focal > 0):

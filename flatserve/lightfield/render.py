@@ -4,7 +4,9 @@ Rendering is the paper's reconstruction (Sec. 5.2): the camera's rays (all
 supersamples, in scanline order so that consecutive walks start next to each
 other) become lines, lines become affine coordinates in the field's basis,
 coordinates are embedded and located in the triangulation, and the values of
-the simplex's vertices are blended with the barycentric weights. Supersamples
+the simplex's vertices are blended with the barycentric weights (located in
+serpentine order: odd fine scanlines reversed, so that every walk starts at
+the previous ray's answer, including across line ends). Supersamples
 are averaged into pixels. The same camera cast against the mesh is the ground
 truth.
 
@@ -88,7 +90,7 @@ class ChartPoints:
     seconds: float
 
 
-def chart_points(field, origins, directions) -> ChartPoints:
+def chart_points(field, origins, directions, threads: int | None = None) -> ChartPoints:
     """Embedded basis coordinates of rays (the paper's Sec. 5 pipeline, no lookup).
 
     Parameters
@@ -96,6 +98,9 @@ def chart_points(field, origins, directions) -> ChartPoints:
     field : flatserve.Field
         Its basis and round-trip tolerance are used.
     origins, directions : (n, 3) float
+    threads : int, optional
+        Threads of the native coordinates kernel (default: all cores for big
+        batches); results do not depend on it.
 
     Returns
     -------
@@ -104,12 +109,15 @@ def chart_points(field, origins, directions) -> ChartPoints:
     t0 = time.perf_counter()
     fast = getattr(field.basis, "coordinates_rays", None)
     if fast is not None:  # the math module's batched path for lines in R^3
-        coords = fast(origins, directions, roundtrip_tol=field.roundtrip_tol)
+        coords = fast(origins, directions, roundtrip_tol=field.roundtrip_tol, threads=threads)
     else:
         Q, r = _flats.from_rays(origins, directions)
         coords = field.basis.coordinates(Q, r, roundtrip_tol=field.roundtrip_tol)
     ok = np.asarray(coords.status) == OK
-    x = embed(coords.weights[ok]) if ok.any() else np.empty((0, field.ndim))
+    if ok.all():  # no masked copy of the weights
+        x = embed(coords.weights) if ok.size else np.empty((0, field.ndim))
+    else:
+        x = embed(coords.weights[ok]) if ok.any() else np.empty((0, field.ndim))
     return ChartPoints(ok=ok, x=x, seconds=time.perf_counter() - t0)
 
 
@@ -131,6 +139,10 @@ def frame_from_rays(camera: Camera, values: np.ndarray, inside: np.ndarray, fill
     """
     s = camera.side
     inside = np.asarray(inside, dtype=bool) & np.all(np.isfinite(values), axis=1)
+    if inside.all():  # every ray valued (the common case): a plain mean, same numbers
+        img = camera.resolve(values)
+        covered = np.ones((camera.height, camera.width), dtype=bool)
+        return img, covered
     img = camera.resolve(np.where(inside[:, None], values, 0.0), weights=inside.astype(np.float64))
     img = np.where(np.isnan(img), np.broadcast_to(np.asarray(fill, dtype=np.float64), img.shape), img)
     covered = inside.reshape(camera.height, s, camera.width, s).all(axis=(1, 3))
@@ -148,7 +160,8 @@ def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None)
     fill : float or (C,) float
         Value of pixels with no valued ray.
     threads : int, optional
-        Threads for locate + interpolate (default all cores).
+        Threads for coordinates and locate + interpolate (default all cores
+        for big frames); the image does not depend on it.
 
     Returns
     -------
@@ -158,21 +171,52 @@ def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None)
     t0 = time.perf_counter()
     o, d = camera.rays()
     t_rays = time.perf_counter() - t0
-    cp = chart_points(field, o, d)
+    cp = chart_points(field, o, d, threads=threads)
     t1 = time.perf_counter()
     n = o.shape[0]
-    values = np.full((n, field.channels), np.nan)
-    inside = np.zeros(n, dtype=bool)
-    if cp.ok.any() and field.nsamples > 0:
-        v, ins = field.triangulation.interpolate(cp.x, outside="nan", order="given", threads=threads)
-        values[cp.ok] = v
-        inside[cp.ok] = ins
+    if cp.ok.all() and field.nsamples > 0:  # the common case: no scatter needed
+        width = camera.width * camera.side
+        v, inside = field.triangulation.interpolate(
+            _serpentine(cp.x, width), outside="nan", order="given", threads=threads)
+        values, inside = _serpentine(v, width), _serpentine(inside, width)
+    else:
+        values = np.full((n, field.channels), np.nan)
+        inside = np.zeros(n, dtype=bool)
+        if cp.ok.any() and field.nsamples > 0:
+            idx = _serpentine_ok(cp.ok, camera.width * camera.side)
+            v, ins = field.triangulation.interpolate(cp.x[idx], outside="nan", order="given",
+                                                     threads=threads)
+            vo = np.empty_like(v)
+            vo[idx] = v
+            io = np.empty_like(ins)
+            io[idx] = ins
+            values[cp.ok] = vo
+            inside[cp.ok] = io
     t2 = time.perf_counter()
     img, covered = frame_from_rays(camera, values, inside, fill)
     t3 = time.perf_counter()
     return Frame(img, covered, {"rays": t_rays, "coordinates": cp.seconds,
                                 "locate_interpolate": t2 - t1, "resolve": t3 - t2}, ray_inside=inside,
                  chart=cp)
+
+
+def _serpentine(a: np.ndarray, width: int) -> np.ndarray:
+    """Rows of a scanline raster (``width`` per line) with every odd line reversed.
+
+    Boustrophedon order keeps consecutive queries next to each other across
+    line ends too, so the located walks (each starting from the previous
+    answer) stay short: the wrap from the end of one line to the start of the
+    next is a walk across the whole image. Its own inverse.
+    """
+    r = a.reshape((a.shape[0] // width, width) + a.shape[1:]).copy()
+    r[1::2] = r[1::2, ::-1]
+    return r.reshape(a.shape)
+
+
+def _serpentine_ok(ok: np.ndarray, width: int) -> np.ndarray:
+    """Indices into ``x = X[ok]`` visiting the kept rows in serpentine order."""
+    rank = np.cumsum(ok) - 1
+    return _serpentine(rank, width)[_serpentine(ok, width)]
 
 
 def render_truth(scene, camera: Camera) -> Frame:

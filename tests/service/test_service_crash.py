@@ -58,6 +58,12 @@ class Server:
         self.proc.wait(timeout=30)
         self.log.close()
 
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.kill9()  # never leave a server behind, whatever failed
+
 
 def _uploader(url, rnd, rng, sent, acked, stop):
     c = Client(url, retries=0, timeout=30)
@@ -127,26 +133,26 @@ def test_kill9_loses_nothing_acknowledged(tmp_path):
         for rnd in range(ROUNDS):
             if time.monotonic() - t_start > TIME_BUDGET_S and rnd >= 2:
                 break
-            srv = Server(data, log, snapshot_every=3000)
-            srv.wait_ready()
-            if rnd == 0:
-                with Client(srv.url) as c:
-                    c.create_field("crash", channels=1)
-            else:
-                _verify(srv.url, sent, acked, probe)
-            stop = threading.Event()
-            t = threading.Thread(target=_uploader,
-                                 args=(srv.url, rnd, np.random.default_rng(rnd), sent, acked, stop))
-            t.start()
-            time.sleep(float(rng.uniform(0.5, 2.5)))
-            srv.kill9()
-            stop.set()
-            t.join(timeout=60)
+            with Server(data, log, snapshot_every=3000) as srv:
+                srv.wait_ready()
+                if rnd == 0:
+                    with Client(srv.url) as c:
+                        c.create_field("crash", channels=1)
+                else:
+                    _verify(srv.url, sent, acked, probe)
+                stop = threading.Event()
+                t = threading.Thread(target=_uploader,
+                                     args=(srv.url, rnd, np.random.default_rng(rnd), sent, acked,
+                                           stop))
+                t.start()
+                time.sleep(float(rng.uniform(0.5, 2.5)))
+                srv.kill9()
+                stop.set()
+                t.join(timeout=60)
             rounds += 1
-        srv = Server(data, log)
-        srv.wait_ready()
-        nstored = _verify(srv.url, sent, acked, probe)
-        srv.kill9()
+        with Server(data, log) as srv:
+            srv.wait_ready()
+            nstored = _verify(srv.url, sent, acked, probe)
     except BaseException:
         sys.stderr.write(log.read_text(errors="replace")[-5000:])
         raise

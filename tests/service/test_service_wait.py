@@ -48,14 +48,10 @@ def _same_answers(got, want):
     np.testing.assert_allclose(got.values, want.values, atol=1e-12, equal_nan=True)
 
 
-@pytest.mark.parametrize("form", ["rays", "rays-parallel", "parametric", "flats"])
-def test_prepare_then_insert_equals_field_add(rng, form, monkeypatch):
+@pytest.mark.parametrize("form", ["rays", "parametric", "flats"])
+def test_prepare_then_insert_equals_field_add(rng, form):
     """The service's two-phase insert leaves the field exactly as Field.add* does
     (bit for bit: the restore replays batches through Field.add*)."""
-    if form == "rays-parallel":  # coordinates in chunks on threads
-        monkeypatch.setattr(ingest, "PARALLEL_ROWS", 100)
-        monkeypatch.setattr(ingest, "_THREADS", 3)
-        form = "rays"
     a, b = _ref(), _ref()
     for _ in range(3):
         o, v, val = _rays_with_rejects(rng, 300)

@@ -23,6 +23,7 @@
 #include <Eigen/Dense>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -161,10 +162,13 @@ inline void coordinates_rays3(const double* Qb, const double* rb, const double* 
   }
 }
 
-// coordinates_rays3 over contiguous row ranges on `threads` std::threads
-// (<= 0: all cores for big batches, one for small ones).  Rows are
-// independent and every row runs the same instructions, so the result is
+// coordinates_rays3 on `threads` std::threads (<= 0: all cores for big
+// batches, one for small ones) taking contiguous blocks of kCoordBlock rows
+// from a shared counter (load balance when a core is busy elsewhere).  Rows
+// are independent and every row runs the same instructions, so the result is
 // bit-identical for any thread count.  Call without the GIL.
+constexpr std::size_t kCoordBlock = 4096;
+
 inline void coordinates_rays3_mt(const double* Qb, const double* rb, const double* origins,
                                  const double* directions, std::size_t n,
                                  const CoordinateTolerances& tol, double* w_out,
@@ -176,38 +180,35 @@ inline void coordinates_rays3_mt(const double* Qb, const double* rb, const doubl
     const unsigned hw = std::thread::hardware_concurrency();
     T = std::min<std::size_t>(hw ? hw : 1, n / kCoordRowsPerThread);
   }
-  T = std::max<std::size_t>(1, std::min({T, n, kCoordMaxThreads}));
+  const std::size_t nblocks = (n + kCoordBlock - 1) / kCoordBlock;
+  T = std::max<std::size_t>(1, std::min({T, nblocks, kCoordMaxThreads}));
   if (T == 1) {
     coordinates_rays3(Qb, rb, origins, directions, n, tol, w_out, status_out, residual_out);
     return;
   }
-  auto run = [&](std::size_t b, std::size_t e) {
-    coordinates_rays3(Qb, rb, origins + 3 * b, directions + 3 * b, e - b, tol, w_out + 5 * b,
-                      status_out + b, residual_out + b);
+  std::atomic<std::size_t> next{0};
+  std::vector<std::exception_ptr> errors(T);
+  auto work = [&](std::size_t t) {
+    try {
+      for (std::size_t c = next++; c < nblocks; c = next++) {
+        const std::size_t b = c * kCoordBlock, e = std::min(n, b + kCoordBlock);
+        coordinates_rays3(Qb, rb, origins + 3 * b, directions + 3 * b, e - b, tol, w_out + 5 * b,
+                          status_out + b, residual_out + b);
+      }
+    } catch (...) {
+      errors[t] = std::current_exception();
+    }
   };
   std::vector<std::thread> pool;
-  std::vector<std::exception_ptr> errors(T);
   pool.reserve(T - 1);
   for (std::size_t t = 1; t < T; ++t) {
-    const std::size_t b = n * t / T, e = n * (t + 1) / T;
-    auto job = [&, t, b, e] {
-      try {
-        run(b, e);
-      } catch (...) {
-        errors[t] = std::current_exception();
-      }
-    };
     try {
-      pool.emplace_back(job);
-    } catch (...) {  // no thread to be had: do this range here (same result)
-      job();
+      pool.emplace_back(work, t);
+    } catch (...) {  // no more threads to be had: the others share the blocks
+      break;
     }
   }
-  try {
-    run(0, n / T);
-  } catch (...) {
-    errors[0] = std::current_exception();
-  }
+  work(0);
   for (auto& th : pool) th.join();
   for (auto& err : errors)
     if (err) std::rethrow_exception(err);

@@ -92,7 +92,7 @@ def main(argv=None):
           f"basis {B.variant!r} around z, scale 0.01, one thread")
     print(f"fast path: {'native C++ (native/coordinates.hpp)' if native else 'NumPy (no native)'}")
 
-    t_fast, c = timed(lambda: coordinates_rays(B.Q, B.r, origins, directions), args.runs)
+    t_fast, c = timed(lambda: coordinates_rays(B.Q, B.r, origins, directions, threads=1), args.runs)
     ours = args.n / t_fast
 
     nr = min(args.ref_n, args.n)

@@ -13,6 +13,7 @@ values at the vertices of its simplex.
 from __future__ import annotations
 
 import json
+import math
 import os
 import struct
 import threading
@@ -271,7 +272,7 @@ class Field:
             x=np.ascontiguousarray(x),
             values=np.ascontiguousarray(values[ok]),
             rejected=rejected,
-            reasons=[self._reason(status[i], coords, i) for i in rejected],
+            reasons=self._reasons(status, coords, rejected),
         )
 
     def insert_prepared(self, batch: "PreparedBatch") -> AddResult:
@@ -332,12 +333,16 @@ class Field:
         """
         return self.insert_prepared(self.prepare_rays(origins, directions, values))
 
-    def _reason(self, status: int, coords, i: int) -> str:
-        text = _REASONS.get(int(status), f"status {int(status)}")
+    def _reasons(self, status: np.ndarray, coords, rows: np.ndarray) -> list[str]:
+        """One human-readable reason per rejected row (``rows`` index the batch)."""
+        tol = f"{self.roundtrip_tol:.3g}"
         resid = getattr(coords, "residual", None)
-        if resid is not None and np.isfinite(resid[i]):
-            text += f" (residual {resid[i]:.3g}, tolerance {self.roundtrip_tol:.3g})"
-        return text
+        res = resid[rows].tolist() if resid is not None else [math.nan] * rows.size
+        return [
+            _REASONS.get(st, f"status {st}")
+            + (f" (residual {r:.3g}, tolerance {tol})" if math.isfinite(r) else "")
+            for st, r in zip(status[rows].tolist(), res)
+        ]
 
     def _require_lines(self):
         if self.k != 1:

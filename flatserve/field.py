@@ -202,7 +202,7 @@ class Field:
         return self._tri
 
     # ------------------------------------------------------------ internals
-    def _check_flats(self, Q, r, n_name="Q"):
+    def _check_flats(self, Q, r):
         Q = as_array(Q, "Q", (None, self.d, self.d))
         r = as_array(r, "r", (Q.shape[0], self.d))
         return Q, r

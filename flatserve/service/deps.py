@@ -63,19 +63,26 @@ def _eq(a: str, secret) -> bool:
     return secret is not None and secrets.compare_digest(a.encode(), secret.get_secret_value().encode())
 
 
+def _required_key(settings, api_key, bearer) -> Optional[str]:
+    """The presented key, or None when authentication is off; 401 when missing."""
+    if not settings.auth_enabled:
+        return None
+    key = _presented(api_key, bearer)
+    if key is None:
+        raise ApiError(401, "missing API key (header `api-key` or `Authorization: Bearer`)",
+                       headers={"WWW-Authenticate": "Bearer"})
+    return key
+
+
 async def require_read(
     settings: SettingsDep,
     api_key: Annotated[Optional[str], Security(_api_key_header)] = None,
     bearer: Annotated[Optional[HTTPAuthorizationCredentials], Security(_bearer)] = None,
 ) -> None:
-    if not settings.auth_enabled:
+    key = _required_key(settings, api_key, bearer)
+    if key is None or _eq(key, settings.api_key) or _eq(key, settings.read_only_key):
         return
-    key = _presented(api_key, bearer)
-    if key is None:
-        raise ApiError(401, "missing API key (header `api-key` or `Authorization: Bearer`)",
-                       headers={"WWW-Authenticate": "Bearer"})
-    if not (_eq(key, settings.api_key) or _eq(key, settings.read_only_key)):
-        raise ApiError(401, "wrong API key", headers={"WWW-Authenticate": "Bearer"})
+    raise ApiError(401, "wrong API key", headers={"WWW-Authenticate": "Bearer"})
 
 
 async def require_write(
@@ -83,13 +90,8 @@ async def require_write(
     api_key: Annotated[Optional[str], Security(_api_key_header)] = None,
     bearer: Annotated[Optional[HTTPAuthorizationCredentials], Security(_bearer)] = None,
 ) -> None:
-    if not settings.auth_enabled:
-        return
-    key = _presented(api_key, bearer)
-    if key is None:
-        raise ApiError(401, "missing API key (header `api-key` or `Authorization: Bearer`)",
-                       headers={"WWW-Authenticate": "Bearer"})
-    if _eq(key, settings.api_key):
+    key = _required_key(settings, api_key, bearer)
+    if key is None or _eq(key, settings.api_key):
         return
     if _eq(key, settings.read_only_key):
         raise ApiError(403, "the read-only key cannot change data")

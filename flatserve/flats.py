@@ -71,8 +71,13 @@ RANK_TOL = 1e-10
 #: Eigenvalues of ``Q*`` with ``|lambda| <= PINV_RCOND * max|lambda|`` are
 #: treated as zero by the pseudo-inverse of Sec. 2.3.
 PINV_RCOND = 1e-12
-#: Rows of affine weights must satisfy ``|sum w - 1| <= WEIGHT_TOL * max(1, sum|w|)``.
+#: Rows of affine weights must satisfy
+#: ``|sum w - 1| <= WEIGHT_TOL * min(max(1, sum|w|), WEIGHT_SCALE_CAP)``: relative to
+#: the weights' magnitude (rounding of large opposite weights), but never looser
+#: than ``WEIGHT_TOL * WEIGHT_SCALE_CAP`` (weights so large that their sum cannot be
+#: checked are refused, as are sums that overflow).
 WEIGHT_TOL = 1e-9
+WEIGHT_SCALE_CAP = 1e6
 
 
 class Projection(NamedTuple):
@@ -558,7 +563,8 @@ def project(Qs, rs, k, gap_tol: float = GAP_TOL) -> Projection:
 def _check_weights(weights, m):
     w = as_array(weights, "weights", ("n", m))
     s = w.sum(axis=1)
-    bad = np.abs(s - 1.0) > WEIGHT_TOL * np.maximum(1.0, np.abs(w).sum(axis=1))
+    scale = np.minimum(np.maximum(1.0, np.abs(w).sum(axis=1)), WEIGHT_SCALE_CAP)
+    bad = ~(np.abs(s - 1.0) <= WEIGHT_TOL * scale)  # NaN/inf sums are bad too
     if bad.any():
         rows = np.nonzero(bad)[0]
         raise WeightsError(

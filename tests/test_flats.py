@@ -195,6 +195,12 @@ def test_weights_must_sum_to_one():
         flats.affine_combination([[0.5, 0.5], [0.6, 0.6]], Q, r, 1)
     assert e.value.argument == "weights" and "[1]" in str(e.value)
     assert isinstance(e.value, ValueError)
+    # huge opposite weights cannot be checked to sum to one; overflowing sums neither
+    for w in ([[1e17, -1e17]], [[1e308, 1e308]]):
+        with pytest.raises(WeightsError):
+            flats.affine_combination(w, Q, r, 1)
+    # moderately large affine weights that do sum to one pass (relative tolerance)
+    flats.affine_combination([[1e4 + 1.0, -1e4]], Q, r, 1)
 
 
 @pytest.mark.parametrize("call,arg", [

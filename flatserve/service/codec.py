@@ -124,11 +124,15 @@ def load_npz(body: bytes) -> dict[str, np.ndarray]:
         with np.load(io.BytesIO(body), allow_pickle=False) as z:
             if not isinstance(z, np.lib.npyio.NpzFile):
                 raise ValueError("an .npy, not an .npz")
-            return {k: z[k] for k in z.files}
+            out = {k: z[k] for k in z.files}
     except InvalidInputError:
         raise
     except Exception as exc:
         raise InvalidInputError(f"body: not a valid .npz archive: {exc}", "body") from None
+    for k, a in out.items():  # the same dtype rule as load_npy
+        if a.dtype.kind not in "fiu" or a.dtype.hasobject:
+            raise InvalidInputError(f"{k}: .npz array dtype {a.dtype} is not a real number type", k)
+    return out
 
 
 def load_json(body: bytes) -> dict:

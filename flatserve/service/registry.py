@@ -36,7 +36,7 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
-from ..errors import FieldExistsError, FieldNotFoundError, StorageError
+from ..errors import FieldExistsError, FieldNotFoundError, InvalidInputError, StorageError
 from .errors import IdempotencyConflictError, NotReadyError, TooManyFieldsError
 from .ingest import insert_prepared, prepare
 from .rwlock import RWLock
@@ -314,7 +314,16 @@ class Registry:
         self._check_writable(e)
         with e.index_lock, e.lock.write():
             t1 = time.perf_counter()
-            res = apply_batch(e.field, form, arrays, values)
+            try:
+                res = apply_batch(e.field, form, arrays, values)
+            except InvalidInputError:
+                raise  # rejected before the triangulation changed
+            except BaseException as exc:
+                # a failure inside the insert may leave samples in memory that were
+                # never committed: reload this field from storage
+                e.state, e.error = "loading", f"reloading after a failed insert: {exc}"
+                self._bg.submit(self._reload, e)
+                raise
             t2 = time.perf_counter()
             timings["insert"] = t2 - t1
             rejected = np.asarray(res.rejected, np.int64).tolist()

@@ -163,7 +163,8 @@ def upload_samples(
     form, arrays, values, _ = codec.decode(body, content_type, form, k=e.k, d=e.d,
                                            channels=e.channels, max_rows=settings.max_batch_rows)
     timings = {"decode": time.perf_counter() - t0}
-    out = registry.upload(e, form, arrays, values, idempotency_key, timings, wait=wait)
+    # an empty Idempotency-Key header means "no key", not the key ""
+    out = registry.upload(e, form, arrays, values, idempotency_key or None, timings, wait=wait)
     return JSONBytes(out, headers={"Server-Timing": server_timing(timings)})
 
 

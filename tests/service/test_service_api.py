@@ -347,3 +347,24 @@ def test_math_endpoints_match_library(api, rng):
     r = tc.post("/v1/math/project", json={"weights": [[0.5, 0.6, 0, 0, 0]],
                                           "flats": {"Q": basis.Q.tolist(), "r": basis.r.tolist()}})
     assert r.status_code == 422
+
+
+def test_empty_idempotency_key_means_no_key(api, rng):
+    tc, c = api
+    c.create_field("f", channels=1)
+    o, v = paper_rays(rng, 50)
+    body = npy(np.c_[o, v, rng.uniform(size=(50, 1))])
+    for _ in range(2):
+        r = tc.post("/v1/fields/f/samples?form=rays", content=body,
+                    headers={"content-type": "application/x-npy", "Idempotency-Key": ""})
+        assert r.status_code == 200 and not r.json()["replayed"]
+    assert len(c.batches("f")) == 2
+
+
+def test_npz_arrays_of_non_real_dtype_are_422(api, rng):
+    tc, c = api
+    c.create_field("f", channels=1)
+    o, v = paper_rays(rng, 3)
+    body = npz(origins=o.astype(complex), directions=v)
+    r = tc.post("/v1/fields/f/query", content=body, headers={"content-type": "application/x-npz"})
+    assert r.status_code == 422 and "origins" in r.text

@@ -172,11 +172,17 @@ class _Writing(_Reading):
         self._lock.release_write()
 
 
+#: Largest accepted ``threads`` argument (more threads than this only cost memory).
+MAX_THREADS = 1024
+
+
 def _threads_arg(threads) -> int:
     if threads is None:
         return 0
-    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
-        raise InvalidInputError(f"threads: expected a positive integer or None, got {threads!r}", "threads")
+    if (isinstance(threads, bool) or not isinstance(threads, (int, np.integer))
+            or not 1 <= threads <= MAX_THREADS):
+        raise InvalidInputError(
+            f"threads: expected an integer in [1, {MAX_THREADS}] or None, got {threads!r}", "threads")
     return int(threads)
 
 

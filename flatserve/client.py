@@ -14,9 +14,7 @@ Example
 """
 from __future__ import annotations
 
-import functools
 import io
-import math
 import time
 import uuid
 from dataclasses import dataclass
@@ -26,6 +24,7 @@ import httpx
 import numpy as np
 import orjson
 
+from . import _npy as _npy_mod
 from .errors import (FieldExistsError, FieldNotFoundError, FlatserveError, InvalidInputError,
                      LimitExceededError)
 
@@ -77,38 +76,16 @@ class QueryResult:
     weights: np.ndarray | None = None
 
 
-@functools.lru_cache(maxsize=64)
-def _npy_head(descr: str, shape: tuple) -> bytes:
-    head = io.BytesIO()
-    np.lib.format.write_array_header_1_0(
-        head, {"descr": descr, "fortran_order": False, "shape": shape})
-    return head.getvalue()
-
-
 def _npy(arr: np.ndarray) -> bytes:
-    arr = np.ascontiguousarray(arr)
-    return _npy_head(np.lib.format.dtype_to_descr(arr.dtype), arr.shape) + arr.tobytes()
-
-
-@functools.lru_cache(maxsize=64)
-def _npy_header(head: bytes):
-    buf = io.BytesIO(head)
-    version = np.lib.format.read_magic(buf)
-    read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-            else np.lib.format.read_array_header_2_0)
-    shape, fortran, dtype = read(buf)
-    return shape, fortran, dtype, buf.tell()
+    return _npy_mod.to_bytes(arr)
 
 
 def _load_npy(data: bytes) -> np.ndarray:
     """An .npy response as an array (no pickles; the header parse is cached)."""
-    n = (10 + int.from_bytes(data[8:10], "little")) if data[6] == 1 else \
-        (12 + int.from_bytes(data[8:12], "little"))
-    shape, fortran, dtype, off = _npy_header(bytes(data[:n]))
+    dtype, shape, fortran, off = _npy_mod.header(data)
     if dtype.hasobject:
         raise ValueError("object arrays are not accepted")
-    arr = np.frombuffer(data, dtype=dtype, count=math.prod(shape), offset=off)
-    return arr.reshape(shape, order="F" if fortran else "C")
+    return _npy_mod.from_bytes(data, dtype, shape, fortran, off)
 
 
 def _npz(arrays: dict[str, np.ndarray]) -> bytes:

@@ -23,14 +23,14 @@ sample ids and barycentric weights), ``application/x-npz`` (``values``,
 """
 from __future__ import annotations
 
-import functools
 import io
 import math
-from typing import Any
 
 import numpy as np
 import orjson
 from fastapi import Response
+
+from .. import _npy
 
 from .._validate import as_array
 from ..errors import InvalidInputError
@@ -74,49 +74,18 @@ def accept_kind(accept: str | None) -> str:
 
 
 # -- decoding ----------------------------------------------------------------
-@functools.lru_cache(maxsize=256)
-def _npy_header(head: bytes):
-    """(dtype, shape, fortran_order, data offset) of an .npy header (cached: clients
-    send the same header again and again)."""
-    buf = io.BytesIO(head)
-    version = np.lib.format.read_magic(buf)
-    if version == (1, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_1_0(buf)
-    elif version in ((2, 0), (3, 0)):
-        shape, fortran, dtype = np.lib.format.read_array_header_2_0(buf)
-    else:
-        raise ValueError(f"unsupported .npy version {version}")
-    return dtype, shape, fortran, buf.tell()
-
-
-def _header_bytes(body: bytes) -> bytes:
-    if len(body) < 10 or body[:6] != b"\x93NUMPY":
-        raise ValueError("no .npy magic")
-    if body[6] == 1:
-        n = 10 + int.from_bytes(body[8:10], "little")
-    else:
-        n = 12 + int.from_bytes(body[8:12], "little")
-    if n > len(body) or n > 65536:
-        raise ValueError("truncated .npy header")
-    return bytes(body[:n])
-
-
 def load_npy(body: bytes, name: str = "body") -> np.ndarray:
     """Parse one ``.npy`` without copying the data (numeric dtypes only)."""
     try:
-        dtype, shape, fortran, offset = _npy_header(_header_bytes(body))
+        dtype, shape, fortran, offset = _npy.header(body)
     except Exception as exc:
         raise InvalidInputError(f"{name}: not a valid .npy array: {exc}", name) from None
     if dtype.kind not in "fiu" or dtype.hasobject:
         raise InvalidInputError(f"{name}: .npy dtype {dtype} is not a real number type", name)
-    count = math.prod(shape)
-    if len(body) - offset != count * dtype.itemsize:
-        raise InvalidInputError(
-            f"{name}: .npy data is {len(body) - offset} bytes, header says {count * dtype.itemsize}",
-            name,
-        )
-    arr = np.frombuffer(body, dtype=dtype, count=count, offset=offset)
-    return arr.reshape(shape, order="F" if fortran else "C")
+    try:
+        return _npy.from_bytes(body, dtype, shape, fortran, offset)
+    except ValueError as exc:
+        raise InvalidInputError(f"{name}: {exc}", name) from None
 
 
 def load_npz(body: bytes) -> dict[str, np.ndarray]:
@@ -244,17 +213,7 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
 
 
 # -- encoding ----------------------------------------------------------------
-@functools.lru_cache(maxsize=256)
-def _npy_head(descr: str, shape: tuple) -> bytes:
-    head = io.BytesIO()
-    np.lib.format.write_array_header_1_0(
-        head, {"descr": descr, "fortran_order": False, "shape": shape})
-    return head.getvalue()
-
-
-def npy_bytes(arr: np.ndarray) -> bytes:
-    arr = np.ascontiguousarray(arr)
-    return _npy_head(np.lib.format.dtype_to_descr(arr.dtype), arr.shape) + arr.tobytes()
+npy_bytes = _npy.to_bytes
 
 
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:

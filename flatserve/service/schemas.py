@@ -170,19 +170,6 @@ class SnapshotResult(BaseModel):
     seconds: float
 
 
-class UploadBody(_Strict):
-    """JSON upload (small batches): one flat form plus values (n, C)."""
-
-    form: Optional[Literal["rays", "parametric", "flats"]] = None
-    origins: Optional[Mat] = None
-    directions: Optional[Mat] = None
-    A: Optional[Mats] = None
-    b: Optional[Mat] = None
-    Q: Optional[Mats] = None
-    r: Optional[Mat] = None
-    values: Mat
-
-
 class QueryBody(_Strict):
     """JSON query (small batches): one flat form."""
 
@@ -193,6 +180,12 @@ class QueryBody(_Strict):
     b: Optional[Mat] = None
     Q: Optional[Mats] = None
     r: Optional[Mat] = None
+
+
+class UploadBody(QueryBody):
+    """JSON upload (small batches): one flat form plus values (n, C)."""
+
+    values: Mat
 
 
 class QueryResult(BaseModel):

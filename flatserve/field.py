@@ -12,6 +12,7 @@ values at the vertices of its simplex.
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -228,7 +229,7 @@ class Field:
         return status, ok, x, coords
 
     # --------------------------------------------------------------- writers
-    def prepare(self, Q, r, values) -> "PreparedBatch":
+    def prepare(self, Q, r, values, *, defer: bool = False) -> "PreparedBatch":
         """First half of :meth:`add`: validate and chart a batch, without inserting.
 
         Computes the coordinates (paper Sec. 4) and their embedding, and decides
@@ -244,27 +245,36 @@ class Field:
         r : (n, d) float
             Flats' offsets; (C2) must hold.
         values : (n, C) float, or (n,) when C == 1
+        defer : bool
+            Validate now (raising :class:`~flatserve.errors.InvalidInputError`
+            for bad input) but return a zero-argument callable that computes
+            the coordinates when called. Once validation has passed, charting
+            cannot reject the batch as a whole: every row gets a status. (The
+            service commits the batch durably while the coordinates are
+            computed.)
 
         Returns
         -------
-        PreparedBatch
+        PreparedBatch, or a callable returning one when ``defer``
         """
         Q, r = self._check_flats(Q, r)
         _flats.validate(Q, r, self.k)
-        return self._prepare(self._values(values, Q.shape[0]), Q=Q, r=r)
+        return self._prepare(self._values(values, Q.shape[0]), defer, Q=Q, r=r)
 
-    def prepare_parametric(self, A, b, values) -> "PreparedBatch":
+    def prepare_parametric(self, A, b, values, *, defer: bool = False) -> "PreparedBatch":
         """:meth:`prepare` for flats in parametric form, A (n, d, k) and b (n, d)."""
         Q, r = _flats.from_parametric(A, b)
-        return self.prepare(Q, r, values)
+        return self.prepare(Q, r, values, defer=defer)
 
-    def prepare_rays(self, origins, directions, values) -> "PreparedBatch":
+    def prepare_rays(self, origins, directions, values, *, defer: bool = False) -> "PreparedBatch":
         """:meth:`prepare` for lines (k = 1): origins, directions (n, d); values (n, C)."""
         self._require_lines()
         o, v, _ = _flats._check_rays(origins, directions)
-        return self._prepare(self._values(values, o.shape[0]), rays=(o, v))
+        return self._prepare(self._values(values, o.shape[0]), defer, rays=(o, v))
 
-    def _prepare(self, values, **chart) -> "PreparedBatch":
+    def _prepare(self, values, defer: bool = False, **chart):
+        if defer:
+            return functools.partial(self._prepare, values, False, **chart)
         status, ok, x, coords = self._chart(**chart)
         rejected = np.flatnonzero(~ok).astype(np.int64)
         return PreparedBatch(

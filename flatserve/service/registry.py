@@ -17,9 +17,10 @@ Durability of an upload (Qdrant's ``wait`` convention):
   applied to the in-memory field and its arrays are committed to SQLite under the
   write lock; the response is sent only after the commit. If the commit fails the
   field is reloaded from storage.
-* ``wait=False``: the batch is validated and its coordinates computed (so the
-  accepted / rejected rows and reasons are exact), it is committed to SQLite, and
-  the response is sent; the Delaunay insert then happens in the field's
+* ``wait=False``: the batch is validated, then committed to SQLite (in a
+  storage thread) while its coordinates are computed (so the accepted /
+  rejected rows and reasons are exact), and the response is sent once both are
+  done; the Delaunay insert then happens in the field's
   background indexer, batch by batch in commit order, each whole batch under the
   write lock. ``indexed_seq`` is the last batch in the triangulation; snapshots
   only ever cover indexed batches, and a restart replays every committed batch,
@@ -132,6 +133,8 @@ class Registry:
         self._lock = threading.Lock()
         self.ready = threading.Event()
         self._bg = ThreadPoolExecutor(1, thread_name_prefix="flatserve-bg")
+        #: commits of wait=false uploads, overlapped with their coordinates
+        self._commits = ThreadPoolExecutor(2, thread_name_prefix="flatserve-commit")
         self._closed = False
 
     # -- lookup -----------------------------------------------------------
@@ -271,9 +274,10 @@ class Registry:
         t0 = time.perf_counter()
         n = int(values.shape[0])
         stored = dict(arrays, values=values)
-        chash = content_hash(form, stored)
-        blob = pack_arrays(stored)
-        timings["pack"] = time.perf_counter() - t0
+        chash = None
+        if idem_key is not None:
+            chash = content_hash(form, stored)
+            timings["hash"] = time.perf_counter() - t0
         with e.upload_lock:
             self._check_writable(e)
             if idem_key is not None:
@@ -283,13 +287,13 @@ class Registry:
                         raise IdempotencyConflictError(
                             f"Idempotency-Key {idem_key!r} was used for a different batch"
                         )
-                    return dict(prev.result, replayed=True,
-                                indexed=prev.seq <= e.indexed_seq)
+                    return dict(self._stored_result(e, prev.seq, prev.form, prev.result),
+                                replayed=True, indexed=prev.seq <= e.indexed_seq)
             if wait:
-                out = self._upload_indexed(e, form, arrays, values, idem_key, chash, blob, n,
+                out = self._upload_indexed(e, form, arrays, values, idem_key, chash, stored, n,
                                            timings)
             else:
-                out = self._upload_deferred(e, form, arrays, values, idem_key, chash, blob, n,
+                out = self._upload_deferred(e, form, arrays, values, idem_key, chash, stored, n,
                                             timings)
         if self.metrics is not None:
             self.metrics.batches.labels(e.name).inc()
@@ -307,7 +311,38 @@ class Registry:
         if e.state != "ready":
             raise StorageError(f"field {e.name!r} is not ready ({e.state})")
 
-    def _upload_indexed(self, e, form, arrays, values, idem_key, chash, blob, n, timings):
+    def _stored_result(self, e: FieldEntry, seq: int, form: str, result: dict | None) -> dict:
+        """The response stored for batch ``seq``; recomputed (and stored again) from
+        the batch's arrays if a crash lost it (see the storage module doc)."""
+        if result is not None:
+            return result
+        arrays = self.storage.batch_arrays(e.id, seq)
+        values = arrays.pop("values")
+        p = prepare(e.field, form, arrays, values)
+        result = {"batch": seq, "accepted": p.accepted, "rejected": p.rejected.tolist(),
+                  "reasons": p.reasons, "duplicates": None, "nsamples": int(e.field.nsamples),
+                  "indexed": seq <= e.indexed_seq, "pending_samples": e.pending_samples,
+                  "replayed": False}
+        try:
+            self.storage.set_result(e.id, seq, result)
+        except StorageError:  # pragma: no cover - a cache: recomputed next time
+            log.warning("field %r: could not store the response of batch %d", e.name, seq)
+        return result
+
+    def batches(self, e: FieldEntry) -> list[dict]:
+        """The stored batches of a field: seq, key, rows, accepted, form."""
+        return [{"batch": b.seq, "idempotency_key": b.idem_key, "rows": b.nrows,
+                 "accepted": int(self._stored_result(e, b.seq, b.form, b.result)["accepted"]),
+                 "form": b.form} for b in self.storage.batches(e.id)]
+
+    def _commit_batch(self, e, form, stored, idem_key, chash, n, result_fn=None):
+        """Pack and durably store one batch (hashing it if not done yet)."""
+        if chash is None:
+            chash = content_hash(form, stored)
+        return self.storage.add_batch(e.id, idem_key=idem_key, chash=chash, form=form, nrows=n,
+                                      blob=pack_arrays(stored), result_fn=result_fn)
+
+    def _upload_indexed(self, e, form, arrays, values, idem_key, chash, stored, n, timings):
         """wait=True: insert, then commit (memory ahead of storage -> reload on failure)."""
         if not self.wait_indexed(e):  # commit order: every earlier batch first
             raise NotReadyError(f"field {e.name!r}: the server is shutting down")
@@ -336,9 +371,7 @@ class Registry:
                         "indexed": True, "pending_samples": 0, "replayed": False}
 
             try:
-                seq, out = self.storage.add_batch(
-                    e.id, idem_key=idem_key, chash=chash, form=form, nrows=n, blob=blob,
-                    result_fn=result)
+                seq, out = self._commit_batch(e, form, stored, idem_key, chash, n, result)
             except BaseException as exc:
                 # memory is ahead of storage: reload this field from storage
                 if not isinstance(exc, FieldNotFoundError):
@@ -350,27 +383,42 @@ class Registry:
             timings["store"] = time.perf_counter() - t2
         return out
 
-    def _upload_deferred(self, e, form, arrays, values, idem_key, chash, blob, n, timings):
-        """wait=False: coordinates, commit, acknowledge; the indexer inserts later."""
+    def _upload_deferred(self, e, form, arrays, values, idem_key, chash, stored, n, timings):
+        """wait=False: validate; commit while charting; acknowledge; the indexer
+        inserts later."""
         t1 = time.perf_counter()
-        prepared = prepare(e.field, form, arrays, values)  # no lock: reads the basis only
+        # bad input is refused here, before anything is stored; charting cannot fail
+        # on validated input (each row gets a status)
+        chart = prepare(e.field, form, arrays, values, defer=True)
+        commit = self._commits.submit(self._commit_batch, e, form, stored, idem_key, chash, n)
+        try:
+            prepared = chart()  # no lock: reads the basis only
+        except BaseException:
+            # unexpected (memory...): if the batch got committed, memory is behind
+            # storage; reload the field, which replays every committed batch
+            try:
+                commit.result()
+            except BaseException:
+                pass  # nothing stored, nothing changed
+            else:
+                e.state, e.error = "loading", "reloading after a failed upload"
+                self._bg.submit(self._reload, e)
+            raise
         t2 = time.perf_counter()
         timings["prepare"] = t2 - t1
+        seq, _ = commit.result()  # a storage failure propagates: nothing in memory changed
+        timings["store"] = time.perf_counter() - t1  # overlaps "prepare"
         accepted = prepared.accepted
-        rejected = prepared.rejected.tolist()
         with e.cond:
             pending = e.pending_samples + accepted
-
-        def result(seq):
-            return {"batch": seq, "accepted": accepted, "rejected": rejected,
-                    "reasons": prepared.reasons, "duplicates": None,
-                    "nsamples": int(e.field.nsamples), "indexed": False,
-                    "pending_samples": pending, "replayed": False}
-
-        seq, out = self.storage.add_batch(  # nothing in memory changed if this fails
-            e.id, idem_key=idem_key, chash=chash, form=form, nrows=n, blob=blob,
-            result_fn=result)
-        timings["store"] = time.perf_counter() - t2
+        out = {"batch": seq, "accepted": accepted, "rejected": prepared.rejected.tolist(),
+               "reasons": prepared.reasons, "duplicates": None,
+               "nsamples": int(e.field.nsamples), "indexed": False,
+               "pending_samples": pending, "replayed": False}
+        try:
+            self.storage.set_result(e.id, seq, out)
+        except StorageError as exc:  # the batch is durable; its response is a cache
+            log.warning("field %r: could not store the response of batch %d: %s", e.name, seq, exc)
         e.last_seq = seq
         with e.cond:
             e.pending.append((seq, prepared))
@@ -543,6 +591,7 @@ class Registry:
             with e.cond:
                 e.stop_indexing = True
                 e.cond.notify_all()
+        self._commits.shutdown(wait=True)
         self._bg.shutdown(wait=True, cancel_futures=True)
         for e in self.snapshot_entries():
             t = e.indexer

@@ -122,10 +122,7 @@ def delete_field(name: FieldNamePath, registry: RegistryDep) -> Response:
          dependencies=[ReadAccess], responses=FIELD_RESPONSES, summary="List stored batches")
 def list_batches(name: FieldNamePath, registry: RegistryDep) -> Response:
     e = registry.get(name, need_ready=False)
-    rows = registry.storage.batches(e.id)
-    return JSONBytes({"batches": [
-        {"batch": b.seq, "idempotency_key": b.idem_key, "rows": b.nrows,
-         "accepted": int(b.result.get("accepted", 0)), "form": b.form} for b in rows]})
+    return JSONBytes({"batches": registry.batches(e)})
 
 
 @api.post("/fields/{name}/snapshot", response_model=SnapshotResult, tags=["fields"],

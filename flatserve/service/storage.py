@@ -8,7 +8,10 @@ Layout of ``data_dir``::
 A batch row holds the raw input arrays (an uncompressed ``.npz`` blob), its form
 (``rays``, ``parametric`` or ``flats``), the idempotency key, a hash of the
 content and the response sent to the client. A batch is acknowledged only after
-its transaction has committed (fsync'd by SQLite). Snapshots are written to a
+its transaction has committed (fsync'd by SQLite). The response of a batch
+acknowledged before indexing (``wait=false``) is written after the batch's
+commit, into ``batch_results``, without an fsync of its own: it is a cache for
+idempotent retries, recomputed from the stored arrays if a crash lost it. Snapshots are written to a
 temporary file, fsync'd, renamed into place and the directory fsync'd; only then
 does the database point at them.
 """
@@ -33,7 +36,8 @@ from ..errors import FieldExistsError, FieldNotFoundError, StorageError
 
 log = logging.getLogger("flatserve.service.storage")
 
-SCHEMA_VERSION = 1
+#: 2 added ``batch_results`` (a version-1 database is upgraded in place)
+SCHEMA_VERSION = 2
 DB_NAME = "flatserve.sqlite3"
 
 _SCHEMA = """
@@ -60,6 +64,14 @@ CREATE TABLE IF NOT EXISTS batches (
 );
 CREATE UNIQUE INDEX IF NOT EXISTS batches_idem ON batches(field_id, idem_key)
     WHERE idem_key IS NOT NULL;
+-- responses written after their batch's commit (batches.result is then 'null'):
+-- kept apart so that writing one does not rewrite the batch's arrays
+CREATE TABLE IF NOT EXISTS batch_results (
+    field_id INTEGER NOT NULL,
+    seq INTEGER NOT NULL,
+    result TEXT NOT NULL,
+    PRIMARY KEY (field_id, seq)
+);
 """
 
 
@@ -130,7 +142,8 @@ class BatchRow:
     content_hash: str
     form: str
     nrows: int
-    result: dict
+    #: the response sent for this batch; None if a crash lost it (see module doc)
+    result: dict | None
 
 
 def _fsync_dir(path: Path) -> None:
@@ -160,7 +173,7 @@ class Storage:
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
             ver = self._db.execute("PRAGMA user_version").fetchone()[0]
-            if ver not in (0, SCHEMA_VERSION):
+            if ver not in (0, 1, SCHEMA_VERSION):
                 raise StorageError(f"database schema version {ver}; this server knows {SCHEMA_VERSION}")
             self._db.executescript(_SCHEMA)
             self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
@@ -213,6 +226,7 @@ class Storage:
 
         def fn(db):
             db.execute("DELETE FROM batches WHERE field_id=?", (field_id,))
+            db.execute("DELETE FROM batch_results WHERE field_id=?", (field_id,))
             db.execute("DELETE FROM fields WHERE id=?", (field_id,))
 
         self._tx(fn)
@@ -235,12 +249,15 @@ class Storage:
         raise FieldNotFoundError(f"field id {field_id} not stored")
 
     # -- batches ----------------------------------------------------------
+    _BATCH_COLS = (
+        "SELECT b.seq, b.idem_key, b.content_hash, b.form, b.nrows,"
+        " COALESCE(r.result, b.result) FROM batches b"
+        " LEFT JOIN batch_results r ON r.field_id=b.field_id AND r.seq=b.seq "
+    )
+
     def find_batch(self, field_id: int, idem_key: str) -> BatchRow | None:
-        rows = self._query(
-            "SELECT seq, idem_key, content_hash, form, nrows, result FROM batches "
-            "WHERE field_id=? AND idem_key=?",
-            (field_id, idem_key),
-        )
+        rows = self._query(self._BATCH_COLS + "WHERE b.field_id=? AND b.idem_key=?",
+                           (field_id, idem_key))
         if not rows:
             return None
         r = rows[0]
@@ -248,11 +265,12 @@ class Storage:
 
     def add_batch(self, field_id: int, *, idem_key: str | None, chash: str, form: str,
                   nrows: int, blob: bytes,
-                  result_fn: Callable[[int], dict]) -> tuple[int, dict]:
+                  result_fn: Callable[[int], dict] | None = None) -> tuple[int, dict | None]:
         """Store one batch; commit (durable) before returning ``(seq, result)``.
 
         ``result_fn(seq)`` builds the response stored with the batch (so a retry
-        with the same idempotency key gets the same answer).
+        with the same idempotency key gets the same answer). Without it the
+        response is stored later by :meth:`set_result` (``result`` is None).
         """
         def fn(db):
             seq = db.execute(
@@ -262,7 +280,7 @@ class Storage:
             if snap is None:
                 raise FieldNotFoundError(f"field id {field_id} was deleted")
             seq = max(seq, snap[0] + 1)
-            result = result_fn(seq)
+            result = None if result_fn is None else result_fn(seq)
             db.execute(
                 "INSERT INTO batches(field_id, seq, idem_key, content_hash, form, nrows, arrays,"
                 " result, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
@@ -272,13 +290,31 @@ class Storage:
 
         return self._tx(fn)
 
+    def set_result(self, field_id: int, seq: int, result: dict) -> None:
+        """Store the response of a batch committed without one (no fsync: see the
+        module doc; a later commit or checkpoint makes it durable)."""
+        with self._lock:
+            try:
+                self._db.execute("PRAGMA synchronous=NORMAL")
+                try:
+                    self._db.execute(
+                        "INSERT OR REPLACE INTO batch_results(field_id, seq, result) VALUES (?, ?, ?)",
+                        (field_id, seq, json.dumps(result)))
+                finally:
+                    self._db.execute("PRAGMA synchronous=FULL")
+            except sqlite3.Error as exc:
+                raise StorageError(f"storage failed: {exc}") from exc
+
     def batches(self, field_id: int) -> list[BatchRow]:
-        rows = self._query(
-            "SELECT seq, idem_key, content_hash, form, nrows, result FROM batches "
-            "WHERE field_id=? ORDER BY seq",
-            (field_id,),
-        )
+        rows = self._query(self._BATCH_COLS + "WHERE b.field_id=? ORDER BY b.seq", (field_id,))
         return [BatchRow(r[0], r[1], r[2], r[3], r[4], json.loads(r[5])) for r in rows]
+
+    def batch_arrays(self, field_id: int, seq: int) -> dict[str, np.ndarray]:
+        """The stored arrays of one batch."""
+        rows = self._query("SELECT arrays FROM batches WHERE field_id=? AND seq=?", (field_id, seq))
+        if not rows:
+            raise FieldNotFoundError(f"field id {field_id} has no batch {seq}")
+        return unpack_arrays(rows[0][0])
 
     def iter_batch_arrays(self, field_id: int, after_seq: int = 0
                           ) -> Iterator[tuple[int, str, dict[str, np.ndarray]]]:

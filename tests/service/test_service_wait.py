@@ -284,3 +284,67 @@ def test_storage_reads_batches_of_earlier_versions(tmp_path, rng):
     empty = unpack_arrays(pack_arrays({"e": np.zeros((0, 3), np.float32)}))["e"]
     assert empty.shape == (0, 3) and empty.dtype == np.float32
     st.close()
+
+
+def test_wait_false_response_lost_in_a_crash_is_recomputed(make_app, rng, tmp_path):
+    """A wait=false batch is committed while its coordinates are computed, and its
+    response is stored after, without an fsync: if a crash loses that row, a retry
+    with the same key gets the same answer, recomputed from the stored arrays."""
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=C)
+        o, v, val = _rays_with_rejects(rng, 300)
+        first = c.upload_rays("f", o, v, val, wait=False, idempotency_key="k")
+        assert first["rejected"] and not first["replayed"]
+        c.wait_indexed("f", timeout=30)
+    finally:
+        tc.__exit__(None, None, None)
+    import sqlite3
+
+    db = sqlite3.connect(tmp_path / "data" / "flatserve.sqlite3")
+    with db:
+        assert db.execute("SELECT COUNT(*) FROM batch_results").fetchone()[0] == 1
+        db.execute("DELETE FROM batch_results")
+    db.close()
+    tc, c = _started(make_app())
+    try:
+        again = c.upload_rays("f", o, v, val, wait=False, idempotency_key="k")
+        assert again["replayed"] and again["indexed"]
+        for key in ("batch", "accepted", "rejected", "reasons"):
+            assert again[key] == first[key]
+        listed = tc.get("/v1/fields/f/batches").json()["batches"]
+        assert [(b["batch"], b["accepted"]) for b in listed] == [(1, first["accepted"])]
+        assert c.describe("f")["nsamples"] == first["accepted"]
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_storage_upgrades_a_version_1_database(tmp_path, rng):
+    """Schema 1 (no batch_results table) opens, is upgraded, and keeps its batches."""
+    import sqlite3
+
+    from flatserve.service.storage import SCHEMA_VERSION, Storage, pack_arrays
+
+    st = Storage(tmp_path)
+    fid = st.create_field("f", {"k": 1, "d": 3, "channels": 1},
+                          {"Q": np.eye(3)[None], "r": np.zeros((1, 3))})
+    arrays = {"origins": rng.normal(size=(5, 3)), "directions": rng.normal(size=(5, 3)),
+              "values": rng.normal(size=(5, 1))}
+    old = {"batch": 1, "accepted": 5, "rejected": [], "reasons": []}
+    st.add_batch(fid, idem_key="k1", chash="h", form="rays", nrows=5,
+                 blob=pack_arrays(arrays), result_fn=lambda s: old)
+    st.close()
+    db = sqlite3.connect(tmp_path / "flatserve.sqlite3")
+    db.execute("DROP TABLE batch_results")
+    db.execute("PRAGMA user_version=1")
+    db.commit()
+    db.close()
+    st = Storage(tmp_path)
+    assert st.find_batch(fid, "k1").result == old
+    seq, res = st.add_batch(fid, idem_key="k2", chash="h2", form="rays", nrows=5,
+                            blob=pack_arrays(arrays))
+    assert (seq, res) == (2, None) and st.find_batch(fid, "k2").result is None
+    st.set_result(fid, 2, dict(old, batch=2))
+    assert [b.result["batch"] for b in st.batches(fid)] == [1, 2]
+    assert st._query("PRAGMA user_version")[0][0] == SCHEMA_VERSION
+    st.close()

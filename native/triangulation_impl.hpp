@@ -16,6 +16,7 @@
 
 #include <optional>
 
+#include "fast_predicates.hpp"
 #include "triangulation.hpp"
 
 namespace fs {
@@ -141,7 +142,7 @@ struct EigenDim<CGAL::Dimension_tag<D>> {
 template <class DimTag>
 class Triangulation final : public TriangulationBase {
  public:
-  using K = CGAL::Epick_d<DimTag>;
+  using K = typename KernelFor<DimTag>::type;  // filtered predicates (fast_predicates.hpp)
   using Vb = CGAL::Triangulation_vertex<K, VertexInfo>;
   using Cb = CGAL::Triangulation_full_cell<K, std::uint32_t>;  // data: index while writing
   using TDS = CGAL::Triangulation_data_structure<DimTag, Vb, Cb>;

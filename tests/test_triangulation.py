@@ -470,3 +470,86 @@ def test_queries_concurrent_with_inserts():
     ref = scipy_interp.LinearNDInterpolator(P, V)(q)
     ours, inside = tri.interpolate(q)
     np.testing.assert_allclose(ours[inside], ref[inside], atol=VALUE_TOL)
+
+
+def _exact_det(rows) -> int:
+    """Determinant of a square matrix of Python ints (Bareiss, fraction-free)."""
+    m = [list(r) for r in rows]
+    n, sign, prev = len(m), 1, 1
+    for k in range(n - 1):
+        if m[k][k] == 0:
+            swap = next((i for i in range(k + 1, n) if m[i][k] != 0), None)
+            if swap is None:
+                return 0
+            m[k], m[swap] = m[swap], m[k]
+            sign = -sign
+        for i in range(k + 1, n):
+            for j in range(k + 1, n):
+                m[i][j] = (m[i][j] * m[k][k] - m[i][k] * m[k][j]) // prev
+        prev = m[k][k]
+    return sign * m[n - 1][n - 1]
+
+
+def _in_sphere(cell, q) -> int:
+    """Sign of the lifted determinant rows (v - q, |v - q|^2), exactly."""
+    return _exact_det([[*(vi - qi for vi, qi in zip(v, q)), sum((vi - qi) ** 2 for vi, qi in zip(v, q))]
+                       for v in cell])
+
+
+def _assert_delaunay_exactly(P, S, D, volume):
+    """Exact checks of a triangulation of integer points P (tuples) by simplices S:
+    non-degenerate cells whose volumes add up to ``volume`` (times D!), and no
+    neighbour's opposite vertex strictly inside a cell's circumsphere."""
+    vol = 0
+    orient = []
+    for s in S:
+        v0 = P[s[0]]
+        o = _exact_det([[P[i][j] - v0[j] for j in range(D)] for i in s[1:]])
+        assert o != 0
+        orient.append(1 if o > 0 else -1)
+        vol += abs(o)
+    assert vol == volume * int(np.prod(np.arange(1, D + 1)))
+    # sign of (in_sphere * orientation) for a point strictly inside: the centroid
+    c0 = [[(D + 1) * x for x in P[i]] for i in S[0]]
+    cen = [sum(c[j] for c in c0) // (D + 1) for j in range(D)]
+    inside = np.sign(_in_sphere(c0, cen)) * orient[0]
+    facets = {}
+    for ci, s in enumerate(S):
+        for k in range(D + 1):
+            facets.setdefault(tuple(sorted(np.delete(s, k))), []).append((ci, s[k]))
+    checked = 0
+    for pair in facets.values():
+        assert len(pair) <= 2
+        if len(pair) == 2:
+            for (ci, _), (_, opp) in (pair, pair[::-1]):
+                side = np.sign(_in_sphere([P[i] for i in S[ci]], P[opp])) * orient[ci]
+                assert side != inside, (S[ci], opp)
+                checked += 1
+    return checked
+
+
+def test_exact_delaunay_check_rejects_a_flipped_diagonal():
+    P = [(0, 0), (4, 0), (5, 3), (0, 2)]  # convex; Delaunay diagonal: 1-3
+    assert _assert_delaunay_exactly(P, np.array([[0, 1, 3], [1, 2, 3]]), 2, 11) == 2
+    with pytest.raises(AssertionError):
+        _assert_delaunay_exactly(P, np.array([[0, 1, 2], [0, 2, 3]]), 2, 11)
+
+
+@pytest.mark.parametrize("D", [2, 3, 4, 5])
+def test_delaunay_exactly_on_degenerate_integer_points(D):
+    """The filtered predicates (native/fast_predicates.hpp) decide in floating point
+    and defer to CGAL's exact ones near zero. On a lattice (cospherical and
+    coplanar everywhere) plus random lattice points, checked with exact integers:
+    cells are non-degenerate and tile the cube (volumes add up to it), and no
+    neighbour's opposite vertex lies strictly inside a cell's circumsphere."""
+    rng = np.random.default_rng(7 + D)
+    side = {2: 8, 3: 4, 4: 3, 5: 2}[D]
+    grid = np.stack(np.meshgrid(*[np.arange(0, 2 * side + 1, 2)] * D, indexing="ij"), -1).reshape(-1, D)
+    extra = rng.integers(0, 2 * side + 1, (40, D))
+    pts = np.unique(np.r_[grid, extra], axis=0)
+    tri = Triangulation(D)
+    tri.insert(pts.astype(np.float64))
+    P = [tuple(int(x) for x in p) for p in tri.points]
+    checked = _assert_delaunay_exactly(P, tri.simplices, D, (2 * side) ** D)
+    assert checked > tri.nsimplex
+    assert tri.is_valid()

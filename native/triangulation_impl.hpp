@@ -615,6 +615,13 @@ class Triangulation final : public TriangulationBase {
     bool outside = false;
     std::size_t steps = 0;
     for (;; ++steps) {
+      // the walk is bound by memory latency: fetch the cells it may enter next
+      // while this one's barycentrics are computed
+      for (int k = 0; k <= D; ++k) {
+        const char* nb = reinterpret_cast<const char*>(&*c->neighbor(k));
+        __builtin_prefetch(nb);
+        __builtin_prefetch(nb + 64);
+      }
       const bool ok = barycentric(c, qc, s) && steps < kMaxFloatSteps;
       int move = -1;
       if (ok) {

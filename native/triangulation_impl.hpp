@@ -28,8 +28,11 @@ constexpr std::size_t kMaxFloatSteps = 4096;
 
 // Hilbert index of a point quantised to `bits` bits per axis (Skilling,
 // "Programming the Hilbert curve", AIP Conf. Proc. 707, 2004), as a key of
-// D*bits <= 64 bits.
-inline std::uint64_t hilbert_key(std::uint32_t* X, int bits, int n) {
+// D*bits <= 64 bits. N > 0 fixes the number of axes at compile time (the
+// loops unroll and X stays in registers); N = 0 takes it from `n_axes`.
+template <int N = 0>
+inline std::uint64_t hilbert_key(std::uint32_t* X, int bits, int n_axes) {
+  const int n = N > 0 ? N : n_axes;
   const std::uint32_t M = 1u << (bits - 1);
   for (std::uint32_t Q = M; Q > 1; Q >>= 1) {
     const std::uint32_t P = Q - 1;
@@ -97,11 +100,22 @@ inline std::vector<std::uint32_t> hilbert_order(const double* q, std::size_t n, 
     return static_cast<std::uint32_t>(std::min(c, cells - 1));
   };
   std::vector<std::pair<std::uint64_t, std::uint32_t>> keyed(n);
-  run_chunks(n, threads, [&](std::size_t b, std::size_t e) {
-    std::vector<std::uint32_t> X(axes);
+  auto keys = [&](auto axes_tag, std::size_t b, std::size_t e) {
+    constexpr int N = decltype(axes_tag)::value;
+    std::uint32_t X[N > 0 ? N : 64];
     for (std::size_t i = b; i < e; ++i) {
       for (int k = 0; k < axes; ++k) X[k] = quantise(k, q[i * D + k]);
-      keyed[i] = {hilbert_key(X.data(), bits, axes), static_cast<std::uint32_t>(i)};
+      keyed[i] = {hilbert_key<N>(X, bits, axes), static_cast<std::uint32_t>(i)};
+    }
+  };
+  run_chunks(n, threads, [&](std::size_t b, std::size_t e) {
+    switch (axes) {
+      case 2: keys(std::integral_constant<int, 2>(), b, e); break;
+      case 3: keys(std::integral_constant<int, 3>(), b, e); break;
+      case 4: keys(std::integral_constant<int, 4>(), b, e); break;
+      case 5: keys(std::integral_constant<int, 5>(), b, e); break;
+      case 6: keys(std::integral_constant<int, 6>(), b, e); break;
+      default: keys(std::integral_constant<int, 0>(), b, e); break;
     }
   });
   // parallel sort: sort T slices, then merge them pairwise
@@ -556,21 +570,65 @@ class Triangulation final : public TriangulationBase {
       for (int r = 0; r < D; ++r) s.T(r, k - 1) = vk[r] - v0[r];
     }
     for (int r = 0; r < D; ++r) s.rhs(r) = qc[r] - v0[r];
-    Eigen::PartialPivLU<Mat> lu(s.T);
-    Vec lam = lu.solve(s.rhs);
+    double dmin = std::numeric_limits<double>::infinity(), dmax = 0;
     double sum = 0;
-    for (int k = 1; k <= D; ++k) {
-      s.w[k] = lam(k - 1);
-      sum += lam(k - 1);
+    if constexpr (E != Eigen::Dynamic) {
+      // fixed size: Gaussian elimination with partial pivoting, unrolled
+      // (Eigen's PartialPivLU runs its generic blocked loops here)
+      double lam[E];
+      lu_solve<E>(s.T.data(), s.rhs.data(), lam, dmin, dmax);
+      for (int k = 1; k <= D; ++k) {
+        s.w[k] = lam[k - 1];
+        sum += lam[k - 1];
+      }
+    } else {
+      Eigen::PartialPivLU<Mat> lu(s.T);
+      Vec lam = lu.solve(s.rhs);
+      for (int k = 1; k <= D; ++k) {
+        s.w[k] = lam(k - 1);
+        sum += lam(k - 1);
+      }
+      for (int k = 0; k < D; ++k) {
+        double u = std::abs(lu.matrixLU()(k, k));
+        dmin = std::min(dmin, u);
+        dmax = std::max(dmax, u);
+      }
     }
     s.w[0] = 1.0 - sum;
-    double dmin = std::numeric_limits<double>::infinity(), dmax = 0;
-    for (int k = 0; k < D; ++k) {
-      double u = std::abs(lu.matrixLU()(k, k));
-      dmin = std::min(dmin, u);
-      dmax = std::max(dmax, u);
-    }
     return dmin > dmax * kPivotRatio && std::isfinite(sum);
+  }
+
+  // Solves A x = b for a column-major N x N matrix `a` (overwritten) by Gaussian
+  // elimination with partial pivoting; dmin/dmax: extreme |pivots|.
+  template <int N>
+  static void lu_solve(double* a, double* b, double* x, double& dmin, double& dmax) {
+    auto A = [a](int r, int c) -> double& { return a[c * N + r]; };
+    for (int k = 0; k < N; ++k) {
+      int p = k;
+      double best = std::abs(A(k, k));
+      for (int i = k + 1; i < N; ++i)
+        if (std::abs(A(i, k)) > best) {
+          best = std::abs(A(i, k));
+          p = i;
+        }
+      if (p != k) {
+        for (int j = k; j < N; ++j) std::swap(A(k, j), A(p, j));
+        std::swap(b[k], b[p]);
+      }
+      dmin = std::min(dmin, best);
+      dmax = std::max(dmax, best);
+      const double inv = 1.0 / A(k, k);  // inf when singular: caught by dmin/isfinite
+      for (int i = k + 1; i < N; ++i) {
+        const double f = A(i, k) * inv;
+        for (int j = k + 1; j < N; ++j) A(i, j) -= f * A(k, j);
+        b[i] -= f * b[k];
+      }
+    }
+    for (int i = N - 1; i >= 0; --i) {
+      double t = b[i];
+      for (int j = i + 1; j < N; ++j) t -= A(i, j) * x[j];
+      x[i] = t / A(i, i);
+    }
   }
 
   // Exact sign of the orientation of cell c with vertex i replaced by p

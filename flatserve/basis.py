@@ -99,6 +99,10 @@ DEFAULT_VARIANT = "tangent"
 #: between the two direction spaces for lines.
 ORTHOGONAL_TOL = 1e-6
 
+#: :meth:`Basis.check` probes the coordinate system at flats this far from the
+#: barycentre (in the units of the data; charts are used at this scale and beyond).
+PROBE_DISTANCE = 1.0
+
 #: The regular 4-simplex of Eq. 15 (columns are vertices).
 S4 = np.array(
     [
@@ -459,13 +463,18 @@ class Basis:
                                         roundtrip_tol=roundtrip_tol, threads=threads)
 
     def check(self, rcond: float = _coords.SINGULAR_RCOND,
-              orthogonal_tol: float = ORTHOGONAL_TOL) -> BasisReport:
+              orthogonal_tol: float = ORTHOGONAL_TOL,
+              probe_distance: float = PROBE_DISTANCE) -> BasisReport:
         """Run the checks of Sec. 3 that can be computed.
 
         1. right count: ``m == (k+1)(d-k) + 1``;
         2. no pair orthogonal (Sec. 3.1, Lemma 1);
         3. the barycentre ``P(sum q_l / m)`` is unambiguous, the coordinate
-           system of Fig. 8 is non-singular there and returns ``w = 1/m``.
+           system of Fig. 8 is non-singular there and returns ``w = 1/m``;
+        4. the system is non-singular at the barycentre flat translated by
+           ``probe_distance`` along each of its normals: a basis whose flats
+           (nearly) coincide passes 3, which is scale-invariant, but charts
+           nothing away from its centre.
 
         The Sec. 3.2 condition "no affine combination of m-1 elements is
         orthogonal to the remaining one" quantifies over a continuum and is
@@ -518,6 +527,18 @@ class Basis:
                 err = float(np.abs(w - w0).max())
                 if count_ok and not err <= 1e-6:
                     failures.append(f"barycentre: recovered weights differ from 1/m by {err:.3g}")
+            Nn = N[0].T  # (d-k, d) unit normals: translated flats (Q, r + t n)
+            if Nn.size and count_ok:
+                PQ = np.repeat(p.Q, Nn.shape[0], axis=0)
+                Pr = p.r + probe_distance * Nn
+                Pa, PN = _flats.frames(PQ, k)
+                _, sing = _coords.solve_system(
+                    _coords.system_matrix(self.Q, self.r, Pa, PN, Pr), rcond)
+                if sing.any():
+                    failures.append(
+                        f"probes: the coordinate system is singular at flats {probe_distance:g} "
+                        f"from the barycentre along {int(sing.sum())} of its {sing.size} normals "
+                        "(basis flats nearly coincide: scale too small?)")
         return BasisReport(m, expected, count_ok, pairs, min_measure, gap, cond, err, failures)
 
 

@@ -174,6 +174,9 @@ class _Writing(_Reading):
 
 #: Largest accepted ``threads`` argument (more threads than this only cost memory).
 MAX_THREADS = 1024
+#: largest dimension accepted: a Delaunay triangulation has O(n^ceil(D/2)) cells
+#: in the worst case, and even well-spread points give factorially many per vertex
+MAX_NDIM = 32
 
 
 def _threads_arg(threads) -> int:
@@ -198,8 +201,9 @@ class Triangulation:
     Parameters
     ----------
     ndim : int
-        Dimension D of the points (>= 2). Dimensions 2..6 use CGAL's static
-        kernels; higher ones the dynamic kernel.
+        Dimension D of the points, 2 <= D <= :data:`MAX_NDIM`. Dimensions 2..6
+        use CGAL's static kernels with filtered predicates; higher ones the
+        dynamic kernel.
 
     Examples
     --------
@@ -209,8 +213,10 @@ class Triangulation:
     """
 
     def __init__(self, ndim: int):
-        if isinstance(ndim, bool) or not isinstance(ndim, (int, np.integer)) or ndim < 2:
-            raise InvalidInputError(f"ndim: expected an integer >= 2, got {ndim!r}", "ndim")
+        if (isinstance(ndim, bool) or not isinstance(ndim, (int, np.integer))
+                or not 2 <= ndim <= MAX_NDIM):
+            raise InvalidInputError(
+                f"ndim: expected an integer in [2, {MAX_NDIM}], got {ndim!r}", "ndim")
         self._init(_core.Triangulation(int(ndim)), None)
 
     def _init(self, core, values):

@@ -6,7 +6,7 @@ import scipy.linalg
 from flatserve import flats
 from flatserve.basis import (DEFAULT_VARIANT, S4, Basis, select_scale, simplex_vertices,
                              tangent_directions)
-from flatserve.coordinates import OK, coordinates
+from flatserve.coordinates import OK, SINGULAR, coordinates
 from flatserve.errors import BasisError, InvalidInputError
 
 KD = [(1, 2), (1, 3), (2, 3), (1, 4), (2, 4), (2, 5), (3, 6)]
@@ -153,6 +153,21 @@ def test_check_reports_orthogonal_pair_count_and_singularity():
     Q, r = flats.from_rays([[0.0, 0.0], [0.0, 1.0], [1.0, 0.0]],
                            [[1.0, 0.0], [1.0, 0.3], [1.0, -0.2]])
     assert Basis(Q, r, 1).check().ok
+
+
+@pytest.mark.parametrize("variant", ["tangent", "paper"])
+def test_check_fails_a_collapsed_tangent_simplex_as_coordinates_do(variant):
+    """check() agrees with coordinates(): a simplex collapsed to its centre
+    (scale 1e-300) is well conditioned at the barycentre but charts nothing
+    around it; a usable small scale passes and charts the paper's rays."""
+    rng = np.random.default_rng(5)
+    o, v = ray_setup(rng, 200)
+    Q, r = flats.from_rays(o, v)
+    for scale, usable in ((1e-300, False), (1e-100, False), (1e-3, True), (0.05, True)):
+        B = Basis.around_axis(2, scale=scale, variant=variant)
+        singular = np.asarray(B.coordinates(Q, r).status) == SINGULAR
+        assert B.check().ok == usable
+        assert singular.all() if not usable else not singular.any()
 
 
 def test_basis_rejects_bad_input():

@@ -430,6 +430,7 @@ def test_bad_input_names_the_argument():
         (lambda: tri.locate(np.zeros(2)), "xi"),
         (lambda: tri.find_simplex(np.zeros((1, 2))), "xi"),
         (lambda: Triangulation(1), "ndim"),
+        (lambda: Triangulation(10**9), "ndim"),
     ]
     for call, arg in more:
         with pytest.raises(InvalidInputError) as ei:

@@ -5,8 +5,9 @@ pydantic lists 1.1 s, as ``.npy`` 9 ms).
 
 Binary layouts (documented in the OpenAPI description too)
 -----------------------------------------------------------
-``application/x-npy``: ONE ``.npy`` array, float32 or float64, C order, shape
-``(n, W)``: per row the flat, then (uploads only) the ``C`` values:
+``application/x-npy``: ONE ``.npy`` array of a real number type (float64,
+float32, float16 or integers; read as float64), C or Fortran order, shape
+``(n, W)`` with n >= 1: per row the flat, then (uploads only) the ``C`` values:
 
 * ``form=rays``       (k = 1): ``origin (d) | direction (d) | values (C)``  -> W = 2d + C
 * ``form=parametric``: ``A (d x k, row-major) | b (d) | values (C)``         -> W = dk + d + C
@@ -147,6 +148,8 @@ def check_arrays(raw: dict, form: str, k: int, d: int, channels: int | None,
     for name, shape in shapes.items():
         if name not in raw or raw[name] is None:
             raise InvalidInputError(f"{name}: missing (form {form!r} needs {list(shapes)})", name)
+        if isinstance(raw[name], list) and not raw[name]:
+            raise _empty(name)
         out[name] = as_array(raw[name], name, shape)
     values = None
     if channels is not None:
@@ -159,9 +162,15 @@ def check_arrays(raw: dict, form: str, k: int, d: int, channels: int | None,
         rows = {nm: (out[nm] if nm in out else values).shape[0] for nm in names}
         raise InvalidInputError(f"rows differ between arrays: {rows}", names[-1])
     nrows = n.pop()
+    if nrows == 0:  # one rule for every encoding: a batch has rows
+        raise _empty(next(iter(out)))
     if nrows > max_rows:
         raise BatchTooLargeError(f"{nrows} rows in one request; the limit is {max_rows}")
     return out, values
+
+
+def _empty(name: str) -> InvalidInputError:
+    return InvalidInputError(f"{name}: expected at least one row, got 0", name)
 
 
 def split_columns(arr: np.ndarray, form: str, k: int, d: int, channels: int | None) -> dict:

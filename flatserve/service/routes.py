@@ -30,10 +30,11 @@ FormQuery = Annotated[Optional[Form], Query(
 _BINARY = {"schema": {"type": "string", "format": "binary"}}
 _LAYOUT = (
     "Bodies: `application/json` (small batches; arrays as nested lists), "
-    "`application/x-npy` (ONE float32/float64 array of shape (n, W): per row the flat - "
+    "`application/x-npy` (ONE array of a real number type, read as float64, of shape (n, W), "
+    "n >= 1: per row the flat - "
     "rays: origin(d) | direction(d); parametric: A(d x k, row-major) | b(d); flats: "
     "Q(d x d, row-major) | r(d) - then, for uploads, the C values), or `application/x-npz` "
-    "(named arrays origins+directions | A+b | Q+r, and values)."
+    "(named arrays origins+directions | A+b | Q+r, and values). Every batch has at least one row."
 )
 
 

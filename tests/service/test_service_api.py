@@ -368,3 +368,44 @@ def test_npz_arrays_of_non_real_dtype_are_422(api, rng):
     body = npz(origins=o.astype(complex), directions=v)
     r = tc.post("/v1/fields/f/query", content=body, headers={"content-type": "application/x-npz"})
     assert r.status_code == 422 and "origins" in r.text
+
+
+@pytest.mark.parametrize("encoding", ["json", "npy", "npz"])
+@pytest.mark.parametrize("path", ["samples", "query"])
+def test_zero_row_batches_are_422_in_every_encoding(api, encoding, path):
+    """One rule whatever the transport: a batch has at least one row."""
+    tc, c = api
+    c.create_field("f", channels=1)
+    z = np.zeros((0, 3))
+    up = path == "samples"
+    if encoding == "json":
+        body = {"origins": [], "directions": []} | ({"values": []} if up else {})
+        r = tc.post(f"/v1/fields/f/{path}", json=body)
+    elif encoding == "npy":
+        r = tc.post(f"/v1/fields/f/{path}", content=npy(np.zeros((0, 7 if up else 6))),
+                    headers={"Content-Type": "application/x-npy"})
+    else:
+        arrs = {"origins": z, "directions": z} | ({"values": np.zeros((0, 1))} if up else {})
+        r = tc.post(f"/v1/fields/f/{path}", content=npz(**arrs),
+                    headers={"Content-Type": "application/x-npz"})
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"][0]["loc"][-1] == "origins" and "at least one row" in r.text
+    assert c.describe("f")["storage"]["batches"] == 0
+
+
+def test_integer_and_float16_npy_bodies_are_read_as_float64(api, rng):
+    """The documented dtype rule: any real number type, read as float64."""
+    tc, c = api
+    eyes = np.c_[rng.integers(-2, 3, (60, 2)), np.full(60, -8)]
+    target = np.c_[rng.integers(-2, 3, (60, 2)), np.zeros(60)]
+    rows = np.c_[eyes, target - eyes, rng.integers(0, 200, (60, 1))]  # small integers
+    probe = (np.array([[0.1, 0.2, -8.0]]), np.array([[0.05, -0.1, 8.0]]))
+    answers = []
+    for dtype in (np.float64, np.int16, np.uint8 if rows.min() >= 0 else np.int32, np.float16):
+        name = f"f{np.dtype(dtype).name}"
+        c.create_field(name, channels=1)
+        r = tc.post(f"/v1/fields/{name}/samples", content=npy(rows.astype(dtype)),
+                    headers={"Content-Type": "application/x-npy"})
+        assert r.status_code == 200, r.text
+        answers.append((r.json()["accepted"], c.query_rays(name, *probe).values.tolist()))
+    assert all(a == answers[0] for a in answers)

@@ -117,7 +117,7 @@ def error_response(exc: BaseException) -> ORJSONResponse:
         headers = {"Retry-After": "1"}
     if status == 422:
         arg = getattr(exc, "argument", None)
-        loc = ["body", arg] if arg else ["body"]
+        loc = ["body", *arg.split(".")] if arg else ["body"]  # "basis.center.A" -> path
         body = {"detail": [{"loc": loc, "msg": msg, "type": type(exc).__name__}]}
     else:
         body = {"detail": msg}

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal, Optional, Union
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
 from .settings import FIELD_NAME_PATTERN
 
@@ -25,6 +25,15 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+def _one_form(model, forms: dict[str, tuple[str, str]]):
+    """At most one of the alternative array pairs may be given."""
+    given = [name for name, keys in forms.items()
+             if any(getattr(model, key) is not None for key in keys)]
+    if len(given) > 1:
+        raise ValueError(f"give one of {' / '.join(forms)}, not {' and '.join(given)}")
+    return model
+
+
 class CenterFlat(_Strict):
     """One flat: (Q, r), or (A, b) with A (d, k), or a line as origin + direction."""
 
@@ -34,6 +43,11 @@ class CenterFlat(_Strict):
     b: Optional[Vec] = None
     origin: Optional[Vec] = None
     direction: Optional[Vec] = None
+
+    @model_validator(mode="after")
+    def _one(self):
+        return _one_form(self, {"Q+r": ("Q", "r"), "A+b": ("A", "b"),
+                                "origin+direction": ("origin", "direction")})
 
 
 class TangentSimplexBasis(_Strict):
@@ -60,8 +74,29 @@ class FlatsBasis(_Strict):
     origins: Optional[Mat] = None
     directions: Optional[Mat] = None
 
+    @model_validator(mode="after")
+    def _one(self):
+        return _one_form(self, {"Q+r": ("Q", "r"), "A+b": ("A", "b"),
+                                "origins+directions": ("origins", "directions")})
 
-BasisSpec = Annotated[Union[TangentSimplexBasis, FlatsBasis], Field(discriminator="kind")]
+
+_FLATS_KEYS = ("Q", "r", "A", "b", "origins", "directions")
+
+
+def _basis_kind(v):
+    """``kind`` if given, else inferred: explicit flats when arrays are given."""
+    if isinstance(v, dict):
+        kind = v.get("kind")
+        if kind is None:
+            kind = "flats" if any(key in v for key in _FLATS_KEYS) else "tangent_simplex"
+        return kind
+    return getattr(v, "kind", None)
+
+
+BasisSpec = Annotated[
+    Union[Annotated[TangentSimplexBasis, Tag("tangent_simplex")], Annotated[FlatsBasis, Tag("flats")]],
+    Discriminator(_basis_kind),
+]
 
 
 class _KD(_Strict):

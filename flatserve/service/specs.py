@@ -2,11 +2,27 @@
 everything is delegated to :mod:`flatserve.flats` and :mod:`flatserve.basis`)."""
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 
 from .._validate import as_array
 from ..errors import InvalidInputError
 from .schemas import CenterFlat, FlatsBasis, TangentSimplexBasis
+
+
+@contextmanager
+def _within(prefix: str, rename: dict[str, str] | None = None):
+    """Errors of the library name their argument ("Q", "directions"); here they
+    get the path of the JSON member they came from ("basis.center.Q")."""
+    try:
+        yield
+    except InvalidInputError as exc:
+        arg = exc.argument
+        if arg is None or arg == prefix or arg.startswith(prefix + "."):
+            raise
+        arg = (rename or {}).get(arg, arg)
+        raise type(exc)(f"{prefix}.{exc}", f"{prefix}.{arg}") from None
 
 
 def flats_from(obj, k: int, d: int, prefix: str, max_rows: int | None = None,
@@ -30,19 +46,22 @@ def flats_from(obj, k: int, d: int, prefix: str, max_rows: int | None = None,
         Q = rows_ok(as_array(get("Q"), f"{prefix}.Q", ("n", d, d)))
         r = as_array(get("r"), f"{prefix}.r", (Q.shape[0], d))
         if validate:
-            flats.validate(Q, r, k)
+            with _within(prefix):
+                flats.validate(Q, r, k)
         return Q, r
     if get("A") is not None or get("b") is not None:
         A = rows_ok(as_array(get("A"), f"{prefix}.A", ("n", d, k)))
         b = as_array(get("b"), f"{prefix}.b", (A.shape[0], d))
-        return flats.from_parametric(A, b)
+        with _within(prefix):
+            return flats.from_parametric(A, b)
     if get("origins") is not None or get("directions") is not None:
         if k != 1:
             raise InvalidInputError(f"{prefix}: origins/directions describe lines (k = 1), k = {k}",
                                     f"{prefix}.origins")
         o = rows_ok(as_array(get("origins"), f"{prefix}.origins", ("n", d)))
         v = as_array(get("directions"), f"{prefix}.directions", (o.shape[0], d))
-        return flats.from_rays(o, v)
+        with _within(prefix):
+            return flats.from_rays(o, v)
     raise InvalidInputError(f"{prefix}: give Q+r, A+b or origins+directions", prefix)
 
 
@@ -60,17 +79,20 @@ def center_flat(center: CenterFlat | None, k: int, d: int):
                                     "basis.center.origin")
         o = as_array(center.origin, "basis.center.origin", (d,))
         v = as_array(center.direction, "basis.center.direction", (d,))
-        Q, r = flats.from_rays(o[None], v[None])
+        with _within("basis.center", {"origins": "origin", "directions": "direction"}):
+            Q, r = flats.from_rays(o[None], v[None])
         return Q[0], r[0]
     if center.A is not None or center.b is not None:
         A = as_array(center.A, "basis.center.A", (d, k))
         b = as_array(center.b, "basis.center.b", (d,))
-        Q, r = flats.from_parametric(A[None], b[None])
+        with _within("basis.center"):
+            Q, r = flats.from_parametric(A[None], b[None])
         return Q[0], r[0]
     if center.Q is not None or center.r is not None:
         Q = as_array(center.Q, "basis.center.Q", (d, d))
         r = as_array(center.r, "basis.center.r", (d,))
-        flats.validate(Q[None], r[None], k)
+        with _within("basis.center"):
+            flats.validate(Q[None], r[None], k)
         return Q, r
     return center_flat(None, k, d)
 
@@ -83,9 +105,11 @@ def build_basis(spec, k: int, d: int):
         spec = TangentSimplexBasis()
     if isinstance(spec, FlatsBasis):
         Q, r = flats_from(spec, k, d, "basis", validate=False)
-        return Basis(Q, r, k)
+        with _within("basis"):
+            return Basis(Q, r, k)
     cQ, cr = center_flat(spec.center, k, d)
-    return Basis.tangent_simplex(cQ, cr, k, scale=spec.scale, variant=spec.variant)
+    with _within("basis"):
+        return Basis.tangent_simplex(cQ, cr, k, scale=spec.scale, variant=spec.variant)
 
 
 def spec_dict(spec) -> dict:

@@ -409,3 +409,31 @@ def test_integer_and_float16_npy_bodies_are_read_as_float64(api, rng):
         assert r.status_code == 200, r.text
         answers.append((r.json()["accepted"], c.query_rays(name, *probe).values.tolist()))
     assert all(a == answers[0] for a in answers)
+
+
+def test_basis_specs_kind_inferred_one_form_and_paths_in_errors(api):
+    """`kind` may be left out (explicit flats when arrays are given); a centre or
+    basis with two forms is refused; errors from inside a basis name its path."""
+    tc, c = api
+    ref = specs.build_basis(None, 1, 3)
+    r = tc.post("/v1/fields", json={"name": "a", "basis": {"Q": ref.Q.tolist(), "r": ref.r.tolist()}})
+    assert r.status_code == 201, r.text
+    assert r.json()["basis"]["spec"]["kind"] == "flats"
+    r = tc.post("/v1/fields", json={"name": "b", "basis": {"scale": 0.02}})
+    assert r.status_code == 201 and r.json()["basis"]["spec"]["kind"] == "tangent_simplex"
+    both = {"origin": [0, 0, 0], "direction": [0, 0, 1], "Q": np.eye(3).tolist(), "r": [0, 0, 0]}
+    r = tc.post("/v1/fields", json={"name": "c", "basis": {"center": both}})
+    assert r.status_code == 422 and "give one of" in r.text
+    assert r.json()["detail"][0]["loc"][:3] == ["body", "basis", "tangent_simplex"]
+    bad_dir = {"origin": [0, 0, 0], "direction": [0, 0, 0]}
+    r = tc.post("/v1/fields", json={"name": "d", "basis": {"center": bad_dir}})
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["loc"] == ["body", "basis", "center", "direction"], r.text
+    notflat = np.eye(3) * 2
+    r = tc.post("/v1/fields", json={"name": "e", "k": 1, "basis": {
+        "center": {"Q": notflat.tolist(), "r": [0, 0, 0]}}})
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["loc"] == ["body", "basis", "center", "Q"], r.text
+    r = tc.post("/v1/fields", json={"name": "f", "basis": {"kind": "nonsense"}})
+    assert r.status_code == 422
+    assert [f["name"] for f in c.list_fields()] == ["a", "b"]

@@ -25,6 +25,25 @@ def to_bytes(arr: np.ndarray) -> bytes:
     return _head(np.lib.format.dtype_to_descr(arr.dtype), arr.shape) + arr.tobytes()
 
 
+def columns_to_buffer(cols: list[np.ndarray]) -> memoryview:
+    """``.npy`` bytes of the array ``[c0 | c1 | ...]`` (columns side by side, each
+    (n,) or (n, w); float32 if they all fit, else float64), written straight into
+    one buffer: no concatenated copy and no second copy for the header."""
+    cols = [c.reshape(c.shape[0], -1) if c.ndim != 1 else c[:, None] for c in cols]
+    n = cols[0].shape[0]
+    width = sum(c.shape[1] for c in cols)
+    dt = np.dtype(np.result_type(np.float32, *cols))
+    head = _head(np.lib.format.dtype_to_descr(dt), (n, width))
+    buf = np.empty(len(head) + n * width * dt.itemsize, np.uint8)  # header: multiple of 64
+    buf[:len(head)] = np.frombuffer(head, np.uint8)
+    out = buf[len(head):].view(dt).reshape(n, width)
+    j = 0
+    for c in cols:
+        out[:, j:j + c.shape[1]] = c
+        j += c.shape[1]
+    return memoryview(buf)
+
+
 @functools.lru_cache(maxsize=256)
 def _parse(head: bytes):
     buf = io.BytesIO(head)

@@ -76,10 +76,6 @@ class QueryResult:
     weights: np.ndarray | None = None
 
 
-def _npy(arr: np.ndarray) -> bytes:
-    return _npy_mod.to_bytes(arr)
-
-
 def _load_npy(data: bytes) -> np.ndarray:
     """An .npy response as an array (no pickles; the header parse is cached)."""
     dtype, shape, fortran, off = _npy_mod.header(data)
@@ -292,7 +288,7 @@ class Client:
                 cols.append(values)
             n = {c.shape[0] for c in cols if c.ndim == 2}
             if len(n) == 1 and all(c.ndim == 2 for c in cols):
-                return _npy(np.concatenate(cols, axis=1)), NPY
+                return _npy_mod.columns_to_buffer(cols).tobytes(), NPY
         out = dict(arrays)
         if values is not None:
             out["values"] = values

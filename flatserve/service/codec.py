@@ -234,12 +234,12 @@ def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
 def query_response(accept: str | None, values, inside, status, ids=None, weights=None) -> Response:
     kind = accept_kind(accept)
     if kind == "npy":
-        cols = [np.asarray(values, np.float64), np.asarray(inside, np.float64)[:, None]]
+        cols = [np.asarray(values), np.asarray(inside)]
         if ids is not None:
-            cols.append(np.asarray(ids, np.float64))
+            cols.append(np.asarray(ids))
         if weights is not None:
-            cols.append(np.asarray(weights, np.float64))
-        return Response(npy_bytes(np.concatenate(cols, axis=1)), media_type=NPY)
+            cols.append(np.asarray(weights))
+        return Response(_npy.columns_to_buffer(cols), media_type=NPY)
     if kind == "npz":
         arrs = {"values": values, "inside": inside, "status": status}
         if ids is not None:

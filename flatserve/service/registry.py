@@ -311,6 +311,17 @@ class Registry:
         if e.state != "ready":
             raise StorageError(f"field {e.name!r} is not ready ({e.state})")
 
+    @staticmethod
+    def _response(seq: int, batch, *, duplicates, nsamples: int, indexed: bool,
+                  pending: int) -> dict:
+        """The response of an upload (stored with its batch for idempotent retries);
+        ``batch``: an AddResult or a PreparedBatch (accepted, rejected, reasons)."""
+        return {"batch": seq, "accepted": int(batch.accepted),
+                "rejected": np.asarray(batch.rejected, np.int64).tolist(),
+                "reasons": [str(x) for x in batch.reasons], "duplicates": duplicates,
+                "nsamples": int(nsamples), "indexed": indexed, "pending_samples": pending,
+                "replayed": False}
+
     def _stored_result(self, e: FieldEntry, seq: int, form: str, result: dict | None) -> dict:
         """The response stored for batch ``seq``; recomputed (and stored again) from
         the batch's arrays if a crash lost it (see the storage module doc)."""
@@ -318,11 +329,9 @@ class Registry:
             return result
         arrays = self.storage.batch_arrays(e.id, seq)
         values = arrays.pop("values")
-        p = prepare(e.field, form, arrays, values)
-        result = {"batch": seq, "accepted": p.accepted, "rejected": p.rejected.tolist(),
-                  "reasons": p.reasons, "duplicates": None, "nsamples": int(e.field.nsamples),
-                  "indexed": seq <= e.indexed_seq, "pending_samples": e.pending_samples,
-                  "replayed": False}
+        result = self._response(seq, prepare(e.field, form, arrays, values), duplicates=None,
+                                nsamples=e.field.nsamples, indexed=seq <= e.indexed_seq,
+                                pending=e.pending_samples)
         try:
             self.storage.set_result(e.id, seq, result)
         except StorageError:  # pragma: no cover - a cache: recomputed next time
@@ -361,14 +370,11 @@ class Registry:
                 raise
             t2 = time.perf_counter()
             timings["insert"] = t2 - t1
-            rejected = np.asarray(res.rejected, np.int64).tolist()
             accepted = int(res.accepted)
 
             def result(seq):
-                return {"batch": seq, "accepted": accepted, "rejected": rejected,
-                        "reasons": [str(x) for x in res.reasons],
-                        "duplicates": int(res.duplicates), "nsamples": int(res.nsamples),
-                        "indexed": True, "pending_samples": 0, "replayed": False}
+                return self._response(seq, res, duplicates=int(res.duplicates),
+                                      nsamples=res.nsamples, indexed=True, pending=0)
 
             try:
                 seq, out = self._commit_batch(e, form, stored, idem_key, chash, n, result)
@@ -411,10 +417,8 @@ class Registry:
         accepted = prepared.accepted
         with e.cond:
             pending = e.pending_samples + accepted
-        out = {"batch": seq, "accepted": accepted, "rejected": prepared.rejected.tolist(),
-               "reasons": prepared.reasons, "duplicates": None,
-               "nsamples": int(e.field.nsamples), "indexed": False,
-               "pending_samples": pending, "replayed": False}
+        out = self._response(seq, prepared, duplicates=None, nsamples=e.field.nsamples,
+                             indexed=False, pending=pending)
         try:
             self.storage.set_result(e.id, seq, out)
         except StorageError as exc:  # the batch is durable; its response is a cache

@@ -121,3 +121,37 @@ def test_bad_input_names_the_argument(basis):
         field.query_rays(bad, dirs)
     with pytest.raises(ValueError, match="channels"):
         Field(basis, channels=0)
+
+
+def test_deferred_prepare_validates_now_and_charts_later(basis):
+    """prepare*(defer=True): bad input raises at once; the returned callable gives
+    the batch prepare() would have given, for every input form."""
+    from flatserve import flats
+    from flatserve.errors import InvalidInputError
+
+    rng = np.random.default_rng(4)
+    o, v = paper_rays(rng, 400)
+    v[::9, 2] = 0.0  # some rays outside the chart: rejected rows, not an error
+    vals = rng.normal(size=(400, 2))
+    field = Field(basis, channels=2)
+    Q, r = flats.from_rays(o, v)
+    A = v / np.linalg.norm(v, axis=1, keepdims=True)
+    calls = [(field.prepare_rays, (o, v)), (field.prepare, (Q, r)),
+             (field.prepare_parametric, (A[:, :, None], o))]
+    for fn, flat in calls:
+        now = fn(*flat, vals)
+        later = fn(*flat, vals, defer=True)
+        assert callable(later)
+        got = later()
+        assert got.rejected.size and got.reasons == now.reasons
+        np.testing.assert_array_equal(got.rejected, now.rejected)
+        np.testing.assert_array_equal(got.x, now.x)
+        np.testing.assert_array_equal(got.values, now.values)
+    bad = v.copy()
+    bad[3] = 0.0
+    with pytest.raises(InvalidInputError) as ei:
+        field.prepare_rays(o, bad, vals, defer=True)
+    assert ei.value.argument == "directions"
+    with pytest.raises(InvalidInputError) as ei:
+        field.prepare_rays(o, v, vals[:, :1], defer=True)
+    assert ei.value.argument == "values"

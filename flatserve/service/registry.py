@@ -333,15 +333,16 @@ class Registry:
                                 nsamples=e.field.nsamples, indexed=seq <= e.indexed_seq,
                                 pending=e.pending_samples)
         try:
-            self.storage.set_result(e.id, seq, result)
+            self.storage.set_result(e.id, seq, result, replace=False)
         except StorageError:  # pragma: no cover - a cache: recomputed next time
             log.warning("field %r: could not store the response of batch %d", e.name, seq)
         return result
 
     def batches(self, e: FieldEntry) -> list[dict]:
-        """The stored batches of a field: seq, key, rows, accepted, form."""
+        """The stored batches of a field: seq, key, rows, accepted (None while the
+        response is not stored: in flight, or lost in a crash), form. Reads only."""
         return [{"batch": b.seq, "idempotency_key": b.idem_key, "rows": b.nrows,
-                 "accepted": int(self._stored_result(e, b.seq, b.form, b.result)["accepted"]),
+                 "accepted": None if b.result is None else int(b.result["accepted"]),
                  "form": b.form} for b in self.storage.batches(e.id)]
 
     def _commit_batch(self, e, form, stored, idem_key, chash, n, result_fn=None):
@@ -400,15 +401,20 @@ class Registry:
         try:
             prepared = chart()  # no lock: reads the basis only
         except BaseException:
-            # unexpected (memory...): if the batch got committed, memory is behind
-            # storage; reload the field, which replays every committed batch
+            # unexpected (memory...): the client gets an error, so the batch must not
+            # stay stored; nothing in memory or in any response refers to it yet
             try:
-                commit.result()
+                seq, _ = commit.result()
             except BaseException:
-                pass  # nothing stored, nothing changed
-            else:
+                raise  # nothing stored, nothing changed
+            try:
+                self.storage.delete_batch(e.id, seq)
+            except BaseException:  # still stored: memory is behind storage
+                log.exception("field %r: could not remove batch %d after a failed upload; "
+                              "reloading", e.name, seq)
                 e.state, e.error = "loading", "reloading after a failed upload"
-                self._bg.submit(self._reload, e)
+                if not self._closed:
+                    self._bg.submit(self._reload, e)
             raise
         t2 = time.perf_counter()
         timings["prepare"] = t2 - t1

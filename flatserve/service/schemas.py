@@ -191,7 +191,10 @@ class BatchInfo(BaseModel):
     batch: int
     idempotency_key: Optional[str]
     rows: int
-    accepted: int
+    accepted: Optional[int] = Field(
+        description="Accepted rows; null while the batch's response is not stored yet "
+                    "(an upload in flight, or a response lost in a crash: a retry with the "
+                    "batch's Idempotency-Key recomputes it).")
     form: str
 
 

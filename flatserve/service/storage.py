@@ -290,20 +290,30 @@ class Storage:
 
         return self._tx(fn)
 
-    def set_result(self, field_id: int, seq: int, result: dict) -> None:
+    def set_result(self, field_id: int, seq: int, result: dict, replace: bool = True) -> None:
         """Store the response of a batch committed without one (no fsync: see the
-        module doc; a later commit or checkpoint makes it durable)."""
+        module doc; a later commit or checkpoint makes it durable). ``replace=False``
+        keeps a response already stored."""
+        verb = "INSERT OR REPLACE" if replace else "INSERT OR IGNORE"
         with self._lock:
             try:
                 self._db.execute("PRAGMA synchronous=NORMAL")
                 try:
                     self._db.execute(
-                        "INSERT OR REPLACE INTO batch_results(field_id, seq, result) VALUES (?, ?, ?)",
+                        f"{verb} INTO batch_results(field_id, seq, result) VALUES (?, ?, ?)",
                         (field_id, seq, json.dumps(result)))
                 finally:
                     self._db.execute("PRAGMA synchronous=FULL")
             except sqlite3.Error as exc:
                 raise StorageError(f"storage failed: {exc}") from exc
+
+    def delete_batch(self, field_id: int, seq: int) -> None:
+        """Remove one batch (one that was never acknowledged)."""
+        def fn(db):
+            db.execute("DELETE FROM batch_results WHERE field_id=? AND seq=?", (field_id, seq))
+            db.execute("DELETE FROM batches WHERE field_id=? AND seq=?", (field_id, seq))
+
+        self._tx(fn)
 
     def batches(self, field_id: int) -> list[BatchRow]:
         rows = self._query(self._BATCH_COLS + "WHERE b.field_id=? ORDER BY b.seq", (field_id,))

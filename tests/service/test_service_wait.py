@@ -308,6 +308,8 @@ def test_wait_false_response_lost_in_a_crash_is_recomputed(make_app, rng, tmp_pa
     db.close()
     tc, c = _started(make_app())
     try:
+        listed = tc.get("/v1/fields/f/batches").json()["batches"]
+        assert [(b["batch"], b["accepted"]) for b in listed] == [(1, None)]  # not recomputed
         again = c.upload_rays("f", o, v, val, wait=False, idempotency_key="k")
         assert again["replayed"] and again["indexed"]
         for key in ("batch", "accepted", "rejected", "reasons"):
@@ -348,3 +350,34 @@ def test_storage_upgrades_a_version_1_database(tmp_path, rng):
     assert [b.result["batch"] for b in st.batches(fid)] == [1, 2]
     assert st._query("PRAGMA user_version")[0][0] == SCHEMA_VERSION
     st.close()
+
+
+def test_wait_false_failure_after_the_commit_leaves_nothing_stored(make_app, rng, monkeypatch):
+    """The batch is committed while its coordinates are computed; if computing them
+    fails (unexpectedly), the client gets an error and the batch is removed again:
+    nothing half-stored, the field stays usable and a later retry stores it once."""
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=C)
+        o, v, val = _rays_with_rejects(rng, 200)
+        real = Field._chart
+
+        def boom(self, *a, **kw):
+            raise MemoryError("simulated")
+
+        monkeypatch.setattr(Field, "_chart", boom)
+        tc_raise = TestClient(tc.app, raise_server_exceptions=False)
+        r = tc_raise.post("/v1/fields/f/samples", params={"wait": "false"},
+                          headers={"Idempotency-Key": "k1"},
+                          json={"origins": o.tolist(), "directions": v.tolist(),
+                                "values": val.tolist()})
+        assert r.status_code >= 500
+        info = c.describe("f")
+        assert info["state"] == "ready" and info["storage"]["batches"] == 0
+        monkeypatch.setattr(Field, "_chart", real)
+        rep = c.upload_rays("f", o, v, val, wait=False, idempotency_key="k1")
+        assert rep["batch"] == 1 and not rep["replayed"]
+        c.wait_indexed("f", timeout=30)
+        assert c.describe("f")["nsamples"] == rep["accepted"]
+    finally:
+        tc.__exit__(None, None, None)

@@ -20,6 +20,7 @@ import struct
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -229,7 +230,8 @@ class Field:
         return status, ok, x, coords
 
     # --------------------------------------------------------------- writers
-    def prepare(self, Q, r, values, *, defer: bool = False) -> "PreparedBatch":
+    def prepare(self, Q, r, values, *, defer: bool = False
+                ) -> "PreparedBatch | Callable[[], PreparedBatch]":
         """First half of :meth:`add`: validate and chart a batch, without inserting.
 
         Computes the coordinates (paper Sec. 4) and their embedding, and decides
@@ -261,12 +263,14 @@ class Field:
         _flats.validate(Q, r, self.k)
         return self._prepare(self._values(values, Q.shape[0]), defer, Q=Q, r=r)
 
-    def prepare_parametric(self, A, b, values, *, defer: bool = False) -> "PreparedBatch":
+    def prepare_parametric(self, A, b, values, *, defer: bool = False
+                           ) -> "PreparedBatch | Callable[[], PreparedBatch]":
         """:meth:`prepare` for flats in parametric form, A (n, d, k) and b (n, d)."""
         Q, r = _flats.from_parametric(A, b)
         return self.prepare(Q, r, values, defer=defer)
 
-    def prepare_rays(self, origins, directions, values, *, defer: bool = False) -> "PreparedBatch":
+    def prepare_rays(self, origins, directions, values, *, defer: bool = False
+                     ) -> "PreparedBatch | Callable[[], PreparedBatch]":
         """:meth:`prepare` for lines (k = 1): origins, directions (n, d); values (n, C)."""
         self._require_lines()
         o, v, _ = _flats._check_rays(origins, directions)

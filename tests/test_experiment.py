@@ -1,5 +1,4 @@
 """Paper Sec. 4.3 as a test, and the `flatserve experiment` command."""
-import numpy as np
 import pytest
 
 from flatserve import cli

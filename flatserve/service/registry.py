@@ -345,15 +345,20 @@ class Registry:
                  "accepted": None if b.result is None else int(b.result["accepted"]),
                  "form": b.form} for b in self.storage.batches(e.id)]
 
-    def _commit_batch(self, e, form, stored, idem_key, chash, n, result_fn=None):
-        """Pack and durably store one batch (hashing it if not done yet)."""
-        if chash is None:
-            chash = content_hash(form, stored)
+    @staticmethod
+    def _packed(form, stored, chash):
+        """``(content hash, blob)`` of a batch (hashing it if not done yet)."""
+        return (content_hash(form, stored) if chash is None else chash), pack_arrays(stored)
+
+    def _commit_batch(self, e, form, packed, idem_key, n, result_fn=None):
+        """Durably store one packed batch."""
+        chash, blob = packed
         return self.storage.add_batch(e.id, idem_key=idem_key, chash=chash, form=form, nrows=n,
-                                      blob=pack_arrays(stored), result_fn=result_fn)
+                                      blob=blob, result_fn=result_fn)
 
     def _upload_indexed(self, e, form, arrays, values, idem_key, chash, stored, n, timings):
         """wait=True: insert, then commit (memory ahead of storage -> reload on failure)."""
+        packed = self._packed(form, stored, chash)  # outside the locks: queries go on
         if not self.wait_indexed(e):  # commit order: every earlier batch first
             raise NotReadyError(f"field {e.name!r}: the server is shutting down")
         self._check_writable(e)
@@ -378,7 +383,7 @@ class Registry:
                                       nsamples=res.nsamples, indexed=True, pending=0)
 
             try:
-                seq, out = self._commit_batch(e, form, stored, idem_key, chash, n, result)
+                seq, out = self._commit_batch(e, form, packed, idem_key, n, result)
             except BaseException as exc:
                 # memory is ahead of storage: reload this field from storage
                 if not isinstance(exc, FieldNotFoundError):
@@ -397,7 +402,8 @@ class Registry:
         # bad input is refused here, before anything is stored; charting cannot fail
         # on validated input (each row gets a status)
         chart = prepare(e.field, form, arrays, values, defer=True)
-        commit = self._commits.submit(self._commit_batch, e, form, stored, idem_key, chash, n)
+        commit = self._commits.submit(
+            lambda: self._commit_batch(e, form, self._packed(form, stored, chash), idem_key, n))
         try:
             prepared = chart()  # no lock: reads the basis only
         except BaseException:

@@ -9,17 +9,15 @@ from __future__ import annotations
 import time
 from typing import Annotated, Literal, Optional
 
-import numpy as np
 from fastapi import APIRouter, Header, Query, Request, Response
 
-from .. import errors as fe
 from . import codec, specs
 from .codec import JSONBytes
 from .deps import BodyDep, FieldNamePath, ReadAccess, RegistryDep, SettingsDep, WriteAccess
-from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, ErrorBody
+from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES
 from .registry import FieldEntry
-from .schemas import (BatchInfo, BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
-                      FieldInfo, FieldList, FieldSummary, Health, ProjectRequest, ProjectResult,
+from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
+                      FieldInfo, FieldList, Health, ProjectRequest, ProjectResult,
                       QueryBody, QueryResult, SnapshotResult, UploadBody, UploadResult)
 
 Form = Literal["rays", "parametric", "flats"]

@@ -16,6 +16,15 @@ def paper_rays(rng: np.random.Generator, n: int):
     return eyes, screen - eyes
 
 
+def started(app):
+    """Enter ``app``'s lifespan (the caller exits it) and wait until it is ready."""
+    tc = TestClient(app)
+    tc.__enter__()
+    c = Client(http=tc)
+    c.wait_ready(60)
+    return tc, c
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(20240531)

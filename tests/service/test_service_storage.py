@@ -6,19 +6,10 @@ import threading
 
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
 
 from flatserve.client import Client
 
-from .conftest import paper_rays
-
-
-def _started(app):
-    tc = TestClient(app)
-    tc.__enter__()
-    c = Client(http=tc)
-    c.wait_ready(60)
-    return tc, c
+from .conftest import paper_rays, started as _started
 
 
 def _upload_some(c, rng, name="f", batches=3, n=400, channels=2):

@@ -12,20 +12,12 @@ from flatserve import flats
 from flatserve.client import Client
 from flatserve.field import Field
 from flatserve.service import registry as registry_mod
-from flatserve.service import ingest, specs
+from flatserve.service import specs
 from flatserve.service.ingest import insert_prepared, prepare
 
-from .conftest import paper_rays
+from .conftest import paper_rays, started as _started
 
 C = 2
-
-
-def _started(app):
-    tc = TestClient(app)
-    tc.__enter__()
-    c = Client(http=tc)
-    c.wait_ready(60)
-    return tc, c
 
 
 def _ref():

@@ -3,6 +3,7 @@
 Public API
 ----------
 flats         (Q, r) flats: constructors, conversions, projection, affine combinations
+Flats         a batch of flats in any form (rays, parametric, quadrics), validated once
 Basis         a basis of flats, its checks, the tangent simplex, coordinates
 coordinates   coordinates of flats in a basis (paper Sec. 4), status codes
 embedding     the regular-simplex embedding of affine coordinates (Sec. 5)
@@ -14,7 +15,8 @@ from __future__ import annotations
 
 from . import coordinates, embedding, errors, flats
 from .basis import Basis, select_scale
-from .field import AddResult, Field, QueryResult
+from .field import AddResult, Chart, Field, QueryResult
+from .flats import Flats
 from .triangulation import Triangulation
 
 __version__ = "0.1.0"
@@ -22,7 +24,9 @@ __version__ = "0.1.0"
 __all__ = [
     "AddResult",
     "Basis",
+    "Chart",
     "Field",
+    "Flats",
     "QueryResult",
     "Triangulation",
     "coordinates",

@@ -163,7 +163,7 @@ def tangent_directions(A, N, alpha, variant: str = DEFAULT_VARIANT):
         raise InvalidInputError(f"variant: expected one of {VARIANTS}, got {variant!r}", "variant")
     d, k = A.shape
     c = d - k
-    D = (k + 1) * c
+    D = _flats.basis_size(k, d) - 1
     dQ = np.zeros((D, d, d))
     dr = np.zeros((D, d))
     sign = -1.0 if variant == "tangent" else 1.0
@@ -299,7 +299,7 @@ class Basis:
         self.k = k
         self.d = d
         self.m = m
-        self.dim = (k + 1) * (d - k)
+        self.dim = _flats.basis_size(k, d) - 1
         #: Set by :meth:`tangent_simplex`: centre flat (Q, r), scale, variant.
         self.center = None
         self.scale = None
@@ -398,6 +398,50 @@ class Basis:
         cr = cQ @ o
         return cls.tangent_simplex(cQ, cr, 1, scale, variant, frames=(A, N))
 
+    @staticmethod
+    def default_center(k: int, d: int) -> tuple[np.ndarray, np.ndarray]:
+        """The default centre flat: the span of the last ``k`` axes through the origin.
+
+        For lines in R^3 the z-axis (the paper's ray set-up looks along it).
+
+        Returns
+        -------
+        Q : ndarray, shape (d, d)
+        r : ndarray, shape (d,)
+        """
+        k = _flats.check_k(k, d)
+        A = np.eye(d)[:, d - k:]
+        Q, r = _flats.from_parametric(A[None], np.zeros((1, d)))
+        return Q[0], r[0]
+
+    @property
+    def is_full(self) -> bool:
+        """``m == (k+1)(d-k) + 1`` (:func:`flatserve.flats.basis_size`)."""
+        return self.m == _flats.basis_size(self.k, self.d)
+
+    def require_full(self) -> "Basis":
+        """Check that this basis can chart a field: full, and passing :meth:`check`.
+
+        Returns
+        -------
+        Basis
+            ``self``.
+
+        Raises
+        ------
+        InvalidInputError
+            ``"basis"``: the count is wrong or a check of Sec. 3 fails.
+        """
+        want = _flats.basis_size(self.k, self.d)
+        if self.m != want:
+            raise InvalidInputError(
+                f"basis: a field needs m = (k+1)(d-k)+1 = {want} flats, got {self.m}", "basis")
+        report = self.check()
+        if not report.ok:
+            raise InvalidInputError("basis: basis check failed: " + "; ".join(report.failures),
+                                    "basis")
+        return self
+
     # ---------------------------------------------------------------------- methods
 
     def combine(self, weights, gap_tol: float = _flats.GAP_TOL) -> _flats.Projection:
@@ -435,6 +479,21 @@ class Basis:
         """
         return _coords.coordinates(self.Q, self.r, self.k, Q, r, roundtrip_tol=roundtrip_tol,
                                    check=check, native=native)
+
+    def coordinates_of(self, flats: _flats.Flats,
+                       roundtrip_tol: float = _coords.ROUNDTRIP_TOL,
+                       threads: int | None = None) -> _coords.Coordinates:
+        """Coordinates of a :class:`~flatserve.flats.Flats` batch (validated when built).
+
+        See :func:`flatserve.coordinates.coordinates_of`; rays take the fast path.
+
+        Returns
+        -------
+        Coordinates
+            ``weights (n, m)``, ``status (n,) int8``, ``residual (n,)``.
+        """
+        return _coords.coordinates_of(self.Q, self.r, self.k, flats, roundtrip_tol,
+                                      threads=threads)
 
     def coordinates_rays(self, origins, directions,
                          roundtrip_tol: float = _coords.ROUNDTRIP_TOL,
@@ -504,7 +563,7 @@ class Basis:
             failures.append(f"orthogonal pairs {pairs[:10]} (Sec. 3.1): they span no "
                             "one-dimensional space")
         w0 = np.full((1, m), 1.0 / m)
-        p = _flats._project_unchecked(np.einsum("nl,lij->nij", w0, self.Q), w0 @ self.r, k,
+        p = _flats.project_unchecked(np.einsum("nl,lij->nij", w0, self.Q), w0 @ self.r, k,
                                       _flats.GAP_TOL)
         gap = float(p.gap[0])
         if p.ambiguous[0]:

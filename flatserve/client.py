@@ -17,7 +17,6 @@ from __future__ import annotations
 import io
 import time
 import uuid
-from dataclasses import dataclass
 from typing import Any
 
 import httpx
@@ -25,6 +24,8 @@ import numpy as np
 import orjson
 
 from . import _npy as _npy_mod
+from .field import QueryResult
+from .flats import FORMS, Flats, infer_form
 from .errors import (FieldExistsError, FieldNotFoundError, FlatserveError, InvalidInputError,
                      LimitExceededError)
 
@@ -65,17 +66,6 @@ class TooLargeError(ServiceError, LimitExceededError):
 _BY_STATUS = {404: NotFoundError, 409: ConflictError, 413: TooLargeError, 422: InvalidError}
 
 
-@dataclass
-class QueryResult:
-    """Values (q, C) (NaN outside), inside (q,), and when asked status, ids, weights."""
-
-    values: np.ndarray
-    inside: np.ndarray
-    status: np.ndarray | None = None
-    ids: np.ndarray | None = None
-    weights: np.ndarray | None = None
-
-
 def _load_npy(data: bytes) -> np.ndarray:
     """An .npy response as an array (no pickles; the header parse is cached)."""
     dtype, shape, fortran, off = _npy_mod.header(data)
@@ -90,15 +80,16 @@ def _npz(arrays: dict[str, np.ndarray]) -> bytes:
     return buf.getvalue()
 
 
-def _flat_arrays(origins, directions, A, b, Q, r) -> tuple[str, dict[str, np.ndarray]]:
-    if origins is not None or directions is not None:
-        return "rays", {"origins": np.asarray(origins, np.float64),
-                        "directions": np.asarray(directions, np.float64)}
-    if A is not None or b is not None:
-        return "parametric", {"A": np.asarray(A, np.float64), "b": np.asarray(b, np.float64)}
-    if Q is not None or r is not None:
-        return "flats", {"Q": np.asarray(Q, np.float64), "r": np.asarray(r, np.float64)}
-    raise InvalidInputError("give origins+directions, A+b or Q+r", "origins")
+def _flat_arrays(flats: Flats | None, arrays: dict) -> tuple[str, dict[str, np.ndarray]]:
+    """``(form, arrays)`` of a :class:`Flats` batch or of arrays given by name
+    (sent as they are: the server validates them)."""
+    if flats is not None:
+        return flats.form, dict(flats.arrays)
+    given = {k: v for k, v in arrays.items() if v is not None}
+    form = infer_form(given)
+    if form is None:
+        raise InvalidInputError("give flats, or origins+directions, A+b or Q+r", "origins")
+    return form, {name: np.asarray(given.get(name), np.float64) for name in FORMS[form]}
 
 
 def server_timing(resp: httpx.Response) -> dict[str, float]:
@@ -224,8 +215,9 @@ class Client:
         return self._request("POST", f"/v1/fields/{name}/snapshot").json()
 
     # -- samples ------------------------------------------------------------
-    def upload(self, name: str, values, *, origins=None, directions=None, A=None, b=None,
-               Q=None, r=None, idempotency_key: str | None = None, binary: bool = True,
+    def upload(self, name: str, values, flats: Flats | None = None, *, origins=None,
+               directions=None, A=None, b=None, Q=None, r=None,
+               idempotency_key: str | None = None, binary: bool = True,
                wait: bool = True) -> dict:
         """Upload one batch of samples; returns the service's report (accepted,
         rejected indices and reasons, nsamples, batch, indexed). A fresh
@@ -235,7 +227,8 @@ class Client:
         and its coordinates known, and triangulates it in the background
         (``report["indexed"]`` is False); see :meth:`wait_indexed`.
         """
-        form, arrays = _flat_arrays(origins, directions, A, b, Q, r)
+        form, arrays = _flat_arrays(flats, dict(origins=origins, directions=directions, A=A,
+                                                b=b, Q=Q, r=r))
         values = np.asarray(values, np.float64)
         if values.ndim == 1:
             values = values[:, None]
@@ -294,11 +287,15 @@ class Client:
             out["values"] = values
         return _npz(out), NPZ
 
-    def query(self, name: str, *, origins=None, directions=None, A=None, b=None, Q=None, r=None,
-              weights: bool = False, outside: str = "nan", order: str = "hilbert",
-              binary: bool = True) -> QueryResult:
-        """Interpolate the field at a batch of flats."""
-        form, arrays = _flat_arrays(origins, directions, A, b, Q, r)
+    def query(self, name: str, flats: Flats | None = None, *, origins=None, directions=None,
+              A=None, b=None, Q=None, r=None, weights: bool = False, outside: str = "nan",
+              order: str = "hilbert", binary: bool = True) -> QueryResult:
+        """Interpolate the field at a batch of flats (a :class:`Flats`, or arrays by name).
+
+        Returns the library's :class:`flatserve.QueryResult`; ``status``, ``ids``
+        and ``weights`` are filled when the response carries them."""
+        form, arrays = _flat_arrays(flats, dict(origins=origins, directions=directions, A=A,
+                                                b=b, Q=Q, r=r))
         params = {"form": form, "outside": outside, "order": order,
                   "weights": "true" if weights else "false"}
         url = f"/v1/fields/{name}/query"
@@ -307,11 +304,10 @@ class Client:
             j = self._request("POST", url, params=params, json=body).json()
             vals = np.array([[np.nan if x is None else x for x in row] for row in j["values"]],
                             dtype=np.float64).reshape(len(j["inside"]), -1)
-            res = QueryResult(vals, np.asarray(j["inside"], bool), np.asarray(j["status"], np.int8))
-            if weights:
-                res.ids = np.asarray(j["ids"], np.int64)
-                res.weights = np.array(j["weights"], dtype=np.float64)
-            return res
+            return QueryResult(vals, np.asarray(j["inside"], bool),
+                               np.asarray(j["status"], np.int8),
+                               np.asarray(j["ids"], np.int64) if weights else None,
+                               np.array(j["weights"], dtype=np.float64) if weights else None)
         content, ctype = self._encode(form, arrays)
         accept = NPZ if weights else NPY
         resp = self._request("POST", url, params=params, content=content,
@@ -320,7 +316,7 @@ class Client:
             with np.load(io.BytesIO(resp.content), allow_pickle=False) as z:
                 return QueryResult(z["values"], z["inside"], z["status"], z["ids"], z["weights"])
         arr = _load_npy(resp.content)
-        return QueryResult(arr[:, :-1], arr[:, -1] != 0)
+        return QueryResult(arr[:, :-1], arr[:, -1] != 0, None)
 
     def query_rays(self, name: str, origins, directions, **kw) -> QueryResult:
         return self.query(name, origins=origins, directions=directions, **kw)

@@ -88,6 +88,7 @@ __all__ = [
     "roundtrip_residual",
     "coordinates",
     "coordinates_rays",
+    "coordinates_of",
 ]
 
 OK = 0
@@ -127,7 +128,7 @@ class Coordinates(NamedTuple):
 
 def n_equations(k: int, d: int) -> int:
     """Number of rows of the system of Fig. 8, ``(k+1)(d-k) + 1``."""
-    return (k + 1) * (d - k) + 1
+    return _flats.basis_size(k, d)
 
 
 def system_matrix(Qb, rb, A, N, rt) -> np.ndarray:
@@ -239,7 +240,7 @@ def roundtrip_residual(weights, Qb, rb, k, Qt, rt, gap_tol: float = _flats.GAP_T
     else:
         Qs = np.einsum("nl,lij->nij", weights, Qb)
         rs = weights @ rb
-    p = _flats._project_unchecked(Qs, rs, k, gap_tol)
+    p = _flats.project_unchecked(Qs, rs, k, gap_tol)
     eQ = np.sqrt(((p.Q - Qt) ** 2).sum(axis=(1, 2)))
     er = np.sqrt(((p.r - rt) ** 2).sum(axis=1))
     res = np.maximum(eQ, er)
@@ -305,10 +306,10 @@ def coordinates(
         col = np.argmax(np.diagonal(P, axis1=1, axis2=2), axis=1)
         directions = np.ascontiguousarray(np.take_along_axis(P, col[:, None, None], 2)[:, :, 0])
         return coordinates_rays(Qb, rb, r, directions, roundtrip_tol, rcond, gap_tol, native)
-    return _coordinates_unchecked(Qb, rb, k, Q, r, roundtrip_tol, rcond, gap_tol)
+    return coordinates_unchecked(Qb, rb, k, Q, r, roundtrip_tol, rcond, gap_tol)
 
 
-def _coordinates_unchecked(Qb, rb, k, Q, r, roundtrip_tol=ROUNDTRIP_TOL,
+def coordinates_unchecked(Qb, rb, k, Q, r, roundtrip_tol=ROUNDTRIP_TOL,
                            rcond=SINGULAR_RCOND, gap_tol=_flats.GAP_TOL) -> Coordinates:
     """:func:`coordinates` without input checks; ``Qb`` may be (n, m, d, d)."""
     A, N = _flats.frames(Q, k)
@@ -357,7 +358,7 @@ def coordinates_rays(Qb, rb, origins, directions, roundtrip_tol: float = ROUNDTR
     Qb = as_array(Qb, "Qb", ("m", None, None))
     m, d, _ = Qb.shape
     rb = as_array(rb, "rb", (m, d))
-    o, v, _ = _flats._check_rays(origins, directions)
+    o, v, _ = _flats.check_rays(origins, directions)
     if o.shape[1] != d:
         raise InvalidInputError(f"origins: basis is in R^{d}, rays in R^{o.shape[1]}", "origins")
     th = _threads_arg(threads)
@@ -369,7 +370,7 @@ def coordinates_rays(Qb, rb, origins, directions, roundtrip_tol: float = ROUNDTR
         w, status, residual = fast(Qb, rb, o, v, roundtrip_tol, rcond, gap_tol, th)
         return Coordinates(w, status, residual)
     Q, r = _flats.from_rays(o, v)
-    return _coordinates_unchecked(Qb, rb, 1, Q, r, roundtrip_tol, rcond, gap_tol)
+    return coordinates_unchecked(Qb, rb, 1, Q, r, roundtrip_tol, rcond, gap_tol)
 
 
 def _threads_arg(threads) -> int:
@@ -404,3 +405,44 @@ def _fast_rays():
                       float(_flats.PINV_RCOND), int(threads))
 
     return fast
+
+
+def coordinates_of(Qb, rb, k: int, flats, roundtrip_tol: float = ROUNDTRIP_TOL,
+                   rcond: float = SINGULAR_RCOND, gap_tol: float = _flats.GAP_TOL,
+                   threads: int | None = None) -> Coordinates:
+    """Coordinates of a validated :class:`flatserve.flats.Flats` batch in a basis.
+
+    The checks done when ``flats`` was built are not repeated. Rays take the
+    lines' fast path (:func:`coordinates_rays`: no ``(Q, r)`` is built; native
+    for ``d = 3, m = 5``); the other forms go through their quadrics.
+
+    Parameters
+    ----------
+    Qb : ndarray, shape (m, d, d)
+    rb : ndarray, shape (m, d)
+        The basis (validated by :class:`flatserve.Basis`).
+    k : int
+    flats : Flats
+        Of dimension ``k`` in R^d.
+    roundtrip_tol, rcond, gap_tol : float
+    threads : int, optional
+        Threads of the native fast path; results do not depend on it.
+
+    Returns
+    -------
+    Coordinates
+    """
+    m, d = Qb.shape[0], Qb.shape[1]
+    if flats.d != d or flats.k != k:
+        arg = next(iter(flats.arrays))
+        raise InvalidInputError(f"{arg}: expected {k}-flats in R^{d}, got {flats.k}-flats in "
+                                f"R^{flats.d}", arg)
+    if flats.form == "rays":
+        th = _threads_arg(threads)
+        if (m, d) == (5, 3):
+            w, status, residual = _fast_rays()(Qb, rb, flats.arrays["origins"],
+                                               flats.arrays["directions"], roundtrip_tol, rcond,
+                                               gap_tol, th)
+            return Coordinates(w, status, residual)
+    Q, r = flats.quadrics()
+    return coordinates_unchecked(Qb, rb, k, Q, r, roundtrip_tol, rcond, gap_tol)

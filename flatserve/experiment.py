@@ -26,7 +26,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from . import flats as _flats
-from .coordinates import OK, _coordinates_unchecked, n_equations
+from .coordinates import OK, coordinates_unchecked, n_equations
 
 __all__ = ["CASES", "EXPERIMENT_TOL", "MAX_SIMPLEX_COND", "ExperimentRow", "run",
            "run_all", "format_table"]
@@ -111,10 +111,10 @@ def run(d: int, k: int, trials: int = 1000, seed: int | None = 0, rng=None) -> E
     rb = rb.reshape(n, m, d)
     alpha = rng.random((n, m))
     alpha /= alpha.sum(axis=1, keepdims=True)
-    target = _flats._project_unchecked(
+    target = _flats.project_unchecked(
         np.einsum("nl,nlij->nij", alpha, Qb), np.einsum("nl,nli->ni", alpha, rb), k,
         _flats.GAP_TOL)
-    c = _coordinates_unchecked(Qb, rb, k, target.Q, target.r)
+    c = coordinates_unchecked(Qb, rb, k, target.Q, target.r)
     err = np.abs(c.weights - alpha).max(axis=1)
     fail = ~(err <= EXPERIMENT_TOL) | (c.status != OK) | target.ambiguous
     return ExperimentRow(d, k, m, n, float(err.max(initial=0.0)), int(fail.sum()),

@@ -17,22 +17,21 @@ import json
 import math
 import os
 import struct
-import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from . import flats as _flats
 from ._validate import as_array
 from .basis import Basis
 from .coordinates import AMBIGUOUS, NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL, SINGULAR
 from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
+from .flats import Flats
 from .triangulation import Triangulation
 
-__all__ = ["Field", "AddResult", "PreparedBatch", "QueryResult"]
+__all__ = ["Field", "AddResult", "Chart", "PreparedBatch", "QueryResult"]
 
 _MAGIC = b"FSFIELD\x00"
 _VERSION = 1
@@ -105,7 +104,7 @@ class PreparedBatch:
 
 @dataclass(frozen=True)
 class QueryResult:
-    """Outcome of :meth:`Field.query`.
+    """Outcome of :meth:`Field.query` (and of the HTTP client's queries).
 
     Attributes
     ----------
@@ -115,8 +114,9 @@ class QueryResult:
     inside : (q,) bool
         The query's coordinates round-trip and lie inside the convex hull of
         the samples.
-    status : (q,) int8
-        Coordinate status per query (:data:`flatserve.coordinates.OK`, ...).
+    status : (q,) int8 or None
+        Coordinate status per query (:data:`flatserve.coordinates.OK`, ...);
+        None where an HTTP response did not carry it (the client's ``.npy`` path).
     ids : (q, D+1) int64 or None
         Sample ids of the simplex's vertices (−1 for none), if requested.
     weights : (q, D+1) float64 or None
@@ -130,8 +130,61 @@ class QueryResult:
     weights: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class Chart:
+    """Flats expressed in a field's chart: :meth:`Field.chart`.
+
+    Attributes
+    ----------
+    status : (n,) int8
+        Coordinate status per flat (:data:`flatserve.coordinates.OK`, ...).
+    points : (a, D) float64
+        Embedded coordinates (paper Sec. 5) of the flats whose status is OK,
+        in their order (``a`` = number of OK rows, ``D = m - 1``).
+    residual : (n,) float64
+        Round-trip residual per flat (NaN where none was computed).
+    seconds : float
+        Time taken to chart.
+    """
+
+    status: np.ndarray
+    points: np.ndarray
+    residual: np.ndarray
+    seconds: float = 0.0
+
+    @property
+    def ok(self) -> np.ndarray:
+        """(n,) bool: the coordinates round-trip (status OK)."""
+        return self.status == OK
+
+    def __len__(self) -> int:
+        return int(self.status.shape[0])
+
+    def take(self, rows: np.ndarray) -> "Chart":
+        """The chart of the flats at ``rows`` (an index array), in that order."""
+        rows = np.asarray(rows)
+        ok = self.ok
+        rank = np.cumsum(ok) - 1
+        keep = ok[rows]
+        return Chart(self.status[rows], self.points[rank[rows[keep]]], self.residual[rows],
+                     self.seconds)
+
+
 class Field:
     """Values sampled on k-flats in R^d, interpolated piecewise linearly.
+
+    The one place where flats become interpolated values: :meth:`chart`
+    (flats to embedded coordinates), :meth:`prepare` + :meth:`insert_prepared`
+    (= :meth:`add`), :meth:`query`. Flats are given as a
+    :class:`~flatserve.flats.Flats` batch (any form: rays, parametric,
+    quadrics); :meth:`add_rays` and :meth:`query_rays` are one-line
+    conveniences for lines.
+
+    Thread safety (as scipy.spatial): any number of threads may call the
+    readers (:meth:`chart`, :meth:`query`, :meth:`prepare`, :meth:`save`) at
+    once, but a writer (:meth:`insert_prepared`, :meth:`add`) must not run
+    beside any other call. The service guards each field with one
+    readers/writer lock.
 
     Parameters
     ----------
@@ -151,7 +204,7 @@ class Field:
     >>> rng = np.random.default_rng(0)
     >>> eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (2000, 3))
     >>> screen = np.c_[rng.uniform(-1, 1, (2000, 2)), np.zeros(2000)]
-    >>> res = field.add_rays(eyes, screen - eyes, screen[:, :1])
+    >>> res = field.add(flatserve.Flats.from_rays(eyes, screen - eyes), screen[:, :1])
     >>> out = field.query_rays(eyes[:5], screen[:5] - eyes[:5])
     """
 
@@ -167,7 +220,6 @@ class Field:
         self.roundtrip_tol = float(roundtrip_tol)
         self._tri = Triangulation(basis.m - 1)
         self._nrejected = 0
-        self._lock = threading.Lock()  # serialises writers; the triangulation guards readers
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -188,8 +240,6 @@ class Field:
         """Distinct samples stored (= vertices of the triangulation)."""
         return self._tri.npoints
 
-    nvertices = nsamples
-
     @property
     def nsimplex(self) -> int:
         return self._tri.nsimplex
@@ -200,185 +250,186 @@ class Field:
         return self._nrejected
 
     @property
+    def points(self) -> np.ndarray:
+        """(nsamples, D) embedded coordinates of the samples, in sample-id order."""
+        return self._tri.points
+
+    @property
+    def values(self) -> np.ndarray:
+        """(nsamples, C) values of the samples, in sample-id order."""
+        v = self._tri.values
+        return np.empty((0, self.channels)) if v is None else v
+
+    @property
     def triangulation(self) -> Triangulation:
+        """The Delaunay triangulation of the samples' embedded coordinates (read only)."""
         return self._tri
 
-    # ------------------------------------------------------------ internals
-    def _check_flats(self, Q, r):
-        Q = as_array(Q, "Q", (None, self.d, self.d))
-        r = as_array(r, "r", (Q.shape[0], self.d))
-        return Q, r
+    # ------------------------------------------------------------ charting
+    def _flats(self, flats) -> Flats:
+        if not isinstance(flats, Flats):
+            raise InvalidInputError(
+                f"flats: expected a flatserve.Flats batch, got {type(flats).__name__}", "flats")
+        if flats.k != self.k or flats.d != self.d:
+            arg = next(iter(flats.arrays))
+            raise InvalidInputError(f"{arg}: this field holds {self.k}-flats in R^{self.d}, got "
+                                    f"{flats.k}-flats in R^{flats.d}", arg)
+        return flats
 
+    def chart(self, flats: Flats, *, threads: int | None = None) -> Chart:
+        """Express flats in the field's chart: coordinates (Sec. 4) and embedding (Sec. 5).
+
+        Parameters
+        ----------
+        flats : Flats
+            ``n`` k-flats in R^d.
+        threads : int, optional
+            Threads of the native coordinates kernel; results do not depend on it.
+
+        Returns
+        -------
+        Chart
+            Status per flat and the embedded points of those that round-trip.
+
+        Examples
+        --------
+        >>> import flatserve
+        >>> f = flatserve.Field(flatserve.Basis.around_axis())
+        >>> c = f.chart(flatserve.Flats.from_rays([[0, 0, -3.0]], [[0.1, 0, 1.0]]))
+        >>> c.points.shape, bool(c.ok[0])
+        ((1, 4), True)
+        """
+        import time
+
+        t0 = time.perf_counter()
+        coords = self.basis.coordinates_of(self._flats(flats), self.roundtrip_tol, threads=threads)
+        status = np.asarray(coords.status, dtype=np.int8)
+        ok = status == OK
+        if ok.all():  # no masked copy of the weights
+            x = embed(coords.weights) if ok.size else np.empty((0, self.ndim))
+        else:
+            x = embed(coords.weights[ok]) if ok.any() else np.empty((0, self.ndim))
+        return Chart(status, np.ascontiguousarray(x), np.asarray(coords.residual),
+                     time.perf_counter() - t0)
+
+    # --------------------------------------------------------------- writers
     def _values(self, values, n: int) -> np.ndarray:
         v = np.asarray(values)
         if v.ndim == 1 and self.channels == 1:
             v = v[:, None]
         return as_array(v, "values", (n, self.channels))
 
-    def _chart(self, Q=None, r=None, *, rays=None):
-        """Coordinates, status and embedded points of flats (rows).
-
-        ``rays=(origins, directions)`` takes the lines' fast path (no Q built).
-        """
-        if rays is not None:
-            coords = self.basis.coordinates_rays(*rays, roundtrip_tol=self.roundtrip_tol)
-        else:
-            coords = self.basis.coordinates(Q, r, roundtrip_tol=self.roundtrip_tol, check=False)
-        status = np.asarray(coords.status, dtype=np.int8)
-        ok = status == OK
-        x = embed(coords.weights[ok]) if ok.any() else np.empty((0, self.ndim))
-        return status, ok, x, coords
-
-    # --------------------------------------------------------------- writers
-    def prepare(self, Q, r, values, *, defer: bool = False
+    def prepare(self, flats: Flats, values, *, defer: bool = False
                 ) -> "PreparedBatch | Callable[[], PreparedBatch]":
-        """First half of :meth:`add`: validate and chart a batch, without inserting.
+        """First half of :meth:`add`: chart a batch and decide its rows, without inserting.
 
         Computes the coordinates (paper Sec. 4) and their embedding, and decides
         which rows are accepted and why the others are not. Reads only the
-        basis, so it needs no lock and may run while the field is queried or
-        written. :meth:`insert_prepared` completes it. (The service uses the
-        split to acknowledge an upload before the slower Delaunay insert.)
+        basis, so it may run while the field is queried or written.
+        :meth:`insert_prepared` completes it. (The service uses the split to
+        acknowledge an upload before the slower Delaunay insert.)
 
         Parameters
         ----------
-        Q : (n, d, d) float
-            Flats' quadrics (paper Eq. 3); (C1) must hold.
-        r : (n, d) float
-            Flats' offsets; (C2) must hold.
+        flats : Flats
+            ``n`` k-flats in R^d (validated when built).
         values : (n, C) float, or (n,) when C == 1
         defer : bool
             Validate now (raising :class:`~flatserve.errors.InvalidInputError`
-            for bad input) but return a zero-argument callable that computes
-            the coordinates when called. Once validation has passed, charting
-            cannot reject the batch as a whole: every row gets a status. (The
-            service commits the batch durably while the coordinates are
-            computed.)
+            for bad input) but return a zero-argument callable that charts
+            when called. Once validation has passed, charting cannot reject
+            the batch as a whole: every row gets a status.
 
         Returns
         -------
         PreparedBatch, or a callable returning one when ``defer``
         """
-        Q, r = self._check_flats(Q, r)
-        _flats.validate(Q, r, self.k)
-        return self._prepare(self._values(values, Q.shape[0]), defer, Q=Q, r=r)
-
-    def prepare_parametric(self, A, b, values, *, defer: bool = False
-                           ) -> "PreparedBatch | Callable[[], PreparedBatch]":
-        """:meth:`prepare` for flats in parametric form, A (n, d, k) and b (n, d)."""
-        Q, r = _flats.from_parametric(A, b)
-        return self.prepare(Q, r, values, defer=defer)
-
-    def prepare_rays(self, origins, directions, values, *, defer: bool = False
-                     ) -> "PreparedBatch | Callable[[], PreparedBatch]":
-        """:meth:`prepare` for lines (k = 1): origins, directions (n, d); values (n, C)."""
-        self._require_lines()
-        o, v, _ = _flats._check_rays(origins, directions)
-        return self._prepare(self._values(values, o.shape[0]), defer, rays=(o, v))
-
-    def _prepare(self, values, defer: bool = False, **chart):
+        flats = self._flats(flats)
+        values = self._values(values, flats.n)
         if defer:
-            return functools.partial(self._prepare, values, False, **chart)
-        status, ok, x, coords = self._chart(**chart)
+            return functools.partial(self._prepare, flats, values)
+        return self._prepare(flats, values)
+
+    def _prepare(self, flats: Flats, values: np.ndarray) -> "PreparedBatch":
+        ch = self.chart(flats)
+        ok = ch.ok
         rejected = np.flatnonzero(~ok).astype(np.int64)
         return PreparedBatch(
-            nrows=int(status.shape[0]),
-            x=np.ascontiguousarray(x),
+            nrows=len(ch),
+            x=ch.points,
             values=np.ascontiguousarray(values[ok]),
             rejected=rejected,
-            reasons=self._reasons(status, coords, rejected),
+            reasons=self._reasons(ch, rejected),
         )
 
     def insert_prepared(self, batch: "PreparedBatch") -> AddResult:
-        """Second half of :meth:`add`: insert a :meth:`prepare`-d batch.
-
-        The whole batch is inserted under the triangulation's write lock, so a
-        concurrent query sees all of it or none of it.
-        """
+        """Second half of :meth:`add`: insert a :meth:`prepare`-d batch (a writer)."""
         if not isinstance(batch, PreparedBatch) or batch.x.shape[1:] != (self.ndim,) or (
             batch.values.shape[1:] != (self.channels,)
         ):
             raise InvalidInputError("batch: expected a PreparedBatch made by this field", "batch")
-        with self._lock:
-            duplicates = 0
-            if batch.accepted:
-                duplicates = int(self._tri.insert(batch.x, batch.values).n_duplicates)
-            self._nrejected += int(batch.rejected.size)
-            return AddResult(
-                accepted=batch.accepted,
-                rejected=batch.rejected,
-                reasons=batch.reasons,
-                duplicates=duplicates,
-                nsamples=self.nsamples,
-            )
+        duplicates = 0
+        if batch.accepted:
+            duplicates = int(self._tri.insert(batch.x, batch.values).n_duplicates)
+        self._nrejected += int(batch.rejected.size)
+        return AddResult(
+            accepted=batch.accepted,
+            rejected=batch.rejected,
+            reasons=batch.reasons,
+            duplicates=duplicates,
+            nsamples=self.nsamples,
+        )
 
-    def add(self, Q, r, values) -> AddResult:
-        """Add samples given as flats (Q, r) with their values.
+    def add(self, flats: Flats, values) -> AddResult:
+        """Add samples: flats with their values (a writer).
 
         Rows whose coordinates do not round-trip are rejected with a reason
         (they lie outside the chart the basis spans); the others are embedded
-        and inserted. Equivalent to ``insert_prepared(prepare(Q, r, values))``.
+        and inserted. Equivalent to ``insert_prepared(prepare(flats, values))``.
 
         Parameters
         ----------
-        Q : (n, d, d) float
-            Flats' quadrics (paper Eq. 3); (C1) must hold.
-        r : (n, d) float
-            Flats' offsets; (C2) must hold.
+        flats : Flats
+            ``n`` k-flats in R^d, any form.
         values : (n, C) float, or (n,) when C == 1
 
         Returns
         -------
         AddResult
         """
-        return self.insert_prepared(self.prepare(Q, r, values))
-
-    def add_parametric(self, A, b, values) -> AddResult:
-        """Add samples given in parametric form; see :func:`flatserve.flats.from_parametric`."""
-        return self.insert_prepared(self.prepare_parametric(A, b, values))
+        return self.insert_prepared(self.prepare(flats, values))
 
     def add_rays(self, origins, directions, values) -> AddResult:
-        """Add samples on lines (k = 1) through ``origins`` along ``directions``.
+        """``add(Flats.from_rays(origins, directions), values)``: lines, (n, d) each."""
+        return self.add(Flats.from_rays(origins, directions), values)
 
-        Parameters
-        ----------
-        origins, directions : (n, d) float
-        values : (n, C) float, or (n,) when C == 1
-        """
-        return self.insert_prepared(self.prepare_rays(origins, directions, values))
-
-    def _reasons(self, status: np.ndarray, coords, rows: np.ndarray) -> list[str]:
+    def _reasons(self, chart: Chart, rows: np.ndarray) -> list[str]:
         """One human-readable reason per rejected row (``rows`` index the batch)."""
         tol = f"{self.roundtrip_tol:.3g}"
-        resid = getattr(coords, "residual", None)
-        res = resid[rows].tolist() if resid is not None else [math.nan] * rows.size
+        res = chart.residual[rows].tolist()
         return [
             _REASONS.get(st, f"status {st}")
             + (f" (residual {r:.3g}, tolerance {tol})" if math.isfinite(r) else "")
-            for st, r in zip(status[rows].tolist(), res)
+            for st, r in zip(chart.status[rows].tolist(), res)
         ]
-
-    def _require_lines(self):
-        if self.k != 1:
-            raise InvalidInputError(f"rays are lines (k=1) but this field holds {self.k}-flats", "origins")
 
     # --------------------------------------------------------------- readers
     def query(
         self,
-        Q,
-        r,
+        flats: "Flats | Chart",
         *,
         outside: str = "nan",
         order: str = "hilbert",
         threads: int | None = None,
         return_weights: bool = False,
     ) -> QueryResult:
-        """Interpolate the field at flats (Q, r).
+        """Interpolate the field at flats.
 
         Parameters
         ----------
-        Q : (q, d, d) float
-        r : (q, d) float
+        flats : Flats or Chart
+            ``q`` k-flats in R^d, or their :meth:`chart` (computed once, e.g.
+            to reorder it with :meth:`Chart.take`).
         outside : {"nan", "clamp"}
             Value for queries outside the samples' convex hull; see
             :meth:`flatserve.Triangulation.interpolate`. Queries whose
@@ -386,18 +437,22 @@ class Field:
         order : {"hilbert", "given"}
             Walk order; "given" keeps the caller's (coherent) order.
         threads : int, optional
-            Threads for locate/interpolate (default all cores).
+            Threads for coordinates and locate/interpolate (default all cores).
         return_weights : bool
             Also return the simplex's sample ids and barycentric weights.
-        """
-        Q, r = self._check_flats(Q, r)
-        _flats.validate(Q, r, self.k)
-        return self._query(Q.shape[0], dict(Q=Q, r=r), outside, order, threads, return_weights)
 
-    def _query(self, n, chart, outside, order, threads, return_weights) -> QueryResult:
+        Returns
+        -------
+        QueryResult
+        """
         if outside not in ("nan", "clamp"):
             raise InvalidInputError(f"outside: expected 'nan' or 'clamp', got {outside!r}", "outside")
-        status, ok, x, _ = self._chart(**chart)
+        ch = flats if isinstance(flats, Chart) else self.chart(flats, threads=threads)
+        if ch.points.shape[1:] != (self.ndim,):
+            raise InvalidInputError(f"flats: a chart of dimension {self.ndim} expected", "flats")
+        n = len(ch)
+        ok = ch.ok
+        allok = bool(ok.all())
         values = np.full((n, self.channels), np.nan)
         inside = np.zeros(n, dtype=bool)
         ids = weights = None
@@ -405,38 +460,22 @@ class Field:
             D = self.ndim
             ids = np.full((n, D + 1), -1, dtype=np.int64)
             weights = np.full((n, D + 1), np.nan)
-        if ok.any() and self._tri.npoints > 0:
-            v, ins = self._tri.interpolate(x, outside=outside, order=order, threads=threads)
-            values[ok] = v
-            inside[ok] = ins
+        if ch.points.shape[0] and self._tri.npoints > 0:
+            v, ins = self._tri.interpolate(ch.points, outside=outside, order=order, threads=threads)
+            if allok:  # no scatter
+                values, inside = v, ins
+            else:
+                values[ok] = v
+                inside[ok] = ins
             if return_weights:
-                loc = self._tri.locate(x, order=order, threads=threads)
+                loc = self._tri.locate(ch.points, order=order, threads=threads)
                 ids[ok] = loc.ids
                 weights[ok] = loc.weights
-        return QueryResult(values=values, inside=inside, status=status, ids=ids, weights=weights)
+        return QueryResult(values=values, inside=inside, status=ch.status, ids=ids, weights=weights)
 
-    def query_parametric(self, A, b, **kwargs) -> QueryResult:
-        """:meth:`query` for flats in parametric form (A, b)."""
-        Q, r = _flats.from_parametric(A, b)
-        return self.query(Q, r, **kwargs)
-
-    def query_rays(
-        self,
-        origins,
-        directions,
-        *,
-        outside: str = "nan",
-        order: str = "hilbert",
-        threads: int | None = None,
-        return_weights: bool = False,
-    ) -> QueryResult:
-        """:meth:`query` for lines through ``origins`` along ``directions``, (q, d) each.
-
-        Takes the lines' fast coordinate path (no (Q, r) is built).
-        """
-        self._require_lines()
-        o, v, _ = _flats._check_rays(origins, directions)
-        return self._query(o.shape[0], dict(rays=(o, v)), outside, order, threads, return_weights)
+    def query_rays(self, origins, directions, **kwargs) -> QueryResult:
+        """``query(Flats.from_rays(origins, directions), **kwargs)``: lines, (q, d) each."""
+        return self.query(Flats.from_rays(origins, directions), **kwargs)
 
     # ----------------------------------------------------------- persistence
     def _metadata(self) -> dict:
@@ -458,11 +497,10 @@ class Field:
         metadata as JSON (basis, channels, counters), then the native
         triangulation snapshot (see :meth:`flatserve.Triangulation.save`).
         Not atomic by itself: the service writes to a temporary file and
-        renames it.
+        renames it. A reader: may run beside queries, not beside a writer.
         """
         meta = json.dumps(self._metadata()).encode()
-        with self._lock:
-            payload = self._tri.to_bytes()
+        payload = self._tri.to_bytes()
         with open(path, "wb") as fh:
             fh.write(_HEADER.pack(_MAGIC, _VERSION, len(meta)))
             fh.write(meta)

@@ -55,6 +55,11 @@ __all__ = [
     "validate",
     "project",
     "affine_combination",
+    "basis_size",
+    "FORMS",
+    "form_shapes",
+    "infer_form",
+    "Flats",
 ]
 
 #: Absolute tolerance of :func:`validate` for (C1) (``|Q - Q^T|``, ``|Q Q - Q|``,
@@ -277,7 +282,7 @@ def from_normal(N, c):
     return Q, r
 
 
-def _check_rays(origins, directions):
+def check_rays(origins, directions):
     """Validate rays; returns (origins (n,d), directions (n,d), |directions| (n,))."""
     o = as_array(origins, "origins", ("n", None))
     d = o.shape[1]
@@ -324,7 +329,7 @@ def from_rays(origins, directions):
     >>> r
     array([[1., 2., 0.]])
     """
-    o, v, norm = _check_rays(origins, directions)
+    o, v, norm = check_rays(origins, directions)
     d = o.shape[1]
     a = v / norm[:, None]
     Q = np.eye(d) - a[:, :, None] * a[:, None, :]
@@ -506,7 +511,9 @@ def validate(Q, r, k, tol: float = FLAT_TOL):
 # ------------------------------------------------------------------------ projection
 
 
-def _project_unchecked(Qs, rs, k, gap_tol):
+def project_unchecked(Qs, rs, k, gap_tol: float = GAP_TOL) -> Projection:
+    """:func:`project` without input checks, for arrays already validated
+    (symmetric ``Qs`` (n, d, d), ``rs`` (n, d), ``0 <= k < d``)."""
     lam, V = np.linalg.eigh(Qs)
     if k == 0:
         gap = lam[:, 0].copy()
@@ -557,7 +564,7 @@ def project(Qs, rs, k, gap_tol: float = GAP_TOL) -> Projection:
     """
     Qs, rs = _as_flats(Qs, rs, "Qs", "rs")
     k = check_k(k, Qs.shape[1])
-    return _project_unchecked(Qs, rs, k, gap_tol)
+    return project_unchecked(Qs, rs, k, gap_tol)
 
 
 def _check_weights(weights, m):
@@ -612,4 +619,242 @@ def affine_combination(weights, Q, r, k, gap_tol: float = GAP_TOL) -> Projection
     w = _check_weights(weights, Q.shape[0])
     Qs = np.einsum("nl,lij->nij", w, Q)
     rs = w @ r
-    return _project_unchecked(Qs, rs, k, gap_tol)
+    return project_unchecked(Qs, rs, k, gap_tol)
+
+
+# ------------------------------------------------------------------- sizes and batches
+
+
+def basis_size(k: int, d: int) -> int:
+    """Elements of a full basis of k-flats in R^d: ``m = (k+1)(d-k) + 1``.
+
+    The manifold of k-flats in R^d has dimension ``(k+1)(d-k)`` (paper Sec. 3):
+    a full basis (and the coordinate system of Fig. 8, one row per equation)
+    has one more element; the triangulation of embedded coordinates has
+    dimension ``m - 1``.
+
+    Examples
+    --------
+    >>> basis_size(1, 3)          # lines in R^3: 5 basis lines, 4-D triangulation
+    5
+    """
+    return (k + 1) * (d - k) + 1
+
+
+#: The three forms a batch of flats can take, with the names of their arrays in
+#: binary column order: rays (lines through an origin along a direction, k = 1),
+#: parametric ``{A y + b}`` and the quadrics ``(Q, r)`` of Eq. 3.
+FORMS: dict[str, tuple[str, str]] = {
+    "rays": ("origins", "directions"),
+    "parametric": ("A", "b"),
+    "flats": ("Q", "r"),
+}
+
+
+def form_shapes(form: str, k: int, d: int) -> dict[str, tuple]:
+    """Shapes of the arrays of ``form`` for k-flats in R^d (``"n"``: the rows).
+
+    Raises
+    ------
+    InvalidInputError
+        ``"form"`` for an unknown form, or rays when ``k != 1``.
+    """
+    if form == "rays":
+        if k != 1:
+            raise InvalidInputError(f"form: rays are lines (k = 1); these flats have k = {k}",
+                                    "form")
+        return {"origins": ("n", d), "directions": ("n", d)}
+    if form == "parametric":
+        return {"A": ("n", d, k), "b": ("n", d)}
+    if form == "flats":
+        return {"Q": ("n", d, d), "r": ("n", d)}
+    raise InvalidInputError(f"form: one of {tuple(FORMS)}, got {form!r}", "form")
+
+
+def infer_form(names) -> str | None:
+    """The form whose array names occur in ``names`` (None when none does).
+
+    Raises
+    ------
+    InvalidInputError
+        When arrays of two forms are given (``"origins"`` and ``"Q"``, ...).
+    """
+    given = [f for f, arrs in FORMS.items() if any(a in names for a in arrs)]
+    if len(given) > 1:
+        raise InvalidInputError(
+            "body: arrays of several forms given ("
+            + " and ".join("+".join(FORMS[f]) for f in given) + "); give one", "body")
+    return given[0] if given else None
+
+
+class Flats:
+    """An immutable batch of ``n`` k-flats in R^d, in one of three forms.
+
+    The one type for "flats as input": :class:`flatserve.Field`, the service's
+    codec and schemas and the client all take it. It is validated once when
+    built; its arrays are read-only. ``(Q, r)`` is computed from the other forms
+    on first use (rays keep their own fast coordinate path, so a ray batch
+    never needs it).
+
+    Parameters are given through the constructors :meth:`from_rays`,
+    :meth:`from_parametric`, :meth:`from_quadrics` and :meth:`from_arrays`.
+
+    Attributes
+    ----------
+    form : {"rays", "parametric", "flats"}
+    k, d : int
+    arrays : dict of str to ndarray
+        The form's arrays by name (:data:`FORMS`), float64, C-contiguous,
+        read-only: ``origins``/``directions`` (n, d), ``A`` (n, d, k) / ``b``
+        (n, d), or ``Q`` (n, d, d) / ``r`` (n, d).
+
+    Examples
+    --------
+    >>> f = Flats.from_rays([[0.0, 0.0, -3.0]], [[0.0, 0.1, 1.0]])
+    >>> f.form, f.k, f.d, len(f)
+    ('rays', 1, 3, 1)
+    >>> Q, r = f.quadrics()
+    >>> Q.shape, r.shape
+    ((1, 3, 3), (1, 3))
+    """
+
+    __slots__ = ("form", "k", "d", "arrays", "_quadrics")
+
+    def __init__(self, form: str, k: int, d: int, arrays: dict, _quadrics=None):
+        # Private: use the from_* constructors (they validate).
+        self.form = form
+        self.k = k
+        self.d = d
+        for a in arrays.values():
+            a.setflags(write=False)
+        self.arrays = dict(arrays)
+        self._quadrics = _quadrics
+
+    # ------------------------------------------------------------ constructors
+    @classmethod
+    def from_rays(cls, origins, directions) -> "Flats":
+        """Lines through ``origins`` along ``directions`` (n, d) each; non-zero directions."""
+        o, v, _ = check_rays(origins, directions)
+        return cls("rays", 1, o.shape[1], {"origins": o, "directions": v})
+
+    @classmethod
+    def from_parametric(cls, A, b) -> "Flats":
+        """Flats ``{A y + b}``: A (n, d, k) of full column rank, b (n, d)."""
+        Q, r = from_parametric(A, b)  # validates (rank, shapes, NaN)
+        A = as_array(A, "A", ("n", None, None))
+        b = as_array(b, "b", (A.shape[0], A.shape[1]))
+        return cls("parametric", A.shape[2], A.shape[1], {"A": A, "b": b}, (Q, r))
+
+    @classmethod
+    def from_quadrics(cls, Q, r, k, tol: float = FLAT_TOL) -> "Flats":
+        """Flats as ``(Q (n, d, d), r (n, d))``; (C1) and (C2) are checked with ``tol``."""
+        Q, r = validate(Q, r, k, tol)
+        return cls("flats", int(k), Q.shape[1], {"Q": Q, "r": r}, (Q, r))
+
+    @classmethod
+    def from_arrays(cls, arrays, *, k: int, d: int, form: str | None = None,
+                    prefix: str = "", min_rows: int = 0) -> "Flats":
+        """Flats from named arrays of any form (a JSON object, an ``.npz``, ...).
+
+        Parameters
+        ----------
+        arrays : mapping of str to array_like
+            ``origins`` + ``directions``, ``A`` + ``b`` or ``Q`` + ``r``; other
+            names are ignored (the caller decides whether they are allowed).
+        k, d : int
+            What the flats must be.
+        form : str, optional
+            The form; default inferred from the names (:func:`infer_form`).
+        prefix : str
+            Prepended (with a dot) to the argument named in errors
+            (``"basis.center"`` makes ``"basis.center.Q"``).
+        min_rows : int
+            Fewest rows accepted.
+
+        Raises
+        ------
+        InvalidInputError
+            Naming the array (with ``prefix``): missing, wrong shape, NaN,
+            unequal rows, invalid flats; or several forms given at once.
+        """
+        if form is None:
+            form = infer_form(arrays)
+            if form is None:
+                raise InvalidInputError(
+                    f"{prefix or 'body'}: give origins+directions (rays), A+b (parametric) "
+                    "or Q+r (flats)", prefix or "body")
+        try:
+            shapes = form_shapes(form, k, d)
+        except InvalidInputError as exc:
+            if not prefix:
+                raise
+            first = FORMS.get(form, ("form",))[0]
+            raise InvalidInputError(f"{prefix}.{exc}", _join(prefix, first)) from None
+        got = {}
+        for name, shape in shapes.items():
+            x = arrays.get(name)
+            if x is None:
+                raise InvalidInputError(_join(prefix, f"{name}: missing (form {form!r} needs "
+                                        f"{list(shapes)})"), _join(prefix, name))
+            if isinstance(x, list) and not x and min_rows:  # [] has no shape to check
+                raise InvalidInputError(_join(prefix, f"{name}: expected at least one row, got 0"),
+                                        _join(prefix, name))
+            got[name] = as_array(x, _join(prefix, name), shape)
+        first, second = shapes
+        if got[first].shape[0] != got[second].shape[0]:
+            rows = {nm: a.shape[0] for nm, a in got.items()}
+            raise InvalidInputError(_join(prefix, f"rows differ between arrays: {rows}"),
+                                    _join(prefix, second))
+        if got[first].shape[0] < min_rows:
+            want = "one row" if min_rows == 1 else f"{min_rows} rows"
+            raise InvalidInputError(
+                _join(prefix, f"{first}: expected at least {want}, got {got[first].shape[0]}"),
+                _join(prefix, first))
+        try:
+            if form == "rays":
+                return cls.from_rays(got["origins"], got["directions"])
+            if form == "parametric":
+                return cls.from_parametric(got["A"], got["b"])
+            return cls.from_quadrics(got["Q"], got["r"], k)
+        except InvalidInputError as exc:
+            if not prefix:
+                raise
+            raise type(exc)(f"{prefix}.{exc}", _join(prefix, exc.argument or "")) from None
+
+    # ------------------------------------------------------------------ views
+    @property
+    def n(self) -> int:
+        """Number of flats (rows)."""
+        return int(next(iter(self.arrays.values())).shape[0])
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def shapes(self) -> dict[str, tuple[int, ...]]:
+        """Shapes of :attr:`arrays` by name."""
+        return {name: a.shape for name, a in self.arrays.items()}
+
+    def quadrics(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(Q (n, d, d), r (n, d))`` of the flats (Eq. 3), computed once."""
+        if self._quadrics is None:
+            o, v = self.arrays["origins"], self.arrays["directions"]
+            Q, r = from_rays(o, v)
+            Q.setflags(write=False)
+            r.setflags(write=False)
+            self._quadrics = (Q, r)
+        return self._quadrics
+
+    def take(self, rows) -> "Flats":
+        """The flats at ``rows`` (an index array or slice), same form."""
+        q = self._quadrics
+        return Flats(self.form, self.k, self.d,
+                     {nm: np.ascontiguousarray(a[rows]) for nm, a in self.arrays.items()},
+                     None if q is None else (q[0][rows], q[1][rows]))
+
+    def __repr__(self) -> str:
+        return f"Flats(form={self.form!r}, k={self.k}, d={self.d}, n={self.n})"
+
+
+def _join(prefix: str, text: str, sep: str = ".") -> str:
+    return f"{prefix}{sep}{text}" if prefix else text

@@ -46,7 +46,7 @@ def test_affine_function_of_the_chart_is_reproduced(basis):
     c = rng.normal(size=(x.shape[1], 2))
     vals = x @ c + np.array([0.5, -1.0])
     field = Field(basis, channels=2)
-    field.add(Q, r, vals)
+    field.add(flatserve.Flats.from_quadrics(Q, r, 1), vals)
 
     qo, qd = paper_rays(rng, 2000)
     out = field.query_rays(qo, qd)
@@ -136,11 +136,11 @@ def test_deferred_prepare_validates_now_and_charts_later(basis):
     field = Field(basis, channels=2)
     Q, r = flats.from_rays(o, v)
     A = v / np.linalg.norm(v, axis=1, keepdims=True)
-    calls = [(field.prepare_rays, (o, v)), (field.prepare, (Q, r)),
-             (field.prepare_parametric, (A[:, :, None], o))]
-    for fn, flat in calls:
-        now = fn(*flat, vals)
-        later = fn(*flat, vals, defer=True)
+    calls = [flats.Flats.from_rays(o, v), flats.Flats.from_quadrics(Q, r, 1),
+             flats.Flats.from_parametric(A[:, :, None], o)]
+    for batch in calls:
+        now = field.prepare(batch, vals)
+        later = field.prepare(batch, vals, defer=True)
         assert callable(later)
         got = later()
         assert got.rejected.size and got.reasons == now.reasons
@@ -150,8 +150,8 @@ def test_deferred_prepare_validates_now_and_charts_later(basis):
     bad = v.copy()
     bad[3] = 0.0
     with pytest.raises(InvalidInputError) as ei:
-        field.prepare_rays(o, bad, vals, defer=True)
+        field.prepare(flats.Flats.from_rays(o, bad), vals, defer=True)
     assert ei.value.argument == "directions"
     with pytest.raises(InvalidInputError) as ei:
-        field.prepare_rays(o, v, vals[:, :1], defer=True)
+        field.prepare(flats.Flats.from_rays(o, v), vals[:, :1], defer=True)
     assert ei.value.argument == "values"

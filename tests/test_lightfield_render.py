@@ -103,7 +103,7 @@ def test_baselines_on_the_same_samples(scene, sampled):
     nn = NearestEmbedded.from_field(field)
     assert nn.points.shape == (field.nsamples, field.ndim)
     frame = render_field(field, cam)
-    v_nn = nn(frame.chart.x)
+    v_nn = nn(frame.chart.points)
     err_nn = np.sqrt(np.mean((v_nn - truth[frame.chart.ok]) ** 2))
     spread = truth.std()
     assert err_tp < spread and err_nn < spread * 1.5
@@ -163,14 +163,15 @@ def test_render_serpentine_lookup_matches_scanline_lookup(sampled, cam):
     # render_field locates in serpentine order (odd fine lines reversed); the
     # per-ray answers must be those of a plain scanline lookup, in scanline
     # order, with or without rays outside the chart, for any thread count
-    from flatserve.lightfield.render import chart_points, frame_from_rays
+    from flatserve import Flats
+    from flatserve.lightfield.render import frame_from_rays
 
     _, _, field, _ = sampled
     o, d = cam.rays()
-    cp = chart_points(field, o, d)
+    cp = field.chart(Flats.from_rays(o, d))
     values = np.full((o.shape[0], field.channels), np.nan)
     inside = np.zeros(o.shape[0], dtype=bool)
-    v, ins = field.triangulation.interpolate(cp.x, outside="nan", order="hilbert")
+    v, ins = field.triangulation.interpolate(cp.points, outside="nan", order="hilbert")
     values[cp.ok], inside[cp.ok] = v, ins
     ref_img, ref_cov = frame_from_rays(cam, values, inside)
     for threads in (None, 1, 2):
@@ -179,7 +180,7 @@ def test_render_serpentine_lookup_matches_scanline_lookup(sampled, cam):
         np.testing.assert_allclose(fr.image, ref_img, atol=1e-12)
         np.testing.assert_array_equal(fr.covered, ref_cov)
         np.testing.assert_array_equal(fr.chart.ok, cp.ok)
-        assert fr.chart.x.tobytes() == cp.x.tobytes()
+        assert fr.chart.points.tobytes() == cp.points.tobytes()
 
 
 def test_frame_from_rays_all_valued_is_the_weighted_mean():

@@ -8,7 +8,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from flatserve.lightfield import Camera
-from flatserve.lightfield.demo import ensure_demo_field, viewer_url
+from flatserve.service.demo import ensure_demo_field, viewer_url
 from flatserve.lightfield.mesh import CGAL_DATA_TARBALL
 from flatserve.lightfield.quality import psnr
 from flatserve.lightfield.render import render_truth
@@ -116,7 +116,7 @@ def test_viewer_page_and_assets(client):
 
 
 def test_start_demo_field_in_the_background(client):
-    from flatserve.lightfield.demo import start_demo_field
+    from flatserve.service.demo import start_demo_field
 
     lines = []
     th = start_demo_field(client.app.state.registry, "127.0.0.1", 8000, name="bunny2", n=20,

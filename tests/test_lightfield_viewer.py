@@ -63,7 +63,7 @@ def free_port() -> int:
 def server(tmp_path_factory):
     import uvicorn
 
-    from flatserve.lightfield.demo import ensure_demo_field
+    from flatserve.service.demo import ensure_demo_field
     from flatserve.service import Settings, create_app
 
     port = free_port()

@@ -121,7 +121,7 @@ class NearestEmbedded:
     Parameters
     ----------
     points : (n, D) float
-        Embedded coordinates of the samples (e.g. ``field.triangulation.points``).
+        Embedded coordinates of the samples (e.g. ``field.points``).
     values : (n, C) float
 
     Attributes
@@ -142,8 +142,7 @@ class NearestEmbedded:
     @classmethod
     def from_field(cls, field) -> "NearestEmbedded":
         """The samples a :class:`flatserve.Field` triangulates."""
-        tri = field.triangulation
-        return cls(np.asarray(tri.points), np.asarray(tri.values))
+        return cls(field.points, field.values)
 
     def __call__(self, x, workers: int = -1) -> np.ndarray:
         """Values of the nearest samples to embedded query points ``x`` (q, D) -> (q, C)."""

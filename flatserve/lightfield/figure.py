@@ -202,7 +202,7 @@ def paper_figure(out, *, n: int = DEFAULT_N, seed: int = 0, width: int = 250, su
             t = time.perf_counter()
             cp = fr.chart  # the same chart coordinates the field used
             v = np.full((o.shape[0], channels), np.nan)
-            v[cp.ok] = nearest(cp.x)
+            v[cp.ok] = nearest(cp.points)
             img, cov = frame_from_rays(cam, v, cp.ok, scene.background)
             # nearest needs the coordinates too: charge it the same time
             methods["nearest"] = _Method(img, cov, time.perf_counter() - t + cp.seconds,

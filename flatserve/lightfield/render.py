@@ -22,12 +22,11 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
-from .. import flats as _flats
-from ..coordinates import OK
-from ..embedding import embed
+from ..field import Chart
+from ..flats import Flats
 from .camera import Camera
 
-__all__ = ["Frame", "ChartPoints", "chart_points", "render_field", "render_truth", "frame_from_rays"]
+__all__ = ["Frame", "render_field", "render_truth", "frame_from_rays"]
 
 
 @dataclass
@@ -45,15 +44,15 @@ class Frame:
         ``resolve``, or ``cast`` for ground truth).
     ray_inside : (H*s * W*s,) bool
         Per supersample ray: valued.
-    chart : ChartPoints or None
-        The rays' chart coordinates (field renders), for reuse by baselines.
+    chart : flatserve.Chart or None
+        The rays' chart (field renders, in raster order), for reuse by baselines.
     """
 
     image: np.ndarray
     covered: np.ndarray
     timings: dict = dc_field(default_factory=dict)
     ray_inside: np.ndarray | None = None
-    chart: "ChartPoints | None" = None
+    chart: "Chart | None" = None
 
     @property
     def coverage(self) -> float:
@@ -69,56 +68,6 @@ class Frame:
     def seconds(self) -> float:
         """Total of :attr:`timings`."""
         return float(sum(self.timings.values()))
-
-
-@dataclass
-class ChartPoints:
-    """Rays expressed in a field's chart.
-
-    Attributes
-    ----------
-    ok : (n,) bool
-        Coordinates round-trip (status OK).
-    x : (n_ok, m-1) float64
-        Embedded coordinates of the OK rays, in their order.
-    seconds : float
-        Time taken.
-    """
-
-    ok: np.ndarray
-    x: np.ndarray
-    seconds: float
-
-
-def chart_points(field, origins, directions, threads: int | None = None) -> ChartPoints:
-    """Embedded basis coordinates of rays (the paper's Sec. 5 pipeline, no lookup).
-
-    Parameters
-    ----------
-    field : flatserve.Field
-        Its basis and round-trip tolerance are used.
-    origins, directions : (n, 3) float
-    threads : int, optional
-        Threads of the native coordinates kernel (default: all cores for big
-        batches); results do not depend on it.
-
-    Returns
-    -------
-    ChartPoints
-    """
-    t0 = time.perf_counter()
-    fast = getattr(field.basis, "coordinates_rays", None)
-    if fast is not None:  # the math module's batched path for lines in R^3
-        coords = fast(origins, directions, roundtrip_tol=field.roundtrip_tol, threads=threads)
-    else:
-        Q, r = _flats.from_rays(origins, directions)
-        coords = field.basis.coordinates(Q, r, roundtrip_tol=field.roundtrip_tol)
-    ok = np.asarray(coords.status) == OK
-    if ok.all():  # no masked copy of the weights
-        x = embed(coords.weights) if ok.size else np.empty((0, field.ndim))
-    else:
-        x = embed(coords.weights[ok]) if ok.any() else np.empty((0, field.ndim))
-    return ChartPoints(ok=ok, x=x, seconds=time.perf_counter() - t0)
 
 
 def frame_from_rays(camera: Camera, values: np.ndarray, inside: np.ndarray, fill=0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -171,33 +120,18 @@ def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None)
     t0 = time.perf_counter()
     o, d = camera.rays()
     t_rays = time.perf_counter() - t0
-    cp = chart_points(field, o, d, threads=threads)
+    chart = field.chart(Flats.from_rays(o, d), threads=threads)
     t1 = time.perf_counter()
-    n = o.shape[0]
-    if cp.ok.all() and field.nsamples > 0:  # the common case: no scatter needed
-        width = camera.width * camera.side
-        v, inside = field.triangulation.interpolate(
-            _serpentine(cp.x, width), outside="nan", order="given", threads=threads)
-        values, inside = _serpentine(v, width), _serpentine(inside, width)
-    else:
-        values = np.full((n, field.channels), np.nan)
-        inside = np.zeros(n, dtype=bool)
-        if cp.ok.any() and field.nsamples > 0:
-            idx = _serpentine_ok(cp.ok, camera.width * camera.side)
-            v, ins = field.triangulation.interpolate(cp.x[idx], outside="nan", order="given",
-                                                     threads=threads)
-            vo = np.empty_like(v)
-            vo[idx] = v
-            io = np.empty_like(ins)
-            io[idx] = ins
-            values[cp.ok] = vo
-            inside[cp.ok] = io
+    # located in serpentine order (each walk starts at the previous ray's answer)
+    snake = _serpentine(np.arange(o.shape[0]), camera.width * camera.side)
+    res = field.query(chart.take(snake), order="given", threads=threads)
+    values, inside = res.values[snake], res.inside[snake]  # the permutation is its own inverse
     t2 = time.perf_counter()
     img, covered = frame_from_rays(camera, values, inside, fill)
     t3 = time.perf_counter()
-    return Frame(img, covered, {"rays": t_rays, "coordinates": cp.seconds,
+    return Frame(img, covered, {"rays": t_rays, "coordinates": chart.seconds,
                                 "locate_interpolate": t2 - t1, "resolve": t3 - t2}, ray_inside=inside,
-                 chart=cp)
+                 chart=chart)
 
 
 def _serpentine(a: np.ndarray, width: int) -> np.ndarray:
@@ -211,12 +145,6 @@ def _serpentine(a: np.ndarray, width: int) -> np.ndarray:
     r = a.reshape((a.shape[0] // width, width) + a.shape[1:]).copy()
     r[1::2] = r[1::2, ::-1]
     return r.reshape(a.shape)
-
-
-def _serpentine_ok(ok: np.ndarray, width: int) -> np.ndarray:
-    """Indices into ``x = X[ok]`` visiting the kept rows in serpentine order."""
-    rank = np.cumsum(ok) - 1
-    return _serpentine(rank, width)[_serpentine(ok, width)]
 
 
 def render_truth(scene, camera: Camera) -> Frame:

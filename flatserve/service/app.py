@@ -28,22 +28,51 @@ for small requests. Uploads are acknowledged only once durably stored.
 
 
 class BodyLimitMiddleware:
-    """413 before reading anything when Content-Length exceeds the limit."""
+    """The one body-size limit, for every route: 413 before reading anything when
+    ``Content-Length`` exceeds it, and as soon as the bytes received pass it
+    (chunked bodies have no length): ``receive`` is wrapped to count them and
+    raises :class:`~.errors.BodyTooLargeError`, which every reader of the body
+    turns into a 413."""
 
     def __init__(self, app, limit: int):
         self.app = app
         self.limit = limit
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] == "http":
-            for k, v in scope.get("headers", ()):
-                if k == b"content-length":
-                    if v.isdigit() and int(v) > self.limit:
-                        resp = errors.error_response(errors.BodyTooLargeError(
-                            f"body of {int(v)} bytes exceeds the limit of {self.limit} bytes"))
-                        return await resp(scope, receive, send)
-                    break
-        return await self.app(scope, receive, send)
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        limit = self.limit
+        for k, v in scope.get("headers", ()):
+            if k == b"content-length":
+                if v.isdigit() and int(v) > limit:
+                    resp = errors.error_response(errors.BodyTooLargeError(
+                        f"body of {int(v)} bytes exceeds the limit of {limit} bytes"))
+                    return await resp(scope, receive, send)
+                break
+        seen = 0
+
+        async def counted():
+            nonlocal seen
+            msg = await receive()
+            if msg["type"] == "http.request":
+                seen += len(msg.get("body", b""))
+                if seen > limit:
+                    raise errors.BodyTooLargeError(f"body exceeds the limit of {limit} bytes")
+            return msg
+
+        started = False
+
+        async def sending(msg):
+            nonlocal started
+            started = started or msg["type"] == "http.response.start"
+            await send(msg)
+
+        try:
+            await self.app(scope, counted, sending)
+        except errors.BodyTooLargeError as exc:  # raised where no handler turned it into a 413
+            if started:
+                raise
+            await errors.error_response(exc)(scope, receive, send)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -94,7 +123,7 @@ def _start(app: FastAPI, settings: Settings) -> None:
     app.state.loader = loader
     loader.start()
     if settings.demo:
-        from ..lightfield.demo import start_demo_field
+        from .demo import start_demo_field
 
         start_demo_field(registry, settings.bind_host(), settings.port)
 

@@ -35,16 +35,14 @@ from .. import _npy
 
 from .._validate import as_array
 from ..errors import InvalidInputError
-from .errors import ApiError
+from ..flats import FORMS, Flats, form_shapes, infer_form
+from .errors import ApiError, BatchTooLargeError
 from .responses import JSONBytes
 
 NPY = "application/x-npy"
 NPZ = "application/x-npz"
 JSON = "application/json"
 
-FORMS = ("rays", "parametric", "flats")
-#: array names per form (the flat), in binary column order
-FORM_ARRAYS = {"rays": ("origins", "directions"), "parametric": ("A", "b"), "flats": ("Q", "r")}
 
 
 
@@ -115,67 +113,15 @@ def load_json(body: bytes) -> dict:
     return obj
 
 
-def infer_form(keys, form: str | None) -> str:
-    if form is not None:
-        return form
-    for f, names in FORM_ARRAYS.items():
-        if names[0] in keys or names[1] in keys:
-            return f
-    raise InvalidInputError(
-        "body: give origins+directions (rays), A+b (parametric) or Q+r (flats)", "body"
-    )
-
-
-def flat_shapes(form: str, k: int, d: int) -> dict[str, tuple]:
-    if form == "rays":
-        if k != 1:
-            raise InvalidInputError(f"form: rays are lines (k = 1); this field has k = {k}", "form")
-        return {"origins": ("n", d), "directions": ("n", d)}
-    if form == "parametric":
-        return {"A": ("n", d, k), "b": ("n", d)}
-    if form == "flats":
-        return {"Q": ("n", d, d), "r": ("n", d)}
-    raise InvalidInputError(f"form: one of {FORMS}, got {form!r}", "form")
-
-
-def check_arrays(raw: dict, form: str, k: int, d: int, channels: int | None,
-                 max_rows: int) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
-    """Validate named arrays: shapes, equal row counts, finite values, row limit."""
-    from .errors import BatchTooLargeError
-
-    shapes = flat_shapes(form, k, d)
-    out: dict[str, np.ndarray] = {}
-    for name, shape in shapes.items():
-        if name not in raw or raw[name] is None:
-            raise InvalidInputError(f"{name}: missing (form {form!r} needs {list(shapes)})", name)
-        if isinstance(raw[name], list) and not raw[name]:
-            raise _empty(name)
-        out[name] = as_array(raw[name], name, shape)
-    values = None
-    if channels is not None:
-        if "values" not in raw or raw["values"] is None:
-            raise InvalidInputError("values: missing", "values")
-        values = as_array(raw["values"], "values", ("n", channels))
-    n = {a.shape[0] for a in out.values()} | ({values.shape[0]} if values is not None else set())
-    if len(n) != 1:
-        names = list(out) + (["values"] if values is not None else [])
-        rows = {nm: (out[nm] if nm in out else values).shape[0] for nm in names}
-        raise InvalidInputError(f"rows differ between arrays: {rows}", names[-1])
-    nrows = n.pop()
-    if nrows == 0:  # one rule for every encoding: a batch has rows
-        raise _empty(next(iter(out)))
-    if nrows > max_rows:
-        raise BatchTooLargeError(f"{nrows} rows in one request; the limit is {max_rows}")
-    return out, values
-
-
-def _empty(name: str) -> InvalidInputError:
-    return InvalidInputError(f"{name}: expected at least one row, got 0", name)
+def _rows(raw: dict, form: str) -> int:
+    """Rows of the first array of ``form`` (0 when missing), before any validation."""
+    x = raw.get(FORMS[form][0])
+    return len(x) if isinstance(x, (list, np.ndarray)) else 0
 
 
 def split_columns(arr: np.ndarray, form: str, k: int, d: int, channels: int | None) -> dict:
     """Split an ``(n, W)`` binary body into named arrays (see the module doc)."""
-    shapes = flat_shapes(form, k, d)
+    shapes = form_shapes(form, k, d)
     widths = {name: math.prod(shp[1:]) for name, shp in shapes.items()}
     want = sum(widths.values()) + (channels or 0)
     if arr.ndim != 2 or arr.shape[1] != want:
@@ -197,8 +143,13 @@ def split_columns(arr: np.ndarray, form: str, k: int, d: int, channels: int | No
 
 
 def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d: int,
-           channels: int | None, max_rows: int):
-    """Parse a batch body into ``(form, flat arrays, values or None, extra JSON keys)``."""
+           channels: int | None, max_rows: int) -> tuple[Flats, np.ndarray | None, dict]:
+    """Parse a batch body into ``(flats, values or None, the JSON object or {})``.
+
+    ``channels=None``: a query (no values); else an upload of ``(n, channels)``
+    values. Shapes, finite values, equal row counts, at least one row and at
+    most ``max_rows`` are checked here, once.
+    """
     kind = body_kind(content_type)
     extra: dict = {}
     if kind == "json":
@@ -215,10 +166,24 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
                 raise InvalidInputError("form: required with application/x-npy", "form")
         raw = split_columns(load_npy(body), form, k, d, channels)
     if form is not None and form not in FORMS:
-        raise InvalidInputError(f"form: one of {FORMS}, got {form!r}", "form")
-    form = infer_form(raw.keys(), form)
-    arrays, values = check_arrays(raw, form, k, d, channels, max_rows)
-    return form, arrays, values, extra
+        raise InvalidInputError(f"form: one of {tuple(FORMS)}, got {form!r}", "form")
+    form = form or infer_form(raw)
+    if form is None:
+        raise InvalidInputError(
+            "body: give origins+directions (rays), A+b (parametric) or Q+r (flats)", "body")
+    nrows = _rows(raw, form)
+    if nrows > max_rows:
+        raise BatchTooLargeError(f"{nrows} rows in one request; the limit is {max_rows}")
+    flats = Flats.from_arrays(raw, k=k, d=d, form=form, min_rows=1)
+    values = None
+    if channels is not None:
+        if raw.get("values") is None:
+            raise InvalidInputError("values: missing", "values")
+        values = as_array(raw["values"], "values", ("n", channels))
+    if values is not None and values.shape[0] != len(flats):
+        raise InvalidInputError(f"rows differ between arrays: {FORMS[form][0]} {len(flats)}, "
+                                f"values {values.shape[0]}", "values")
+    return flats, values, extra
 
 
 # -- encoding ----------------------------------------------------------------

@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 from fastapi import Depends, Path, Request, Security
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from .errors import ApiError, BodyTooLargeError
+from .errors import ApiError
 from .registry import Registry
 from .settings import FIELD_NAME_PATTERN, Settings
 
@@ -33,29 +33,44 @@ RegistryDep = Annotated[Registry, Depends(get_registry)]
 FieldNamePath = Annotated[str, Path(pattern=FIELD_NAME_PATTERN, description="Field name.")]
 
 
-async def read_body(request: Request, settings: SettingsDep) -> bytes:
-    """The request body, refused with 413 as soon as it exceeds ``max_body_bytes``."""
-    limit = settings.max_body_bytes
-    cl = request.headers.get("content-length")
-    if cl is not None and cl.isdigit() and int(cl) > limit:
-        raise BodyTooLargeError(f"body of {cl} bytes exceeds the limit of {limit} bytes")
-    chunks, n = [], 0
-    async for chunk in request.stream():
-        n += len(chunk)
-        if n > limit:
-            raise BodyTooLargeError(f"body exceeds the limit of {limit} bytes")
-        chunks.append(chunk)
-    return b"".join(chunks)
+async def read_body(receive) -> bytes:
+    """The whole body from an ASGI ``receive`` (the size limit is enforced on
+    ``receive`` itself by :class:`flatserve.service.app.BodyLimitMiddleware`)."""
+    chunks = []
+    while True:
+        msg = await receive()
+        if msg["type"] == "http.disconnect":
+            raise ApiError(400, "client disconnected")
+        chunk = msg.get("body", b"")
+        if chunk:
+            chunks.append(chunk)
+        if not msg.get("more_body", False):
+            return chunks[0] if len(chunks) == 1 else b"".join(chunks)
 
 
-BodyDep = Annotated[bytes, Depends(read_body)]
+async def request_body(request: Request) -> bytes:
+    return await request.body()
 
 
-def _presented(api_key: Optional[str], bearer: Optional[HTTPAuthorizationCredentials]) -> Optional[str]:
-    if api_key:
-        return api_key
-    if bearer is not None and bearer.credentials:
-        return bearer.credentials
+BodyDep = Annotated[bytes, Depends(request_body)]
+
+
+def presented_key(headers) -> Optional[str]:
+    """The API key of a request (raw ASGI headers): header ``api-key``, else
+    ``Authorization: Bearer``; None when neither. Repeated headers are refused
+    (400): they would be judged differently by different proxies."""
+    found: dict[bytes, bytes] = {}
+    for k, v in headers:
+        if k in (b"api-key", b"authorization"):
+            if k in found:
+                raise ApiError(400, f"the {k.decode()} header is repeated; send it once")
+            found[k] = v
+    key = found.get(b"api-key")
+    if key:
+        return key.decode("latin-1")
+    scheme, _, cred = found.get(b"authorization", b"").decode("latin-1").partition(" ")
+    if scheme.lower() == "bearer" and cred.strip():
+        return cred.strip()
     return None
 
 
@@ -63,39 +78,39 @@ def _eq(a: str, secret) -> bool:
     return secret is not None and secrets.compare_digest(a.encode(), secret.get_secret_value().encode())
 
 
-def _required_key(settings, api_key, bearer) -> Optional[str]:
-    """The presented key, or None when authentication is off; 401 when missing."""
+def authorize(settings: Settings, key: Optional[str], *, write: bool) -> None:
+    """The one key check: raise 401 (missing or wrong key) or 403 (the read-only
+    key for a write); nothing when keys are off or the key grants access."""
     if not settings.auth_enabled:
-        return None
-    key = _presented(api_key, bearer)
+        return
     if key is None:
         raise ApiError(401, "missing API key (header `api-key` or `Authorization: Bearer`)",
                        headers={"WWW-Authenticate": "Bearer"})
-    return key
+    if _eq(key, settings.api_key):
+        return
+    if _eq(key, settings.read_only_key):
+        if not write:
+            return
+        raise ApiError(403, "the read-only key cannot change data")
+    raise ApiError(401, "wrong API key", headers={"WWW-Authenticate": "Bearer"})
 
 
+# The Security parameters document the two ways of sending a key in OpenAPI; the
+# key itself is read from the raw headers by presented_key (repeats refused).
 async def require_read(
-    settings: SettingsDep,
+    request: Request, settings: SettingsDep,
     api_key: Annotated[Optional[str], Security(_api_key_header)] = None,
     bearer: Annotated[Optional[HTTPAuthorizationCredentials], Security(_bearer)] = None,
 ) -> None:
-    key = _required_key(settings, api_key, bearer)
-    if key is None or _eq(key, settings.api_key) or _eq(key, settings.read_only_key):
-        return
-    raise ApiError(401, "wrong API key", headers={"WWW-Authenticate": "Bearer"})
+    authorize(settings, presented_key(request.scope["headers"]), write=False)
 
 
 async def require_write(
-    settings: SettingsDep,
+    request: Request, settings: SettingsDep,
     api_key: Annotated[Optional[str], Security(_api_key_header)] = None,
     bearer: Annotated[Optional[HTTPAuthorizationCredentials], Security(_bearer)] = None,
 ) -> None:
-    key = _required_key(settings, api_key, bearer)
-    if key is None or _eq(key, settings.api_key):
-        return
-    if _eq(key, settings.read_only_key):
-        raise ApiError(403, "the read-only key cannot change data")
-    raise ApiError(401, "wrong API key", headers={"WWW-Authenticate": "Bearer"})
+    authorize(settings, presented_key(request.scope["headers"]), write=True)
 
 
 ReadAccess = Depends(require_read)

@@ -149,6 +149,9 @@ def install(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, _validation)
 
     async def _http(request: Request, exc: StarletteHTTPException):
+        cause = exc.__cause__
+        if isinstance(cause, (ApiError, fe.FlatserveError)):  # raised while FastAPI read the body
+            return error_response(cause)
         if exc.status_code == 400:  # FastAPI could not decode the body: same shape as a 422
             return ORJSONResponse({"detail": [{"loc": ["body"], "msg": str(exc.detail),
                                                "type": "body_decode_error"}]}, status_code=422)

@@ -11,16 +11,16 @@ from typing import Annotated, Literal, Optional
 
 from fastapi import APIRouter, Header, Query, Request, Response
 
-from . import codec, specs
+from . import codec, specs, uploads
 from .codec import JSONBytes
 from .deps import BodyDep, FieldNamePath, ReadAccess, RegistryDep, SettingsDep, WriteAccess
+from .entry import FieldEntry, FieldSpec
 from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES
-from .registry import FieldEntry
+from .query import Form, QueryParams, answer, server_timing
 from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
                       FieldInfo, FieldList, Health, ProjectRequest, ProjectResult,
-                      QueryBody, QueryResult, SnapshotResult, UploadBody, UploadResult)
+                      QueryBody, QueryResponse, SnapshotResult, UploadBody, UploadResult)
 
-Form = Literal["rays", "parametric", "flats"]
 FormQuery = Annotated[Optional[Form], Query(
     description="Flat form of the body. JSON/.npz: inferred from the array names. "
                 "`.npy`: required unless the field holds lines (k = 1; default `rays`).")]
@@ -61,10 +61,9 @@ def _summary(e: FieldEntry) -> dict:
           dependencies=[WriteAccess], responses=BODY_RESPONSES,
           summary="Create a field (basis + empty triangulation)")
 def create_field(spec: FieldCreate, registry: RegistryDep) -> Response:
-    basis = specs.build_basis(spec.basis, spec.k, spec.d)
-    specs.check_field_basis(basis, spec.k, spec.d)
-    stored = {"k": spec.k, "d": spec.d, "channels": spec.channels,
-              "basis": specs.spec_dict(spec.basis), "roundtrip_tol": spec.roundtrip_tol}
+    basis = specs.build_basis(spec.basis, spec.k, spec.d).require_full()
+    stored = FieldSpec(spec.k, spec.d, spec.channels, specs.spec_dict(spec.basis),
+                       spec.roundtrip_tol)
     e = registry.create(spec.name, stored, basis)
     return JSONBytes(_describe(registry, e), status_code=201)
 
@@ -80,21 +79,19 @@ def _describe(registry, e: FieldEntry) -> dict:
     snap_bytes = registry.storage.snapshot_bytes(e.snapshot_file)
     out = _summary(e)
     f = e.field
-    m = int(e.basis_arrays["Q"].shape[0])
-    with e.cond:
-        pending_batches, pending_samples = len(e.pending), e.pending_samples
+    m = e.basis.m
+    pending_batches, pending_samples = e.indexer.counts()
     out.update({
         "ndim": m - 1,
         "indexed_batch": e.indexed_seq,
         "pending_batches": pending_batches,
         "pending_samples": pending_samples,
         "nrejected": int(f.nrejected) if f is not None else None,
-        "nvertices": int(f.nvertices) if f is not None else None,
+        "nvertices": int(f.nsamples) if f is not None else None,
         "nsimplex": int(f.nsimplex) if f is not None else None,
         "created": e.created,
         "error": e.error,
-        "basis": {"m": m, "dim": m - 1, "spec": e.spec.get("basis", {}),
-                  "Q": e.basis_arrays["Q"], "r": e.basis_arrays["r"]},
+        "basis": {"m": m, "dim": m - 1, "spec": e.spec.basis, "Q": e.basis.Q, "r": e.basis.r},
         "storage": {"batches": nb, "batch_rows": nrows, "batch_bytes": nbytes, "last_batch": last,
                     "snapshot_batch": e.snapshot_seq if e.snapshot_file else 0,
                     "snapshot_bytes": snap_bytes, "total_bytes": nbytes + snap_bytes},
@@ -105,9 +102,7 @@ def _describe(registry, e: FieldEntry) -> dict:
 @api.get("/fields/{name}", response_model=FieldInfo, tags=["fields"], dependencies=[ReadAccess],
          responses=FIELD_RESPONSES, summary="Describe a field")
 def describe_field(name: FieldNamePath, registry: RegistryDep) -> Response:
-    e = registry.get(name, need_ready=False)
-    with e.lock.read():
-        return JSONBytes(_describe(registry, e))
+    return JSONBytes(_describe(registry, registry.get(name, need_ready=False)))
 
 
 @api.delete("/fields/{name}", status_code=204, tags=["fields"], dependencies=[WriteAccess],
@@ -121,7 +116,7 @@ def delete_field(name: FieldNamePath, registry: RegistryDep) -> Response:
          dependencies=[ReadAccess], responses=FIELD_RESPONSES, summary="List stored batches")
 def list_batches(name: FieldNamePath, registry: RegistryDep) -> Response:
     e = registry.get(name, need_ready=False)
-    return JSONBytes({"batches": registry.batches(e)})
+    return JSONBytes({"batches": uploads.batches(registry, e)})
 
 
 @api.post("/fields/{name}/snapshot", response_model=SnapshotResult, tags=["fields"],
@@ -156,21 +151,16 @@ def upload_samples(
 ) -> Response:
     e = registry.get(name)
     t0 = time.perf_counter()
-    form, arrays, values, _ = codec.decode(body, content_type, form, k=e.k, d=e.d,
-                                           channels=e.channels, max_rows=settings.max_batch_rows)
+    flats, values, _ = codec.decode(body, content_type, form, k=e.k, d=e.d,
+                                    channels=e.channels, max_rows=settings.max_batch_rows)
     timings = {"decode": time.perf_counter() - t0}
     # an empty Idempotency-Key header means "no key", not the key ""
-    out = registry.upload(e, form, arrays, values, idempotency_key or None, timings, wait=wait)
+    out = uploads.upload(registry, e, flats, values, idempotency_key or None, timings, wait=wait)
     return JSONBytes(out, headers={"Server-Timing": server_timing(timings)})
 
 
-def server_timing(t: dict) -> str:
-    """``Server-Timing`` header (milliseconds) of the phases of a request."""
-    return ", ".join(f"{k};dur={v * 1e3:.3f}" for k, v in t.items())
-
-
 @api.post(
-    "/fields/{name}/query", response_model=QueryResult, tags=["samples"],
+    "/fields/{name}/query", response_model=QueryResponse, tags=["samples"],
     dependencies=[ReadAccess], openapi_extra=_body_doc(QueryBody),
     responses={**BODY_RESPONSES, 200: {"content": {codec.NPY: _BINARY, codec.NPZ: _BINARY},
                                        "description": "Interpolated values."}},
@@ -179,7 +169,7 @@ def server_timing(t: dict) -> str:
                 "(q, C + 1 [+ 2 (D+1)]) float64: values, inside as 0/1, then with "
                 "`weights=true` sample ids and barycentric weights; or `application/x-npz`.",
 )
-def query_field(
+async def query_field(
     name: FieldNamePath, registry: RegistryDep, settings: SettingsDep, body: BodyDep,
     form: FormQuery = None,
     outside: Annotated[Literal["nan", "clamp"], Query()] = "nan",
@@ -190,23 +180,10 @@ def query_field(
     content_type: Annotated[Optional[str], Header()] = None,
     accept: Annotated[Optional[str], Header()] = None,
 ) -> Response:
-    # Served by flatserve.service.fastpath.FastQueryMiddleware unless a parameter or the
-    # key needs FastAPI's judgement; this route is the documented reference.
-    e = registry.get(name)
-    t0 = time.perf_counter()
-    form, arrays, _, _ = codec.decode(body, content_type, form, k=e.k, d=e.d, channels=None,
-                                      max_rows=settings.max_batch_rows)
-    if wait:
-        registry.wait_indexed(e)
-    t1 = time.perf_counter()
-    res = registry.query(e, form, arrays, outside=outside, order=order, return_weights=weights)
-    t2 = time.perf_counter()
-    resp = codec.query_response(
-        accept, res.values, res.inside, res.status,
-        res.ids if weights else None, res.weights if weights else None)
-    resp.headers["Server-Timing"] = server_timing(
-        {"decode": t1 - t0, "query": t2 - t1, "encode": time.perf_counter() - t2})
-    return resp
+    # Usually answered by flatserve.service.fastpath (the same answer(), without
+    # FastAPI's per-request costs); this route is the documented reference.
+    return await answer(registry, settings, name, QueryParams(form, outside, order, weights, wait),
+                        body, content_type, accept)
 
 
 # -- stateless math ---------------------------------------------------------------
@@ -215,8 +192,8 @@ def query_field(
           summary="Coordinates of flats in a basis (paper Eq. 9/12)")
 def math_coordinates(req: CoordinatesRequest, settings: SettingsDep) -> Response:
     basis = specs.build_basis(req.basis, req.k, req.d)
-    Q, r = specs.flats_from(req.flats, req.k, req.d, "flats", settings.max_batch_rows)
-    c = basis.coordinates(Q, r)
+    flats = specs.flats_of(req.flats, req.k, req.d, "flats", settings.max_batch_rows)
+    c = basis.coordinates_of(flats)
     out = {"weights": c.weights, "status": c.status, "residual": c.residual}
     if req.embed:
         from ..embedding import embed

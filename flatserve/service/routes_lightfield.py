@@ -27,6 +27,7 @@ from ..errors import InvalidInputError
 from . import codec
 from .deps import FieldNamePath, ReadAccess, RegistryDep, SettingsDep
 from .errors import BatchTooLargeError, COMMON_RESPONSES, FIELD_RESPONSES
+from .query import server_timing
 
 __all__ = ["lightfield_api", "viewer", "CameraSpec", "render_frame"]
 
@@ -143,14 +144,12 @@ def render(name: FieldNamePath, camera: CameraSpec, registry: RegistryDep, setti
     if cam.nrays > settings.max_batch_rows:
         raise BatchTooLargeError(f"{cam.nrays} rays in one frame; the limit is {settings.max_batch_rows}")
     fmt = camera.format or ("npy" if accept and codec.NPY in accept else "png")
-    with e.lock.read():
-        body, media, timings, coverage = render_frame(
-            e.field, cam, fill=0.0 if camera.fill is None else camera.fill, fmt=fmt)
+    body, media, timings, coverage = render_frame(
+        e.field, cam, fill=0.0 if camera.fill is None else camera.fill, fmt=fmt)
     total = time.perf_counter() - t0
-    server_timing = ", ".join(f"{k};dur={v * 1e3:.1f}" for k, v in timings.items())
-    server_timing += f", total;dur={total * 1e3:.1f}"
     return Response(body, media_type=media, headers={
-        "Server-Timing": server_timing, "X-Coverage": f"{coverage:.6f}",
+        "Server-Timing": server_timing({**timings, "total": total}),
+        "X-Coverage": f"{coverage:.6f}",
         "X-Render-Seconds": f"{total:.6f}", "Cache-Control": "no-store"})
 
 

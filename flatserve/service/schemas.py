@@ -10,6 +10,7 @@ from typing import Annotated, Literal, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
+from ..flats import FORMS, basis_size
 from .settings import FIELD_NAME_PATTERN
 
 Vec = list[float]
@@ -62,11 +63,10 @@ class TangentSimplexBasis(_Strict):
     variant: Literal["tangent", "paper"] = "tangent"
 
 
-class FlatsBasis(_Strict):
-    """A basis given explicitly: m flats as Q (m,d,d) + r (m,d), A (m,d,k) + b (m,d),
-    or (k = 1) origins + directions (m,d)."""
+class FlatsModel(_Strict):
+    """A batch of flats in one form: Q (n,d,d) + r (n,d), A (n,d,k) + b (n,d), or
+    (k = 1) origins + directions (n,d) (the forms of :class:`flatserve.flats.Flats`)."""
 
-    kind: Literal["flats"] = "flats"
     Q: Optional[Mats] = None
     r: Optional[Mat] = None
     A: Optional[Mats] = None
@@ -80,7 +80,13 @@ class FlatsBasis(_Strict):
                                 "origins+directions": ("origins", "directions")})
 
 
-_FLATS_KEYS = ("Q", "r", "A", "b", "origins", "directions")
+class FlatsBasis(FlatsModel):
+    """A basis given explicitly: m flats in one form."""
+
+    kind: Literal["flats"] = "flats"
+
+
+_FLATS_KEYS = tuple(n for names in FORMS.values() for n in names)
 
 
 def _basis_kind(v):
@@ -107,9 +113,10 @@ class _KD(_Strict):
     def _kd(self):
         if self.k >= self.d:
             raise ValueError(f"k must be smaller than d (k={self.k}, d={self.d})")
-        if (self.k + 1) * (self.d - self.k) > MAX_DIM:
+        dim = basis_size(self.k, self.d) - 1
+        if dim > MAX_DIM:
             raise ValueError(
-                f"(k+1)(d-k) = {(self.k + 1) * (self.d - self.k)} exceeds {MAX_DIM}: "
+                f"(k+1)(d-k) = {dim} exceeds {MAX_DIM}: "
                 "triangulations of that dimension are not supported"
             )
         return self
@@ -208,16 +215,10 @@ class SnapshotResult(BaseModel):
     seconds: float
 
 
-class QueryBody(_Strict):
+class QueryBody(FlatsModel):
     """JSON query (small batches): one flat form."""
 
     form: Optional[Literal["rays", "parametric", "flats"]] = None
-    origins: Optional[Mat] = None
-    directions: Optional[Mat] = None
-    A: Optional[Mats] = None
-    b: Optional[Mat] = None
-    Q: Optional[Mats] = None
-    r: Optional[Mat] = None
 
 
 class UploadBody(QueryBody):
@@ -226,7 +227,7 @@ class UploadBody(QueryBody):
     values: Mat
 
 
-class QueryResult(BaseModel):
+class QueryResponse(BaseModel):
     values: list[list[Optional[float]]] = Field(description="(q, C); null outside (outside=nan).")
     inside: list[bool]
     status: list[int] = Field(description="Coordinate status per row (0 OK, 1 not representable, "
@@ -235,18 +236,9 @@ class QueryResult(BaseModel):
     weights: Optional[list[list[Optional[float]]]] = Field(None, description="(q, D+1) barycentric.")
 
 
-class FlatsInput(_Strict):
-    Q: Optional[Mats] = None
-    r: Optional[Mat] = None
-    A: Optional[Mats] = None
-    b: Optional[Mat] = None
-    origins: Optional[Mat] = None
-    directions: Optional[Mat] = None
-
-
 class CoordinatesRequest(_KD):
     basis: Optional[BasisSpec] = None
-    flats: FlatsInput
+    flats: FlatsModel
     embed: bool = Field(False, description="Also return the embedded coordinates (n, m-1).")
 
 
@@ -258,7 +250,7 @@ class CoordinatesResult(BaseModel):
 
 
 class ProjectRequest(_KD):
-    flats: FlatsInput = Field(description="The m flats combined.")
+    flats: FlatsModel = Field(description="The m flats combined.")
     weights: Mat = Field(description="(n, m) affine weights, each row summing to 1.")
 
 

@@ -18,7 +18,6 @@ does the database point at them.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import logging
 import math
@@ -36,7 +35,6 @@ from ..errors import FieldExistsError, FieldNotFoundError, StorageError
 
 log = logging.getLogger("flatserve.service.storage")
 
-#: 2 added ``batch_results`` (a version-1 database is upgraded in place)
 SCHEMA_VERSION = 2
 DB_NAME = "flatserve.sqlite3"
 
@@ -77,8 +75,7 @@ CREATE TABLE IF NOT EXISTS batch_results (
 
 #: blob layout of stored arrays: this magic, uint32 little-endian length of a JSON
 #: header ``[[name, dtype descr, shape], ...]``, the header, then each array's raw
-#: C-order bytes (8-byte aligned offsets). Older databases hold ``.npz`` blobs
-#: (``PK`` magic), still read.
+#: C-order bytes (8-byte aligned offsets).
 BLOB_MAGIC = b"FSARRAY1"
 
 
@@ -96,9 +93,8 @@ def pack_arrays(arrays: dict[str, np.ndarray]) -> bytes:
 
 
 def unpack_arrays(blob: bytes) -> dict[str, np.ndarray]:
-    if blob[:len(BLOB_MAGIC)] != BLOB_MAGIC:  # .npz (databases of earlier versions)
-        with np.load(io.BytesIO(blob), allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+    if blob[:len(BLOB_MAGIC)] != BLOB_MAGIC:
+        raise StorageError("stored batch: unknown blob format (bad magic)")
     p = len(BLOB_MAGIC)
     n = int.from_bytes(blob[p:p + 4], "little")
     head = json.loads(blob[p + 4:p + 4 + n])
@@ -173,10 +169,11 @@ class Storage:
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
             ver = self._db.execute("PRAGMA user_version").fetchone()[0]
-            if ver not in (0, 1, SCHEMA_VERSION):
+            if ver not in (0, SCHEMA_VERSION):
                 raise StorageError(f"database schema version {ver}; this server knows {SCHEMA_VERSION}")
-            self._db.executescript(_SCHEMA)
-            self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+            if ver == 0:  # a new database (written only then: a full disk can still be read)
+                self._db.executescript(_SCHEMA)
+                self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
         except sqlite3.Error as exc:
             raise StorageError(f"cannot open storage in {self.data_dir}: {exc}") from exc
         self._lock = threading.RLock()
@@ -264,13 +261,11 @@ class Storage:
         return BatchRow(r[0], r[1], r[2], r[3], r[4], json.loads(r[5]))
 
     def add_batch(self, field_id: int, *, idem_key: str | None, chash: str, form: str,
-                  nrows: int, blob: bytes,
-                  result_fn: Callable[[int], dict] | None = None) -> tuple[int, dict | None]:
-        """Store one batch; commit (durable) before returning ``(seq, result)``.
+                  nrows: int, blob: bytes) -> int:
+        """Store one batch; commit (durable) before returning its ``seq``.
 
-        ``result_fn(seq)`` builds the response stored with the batch (so a retry
-        with the same idempotency key gets the same answer). Without it the
-        response is stored later by :meth:`set_result` (``result`` is None).
+        Its response is stored afterwards by :meth:`set_result` (so a retry
+        with the same idempotency key gets the same answer).
         """
         def fn(db):
             seq = db.execute(
@@ -280,24 +275,25 @@ class Storage:
             if snap is None:
                 raise FieldNotFoundError(f"field id {field_id} was deleted")
             seq = max(seq, snap[0] + 1)
-            result = None if result_fn is None else result_fn(seq)
             db.execute(
                 "INSERT INTO batches(field_id, seq, idem_key, content_hash, form, nrows, arrays,"
                 " result, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (field_id, seq, idem_key, chash, form, nrows, blob, json.dumps(result), time.time()),
+                (field_id, seq, idem_key, chash, form, nrows, blob, "null", time.time()),
             )
-            return seq, result
+            return seq
 
         return self._tx(fn)
 
-    def set_result(self, field_id: int, seq: int, result: dict, replace: bool = True) -> None:
-        """Store the response of a batch committed without one (no fsync: see the
-        module doc; a later commit or checkpoint makes it durable). ``replace=False``
-        keeps a response already stored."""
+    def set_result(self, field_id: int, seq: int, result: dict, replace: bool = True,
+                   durable: bool = False) -> None:
+        """Store the response of a batch committed without one. Not ``durable``: no
+        fsync (see the module doc; a later commit or checkpoint makes it durable).
+        ``replace=False`` keeps a response already stored."""
         verb = "INSERT OR REPLACE" if replace else "INSERT OR IGNORE"
         with self._lock:
             try:
-                self._db.execute("PRAGMA synchronous=NORMAL")
+                if not durable:
+                    self._db.execute("PRAGMA synchronous=NORMAL")
                 try:
                     self._db.execute(
                         f"{verb} INTO batch_results(field_id, seq, result) VALUES (?, ?, ?)",

@@ -8,6 +8,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from flatserve.client import Client, ConflictError, InvalidError, NotFoundError
+from flatserve import flats
 from flatserve.service import specs
 
 from .conftest import paper_rays
@@ -152,16 +153,16 @@ def test_parametric_and_qr_forms(api, rng):
     A, b = flats.to_parametric(Q, r, 1)
     val = rng.uniform(size=(300, 1))
     rep = c.upload_parametric("f", A, b, val)
-    want_add = ref.add_parametric(A, b, val)
+    want_add = ref.add(flats.Flats.from_parametric(A, b), val)
     assert rep["rejected"] == want_add.rejected.tolist()
     ok = np.setdiff1d(np.arange(300), rep["rejected"])
-    want = ref.query(Q[ok], r[ok])
+    want = ref.query(flats.Flats.from_quadrics(Q[ok], r[ok], 1))
     assert want.inside.mean() > 0.8
     np.testing.assert_allclose(want.values[want.inside], val[ok][want.inside], atol=1e-9)
     for res in (c.query_flats("f", Q[ok], r[ok]), c.query_flats("f", Q[ok], r[ok], binary=False)):
         np.testing.assert_array_equal(res.inside, want.inside)
         np.testing.assert_allclose(res.values, want.values, atol=1e-12, equal_nan=True)
-    want = ref.query_parametric(A[ok], b[ok])
+    want = ref.query(flats.Flats.from_parametric(A[ok], b[ok]))
     res = c.query_parametric("f", A[ok], b[ok])
     np.testing.assert_array_equal(res.inside, want.inside)
     np.testing.assert_allclose(res.values, want.values, atol=1e-12, equal_nan=True)

@@ -9,7 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from flatserve.client import Client
-from flatserve.service import fastpath
+from flatserve.service import query
 
 from .conftest import paper_rays
 
@@ -34,7 +34,7 @@ def served(make_app, rng):
         yield tc
 
 
-@pytest.mark.parametrize("n", [1, 5, fastpath.INLINE_ROWS + 10])  # inline and thread pool
+@pytest.mark.parametrize("n", [1, 5, query.INLINE_ROWS + 10])  # inline and thread pool
 @pytest.mark.parametrize("params", [{}, {"weights": "true", "outside": "clamp"},
                                     {"order": "given", "form": "rays", "wait": "1"}])
 def test_same_answers_as_the_route(served, rng, n, params):

@@ -13,7 +13,6 @@ from flatserve.client import Client
 from flatserve.field import Field
 from flatserve.service import registry as registry_mod
 from flatserve.service import specs
-from flatserve.service.ingest import insert_prepared, prepare
 
 from .conftest import paper_rays, started as _started
 
@@ -48,18 +47,21 @@ def test_prepare_then_insert_equals_field_add(rng, form):
     for _ in range(3):
         o, v, val = _rays_with_rejects(rng, 300)
         if form == "rays":
-            arrays, want = {"origins": o, "directions": v}, a.add_rays(o, v, val)
+            batch, want = flats.Flats.from_rays(o, v), a.add_rays(o, v, val)
         elif form == "parametric":
             A = (v / np.linalg.norm(v, axis=1, keepdims=True))[:, :, None]
-            arrays, want = {"A": A, "b": o}, a.add_parametric(A, o, val)
+            batch = flats.Flats.from_parametric(A, o)
+            want = a.add(batch, val)
         else:
             Q, r = flats.from_rays(o, v)
-            arrays, want = {"Q": Q, "r": r}, a.add(Q, r, val)
-        p = prepare(b, form, arrays, val)
+            batch = flats.Flats.from_quadrics(Q, r, 1)
+            want = a.add(batch, val)
+        p = b.prepare(batch, val)
         assert p.accepted == want.accepted and p.accepted < 300
         np.testing.assert_array_equal(p.rejected, want.rejected)
         assert p.reasons == want.reasons
-        dup, n = insert_prepared(b, p)
+        res = b.insert_prepared(p)
+        dup, n = res.duplicates, res.nsamples
         assert (dup, n) == (want.duplicates, want.nsamples)
     assert (b.nsamples, b.nrejected, b.nsimplex) == (a.nsamples, a.nrejected, a.nsimplex)
     np.testing.assert_array_equal(b.triangulation.points, a.triangulation.points)
@@ -241,43 +243,6 @@ def test_wait_false_refuses_bad_rays_and_stores_nothing(make_app, rng):
         tc.__exit__(None, None, None)
 
 
-def test_storage_reads_batches_of_earlier_versions(tmp_path, rng):
-    """Batches stored before the FSARRAY1 blob layout (arrays as .npz) read back
-    unchanged; new ones round-trip."""
-    import io
-    import json
-
-    from flatserve.service.storage import Storage, pack_arrays, unpack_arrays
-
-    st = Storage(tmp_path)
-    fid = st.create_field("f", {"k": 1, "d": 3, "channels": 1},
-                          {"Q": np.eye(3)[None], "r": np.zeros((1, 3))})
-    arrays = {"origins": rng.normal(size=(5, 3)), "directions": rng.normal(size=(5, 3)),
-              "values": rng.normal(size=(5, 1))}
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    old = {"batch": 1, "accepted": 5, "rejected": [], "reasons": []}
-
-    def fn(db):
-        db.execute("INSERT INTO batches(field_id, seq, idem_key, content_hash, form, nrows,"
-                   " arrays, result, created) VALUES (?, 1, 'k1', 'h', 'rays', 5, ?, ?, 0)",
-                   (fid, buf.getvalue(), json.dumps(old)))
-
-    st._tx(fn)
-    new = dict(old, batch=2)
-    seq, _ = st.add_batch(fid, idem_key="k2", chash="h2", form="rays", nrows=5,
-                          blob=pack_arrays(arrays), result_fn=lambda s: dict(new, batch=s))
-    assert seq == 2
-    assert [b.result for b in st.batches(fid)] == [old, new]
-    assert st.find_batch(fid, "k1").result == old and st.find_batch(fid, "k2").result == new
-    for _, _, got in st.iter_batch_arrays(fid):
-        for k, a in arrays.items():
-            np.testing.assert_array_equal(got[k], a)
-    empty = unpack_arrays(pack_arrays({"e": np.zeros((0, 3), np.float32)}))["e"]
-    assert empty.shape == (0, 3) and empty.dtype == np.float32
-    st.close()
-
-
 def test_wait_false_response_lost_in_a_crash_is_recomputed(make_app, rng, tmp_path):
     """A wait=false batch is committed while its coordinates are computed, and its
     response is stored after, without an fsync: if a crash loses that row, a retry
@@ -313,37 +278,6 @@ def test_wait_false_response_lost_in_a_crash_is_recomputed(make_app, rng, tmp_pa
         tc.__exit__(None, None, None)
 
 
-def test_storage_upgrades_a_version_1_database(tmp_path, rng):
-    """Schema 1 (no batch_results table) opens, is upgraded, and keeps its batches."""
-    import sqlite3
-
-    from flatserve.service.storage import SCHEMA_VERSION, Storage, pack_arrays
-
-    st = Storage(tmp_path)
-    fid = st.create_field("f", {"k": 1, "d": 3, "channels": 1},
-                          {"Q": np.eye(3)[None], "r": np.zeros((1, 3))})
-    arrays = {"origins": rng.normal(size=(5, 3)), "directions": rng.normal(size=(5, 3)),
-              "values": rng.normal(size=(5, 1))}
-    old = {"batch": 1, "accepted": 5, "rejected": [], "reasons": []}
-    st.add_batch(fid, idem_key="k1", chash="h", form="rays", nrows=5,
-                 blob=pack_arrays(arrays), result_fn=lambda s: old)
-    st.close()
-    db = sqlite3.connect(tmp_path / "flatserve.sqlite3")
-    db.execute("DROP TABLE batch_results")
-    db.execute("PRAGMA user_version=1")
-    db.commit()
-    db.close()
-    st = Storage(tmp_path)
-    assert st.find_batch(fid, "k1").result == old
-    seq, res = st.add_batch(fid, idem_key="k2", chash="h2", form="rays", nrows=5,
-                            blob=pack_arrays(arrays))
-    assert (seq, res) == (2, None) and st.find_batch(fid, "k2").result is None
-    st.set_result(fid, 2, dict(old, batch=2))
-    assert [b.result["batch"] for b in st.batches(fid)] == [1, 2]
-    assert st._query("PRAGMA user_version")[0][0] == SCHEMA_VERSION
-    st.close()
-
-
 def test_wait_false_failure_after_the_commit_leaves_nothing_stored(make_app, rng, monkeypatch):
     """The batch is committed while its coordinates are computed; if computing them
     fails (unexpectedly), the client gets an error and the batch is removed again:
@@ -352,12 +286,12 @@ def test_wait_false_failure_after_the_commit_leaves_nothing_stored(make_app, rng
     try:
         c.create_field("f", channels=C)
         o, v, val = _rays_with_rejects(rng, 200)
-        real = Field._chart
+        real = Field.chart
 
         def boom(self, *a, **kw):
             raise MemoryError("simulated")
 
-        monkeypatch.setattr(Field, "_chart", boom)
+        monkeypatch.setattr(Field, "chart", boom)
         tc_raise = TestClient(tc.app, raise_server_exceptions=False)
         r = tc_raise.post("/v1/fields/f/samples", params={"wait": "false"},
                           headers={"Idempotency-Key": "k1"},
@@ -366,7 +300,7 @@ def test_wait_false_failure_after_the_commit_leaves_nothing_stored(make_app, rng
         assert r.status_code >= 500
         info = c.describe("f")
         assert info["state"] == "ready" and info["storage"]["batches"] == 0
-        monkeypatch.setattr(Field, "_chart", real)
+        monkeypatch.setattr(Field, "chart", real)
         rep = c.upload_rays("f", o, v, val, wait=False, idempotency_key="k1")
         assert rep["batch"] == 1 and not rep["replayed"]
         c.wait_indexed("f", timeout=30)

@@ -14,11 +14,16 @@ import time
 
 import numpy as np
 
-from .sampling import BASIS_SCALE, ProgressBar, bunny_scene, sample_scene
+from ..errors import FieldNotFoundError
+from ..flats import Flats
+from ..lightfield.sampling import BASIS_SCALE, ProgressBar, bunny_scene, sample_scene
+from . import specs, uploads
+from .entry import FieldSpec
+from .schemas import TangentSimplexBasis
 
 __all__ = ["DEMO_FIELD", "DEMO_N", "DEMO_BATCH", "ensure_demo_field", "start_demo_field", "viewer_url"]
 
-log = logging.getLogger("flatserve.lightfield")
+log = logging.getLogger("flatserve.service")
 
 #: Name of the demo field.
 DEMO_FIELD = "bunny"
@@ -64,10 +69,6 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, n: int = DEMO_N, seed: i
     FieldEntry
         The registry's entry of the field.
     """
-    from ..errors import FieldNotFoundError
-    from ..service import specs
-    from ..service.schemas import TangentSimplexBasis
-
     if not registry.ready.wait(READY_TIMEOUT_S):
         raise TimeoutError("stored fields did not finish loading")
     nbatches = -(-n * n // batch)
@@ -84,9 +85,7 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, n: int = DEMO_N, seed: i
         # the paper's basis: tangent simplex around the z-axis, scale 0.01
         spec = TangentSimplexBasis(scale=BASIS_SCALE)
         basis = specs.build_basis(spec, 1, 3)
-        stored = {"k": 1, "d": 3, "channels": 1, "basis": specs.spec_dict(spec),
-                  "roundtrip_tol": None}
-        e = registry.create(name, stored, basis)
+        e = registry.create(name, FieldSpec(1, 3, 1, specs.spec_dict(spec)), basis)
         log.info("demo field %r: building the bunny light field from %d^2 samples", name, n)
     t0 = time.perf_counter()
     scene = bunny_scene(1)
@@ -94,10 +93,9 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, n: int = DEMO_N, seed: i
     bar = progress if callable(progress) else (ProgressBar(f"building demo field {name!r}", n * n) if progress else None)
     for i, lo in enumerate(range(0, n * n, batch)):
         hi = min(n * n, lo + batch)
-        arrays = {"origins": np.ascontiguousarray(samples.origins[lo:hi]),
-                  "directions": np.ascontiguousarray(samples.directions[lo:hi])}
-        registry.upload(e, "rays", arrays, np.ascontiguousarray(values[lo:hi]),
-                        idem_key=f"demo-{name}-n{n}-s{seed}-b{batch}-{i}")
+        flats = Flats.from_rays(samples.origins[lo:hi], samples.directions[lo:hi])
+        uploads.upload(registry, e, flats, np.ascontiguousarray(values[lo:hi]),
+                       idem_key=f"demo-{name}-n{n}-s{seed}-b{batch}-{i}")
         if bar is not None:
             bar(hi, n * n)
     log.info("demo field %r: %d samples in %.1f s", name, e.field.nsamples, time.perf_counter() - t0)

@@ -1,0 +1,132 @@
+"""What the server knows of one field: its typed spec, its state, its locks.
+
+Synchronisation of one field (see ``docs/design.md``, "Locks"):
+
+* ``upload_lock`` serialises uploads (commit order, idempotency checks);
+* ``index_lock`` serialises changes of the in-memory field (inserts, reloads)
+  and snapshots, which must see a field no insert changes;
+* the :class:`~.indexer.Indexer`'s condition guards its pending queue;
+* queries take no service lock: :class:`flatserve.Triangulation` guards its own
+  state (readers share, an insert excludes them), so a query sees a whole
+  batch or none of it.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import asdict, dataclass, field as dc_field
+from typing import Optional
+
+import numpy as np
+
+from ..basis import Basis
+from ..errors import FieldNotFoundError, StorageError
+from ..field import AddResult, Field, PreparedBatch
+from .indexer import Indexer
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """How a field was defined (stored as JSON with the field).
+
+    Attributes
+    ----------
+    k, d, channels : int
+    basis : dict
+        The basis spec as given (``{"kind": "tangent_simplex", ...}``), for describe.
+    roundtrip_tol : float or None
+        None: the library's default.
+    """
+
+    k: int
+    d: int
+    channels: int
+    basis: dict
+    roundtrip_tol: Optional[float] = None
+
+    @classmethod
+    def from_dict(cls, obj: dict) -> "FieldSpec":
+        return cls(int(obj["k"]), int(obj["d"]), int(obj["channels"]), dict(obj.get("basis", {})),
+                   obj.get("roundtrip_tol"))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def new_field(self, basis: Basis) -> Field:
+        """An empty :class:`flatserve.Field` of this spec over ``basis``."""
+        kw = {} if self.roundtrip_tol is None else {"roundtrip_tol": self.roundtrip_tol}
+        return Field(basis, channels=self.channels, **kw)
+
+
+@dataclass(frozen=True)
+class UploadResult:
+    """The response to an upload (stored with its batch for idempotent retries)."""
+
+    batch: int
+    accepted: int
+    rejected: list
+    reasons: list
+    duplicates: Optional[int]
+    nsamples: int
+    indexed: bool
+    pending_samples: int
+    replayed: bool = False
+
+    @classmethod
+    def of(cls, seq: int, res: "AddResult | PreparedBatch", *, nsamples: int, indexed: bool,
+           pending: int) -> "UploadResult":
+        """From an :class:`AddResult` (indexed: duplicates known) or a
+        :class:`PreparedBatch` (not yet indexed: duplicates null)."""
+        return cls(seq, int(res.accepted), np.asarray(res.rejected, np.int64).tolist(),
+                   [str(x) for x in res.reasons],
+                   int(res.duplicates) if isinstance(res, AddResult) else None,
+                   int(nsamples), indexed, int(pending))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(eq=False)
+class FieldEntry:
+    """One field of the server (state ``loading`` until restored, then ``ready``)."""
+
+    id: int
+    name: str
+    spec: FieldSpec
+    basis: Basis
+    created: float = dc_field(default_factory=time.time)
+    snapshot_file: str | None = None
+    snapshot_seq: int = 0
+    field: Field | None = None
+    state: str = "loading"
+    error: str | None = None
+    #: last batch committed (acknowledged)
+    last_seq: int = 0
+    #: last batch inserted into the triangulation (<= last_seq)
+    indexed_seq: int = 0
+    #: samples inserted since the last snapshot
+    new_samples: int = 0
+    snapshot_pending: bool = False
+    deleted: bool = False
+    upload_lock: threading.Lock = dc_field(default_factory=threading.Lock)
+    index_lock: threading.Lock = dc_field(default_factory=threading.Lock)
+    indexer: Indexer = dc_field(default_factory=Indexer)
+
+    @property
+    def k(self) -> int:
+        return self.spec.k
+
+    @property
+    def d(self) -> int:
+        return self.spec.d
+
+    @property
+    def channels(self) -> int:
+        return self.spec.channels
+
+    def check_writable(self) -> None:
+        """Raise unless uploads may change this field now."""
+        if self.deleted:
+            raise FieldNotFoundError(f"no field named {self.name!r}")
+        if self.state != "ready":
+            raise StorageError(f"field {self.name!r} is not ready ({self.state})")

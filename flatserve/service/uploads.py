@@ -1,0 +1,171 @@
+"""Uploads of sample batches: durable commit, idempotent retries, insert now
+(``wait=true``) or in the field's background indexer (``wait=false``).
+
+Durability (Qdrant's ``wait`` convention). In both modes the batch is validated
+first (bad input is refused before anything is stored), then committed to
+storage while its coordinates are computed (so the accepted / rejected rows
+and their reasons are exact in the response), and acknowledged only after the
+commit:
+
+* ``wait=true`` (default): once every earlier batch is indexed, the batch is
+  committed and then inserted into the triangulation; the response is sent
+  after both. A failed commit changes nothing in memory, so reads go on.
+* ``wait=false``: acknowledged once committed and charted; the
+  :class:`~.indexer.Indexer` inserts it later, batch by batch in commit order.
+  ``indexed_seq`` is the last batch in the triangulation; snapshots only cover
+  indexed batches, and a restart replays every committed batch, so nothing
+  acknowledged is lost whenever the process dies.
+
+The response of each batch is stored beside it for idempotent retries: durably
+before a ``wait=true`` acknowledgement; without an fsync of its own for
+``wait=false`` (a cache, recomputed from the stored arrays by a retry if a
+crash lost it).
+"""
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from ..errors import FieldNotFoundError, StorageError
+from ..flats import Flats
+from .entry import FieldEntry, UploadResult
+from .errors import IdempotencyConflictError, NotReadyError
+from .registry import Registry, stored_flats
+from .storage import content_hash, pack_arrays
+
+log = logging.getLogger("flatserve.service")
+
+
+def upload(reg: Registry, e: FieldEntry, flats: Flats, values: np.ndarray,
+           idem_key: str | None, timings: dict | None = None, *, wait: bool = True) -> dict:
+    """Durably store one batch and index it (``wait``) or have it indexed in the
+    background; returns the response (see the module doc). ``timings`` (if
+    given) receives the seconds spent on hashing (``hash``), coordinates
+    (``prepare``), the insert (``insert``) and the commit (``store``)."""
+    timings = {} if timings is None else timings
+    t0 = time.perf_counter()
+    stored = dict(flats.arrays, values=values)
+    chash = None
+    if idem_key is not None:
+        chash = content_hash(flats.form, stored)
+        timings["hash"] = time.perf_counter() - t0
+    with e.upload_lock:
+        e.check_writable()
+        if idem_key is not None:
+            prev = reg.storage.find_batch(e.id, idem_key)
+            if prev is not None:
+                if prev.content_hash != chash:
+                    raise IdempotencyConflictError(
+                        f"Idempotency-Key {idem_key!r} was used for a different batch")
+                return dict(_stored_result(reg, e, prev.seq, prev.form, prev.result),
+                            replayed=True, indexed=prev.seq <= e.indexed_seq)
+        if wait and not reg.wait_indexed(e):  # commit order: every earlier batch first
+            raise NotReadyError(f"field {e.name!r}: the server is shutting down")
+        e.check_writable()
+        seq, prepared = _commit_and_chart(reg, e, flats, values, idem_key, chash, stored,
+                                          timings)
+        if wait:
+            out = _insert_now(reg, e, seq, prepared, timings)
+        else:
+            out = UploadResult.of(seq, prepared, nsamples=e.field.nsamples, indexed=False,
+                                  pending=e.indexer.counts()[1] + prepared.accepted).to_dict()
+        _store_result(reg, e, seq, out, durable=wait)
+        e.last_seq = seq
+        if not wait:
+            e.indexer.enqueue(seq, prepared, lambda s, b: reg.index(e, s, b), str(e.id))
+    if reg.metrics is not None:
+        reg.metrics.batches.labels(e.name).inc()
+        reg.metrics.samples_rejected.labels(e.name).inc(len(out["rejected"]))
+        if wait:
+            reg.metrics.samples_accepted.labels(e.name).inc(out["accepted"])
+    if wait:
+        reg.maybe_snapshot(e)
+    return out
+
+
+def _commit_and_chart(reg, e, flats, values, idem_key, chash, stored, timings):
+    """Validate, then commit the batch (in a storage thread) while it is charted.
+    Returns ``(seq, PreparedBatch)``; on any failure nothing stays stored."""
+    t1 = time.perf_counter()
+    # bad input is refused here, before anything is stored; charting cannot fail
+    # on validated input (each row gets a status)
+    chart = e.field.prepare(flats, values, defer=True)
+
+    def commit():
+        h = content_hash(flats.form, stored) if chash is None else chash
+        return reg.storage.add_batch(e.id, idem_key=idem_key, chash=h, form=flats.form,
+                                     nrows=len(flats), blob=pack_arrays(stored))
+
+    pending_commit = reg.commit_pool.submit(commit)
+    try:
+        prepared = chart()  # no lock: reads the basis only
+    except BaseException:
+        # unexpected (memory...): the client gets an error, so the batch must not
+        # stay stored; nothing in memory or in any response refers to it yet
+        seq = pending_commit.result()  # a storage failure propagates: nothing stored
+        try:
+            reg.storage.delete_batch(e.id, seq)
+        except BaseException:  # still stored: memory is behind storage
+            log.exception("field %r: could not remove batch %d after a failed upload; "
+                          "reloading", e.name, seq)
+            reg.reload(e, "reloading after a failed upload")
+        raise
+    timings["prepare"] = time.perf_counter() - t1
+    seq = pending_commit.result()  # a storage failure propagates: nothing in memory changed
+    timings["store"] = time.perf_counter() - t1  # overlaps "prepare"
+    return seq, prepared
+
+
+def _insert_now(reg, e, seq, prepared, timings) -> dict:
+    """wait=true: insert a committed batch (storage is ahead of memory until then)."""
+    t2 = time.perf_counter()
+    with e.index_lock:
+        if e.deleted:
+            raise FieldNotFoundError(f"no field named {e.name!r}")
+        try:
+            res = e.field.insert_prepared(prepared)
+        except BaseException as exc:
+            # the batch is committed but maybe half in memory: rebuild from storage
+            reg.reload(e, f"reloading after a failed insert: {exc}")
+            raise
+        e.indexed_seq = seq
+        e.new_samples += res.accepted
+    timings["insert"] = time.perf_counter() - t2
+    return UploadResult.of(seq, res, nsamples=res.nsamples, indexed=True, pending=0).to_dict()
+
+
+def _store_result(reg, e, seq, out, *, durable: bool) -> None:
+    """Store a batch's response: ``durable`` (wait=true) before the acknowledgement,
+    so that an acknowledged indexed batch is listed with its counts after any crash."""
+    try:
+        reg.storage.set_result(e.id, seq, out, durable=durable)
+    except StorageError as exc:  # the batch is durable; its response is a cache
+        log.warning("field %r: could not store the response of batch %d: %s", e.name, seq, exc)
+
+
+def _stored_result(reg, e: FieldEntry, seq: int, form: str, result: dict | None) -> dict:
+    """The response stored for batch ``seq``; recomputed (and stored again) from
+    the batch's arrays if a crash lost it (see the storage module doc)."""
+    if result is not None:
+        return result
+    arrays = reg.storage.batch_arrays(e.id, seq)
+    values = arrays.pop("values")
+    prepared = e.field.prepare(stored_flats(e, form, arrays), values)
+    result = UploadResult.of(seq, prepared, nsamples=e.field.nsamples,
+                             indexed=seq <= e.indexed_seq,
+                             pending=e.indexer.counts()[1]).to_dict()
+    try:
+        reg.storage.set_result(e.id, seq, result, replace=False)
+    except StorageError:  # pragma: no cover - a cache: recomputed next time
+        log.warning("field %r: could not store the response of batch %d", e.name, seq)
+    return result
+
+
+def batches(reg: Registry, e: FieldEntry) -> list[dict]:
+    """The stored batches of a field: seq, key, rows, accepted (None while the
+    response is not stored: in flight, or lost in a crash), form. Reads only."""
+    return [{"batch": b.seq, "idempotency_key": b.idem_key, "rows": b.nrows,
+             "accepted": None if b.result is None else int(b.result["accepted"]),
+             "form": b.form} for b in reg.storage.batches(e.id)]

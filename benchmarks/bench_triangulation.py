@@ -221,7 +221,7 @@ def bench_dataset(name, P, args, tmp: Path, peer_exe, big=False):
           f"{tri.nsimplex / n:.1f} per vertex)")
     row("build", "scipy Delaunay", t_scipy, t_ours,
         ratio=None if t_scipy is None else t_scipy / t_ours, target=f">= {TARGETS['build_vs_scipy']}",
-        note="" if t_scipy is not None else "(scipy skipped: DESIGN.md measured 258 s, 11.6 GB at 1M)"
+        note="" if t_scipy is not None else "(scipy skipped: docs/design.md: 258 s, 11.6 GB at 1M)"
         if big else "(scipy skipped)")
     if t_peer is not None:
         row("build", "plain C++ CGAL", t_peer, t_ours, ratio=t_ours / t_peer,

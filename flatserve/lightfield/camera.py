@@ -1,6 +1,6 @@
 """Pinhole cameras and the paper's random light-field sampling.
 
-Conventions (DESIGN.md, paper Sec. 5.2 with the axes renamed so that the basis
+Conventions (docs/design.md, "Light fields"; paper Sec. 5.2 with the axes renamed so that the basis
 is built around the z-axis): the object sits at the origin, the fixed sampling
 screen is the plane z = 0, eyes lie at negative z looking toward +z, image up
 is +y and image right is +x.

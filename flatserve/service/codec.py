@@ -1,6 +1,6 @@
 """Request bodies in, response bodies out: JSON (orjson), ``.npy`` and ``.npz``.
 
-Bulk arrays never pass through pydantic lists of lists (DESIGN.md: 250k rays as
+Bulk arrays never pass through pydantic lists of lists (docs/design.md: 250k rays as
 pydantic lists 1.1 s, as ``.npy`` 9 ms).
 
 Binary layouts (documented in the OpenAPI description too)

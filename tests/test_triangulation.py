@@ -30,6 +30,31 @@ def _queries(rng, D, q, margin=0.15):
     return rng.random((q, D)) * (1 + 2 * margin) - margin
 
 
+def _assert_same_cells_and_values(a, b, q):
+    """Same cells as vertex sets (the order of a cell's vertices may differ) and the
+    same interpolated values at ``q``."""
+    def cells(t):
+        return {tuple(sorted(s)) for s in t.simplices.tolist()}
+
+    assert cells(a) == cells(b)
+    va, ia = a.interpolate(q)
+    vb, ib = b.interpolate(q)
+    np.testing.assert_array_equal(ia, ib)
+    np.testing.assert_allclose(va[ia], vb[ib], atol=1e-12)
+
+
+def _assert_matches_scipy(tri, P, V, q, rtol=0.0):
+    """``tri`` interpolates like scipy's LinearNDInterpolator on the same samples:
+    the same inside mask, values within VALUE_TOL; returns (values, inside)."""
+    ours, inside = tri.interpolate(q)
+    ref = scipy_interp.LinearNDInterpolator(P, V)(q)
+    ref_inside = ~np.isnan(ref).any(axis=1)
+    np.testing.assert_array_equal(inside, ref_inside)
+    assert inside.any()
+    np.testing.assert_allclose(ours[inside], ref[inside], rtol=rtol, atol=VALUE_TOL)
+    return ours, inside
+
+
 @pytest.mark.parametrize("D", [2, 3, 4, 5])
 def test_interpolation_matches_scipy(D):
     rng = np.random.default_rng(100 + D)
@@ -39,12 +64,8 @@ def test_interpolation_matches_scipy(D):
     assert res.n_new == len(P) and res.n_duplicates == 0
     np.testing.assert_array_equal(res.ids, np.arange(len(P)))
     q = _queries(rng, D, 4000)
-    ours, inside = tri.interpolate(q)
-    ref = scipy_interp.LinearNDInterpolator(P, V)(q)
-    ref_inside = ~np.isnan(ref).any(axis=1)
-    np.testing.assert_array_equal(inside, ref_inside)
-    assert inside.any() and (~inside).any()
-    np.testing.assert_allclose(ours[inside], ref[inside], rtol=0, atol=VALUE_TOL)
+    ours, inside = _assert_matches_scipy(tri, P, V, q)
+    assert (~inside).any()
     assert np.isnan(ours[~inside]).all()
 
 
@@ -155,13 +176,7 @@ def test_later_batches_equal_one_batch():
     assert parts.npoints == 900
     np.testing.assert_array_equal(parts.points, P)
     np.testing.assert_array_equal(parts.values, V)
-    key = lambda t: {tuple(sorted(s)) for s in t.simplices.tolist()}  # noqa: E731
-    assert key(one) == key(parts)
-    q = _queries(rng, D, 2000)
-    a, ia = one.interpolate(q)
-    b, ib = parts.interpolate(q)
-    np.testing.assert_array_equal(ia, ib)
-    np.testing.assert_allclose(a[ia], b[ib], atol=1e-12)
+    _assert_same_cells_and_values(one, parts, _queries(rng, D, 2000))
     assert parts.is_valid()
 
 
@@ -270,12 +285,7 @@ def test_dynamic_dimension_matches_scipy():
     tri = Triangulation(D)
     tri.insert(P, V)
     q = 0.3 + 0.4 * rng.random((300, D))
-    ours, inside = tri.interpolate(q)
-    ref = scipy_interp.LinearNDInterpolator(P, V)(q)
-    ref_inside = ~np.isnan(ref).any(axis=1)
-    np.testing.assert_array_equal(inside, ref_inside)
-    assert inside.any()
-    np.testing.assert_allclose(ours[inside], ref[inside], atol=VALUE_TOL)
+    ours, inside = _assert_matches_scipy(tri, P, V, q, rtol=1e-7)
     assert tri.is_valid()
     t2 = Triangulation.from_bytes(tri.to_bytes())
     v2, i2 = t2.interpolate(q)
@@ -337,13 +347,7 @@ def test_snapshot_roundtrip_file(tmp_path, D):
     back.insert(P2, np.zeros((100, 2)))
     tri.insert(P2, np.zeros((100, 2)))
     assert back.is_valid()
-    key = lambda t: {tuple(sorted(s)) for s in t.simplices.tolist()}  # noqa: E731
-    assert key(back) == key(tri)
-    q = _queries(rng, D, 1000)
-    va, ia = tri.interpolate(q)
-    vb, ib = back.interpolate(q)
-    np.testing.assert_array_equal(ia, ib)
-    np.testing.assert_allclose(va[ia], vb[ib], atol=1e-12)
+    _assert_same_cells_and_values(tri, back, _queries(rng, D, 1000))
 
 
 def test_snapshot_without_values(tmp_path):

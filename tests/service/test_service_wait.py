@@ -31,6 +31,14 @@ def _rays_with_rejects(rng, n):
     return o, v, rng.normal(size=(n, C))
 
 
+def _upload(c, ref, rng, n=300, **kw):
+    """Upload ``n`` fresh rays (a tenth rejected) to field "f" and add them to the
+    reference field ``ref`` too; the upload's report."""
+    o, v, val = _rays_with_rejects(rng, n)
+    ref.add_rays(o, v, val)
+    return c.upload_rays("f", o, v, val, **kw)
+
+
 def _same_answers(got, want):
     """Same inside mask, values and (inside the hull) simplices. Outside it, the hull
     facet reported depends on where the walk starts, which a snapshot load changes."""
@@ -93,9 +101,7 @@ def test_wait_false_acknowledges_then_indexes_in_commit_order(make_app, rng, mon
     tc, c = _started(make_app())
     try:
         c.create_field("f", channels=C)
-        o, v, val = _rays_with_rejects(rng, 400)
-        base = c.upload_rays("f", o, v, val)  # wait=true: indexed in the request
-        ref.add_rays(o, v, val)
+        base = _upload(c, ref, rng, 400)  # wait=true: indexed in the request
         assert base["indexed"] and base["nsamples"] == ref.nsamples
         probe = paper_rays(rng, 300)
         before = ref.query_rays(*probe, return_weights=True)
@@ -153,9 +159,7 @@ def test_wait_true_after_wait_false_sees_every_earlier_batch(make_app, rng):
     try:
         c.create_field("f", channels=C)
         for i in range(4):
-            o, v, val = _rays_with_rejects(rng, 300)
-            ref.add_rays(o, v, val)
-            rep = c.upload_rays("f", o, v, val, wait=i == 3)
+            rep = _upload(c, ref, rng, wait=i == 3)
         assert rep["indexed"] and rep["batch"] == 4 and rep["nsamples"] == ref.nsamples
         info = c.describe("f")
         assert info["pending_batches"] == 0 and info["indexed_batch"] == 4
@@ -171,10 +175,8 @@ def test_shutdown_leaves_pending_batches_to_the_replay(make_app, rng, monkeypatc
     tc, c = _started(make_app())
     try:
         c.create_field("f", channels=C)
-        for i in range(2):
-            o, v, val = _rays_with_rejects(rng, 300)
-            ref.add_rays(o, v, val)
-            assert not c.upload_rays("f", o, v, val, wait=False)["indexed"]
+        for _ in range(2):
+            assert not _upload(c, ref, rng, wait=False)["indexed"]
         gate.entered.wait(30)
         assert c.describe("f")["indexed_batch"] == 0
     finally:

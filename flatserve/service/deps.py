@@ -95,23 +95,24 @@ def authorize(settings: Settings, key: Optional[str], *, write: bool) -> None:
     raise ApiError(401, "wrong API key", headers={"WWW-Authenticate": "Bearer"})
 
 
-# The Security parameters document the two ways of sending a key in OpenAPI; the
-# key itself is read from the raw headers by presented_key (repeats refused).
-async def require_read(
-    request: Request, settings: SettingsDep,
-    api_key: Annotated[Optional[str], Security(_api_key_header)] = None,
-    bearer: Annotated[Optional[HTTPAuthorizationCredentials], Security(_bearer)] = None,
-) -> None:
-    authorize(settings, presented_key(request.scope["headers"]), write=False)
+def _access(write: bool):
+    """The dependency that checks a request's key for reading or (``write``) writing.
+
+    The Security parameters document the two ways of sending a key in OpenAPI; the
+    key itself is read from the raw headers by presented_key (repeats refused)."""
+
+    async def require(
+        request: Request, settings: SettingsDep,
+        api_key: Annotated[Optional[str], Security(_api_key_header)] = None,
+        bearer: Annotated[Optional[HTTPAuthorizationCredentials], Security(_bearer)] = None,
+    ) -> None:
+        authorize(settings, presented_key(request.scope["headers"]), write=write)
+
+    require.__name__ = require.__qualname__ = "require_write" if write else "require_read"
+    return require
 
 
-async def require_write(
-    request: Request, settings: SettingsDep,
-    api_key: Annotated[Optional[str], Security(_api_key_header)] = None,
-    bearer: Annotated[Optional[HTTPAuthorizationCredentials], Security(_bearer)] = None,
-) -> None:
-    authorize(settings, presented_key(request.scope["headers"]), write=True)
-
-
+require_read = _access(write=False)
+require_write = _access(write=True)
 ReadAccess = Depends(require_read)
 WriteAccess = Depends(require_write)

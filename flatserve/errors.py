@@ -54,3 +54,11 @@ class FieldExistsError(FlatserveError):
 
 class LimitExceededError(FlatserveError):
     """A configured limit (batch size, number of fields, ...) was exceeded."""
+
+
+class StorageFullError(StorageError):
+    """Durable storage is out of space (a write was refused; nothing changed)."""
+
+
+class DataDirInUseError(StorageError):
+    """Another server holds the data directory."""

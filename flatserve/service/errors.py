@@ -96,6 +96,8 @@ def status_of(exc: BaseException) -> int:
         return 422
     if isinstance(exc, NotReadyError):
         return 503
+    if isinstance(exc, fe.StorageFullError):
+        return 507
     if isinstance(exc, (fe.StorageError, fe.SnapshotError)):
         return 503
     if isinstance(exc, ValueError):  # bad input reported by NumPy or other libraries

@@ -63,6 +63,14 @@ def serve(settings: Settings | None = None) -> None:
     host = settings.bind_host()
     if host != settings.host:
         log.warning("no API key set: binding to %s instead of %s", host, settings.host)
+    from ..errors import DataDirInUseError
+    from .storage import Storage
+
+    try:  # refuse at once, with a clear message, rather than in the middle of start-up
+        Storage(settings.data_dir).close()
+    except DataDirInUseError as exc:
+        log.error("%s", exc)
+        sys.exit(2)
     log.info("flatserve on http://%s:%d, data in %s, %d worker threads", host, settings.port,
              settings.data_dir, settings.workers)
     uvicorn.run(create_app(settings), host=host, port=settings.port, workers=1,

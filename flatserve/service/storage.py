@@ -17,6 +17,8 @@ does the database point at them.
 """
 from __future__ import annotations
 
+import errno
+import fcntl
 import hashlib
 import json
 import logging
@@ -31,7 +33,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from ..errors import FieldExistsError, FieldNotFoundError, StorageError
+from ..errors import (DataDirInUseError, FieldExistsError, FieldNotFoundError, StorageError,
+                      StorageFullError)
 
 log = logging.getLogger("flatserve.service.storage")
 
@@ -142,6 +145,42 @@ class BatchRow:
     result: dict | None
 
 
+LOCK_NAME = "flatserve.lock"
+
+
+def _lock_data_dir(data_dir: Path):
+    """Hold an exclusive lock on the data directory for this process's lifetime
+    (released by :meth:`Storage.close` or when the process dies, kill -9 included).
+    A second server on the same directory would diverge from the first: refused."""
+    path = data_dir / LOCK_NAME
+    try:
+        fh = open(path, "a+")
+    except OSError as exc:
+        raise StorageError(f"cannot open {path}: {exc}") from exc
+    try:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.seek(0)
+        holder = fh.read().strip() or "unknown"
+        fh.close()
+        raise DataDirInUseError(
+            f"the data directory {data_dir} is in use by another flatserve server (pid "
+            f"{holder}); stop it, or give this one another --data-dir") from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"{os.getpid()}\n")
+    fh.flush()
+    return fh
+
+
+def storage_error(exc: sqlite3.Error) -> StorageError:
+    """The :class:`StorageError` for a database error (:class:`StorageFullError` when
+    the disk is full)."""
+    full = getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL or \
+        "disk is full" in str(exc)
+    return (StorageFullError if full else StorageError)(f"storage failed: {exc}")
+
+
 def _fsync_dir(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
@@ -158,9 +197,12 @@ class Storage:
         self.snapshot_dir = self.data_dir / "snapshots"
         try:
             self.snapshot_dir.mkdir(parents=True, exist_ok=True)
-            self._db = sqlite3.connect(
-                self.data_dir / DB_NAME, check_same_thread=False, isolation_level=None
-            )
+        except OSError as exc:
+            raise StorageError(f"cannot create the data directory {self.data_dir}: {exc}") from exc
+        self._dir_lock = _lock_data_dir(self.data_dir)
+        db_path = self.data_dir / DB_NAME
+        try:
+            self._db = sqlite3.connect(db_path, check_same_thread=False, isolation_level=None)
             # 64 KiB pages (new databases only): a batch blob of a few MB is written
             # as few WAL frames, and the auto-checkpoint (1000 pages) runs every 64 MB
             # instead of every 4 MB; durability is unchanged (synchronous=FULL).
@@ -174,13 +216,17 @@ class Storage:
             if ver == 0:  # a new database (written only then: a full disk can still be read)
                 self._db.executescript(_SCHEMA)
                 self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
-        except sqlite3.Error as exc:
-            raise StorageError(f"cannot open storage in {self.data_dir}: {exc}") from exc
+        except (sqlite3.Error, StorageError) as exc:
+            self._dir_lock.close()
+            raise StorageError(f"cannot open the database {db_path}: {exc} (a damaged or "
+                               "truncated file? restore it from a backup or move it away)"
+                               ) from exc
         self._lock = threading.RLock()
 
     def close(self) -> None:
         with self._lock:
             self._db.close()
+        self._dir_lock.close()  # releases the data directory
 
     # -- transactions -----------------------------------------------------
     def _tx(self, fn: Callable[[sqlite3.Connection], object]):
@@ -189,20 +235,21 @@ class Storage:
                 self._db.execute("BEGIN IMMEDIATE")
                 try:
                     out = fn(self._db)
+                    self._db.execute("COMMIT")  # may fail too (a full disk): roll back
+                    return out
                 except BaseException:
-                    self._db.execute("ROLLBACK")
+                    if self._db.in_transaction:
+                        self._db.execute("ROLLBACK")
                     raise
-                self._db.execute("COMMIT")
-                return out
             except sqlite3.Error as exc:
-                raise StorageError(f"storage failed: {exc}") from exc
+                raise storage_error(exc) from exc
 
     def _query(self, sql: str, args: tuple = ()) -> list[tuple]:
         with self._lock:
             try:
                 return self._db.execute(sql, args).fetchall()
             except sqlite3.Error as exc:
-                raise StorageError(f"storage failed: {exc}") from exc
+                raise storage_error(exc) from exc
 
     # -- fields -----------------------------------------------------------
     def create_field(self, name: str, spec: dict, basis: dict[str, np.ndarray]) -> int:
@@ -261,11 +308,13 @@ class Storage:
         return BatchRow(r[0], r[1], r[2], r[3], r[4], json.loads(r[5]))
 
     def add_batch(self, field_id: int, *, idem_key: str | None, chash: str, form: str,
-                  nrows: int, blob: bytes) -> int:
+                  nrows: int, blob: bytes,
+                  result_fn: Callable[[int], dict] | None = None) -> int:
         """Store one batch; commit (durable) before returning its ``seq``.
 
-        Its response is stored afterwards by :meth:`set_result` (so a retry
-        with the same idempotency key gets the same answer).
+        ``result_fn(seq)`` builds a response stored with the batch (so a retry
+        with the same idempotency key gets the same answer); without it, or to
+        replace it, :meth:`set_result` stores one later.
         """
         def fn(db):
             seq = db.execute(
@@ -278,7 +327,8 @@ class Storage:
             db.execute(
                 "INSERT INTO batches(field_id, seq, idem_key, content_hash, form, nrows, arrays,"
                 " result, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (field_id, seq, idem_key, chash, form, nrows, blob, "null", time.time()),
+                (field_id, seq, idem_key, chash, form, nrows, blob,
+                 json.dumps(None if result_fn is None else result_fn(seq)), time.time()),
             )
             return seq
 
@@ -301,7 +351,7 @@ class Storage:
                 finally:
                     self._db.execute("PRAGMA synchronous=FULL")
             except sqlite3.Error as exc:
-                raise StorageError(f"storage failed: {exc}") from exc
+                raise storage_error(exc) from exc
 
     def delete_batch(self, field_id: int, seq: int) -> None:
         """Remove one batch (one that was never acknowledged)."""
@@ -369,6 +419,8 @@ class Storage:
             _fsync_dir(self.snapshot_dir)
         except OSError as exc:
             tmp.unlink(missing_ok=True)
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise StorageFullError(f"snapshot failed: {exc}") from exc
             raise StorageError(f"snapshot failed: {exc}") from exc
         except BaseException:
             tmp.unlink(missing_ok=True)

@@ -65,7 +65,7 @@ def upload(reg: Registry, e: FieldEntry, flats: Flats, values: np.ndarray,
             raise NotReadyError(f"field {e.name!r}: the server is shutting down")
         e.check_writable()
         seq, prepared = _commit_and_chart(reg, e, flats, values, idem_key, chash, stored,
-                                          timings)
+                                          timings, overlap=not wait)
         if wait:
             out = _insert_now(reg, e, seq, prepared, timings)
         else:
@@ -85,18 +85,34 @@ def upload(reg: Registry, e: FieldEntry, flats: Flats, values: np.ndarray,
     return out
 
 
-def _commit_and_chart(reg, e, flats, values, idem_key, chash, stored, timings):
-    """Validate, then commit the batch (in a storage thread) while it is charted.
-    Returns ``(seq, PreparedBatch)``; on any failure nothing stays stored."""
+def _commit_and_chart(reg, e, flats, values, idem_key, chash, stored, timings, *,
+                      overlap: bool):
+    """Validate, then commit the batch and chart it; returns ``(seq, PreparedBatch)``;
+    on any failure nothing stays stored. ``overlap`` (wait=false): the commit runs
+    in a storage thread while the batch is charted. Otherwise (wait=true) the batch
+    is charted first and committed with its accepted / rejected rows as a first
+    response (completed once inserted), so that every stored batch is listed with
+    its counts even if the process dies before the insert."""
     t1 = time.perf_counter()
     # bad input is refused here, before anything is stored; charting cannot fail
     # on validated input (each row gets a status)
     chart = e.field.prepare(flats, values, defer=True)
+    first = None
 
     def commit():
         h = content_hash(flats.form, stored) if chash is None else chash
+        result_fn = None if first is None else (lambda seq: UploadResult.of(
+            seq, first, nsamples=e.field.nsamples, indexed=False, pending=0).to_dict())
         return reg.storage.add_batch(e.id, idem_key=idem_key, chash=h, form=flats.form,
-                                     nrows=len(flats), blob=pack_arrays(stored))
+                                     nrows=len(flats), blob=pack_arrays(stored),
+                                     result_fn=result_fn)
+
+    if not overlap:
+        first = chart()
+        timings["prepare"] = time.perf_counter() - t1
+        seq = commit()
+        timings["store"] = time.perf_counter() - t1 - timings["prepare"]
+        return seq, first
 
     pending_commit = reg.commit_pool.submit(commit)
     try:

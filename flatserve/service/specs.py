@@ -8,7 +8,7 @@ from contextlib import contextmanager
 from .._validate import as_array
 from ..basis import Basis
 from ..errors import InvalidInputError
-from ..flats import FORMS, Flats, infer_form
+from ..flats import FORMS, Flats, form_shapes, infer_form
 from .errors import BatchTooLargeError
 from .schemas import CenterFlat, FlatsBasis, TangentSimplexBasis
 
@@ -62,31 +62,32 @@ def flats_from(obj, k: int, d: int, prefix: str, max_rows: int | None = None,
     return flats_of(obj, k, d, prefix, max_rows).quadrics()
 
 
+#: The members of a centre flat by form (checked in this order), one flat each: the
+#: names of :data:`FORMS` for a batch, with origins/directions in the singular.
+_CENTER_MEMBERS = {
+    "rays": ("origin", "direction"),
+    "parametric": ("A", "b"),
+    "flats": ("Q", "r"),
+}
+
+
 def center_flat(center: CenterFlat | None, k: int, d: int):
     """Centre (Q (d,d), r (d,)); default :meth:`Basis.default_center`."""
     if center is None:
         return Basis.default_center(k, d)
-    if center.origin is not None or center.direction is not None:
-        if k != 1:
+    for form, members in _CENTER_MEMBERS.items():
+        if all(getattr(center, m) is None for m in members):
+            continue
+        if form == "rays" and k != 1:
             raise InvalidInputError("basis.center: origin/direction describe a line (k = 1)",
                                     "basis.center.origin")
-        o = as_array(center.origin, "basis.center.origin", (d,))
-        v = as_array(center.direction, "basis.center.direction", (d,))
-        with _within("basis.center", {"origins": "origin", "directions": "direction"}):
-            Q, r = Flats.from_rays(o[None], v[None]).quadrics()
+        shapes = form_shapes(form, k, d).values()  # ("n", ...): one row here
+        one = [as_array(getattr(center, m), f"basis.center.{m}", shape[1:])
+               for m, shape in zip(members, shapes)]
+        with _within("basis.center", dict(zip(FORMS[form], members))):
+            arrays = {name: x[None] for name, x in zip(FORMS[form], one)}
+            Q, r = Flats.from_arrays(arrays, k=k, d=d, form=form).quadrics()
         return Q[0], r[0]
-    if center.A is not None or center.b is not None:
-        A = as_array(center.A, "basis.center.A", (d, k))
-        b = as_array(center.b, "basis.center.b", (d,))
-        with _within("basis.center"):
-            Q, r = Flats.from_parametric(A[None], b[None]).quadrics()
-        return Q[0], r[0]
-    if center.Q is not None or center.r is not None:
-        Q = as_array(center.Q, "basis.center.Q", (d, d))
-        r = as_array(center.r, "basis.center.r", (d,))
-        with _within("basis.center"):
-            Flats.from_quadrics(Q[None], r[None], k)
-        return Q, r
     return Basis.default_center(k, d)
 
 

@@ -8,8 +8,9 @@ import math
 
 import numpy as np
 
-#: Largest accepted ``.npy`` header (NumPy's own headers are far smaller).
-MAX_HEADER_BYTES = 65536
+#: Largest accepted ``.npy`` header, in bytes (NumPy writes about 128 for the arrays
+#: flatserve exchanges; a longer one is refused before it is parsed).
+MAX_HEADER_BYTES = 4096
 
 
 @functools.lru_cache(maxsize=256)
@@ -44,34 +45,159 @@ def columns_to_buffer(cols: list[np.ndarray]) -> memoryview:
     return memoryview(buf)
 
 
+MAGIC = b"\x93NUMPY"
+
+#: Leading bytes of formats sometimes sent where an ``.npy`` belongs (for messages).
+_OTHER_MAGIC = {b"PK\x03\x04": "a zip archive", b"PK\x05\x06": "an empty zip archive",
+                b"\x1f\x8b": "gzip data", b"{": "JSON text?", b"[": "JSON text?"}
+
+
+def _what(prefix: bytes) -> str:
+    for magic, what in _OTHER_MAGIC.items():
+        if prefix.startswith(magic):
+            return f"no .npy magic ({what})"
+    return f"no .npy magic (starts with {bytes(prefix[:8])!r})"
+
+
+def header_size(prefix: bytes) -> int:
+    """Length of an ``.npy`` header (magic, version, length field, dict) from its first bytes.
+
+    Parameters
+    ----------
+    prefix : bytes
+        At least the first 10 bytes (version 1) or 12 bytes (versions 2 and 3).
+
+    Returns
+    -------
+    int
+        Offset of the array data, at most :data:`MAX_HEADER_BYTES`.
+
+    Raises
+    ------
+    ValueError
+        No ``.npy`` magic, an unsupported version, a truncated prefix or a header
+        longer than :data:`MAX_HEADER_BYTES`.
+    """
+    if len(prefix) < 10 or prefix[:6] != MAGIC:
+        if MAGIC.startswith(bytes(prefix[:6])):
+            raise ValueError(f"truncated .npy header: {len(prefix)} bytes")
+        raise ValueError(_what(prefix))
+    major, minor = prefix[6], prefix[7]
+    if major == 1:
+        n = 10 + int.from_bytes(prefix[8:10], "little")
+    elif major in (2, 3):
+        if len(prefix) < 12:
+            raise ValueError(f"truncated .npy header: {len(prefix)} bytes")
+        n = 12 + int.from_bytes(prefix[8:12], "little")
+    else:
+        raise ValueError(f"unsupported .npy version {major}.{minor}")
+    if n > MAX_HEADER_BYTES:
+        raise ValueError(f".npy header declares {n} bytes; at most {MAX_HEADER_BYTES} are accepted")
+    return n
+
+
 @functools.lru_cache(maxsize=256)
 def _parse(head: bytes):
     buf = io.BytesIO(head)
-    version = np.lib.format.read_magic(buf)
-    if version == (1, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_1_0(buf)
-    elif version in ((2, 0), (3, 0)):
-        shape, fortran, dtype = np.lib.format.read_array_header_2_0(buf)
-    else:
-        raise ValueError(f"unsupported .npy version {version}")
+    try:
+        version = np.lib.format.read_magic(buf)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(buf)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(buf)
+        else:
+            raise ValueError(f"unsupported .npy version {version[0]}.{version[1]}")
+    except ValueError:
+        raise
+    except Exception as exc:  # the dict is untrusted text: any parse failure is bad input
+        raise ValueError(f"unreadable .npy header: {type(exc).__name__}: {exc}") from None
+    for dim in shape:  # NumPy lets bools and negative numbers through
+        if type(dim) is not int or dim < 0:
+            raise ValueError(f".npy shape {shape!r} holds {dim!r}: dimensions are "
+                             "non-negative integers")
     return dtype, shape, fortran, buf.tell()
 
 
 def header(body: bytes):
-    """``(dtype, shape, fortran_order, data offset)`` of ``.npy`` bytes; ValueError if bad."""
-    if len(body) < 10 or body[:6] != b"\x93NUMPY":
-        raise ValueError("no .npy magic")
-    n = (10 + int.from_bytes(body[8:10], "little")) if body[6] == 1 else (
-        12 + int.from_bytes(body[8:12], "little"))
-    if n > len(body) or n > MAX_HEADER_BYTES:
-        raise ValueError("truncated .npy header")
+    """Parse the header of ``.npy`` bytes.
+
+    Parameters
+    ----------
+    body : bytes
+        The whole ``.npy`` (or at least its header).
+
+    Returns
+    -------
+    tuple
+        ``(dtype, shape, fortran_order, data offset)``; every dimension of ``shape``
+        is a non-negative ``int``.
+
+    Raises
+    ------
+    ValueError
+        Anything wrong with the magic, version, length or dict of the header.
+    """
+    n = header_size(body[:12])
+    if n > len(body):
+        raise ValueError(f"truncated .npy header: it declares {n} bytes, the body has {len(body)}")
     return _parse(bytes(body[:n]))
 
 
+def read_header(stream):
+    """Parse an ``.npy`` header from a binary stream, reading no byte of the data.
+
+    Parameters
+    ----------
+    stream : binary file-like
+        Positioned at the start of an ``.npy`` (e.g. a member of a zip archive opened
+        with :meth:`zipfile.ZipFile.open`); left positioned at the data.
+
+    Returns
+    -------
+    tuple
+        ``(dtype, shape, fortran_order, data offset)`` as :func:`header`.
+
+    Raises
+    ------
+    ValueError
+        As :func:`header`; at most :data:`MAX_HEADER_BYTES` are read.
+    """
+    head = stream.read(10)
+    if len(head) == 10 and head[:6] == MAGIC and head[6] in (2, 3):
+        head += stream.read(2)
+    n = header_size(head)
+    head += stream.read(n - len(head))
+    if len(head) < n:
+        raise ValueError(f"truncated .npy header: it declares {n} bytes, the data ends after {len(head)}")
+    return _parse(head)
+
+
 def from_bytes(body: bytes, dtype, shape, fortran: bool, offset: int) -> np.ndarray:
-    """The array a parsed header describes, as a view of ``body``; ValueError if sizes differ."""
+    """The array a parsed header describes, as a view of ``body`` (no copy).
+
+    Parameters
+    ----------
+    body : bytes
+        The whole ``.npy``.
+    dtype, shape, fortran, offset
+        As returned by :func:`header`.
+
+    Returns
+    -------
+    numpy.ndarray
+        A read-only view of ``body``.
+
+    Raises
+    ------
+    ValueError
+        The data is shorter or longer than the header declares.
+    """
     count = math.prod(shape)
-    if len(body) - offset != count * dtype.itemsize:
-        raise ValueError(f".npy data is {len(body) - offset} bytes, header says {count * dtype.itemsize}")
+    have, want = len(body) - offset, count * dtype.itemsize
+    if have < want:
+        raise ValueError(f".npy data is truncated: {have} bytes, the header declares {want}")
+    if have > want:
+        raise ValueError(f".npy data is {have} bytes, the header declares {want}: "
+                         f"{have - want} bytes too many")
     arr = np.frombuffer(body, dtype=dtype, count=count, offset=offset)
     return arr.reshape(shape, order="F" if fortran else "C")

@@ -6,7 +6,7 @@ decodes them with orjson + NumPy (see :mod:`.codec`).
 """
 from __future__ import annotations
 
-from typing import Annotated, Literal, Optional, Union
+from typing import Annotated, ClassVar, Literal, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
@@ -26,16 +26,22 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
-def _one_form(model, forms: dict[str, tuple[str, str]]):
-    """At most one of the alternative array pairs may be given."""
-    given = [name for name, keys in forms.items()
-             if any(getattr(model, key) is not None for key in keys)]
-    if len(given) > 1:
-        raise ValueError(f"give one of {' / '.join(forms)}, not {' and '.join(given)}")
-    return model
+class _OneForm(_Strict):
+    """A flat or flats given in one of the alternative array pairs of ``_forms``."""
+
+    _forms: ClassVar[dict[str, tuple[str, str]]]
+
+    @model_validator(mode="after")
+    def _one(self):
+        """At most one of the alternative array pairs may be given."""
+        given = [name for name, keys in self._forms.items()
+                 if any(getattr(self, key) is not None for key in keys)]
+        if len(given) > 1:
+            raise ValueError(f"give one of {' / '.join(self._forms)}, not {' and '.join(given)}")
+        return self
 
 
-class CenterFlat(_Strict):
+class CenterFlat(_OneForm):
     """One flat: (Q, r), or (A, b) with A (d, k), or a line as origin + direction."""
 
     Q: Optional[Mat] = None
@@ -45,10 +51,7 @@ class CenterFlat(_Strict):
     origin: Optional[Vec] = None
     direction: Optional[Vec] = None
 
-    @model_validator(mode="after")
-    def _one(self):
-        return _one_form(self, {"Q+r": ("Q", "r"), "A+b": ("A", "b"),
-                                "origin+direction": ("origin", "direction")})
+    _forms = {"Q+r": ("Q", "r"), "A+b": ("A", "b"), "origin+direction": ("origin", "direction")}
 
 
 class TangentSimplexBasis(_Strict):
@@ -63,7 +66,7 @@ class TangentSimplexBasis(_Strict):
     variant: Literal["tangent", "paper"] = "tangent"
 
 
-class FlatsModel(_Strict):
+class FlatsModel(_OneForm):
     """A batch of flats in one form: Q (n,d,d) + r (n,d), A (n,d,k) + b (n,d), or
     (k = 1) origins + directions (n,d) (the forms of :class:`flatserve.flats.Flats`)."""
 
@@ -74,10 +77,7 @@ class FlatsModel(_Strict):
     origins: Optional[Mat] = None
     directions: Optional[Mat] = None
 
-    @model_validator(mode="after")
-    def _one(self):
-        return _one_form(self, {"Q+r": ("Q", "r"), "A+b": ("A", "b"),
-                                "origins+directions": ("origins", "directions")})
+    _forms = {"Q+r": ("Q", "r"), "A+b": ("A", "b"), "origins+directions": ("origins", "directions")}
 
 
 class FlatsBasis(FlatsModel):

@@ -30,6 +30,15 @@ def _queries(rng, D, q, margin=0.15):
     return rng.random((q, D)) * (1 + 2 * margin) - margin
 
 
+def _filled(rng, D, n, C=2):
+    """A triangulation of ``n`` random samples (C channels) inserted in one batch;
+    (triangulation, points, values)."""
+    P, V = _sample(rng, D, n, C)
+    tri = Triangulation(D)
+    tri.insert(P, V)
+    return tri, P, V
+
+
 def _assert_same_cells_and_values(a, b, q):
     """Same cells as vertex sets (the order of a cell's vertices may differ) and the
     same interpolated values at ``q``."""
@@ -85,9 +94,7 @@ def test_simplices_match_scipy_delaunay(D):
 @pytest.mark.parametrize("D", [2, 3, 4, 5])
 def test_located_queries_lie_in_their_simplex(D):
     rng = np.random.default_rng(300 + D)
-    P, V = _sample(rng, D, NPTS[D])
-    tri = Triangulation(D)
-    tri.insert(P, V)
+    tri, P, _ = _filled(rng, D, NPTS[D])
     q = _queries(rng, D, 3000)
     loc = tri.locate(q)
     ins = loc.inside
@@ -118,9 +125,7 @@ def test_located_queries_lie_in_their_simplex(D):
 def test_threads_give_identical_results(order):
     D = 4
     rng = np.random.default_rng(7)
-    P, V = _sample(rng, D, 800, C=3)
-    tri = Triangulation(D)
-    tri.insert(P, V)
+    tri, _, _ = _filled(rng, D, 800, C=3)
     q = _queries(rng, D, 5 * CHUNK + 123)
     base = tri.locate(q, order=order, threads=1)
     v1, i1 = tri.interpolate(q, order=order, threads=1, outside="clamp")
@@ -140,9 +145,7 @@ def test_threads_give_identical_results(order):
 def test_orders_agree():
     D = 3
     rng = np.random.default_rng(8)
-    P, V = _sample(rng, D, 700)
-    tri = Triangulation(D)
-    tri.insert(P, V)
+    tri, _, _ = _filled(rng, D, 700)
     q = _queries(rng, D, 2 * CHUNK + 5)
     a, ia = tri.interpolate(q, order="hilbert")
     b, ib = tri.interpolate(q, order="given")
@@ -152,9 +155,7 @@ def test_orders_agree():
 
 def test_leading_query_shape_and_single_point():
     rng = np.random.default_rng(9)
-    P, V = _sample(rng, 2, 100)
-    tri = Triangulation(2)
-    tri.insert(P, V)
+    tri, _, _ = _filled(rng, 2, 100)
     q = rng.random((4, 5, 2)) * 0.5 + 0.25
     v, ins = tri.interpolate(q)
     assert v.shape == (4, 5, 2) and ins.shape == (4, 5)
@@ -166,9 +167,7 @@ def test_leading_query_shape_and_single_point():
 def test_later_batches_equal_one_batch():
     D = 3
     rng = np.random.default_rng(10)
-    P, V = _sample(rng, D, 900)
-    one = Triangulation(D)
-    one.insert(P, V)
+    one, P, V = _filled(rng, D, 900)
     parts = Triangulation(D)
     for lo, hi in [(0, 2), (2, 50), (50, 400), (400, 900)]:
         r = parts.insert(P[lo:hi], V[lo:hi])
@@ -183,9 +182,7 @@ def test_later_batches_equal_one_batch():
 def test_duplicates_later_value_wins():
     D = 2
     rng = np.random.default_rng(11)
-    P, V = _sample(rng, D, 50, C=1)
-    tri = Triangulation(D)
-    tri.insert(P, V)
+    tri, P, V = _filled(rng, D, 50, C=1)
     # batch: 3 new points, 2 repeats of old points, one new point repeated
     new = rng.random((3, D)) + 2.0
     batch = np.vstack([new[0], P[7], new[1], P[7], new[2], new[1], P[3]])
@@ -230,9 +227,7 @@ def test_locate_kinds_on_faces():
 def test_outside_policies():
     D = 3
     rng = np.random.default_rng(12)
-    P, V = _sample(rng, D, 400, C=2)
-    tri = Triangulation(D)
-    tri.insert(P, V)
+    tri, _, V = _filled(rng, D, 400, C=2)
     q = _queries(rng, D, 3000, margin=0.5)
     vn, ins = tri.interpolate(q)
     vc, insc = tri.interpolate(q, outside="clamp")
@@ -281,9 +276,7 @@ def test_degenerate_and_empty():
 def test_dynamic_dimension_matches_scipy():
     D = 7
     rng = np.random.default_rng(13)
-    P, V = _sample(rng, D, 40)
-    tri = Triangulation(D)
-    tri.insert(P, V)
+    tri, P, V = _filled(rng, D, 40)
     q = 0.3 + 0.4 * rng.random((300, D))
     ours, inside = _assert_matches_scipy(tri, P, V, q, rtol=1e-7)
     assert tri.is_valid()

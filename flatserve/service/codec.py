@@ -48,6 +48,7 @@ sample ids and barycentric weights), ``application/x-npz`` (``values``,
 from __future__ import annotations
 
 import io
+import re
 import math
 import struct
 import zipfile
@@ -401,6 +402,30 @@ def load_json(body: bytes) -> dict:
     return obj
 
 
+_BOOLEAN = re.compile(rb"\b(true|false)\b")
+
+
+def _check_json_members(raw: dict, body: bytes, *, upload: bool) -> None:
+    """A JSON batch holds ``form``, one form's arrays (and ``values`` for uploads),
+    nothing else; arrays hold numbers only (no strings, no booleans)."""
+    allowed = {"form", *(n for names in FORMS.values() for n in names)}
+    if upload:
+        allowed.add("values")
+    for name in raw:
+        if name not in allowed:
+            raise InvalidInputError(f"{name}: unknown member; a batch has form, "
+                                    + ", ".join(sorted(allowed - {"form"})), name)
+    if raw.get("form") is not None and not isinstance(raw["form"], str):
+        raise InvalidInputError("form: expected a string", "form")
+    for name, x in raw.items():
+        if name != "form" and isinstance(x, list) and np.asarray(x).dtype.kind not in "fiu":
+            raise InvalidInputError(f"{name}: expected an array of numbers (no strings or "
+                                    "nulls)", name)
+    m = _BOOLEAN.search(body)  # no member of a batch is a boolean: one is in an array
+    if m is not None:
+        raise InvalidInputError(f"body: {m.group(0).decode()} is not a number", "body")
+
+
 def _rows(raw: dict, form: str) -> int:
     """Rows of the first array of ``form`` (0 when missing), before any validation."""
     x = raw.get(FORMS[form][0])
@@ -440,19 +465,24 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
     """
     kind = body_kind(content_type)
     extra: dict = {}
+    # what a legitimate body can need once read as float64: max_rows rows of the
+    # widest form (Q, r) plus the values; larger declared arrays are refused unread
+    max_bytes = max_rows * 8 * (d * d + d + (channels or 0))
     if kind == "json":
         raw = load_json(body)
+        _check_json_members(raw, body, upload=channels is not None)
         form = form or raw.get("form")
         extra = raw
     elif kind == "npz":
-        raw = load_npz(body)
+        raw = load_npz(body, max_bytes=max_bytes, max_rows=max_rows)
     else:
         if form is None:
             if k == 1:
                 form = "rays"
             else:
                 raise InvalidInputError("form: required with application/x-npy", "form")
-        raw = split_columns(load_npy(body), form, k, d, channels)
+        raw = split_columns(load_npy(body, max_bytes=max_bytes, max_rows=max_rows), form, k, d,
+                            channels)
     if form is not None and form not in FORMS:
         raise InvalidInputError(f"form: one of {tuple(FORMS)}, got {form!r}", "form")
     form = form or infer_form(raw)

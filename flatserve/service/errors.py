@@ -50,6 +50,18 @@ class BodyTooLargeError(fe.LimitExceededError):
     status = 413
 
 
+class BacklogFullError(fe.LimitExceededError):
+    """Too many acknowledged samples of a field wait for their insert."""
+
+    status = 429
+
+
+class CostLimitError(fe.LimitExceededError):
+    """An upload would make a field's triangulation larger than allowed."""
+
+    status = 413
+
+
 class NotReadyError(fe.FlatserveError):
     """Stored fields are still being restored."""
 
@@ -115,8 +127,8 @@ def error_response(exc: BaseException) -> ORJSONResponse:
     status = status_of(exc)
     msg = _message(exc)
     headers = getattr(exc, "headers", None)
-    if status == 503 and isinstance(exc, NotReadyError):
-        headers = {"Retry-After": "1"}
+    if (status == 503 and isinstance(exc, NotReadyError)) or status in (429, 507):
+        headers = {**(headers or {}), "Retry-After": "1"}
     if status == 422:
         arg = getattr(exc, "argument", None)
         loc = ["body", *arg.split(".")] if arg else ["body"]  # "basis.center.A" -> path
@@ -126,14 +138,22 @@ def error_response(exc: BaseException) -> ORJSONResponse:
     return ORJSONResponse(body, status_code=status, headers=headers)
 
 
+def log_failure(method: str, path: str, exc: BaseException, status: int) -> None:
+    """Log a 5xx: a bug (500) at ERROR with its traceback; the expected refusals of
+    a server that works (503 while a field loads, 507 on a full disk) at WARNING."""
+    if status == 500:
+        log.error("%s %s failed: %s", method, path, exc, exc_info=exc)
+    else:
+        log.warning("%s %s: %d %s", method, path, status, exc)
+
+
 def install(app: FastAPI) -> None:
     """Register the handlers on ``app``."""
 
     async def _handle(request: Request, exc: Exception):
         status = status_of(exc)
         if status >= 500:
-            log.error("%s %s failed: %s", request.method, request.url.path, exc,
-                      exc_info=status == 500)
+            log_failure(request.method, request.url.path, exc, status)
         elif isinstance(exc, ValueError) and not isinstance(exc, fe.FlatserveError):
             log.warning("%s %s: unclassified ValueError mapped to 422: %s",
                         request.method, request.url.path, exc)

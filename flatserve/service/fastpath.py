@@ -87,7 +87,7 @@ class FastQueryMiddleware:
         except Exception as exc:
             status = errors.status_of(exc)
             if status >= 500:
-                log.error("POST %s failed: %s", scope["path"], exc, exc_info=status == 500)
+                errors.log_failure("POST", scope["path"], exc, status)
             resp = errors.error_response(exc)
         await resp(scope, receive, send)
 

@@ -119,10 +119,14 @@ class Registry:
                 self._entries[row.name] = e
                 entries.append((e, row))
         log.info("restoring %d stored field(s) from %s", len(entries), self.storage.data_dir)
-        for e, row in entries:
-            if self.closed:
-                return
-            self._restore(e, row)
+        # fields restore independently: each is ready as soon as it is loaded, and an
+        # expensive one holds up only its own thread
+        with ThreadPoolExecutor(self.settings.restore_threads,
+                                thread_name_prefix="flatserve-restore") as pool:
+            for e, row in entries:
+                pool.submit(lambda e=e, row=row: None if self.closed else self._restore(e, row))
+        if self.closed:
+            return
         self.ready.set()
         log.info("ready: %d field(s) loaded", len(entries))
 

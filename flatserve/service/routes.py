@@ -229,15 +229,15 @@ def healthz() -> Response:
             responses={503: {"model": Health, "description": "Stored fields still loading."}})
 def readyz(registry: RegistryDep) -> Response:
     entries = registry.snapshot_entries()
-    loading = sum(e.state == "loading" for e in entries)
+    names = [e.name for e in entries if e.state == "loading"]
+    body = {"fields": len(entries), "loading": len(names), "loading_fields": names}
     if not registry.ready.is_set():
-        return JSONBytes({"status": "loading", "fields": len(entries), "loading": loading},
-                         status_code=503)
-    return JSONBytes({"status": "ready", "fields": len(entries), "loading": loading})
+        return JSONBytes({"status": "loading", **body}, status_code=503)
+    return JSONBytes({"status": "ready", **body})
 
 
 @health.get("/metrics", tags=["health"], summary="Prometheus metrics",
-            response_class=Response,
+            response_class=Response, dependencies=[ReadAccess],
             responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}},
                              "description": "Prometheus text format."}})
 def metrics(request: Request) -> Response:

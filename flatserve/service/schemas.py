@@ -23,7 +23,8 @@ MAX_DIM = 8  # triangulation dimension (k+1)(d-k)
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # strict: a number given as a string, or a boolean for a number, is a 422
+    model_config = ConfigDict(extra="forbid", strict=True)
 
 
 class _OneForm(_Strict):
@@ -267,3 +268,5 @@ class Health(BaseModel):
     status: str
     fields: Optional[int] = None
     loading: Optional[int] = None
+    loading_fields: Optional[list[str]] = Field(
+        None, description="Fields still being restored (the others answer already).")

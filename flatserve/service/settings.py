@@ -50,6 +50,17 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(512 * MiB, ge=1, description="Largest accepted request body (413).")
     max_batch_rows: int = Field(1_000_000, ge=1, description="Most rows in one upload or query (413).")
     max_fields: int = Field(256, ge=1, description="Most fields on this server (409).")
+    max_pending_samples: int = Field(
+        2_000_000, ge=1,
+        description="Most accepted samples of one field waiting for their insert (uploads with "
+                    "wait=false); beyond it uploads get 429 with Retry-After.")
+    max_simplices: int = Field(
+        50_000_000, ge=1,
+        description="Most cells of one field's triangulation: an upload expected to pass it is "
+                    "refused (413) with the estimate (high-dimensional fields grow fast).")
+    restore_threads: int = Field(
+        4, ge=1, le=64, description="Fields restored at once on start (each is ready as soon "
+                                    "as it is loaded).")
     snapshot_every: int = Field(
         100_000,
         ge=0,

@@ -102,7 +102,8 @@ def test_api_keys_and_metrics_on_the_fast_path(make_app, rng):
         for h in ({"api-key": "ro-key"}, {"Authorization": "Bearer ro-key"},
                   {"api-key": "rw-key"}):
             assert tc.post(url, json=js, headers=h).status_code == 200
-        text = tc.get("/metrics").text
+        assert tc.get("/metrics").status_code == 401  # field names and counters need a key
+        text = tc.get("/metrics", headers={"api-key": "ro-key"}).text
         assert ('flatserve_requests_total{method="POST",route="/v1/fields/{name}/query",'
                 'status="200"} 3.0') in text
         assert 'flatserve_query_rows_total{field="f"} 9.0' in text

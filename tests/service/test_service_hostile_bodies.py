@@ -33,7 +33,7 @@ HOSTILE = {  # name: (body, content type, status, words the error must hold)
     "bad-magic": (b"\x93NUMPX" + bytes(200), NPY, 422, "magic"),
     "long-header": (b"\x93NUMPY\x02\x00\xff\xff\xff\xff" + bytes(64), NPY, 422, "header"),
     "truncated-npy": (npy(np.zeros((4, 6)))[:-1], NPY, 422, "truncated"),
-    "huge-npy": (descr_header((2**40, 6)) + bytes(48), NPY, 413, "declares"),
+    "huge-npy": (descr_header((2**40, 6)) + bytes(48), NPY, 413, "1099511627776 rows"),
     "nested-zip": (raw_zip([Member("origins.npy", npz(origins=np.zeros((2, 3))))]), NPZ, 422,
                    "nested zip"),
     "raw-member": (raw_zip([Member("origins.npy", b"just bytes")]), NPZ, 422, "'origins.npy'"),

@@ -1,0 +1,152 @@
+"""Limits that keep one client or one field from holding up the server: the body
+limit on chunked bodies, the wait=false backlog, the cost guard of high-dimensional
+fields, repeated key headers, strict JSON, and fields that restore independently."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from flatserve.service import registry as registry_mod
+
+from .conftest import paper_rays, started
+
+
+def _chunks(total: int, size: int = 65536):
+    sent = 0
+    while sent < total:
+        n = min(size, total - sent)
+        sent += n
+        yield b" " * n
+
+
+@pytest.mark.parametrize("path", ["/v1/fields", "/v1/math/coordinates",
+                                  "/v1/fields/f/query", "/v1/fields/f/samples",
+                                  "/v1/fields/f/render"])
+def test_chunked_body_past_the_limit_is_413_on_every_route(make_app, path):
+    tc, c = started(make_app(max_body_bytes=100_000))
+    try:
+        c.create_field("f", channels=1)
+        # a generator body is sent with Transfer-Encoding: chunked (no Content-Length)
+        r = tc.post(path, content=_chunks(1_000_000), headers={"Content-Type": "application/json"})
+        assert r.status_code == 413, (path, r.status_code, r.text)
+        assert "limit of 100000 bytes" in r.text
+        assert tc.get("/healthz").status_code == 200
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_wait_false_backlog_is_bounded_with_429(make_app, rng, monkeypatch):
+    gate = threading.Event()
+    monkeypatch.setattr(registry_mod.Registry, "_before_index",
+                        staticmethod(lambda e, seq: gate.wait(30)))
+    tc, c = started(make_app(max_pending_samples=500))
+    try:
+        c.create_field("f", channels=1)
+        o, v = paper_rays(rng, 1200)
+        first = c.upload_rays("f", o[:400], v[:400], np.ones(400), wait=False)
+        assert not first["indexed"]
+        r = tc.post("/v1/fields/f/samples", params={"wait": "false"},
+                    json={"origins": o[400:800].tolist(), "directions": v[400:800].tolist(),
+                          "values": np.ones((400, 1)).tolist()})
+        assert r.status_code == 429 and r.headers["retry-after"] == "1", r.text
+        assert "FLATSERVE_MAX_PENDING_SAMPLES" in r.text
+        info = c.describe("f")  # describe never waits for the indexer
+        assert info["pending_batches"] == 1 and info["storage"]["batches"] == 1
+        gate.set()
+        c.wait_indexed("f", timeout=30)
+        assert c.upload_rays("f", o[400:800], v[400:800], np.ones(400), wait=False)["batch"] == 2
+    finally:
+        gate.set()
+        tc.__exit__(None, None, None)
+
+
+def test_high_dimensional_field_is_refused_before_it_explodes(make_app, rng):
+    tc, c = started(make_app(max_simplices=100_000))
+    try:
+        c.create_field("p8", k=0, d=8, channels=1)  # points in R^8: an 8-D triangulation
+        pts = rng.normal(size=(200, 8))
+        Q = np.broadcast_to(np.eye(8), (200, 8, 8))
+        r = tc.post("/v1/fields/p8/samples", json={"Q": Q.tolist(), "r": pts.tolist(),
+                                                   "values": np.ones((200, 1)).tolist()})
+        assert r.status_code == 413, r.text
+        assert "cells expected" in r.text and "FLATSERVE_MAX_SIMPLICES" in r.text
+        assert c.describe("p8")["storage"]["batches"] == 0
+        small = tc.post("/v1/fields/p8/samples", json={
+            "Q": Q[:12].tolist(), "r": pts[:12].tolist(), "values": np.ones((12, 1)).tolist()})
+        assert small.status_code == 200, small.text
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_repeated_key_headers_are_refused(make_app):
+    tc, c = started(make_app(api_key="rw", read_only_key="ro"))
+    try:
+        for path in ("/v1/fields", "/v1/fields/x/query"):
+            method = tc.get if path == "/v1/fields" else tc.post
+            r = method(path, headers=[("api-key", "ro"), ("api-key", "rw")])
+            assert r.status_code == 400 and "repeated" in r.text, (path, r.text)
+    finally:
+        tc.__exit__(None, None, None)
+
+
+@pytest.mark.parametrize("body, member", [
+    ({"origins": [[0, 0, -3]], "directions": [[0, 0, 1]], "Q": [np.eye(3).tolist()]}, "body"),
+    ({"origins": [[0, 0, -3]], "directions": [[0, 0, 1]], "extra": 1}, "extra"),
+    ({"origins": [["0", 0, -3]], "directions": [[0, 0, 1]]}, "origins"),
+    ({"origins": [[True, 0, -3]], "directions": [[0, 0, 1]]}, "body"),
+    ({"origins": [[0.5, 0, -3]], "directions": [[0, False, 1]]}, "body"),
+])
+def test_ambiguous_json_bodies_are_422(api, body, member):
+    tc, c = api
+    c.create_field("f")
+    r = tc.post("/v1/fields/f/query", json=body)
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"][0]["loc"][-1] == member, r.text
+
+
+def test_strings_for_numbers_in_field_specs_are_422(api):
+    tc, _ = api
+    r = tc.post("/v1/fields", json={"name": "s", "basis": {"scale": "0.02"}})
+    assert r.status_code == 422, r.text
+    r = tc.post("/v1/fields", json={"name": "s", "k": True})
+    assert r.status_code == 422, r.text
+
+
+def test_fields_restore_independently(make_app, rng, monkeypatch):
+    tc, c = started(make_app())
+    try:
+        for name in ("slow", "quick"):
+            c.create_field(name, channels=1)
+            o, v = paper_rays(rng, 300)
+            c.upload_rays(name, o, v, np.ones(300))
+    finally:
+        tc.__exit__(None, None, None)
+    gate = threading.Event()
+    real = registry_mod.Registry._restore
+
+    def restore(self, e, row):
+        if e.name == "slow":
+            gate.wait(30)
+        return real(self, e, row)
+
+    monkeypatch.setattr(registry_mod.Registry, "_restore", restore)
+    from fastapi.testclient import TestClient
+    from flatserve.client import Client
+
+    with TestClient(make_app()) as tc:
+        c = Client(http=tc)
+        for _ in range(400):  # the quick field answers while the slow one loads
+            if c.describe("quick")["state"] == "ready":
+                break
+            threading.Event().wait(0.02)
+        o, v = paper_rays(rng, 5)
+        assert c.query_rays("quick", o, v).values.shape == (5, 1)
+        ready = tc.get("/readyz")
+        assert ready.status_code == 503 and ready.json()["loading_fields"] == ["slow"]
+        assert tc.post("/v1/fields/slow/query", json={"origins": o.tolist(),
+                                                      "directions": v.tolist()}).status_code == 503
+        gate.set()
+        c.wait_ready(30)
+        assert tc.get("/readyz").json()["loading_fields"] == []

@@ -95,6 +95,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app = FastAPI(title="flatserve", version=__version__, description=DESCRIPTION,
                   lifespan=lifespan)
+    app.openapi = _openapi(app)
     app.state.settings = settings
     app.state.metrics = Metrics()
     app.state.metrics.watch(_EntriesOf(app))
@@ -108,6 +109,30 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     return app
+
+
+def _openapi(app: FastAPI):
+    """FastAPI's OpenAPI document plus the models of the JSON bodies parsed off the
+    event loop (:func:`.deps.json_body`), under ``components/schemas`` as FastAPI
+    would have put them."""
+    from fastapi.openapi.utils import get_openapi
+
+    from .deps import JSON_BODY_MODELS
+
+    def openapi() -> dict:
+        if app.openapi_schema is None:
+            doc = get_openapi(title=app.title, version=app.version,
+                              description=app.description, routes=app.routes)
+            comps = doc.setdefault("components", {}).setdefault("schemas", {})
+            for model in JSON_BODY_MODELS:
+                js = model.model_json_schema(ref_template="#/components/schemas/{model}")
+                for name, sub in js.pop("$defs", {}).items():
+                    comps.setdefault(name, sub)
+                comps.setdefault(model.__name__, js)
+            app.openapi_schema = doc
+        return app.openapi_schema
+
+    return openapi
 
 
 def _start(app: FastAPI, settings: Settings) -> None:

@@ -63,7 +63,7 @@ from .. import _npy
 from .._validate import as_array
 from ..errors import InvalidInputError
 from ..flats import FORMS, Flats, form_shapes, infer_form
-from .errors import ApiError, BatchTooLargeError
+from .errors import ApiError, BatchTooLargeError, BodyTooLargeError
 from .responses import JSONBytes
 
 NPY = "application/x-npy"
@@ -405,6 +405,34 @@ def load_json(body: bytes) -> dict:
 _BOOLEAN = re.compile(rb"\b(true|false)\b")
 
 
+def check_json_size(body: bytes, limit: int) -> None:
+    """413 for a JSON body over ``limit`` bytes (``max_json_bytes``): parsing holds
+    the interpreter for the whole body, so bulk arrays travel as ``.npy``."""
+    if len(body) > limit:
+        raise BodyTooLargeError(
+            f"a JSON body of {len(body)} bytes; the limit for JSON is {limit} "
+            f"(FLATSERVE_MAX_JSON_BYTES): send bulk arrays as {NPY} or {NPZ}")
+
+
+#: JSON arrays are converted this many rows at a time: each conversion holds the
+#: GIL, so a big body converted in one call would stall the event loop's thread
+JSON_CHUNK_ROWS = 4096
+
+
+def _json_array(x: list, name: str) -> np.ndarray:
+    """A JSON array of numbers as an ndarray, converted in slices (see
+    :data:`JSON_CHUNK_ROWS`); strings, nulls and ragged rows are a 422."""
+    try:
+        parts = [np.asarray(x[i:i + JSON_CHUNK_ROWS]) for i in range(0, len(x), JSON_CHUNK_ROWS)]
+        a = parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.asarray(x)
+    except ValueError as exc:
+        raise InvalidInputError(f"{name}: not a regular array of numbers: {exc}", name) from None
+    if a.dtype.kind not in "fiu":
+        raise InvalidInputError(f"{name}: expected an array of numbers (no strings or nulls)",
+                                name)
+    return a
+
+
 def _check_json_members(raw: dict, body: bytes, *, upload: bool) -> None:
     """A JSON batch holds ``form``, one form's arrays (and ``values`` for uploads),
     nothing else; arrays hold numbers only (no strings, no booleans)."""
@@ -418,10 +446,10 @@ def _check_json_members(raw: dict, body: bytes, *, upload: bool) -> None:
     if raw.get("form") is not None and not isinstance(raw["form"], str):
         raise InvalidInputError("form: expected a string", "form")
     for name, x in raw.items():
-        if name != "form" and isinstance(x, list) and np.asarray(x).dtype.kind not in "fiu":
-            raise InvalidInputError(f"{name}: expected an array of numbers (no strings or "
-                                    "nulls)", name)
-    m = _BOOLEAN.search(body)  # no member of a batch is a boolean: one is in an array
+        if name != "form" and isinstance(x, list) and x:  # [] is judged with its shape later
+            raw[name] = _json_array(x, name)
+    # no member of a batch is a boolean: one is in an array (a quick scan first)
+    m = _BOOLEAN.search(body) if b"true" in body or b"false" in body else None
     if m is not None:
         raise InvalidInputError(f"body: {m.group(0).decode()} is not a number", "body")
 
@@ -456,7 +484,8 @@ def split_columns(arr: np.ndarray, form: str, k: int, d: int, channels: int | No
 
 
 def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d: int,
-           channels: int | None, max_rows: int) -> tuple[Flats, np.ndarray | None, dict]:
+           channels: int | None, max_rows: int, max_json_bytes: int | None = None
+           ) -> tuple[Flats, np.ndarray | None, dict]:
     """Parse a batch body into ``(flats, values or None, the JSON object or {})``.
 
     ``channels=None``: a query (no values); else an upload of ``(n, channels)``
@@ -469,6 +498,8 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
     # widest form (Q, r) plus the values; larger declared arrays are refused unread
     max_bytes = max_rows * 8 * (d * d + d + (channels or 0))
     if kind == "json":
+        if max_json_bytes is not None:
+            check_json_size(body, max_json_bytes)
         raw = load_json(body)
         _check_json_members(raw, body, upload=channels is not None)
         form = form or raw.get("form")

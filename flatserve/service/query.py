@@ -57,7 +57,8 @@ async def answer(registry: Registry, settings: Settings, name: str, params: Quer
 
     def decode():
         return codec.decode(body, content_type, params.form, k=e.k, d=e.d, channels=None,
-                            max_rows=settings.max_batch_rows)[0]
+                            max_rows=settings.max_batch_rows,
+                            max_json_bytes=settings.max_json_bytes)[0]
 
     if len(body) <= INLINE_BODY_BYTES:
         flats = decode()

@@ -13,7 +13,8 @@ from fastapi import APIRouter, Header, Query, Request, Response
 
 from . import codec, specs, uploads
 from .codec import JSONBytes
-from .deps import BodyDep, FieldNamePath, ReadAccess, RegistryDep, SettingsDep, WriteAccess
+from .deps import (BodyDep, FieldNamePath, ReadAccess, RegistryDep, SettingsDep, WriteAccess,
+                   json_body, json_body_doc)
 from .entry import FieldEntry, FieldSpec
 from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES
 from .query import Form, QueryParams, answer, server_timing
@@ -59,8 +60,9 @@ def _summary(e: FieldEntry) -> dict:
 
 @api.post("/fields", status_code=201, response_model=FieldInfo, tags=["fields"],
           dependencies=[WriteAccess], responses=BODY_RESPONSES,
+          openapi_extra=json_body_doc(FieldCreate),
           summary="Create a field (basis + empty triangulation)")
-def create_field(spec: FieldCreate, registry: RegistryDep) -> Response:
+def create_field(spec: json_body(FieldCreate), registry: RegistryDep) -> Response:
     basis = specs.build_basis(spec.basis, spec.k, spec.d).require_full()
     stored = FieldSpec(spec.k, spec.d, spec.channels, specs.spec_dict(spec.basis),
                        spec.roundtrip_tol)
@@ -152,7 +154,8 @@ def upload_samples(
     e = registry.get(name)
     t0 = time.perf_counter()
     flats, values, _ = codec.decode(body, content_type, form, k=e.k, d=e.d,
-                                    channels=e.channels, max_rows=settings.max_batch_rows)
+                                    channels=e.channels, max_rows=settings.max_batch_rows,
+                                    max_json_bytes=settings.max_json_bytes)
     timings = {"decode": time.perf_counter() - t0}
     # an empty Idempotency-Key header means "no key", not the key ""
     out = uploads.upload(registry, e, flats, values, idempotency_key or None, timings, wait=wait)
@@ -189,8 +192,9 @@ async def query_field(
 # -- stateless math ---------------------------------------------------------------
 @api.post("/math/coordinates", response_model=CoordinatesResult, tags=["math"],
           dependencies=[ReadAccess], responses=COMMON_RESPONSES,
+          openapi_extra=json_body_doc(CoordinatesRequest),
           summary="Coordinates of flats in a basis (paper Eq. 9/12)")
-def math_coordinates(req: CoordinatesRequest, settings: SettingsDep) -> Response:
+def math_coordinates(req: json_body(CoordinatesRequest), settings: SettingsDep) -> Response:
     basis = specs.build_basis(req.basis, req.k, req.d)
     flats = specs.flats_of(req.flats, req.k, req.d, "flats", settings.max_batch_rows)
     c = basis.coordinates_of(flats)
@@ -203,8 +207,9 @@ def math_coordinates(req: CoordinatesRequest, settings: SettingsDep) -> Response
 
 @api.post("/math/project", response_model=ProjectResult, tags=["math"],
           dependencies=[ReadAccess], responses=COMMON_RESPONSES,
+          openapi_extra=json_body_doc(ProjectRequest),
           summary="Projection of an affine combination of flats (paper Eq. 4-6)")
-def math_project(req: ProjectRequest, settings: SettingsDep) -> Response:
+def math_project(req: json_body(ProjectRequest), settings: SettingsDep) -> Response:
     from .. import flats
     from .._validate import as_array
 

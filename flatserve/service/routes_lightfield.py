@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ..errors import InvalidInputError
 from . import codec
-from .deps import FieldNamePath, ReadAccess, RegistryDep, SettingsDep
+from .deps import FieldNamePath, ReadAccess, RegistryDep, SettingsDep, json_body, json_body_doc
 from .errors import BatchTooLargeError, COMMON_RESPONSES, FIELD_RESPONSES
 from .query import server_timing
 
@@ -134,9 +134,10 @@ viewer = APIRouter(include_in_schema=False)
     responses={**COMMON_RESPONSES, **FIELD_RESPONSES,
                200: {"content": {PNG: {}, codec.NPY: {}},
                      "description": "The frame (PNG, or .npy float32 (H, W, C))."}},
-    response_class=Response,
+    response_class=Response, openapi_extra=json_body_doc(CameraSpec),
     summary="Render a camera's view of a light field (lines in R^3)")
-def render(name: FieldNamePath, camera: CameraSpec, registry: RegistryDep, settings: SettingsDep,
+def render(name: FieldNamePath, camera: json_body(CameraSpec), registry: RegistryDep,
+           settings: SettingsDep,
            accept: Annotated[Optional[str], Header()] = None) -> Response:
     t0 = time.perf_counter()
     e = registry.get(name)

@@ -48,6 +48,10 @@ class Settings(BaseSettings):
     api_key: SecretStr | None = Field(None, description="Read-write API key.")
     read_only_key: SecretStr | None = Field(None, description="Read-only API key (queries, GETs).")
     max_body_bytes: int = Field(512 * MiB, ge=1, description="Largest accepted request body (413).")
+    max_json_bytes: int = Field(
+        16 * MiB, ge=1,
+        description="Largest JSON body (413): parsing JSON holds the interpreter for its whole "
+                    "length, so bulk arrays travel as .npy / .npz (up to max_body_bytes).")
     max_batch_rows: int = Field(1_000_000, ge=1, description="Most rows in one upload or query (413).")
     max_fields: int = Field(256, ge=1, description="Most fields on this server (409).")
     max_pending_samples: int = Field(

@@ -514,6 +514,10 @@ class Atlas:
             if not rep.ok:
                 raise InvalidInputError(f"centers: chart {i} (scale {s[i]:g}): "
                                         + "; ".join(rep.failures), "centers")
+            bad = atlas.probe(i)
+            if bad:
+                raise InvalidInputError(f"centers: chart {i} (scale {s[i]:g}) does not chart "
+                                        f"its domain: {bad}", "centers")
         atlas.info = {"method": "centers", "centres": int(centers.n)}
         if require_cover:
             radius, worst = atlas.covering_radius(check_n, seed=seed, return_worst=True)
@@ -530,8 +534,8 @@ class Atlas:
     def for_samples(cls, flats: Flats, *, oriented: bool = False, radius: float = 30.0,
                     fraction: float = 0.99, inner: float = INNER_DEG,
                     trusted: float = TRUSTED_DEG, reach: float = REACH_DEG,
-                    max_scale_samples: int = 5000, seed: int = 0,
-                    refine: int = 3) -> "Atlas":
+                    max_scale_samples: int = 5000, max_cluster_samples: int = 20_000,
+                    seed: int = 0, refine: int = 3) -> "Atlas":
         """A data-driven atlas: charts where the samples' orientations are.
 
         1. Greedy cover of the samples' direction spaces (largest principal
@@ -541,7 +545,9 @@ class Atlas:
            every sample is within ``radius`` of one.
         2. ``refine`` rounds: each centre moves to the extrinsic mean of the
            samples nearest to it, kept only while every sample stays within
-           ``radius``.
+           ``radius``; then a centre is dropped (smallest clusters first)
+           whenever the others, refined without it, still hold every sample
+           within ``radius``.
         3. Each centre flat passes through the point nearest to its samples
            in the least-squares sense, ``(sum Q_i)^+ sum r_i`` (the extremum of
            ``q*``, Sec. 2.3); its scale is the paper's bisection
@@ -557,6 +563,12 @@ class Atlas:
             Degrees, ``<= trusted``: the clustering radius.
         fraction : float
             Of :func:`~flatserve.basis.select_scale`.
+        max_scale_samples, max_cluster_samples : int
+            Steps 1-2 run on a seeded subsample of at most
+            ``max_cluster_samples``; then the greedy cover continues on all
+            samples until each is within ``radius``.  The bisection uses at
+            most ``max_scale_samples`` per chart.
+        seed, refine : int
 
         Returns
         -------
@@ -577,7 +589,10 @@ class Atlas:
         if oriented:
             _require_rays(flats, True)
         rad = math.radians(radius)
-        F = orientation_frames(flats, normals=False if oriented else None)
+        F_all = orientation_frames(flats, normals=False if oriented else None)
+        rng = np.random.default_rng(seed)
+        F = F_all if flats.n <= max_cluster_samples else F_all[
+            np.sort(rng.choice(flats.n, max_cluster_samples, replace=False))]
         j = F.shape[2]
         if oriented:
             def dist(C):
@@ -603,19 +618,28 @@ class Atlas:
                 i = int(np.argmax(best))
                 C.append(F[i])
                 np.minimum(best, dist(F[i]), out=best)
-            for _ in range(refine):
+            C = _refine(C, dist, mean, rad, refine)
+            # prune: drop the centres (smallest clusters first) that the others
+            # cover without them, then refine again
+            pruned = True
+            while pruned and len(C) > 1:
+                pruned = False
                 D = np.stack([dist(c) for c in C], axis=1)
-                near = D.argmin(axis=1)
-                C2 = [mean(np.flatnonzero(near == i)) if (near == i).any() else C[i]
-                      for i in range(len(C))]
-                if np.stack([dist(c) for c in C2], axis=1).min(axis=1).max() < rad:
-                    C = C2
-                else:
-                    break
+                for i in np.argsort(np.bincount(D.argmin(axis=1), minlength=len(C))):
+                    rest = _refine(C[:i] + C[i + 1:], dist, mean, rad, refine, force=True)
+                    if np.stack([dist(c) for c in rest], axis=1).min(axis=1).max() < rad:
+                        C, pruned = rest, True
+                        break
+        F = F_all  # every sample within radius: continue the greedy cover on all of them
+        if j:
+            best = np.stack([dist(c) for c in C], axis=1).min(axis=1)
+            while best.max() >= rad:
+                i = int(np.argmax(best))
+                C.append(F[i])
+                np.minimum(best, dist(F[i]), out=best)
         D = np.stack([dist(c) for c in C], axis=1)
         near = D.argmin(axis=1)
         Q, r = flats.quadrics()
-        rng = np.random.default_rng(seed)
         normals = _use_normals(k, d) and not oriented
         As, Ns, rs, ss, counts, cover = [], [], [], [], [], []
         for i, c in enumerate(C):
@@ -650,6 +674,43 @@ class Atlas:
         return atlas
 
     # ------------------------------------------------------------------ queries
+    def probe(self, chart: int, distance: float = 1.0) -> str:
+        """Check that a chart round-trips flats at the edge of its domain.
+
+        Probe flats: the centre with each spanning vector ``a_i`` turned by
+        ``reach`` toward each normal ``n_j``, moved by ``distance`` along
+        ``n_j``; and the centre moved by ``distance`` along each ``n_j``.
+
+        Returns
+        -------
+        str
+            Empty when every probe round-trips, else what failed.
+        """
+        A, N, r0 = self.center_A[chart], self.center_N[chart], self.center_r[chart]
+        k, d = self.k, self.d
+        t = math.radians(self.reach)
+        As, bs = [], []
+        for j in range(d - k):
+            bs.append(r0 + distance * N[:, j])
+            As.append(A.copy())
+            for i in range(k):
+                Ai = A.copy()
+                Ai[:, i] = math.cos(t) * A[:, i] + math.sin(t) * N[:, j]
+                As.append(Ai)
+                bs.append(r0 + distance * N[:, j])
+        if k == 0:
+            Q = np.broadcast_to(np.eye(d), (len(bs), d, d))
+            f = Flats.from_quadrics(Q, np.array(bs), 0)
+        else:
+            f = Flats.from_parametric(np.array(As), np.array(bs))
+        co = self.bases[chart].coordinates_of(f)
+        if (co.status == OK).all():
+            return ""
+        worst = float(np.nanmax(co.residual))
+        return (f"{int((co.status != OK).sum())} of {len(bs)} probe flats ({self.reach:g} "
+                f"degrees and {distance:g} from the centre) do not round-trip (largest "
+                f"residual {worst:.3g})")
+
     @property
     def ncharts(self) -> int:
         return len(self.bases)
@@ -784,6 +845,21 @@ class Atlas:
                     inner=spec["inner"], trusted=spec["trusted"], reach=spec["reach"])
         atlas.info = dict(spec.get("info", {}))
         return atlas
+
+
+def _refine(C, dist, mean, rad, rounds, force=False):
+    """Move each centre to the mean of its nearest samples while all stay within ``rad``.
+
+    ``force``: take the moves whatever the coverage (to test a pruned set).
+    """
+    for _ in range(rounds):
+        near = np.stack([dist(c) for c in C], axis=1).argmin(axis=1)
+        C2 = [mean(np.flatnonzero(near == i)) if (near == i).any() else C[i]
+              for i in range(len(C))]
+        if not force and not np.stack([dist(c) for c in C2], axis=1).min(axis=1).max() < rad:
+            break
+        C = C2
+    return C
 
 
 def _require_rays(flats: Flats, oriented: bool) -> None:

@@ -1156,6 +1156,27 @@ class AtlasField:
             return AtlasQueryResult(values, inside, status, ids, wts, charts)
         return AtlasQueryResult(values, inside, status)
 
+    def describe(self) -> dict:
+        """JSON-able summary: the atlas's radii and, per chart, centre, scale, samples.
+
+        Returns
+        -------
+        dict
+            ``{"k", "d", "oriented", "inner", "trusted", "reach", "info",
+            "nsamples", "nstored", "duplication", "charts": [{"center": {"A",
+            "r"}, "scale", "samples"}, ...]}``.
+        """
+        at = self.atlas
+        return {
+            "k": at.k, "d": at.d, "oriented": at.oriented, "inner": at.inner,
+            "trusted": at.trusted, "reach": at.reach, "info": at.info,
+            "nsamples": self.nsamples, "nstored": self.nstored,
+            "duplication": None if not self._nsamples else self.duplication,
+            "charts": [{"center": {"A": at.center_A[i].tolist(), "r": at.center_r[i].tolist()},
+                        "scale": float(at.scales[i]), "samples": f.nsamples}
+                       for i, f in enumerate(self.fields)],
+        }
+
     # ----------------------------------------------------------- persistence
     def save(self, path: str | os.PathLike) -> None:
         """Write the field to a directory ``path`` (created if missing).

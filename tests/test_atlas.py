@@ -189,6 +189,9 @@ def test_every_sample_accepted_and_reproduced(lines_field):
     field, o, v = lines_field
     assert field.nsamples == len(o)
     assert 1.0 < field.duplication < 2.0
+    desc = field.describe()
+    assert [c["samples"] for c in desc["charts"]] == field.samples_per_chart
+    assert sum(field.samples_per_chart) == field.nstored
     q = field.query(Flats.from_rays(o[:3000], v[:3000]))
     assert q.status.tolist() == [OK] * 3000 and q.inside.all()
     np.testing.assert_allclose(q.values[:, 0], line_fn(o[:3000], v[:3000]), atol=1e-9)

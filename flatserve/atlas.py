@@ -130,8 +130,9 @@ _GOLDEN = (1.0 + 5.0 ** 0.5) / 2.0
 _ico = np.array([[0.0, 1.0, _GOLDEN], [0.0, 1.0, -_GOLDEN], [1.0, _GOLDEN, 0.0],
                  [1.0, -_GOLDEN, 0.0], [_GOLDEN, 0.0, 1.0], [-_GOLDEN, 0.0, 1.0]])
 #: The 6 axes through opposite vertices of a regular icosahedron (unit rows).
-#: Every direction is within ``arctan(3 - phi) ... = 37.38`` degrees of one of
-#: them (the angle from a vertex to the centre of a face).
+#: Every direction is within 37.38 degrees of one of them (the angle from a
+#: vertex to the centre of an adjacent face); neighbouring axes are 63.43
+#: degrees apart.
 ICOSAHEDRON_AXES = _ico / np.linalg.norm(_ico, axis=1, keepdims=True)
 ICOSAHEDRON_AXES.setflags(write=False)
 

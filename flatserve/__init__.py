@@ -9,11 +9,14 @@ coordinates   coordinates of flats in a basis (paper Sec. 4), status codes
 embedding     the regular-simplex embedding of affine coordinates (Sec. 5)
 Triangulation CGAL dD Delaunay triangulation with scipy's vocabulary
 Field         a function sampled on flats: basis + triangulation + values
+Atlas         charts covering every orientation (covering or data-driven)
+AtlasField    a function sampled on flats over an atlas: a Field per chart, blended
 errors        the one error hierarchy
 """
 from __future__ import annotations
 
 from . import coordinates, embedding, errors, flats
+from .atlas import Atlas, AtlasField
 from .basis import Basis, select_scale
 from .field import AddResult, Chart, Field, QueryResult
 from .flats import Flats
@@ -23,6 +26,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "AddResult",
+    "Atlas",
+    "AtlasField",
     "Basis",
     "Chart",
     "Field",

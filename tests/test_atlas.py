@@ -1,0 +1,375 @@
+"""Atlases and atlas fields (flatserve/atlas.py).
+
+Oracles: principal angles against an SVD, the coordinates' own round trip,
+a single-chart Field on the same samples, the blended weights recombining the
+sample values, a smooth function sampled densely.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from flatserve import Field, Flats
+from flatserve.atlas import (
+    ICOSAHEDRON_AXES,
+    Atlas,
+    AtlasField,
+    bump,
+    haar_frames,
+    max_principal_angle,
+    orientation_frames,
+)
+from flatserve.coordinates import OK
+from flatserve.errors import InvalidInputError
+
+#: Offsets of the coverage tests: uniform in [-OFFSET, OFFSET]^d.
+OFFSET = 1e3
+#: Value agreement "to rounding" between two interpolations of the same samples.
+ROUNDING = 1e-9
+
+
+def line_fn(o, v):
+    """A smooth function of unoriented lines: of r (closest point) and a a^T."""
+    a = v / np.linalg.norm(v, axis=1, keepdims=True)
+    r = o - np.einsum("ni,ni->n", a, o)[:, None] * a
+    return (np.sin(1.5 * r[:, 0]) + np.cos(r[:, 1]) + 0.5 * r[:, 2]
+            + a[:, 0] * a[:, 1] + 0.7 * a[:, 2] ** 2 + 0.4 * a[:, 0] * a[:, 2])
+
+
+def random_rays(rng, n, R=1.0, d=3):
+    o = rng.uniform(-R, R, (n, d))
+    v = rng.standard_normal((n, d))
+    return o, v
+
+
+def random_flats(rng, n, k, d, R):
+    A = haar_frames(n, d, k, rng)
+    b = rng.uniform(-R, R, (n, d))
+    if k == 1:
+        return Flats.from_rays(b, A[:, :, 0] * rng.choice([-1.0, 1.0], (n, 1)))
+    return Flats.from_parametric(A, b)
+
+
+# ------------------------------------------------------------------ geometry
+
+
+def test_max_principal_angle_matches_svd():
+    rng = np.random.default_rng(0)
+    for k, d in [(1, 3), (2, 4), (2, 5), (3, 6)]:
+        C = haar_frames(4, d, k, rng)
+        F = haar_frames(300, d, k, rng)
+        got = max_principal_angle(C, F)
+        s = np.linalg.svd(np.einsum("cdi,ndj->ncij", C, F), compute_uv=False)
+        want = np.arccos(np.clip(s[..., -1], -1, 1))
+        np.testing.assert_allclose(got, want, atol=1e-7)
+
+
+def test_normals_give_the_same_angles():
+    rng = np.random.default_rng(1)
+    f = random_flats(rng, 200, 3, 4, 1.0)  # k > d - k: normal frames used
+    a = Atlas.covering(3, 4)
+    A = orientation_frames(f, normals=False)
+    s = np.linalg.svd(np.einsum("cdi,ndj->ncij", a.center_A, A), compute_uv=False)
+    np.testing.assert_allclose(a.angles(f), np.arccos(np.clip(s[..., -1], -1, 1)), atol=1e-7)
+
+
+def test_bump_is_a_smooth_step():
+    inner, trusted = math.radians(20), math.radians(40)
+    a = np.linspace(0, math.radians(50), 2001)
+    b = bump(a, inner, trusted)
+    assert b[a <= inner].min() == 1.0 and b[a >= trusted].max() == 0.0
+    assert np.all(np.diff(b) <= 0)
+    assert np.abs(np.diff(b)).max() < 2 * 1.875 * (a[1] - a[0]) / (trusted - inner)
+
+
+def test_icosahedral_axes_cover_lines_in_r3():
+    a = Atlas.covering(1, 3)
+    assert a.ncharts == 6
+    # the face-centre direction is the farthest from every axis: 37.38 degrees
+    face = ICOSAHEDRON_AXES[0] + ICOSAHEDRON_AXES[2] + ICOSAHEDRON_AXES[4]
+    ang = np.degrees(max_principal_angle(a.frames, (face / np.linalg.norm(face))[None, :, None]))
+    assert ang.min() == pytest.approx(37.377, abs=1e-3)
+    assert a.info["covering_radius_deg"] <= ang.min() + 1e-9
+
+
+# ------------------------------------------------------------------ coverage
+
+
+@pytest.mark.parametrize("k,d", [(1, 3), (1, 4), (2, 4), (2, 5)])
+def test_covering_atlas_charts_every_flat(k, d):
+    """100 % of Haar-random flats, offsets up to 10^3, round-trip in a chart that routes them."""
+    atlas = Atlas.covering(k, d)
+    print(f"({k}, {d}): {atlas.ncharts} charts, covering radius "
+          f"{atlas.info['covering_radius_deg']:.2f} deg (trusted {atlas.trusted:g})")
+    assert atlas.info["covering_radius_deg"] < atlas.trusted - 1.0
+    rng = np.random.default_rng(10 * k + d)
+    n = 20_000
+    f = random_flats(rng, n, k, d, OFFSET)
+    ro = atlas.route(f, atlas.trusted)
+    charted = np.zeros(n, dtype=bool)
+    for c, rows in enumerate(ro.rows):
+        if rows.size:
+            co = atlas.bases[c].coordinates_of(f.take(rows))
+            charted[rows[co.status == OK]] = True
+    assert charted.all(), f"{(~charted).sum()} of {n} flats not charted"
+    # every flat within reach of a centre round-trips there (samples go to all of them);
+    # at offsets 10^3 the absolute ROUNDTRIP_TOL refuses a few near the reach (planes
+    # in R^5: residual 2.7e-6), which their nearer charts hold
+    f = random_flats(rng, n, k, d, 10.0)
+    ro = atlas.route(f, atlas.reach)
+    for c, rows in enumerate(ro.rows):
+        if rows.size:
+            co = atlas.bases[c].coordinates_of(f.take(rows))
+            assert (co.status == OK).all(), (c, co.residual.max())
+
+
+def test_oriented_covering_radius_and_routing():
+    a = Atlas.covering(1, 3, oriented=True)
+    assert a.ncharts == 12
+    assert a.info["covering_radius_deg"] < 37.5
+    rng = np.random.default_rng(3)
+    o, v = random_rays(rng, 1000)
+    ro = a.route(Flats.from_rays(o, v), a.reach)
+    ro2 = a.route(Flats.from_rays(o, -v), a.reach)
+    # a ray and its reverse never share a chart; the reverse goes to the negated centres
+    for c in range(6):
+        assert np.intersect1d(ro.rows[c], ro2.rows[c]).size == 0
+        np.testing.assert_array_equal(ro.rows[c], ro2.rows[c + 6])
+
+
+def test_atlas_refuses_what_does_not_cover():
+    Q, r = np.eye(3)[None] - np.outer([0, 0, 1.0], [0, 0, 1.0])[None], np.zeros((1, 3))
+    axes = Flats.from_quadrics(np.stack([np.eye(3) - np.outer(e, e) for e in np.eye(3)]),
+                               np.zeros((3, 3)), 1)
+    with pytest.raises(InvalidInputError) as exc:
+        Atlas.from_centers(axes)  # the 3 coordinate axes leave 54.7 degrees
+    assert exc.value.argument == "centers" and "do not cover" in str(exc.value)
+    worst = float(str(exc.value).split(" is ")[1].split(" degrees")[0])
+    assert 54.0 < worst <= 54.74  # the cube diagonals: arccos(1/sqrt(3)) = 54.74
+    ico = Flats.from_rays(np.zeros((6, 3)), ICOSAHEDRON_AXES)
+    assert Atlas.from_centers(ico).info["covering_radius_deg"] < 37.5
+    with pytest.raises(InvalidInputError) as exc:
+        Atlas.from_centers(ico, scales=1e-13)  # a scale that collapses the charts
+    assert exc.value.argument == "centers"
+    del Q, r
+
+
+def test_oriented_atlas_refuses_orientation_free_forms():
+    field = AtlasField(Atlas.covering(1, 3, oriented=True))
+    rng = np.random.default_rng(4)
+    o, v = random_rays(rng, 10)
+    f = Flats.from_rays(o, v)
+    Q, r = f.quadrics()
+    for flats, arg in [(Flats.from_quadrics(Q, r, 1), "Q"),
+                       (Flats.from_parametric(v[:, :, None], o), "A")]:
+        with pytest.raises(InvalidInputError) as exc:
+            field.add(flats, np.zeros(10))
+        assert exc.value.argument == arg and repr(flats.form) in str(exc.value)
+        with pytest.raises(InvalidInputError):
+            field.query(flats)
+
+
+# ------------------------------------------------------------------ fields
+
+
+@pytest.fixture(scope="module")
+def lines_field():
+    """A covering atlas field of lines in R^3 with a smooth function, densely sampled."""
+    rng = np.random.default_rng(7)
+    o, v = random_rays(rng, 40_000)
+    field = AtlasField(Atlas.covering(1, 3), channels=1)
+    res = field.add(Flats.from_rays(o, v), line_fn(o, v))
+    assert res.accepted == len(o) and res.rejected.size == 0
+    return field, o, v
+
+
+def test_every_sample_accepted_and_reproduced(lines_field):
+    field, o, v = lines_field
+    assert field.nsamples == len(o)
+    assert 1.0 < field.duplication < 2.0
+    desc = field.describe()
+    assert [c["samples"] for c in desc["charts"]] == field.samples_per_chart
+    assert sum(field.samples_per_chart) == field.nstored
+    q = field.query(Flats.from_rays(o[:3000], v[:3000]))
+    assert q.status.tolist() == [OK] * 3000 and q.inside.all()
+    np.testing.assert_allclose(q.values[:, 0], line_fn(o[:3000], v[:3000]), atol=1e-9)
+    # the reversed rays are the same lines
+    q2 = field.query(Flats.from_rays(o[:3000], -v[:3000]))
+    np.testing.assert_allclose(q2.values, q.values, atol=1e-12)
+
+
+def test_weights_recombine_the_values(lines_field):
+    field, o, v = lines_field
+    rng = np.random.default_rng(8)
+    qo, qv = random_rays(rng, 2000, R=0.8)
+    q = field.query(Flats.from_rays(qo, qv), return_weights=True)
+    ok = q.inside
+    assert ok.mean() > 0.95
+    vals = np.zeros(len(qo))
+    for c, f in enumerate(field.fields):
+        m = (q.charts == c)[:, :, None] & (q.ids >= 0)
+        vals += np.where(m, q.weights * f.values[np.where(m, q.ids, 0), 0], 0).sum(axis=(1, 2))
+    np.testing.assert_allclose(vals[ok], q.values[ok, 0], atol=1e-9)
+    np.testing.assert_allclose(np.nansum(q.weights, axis=(1, 2))[ok], 1.0, atol=1e-9)
+
+
+def test_deep_inside_a_chart_equals_the_single_chart_field(lines_field):
+    field, o, v = lines_field
+    atlas = field.atlas
+    c = 2
+    single = Field(atlas.bases[c], channels=1)
+    single.add(Flats.from_rays(o, v), line_fn(o, v))  # rejects what its chart cannot hold
+    rng = np.random.default_rng(9)
+    # directions within 15 degrees of centre c: every other centre is > 40 degrees away
+    u = atlas.frames[c, :, 0]
+    w = rng.standard_normal((3000, 3))
+    w -= np.outer(w @ u, u)
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    t = np.radians(rng.uniform(0, 15, 3000))
+    qv = np.cos(t)[:, None] * u + np.sin(t)[:, None] * w
+    qo = rng.uniform(-0.8, 0.8, (3000, 3))
+    f = Flats.from_rays(qo, qv)
+    assert (np.sort(atlas.angles(f), axis=1)[:, 1] > math.radians(atlas.trusted)).all()
+    a, b = field.query(f), single.query(f)
+    both = a.inside & b.inside
+    assert both.mean() > 0.95
+    np.testing.assert_allclose(a.values[both], b.values[both], rtol=0, atol=ROUNDING)
+
+
+def sweep(rng, n_paths=24, step_deg=0.05):
+    """Query rays along great circles of directions, origin fixed per path."""
+    t = np.radians(np.arange(0, 180, step_deg))
+    o_all, v_all = [], []
+    for _ in range(n_paths):
+        u1, u2 = np.linalg.qr(rng.standard_normal((3, 2)))[0].T
+        o = rng.uniform(-0.5, 0.5, 3)
+        v_all.append(np.cos(t)[:, None] * u1 + np.sin(t)[:, None] * u2)
+        o_all.append(np.broadcast_to(o, (t.size, 3)))
+    return np.array(o_all), np.array(v_all)
+
+
+def test_no_seam_across_chart_borders(lines_field):
+    """Largest jump between neighbouring queries where a chart's weight starts or stops
+    is no larger than the largest jump between neighbours inside one chart."""
+    field, _, _ = lines_field
+    atlas = field.atlas
+    rng = np.random.default_rng(11)
+    O, V = sweep(rng)
+    P, T = O.shape[:2]
+    f = Flats.from_rays(O.reshape(-1, 3), V.reshape(-1, 3))
+    q = field.query(f)
+    assert q.inside.all()
+    vals = q.values[:, 0].reshape(P, T)
+    held = (atlas.angles(f) < math.radians(atlas.trusted)).reshape(P, T, -1)
+    jump = np.abs(np.diff(vals, axis=1))
+    border = (held[:, 1:] != held[:, :-1]).any(axis=2)
+    one = (held[:, 1:].sum(axis=2) == 1) & (held[:, :-1].sum(axis=2) == 1) & ~border
+    assert border.sum() >= 4 * P and one.sum() > 100
+    print(f"largest jump at {border.sum()} border steps {jump[border].max():.4g}, "
+          f"inside one chart ({one.sum()} steps) {jump[one].max():.4g}")
+    assert jump[border].max() <= jump[one].max()
+
+    # the oracle has power: answering from the nearest chart alone leaves a seam
+    near = atlas.angles(f).argmin(axis=1)
+    hard = np.empty(len(near))
+    for c in range(atlas.ncharts):
+        rows = np.flatnonzero(near == c)
+        hard[rows] = field.fields[c].query(f.take(rows)).values[:, 0]
+    hard = hard.reshape(P, T)
+    switch = near.reshape(P, T)[:, 1:] != near.reshape(P, T)[:, :-1]
+    hjump = np.abs(np.diff(hard, axis=1))
+    print(f"nearest chart only: largest jump at a switch {hjump[switch].max():.4g}")
+    assert hjump[switch].max() > jump[one].max()
+
+
+def ray_fn(o, v):
+    """A smooth function of oriented rays: reversing a ray flips the last term."""
+    a = v / np.linalg.norm(v, axis=1, keepdims=True)
+    return line_fn(o, v) + 1.5 * a[:, 2] - 0.8 * a[:, 0]
+
+
+def test_oriented_rays_keep_their_direction():
+    rng = np.random.default_rng(12)
+    o, v = random_rays(rng, 20_000)
+    field = AtlasField(Atlas.covering(1, 3, oriented=True), channels=1)
+    res = field.add(Flats.from_rays(np.r_[o, o], np.r_[v, -v]), ray_fn(np.r_[o, o], np.r_[v, -v]))
+    assert res.accepted == 40_000 and res.duplicates == 0
+    qf = field.query(Flats.from_rays(o[:2000], v[:2000]))
+    qb = field.query(Flats.from_rays(o[:2000], -v[:2000]))
+    np.testing.assert_allclose(qf.values[:, 0], ray_fn(o[:2000], v[:2000]), atol=1e-9)
+    np.testing.assert_allclose(qb.values[:, 0], ray_fn(o[:2000], -v[:2000]), atol=1e-9)
+    # new rays: a ray and its reverse get their own values
+    qo, qv = random_rays(rng, 2000, R=0.5)
+    a = field.query(Flats.from_rays(qo, qv)).values[:, 0]
+    b = field.query(Flats.from_rays(qo, -qv)).values[:, 0]
+    assert np.isfinite(a).all() and np.isfinite(b).all()
+    err_a = np.abs(a - ray_fn(qo, qv))
+    err_b = np.abs(b - ray_fn(qo, -qv))
+    diff = np.abs(ray_fn(qo, qv) - ray_fn(qo, -qv))
+    print(f"oriented: median error {np.median(err_a):.4f} / {np.median(err_b):.4f}, "
+          f"median front-back difference {np.median(diff):.3f}")
+    assert np.median(err_a) < 0.1 * np.median(diff) and np.median(err_b) < 0.1 * np.median(diff)
+    # an unoriented field cannot tell them apart
+    un = AtlasField(Atlas.covering(1, 3))
+    un.add(Flats.from_rays(o, v), ray_fn(o, v))
+    ua = un.query(Flats.from_rays(qo, qv)).values
+    np.testing.assert_array_equal(ua, un.query(Flats.from_rays(qo, -qv)).values)
+
+
+def test_data_driven_atlas_rejects_with_a_reason():
+    rng = np.random.default_rng(13)
+    # rays around +z and around +x (two clusters), none elsewhere
+    n = 4000
+    o = np.c_[rng.uniform(-1, 1, (n, 2)), np.full(n, -3.0)]
+    v = np.c_[rng.uniform(-0.3, 0.3, (n, 2)), np.ones(n)]
+    o2 = o[:, [2, 1, 0]]
+    v2 = v[:, [2, 1, 0]]
+    f = Flats.from_rays(np.r_[o, o2], np.r_[v, v2])
+    atlas = Atlas.for_samples(f)
+    assert atlas.ncharts == 2, atlas.info
+    assert atlas.info["max_sample_angle_deg"] < 30
+    field = AtlasField(atlas)
+    vals = line_fn(np.r_[o, o2], np.r_[v, v2])
+    res = field.add(f, vals)
+    assert res.accepted == 2 * n
+    q = field.query(f.take(np.arange(0, 2 * n, 7)))
+    np.testing.assert_allclose(q.values[:, 0], vals[::7], atol=1e-9)
+    # a ray along y is 90 degrees from both clusters: rejected, with its reason
+    y = Flats.from_rays([[0, 0, 0.0]], [[0, 1.0, 0]])
+    res = field.add(y, [1.0])
+    assert res.accepted == 0 and res.rejected.tolist() == [0]
+    nearest = math.degrees(atlas.angles(y).min())
+    assert nearest > 85
+    assert "outside every chart's domain" in res.reasons[0] and f"{nearest:.2f}" in res.reasons[0]
+    assert field.query(Flats.from_rays([[0, 0, 0.0]], [[0, 1.0, 0]])).status[0] != OK
+
+
+def test_save_and_load(tmp_path, lines_field):
+    field, o, v = lines_field
+    field.save(tmp_path / "f")
+    back = AtlasField.load(tmp_path / "f")
+    assert back.nsamples == field.nsamples and back.nstored == field.nstored
+    assert back.atlas.to_dict() == field.atlas.to_dict()
+    f = Flats.from_rays(o[:500] * 0.9, v[:500])
+    np.testing.assert_array_equal(back.query(f).values, field.query(f).values)
+    (tmp_path / "f" / "atlas.json").unlink()
+    from flatserve.errors import SnapshotError
+    with pytest.raises(SnapshotError):
+        AtlasField.load(tmp_path / "f")
+
+
+def test_planes_in_r4_field():
+    """The same properties hold off lines: planes in R^4, sample values reproduced."""
+    rng = np.random.default_rng(14)
+    atlas = Atlas.covering(2, 4)
+    f = random_flats(rng, 3000, 2, 4, 1.0)
+    Q, r = f.quadrics()
+    vals = np.sin(r[:, 0]) + Q[:, 0, 1]
+    field = AtlasField(atlas)
+    res = field.add(f, vals)
+    assert res.accepted == 3000
+    q = field.query(f.take(np.arange(300)))
+    assert (q.status == OK).all()
+    np.testing.assert_allclose(q.values[:, 0], vals[:300], atol=1e-8)

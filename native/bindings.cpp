@@ -55,7 +55,7 @@ namespace {
 using CArr2 = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 
 struct PyTriangulation {
-  std::unique_ptr<fs::TriangulationBase> t;
+  std::unique_ptr<flatserve::TriangulationBase> t;
 };
 
 void check_cols(const CArr2& a, std::size_t want, const char* name) {
@@ -72,20 +72,20 @@ nb::object values_or_none(std::vector<double>& v, std::size_t n, std::size_t C) 
 }
 
 void bind_triangulation(nb::module_& m) {
-  nb::exception<fs::snapshot_error>(m, "SnapshotError");
-  m.attr("KIND_IN_CELL") = static_cast<int>(fs::IN_CELL);
-  m.attr("KIND_ON_FACET") = static_cast<int>(fs::ON_FACET);
-  m.attr("KIND_ON_FACE") = static_cast<int>(fs::ON_FACE);
-  m.attr("KIND_ON_VERTEX") = static_cast<int>(fs::ON_VERTEX);
-  m.attr("KIND_OUTSIDE_CONVEX_HULL") = static_cast<int>(fs::OUTSIDE_CONVEX_HULL);
-  m.attr("KIND_OUTSIDE_AFFINE_HULL") = static_cast<int>(fs::OUTSIDE_AFFINE_HULL);
-  m.attr("QUERY_CHUNK") = fs::kChunk;
-  m.def("default_threads", &fs::default_threads);
+  nb::exception<flatserve::snapshot_error>(m, "SnapshotError");
+  m.attr("KIND_IN_CELL") = static_cast<int>(flatserve::IN_CELL);
+  m.attr("KIND_ON_FACET") = static_cast<int>(flatserve::ON_FACET);
+  m.attr("KIND_ON_FACE") = static_cast<int>(flatserve::ON_FACE);
+  m.attr("KIND_ON_VERTEX") = static_cast<int>(flatserve::ON_VERTEX);
+  m.attr("KIND_OUTSIDE_CONVEX_HULL") = static_cast<int>(flatserve::OUTSIDE_CONVEX_HULL);
+  m.attr("KIND_OUTSIDE_AFFINE_HULL") = static_cast<int>(flatserve::OUTSIDE_AFFINE_HULL);
+  m.attr("QUERY_CHUNK") = flatserve::kChunk;
+  m.def("default_threads", &flatserve::default_threads);
 
   nb::class_<PyTriangulation>(m, "Triangulation")
       .def("__init__",
            [](PyTriangulation* self, int ndim) {
-             new (self) PyTriangulation{fs::make_triangulation(ndim)};
+             new (self) PyTriangulation{flatserve::make_triangulation(ndim)};
            },
            nb::arg("ndim"))
       .def_prop_ro("ndim", [](const PyTriangulation& s) { return s.t->dimension(); })
@@ -183,8 +183,8 @@ void bind_triangulation(nb::module_& m) {
              if (values && values->shape(0) != s.t->number_of_vertices())
                throw std::invalid_argument("values: one row per vertex expected");
              nb::gil_scoped_release r;
-             fs::FileSink sink(path);
-             fs::save_snapshot(*s.t, sink, v, C);
+             flatserve::FileSink sink(path);
+             flatserve::save_snapshot(*s.t, sink, v, C);
              sink.close();
            },
            nb::arg("path"), nb::arg("values").none())
@@ -194,21 +194,21 @@ void bind_triangulation(nb::module_& m) {
              const std::size_t C = values ? values->shape(1) : 0;
              if (values && values->shape(0) != s.t->number_of_vertices())
                throw std::invalid_argument("values: one row per vertex expected");
-             fs::VectorSink sink;
+             flatserve::VectorSink sink;
              {
                nb::gil_scoped_release r;
-               fs::save_snapshot(*s.t, sink, v, C);
+               flatserve::save_snapshot(*s.t, sink, v, C);
              }
              return nb::bytes(sink.buf.data(), sink.buf.size());
            },
            nb::arg("values").none())
       .def_static("load",
                   [](const std::string& path) {
-                    fs::LoadedSnapshot ls;
+                    flatserve::LoadedSnapshot ls;
                     {
                       nb::gil_scoped_release r;
-                      fs::FileSource src(path);
-                      ls = fs::load_snapshot(src);
+                      flatserve::FileSource src(path);
+                      ls = flatserve::load_snapshot(src);
                     }
                     std::size_t n = ls.tri->number_of_vertices();
                     nb::object vals = values_or_none(ls.values, n, ls.channels);
@@ -217,13 +217,13 @@ void bind_triangulation(nb::module_& m) {
                   nb::arg("path"))
       .def_static("from_bytes",
                   [](nb::bytes data) {
-                    fs::LoadedSnapshot ls;
+                    flatserve::LoadedSnapshot ls;
                     {
                       const char* p = data.c_str();
                       std::size_t len = data.size();
                       nb::gil_scoped_release r;
-                      fs::MemorySource src(p, len);
-                      ls = fs::load_snapshot(src);
+                      flatserve::MemorySource src(p, len);
+                      ls = flatserve::load_snapshot(src);
                     }
                     std::size_t n = ls.tri->number_of_vertices();
                     nb::object vals = values_or_none(ls.values, n, ls.channels);
@@ -298,7 +298,7 @@ void bind_coordinates(nb::module_& m) {
           OutArray<double> residual({n});
           {
             nb::gil_scoped_release unlocked;
-            fs::coordinates_rays3_mt(Qb.data(), rb.data(), origins.data(), directions.data(), n,
+            flatserve::coordinates_rays3_mt(Qb.data(), rb.data(), origins.data(), directions.data(), n,
                                      {roundtrip_tol, rcond, gap_tol, pinv_rcond}, w.data,
                                      status.data, residual.data, threads);
           }

@@ -42,7 +42,7 @@ import numpy as np
 
 from . import _native
 from ._validate import as_array
-from .errors import InvalidInputError, SnapshotError
+from .errors import InvalidInputError
 
 __all__ = ["Triangulation", "InsertResult", "Location", "LocateKind"]
 
@@ -463,6 +463,11 @@ class Triangulation:
         """Write a snapshot (points, ids, cells, neighbours, values) to ``path``.
 
         Written to a temporary file beside ``path`` then renamed (atomic).
+
+        Raises
+        ------
+        flatserve.errors.SnapshotError
+            The file cannot be written (the temporary file is removed).
         """
         path = os.fspath(path)
         tmp = f"{path}.tmp-{os.getpid()}-{threading.get_ident()}"
@@ -470,20 +475,20 @@ class Triangulation:
             try:
                 self._core.save(tmp, self._values_arg())
                 os.replace(tmp, path)
-            except _core.SnapshotError as exc:
-                _unlink_quietly(tmp)
-                raise SnapshotError(str(exc)) from None
             except BaseException:
                 _unlink_quietly(tmp)
                 raise
 
     def to_bytes(self) -> bytes:
-        """The snapshot as bytes (same format as :meth:`save`)."""
+        """The snapshot as bytes (same format as :meth:`save`).
+
+        Raises
+        ------
+        flatserve.errors.SnapshotError
+            The triangulation is too large for the snapshot format.
+        """
         with _Reading(self._lock):
-            try:
-                return self._core.to_bytes(self._values_arg())
-            except _core.SnapshotError as exc:
-                raise SnapshotError(str(exc)) from None
+            return self._core.to_bytes(self._values_arg())
 
     @classmethod
     def load(cls, path) -> "Triangulation":
@@ -491,22 +496,23 @@ class Triangulation:
 
         Raises
         ------
-        SnapshotError
-            Missing, truncated or corrupted file, or another format version.
+        flatserve.errors.SnapshotError
+            Missing, truncated or corrupted file, or another format version
+            (raised by the extension as a subclass).
         """
-        try:
-            core, values = _core.Triangulation.load(os.fspath(path))
-        except _core.SnapshotError as exc:
-            raise SnapshotError(str(exc)) from None
+        core, values = _core.Triangulation.load(os.fspath(path))
         return cls._from_core(core, values)
 
     @classmethod
     def from_bytes(cls, data) -> "Triangulation":
-        """Inverse of :meth:`to_bytes`."""
-        try:
-            core, values = _core.Triangulation.from_bytes(bytes(data))
-        except _core.SnapshotError as exc:
-            raise SnapshotError(str(exc)) from None
+        """Inverse of :meth:`to_bytes`.
+
+        Raises
+        ------
+        flatserve.errors.SnapshotError
+            Truncated or corrupted bytes, or another format version.
+        """
+        core, values = _core.Triangulation.from_bytes(bytes(data))
         return cls._from_core(core, values)
 
     @classmethod

@@ -72,7 +72,10 @@ nb::object values_or_none(std::vector<double>& v, std::size_t n, std::size_t C) 
 }
 
 void bind_triangulation(nb::module_& m) {
-  nb::exception<flatserve::snapshot_error>(m, "SnapshotError");
+  // A subclass of the library's Python class (which flatserve.errors defines
+  // without importing this module): users catch flatserve.errors.SnapshotError.
+  nb::exception<flatserve::snapshot_error>(
+      m, "SnapshotError", nb::module_::import_("flatserve.errors").attr("SnapshotError"));
   m.attr("KIND_IN_CELL") = static_cast<int>(flatserve::IN_CELL);
   m.attr("KIND_ON_FACET") = static_cast<int>(flatserve::ON_FACET);
   m.attr("KIND_ON_FACE") = static_cast<int>(flatserve::ON_FACE);

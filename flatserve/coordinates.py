@@ -69,6 +69,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import _native
 from . import flats as _flats
 from ._validate import as_array
 from .errors import InvalidInputError
@@ -384,20 +385,17 @@ def _threads_arg(threads) -> int:
 
 
 def _fast_rays():
-    """The native kernel wrapped to take validated float64 arrays.
+    """The native kernel (``d = 3, m = 5``) wrapped to take validated float64 arrays.
 
     Raises
     ------
     RuntimeError
-        The extension lacks ``coordinates_rays3`` (a stale or broken build:
-        every build of this project has it); never a silent slow fallback.
+        ``_native.coordinates_rays3`` was replaced by ``None`` (tests do this
+        to check that there is never a silent slow fallback).
     """
-    from . import _native
-
-    kernel = getattr(_native, "coordinates_rays3", None)
+    kernel = _native.coordinates_rays3
     if kernel is None:
-        raise RuntimeError("flatserve._core lacks coordinates_rays3 (stale native build?); "
-                           "rebuild the extension (make build)")
+        raise RuntimeError("flatserve._core.coordinates_rays3 is missing; rebuild (make build)")
 
     def fast(Qb, rb, o, v, roundtrip_tol, rcond, gap_tol, threads=0):
         return kernel(np.ascontiguousarray(Qb), np.ascontiguousarray(rb), o, v,

@@ -18,12 +18,16 @@ EIGEN_VERSION: str = _core.eigen_version
 # CGAL dD Delaunay (native/triangulation*.hpp); the Python face is
 # flatserve.triangulation.Triangulation.
 Triangulation = _core.Triangulation
+#: Where a query landed (an IntEnum: compares with the int8 ``kind`` arrays).
+LocateKind = _core.LocateKind
 # ---- /triangulation ----
 
 # ---- coordinates ----
 # Hot path of flatserve.coordinates.coordinates_rays (lines in R^3, 5-element
 # basis); flatserve/coordinates.py holds the NumPy reference and the wrapper.
 coordinates_rays3 = _core.coordinates_rays3
+#: Status of one coordinate row (an IntEnum); reasons in flatserve.coordinates.
+CoordinateStatus = _core.CoordinateStatus
 # ---- /coordinates ----
 
 # ---- raycast ----

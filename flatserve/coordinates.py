@@ -79,7 +79,9 @@ __all__ = [
     "NOT_REPRESENTABLE",
     "SINGULAR",
     "AMBIGUOUS",
-    "STATUS_NAMES",
+    "Status",
+    "REASONS",
+    "reason",
     "ROUNDTRIP_TOL",
     "SINGULAR_RCOND",
     "Coordinates",
@@ -92,13 +94,39 @@ __all__ = [
     "coordinates_of",
 ]
 
-OK = 0
-NOT_REPRESENTABLE = 1
-SINGULAR = 2
-AMBIGUOUS = 3
-#: Human-readable names of the status codes.
-STATUS_NAMES = {OK: "ok", NOT_REPRESENTABLE: "not representable", SINGULAR: "singular",
-                AMBIGUOUS: "ambiguous"}
+#: Status of one coordinate row: an :class:`enum.IntEnum` defined by the
+#: extension (the C++ kernel writes the same codes), so members compare with
+#: the int8 ``status`` arrays.
+Status = _native.CoordinateStatus
+OK = Status.OK
+NOT_REPRESENTABLE = Status.NOT_REPRESENTABLE
+SINGULAR = Status.SINGULAR
+AMBIGUOUS = Status.AMBIGUOUS
+#: The one human-readable reason per status (field rejections, service docs).
+REASONS: dict[Status, str] = {
+    OK: "ok: the coordinates round-trip",
+    NOT_REPRESENTABLE: "not representable: the coordinates do not round-trip "
+    "(the flat lies outside the chart the basis spans)",
+    SINGULAR: "singular: the coordinate system of the basis is singular at this flat",
+    AMBIGUOUS: "ambiguous: the recombined flat has coinciding eigenvalues "
+    "(eigen-gap below tolerance)",
+}
+
+
+def reason(status) -> str:
+    """The human-readable reason of one status code.
+
+    Parameters
+    ----------
+    status : int or Status
+        A code of a ``status`` array.
+
+    Returns
+    -------
+    str
+        ``REASONS[status]``, or ``"status <code>"`` for an unknown code.
+    """
+    return REASONS.get(status, f"status {status}")
 
 #: Largest accepted round-trip residual ``max(||Q~-Q||_F, ||r~-r||)``.  Exact
 #: coordinates round-trip to ~1e-12 for well-conditioned bases; 1e-6 leaves

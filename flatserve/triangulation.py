@@ -36,7 +36,6 @@ from __future__ import annotations
 import os
 import threading
 from dataclasses import dataclass
-from enum import IntEnum
 
 import numpy as np
 
@@ -46,19 +45,11 @@ from .errors import InvalidInputError
 
 __all__ = ["Triangulation", "InsertResult", "Location", "LocateKind"]
 
-_core = _native.core
 
-
-class LocateKind(IntEnum):
-    """Where a query landed (``Location.kind``)."""
-
-    IN_CELL = _core.KIND_IN_CELL
-    ON_FACET = _core.KIND_ON_FACET
-    ON_FACE = _core.KIND_ON_FACE
-    ON_VERTEX = _core.KIND_ON_VERTEX
-    OUTSIDE_CONVEX_HULL = _core.KIND_OUTSIDE_CONVEX_HULL
-    OUTSIDE_AFFINE_HULL = _core.KIND_OUTSIDE_AFFINE_HULL
-
+#: Where a query landed (``Location.kind``): an :class:`enum.IntEnum` defined
+#: by the extension (``IN_CELL``, ``ON_FACET``, ``ON_FACE``, ``ON_VERTEX``,
+#: ``OUTSIDE_CONVEX_HULL``, ``OUTSIDE_AFFINE_HULL``).
+LocateKind = _native.LocateKind
 
 #: ``kind <= INSIDE_MAX`` means the query is in the closed convex hull.
 INSIDE_MAX = int(LocateKind.ON_VERTEX)
@@ -217,7 +208,7 @@ class Triangulation:
                 or not 2 <= ndim <= MAX_NDIM):
             raise InvalidInputError(
                 f"ndim: expected an integer in [2, {MAX_NDIM}], got {ndim!r}", "ndim")
-        self._init(_core.Triangulation(int(ndim)), None)
+        self._init(_native.Triangulation(int(ndim)), None)
 
     def _init(self, core, values):
         self._core = core
@@ -500,7 +491,7 @@ class Triangulation:
             Missing, truncated or corrupted file, or another format version
             (raised by the extension as a subclass).
         """
-        core, values = _core.Triangulation.load(os.fspath(path))
+        core, values = _native.Triangulation.load(os.fspath(path))
         return cls._from_core(core, values)
 
     @classmethod
@@ -512,7 +503,7 @@ class Triangulation:
         flatserve.errors.SnapshotError
             Truncated or corrupted bytes, or another format version.
         """
-        core, values = _core.Triangulation.from_bytes(bytes(data))
+        core, values = _native.Triangulation.from_bytes(bytes(data))
         return cls._from_core(core, values)
 
     @classmethod

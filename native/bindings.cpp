@@ -76,12 +76,16 @@ void bind_triangulation(nb::module_& m) {
   // without importing this module): users catch flatserve.errors.SnapshotError.
   nb::exception<flatserve::snapshot_error>(
       m, "SnapshotError", nb::module_::import_("flatserve.errors").attr("SnapshotError"));
-  m.attr("KIND_IN_CELL") = static_cast<int>(flatserve::IN_CELL);
-  m.attr("KIND_ON_FACET") = static_cast<int>(flatserve::ON_FACET);
-  m.attr("KIND_ON_FACE") = static_cast<int>(flatserve::ON_FACE);
-  m.attr("KIND_ON_VERTEX") = static_cast<int>(flatserve::ON_VERTEX);
-  m.attr("KIND_OUTSIDE_CONVEX_HULL") = static_cast<int>(flatserve::OUTSIDE_CONVEX_HULL);
-  m.attr("KIND_OUTSIDE_AFFINE_HULL") = static_cast<int>(flatserve::OUTSIDE_AFFINE_HULL);
+  // is_arithmetic: an IntEnum, so members compare with ints and int8 arrays.
+  nb::enum_<flatserve::LocateKind>(m, "LocateKind", nb::is_arithmetic(),
+                                   "Where a query point lies in the triangulation.")
+      .value("IN_CELL", flatserve::IN_CELL, "Strictly inside a full cell.")
+      .value("ON_FACET", flatserve::ON_FACET, "On a facet (one weight exactly 0).")
+      .value("ON_FACE", flatserve::ON_FACE, "On a lower-dimensional face (edge, ...).")
+      .value("ON_VERTEX", flatserve::ON_VERTEX, "On a vertex.")
+      .value("OUTSIDE_CONVEX_HULL", flatserve::OUTSIDE_CONVEX_HULL, "Beyond a hull facet.")
+      .value("OUTSIDE_AFFINE_HULL", flatserve::OUTSIDE_AFFINE_HULL,
+             "The triangulation does not span R^D yet.");
   m.attr("QUERY_CHUNK") = flatserve::kChunk;
   m.def("default_threads", &flatserve::default_threads);
 
@@ -287,6 +291,13 @@ namespace {
 using CoordRows = nb::ndarray<const double, nb::c_contig, nb::device::cpu>;
 
 void bind_coordinates(nb::module_& m) {
+  // The reasons shown to users live beside it in flatserve/coordinates.py.
+  nb::enum_<flatserve::CoordinateStatus>(m, "CoordinateStatus", nb::is_arithmetic(),
+                                         "Status of one coordinate row (see flatserve.coordinates).")
+      .value("OK", flatserve::COORD_OK)
+      .value("NOT_REPRESENTABLE", flatserve::COORD_NOT_REPRESENTABLE)
+      .value("SINGULAR", flatserve::COORD_SINGULAR)
+      .value("AMBIGUOUS", flatserve::COORD_AMBIGUOUS);
   m.def("coordinates_rays3",
         [](CoordRows Qb, CoordRows rb, CoordRows origins, CoordRows directions,
            double roundtrip_tol, double rcond, double gap_tol, double pinv_rcond, int threads) {

@@ -64,11 +64,12 @@ void check_cols(const CArr2& a, std::size_t want, const char* name) {
                                 " columns, got " + std::to_string(a.shape(1)));
 }
 
-nb::object values_or_none(std::vector<double>& v, std::size_t n, std::size_t C) {
-  if (C == 0) return nb::none();
+std::optional<nb::ndarray<nb::numpy, double>> values_or_none(std::vector<double>& v,
+                                                              std::size_t n, std::size_t C) {
+  if (C == 0) return std::nullopt;
   OutArray<double> out({n, C});
   std::memcpy(out.data, v.data(), sizeof(double) * n * C);
-  return nb::cast(out.release());
+  return out.release();
 }
 
 void bind_triangulation(nb::module_& m) {
@@ -218,7 +219,7 @@ void bind_triangulation(nb::module_& m) {
                       ls = flatserve::load_snapshot(src);
                     }
                     std::size_t n = ls.tri->number_of_vertices();
-                    nb::object vals = values_or_none(ls.values, n, ls.channels);
+                    auto vals = values_or_none(ls.values, n, ls.channels);
                     return std::make_tuple(PyTriangulation{std::move(ls.tri)}, vals);
                   },
                   nb::arg("path"))
@@ -233,7 +234,7 @@ void bind_triangulation(nb::module_& m) {
                       ls = flatserve::load_snapshot(src);
                     }
                     std::size_t n = ls.tri->number_of_vertices();
-                    nb::object vals = values_or_none(ls.values, n, ls.channels);
+                    auto vals = values_or_none(ls.values, n, ls.channels);
                     return std::make_tuple(PyTriangulation{std::move(ls.tri)}, vals);
                   },
                   nb::arg("data"));
@@ -274,7 +275,7 @@ void bind_raycast(nb::module_& m) {
                nb::gil_scoped_release unlocked;
                rc.cast(origins.data(), directions.data(), n, t, face, threads);
              }
-             return nb::make_tuple(nb::ndarray<nb::numpy, double, nb::ndim<1>>(t, {n}, t_owner),
+             return std::make_tuple(nb::ndarray<nb::numpy, double, nb::ndim<1>>(t, {n}, t_owner),
                                    nb::ndarray<nb::numpy, std::int64_t, nb::ndim<1>>(face, {n}, f_owner));
            },
            nb::arg("origins"), nb::arg("directions"), nb::arg("threads") = 0);
@@ -316,7 +317,7 @@ void bind_coordinates(nb::module_& m) {
                                      {roundtrip_tol, rcond, gap_tol, pinv_rcond}, w.data,
                                      status.data, residual.data, threads);
           }
-          return nb::make_tuple(w.release(), status.release(), residual.release());
+          return std::make_tuple(w.release(), status.release(), residual.release());
         },
         nb::arg("Qb"), nb::arg("rb"), nb::arg("origins"), nb::arg("directions"),
         nb::arg("roundtrip_tol"), nb::arg("rcond"), nb::arg("gap_tol"), nb::arg("pinv_rcond"),
@@ -326,7 +327,10 @@ void bind_coordinates(nb::module_& m) {
 // ---- /coordinates ----
 
 NB_MODULE(_core, m) {
-  m.doc() = "flatserve private native core (CGAL dD Delaunay). Not a public API.";
+  m.doc() =
+      "flatserve's private native core (CGAL dD Delaunay, AABB ray casting, coordinates of "
+      "lines). Not a public API: use flatserve.Triangulation and friends. Arrays passed in "
+      "must be C-contiguous float64, already validated by the Python wrappers.";
   m.attr("cgal_version") = CGAL_VERSION_STR;
   m.attr("eigen_version") = std::to_string(EIGEN_WORLD_VERSION) + "." +
                             std::to_string(EIGEN_MAJOR_VERSION) + "." +

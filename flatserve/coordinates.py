@@ -28,7 +28,8 @@ round-trip residual is::
     residual = max(||Q~ - Q+||_F, ||r~ - r+||_2),    (Q~, r~) = P(sum_l w_l q_l)
 
 (absolute: ``Q`` is dimensionless, ``r`` is in the units of the data, so keep
-data on the scale of one).  Each target gets a status, checked in this order:
+data on the scale of one).  Each target gets a status (:data:`Status`, the
+extension's enum; one-line reasons in :data:`REASONS`), checked in this order:
 
 ``SINGULAR`` (2)
     the system is rank-deficient at this target: the coordinates are not
@@ -127,6 +128,7 @@ def reason(status) -> str:
         ``REASONS[status]``, or ``"status <code>"`` for an unknown code.
     """
     return REASONS.get(status, f"status {status}")
+
 
 #: Largest accepted round-trip residual ``max(||Q~-Q||_F, ||r~-r||)``.  Exact
 #: coordinates round-trip to ~1e-12 for well-conditioned bases; 1e-6 leaves

@@ -44,7 +44,8 @@ class ServiceError(FlatserveError):
     :class:`~flatserve.errors.LimitExceededError`, a 422 an
     :class:`~flatserve.errors.InvalidInputError` (``argument`` is the last
     element of ``detail[0].loc``), a 503 a
-    :class:`~flatserve.errors.NotReadyError`; other statuses raise it alone.
+    :class:`~flatserve.errors.NotReadyError`, a 507 a
+    :class:`~flatserve.errors.StorageFullError`; other statuses raise it alone.
 
     Attributes
     ----------

@@ -43,7 +43,8 @@ class ServiceError(FlatserveError):
     :class:`~flatserve.errors.FieldExistsError`, a 413 a
     :class:`~flatserve.errors.LimitExceededError`, a 422 an
     :class:`~flatserve.errors.InvalidInputError` (``argument`` is the last
-    element of ``detail[0].loc``), a 503 a
+    element of ``detail[0].loc``), a 429 a
+    :class:`~flatserve.errors.BacklogFullError`, a 503 a
     :class:`~flatserve.errors.NotReadyError`, a 507 a
     :class:`~flatserve.errors.StorageFullError`; other statuses raise it alone.
 

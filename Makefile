@@ -8,7 +8,7 @@ HOST   ?= 127.0.0.1
 PORT   ?= 8000
 DATA   ?= data
 
-.PHONY: run test build system-deps bench clean
+.PHONY: run test build stub system-deps bench clean
 
 system-deps:
 	bash scripts/install-system-deps.sh
@@ -25,6 +25,11 @@ $(BIN)/.built: $(BIN)/.deps $(NATIVE) pyproject.toml
 	touch $@
 
 build: $(BIN)/.built
+
+# The type stub of the extension, generated from the built module and checked
+# in; tests/test_native.py fails when it differs from a fresh one.
+stub: build
+	$(BIN)/python -m nanobind.stubgen -q -m flatserve._core -p native/stubgen_patterns.txt -o flatserve/_core.pyi
 
 # Debian's chromium + chromedriver, for the viewer test only.
 $(BIN)/.browser: scripts/install-system-deps.sh

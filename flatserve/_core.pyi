@@ -1,57 +1,106 @@
-"""Type stubs of the private extension ``flatserve._core`` (not a public API;
-use :class:`flatserve.Triangulation`). Arrays passed in must be C-contiguous
-float64, already validated by the Python wrappers."""
-from typing import Optional
+"""
+flatserve's private native core (CGAL dD Delaunay, AABB ray casting, coordinates of lines). Not a public API: use flatserve.Triangulation and friends. Arrays passed in must be C-contiguous float64, already validated by the Python wrappers.
+"""
 
-import numpy as np
-import numpy.typing as npt
+import enum
+from typing import Annotated
+
+import numpy
+from numpy.typing import NDArray
+
+import flatserve.errors
+
+
+# Generated from the built extension by nanobind's stubgen (`make stub`); do not edit.
 
 cgal_version: str
+
 eigen_version: str
 
-KIND_IN_CELL: int
-KIND_ON_FACET: int
-KIND_ON_FACE: int
-KIND_ON_VERTEX: int
-KIND_OUTSIDE_CONVEX_HULL: int
-KIND_OUTSIDE_AFFINE_HULL: int
-QUERY_CHUNK: int
+class SnapshotError(flatserve.errors.SnapshotError):
+    pass
 
-class SnapshotError(Exception): ...
+class LocateKind(enum.IntEnum):
+    """Where a query point lies in the triangulation."""
+
+    IN_CELL = 0
+    """Strictly inside a full cell."""
+
+    ON_FACET = 1
+    """On a facet (one weight exactly 0)."""
+
+    ON_FACE = 2
+    """On a lower-dimensional face (edge, ...)."""
+
+    ON_VERTEX = 3
+    """On a vertex."""
+
+    OUTSIDE_CONVEX_HULL = 4
+    """Beyond a hull facet."""
+
+    OUTSIDE_AFFINE_HULL = 5
+    """The triangulation does not span R^D yet."""
+
+QUERY_CHUNK: int = 2048
 
 def default_threads() -> int: ...
 
 class Triangulation:
     def __init__(self, ndim: int) -> None: ...
+
     @property
     def ndim(self) -> int: ...
+
     @property
     def current_dimension(self) -> int: ...
+
     @property
     def nvertices(self) -> int: ...
+
     @property
     def nfullcells(self) -> int: ...
+
     def nfinite_cells(self) -> int: ...
-    def insert(self, points: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.int64], int]: ...
-    def locate(
-        self, xi: npt.NDArray[np.float64], hilbert: bool = True, threads: int = 0
-    ) -> tuple[
-        npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.int8], npt.NDArray[np.int64]
-    ]: ...
-    def interpolate(
-        self,
-        xi: npt.NDArray[np.float64],
-        values: npt.NDArray[np.float64],
-        clamp: bool = False,
-        hilbert: bool = True,
-        threads: int = 0,
-    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.bool_]]: ...
-    def points(self) -> npt.NDArray[np.float64]: ...
-    def simplices(self) -> npt.NDArray[np.int64]: ...
+
+    def insert(self, points: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)]) -> tuple[NDArray[numpy.int64], int]: ...
+
+    def locate(self, xi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], hilbert: bool = True, threads: int = 0) -> tuple[NDArray[numpy.int64], NDArray[numpy.float64], NDArray[numpy.int8], NDArray[numpy.int64]]: ...
+
+    def interpolate(self, xi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], values: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], clamp: bool = False, hilbert: bool = True, threads: int = 0) -> tuple[NDArray[numpy.float64], NDArray[numpy.bool_]]: ...
+
+    def points(self) -> NDArray[numpy.float64]: ...
+
+    def simplices(self) -> NDArray[numpy.int64]: ...
+
     def is_valid(self, verbose: bool = False) -> bool: ...
-    def save(self, path: str, values: Optional[npt.NDArray[np.float64]]) -> None: ...
-    def to_bytes(self, values: Optional[npt.NDArray[np.float64]]) -> bytes: ...
+
+    def save(self, path: str, values: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)] | None) -> None: ...
+
+    def to_bytes(self, values: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)] | None) -> bytes: ...
+
     @staticmethod
-    def load(path: str) -> tuple["Triangulation", Optional[npt.NDArray[np.float64]]]: ...
+    def load(path: str) -> tuple[Triangulation, NDArray[numpy.float64] | None]: ...
+
     @staticmethod
-    def from_bytes(data: bytes) -> tuple["Triangulation", Optional[npt.NDArray[np.float64]]]: ...
+    def from_bytes(data: bytes) -> tuple[Triangulation, NDArray[numpy.float64] | None]: ...
+
+class RayCaster:
+    def __init__(self, vertices: Annotated[NDArray[numpy.float64], dict(shape=(None, 3), order='C', device='cpu', writable=False)], faces: Annotated[NDArray[numpy.int64], dict(shape=(None, 3), order='C', device='cpu', writable=False)]) -> None: ...
+
+    @property
+    def size(self) -> int: ...
+
+    def cast(self, origins: Annotated[NDArray[numpy.float64], dict(shape=(None, 3), order='C', device='cpu', writable=False)], directions: Annotated[NDArray[numpy.float64], dict(shape=(None, 3), order='C', device='cpu', writable=False)], threads: int = 0) -> tuple[Annotated[NDArray[numpy.float64], dict(shape=(None,))], Annotated[NDArray[numpy.int64], dict(shape=(None,))]]: ...
+
+class CoordinateStatus(enum.IntEnum):
+    """Status of one coordinate row (see flatserve.coordinates)."""
+
+    OK = 0
+
+    NOT_REPRESENTABLE = 1
+
+    SINGULAR = 2
+
+    AMBIGUOUS = 3
+
+def coordinates_rays3(Qb: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], rb: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], origins: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], directions: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], roundtrip_tol: float, rcond: float, gap_tol: float, pinv_rcond: float, threads: int = 0) -> tuple[NDArray[numpy.float64], NDArray[numpy.int8], NDArray[numpy.float64]]: ...

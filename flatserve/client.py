@@ -14,6 +14,7 @@ Example
 """
 from __future__ import annotations
 
+import functools
 import io
 import time
 import uuid
@@ -24,46 +25,56 @@ import numpy as np
 import orjson
 
 from . import _npy as _npy_mod
+from .errors import FlatserveError, InvalidInputError, error_class
 from .field import QueryResult
 from .flats import FORMS, Flats, infer_form
-from .errors import (FieldExistsError, FieldNotFoundError, FlatserveError, InvalidInputError,
-                     LimitExceededError)
 
 NPY = "application/x-npy"
 NPZ = "application/x-npz"
 
 
 class ServiceError(FlatserveError):
-    """An error response of the service (``status``, ``detail`` as sent)."""
+    """An error response of the service: ``status`` and ``detail`` as sent.
+
+    The client raises it combined with the library class of the status
+    (:func:`flatserve.errors.error_class`, the inverse of
+    :data:`flatserve.errors.HTTP_STATUS`): a 404 is a
+    :class:`~flatserve.errors.FieldNotFoundError`, a 409 a
+    :class:`~flatserve.errors.FieldExistsError`, a 413 a
+    :class:`~flatserve.errors.LimitExceededError`, a 422 an
+    :class:`~flatserve.errors.InvalidInputError` (``argument`` is the last
+    element of ``detail[0].loc``), a 429 a
+    :class:`~flatserve.errors.BacklogFullError`, a 503 a
+    :class:`~flatserve.errors.NotReadyError`, a 507 a
+    :class:`~flatserve.errors.StorageFullError`; other statuses raise it alone.
+
+    Attributes
+    ----------
+    status : int
+        HTTP status.
+    detail : Any
+        The ``detail`` member of the response (the body's text if not JSON).
+    """
 
     def __init__(self, status: int, detail: Any):
+        super().__init__(f"HTTP {status}: {detail}")
         self.status = status
         self.detail = detail
-        super().__init__(f"HTTP {status}: {detail}")
+        if isinstance(self, InvalidInputError):
+            loc = None
+            if isinstance(detail, list) and detail and isinstance(detail[0], dict):
+                loc = detail[0].get("loc")
+            self.argument = loc[-1] if loc else None
 
 
-class NotFoundError(ServiceError, FieldNotFoundError):
-    pass
-
-
-class ConflictError(ServiceError, FieldExistsError):
-    pass
-
-
-class InvalidError(ServiceError, InvalidInputError):
-    def __init__(self, status: int, detail: Any):
-        ServiceError.__init__(self, status, detail)
-        loc = None
-        if isinstance(detail, list) and detail and isinstance(detail[0], dict):
-            loc = detail[0].get("loc")
-        self.argument = loc[-1] if loc else None
-
-
-class TooLargeError(ServiceError, LimitExceededError):
-    pass
-
-
-_BY_STATUS = {404: NotFoundError, 409: ConflictError, 413: TooLargeError, 422: InvalidError}
+@functools.cache
+def _error_type(status: int) -> type[ServiceError]:
+    """``ServiceError`` combined with the library class of ``status`` (if any)."""
+    base = error_class(status)
+    if base is None:
+        return ServiceError
+    return type(base.__name__, (ServiceError, base),
+                {"__module__": __name__, "__doc__": f"{base.__name__} reported by the service."})
 
 
 def _load_npy(data: bytes) -> np.ndarray:
@@ -161,7 +172,7 @@ class Client:
                     detail = resp.json().get("detail")
                 except Exception:
                     detail = resp.text
-                raise _BY_STATUS.get(resp.status_code, ServiceError)(resp.status_code, detail)
+                raise _error_type(resp.status_code)(resp.status_code, detail)
             return resp
         raise AssertionError("unreachable")
 

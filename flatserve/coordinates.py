@@ -28,7 +28,8 @@ round-trip residual is::
     residual = max(||Q~ - Q+||_F, ||r~ - r+||_2),    (Q~, r~) = P(sum_l w_l q_l)
 
 (absolute: ``Q`` is dimensionless, ``r`` is in the units of the data, so keep
-data on the scale of one).  Each target gets a status, checked in this order:
+data on the scale of one).  Each target gets a status (:data:`Status`, the
+extension's enum; one-line reasons in :data:`REASONS`), checked in this order:
 
 ``SINGULAR`` (2)
     the system is rank-deficient at this target: the coordinates are not
@@ -69,6 +70,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import _native
 from . import flats as _flats
 from ._validate import as_array
 from .errors import InvalidInputError
@@ -78,7 +80,9 @@ __all__ = [
     "NOT_REPRESENTABLE",
     "SINGULAR",
     "AMBIGUOUS",
-    "STATUS_NAMES",
+    "Status",
+    "REASONS",
+    "reason",
     "ROUNDTRIP_TOL",
     "SINGULAR_RCOND",
     "Coordinates",
@@ -91,13 +95,40 @@ __all__ = [
     "coordinates_of",
 ]
 
-OK = 0
-NOT_REPRESENTABLE = 1
-SINGULAR = 2
-AMBIGUOUS = 3
-#: Human-readable names of the status codes.
-STATUS_NAMES = {OK: "ok", NOT_REPRESENTABLE: "not representable", SINGULAR: "singular",
-                AMBIGUOUS: "ambiguous"}
+#: Status of one coordinate row: an :class:`enum.IntEnum` defined by the
+#: extension (the C++ kernel writes the same codes), so members compare with
+#: the int8 ``status`` arrays.
+Status = _native.CoordinateStatus
+OK = Status.OK
+NOT_REPRESENTABLE = Status.NOT_REPRESENTABLE
+SINGULAR = Status.SINGULAR
+AMBIGUOUS = Status.AMBIGUOUS
+#: The one human-readable reason per status (field rejections, service docs).
+REASONS: dict[Status, str] = {
+    OK: "ok: the coordinates round-trip",
+    NOT_REPRESENTABLE: "not representable: the coordinates do not round-trip "
+    "(the flat lies outside the chart the basis spans)",
+    SINGULAR: "singular: the coordinate system of the basis is singular at this flat",
+    AMBIGUOUS: "ambiguous: the recombined flat has coinciding eigenvalues "
+    "(eigen-gap below tolerance)",
+}
+
+
+def reason(status) -> str:
+    """The human-readable reason of one status code.
+
+    Parameters
+    ----------
+    status : int or Status
+        A code of a ``status`` array.
+
+    Returns
+    -------
+    str
+        ``REASONS[status]``, or ``"status <code>"`` for an unknown code.
+    """
+    return REASONS.get(status, f"status {status}")
+
 
 #: Largest accepted round-trip residual ``max(||Q~-Q||_F, ||r~-r||)``.  Exact
 #: coordinates round-trip to ~1e-12 for well-conditioned bases; 1e-6 leaves
@@ -384,20 +415,17 @@ def _threads_arg(threads) -> int:
 
 
 def _fast_rays():
-    """The native kernel wrapped to take validated float64 arrays.
+    """The native kernel (``d = 3, m = 5``) wrapped to take validated float64 arrays.
 
     Raises
     ------
     RuntimeError
-        The extension lacks ``coordinates_rays3`` (a stale or broken build:
-        every build of this project has it); never a silent slow fallback.
+        ``_native.coordinates_rays3`` was replaced by ``None`` (tests do this
+        to check that there is never a silent slow fallback).
     """
-    from . import _native
-
-    kernel = getattr(_native, "coordinates_rays3", None)
+    kernel = _native.coordinates_rays3
     if kernel is None:
-        raise RuntimeError("flatserve._core lacks coordinates_rays3 (stale native build?); "
-                           "rebuild the extension (make build)")
+        raise RuntimeError("flatserve._core.coordinates_rays3 is missing; rebuild (make build)")
 
     def fast(Qb, rb, o, v, roundtrip_tol, rcond, gap_tol, threads=0):
         return kernel(np.ascontiguousarray(Qb), np.ascontiguousarray(rb), o, v,

@@ -25,7 +25,7 @@ import numpy as np
 
 from ._validate import as_array
 from .basis import Basis
-from .coordinates import AMBIGUOUS, NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL, SINGULAR
+from .coordinates import OK, REASONS as _REASONS, ROUNDTRIP_TOL
 from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
 from .flats import Flats
@@ -36,14 +36,6 @@ __all__ = ["Field", "AddResult", "Chart", "PreparedBatch", "QueryResult"]
 _MAGIC = b"FSFIELD\x00"
 _VERSION = 1
 _HEADER = struct.Struct("<8sIQ")  # magic, version, metadata length
-
-_REASONS = {
-    NOT_REPRESENTABLE: "not representable: the coordinates do not round-trip "
-    "(the flat lies outside the chart the basis spans)",
-    SINGULAR: "singular: the coordinate system of the basis is singular at this flat",
-    AMBIGUOUS: "ambiguous: the recombined flat has coinciding eigenvalues "
-    "(eigen-gap below tolerance)",
-}
 
 
 @dataclass(frozen=True)

@@ -36,29 +36,20 @@ from __future__ import annotations
 import os
 import threading
 from dataclasses import dataclass
-from enum import IntEnum
 
 import numpy as np
 
 from . import _native
 from ._validate import as_array
-from .errors import InvalidInputError, SnapshotError
+from .errors import InvalidInputError
 
 __all__ = ["Triangulation", "InsertResult", "Location", "LocateKind"]
 
-_core = _native.core
 
-
-class LocateKind(IntEnum):
-    """Where a query landed (``Location.kind``)."""
-
-    IN_CELL = _core.KIND_IN_CELL
-    ON_FACET = _core.KIND_ON_FACET
-    ON_FACE = _core.KIND_ON_FACE
-    ON_VERTEX = _core.KIND_ON_VERTEX
-    OUTSIDE_CONVEX_HULL = _core.KIND_OUTSIDE_CONVEX_HULL
-    OUTSIDE_AFFINE_HULL = _core.KIND_OUTSIDE_AFFINE_HULL
-
+#: Where a query landed (``Location.kind``): an :class:`enum.IntEnum` defined
+#: by the extension (``IN_CELL``, ``ON_FACET``, ``ON_FACE``, ``ON_VERTEX``,
+#: ``OUTSIDE_CONVEX_HULL``, ``OUTSIDE_AFFINE_HULL``).
+LocateKind = _native.LocateKind
 
 #: ``kind <= INSIDE_MAX`` means the query is in the closed convex hull.
 INSIDE_MAX = int(LocateKind.ON_VERTEX)
@@ -217,7 +208,7 @@ class Triangulation:
                 or not 2 <= ndim <= MAX_NDIM):
             raise InvalidInputError(
                 f"ndim: expected an integer in [2, {MAX_NDIM}], got {ndim!r}", "ndim")
-        self._init(_core.Triangulation(int(ndim)), None)
+        self._init(_native.Triangulation(int(ndim)), None)
 
     def _init(self, core, values):
         self._core = core
@@ -463,6 +454,11 @@ class Triangulation:
         """Write a snapshot (points, ids, cells, neighbours, values) to ``path``.
 
         Written to a temporary file beside ``path`` then renamed (atomic).
+
+        Raises
+        ------
+        flatserve.errors.SnapshotError
+            The file cannot be written (the temporary file is removed).
         """
         path = os.fspath(path)
         tmp = f"{path}.tmp-{os.getpid()}-{threading.get_ident()}"
@@ -470,20 +466,20 @@ class Triangulation:
             try:
                 self._core.save(tmp, self._values_arg())
                 os.replace(tmp, path)
-            except _core.SnapshotError as exc:
-                _unlink_quietly(tmp)
-                raise SnapshotError(str(exc)) from None
             except BaseException:
                 _unlink_quietly(tmp)
                 raise
 
     def to_bytes(self) -> bytes:
-        """The snapshot as bytes (same format as :meth:`save`)."""
+        """The snapshot as bytes (same format as :meth:`save`).
+
+        Raises
+        ------
+        flatserve.errors.SnapshotError
+            The triangulation is too large for the snapshot format.
+        """
         with _Reading(self._lock):
-            try:
-                return self._core.to_bytes(self._values_arg())
-            except _core.SnapshotError as exc:
-                raise SnapshotError(str(exc)) from None
+            return self._core.to_bytes(self._values_arg())
 
     @classmethod
     def load(cls, path) -> "Triangulation":
@@ -491,22 +487,23 @@ class Triangulation:
 
         Raises
         ------
-        SnapshotError
-            Missing, truncated or corrupted file, or another format version.
+        flatserve.errors.SnapshotError
+            Missing, truncated or corrupted file, or another format version
+            (raised by the extension as a subclass).
         """
-        try:
-            core, values = _core.Triangulation.load(os.fspath(path))
-        except _core.SnapshotError as exc:
-            raise SnapshotError(str(exc)) from None
+        core, values = _native.Triangulation.load(os.fspath(path))
         return cls._from_core(core, values)
 
     @classmethod
     def from_bytes(cls, data) -> "Triangulation":
-        """Inverse of :meth:`to_bytes`."""
-        try:
-            core, values = _core.Triangulation.from_bytes(bytes(data))
-        except _core.SnapshotError as exc:
-            raise SnapshotError(str(exc)) from None
+        """Inverse of :meth:`to_bytes`.
+
+        Raises
+        ------
+        flatserve.errors.SnapshotError
+            Truncated or corrupted bytes, or another format version.
+        """
+        core, values = _native.Triangulation.from_bytes(bytes(data))
         return cls._from_core(core, values)
 
     @classmethod

@@ -55,7 +55,7 @@ namespace {
 using CArr2 = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 
 struct PyTriangulation {
-  std::unique_ptr<fs::TriangulationBase> t;
+  std::unique_ptr<flatserve::TriangulationBase> t;
 };
 
 void check_cols(const CArr2& a, std::size_t want, const char* name) {
@@ -64,28 +64,36 @@ void check_cols(const CArr2& a, std::size_t want, const char* name) {
                                 " columns, got " + std::to_string(a.shape(1)));
 }
 
-nb::object values_or_none(std::vector<double>& v, std::size_t n, std::size_t C) {
-  if (C == 0) return nb::none();
+std::optional<nb::ndarray<nb::numpy, double>> values_or_none(std::vector<double>& v,
+                                                              std::size_t n, std::size_t C) {
+  if (C == 0) return std::nullopt;
   OutArray<double> out({n, C});
   std::memcpy(out.data, v.data(), sizeof(double) * n * C);
-  return nb::cast(out.release());
+  return out.release();
 }
 
 void bind_triangulation(nb::module_& m) {
-  nb::exception<fs::snapshot_error>(m, "SnapshotError");
-  m.attr("KIND_IN_CELL") = static_cast<int>(fs::IN_CELL);
-  m.attr("KIND_ON_FACET") = static_cast<int>(fs::ON_FACET);
-  m.attr("KIND_ON_FACE") = static_cast<int>(fs::ON_FACE);
-  m.attr("KIND_ON_VERTEX") = static_cast<int>(fs::ON_VERTEX);
-  m.attr("KIND_OUTSIDE_CONVEX_HULL") = static_cast<int>(fs::OUTSIDE_CONVEX_HULL);
-  m.attr("KIND_OUTSIDE_AFFINE_HULL") = static_cast<int>(fs::OUTSIDE_AFFINE_HULL);
-  m.attr("QUERY_CHUNK") = fs::kChunk;
-  m.def("default_threads", &fs::default_threads);
+  // A subclass of the library's Python class (which flatserve.errors defines
+  // without importing this module): users catch flatserve.errors.SnapshotError.
+  nb::exception<flatserve::snapshot_error>(
+      m, "SnapshotError", nb::module_::import_("flatserve.errors").attr("SnapshotError"));
+  // is_arithmetic: an IntEnum, so members compare with ints and int8 arrays.
+  nb::enum_<flatserve::LocateKind>(m, "LocateKind", nb::is_arithmetic(),
+                                   "Where a query point lies in the triangulation.")
+      .value("IN_CELL", flatserve::IN_CELL, "Strictly inside a full cell.")
+      .value("ON_FACET", flatserve::ON_FACET, "On a facet (one weight exactly 0).")
+      .value("ON_FACE", flatserve::ON_FACE, "On a lower-dimensional face (edge, ...).")
+      .value("ON_VERTEX", flatserve::ON_VERTEX, "On a vertex.")
+      .value("OUTSIDE_CONVEX_HULL", flatserve::OUTSIDE_CONVEX_HULL, "Beyond a hull facet.")
+      .value("OUTSIDE_AFFINE_HULL", flatserve::OUTSIDE_AFFINE_HULL,
+             "The triangulation does not span R^D yet.");
+  m.attr("QUERY_CHUNK") = flatserve::kChunk;
+  m.def("default_threads", &flatserve::default_threads);
 
   nb::class_<PyTriangulation>(m, "Triangulation")
       .def("__init__",
            [](PyTriangulation* self, int ndim) {
-             new (self) PyTriangulation{fs::make_triangulation(ndim)};
+             new (self) PyTriangulation{flatserve::make_triangulation(ndim)};
            },
            nb::arg("ndim"))
       .def_prop_ro("ndim", [](const PyTriangulation& s) { return s.t->dimension(); })
@@ -183,8 +191,8 @@ void bind_triangulation(nb::module_& m) {
              if (values && values->shape(0) != s.t->number_of_vertices())
                throw std::invalid_argument("values: one row per vertex expected");
              nb::gil_scoped_release r;
-             fs::FileSink sink(path);
-             fs::save_snapshot(*s.t, sink, v, C);
+             flatserve::FileSink sink(path);
+             flatserve::save_snapshot(*s.t, sink, v, C);
              sink.close();
            },
            nb::arg("path"), nb::arg("values").none())
@@ -194,39 +202,39 @@ void bind_triangulation(nb::module_& m) {
              const std::size_t C = values ? values->shape(1) : 0;
              if (values && values->shape(0) != s.t->number_of_vertices())
                throw std::invalid_argument("values: one row per vertex expected");
-             fs::VectorSink sink;
+             flatserve::VectorSink sink;
              {
                nb::gil_scoped_release r;
-               fs::save_snapshot(*s.t, sink, v, C);
+               flatserve::save_snapshot(*s.t, sink, v, C);
              }
              return nb::bytes(sink.buf.data(), sink.buf.size());
            },
            nb::arg("values").none())
       .def_static("load",
                   [](const std::string& path) {
-                    fs::LoadedSnapshot ls;
+                    flatserve::LoadedSnapshot ls;
                     {
                       nb::gil_scoped_release r;
-                      fs::FileSource src(path);
-                      ls = fs::load_snapshot(src);
+                      flatserve::FileSource src(path);
+                      ls = flatserve::load_snapshot(src);
                     }
                     std::size_t n = ls.tri->number_of_vertices();
-                    nb::object vals = values_or_none(ls.values, n, ls.channels);
+                    auto vals = values_or_none(ls.values, n, ls.channels);
                     return std::make_tuple(PyTriangulation{std::move(ls.tri)}, vals);
                   },
                   nb::arg("path"))
       .def_static("from_bytes",
                   [](nb::bytes data) {
-                    fs::LoadedSnapshot ls;
+                    flatserve::LoadedSnapshot ls;
                     {
                       const char* p = data.c_str();
                       std::size_t len = data.size();
                       nb::gil_scoped_release r;
-                      fs::MemorySource src(p, len);
-                      ls = fs::load_snapshot(src);
+                      flatserve::MemorySource src(p, len);
+                      ls = flatserve::load_snapshot(src);
                     }
                     std::size_t n = ls.tri->number_of_vertices();
-                    nb::object vals = values_or_none(ls.values, n, ls.channels);
+                    auto vals = values_or_none(ls.values, n, ls.channels);
                     return std::make_tuple(PyTriangulation{std::move(ls.tri)}, vals);
                   },
                   nb::arg("data"));
@@ -267,7 +275,7 @@ void bind_raycast(nb::module_& m) {
                nb::gil_scoped_release unlocked;
                rc.cast(origins.data(), directions.data(), n, t, face, threads);
              }
-             return nb::make_tuple(nb::ndarray<nb::numpy, double, nb::ndim<1>>(t, {n}, t_owner),
+             return std::make_tuple(nb::ndarray<nb::numpy, double, nb::ndim<1>>(t, {n}, t_owner),
                                    nb::ndarray<nb::numpy, std::int64_t, nb::ndim<1>>(face, {n}, f_owner));
            },
            nb::arg("origins"), nb::arg("directions"), nb::arg("threads") = 0);
@@ -284,6 +292,13 @@ namespace {
 using CoordRows = nb::ndarray<const double, nb::c_contig, nb::device::cpu>;
 
 void bind_coordinates(nb::module_& m) {
+  // The reasons shown to users live beside it in flatserve/coordinates.py.
+  nb::enum_<flatserve::CoordinateStatus>(m, "CoordinateStatus", nb::is_arithmetic(),
+                                         "Status of one coordinate row (see flatserve.coordinates).")
+      .value("OK", flatserve::COORD_OK)
+      .value("NOT_REPRESENTABLE", flatserve::COORD_NOT_REPRESENTABLE)
+      .value("SINGULAR", flatserve::COORD_SINGULAR)
+      .value("AMBIGUOUS", flatserve::COORD_AMBIGUOUS);
   m.def("coordinates_rays3",
         [](CoordRows Qb, CoordRows rb, CoordRows origins, CoordRows directions,
            double roundtrip_tol, double rcond, double gap_tol, double pinv_rcond, int threads) {
@@ -298,11 +313,11 @@ void bind_coordinates(nb::module_& m) {
           OutArray<double> residual({n});
           {
             nb::gil_scoped_release unlocked;
-            fs::coordinates_rays3_mt(Qb.data(), rb.data(), origins.data(), directions.data(), n,
+            flatserve::coordinates_rays3_mt(Qb.data(), rb.data(), origins.data(), directions.data(), n,
                                      {roundtrip_tol, rcond, gap_tol, pinv_rcond}, w.data,
                                      status.data, residual.data, threads);
           }
-          return nb::make_tuple(w.release(), status.release(), residual.release());
+          return std::make_tuple(w.release(), status.release(), residual.release());
         },
         nb::arg("Qb"), nb::arg("rb"), nb::arg("origins"), nb::arg("directions"),
         nb::arg("roundtrip_tol"), nb::arg("rcond"), nb::arg("gap_tol"), nb::arg("pinv_rcond"),
@@ -312,7 +327,10 @@ void bind_coordinates(nb::module_& m) {
 // ---- /coordinates ----
 
 NB_MODULE(_core, m) {
-  m.doc() = "flatserve private native core (CGAL dD Delaunay). Not a public API.";
+  m.doc() =
+      "flatserve's private native core (CGAL dD Delaunay, AABB ray casting, coordinates of "
+      "lines). Not a public API: use flatserve.Triangulation and friends. Arrays passed in "
+      "must be C-contiguous float64, already validated by the Python wrappers.";
   m.attr("cgal_version") = CGAL_VERSION_STR;
   m.attr("eigen_version") = std::to_string(EIGEN_WORLD_VERSION) + "." +
                             std::to_string(EIGEN_MAJOR_VERSION) + "." +

@@ -32,7 +32,7 @@
 #include <thread>
 #include <vector>
 
-namespace fs {
+namespace flatserve {
 
 struct CoordinateTolerances {
   double roundtrip_tol;  // ROUNDTRIP_TOL
@@ -41,6 +41,8 @@ struct CoordinateTolerances {
   double pinv_rcond;     // PINV_RCOND
 };
 
+// Exported to Python as flatserve._core.CoordinateStatus (bindings.cpp); the
+// reasons shown to users are in flatserve/coordinates.py (REASONS).
 enum CoordinateStatus : std::int8_t { COORD_OK = 0, COORD_NOT_REPRESENTABLE = 1,
                                       COORD_SINGULAR = 2, COORD_AMBIGUOUS = 3 };
 
@@ -214,4 +216,4 @@ inline void coordinates_rays3_mt(const double* Qb, const double* rb, const doubl
     if (err) std::rethrow_exception(err);
 }
 
-}  // namespace fs
+}  // namespace flatserve

@@ -28,7 +28,7 @@
 #include <cmath>
 #include <utility>
 
-namespace fs {
+namespace flatserve {
 namespace pred {
 
 constexpr double kMinScale = 1e-30;
@@ -190,4 +190,4 @@ struct KernelFor<CGAL::Dimension_tag<D>> {
   using type = pred::FilteredEpick<D>;
 };
 
-}  // namespace fs
+}  // namespace flatserve

@@ -47,7 +47,7 @@
 #include <string>
 #include <vector>
 
-namespace fs {
+namespace flatserve {
 
 // Any problem with a snapshot: truncated, corrupted, other version, I/O.
 struct snapshot_error : std::runtime_error {
@@ -375,4 +375,4 @@ inline SnapshotHeader decode_header(Source& src) {
   return h;
 }
 
-}  // namespace fs
+}  // namespace flatserve

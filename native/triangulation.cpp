@@ -7,7 +7,7 @@
 #error "compile triangulation.cpp with -DFS_TRI_DIM=N (see CMakeLists.txt)"
 #endif
 
-namespace fs {
+namespace flatserve {
 
 #if FS_TRI_DIM > 0
 template <int N>
@@ -21,4 +21,4 @@ std::unique_ptr<TriangulationBase> make_dynamic(int D) {
 }
 #endif
 
-}  // namespace fs
+}  // namespace flatserve

@@ -36,9 +36,9 @@
 
 #include "snapshot.hpp"
 
-namespace fs {
+namespace flatserve {
 
-// Mirrors flatserve.triangulation.LocateKind.
+// Exported to Python as flatserve._core.LocateKind (bindings.cpp).
 enum LocateKind : std::int8_t {
   IN_CELL = 0,               // strictly inside a full cell
   ON_FACET = 1,              // on a facet (one weight exactly 0)
@@ -170,4 +170,4 @@ inline LoadedSnapshot load_snapshot(Source& src) {
   return out;
 }
 
-}  // namespace fs
+}  // namespace flatserve

@@ -19,7 +19,7 @@
 #include "fast_predicates.hpp"
 #include "triangulation.hpp"
 
-namespace fs {
+namespace flatserve {
 
 // Walk tolerances (see Triangulation::locate_one).
 constexpr double kLambdaEps = 1e-10;   // |barycentric| below this (relative) -> exact predicate
@@ -807,4 +807,4 @@ class Triangulation final : public TriangulationBase {
   mutable std::size_t n_finite_ = 0;
 };
 
-}  // namespace fs
+}  // namespace flatserve

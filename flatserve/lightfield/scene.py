@@ -51,10 +51,7 @@ class RayHits:
 
 
 def _caster(mesh: Mesh):
-    cls = getattr(_native, "RayCaster", None)
-    if cls is None:  # pragma: no cover - stale build
-        raise RuntimeError("flatserve._core has no RayCaster: rebuild the extension (make build)")
-    return cls(mesh.vertices, mesh.faces)
+    return _native.RayCaster(mesh.vertices, mesh.faces)
 
 
 @dataclass

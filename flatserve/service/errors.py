@@ -1,9 +1,10 @@
-"""The ONE place where exceptions become HTTP statuses.
+"""Where exceptions become HTTP responses.
 
-Library code raises :mod:`flatserve.errors`; the service raises :class:`ApiError`
-for HTTP-only conditions (content type, body size, auth). Bad input is always a
-4xx: a 422 names the offending argument in ``detail[].loc`` (FastAPI's
-``HTTPValidationError`` shape, so it matches the documented schema).
+Library code raises :mod:`flatserve.errors`, whose ``HTTP_STATUS`` table gives
+the status; the service raises :class:`ApiError` for HTTP-only conditions
+(content type, auth). Bad input is always a 4xx: a 422 names the offending
+argument in ``detail[].loc`` (FastAPI's ``HTTPValidationError`` shape, so it
+matches the documented schema).
 """
 from __future__ import annotations
 
@@ -16,6 +17,11 @@ from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .. import errors as fe
+# The limit and readiness errors live in the library's table (flatserve.errors);
+# re-exported for the service modules that import them from here.
+from ..errors import (BacklogFullError, BatchTooLargeError, BodyTooLargeError,  # noqa: F401
+                      CostLimitError, IdempotencyConflictError, NotReadyError,
+                      TooManyFieldsError)
 
 log = logging.getLogger("flatserve.service")
 
@@ -30,44 +36,6 @@ class ApiError(Exception):
         self.detail = detail
         self.argument = argument
         self.headers = headers
-
-
-class TooManyFieldsError(fe.LimitExceededError):
-    """The configured number of fields is reached."""
-
-    status = 409
-
-
-class BatchTooLargeError(fe.LimitExceededError):
-    """Too many rows in one upload or query."""
-
-    status = 413
-
-
-class BodyTooLargeError(fe.LimitExceededError):
-    """Request body larger than ``max_body_bytes``."""
-
-    status = 413
-
-
-class BacklogFullError(fe.LimitExceededError):
-    """Too many acknowledged samples of a field wait for their insert."""
-
-    status = 429
-
-
-class CostLimitError(fe.LimitExceededError):
-    """An upload would make a field's triangulation larger than allowed."""
-
-    status = 413
-
-
-class NotReadyError(fe.FlatserveError):
-    """Stored fields are still being restored."""
-
-
-class IdempotencyConflictError(fe.FlatserveError):
-    """Idempotency-Key reused with a different request body."""
 
 
 class ErrorBody(BaseModel):
@@ -95,26 +63,13 @@ BODY_RESPONSES: dict[int | str, dict] = {
 
 
 def status_of(exc: BaseException) -> int:
-    """HTTP status for a library or service exception (the mapping table)."""
+    """HTTP status of an exception: :class:`ApiError`'s own, else the library table.
+
+    See :data:`flatserve.errors.HTTP_STATUS`.
+    """
     if isinstance(exc, ApiError):
         return exc.status
-    if isinstance(exc, fe.FieldNotFoundError):
-        return 404
-    if isinstance(exc, (fe.FieldExistsError, IdempotencyConflictError)):
-        return 409 if isinstance(exc, fe.FieldExistsError) else 422
-    if isinstance(exc, fe.LimitExceededError):
-        return getattr(exc, "status", 413)
-    if isinstance(exc, (fe.InvalidInputError, fe.BasisError)):
-        return 422
-    if isinstance(exc, NotReadyError):
-        return 503
-    if isinstance(exc, fe.StorageFullError):
-        return 507
-    if isinstance(exc, (fe.StorageError, fe.SnapshotError)):
-        return 503
-    if isinstance(exc, ValueError):  # bad input reported by NumPy or other libraries
-        return 422
-    return 500
+    return fe.status_of(exc)
 
 
 def _message(exc: BaseException) -> str:

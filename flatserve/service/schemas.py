@@ -10,6 +10,7 @@ from typing import Annotated, ClassVar, Literal, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
+from ..coordinates import REASONS
 from ..flats import FORMS, basis_size
 from .settings import FIELD_NAME_PATTERN
 
@@ -231,8 +232,8 @@ class UploadBody(QueryBody):
 class QueryResponse(BaseModel):
     values: list[list[Optional[float]]] = Field(description="(q, C); null outside (outside=nan).")
     inside: list[bool]
-    status: list[int] = Field(description="Coordinate status per row (0 OK, 1 not representable, "
-                                          "2 singular, 3 ambiguous).")
+    status: list[int] = Field(description="Coordinate status per row: " + "; ".join(
+        f"{int(code)} {text}" for code, text in REASONS.items()) + ".")
     ids: Optional[list[list[int]]] = Field(None, description="(q, D+1) sample ids, -1 for none.")
     weights: Optional[list[list[Optional[float]]]] = Field(None, description="(q, D+1) barycentric.")
 

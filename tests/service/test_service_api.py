@@ -7,8 +7,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from flatserve.client import Client, ConflictError, InvalidError, NotFoundError
 from flatserve import flats
+from flatserve.client import Client
+from flatserve.errors import FieldExistsError as ConflictError
+from flatserve.errors import FieldNotFoundError as NotFoundError
+from flatserve.errors import InvalidInputError as InvalidError
 from flatserve.service import specs
 
 from .conftest import paper_rays

@@ -25,7 +25,7 @@ import numpy as np
 
 from ._validate import as_array
 from .basis import Basis
-from .coordinates import OK, REASONS as _REASONS, ROUNDTRIP_TOL
+from .coordinates import OK, ROUNDTRIP_TOL, reason
 from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
 from .flats import Flats
@@ -400,7 +400,7 @@ class Field:
         tol = f"{self.roundtrip_tol:.3g}"
         res = chart.residual[rows].tolist()
         return [
-            _REASONS.get(st, f"status {st}")
+            reason(st)
             + (f" (residual {r:.3g}, tolerance {tol})" if math.isfinite(r) else "")
             for st, r in zip(chart.status[rows].tolist(), res)
         ]

@@ -9,6 +9,7 @@ import anyio.to_thread
 from fastapi import FastAPI
 
 from .. import __version__
+from ..errors import BodyTooLargeError
 from . import errors
 from .fastpath import FastQueryMiddleware
 from .metrics import Metrics, MetricsMiddleware
@@ -31,7 +32,7 @@ class BodyLimitMiddleware:
     """The one body-size limit, for every route: 413 before reading anything when
     ``Content-Length`` exceeds it, and as soon as the bytes received pass it
     (chunked bodies have no length): ``receive`` is wrapped to count them and
-    raises :class:`~.errors.BodyTooLargeError`, which every reader of the body
+    raises :class:`~.BodyTooLargeError`, which every reader of the body
     turns into a 413."""
 
     def __init__(self, app, limit: int):
@@ -45,7 +46,7 @@ class BodyLimitMiddleware:
         for k, v in scope.get("headers", ()):
             if k == b"content-length":
                 if v.isdigit() and int(v) > limit:
-                    resp = errors.error_response(errors.BodyTooLargeError(
+                    resp = errors.error_response(BodyTooLargeError(
                         f"body of {int(v)} bytes exceeds the limit of {limit} bytes"))
                     return await resp(scope, receive, send)
                 break
@@ -57,7 +58,7 @@ class BodyLimitMiddleware:
             if msg["type"] == "http.request":
                 seen += len(msg.get("body", b""))
                 if seen > limit:
-                    raise errors.BodyTooLargeError(f"body exceeds the limit of {limit} bytes")
+                    raise BodyTooLargeError(f"body exceeds the limit of {limit} bytes")
             return msg
 
         started = False
@@ -69,7 +70,7 @@ class BodyLimitMiddleware:
 
         try:
             await self.app(scope, counted, sending)
-        except errors.BodyTooLargeError as exc:  # raised where no handler turned it into a 413
+        except BodyTooLargeError as exc:  # raised where no handler turned it into a 413
             if started:
                 raise
             await errors.error_response(exc)(scope, receive, send)

@@ -61,9 +61,9 @@ from fastapi import Response
 from .. import _npy
 
 from .._validate import as_array
-from ..errors import InvalidInputError
+from ..errors import BatchTooLargeError, BodyTooLargeError, InvalidInputError
 from ..flats import FORMS, Flats, form_shapes, infer_form
-from .errors import ApiError, BatchTooLargeError, BodyTooLargeError
+from .errors import ApiError
 from .responses import JSONBytes
 
 NPY = "application/x-npy"
@@ -149,7 +149,6 @@ def check_npy_header(name: str, dtype: np.dtype, shape: tuple, *, max_bytes: int
     BodyTooLargeError
         More than ``max_bytes`` declared (413).
     """
-    from .errors import BatchTooLargeError, BodyTooLargeError
 
     if dtype.kind not in "fiu" or dtype.hasobject:
         raise InvalidInputError(f"{name}: .npy dtype {dtype} is not a real number type "
@@ -276,7 +275,6 @@ def load_npz(body: bytes, *, max_bytes: int | None = None, max_rows: int | None 
     flatserve.errors.LimitExceededError
         The headers declare more rows or bytes than the limits (413).
     """
-    from .errors import BodyTooLargeError
 
     if not isinstance(body, bytes):
         body = bytes(body)

@@ -17,12 +17,6 @@ from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .. import errors as fe
-# The limit and readiness errors live in the library's table (flatserve.errors);
-# re-exported for the service modules that import them from here.
-from ..errors import (BacklogFullError, BatchTooLargeError, BodyTooLargeError,  # noqa: F401
-                      CostLimitError, IdempotencyConflictError, NotReadyError,
-                      TooManyFieldsError)
-
 log = logging.getLogger("flatserve.service")
 
 
@@ -82,7 +76,7 @@ def error_response(exc: BaseException) -> ORJSONResponse:
     status = status_of(exc)
     msg = _message(exc)
     headers = getattr(exc, "headers", None)
-    if (status == 503 and isinstance(exc, NotReadyError)) or status in (429, 507):
+    if (status == 503 and isinstance(exc, fe.NotReadyError)) or status in (429, 507):
         headers = {**(headers or {}), "Retry-After": "1"}
     if status == 422:
         arg = getattr(exc, "argument", None)

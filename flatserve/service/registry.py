@@ -15,11 +15,11 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 from ..basis import Basis
-from ..errors import FieldExistsError, FieldNotFoundError, StorageError
+from ..errors import (FieldExistsError, FieldNotFoundError, NotReadyError, StorageError,
+                      TooManyFieldsError)
 from ..field import Field, PreparedBatch, QueryResult
 from ..flats import Flats
 from .entry import FieldEntry, FieldSpec
-from .errors import NotReadyError, TooManyFieldsError
 from .settings import Settings
 from .storage import FieldRow, Storage
 

@@ -23,10 +23,10 @@ from fastapi import APIRouter, Header, Response
 from fastapi.responses import FileResponse, HTMLResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..errors import InvalidInputError
+from ..errors import BatchTooLargeError, InvalidInputError
 from . import codec
 from .deps import FieldNamePath, ReadAccess, RegistryDep, SettingsDep, json_body, json_body_doc
-from .errors import BatchTooLargeError, COMMON_RESPONSES, FIELD_RESPONSES
+from .errors import COMMON_RESPONSES, FIELD_RESPONSES
 from .query import server_timing
 
 __all__ = ["lightfield_api", "viewer", "CameraSpec", "render_frame"]

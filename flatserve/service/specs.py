@@ -7,9 +7,8 @@ from contextlib import contextmanager
 
 from .._validate import as_array
 from ..basis import Basis
-from ..errors import InvalidInputError
+from ..errors import BatchTooLargeError, InvalidInputError
 from ..flats import FORMS, Flats, form_shapes, infer_form
-from .errors import BatchTooLargeError
 from .schemas import CenterFlat, FlatsBasis, TangentSimplexBasis
 
 _NAMES = tuple(n for names in FORMS.values() for n in names)

@@ -327,9 +327,11 @@ class Storage:
             db.execute(
                 "INSERT INTO batches(field_id, seq, idem_key, content_hash, form, nrows, arrays,"
                 " result, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (field_id, seq, idem_key, chash, form, nrows, blob,
-                 json.dumps(None if result_fn is None else result_fn(seq)), time.time()),
+                (field_id, seq, idem_key, chash, form, nrows, blob, "null", time.time()),
             )
+            if result_fn is not None:  # in batch_results, where set_result writes too
+                db.execute("INSERT INTO batch_results(field_id, seq, result) VALUES (?, ?, ?)",
+                           (field_id, seq, json.dumps(result_fn(seq))))
             return seq
 
         return self._tx(fn)
@@ -352,14 +354,6 @@ class Storage:
                     self._db.execute("PRAGMA synchronous=FULL")
             except sqlite3.Error as exc:
                 raise storage_error(exc) from exc
-
-    def delete_batch(self, field_id: int, seq: int) -> None:
-        """Remove one batch (one that was never acknowledged)."""
-        def fn(db):
-            db.execute("DELETE FROM batch_results WHERE field_id=? AND seq=?", (field_id, seq))
-            db.execute("DELETE FROM batches WHERE field_id=? AND seq=?", (field_id, seq))
-
-        self._tx(fn)
 
     def batches(self, field_id: int) -> list[BatchRow]:
         rows = self._query(self._BATCH_COLS + "WHERE b.field_id=? ORDER BY b.seq", (field_id,))

@@ -2,9 +2,9 @@
 (``wait=true``) or in the field's background indexer (``wait=false``).
 
 Durability (Qdrant's ``wait`` convention). In both modes the batch is validated
-first (bad input is refused before anything is stored), then committed to
-storage while its coordinates are computed (so the accepted / rejected rows
-and their reasons are exact in the response), and acknowledged only after the
+first (bad input is refused before anything is stored), charted while a storage
+thread packs it, then committed with its response (the accepted / rejected rows
+and their reasons, exact) in one transaction, and acknowledged only after the
 commit:
 
 * ``wait=true`` (default): once every earlier batch is indexed, the batch is
@@ -16,10 +16,9 @@ commit:
   indexed batches, and a restart replays every committed batch, so nothing
   acknowledged is lost whenever the process dies.
 
-The response of each batch is stored beside it for idempotent retries: durably
-before a ``wait=true`` acknowledgement; without an fsync of its own for
-``wait=false`` (a cache, recomputed from the stored arrays by a retry if a
-crash lost it).
+The response of each batch is stored with it for idempotent retries (completed
+durably once a ``wait=true`` batch is inserted); a retry recomputes it from the
+stored arrays if it was ever lost.
 """
 from __future__ import annotations
 
@@ -28,10 +27,10 @@ import time
 
 import numpy as np
 
-from ..errors import FieldNotFoundError, StorageError
+from ..errors import (BacklogFullError, CostLimitError, FieldNotFoundError,
+                      IdempotencyConflictError, NotReadyError, StorageError)
 from ..flats import Flats
 from .entry import FieldEntry, UploadResult
-from .errors import BacklogFullError, CostLimitError, IdempotencyConflictError, NotReadyError
 from .registry import Registry, stored_flats
 from .storage import content_hash, pack_arrays
 
@@ -71,14 +70,11 @@ def upload(reg: Registry, e: FieldEntry, flats: Flats, values: np.ndarray,
         if wait and not reg.wait_indexed(e):  # commit order: every earlier batch first
             raise NotReadyError(f"field {e.name!r}: the server is shutting down")
         e.check_writable()
-        seq, prepared = _commit_and_chart(reg, e, flats, values, idem_key, chash, stored,
-                                          timings, overlap=not wait)
+        seq, prepared, out = _commit_and_chart(reg, e, flats, values, idem_key, chash, stored,
+                                               timings, wait=wait)
         if wait:
             out = _insert_now(reg, e, seq, prepared, timings)
-        else:
-            out = UploadResult.of(seq, prepared, nsamples=e.field.nsamples, indexed=False,
-                                  pending=e.indexer.counts()[1] + prepared.accepted).to_dict()
-        _store_result(reg, e, seq, out, durable=wait)
+            _store_result(reg, e, seq, out)
         e.last_seq = seq
         if not wait:
             e.indexer.enqueue(seq, prepared, lambda s, b: reg.index(e, s, b), str(e.id))
@@ -118,52 +114,31 @@ def _check_cost(reg, e: FieldEntry, adding: int) -> None:
 
 
 def _commit_and_chart(reg, e, flats, values, idem_key, chash, stored, timings, *,
-                      overlap: bool):
-    """Validate, then commit the batch and chart it; returns ``(seq, PreparedBatch)``;
-    on any failure nothing stays stored. ``overlap`` (wait=false): the commit runs
-    in a storage thread while the batch is charted. Otherwise (wait=true) the batch
-    is charted first and committed with its accepted / rejected rows as a first
-    response (completed once inserted), so that every stored batch is listed with
-    its counts even if the process dies before the insert."""
+                      wait: bool):
+    """Validate the batch, chart it while a storage thread packs (and hashes) it,
+    then commit it together with its first response in one transaction: every
+    stored batch is listed with its accepted / rejected rows, whenever the process
+    dies. Returns ``(seq, PreparedBatch, response)``; on failure nothing is stored."""
     t1 = time.perf_counter()
     # bad input is refused here, before anything is stored; charting cannot fail
     # on validated input (each row gets a status)
     chart = e.field.prepare(flats, values, defer=True)
-    first = None
-
-    def commit():
-        h = content_hash(flats.form, stored) if chash is None else chash
-        result_fn = None if first is None else (lambda seq: UploadResult.of(
-            seq, first, nsamples=e.field.nsamples, indexed=False, pending=0).to_dict())
-        return reg.storage.add_batch(e.id, idem_key=idem_key, chash=h, form=flats.form,
-                                     nrows=len(flats), blob=pack_arrays(stored),
-                                     result_fn=result_fn)
-
-    if not overlap:
-        first = chart()
-        timings["prepare"] = time.perf_counter() - t1
-        seq = commit()
-        timings["store"] = time.perf_counter() - t1 - timings["prepare"]
-        return seq, first
-
-    pending_commit = reg.commit_pool.submit(commit)
-    try:
-        prepared = chart()  # no lock: reads the basis only
-    except BaseException:
-        # unexpected (memory...): the client gets an error, so the batch must not
-        # stay stored; nothing in memory or in any response refers to it yet
-        seq = pending_commit.result()  # a storage failure propagates: nothing stored
-        try:
-            reg.storage.delete_batch(e.id, seq)
-        except BaseException:  # still stored: memory is behind storage
-            log.exception("field %r: could not remove batch %d after a failed upload; "
-                          "reloading", e.name, seq)
-            reg.reload(e, "reloading after a failed upload")
-        raise
+    packing = reg.commit_pool.submit(
+        lambda: (content_hash(flats.form, stored) if chash is None else chash,
+                 pack_arrays(stored)))
+    prepared = chart()  # no lock: reads the basis only
     timings["prepare"] = time.perf_counter() - t1
-    seq = pending_commit.result()  # a storage failure propagates: nothing in memory changed
-    timings["store"] = time.perf_counter() - t1  # overlaps "prepare"
-    return seq, prepared
+    h, blob = packing.result()
+    pending = 0 if wait else e.indexer.counts()[1] + prepared.accepted
+
+    def response(seq: int) -> dict:
+        return UploadResult.of(seq, prepared, nsamples=e.field.nsamples, indexed=False,
+                               pending=pending).to_dict()
+
+    seq = reg.storage.add_batch(e.id, idem_key=idem_key, chash=h, form=flats.form,
+                                nrows=len(flats), blob=blob, result_fn=response)
+    timings["store"] = time.perf_counter() - t1 - timings["prepare"]
+    return seq, prepared, response(seq)
 
 
 def _insert_now(reg, e, seq, prepared, timings) -> dict:
@@ -184,11 +159,11 @@ def _insert_now(reg, e, seq, prepared, timings) -> dict:
     return UploadResult.of(seq, res, nsamples=res.nsamples, indexed=True, pending=0).to_dict()
 
 
-def _store_result(reg, e, seq, out, *, durable: bool) -> None:
-    """Store a batch's response: ``durable`` (wait=true) before the acknowledgement,
-    so that an acknowledged indexed batch is listed with its counts after any crash."""
+def _store_result(reg, e, seq, out) -> None:
+    """Store the complete response of an indexed batch (wait=true), durably, before
+    the acknowledgement."""
     try:
-        reg.storage.set_result(e.id, seq, out, durable=durable)
+        reg.storage.set_result(e.id, seq, out, durable=True)
     except StorageError as exc:  # the batch is durable; its response is a cache
         log.warning("field %r: could not store the response of batch %d: %s", e.name, seq, exc)
 

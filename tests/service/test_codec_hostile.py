@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from flatserve import _npy
 from flatserve.errors import InvalidInputError, LimitExceededError
 from flatserve.service import codec
-from flatserve.service.errors import BatchTooLargeError, BodyTooLargeError
+from flatserve.errors import BatchTooLargeError, BodyTooLargeError
 
 from .hostile import (BZIP2, DEFLATED, STORED, Member, descr_header, npy, npy_header, npz,
                       raw_zip, zeros_bomb)

@@ -29,6 +29,7 @@ command -v debootstrap >/dev/null || { echo "debootstrap is not installed (bash 
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO=sudo; fi
 root=$(mktemp -d /var/tmp/flatserve-base.XXXXXX)
+chmod 755 "$root"  # becomes the image's /
 trap '$SUDO rm -rf "$root"' EXIT
 echo "building $image with debootstrap from $mirror"
 $SUDO debootstrap --variant=minbase bookworm "$root" "$mirror"

@@ -20,7 +20,8 @@ SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO=sudo; fi
 log=${FLATSERVE_DOCKERD_LOG:-/var/log/flatserve-dockerd.log}
 echo "starting dockerd (log: $log)"
-$SUDO sh -c "nohup dockerd --storage-driver=vfs --iptables=false --bridge=none >>'$log' 2>&1 </dev/null &"
+# its own session: an interrupt of the caller (make, pytest) does not stop it
+$SUDO setsid -f sh -c "exec dockerd --storage-driver=vfs --iptables=false --bridge=none >>'$log' 2>&1 </dev/null"
 for _ in $(seq 1 120); do
   if "$DOCKER" info >/dev/null 2>&1; then
     echo "dockerd is up"

@@ -17,30 +17,44 @@ $(BIN)/.deps: pyproject.toml scripts/install-system-deps.sh
 	bash scripts/install-system-deps.sh
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q "scikit-build-core>=0.10" "nanobind>=2.0"
+	$(BIN)/python -m pip install -q "scikit-build-core>=0.10" "nanobind==3.1.0"
 	touch $@
 
+# The package with the extras `make run` needs (pyproject.toml: the library
+# itself needs NumPy only).
 $(BIN)/.built: $(BIN)/.deps $(NATIVE) pyproject.toml
-	$(BIN)/python -m pip install -q --no-build-isolation -e ".[test]"
+	$(BIN)/python -m pip install -q --no-build-isolation -e ".[service,lightfield]"
 	touch $@
 
 build: $(BIN)/.built
 
 # The type stub of the extension, generated from the built module and checked
-# in; tests/test_native.py fails when it differs from a fresh one.
+# in; tests/test_native.py fails when it differs from a fresh one (nanobind is
+# pinned: another version's stub generator writes other text).
 stub: build
 	$(BIN)/python -m nanobind.stubgen -q -m flatserve._core -p native/stubgen_patterns.txt -o flatserve/_core.pyi
+
+# The test extra, installed beside the package (no rebuild of the extension).
+$(BIN)/.test-deps: $(BIN)/.built pyproject.toml scripts/requirements.py
+	$(BIN)/python scripts/requirements.py --no-core test > $(BIN)/test-requirements.txt
+	$(BIN)/python -m pip install -q -r $(BIN)/test-requirements.txt
+	touch $@
 
 # Debian's chromium + chromedriver, for the viewer test only.
 $(BIN)/.browser: scripts/install-system-deps.sh
 	bash scripts/install-system-deps.sh --browser
 	touch $@
 
+# Debian's Docker engine + debootstrap, for the container image test.
+$(BIN)/.docker: scripts/install-system-deps.sh
+	bash scripts/install-system-deps.sh --docker
+	touch $@
+
 run: build
 	$(BIN)/flatserve serve --demo --host $(HOST) --port $(PORT) --data-dir $(DATA)
 
 # FLATSERVE_STRICT=1: a skipped test counts as failed (see tests/conftest.py).
-test: build $(BIN)/.browser
+test: build $(BIN)/.test-deps $(BIN)/.browser $(BIN)/.docker
 	FLATSERVE_STRICT=1 $(BIN)/python -m pytest -q tests
 
 bench: build

@@ -4,6 +4,9 @@
 #   --build    compilers + CGAL/Eigen headers (default)
 #   --runtime  only what the built extension and the service need at run time
 #   --browser  Debian's chromium + chromedriver for the viewer test
+#   --docker   Debian's Docker engine (docker.io) + debootstrap, for the image
+#              tests (scripts/docker-engine.sh starts the engine,
+#              scripts/docker-base.sh builds the base image without a registry)
 set -euo pipefail
 mode=build
 extra=()
@@ -12,6 +15,7 @@ for arg in "$@"; do
     --build) mode=build ;;
     --runtime) mode=runtime ;;
     --browser) extra+=(chromium chromium-driver) ;;
+    --docker) extra+=(docker.io debootstrap ca-certificates) ;;
     *) echo "unknown option $arg" >&2; exit 2 ;;
   esac
 done

@@ -1,0 +1,267 @@
+"""The container image, built from this repository and run as a user would.
+
+Needs a Docker engine (``make test`` installs Debian's ``docker.io``:
+``scripts/install-system-deps.sh --docker``). The session fixture starts the
+engine if it is installed but not running (``scripts/docker-engine.sh``) and
+builds the ``debian:bookworm-slim`` base from the Debian mirror when no
+registry has it (``scripts/docker-base.sh``). The image is built once per
+session (``DOCKER_BUILDKIT=1 docker build --network host``), with the CA bundle
+named by ``SSL_CERT_FILE`` / ``PIP_CERT`` / ``REQUESTS_CA_BUNDLE`` handed to pip
+as a build secret. The build log goes to a file that is dumped on failure;
+progress lines reach the terminal even without ``pytest -s``.
+
+Then a container serves on a named volume with an API key, takes uploads,
+is ``docker kill``-ed, and a new container on the same volume must answer
+with every acknowledged sample.
+"""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import socket
+import subprocess
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flatserve.client import Client, ServiceError
+
+REPO = Path(__file__).resolve().parent.parent
+IMAGE = "flatserve:test"
+#: A cold build: Debian packages, the Python dependencies, CGAL compiled on two
+#: cores, every layer copied in full by the vfs storage driver.
+BUILD_TIMEOUT_S = 40 * 60
+READY_TIMEOUT_S = 180
+
+
+def docker_cli() -> str:
+    """The client that came with the engine (Debian's ``docker.io``) first: a
+    newer stand-alone client may refuse BuildKit builds without its buildx
+    plugin."""
+    if os.environ.get("FLATSERVE_DOCKER"):
+        return os.environ["FLATSERVE_DOCKER"]
+    if os.access("/usr/bin/docker", os.X_OK):
+        return "/usr/bin/docker"
+    return shutil.which("docker") or "docker"
+
+
+DOCKER = docker_cli()
+
+
+def docker(*args: str, timeout: float = 120, check: bool = True) -> subprocess.CompletedProcess:
+    p = subprocess.run([DOCKER, *args], capture_output=True, text=True, timeout=timeout)
+    if check and p.returncode != 0:
+        raise AssertionError(f"docker {' '.join(args)} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
+    return p
+
+
+def ca_bundle() -> str | None:
+    """The CA bundle the environment names, for pip inside the build."""
+    for var in ("SSL_CERT_FILE", "PIP_CERT", "REQUESTS_CA_BUNDLE"):
+        path = os.environ.get(var)
+        if path and os.path.isfile(path):
+            return path
+    return None
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _say(config, line: str) -> None:
+    """One progress line on the terminal, whatever pytest captures."""
+    capman = config.pluginmanager.getplugin("capturemanager")
+    tr = config.pluginmanager.getplugin("terminalreporter")
+    if capman is None or tr is None:
+        return
+    with capman.global_and_fixture_disabled():
+        tr.write_line(f"[docker] {line}")
+
+
+def _run_script(config, script: str, log: Path, timeout: float) -> None:
+    with open(log, "ab") as fh:
+        p = subprocess.run(["bash", str(REPO / "scripts" / script)], stdout=fh,
+                           stderr=subprocess.STDOUT, timeout=timeout)
+    if p.returncode != 0:
+        raise AssertionError(f"scripts/{script} failed ({p.returncode}); its output:\n{log.read_text()[-6000:]}")
+
+
+@pytest.fixture(scope="session")
+def docker_engine(request, tmp_path_factory):
+    """A running engine and the base image (both made if missing)."""
+    log = tmp_path_factory.mktemp("docker") / "engine.log"
+    _run_script(request.config, "docker-engine.sh", log, timeout=180)
+    if docker("image", "inspect", "debian:bookworm-slim", check=False).returncode != 0:
+        _say(request.config, "no debian:bookworm-slim: building it with debootstrap (about 2 minutes)")
+        _run_script(request.config, "docker-base.sh", log, timeout=20 * 60)
+    return log
+
+
+@pytest.fixture(scope="session")
+def image(request, docker_engine, tmp_path_factory):
+    """The image built from this checkout, once per session."""
+    log = tmp_path_factory.mktemp("docker-build") / "build.log"
+    cmd = [DOCKER, "build", "--network", "host", "--progress", "plain",
+           "-f", "docker/Dockerfile", "-t", IMAGE, "."]
+    ca = ca_bundle()
+    if ca:
+        cmd[2:2] = ["--secret", f"id=ca,src={ca}"]
+    env = dict(os.environ, DOCKER_BUILDKIT="1")
+    _say(request.config, f"building {IMAGE} (log: {log}; a cold build takes several minutes)")
+    t0 = time.monotonic()
+    step = re.compile(r"^#\d+ \[[^\]]+\] ")
+    with open(log, "w") as fh:
+        fh.write(" ".join(cmd) + "\n")
+        fh.flush()
+        proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, bufsize=1)
+        seen = set()
+        try:
+            for line in proc.stdout:
+                fh.write(line)
+                if step.match(line) and line not in seen:  # BuildKit repeats a step's header
+                    seen.add(line)
+                    _say(request.config, f"{time.monotonic() - t0:6.0f} s  {line.strip()[:110]}")
+                if time.monotonic() - t0 > BUILD_TIMEOUT_S:
+                    proc.kill()
+                    break
+        finally:
+            rc = proc.wait()
+    elapsed = time.monotonic() - t0
+    if rc != 0:
+        raise AssertionError(f"docker build failed ({rc}) after {elapsed:.0f} s; the end of {log}:\n"
+                             + log.read_text()[-8000:])
+    size = docker("image", "inspect", IMAGE, "--format", "{{.Size}}").stdout.strip()
+    _say(request.config, f"built {IMAGE} in {elapsed:.0f} s, {int(size) / 1e6:.0f} MB")
+    return IMAGE
+
+
+class Containers:
+    """Containers and a volume of one test, removed whatever happens."""
+
+    def __init__(self, image: str):
+        self.image = image
+        self.tag = uuid.uuid4().hex[:10]
+        self.volume = f"flatserve-test-{self.tag}"
+        self.names: list[str] = []
+        docker("volume", "create", self.volume)
+
+    def run(self, port: int, api_key: str) -> str:
+        name = f"flatserve-test-{self.tag}-{len(self.names)}"
+        self.names.append(name)
+        docker("run", "-d", "--name", name, "--network", "host",
+               "-e", f"FLATSERVE_API_KEY={api_key}", "-e", f"FLATSERVE_PORT={port}",
+               "-v", f"{self.volume}:/var/lib/flatserve", self.image)
+        return name
+
+    def logs(self) -> str:
+        out = []
+        for name in self.names:
+            p = docker("logs", "--tail", "60", name, check=False)
+            out.append(f"--- docker logs {name} ---\n{p.stdout}{p.stderr}")
+        return "\n".join(out)
+
+    def wait_ready(self, name: str, client: Client) -> None:
+        end = time.monotonic() + READY_TIMEOUT_S
+        while time.monotonic() < end:
+            if client.ready():
+                return
+            state = docker("inspect", "-f", "{{.State.Running}}", name, check=False).stdout.strip()
+            if state != "true":
+                raise AssertionError(f"container {name} stopped before it was ready\n{self.logs()}")
+            time.sleep(0.2)
+        raise AssertionError(f"container {name} not ready after {READY_TIMEOUT_S} s\n{self.logs()}")
+
+    def kill(self, name: str) -> None:
+        docker("kill", name)  # SIGKILL: no shutdown handler runs
+
+    def close(self) -> None:
+        for name in self.names:
+            docker("rm", "-f", name, check=False)
+        docker("volume", "rm", "-f", self.volume, check=False)
+
+
+@pytest.fixture
+def containers(image):
+    c = Containers(image)
+    yield c
+    c.close()
+
+
+def paper_rays(rng: np.random.Generator, n: int):
+    eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (n, 3))
+    screen = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
+    return eyes, screen - eyes
+
+
+def test_image_holds_no_build_secret_and_no_compiler(image):
+    p = docker("run", "--rm", "--network", "none", "--entrypoint", "sh", image, "-c",
+               "id -un; ls -A /run/secrets 2>/dev/null; env | grep -E '^(PIP_CERT|SSL_CERT_FILE)=';"
+               " command -v cc c++ g++ gcc cmake; true")
+    assert p.stdout.split() == ["flatserve"], p.stdout
+
+
+def test_container_keeps_acknowledged_samples_across_docker_kill(containers):
+    rng = np.random.default_rng(11)
+    key = uuid.uuid4().hex
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    qo, qd = paper_rays(rng, 400)
+
+    # 1. a fresh container on an empty volume: uploads acknowledged once indexed
+    first = containers.run(port, key)
+    with Client(url, api_key=key, retries=0) as c:
+        containers.wait_ready(first, c)
+        with Client(url, retries=0) as anonymous, pytest.raises(ServiceError) as err:
+            anonymous.create_field("nokey")
+        assert err.value.status == 401
+        c.create_field("docker", channels=2)
+        acked = []
+        for i in range(3):
+            o, d = paper_rays(rng, 1500)
+            acked.append(c.upload_rays("docker", o, d, rng.uniform(size=(1500, 2)),
+                                       idempotency_key=f"a{i}"))
+        before = c.describe("docker")
+        q1 = c.query_rays("docker", qo, qd)
+    assert before["nsamples"] == acked[-1]["nsamples"] == sum(a["accepted"] for a in acked)
+    assert before["nsamples"] > 4000
+    assert q1.inside.mean() > 0.5
+    containers.kill(first)
+
+    # 2. a new container on the same volume: the same samples, the same answers;
+    #    then one more batch acknowledged before it is indexed (wait=false)
+    second = containers.run(port, key)
+    with Client(url, api_key=key, retries=0) as c:
+        containers.wait_ready(second, c)
+        after = c.wait_indexed("docker", timeout=120)
+        assert after["nsamples"] == before["nsamples"]
+        q2 = c.query_rays("docker", qo, qd)
+        np.testing.assert_array_equal(q2.inside, q1.inside)
+        np.testing.assert_array_equal(q2.values, q1.values)
+        o4, d4 = paper_rays(rng, 2000)
+        v4 = rng.uniform(size=(2000, 2))
+        late = c.upload_rays("docker", o4, d4, v4, idempotency_key="late", wait=False)
+    containers.kill(second)  # at once: the batch may not be indexed yet
+
+    # 3. and once more: the late batch is there too, its samples answer their own rays
+    third = containers.run(port, key)
+    with Client(url, api_key=key, retries=0) as c:
+        containers.wait_ready(third, c)
+        final = c.wait_indexed("docker", timeout=120)
+        assert final["nsamples"] == before["nsamples"] + late["accepted"]
+        assert len(c.batches("docker")) == 4
+        own = c.query_rays("docker", o4, d4)
+        q3 = c.query_rays("docker", qo, qd)
+    assert late["accepted"] + len(late["rejected"]) == 2000 and late["accepted"] > 1800
+    mine = np.ones(2000, bool)
+    mine[late["rejected"]] = False  # rays outside the chart were never stored
+    assert own.inside[mine].mean() > 0.5
+    hit = mine & own.inside
+    np.testing.assert_allclose(own.values[hit], v4[hit], rtol=0, atol=1e-9)
+    assert q3.inside.sum() >= q1.inside.sum()

@@ -36,6 +36,12 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 log = logging.getLogger("flatserve.service")
 
+#: seconds a connection beyond the cap has to send its request (answered 503)
+OVER_CAP_HEADER_TIMEOUT = 1.0
+
+#: file descriptors kept for the server's own files (database, snapshots, pipes)
+FD_RESERVE = 64
+
 _408 = (b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain; charset=utf-8\r\n"
         b"content-length: 15\r\nconnection: close\r\n\r\nRequest Timeout")
 
@@ -81,10 +87,13 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
     def connection_made(self, transport) -> None:
         super().connection_made(transport)
         cap = self.max_connections
+        wait = self.header_timeout
         if cap is not None and len(self.connections) > cap:
-            # uvicorn answers every request of this connection with 503 + close
+            # uvicorn answers every request of this connection with 503 + close; one
+            # that sends nothing is not kept (its file descriptor is scarce)
             self.limit_concurrency = 0
-        self._header_timer = self.loop.call_later(self.header_timeout, self._header_expired)
+            wait = min(wait, OVER_CAP_HEADER_TIMEOUT)
+        self._header_timer = self.loop.call_later(wait, self._header_expired)
 
     def connection_lost(self, exc) -> None:
         self._cancel_timers()
@@ -176,6 +185,56 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
 
 def _peer(client) -> str:
     return "%s:%d" % client if client else "client"
+
+
+def connection_cap(requested: int) -> tuple[int | None, str | None]:
+    """The connection cap this process can keep, and why it differs from ``requested``.
+
+    Every connection holds a file descriptor, so the cap must stay below the
+    open-files limit (``ulimit -n``) with :data:`FD_RESERVE` to spare for the
+    server's own files. The soft limit is raised toward the hard one when needed;
+    if that is not enough, the cap is lowered (half the limit when it is small).
+
+    Parameters
+    ----------
+    requested : int
+        ``max_connections`` (0: as many as the open-files limit allows).
+
+    Returns
+    -------
+    cap : int or None
+        None: no cap (no open-files limit).
+    note : str or None
+        Why the cap or the limit was changed, for the log.
+    """
+    try:
+        import resource
+    except ImportError:  # not a POSIX system
+        return requested or None, None
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    inf = resource.RLIM_INFINITY
+    note = None
+    if requested and soft != inf and soft < requested + FD_RESERVE:
+        target = requested + FD_RESERVE if hard == inf else min(hard, requested + FD_RESERVE)
+        if target > soft:
+            try:
+                resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+                note = f"open-files limit raised from {soft} to {target}"
+                soft = target
+            except (ValueError, OSError):
+                pass
+    if soft == inf:
+        return requested or None, note
+    room = soft - FD_RESERVE if soft >= 2 * FD_RESERVE else soft // 2
+    room = max(room, 1)
+    if not requested:
+        return room, note
+    if requested > room:
+        note = (f"{note}; " if note else "") + (
+            f"max_connections {requested} lowered to {room}: the open-files limit is "
+            f"{soft} (raise it with ulimit -n)")
+        return room, note
+    return requested, note
 
 
 def guarded_protocol(*, header_timeout: float, body_timeout: float, body_min_rate: float,

@@ -64,20 +64,26 @@ def serve(settings: Settings | None = None) -> None:
     if host != settings.host:
         log.warning("no API key set: binding to %s instead of %s", host, settings.host)
     from ..errors import StorageError
-    from .connections import guarded_protocol
+    from .connections import connection_cap, guarded_protocol
     from .storage import Storage
 
     try:  # refuse at once, with a clear message, rather than in the middle of start-up
-        Storage(settings.data_dir).close()
+        storage = Storage(settings.data_dir)
+        try:
+            storage.check()
+        finally:
+            storage.close()
     except StorageError as exc:  # in use by another server, unreadable, damaged
         log.error("%s", exc)
         sys.exit(2)
     log.info("flatserve on http://%s:%d, data in %s, %d worker threads", host, settings.port,
              settings.data_dir, settings.workers)
+    cap, note = connection_cap(settings.max_connections)
+    if note:
+        log.warning("%s", note)
     protocol = guarded_protocol(header_timeout=settings.header_timeout,
                                 body_timeout=settings.body_timeout,
-                                body_min_rate=settings.body_min_rate,
-                                max_connections=settings.max_connections or None)
+                                body_min_rate=settings.body_min_rate, max_connections=cap)
     uvicorn.run(create_app(settings), host=host, port=settings.port, workers=1,
                 log_level=settings.log_level.lower(), access_log=False,
                 timeout_graceful_shutdown=10, http=protocol,
@@ -106,7 +112,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="seconds an idle keep-alive connection stays open (default 5; "
                         "FLATSERVE_KEEPALIVE_TIMEOUT)")
     p.add_argument("--max-connections", type=int,
-                   help="open connections admitted, 503 beyond (default 1000, 0: no cap; "
+                   help="open connections admitted, 503 beyond (default 1000; 0: as many as "
+                        "ulimit -n allows; "
                         "FLATSERVE_MAX_CONNECTIONS)")
     p.add_argument("--log-level", help="debug, info, warning (FLATSERVE_LOG_LEVEL)")
     p.add_argument("--demo", action="store_true", default=None,

@@ -87,9 +87,11 @@ class Settings(BaseSettings):
         5.0, gt=0, description="Seconds an idle keep-alive connection stays open.")
     max_connections: int = Field(
         1000, ge=0,
-        description="Open connections admitted (0: no cap); beyond it a new connection's "
-                    "requests get 503 while admitted ones keep working. Keep it below the "
-                    "process's open-files limit (ulimit -n).")
+        description="Open connections admitted; beyond it a new connection's requests get "
+                    "503 (and one that sends nothing is closed after a second) while admitted "
+                    "ones keep working. Each holds a file descriptor: on start the open-files "
+                    "limit (ulimit -n) is raised toward its hard limit if needed, else the cap "
+                    "is lowered to fit, with a warning (0: as many as the limit allows).")
     log_level: str = Field("info")
     demo: bool = Field(
         False,

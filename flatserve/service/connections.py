@@ -25,8 +25,9 @@ protocol (the fast one) that adds, per connection:
   (uvicorn's ``limit_concurrency`` would answer 503 on *every* connection once
   the limit is reached, healthy ones included.)
 
-The timers cost one ``call_later`` per connection and one per request with a
-body; nothing is done per chunk of body but counting its bytes.
+The timers are lazy: one ``call_later`` per connection, plus one when a body
+or a later request's header block spans several reads; nothing is done per read
+but counting its bytes.
 """
 from __future__ import annotations
 
@@ -72,12 +73,20 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
+        # The timers are lazy: armed when there is something to time and none is
+        # armed, never cancelled while the connection lives; when one fires it
+        # looks at the state and re-arms for what is left (no timer per request).
         self._header_timer = None
         self._body_timer = None
         #: the parser waits for a header block (none begun or one unfinished)
         self._want_headers = True
         #: bytes of the awaited header block have arrived
         self._partial = False
+        #: no request has been read on this connection yet (its clock runs from the
+        #: connection's opening)
+        self._first = True
+        self._header_start = 0.0
+        self._header_wait = self.header_timeout
         #: a request's headers are complete but its body is not
         self._want_body = False
         self._body_start = 0.0
@@ -87,50 +96,44 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
     def connection_made(self, transport) -> None:
         super().connection_made(transport)
         cap = self.max_connections
-        wait = self.header_timeout
         if cap is not None and len(self.connections) > cap:
             # uvicorn answers every request of this connection with 503 + close; one
             # that sends nothing is not kept (its file descriptor is scarce)
             self.limit_concurrency = 0
-            wait = min(wait, OVER_CAP_HEADER_TIMEOUT)
-        self._header_timer = self.loop.call_later(wait, self._header_expired)
+            self._header_wait = min(self.header_timeout, OVER_CAP_HEADER_TIMEOUT)
+        self._header_start = self.loop.time()
+        self._header_timer = self.loop.call_later(self._header_wait, self._header_expired)
 
     def connection_lost(self, exc) -> None:
         self._cancel_timers()
         super().connection_lost(exc)
 
     def data_received(self, data: bytes) -> None:
-        if self._want_headers:
+        if self._want_headers and not self._partial:
             self._partial = True
+            if not self._first:
+                self._header_start = self.loop.time()
             if self._header_timer is None:
-                self._header_timer = self.loop.call_later(self.header_timeout,
+                self._header_timer = self.loop.call_later(self._header_wait,
                                                           self._header_expired)
+        elif self._want_body:  # body bytes (and framing, when chunked) for the rate
+            self._body_bytes += len(data)
         super().data_received(data)
         if self._want_body and self._body_timer is None and not self.transport.is_closing():
             self._body_timer = self.loop.call_later(self.body_timeout, self._body_check)
 
     # -- parser callbacks --------------------------------------------------------
     def on_headers_complete(self) -> None:
-        self._want_headers = self._partial = False
-        if self._header_timer is not None:
-            self._header_timer.cancel()
-            self._header_timer = None
+        self._want_headers = self._partial = self._first = False
         self._want_body = True
         self._body_start = self.loop.time()
         self._body_bytes = 0
         super().on_headers_complete()
 
-    def on_body(self, body: bytes) -> None:
-        self._body_bytes += len(body)
-        super().on_body(body)
-
     def on_message_complete(self) -> None:
         self._want_body = False
         self._want_headers = True
         self._partial = False
-        if self._body_timer is not None:
-            self._body_timer.cancel()
-            self._body_timer = None
         super().on_message_complete()
 
     # -- timers ----------------------------------------------------------------
@@ -146,11 +149,15 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
 
     def _header_expired(self) -> None:
         self._header_timer = None
-        if self.transport.is_closing() or not self._want_headers:
-            return
+        if self.transport.is_closing() or not (
+                self._want_headers and (self._partial or self._first)):
+            return  # the next request's first byte arms it again
+        now = self.loop.time()
         if self._busy():  # e.g. a pipelined request waiting behind a slow response
-            self._header_timer = self.loop.call_later(self.header_timeout,
-                                                      self._header_expired)
+            self._header_start = now
+        deadline = self._header_start + self._header_wait
+        if now < deadline:
+            self._header_timer = self.loop.call_later(deadline - now, self._header_expired)
             return
         if self._partial:
             log.info("%s: request headers not complete within %g s; connection closed",

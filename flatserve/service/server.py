@@ -63,19 +63,31 @@ def serve(settings: Settings | None = None) -> None:
     host = settings.bind_host()
     if host != settings.host:
         log.warning("no API key set: binding to %s instead of %s", host, settings.host)
-    from ..errors import DataDirInUseError
+    from ..errors import StorageError
+    from .connections import connection_cap, guarded_protocol
     from .storage import Storage
 
     try:  # refuse at once, with a clear message, rather than in the middle of start-up
-        Storage(settings.data_dir).close()
-    except DataDirInUseError as exc:
+        storage = Storage(settings.data_dir)
+        try:
+            storage.check()
+        finally:
+            storage.close()
+    except StorageError as exc:  # in use by another server, unreadable, damaged
         log.error("%s", exc)
         sys.exit(2)
     log.info("flatserve on http://%s:%d, data in %s, %d worker threads", host, settings.port,
              settings.data_dir, settings.workers)
+    cap, note = connection_cap(settings.max_connections)
+    if note:
+        log.warning("%s", note)
+    protocol = guarded_protocol(header_timeout=settings.header_timeout,
+                                body_timeout=settings.body_timeout,
+                                body_min_rate=settings.body_min_rate, max_connections=cap)
     uvicorn.run(create_app(settings), host=host, port=settings.port, workers=1,
                 log_level=settings.log_level.lower(), access_log=False,
-                timeout_graceful_shutdown=10)
+                timeout_graceful_shutdown=10, http=protocol,
+                timeout_keep_alive=settings.keepalive_timeout)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -87,6 +99,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--api-key", help="read-write API key (FLATSERVE_API_KEY)")
     p.add_argument("--read-only-key", help="read-only API key (FLATSERVE_READ_ONLY_KEY)")
     p.add_argument("--snapshot-every", type=int, help="samples between background snapshots")
+    p.add_argument("--header-timeout", type=float,
+                   help="seconds to receive a request's headers (default 10; "
+                        "FLATSERVE_HEADER_TIMEOUT)")
+    p.add_argument("--body-timeout", type=float,
+                   help="seconds to receive a body, plus 1 s per --body-min-rate bytes "
+                        "(default 60; FLATSERVE_BODY_TIMEOUT)")
+    p.add_argument("--body-min-rate", type=int,
+                   help="bytes/s that always get a body through (default 65536; "
+                        "FLATSERVE_BODY_MIN_RATE)")
+    p.add_argument("--keepalive-timeout", type=float,
+                   help="seconds an idle keep-alive connection stays open (default 5; "
+                        "FLATSERVE_KEEPALIVE_TIMEOUT)")
+    p.add_argument("--max-connections", type=int,
+                   help="open connections admitted, 503 beyond (default 1000; 0: as many as "
+                        "ulimit -n allows; "
+                        "FLATSERVE_MAX_CONNECTIONS)")
     p.add_argument("--log-level", help="debug, info, warning (FLATSERVE_LOG_LEVEL)")
     p.add_argument("--demo", action="store_true", default=None,
                    help="create the bunny light-field demo field on first start (FLATSERVE_DEMO)")

@@ -70,6 +70,28 @@ class Settings(BaseSettings):
         ge=0,
         description="Write a snapshot in the background after this many new samples (0: never).",
     )
+    header_timeout: float = Field(
+        10.0, gt=0,
+        description="Seconds to receive a request's header block, from the connection's "
+                    "opening or the request's first byte; then the connection is closed "
+                    "(408 if part of a request had arrived).")
+    body_timeout: float = Field(
+        60.0, gt=0,
+        description="Seconds to receive a request's body after its headers, plus one second "
+                    "per body_min_rate bytes received; then 408 and the connection is closed.")
+    body_min_rate: int = Field(
+        64 * 1024, ge=1,
+        description="Bytes per second that always get a body through (see body_timeout): "
+                    "a body dripping slower is cut off after about body_timeout seconds.")
+    keepalive_timeout: float = Field(
+        5.0, gt=0, description="Seconds an idle keep-alive connection stays open.")
+    max_connections: int = Field(
+        1000, ge=0,
+        description="Open connections admitted; beyond it a new connection's requests get "
+                    "503 (and one that sends nothing is closed after a second) while admitted "
+                    "ones keep working. Each holds a file descriptor: on start the open-files "
+                    "limit (ulimit -n) is raised toward its hard limit if needed, else the cap "
+                    "is lowered to fit, with a warning (0: as many as the limit allows).")
     log_level: str = Field("info")
     demo: bool = Field(
         False,

@@ -173,11 +173,16 @@ def _lock_data_dir(data_dir: Path):
     return fh
 
 
-def storage_error(exc: sqlite3.Error) -> StorageError:
+def storage_error(exc: sqlite3.Error, db_path: Path | None = None) -> StorageError:
     """The :class:`StorageError` for a database error (:class:`StorageFullError` when
-    the disk is full)."""
-    full = getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL or \
-        "disk is full" in str(exc)
+    the disk is full); a damaged database is named (``db_path``)."""
+    code = getattr(exc, "sqlite_errorcode", None)
+    full = code == sqlite3.SQLITE_FULL or "disk is full" in str(exc)
+    if not full and db_path is not None and (
+            code in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB)
+            or "malformed" in str(exc) or "not a database" in str(exc)):
+        return StorageError(f"storage failed: the database {db_path} is damaged ({exc}); "
+                            "restore it from a backup or move it away")
     return (StorageFullError if full else StorageError)(f"storage failed: {exc}")
 
 
@@ -200,7 +205,7 @@ class Storage:
         except OSError as exc:
             raise StorageError(f"cannot create the data directory {self.data_dir}: {exc}") from exc
         self._dir_lock = _lock_data_dir(self.data_dir)
-        db_path = self.data_dir / DB_NAME
+        self.db_path = db_path = self.data_dir / DB_NAME
         try:
             self._db = sqlite3.connect(db_path, check_same_thread=False, isolation_level=None)
             # 64 KiB pages (new databases only): a batch blob of a few MB is written
@@ -223,6 +228,20 @@ class Storage:
                                ) from exc
         self._lock = threading.RLock()
 
+    def check(self) -> None:
+        """Refuse a damaged database: SQLite's ``quick_check`` (every page read once,
+        about a second per GB; the blobs' contents are not checked).
+
+        Raises
+        ------
+        StorageError
+            Naming the file and what SQLite found.
+        """
+        rows = [r[0] for r in self._query("PRAGMA quick_check(5)")]
+        if rows != ["ok"]:
+            raise StorageError(f"the database {self.db_path} is damaged ({'; '.join(' '.join(r.split()) for r in rows)}); "
+                               "restore it from a backup or move it away")
+
     def close(self) -> None:
         with self._lock:
             self._db.close()
@@ -242,14 +261,14 @@ class Storage:
                         self._db.execute("ROLLBACK")
                     raise
             except sqlite3.Error as exc:
-                raise storage_error(exc) from exc
+                raise storage_error(exc, self.db_path) from exc
 
     def _query(self, sql: str, args: tuple = ()) -> list[tuple]:
         with self._lock:
             try:
                 return self._db.execute(sql, args).fetchall()
             except sqlite3.Error as exc:
-                raise storage_error(exc) from exc
+                raise storage_error(exc, self.db_path) from exc
 
     # -- fields -----------------------------------------------------------
     def create_field(self, name: str, spec: dict, basis: dict[str, np.ndarray]) -> int:
@@ -353,7 +372,7 @@ class Storage:
                 finally:
                     self._db.execute("PRAGMA synchronous=FULL")
             except sqlite3.Error as exc:
-                raise storage_error(exc) from exc
+                raise storage_error(exc, self.db_path) from exc
 
     def batches(self, field_id: int) -> list[BatchRow]:
         rows = self._query(self._BATCH_COLS + "WHERE b.field_id=? ORDER BY b.seq", (field_id,))

@@ -52,12 +52,20 @@ def _lightfield_run(args: argparse.Namespace) -> int:
 
 # ---- serve ----
 def _serve_args(p: argparse.ArgumentParser) -> None:
-    from .service.server import add_arguments
+    try:
+        from .service.server import add_arguments
+    except ImportError as exc:  # the service's dependencies are an extra
+        p.set_defaults(_missing=f"flatserve serve needs the service extra: pip install "
+                                f"'flatserve[service]' ({exc})")
+        return
 
     add_arguments(p)
 
 
 def _serve_run(args: argparse.Namespace) -> int:
+    if getattr(args, "_missing", None):
+        print(args._missing, file=sys.stderr)
+        return 2
     from .service.server import serve, settings_from_args
 
     serve(settings_from_args(args))

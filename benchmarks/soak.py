@@ -42,7 +42,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flatserve.client import Client, NotFoundError
+from flatserve.client import Client
+from flatserve.errors import FieldNotFoundError
 
 FIELDS = ("soak-a", "soak-b", "soak-c")
 
@@ -165,7 +166,7 @@ class Soak:
         for name, m in self.models.items():
             try:
                 stored = c.batches(name)
-            except NotFoundError:
+            except FieldNotFoundError:
                 if m.exists is True:
                     raise SoakFailure(f"field {name!r} lost") from None
                 m.exists = False

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from flatserve import _npy
 from flatserve.errors import InvalidInputError, LimitExceededError
-from flatserve.service import codec
+from flatserve.service import binary
 from flatserve.errors import BatchTooLargeError, BodyTooLargeError
 
 from .hostile import (BZIP2, DEFLATED, STORED, Member, descr_header, npy, npy_header, npz,
@@ -89,7 +89,7 @@ BAD_NPY = [  # (body, words the message must hold)
 @pytest.mark.parametrize("body,words", BAD_NPY)
 def test_malformed_npy_is_invalid_input_naming_the_body(body, words):
     with pytest.raises(InvalidInputError) as err:
-        codec.load_npy(body)
+        binary.load_npy(body)
     assert err.value.argument == "body"
     assert str(err.value).startswith("body: ") and words.lower() in str(err.value).lower()
 
@@ -102,28 +102,28 @@ def test_malformed_npy_is_invalid_input_naming_the_body(body, words):
                                                 ((2000, 6, 11), 2000, BodyTooLargeError)])
 def test_huge_npy_shapes_are_413_before_anything_is_read(shape, max_rows, cls):
     body = descr_header(shape) + bytes(48)
-    (out, peak) = peak_bytes(codec.load_npy, body, max_bytes=MiB, max_rows=max_rows)
+    (out, peak) = peak_bytes(binary.load_npy, body, max_bytes=MiB, max_rows=max_rows)
     assert isinstance(out, cls), out
     assert peak < MiB
     with pytest.raises(LimitExceededError):  # the default cap (no caller limits) too
-        codec.load_npy(descr_header((2**40, 6)) + bytes(48))
+        binary.load_npy(descr_header((2**40, 6)) + bytes(48))
 
 
 def test_npy_limits_let_valid_bodies_through():
     a = np.arange(12.0).reshape(4, 3)
-    np.testing.assert_array_equal(codec.load_npy(npy(a), max_bytes=96, max_rows=4), a)
+    np.testing.assert_array_equal(binary.load_npy(npy(a), max_bytes=96, max_rows=4), a)
     with pytest.raises(BodyTooLargeError):
-        codec.load_npy(npy(a), max_bytes=95)
+        binary.load_npy(npy(a), max_bytes=95)
     with pytest.raises(BatchTooLargeError):
-        codec.load_npy(npy(a), max_rows=3)
+        binary.load_npy(npy(a), max_rows=3)
 
 
 def test_npy_truncated_at_every_length():
     body = npy(np.arange(35.0).reshape(5, 7))
     for n in range(len(body)):
         with pytest.raises(InvalidInputError):
-            codec.load_npy(body[:n])
-    assert codec.load_npy(body).shape == (5, 7)
+            binary.load_npy(body[:n])
+    assert binary.load_npy(body).shape == (5, 7)
 
 
 def test_client_header_parser_refuses_bools_and_negatives():
@@ -142,13 +142,13 @@ def test_valid_npz_reads_as_numpy_reads_it(method):
               "A": np.arange(24, dtype=np.int8).reshape(2, 3, 4, 1),
               "b": np.float16([1.5, 2]), "e": np.zeros((0, 3)), "s": np.float64(3.0)}
     for body in (npz(method, **arrays), _savez(arrays, method)):
-        got = codec.load_npz(body)
+        got = binary.load_npz(body)
         assert list(got) == list(arrays)
         for k, a in arrays.items():
             assert got[k].dtype == a.dtype and got[k].shape == a.shape, k
             np.testing.assert_array_equal(got[k], a)
         assert got["directions"].flags.f_contiguous
-        assert codec.load_npz(body, max_bytes=sum(a.nbytes for a in arrays.values()) + 24,
+        assert binary.load_npz(body, max_bytes=sum(a.nbytes for a in arrays.values()) + 24,
                               max_rows=4)
 
 
@@ -163,7 +163,7 @@ def test_npz_truncated_at_every_length():
         body = npz(method, origins=np.arange(6.0).reshape(2, 3), directions=np.ones((2, 3)))
         for n in range(len(body)):
             with pytest.raises(InvalidInputError):
-                codec.load_npz(body[:n])
+                binary.load_npz(body[:n])
 
 
 # -- .npz: bombs and limits -------------------------------------------------------------
@@ -174,22 +174,22 @@ def test_npz_bomb_is_refused_before_inflating():
     body = raw_zip([a, b])
     assert len(body) < 3 * MiB
     t0 = time.perf_counter()
-    out, peak = peak_bytes(codec.load_npz, body)
+    out, peak = peak_bytes(binary.load_npz, body)
     assert isinstance(out, BodyTooLargeError), out
-    assert "origins.npy" in str(out) and str(codec.DEFAULT_MAX_BYTES) in str(out)
+    assert "origins.npy" in str(out) and str(binary.DEFAULT_MAX_BYTES) in str(out)
     assert peak < 4 * MiB and time.perf_counter() - t0 < 2
-    out, peak = peak_bytes(codec.load_npz, body, max_bytes=2**31, max_rows=10**6)
+    out, peak = peak_bytes(binary.load_npz, body, max_bytes=2**31, max_rows=10**6)
     assert isinstance(out, BatchTooLargeError) and "origins.npy" in str(out), out
     assert peak < 4 * MiB
 
 
 def test_npz_byte_cap_counts_all_members():
     body = npz(DEFLATED, origins=np.zeros((1000, 3)), directions=np.zeros((1000, 3)))
-    assert len(codec.load_npz(body, max_bytes=48000)) == 2
+    assert len(binary.load_npz(body, max_bytes=48000)) == 2
     with pytest.raises(BodyTooLargeError, match="directions.npy"):
-        codec.load_npz(body, max_bytes=47999)
+        binary.load_npz(body, max_bytes=47999)
     with pytest.raises(BodyTooLargeError, match="origins.npy"):
-        codec.load_npz(body, max_bytes=23999)
+        binary.load_npz(body, max_bytes=23999)
 
 
 def test_small_npz_declaring_huge_sizes_stays_small_in_memory():
@@ -202,19 +202,19 @@ def test_small_npz_declaring_huge_sizes_stays_small_in_memory():
               raw_zip([Member("origins.npy", descr_header((2**20, 3)) + bytes(64), DEFLATED,
                               file_size=2**32 - 1)])]
     for body in bodies:
-        out, peak = peak_bytes(codec.load_npz, body, max_bytes=64 * MiB)
+        out, peak = peak_bytes(binary.load_npz, body, max_bytes=64 * MiB)
         assert isinstance(out, ALLOWED), out
         assert peak < 2 * MiB, (out, peak)
 
 
 def test_many_tiny_members_are_refused_before_zipfile_reads_them():
     body = raw_zip([Member(f"a{i}.npy", b"") for i in range(20000)])
-    out, peak = peak_bytes(codec.load_npz, body)
+    out, peak = peak_bytes(binary.load_npz, body)
     assert isinstance(out, InvalidInputError) and "members" in str(out), out
     assert peak < len(body)
     with pytest.raises(InvalidInputError, match="17 members"):
-        codec.load_npz(npz(**{f"a{i}": np.zeros(1) for i in range(17)}))
-    assert len(codec.load_npz(npz(**{f"a{i}": np.zeros(1) for i in range(16)}))) == 16
+        binary.load_npz(npz(**{f"a{i}": np.zeros(1) for i in range(17)}))
+    assert len(binary.load_npz(npz(**{f"a{i}": np.zeros(1) for i in range(16)}))) == 16
 
 
 # -- .npz: malformed members ---------------------------------------------------------------
@@ -255,7 +255,7 @@ NESTED = npz(origins=np.zeros((2, 3)))
 ])
 def test_malformed_npz_names_the_member_and_what_is_wrong(members, words, loc):
     with pytest.raises(InvalidInputError) as err:
-        codec.load_npz(raw_zip(members))
+        binary.load_npz(raw_zip(members))
     for w in words:
         assert w in str(err.value), err.value
     assert err.value.argument == loc
@@ -263,7 +263,7 @@ def test_malformed_npz_names_the_member_and_what_is_wrong(members, words, loc):
 
 def test_npy_body_sent_as_npz():
     with pytest.raises(InvalidInputError, match="application/x-npy"):
-        codec.load_npz(GOOD)
+        binary.load_npz(GOOD)
 
 
 # -- property-based fuzz ------------------------------------------------------------------
@@ -392,9 +392,9 @@ def assert_codec_judges(fn, body, **kw):
 @FUZZ
 @given(npy_bodies())
 def test_fuzz_npy(body):
-    out = assert_codec_judges(codec.load_npy, body)
+    out = assert_codec_judges(binary.load_npy, body)
     if isinstance(out, np.ndarray):  # whatever is accepted is a consistent real array
-        assert out.dtype.kind in "fiu" and out.ndim <= codec.MAX_NDIM
+        assert out.dtype.kind in "fiu" and out.ndim <= binary.MAX_NDIM
         dtype, shape, _, offset = _npy.header(body)
         assert out.shape == shape and offset + out.nbytes == len(body)
 
@@ -404,15 +404,15 @@ def test_fuzz_npy(body):
 def test_fuzz_npz(body, max_bytes, max_rows):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        out = assert_codec_judges(codec.load_npz, body, max_bytes=max_bytes, max_rows=max_rows)
+        out = assert_codec_judges(binary.load_npz, body, max_bytes=max_bytes, max_rows=max_rows)
     if isinstance(out, dict):  # whatever is accepted is what NumPy reads, within the limits
         with np.load(io.BytesIO(body), allow_pickle=False) as ref:
             assert sorted(ref.files) == sorted(out)
             for k, a in out.items():
-                assert a.dtype.kind in "fiu" and a.ndim <= codec.MAX_NDIM
+                assert a.dtype.kind in "fiu" and a.ndim <= binary.MAX_NDIM
                 assert max_rows is None or a.ndim == 0 or a.shape[0] <= max_rows
                 np.testing.assert_array_equal(ref[k], a)
-        assert sum(a.nbytes for a in out.values()) <= (max_bytes or codec.DEFAULT_MAX_BYTES)
+        assert sum(a.nbytes for a in out.values()) <= (max_bytes or binary.DEFAULT_MAX_BYTES)
 
 
 def test_fuzz_strategies_reach_every_outcome():
@@ -424,7 +424,7 @@ def test_fuzz_strategies_reach_every_outcome():
     @given(npz_bodies())
     def run(body):
         try:
-            codec.load_npz(body, max_bytes=4096, max_rows=3)
+            binary.load_npz(body, max_bytes=4096, max_rows=3)
             seen.add("ok")
         except InvalidInputError:
             seen.add("422")

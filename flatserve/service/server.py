@@ -91,33 +91,20 @@ def serve(settings: Settings | None = None) -> None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of ``flatserve serve``; unset ones come from FLATSERVE_* / defaults."""
-    p.add_argument("--host", help="interface (default 127.0.0.1; FLATSERVE_HOST)")
-    p.add_argument("--port", type=int, help="port (default 8000; FLATSERVE_PORT)")
-    p.add_argument("--data-dir", help="data directory (default ./data; FLATSERVE_DATA_DIR)")
-    p.add_argument("--workers", type=int, help="handler threads (FLATSERVE_WORKERS)")
-    p.add_argument("--api-key", help="read-write API key (FLATSERVE_API_KEY)")
-    p.add_argument("--read-only-key", help="read-only API key (FLATSERVE_READ_ONLY_KEY)")
-    p.add_argument("--snapshot-every", type=int, help="samples between background snapshots")
-    p.add_argument("--header-timeout", type=float,
-                   help="seconds to receive a request's headers (default 10; "
-                        "FLATSERVE_HEADER_TIMEOUT)")
-    p.add_argument("--body-timeout", type=float,
-                   help="seconds to receive a body, plus 1 s per --body-min-rate bytes "
-                        "(default 60; FLATSERVE_BODY_TIMEOUT)")
-    p.add_argument("--body-min-rate", type=int,
-                   help="bytes/s that always get a body through (default 65536; "
-                        "FLATSERVE_BODY_MIN_RATE)")
-    p.add_argument("--keepalive-timeout", type=float,
-                   help="seconds an idle keep-alive connection stays open (default 5; "
-                        "FLATSERVE_KEEPALIVE_TIMEOUT)")
-    p.add_argument("--max-connections", type=int,
-                   help="open connections admitted, 503 beyond (default 1000; 0: as many as "
-                        "ulimit -n allows; "
-                        "FLATSERVE_MAX_CONNECTIONS)")
-    p.add_argument("--log-level", help="debug, info, warning (FLATSERVE_LOG_LEVEL)")
-    p.add_argument("--demo", action="store_true", default=None,
-                   help="create the bunny light-field demo field on first start (FLATSERVE_DEMO)")
+    """Options of ``flatserve serve``: one per setting (:class:`Settings`, whose field
+    descriptions are the help), ``--data-dir`` for ``data_dir``; unset ones come from
+    ``FLATSERVE_*`` variables or the defaults."""
+    for name, f in Settings.model_fields.items():
+        flag = "--" + name.replace("_", "-")
+        env = f"FLATSERVE_{name.upper()}"
+        default = f.default.get_secret_value() if hasattr(f.default, "get_secret_value") \
+            else f.default
+        doc = (f.description or name.replace("_", " ")).rstrip(".")
+        if f.annotation is bool:
+            p.add_argument(flag, action="store_true", default=None, help=f"{doc} ({env})")
+            continue
+        kind = {int: int, float: float}.get(f.annotation, str)
+        p.add_argument(flag, type=kind, help=f"{doc} (default {default}; {env})")
 
 
 def settings_from_args(args: argparse.Namespace) -> Settings:

@@ -20,7 +20,6 @@ import argparse
 import io
 import os
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -32,6 +31,7 @@ import numpy as np
 from PIL import Image
 
 from flatserve.client import Client
+from flatserve.service.process import free_port
 from flatserve.lightfield import Camera
 from flatserve.lightfield.baselines import TwoPlane
 from flatserve.lightfield.quality import psnr
@@ -40,12 +40,6 @@ from flatserve.lightfield.sampling import BASIS_SCALE, build_field, bunny_scene,
 
 TARGET_S = 0.5  # issue 5: a 250^2 x4 frame through the HTTP API in at most 0.5 s
 UPLOAD_BATCH = 100_000
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def parse_server_timing(header: str) -> dict[str, float]:

@@ -26,7 +26,6 @@ import os
 import re
 import shutil
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -38,6 +37,7 @@ import numpy as np
 import orjson
 
 from flatserve.client import Client
+from flatserve.service.process import free_port
 from flatserve.field import Field
 from flatserve.service import specs
 from flatserve.service.server import limit_blas_threads
@@ -47,12 +47,6 @@ def paper_rays(rng, n):
     eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (n, 3))
     screen = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
     return eyes, screen - eyes
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def timed(fn, runs):

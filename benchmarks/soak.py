@@ -30,10 +30,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import signal
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -43,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flatserve.client import Client
+from flatserve.service.process import ServerProcess
 from flatserve.errors import FieldNotFoundError
 
 FIELDS = ("soak-a", "soak-b", "soak-c")
@@ -107,12 +105,6 @@ class Figures:
     elapsed: float = 0.0
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def rays(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Rays from eyes in [-1,1]^2 x [-4.5,-1.5] to the screen z = 0."""
     eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (n, 3))
@@ -120,35 +112,17 @@ def rays(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
     return eyes, screen - eyes
 
 
-class Server:
-    """``python -m flatserve.service`` on a free loopback port."""
+class Server(ServerProcess):
+    """A server whose failures to start are soak failures."""
 
     def __init__(self, data_dir: str, log_path: str, snapshot_every: int):
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log = open(log_path, "ab")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "flatserve.service", "--port", str(self.port),
-             "--data-dir", data_dir, "--snapshot-every", str(snapshot_every),
-             "--log-level", "warning"],
-            stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
+        super().__init__(data_dir, log_path, log_level="warning", snapshot_every=snapshot_every)
 
-    def wait_ready(self, timeout: float = 120.0) -> None:
-        with Client(self.url, retries=0, timeout=5) as c:
-            end = time.monotonic() + timeout
-            while time.monotonic() < end:
-                if self.proc.poll() is not None:
-                    raise SoakFailure(f"server exited with status {self.proc.returncode}")
-                if c.ready():
-                    return
-                time.sleep(0.02)
-        raise SoakFailure(f"server not ready after {timeout} s")
-
-    def kill9(self) -> None:
-        if self.proc.poll() is None:
-            os.kill(self.proc.pid, signal.SIGKILL)
-        self.proc.wait(timeout=60)
-        self.log.close()
+    def wait_ready(self, timeout: float = 120.0, interval: float = 0.02) -> None:
+        try:
+            super().wait_ready(timeout, interval)
+        except (RuntimeError, TimeoutError) as exc:
+            raise SoakFailure(str(exc)) from None
 
 
 class Soak:

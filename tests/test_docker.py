@@ -19,7 +19,6 @@ from __future__ import annotations
 import os
 import re
 import shutil
-import socket
 import subprocess
 import time
 import uuid
@@ -29,6 +28,7 @@ import numpy as np
 import pytest
 
 from flatserve.client import Client, ServiceError
+from flatserve.service.process import free_port
 
 REPO = Path(__file__).resolve().parent.parent
 IMAGE = "flatserve:test"
@@ -66,12 +66,6 @@ def ca_bundle() -> str | None:
         if path and os.path.isfile(path):
             return path
     return None
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _say(config, line: str) -> None:

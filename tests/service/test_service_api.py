@@ -146,7 +146,6 @@ def test_query_response_formats_agree(api, rng):
 def test_parametric_and_qr_forms(api, rng):
     """(A, b) and (Q, r) forms give the in-process Field's answers; inside the hull the
     value at a sample is the sample's value."""
-    from flatserve import flats
 
     tc, c = api
     ref = in_process_field(1)
@@ -333,7 +332,6 @@ def test_metrics_and_health(api, rng):
 
 
 def test_math_endpoints_match_library(api, rng):
-    from flatserve import flats
 
     tc, c = api
     o, v = paper_rays(rng, 20)

@@ -4,9 +4,7 @@ stored twice or half, and that the restored field equals replaying exactly the
 stored batches in-process."""
 from __future__ import annotations
 
-import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -15,6 +13,7 @@ import time
 import numpy as np
 
 from flatserve.client import Client
+from flatserve.service.process import ServerProcess, free_port  # noqa: F401
 
 from .conftest import paper_rays
 
@@ -22,46 +21,7 @@ ROUNDS = 5
 TIME_BUDGET_S = 150
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class Server:
-    def __init__(self, data_dir, log_path, **opts):
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        cmd = [sys.executable, "-m", "flatserve.service", "--port", str(self.port),
-               "--data-dir", str(data_dir), "--log-level", "info"]
-        for k, v in opts.items():
-            cmd += [f"--{k.replace('_', '-')}", str(v)]
-        self.log = open(log_path, "ab")
-        self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=subprocess.STDOUT,
-                                     start_new_session=True)
-
-    def wait_ready(self, timeout=90):
-        with Client(self.url, retries=0) as c:
-            end = time.monotonic() + timeout
-            while time.monotonic() < end:
-                if self.proc.poll() is not None:
-                    raise RuntimeError(f"server exited with {self.proc.returncode}")
-                if c.ready():
-                    return
-                time.sleep(0.05)
-        raise TimeoutError("server not ready")
-
-    def kill9(self):
-        if self.proc.poll() is None:
-            os.kill(self.proc.pid, signal.SIGKILL)
-        self.proc.wait(timeout=30)
-        self.log.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.kill9()  # never leave a server behind, whatever failed
+Server = ServerProcess  # a real server process (kill -9 in the with block's exit)
 
 
 def _uploader(url, rnd, rng, sent, acked, stop):

@@ -1,0 +1,82 @@
+"""A flatserve server in a child process: for scripts, benchmarks and tests that
+need a real server (its own interpreter, its own port, ``kill -9``).
+
+Example
+-------
+>>> from flatserve.service.process import ServerProcess        # doctest: +SKIP
+>>> with ServerProcess("data", "server.log", snapshot_every=0) as srv:
+...     srv.wait_ready()
+...     print(srv.url)
+"""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that is free on ``host`` right now."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+class ServerProcess:
+    """``python -m flatserve.service`` on a free loopback port, in its own session.
+
+    Parameters
+    ----------
+    data_dir : str or path
+    log_path : str or path
+        Its output is appended there.
+    log_level : str
+    **options
+        More settings as ``flatserve serve`` options (``snapshot_every=3000`` gives
+        ``--snapshot-every 3000``).
+
+    Leaving the ``with`` block kills the process (``kill -9``): none is ever left
+    behind, whatever failed.
+    """
+
+    def __init__(self, data_dir, log_path, *, log_level: str = "info", **options):
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        cmd = [sys.executable, "-m", "flatserve.service", "--port", str(self.port),
+               "--data-dir", str(data_dir), "--log-level", log_level]
+        for k, v in options.items():
+            cmd += [f"--{k.replace('_', '-')}", str(v)]
+        self.log = open(log_path, "ab")
+        self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=subprocess.STDOUT,
+                                     start_new_session=True)
+
+    def wait_ready(self, timeout: float = 90.0, interval: float = 0.05) -> None:
+        """Wait until ``/readyz`` says ready; RuntimeError if the process exits,
+        TimeoutError after ``timeout`` seconds."""
+        from ..client import Client
+
+        with Client(self.url, retries=0, timeout=5) as c:
+            end = time.monotonic() + timeout
+            while time.monotonic() < end:
+                if self.proc.poll() is not None:
+                    raise RuntimeError(f"server exited with status {self.proc.returncode}")
+                if c.ready():
+                    return
+                time.sleep(interval)
+        raise TimeoutError(f"server not ready after {timeout} s")
+
+    def kill9(self) -> None:
+        """``kill -9`` the process (if alive) and wait for it."""
+        if self.proc.poll() is None:
+            os.kill(self.proc.pid, signal.SIGKILL)
+        self.proc.wait(timeout=60)
+        self.log.close()
+
+    def __enter__(self) -> "ServerProcess":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.kill9()

@@ -27,13 +27,13 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXP
 
 import argparse  # noqa: E402
 import gc  # noqa: E402
-import statistics  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 from flatserve import Basis, Field, Flats  # noqa: E402
 from flatserve.atlas import Atlas, AtlasField  # noqa: E402
+from timing import median_time
 
 COORD_TARGET = 1_000_000
 QUERY_TARGET = 250_000
@@ -63,15 +63,6 @@ def line_fn(o, v):
 def rss_bytes():
     with open("/proc/self/statm") as fh:
         return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-
-def best_of(runs, fn):
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def chart_all(field: AtlasField, flats: Flats, radius: float):
@@ -109,10 +100,10 @@ def bench_coordinates(atlas, args, rng):
     fc = Flats.from_rays(co, cv)
     probe = AtlasField(atlas)
     single = Field(Basis.around_axis(2, scale=0.01))
-    t_peer = best_of(args.runs, lambda: single.chart(fc, threads=1))
-    t_route = best_of(args.runs, lambda: atlas.route(f, atlas.trusted))
-    t_q = best_of(args.runs, lambda: chart_all(probe, f, atlas.trusted))
-    t_u = best_of(args.runs, lambda: chart_all(probe, f, atlas.reach))
+    t_peer = median_time(lambda: single.chart(fc, threads=1), args.runs)[0]
+    t_route = median_time(lambda: atlas.route(f, atlas.trusted), args.runs)[0]
+    t_q = median_time(lambda: chart_all(probe, f, atlas.trusted), args.runs)[0]
+    t_u = median_time(lambda: chart_all(probe, f, atlas.reach), args.runs)[0]
     per_q = sum(r.size for r in atlas.route(f, atlas.trusted).rows) / args.n
     per_u = sum(r.size for r in atlas.route(f, atlas.reach).rows) / args.n
     okc = single.chart(fc, threads=1).ok.mean()
@@ -158,8 +149,8 @@ def bench_fields(atlas, args, rng):
     pqo, pqv = cone_rays(args.queries, rng, 45.0)
     pqo *= 0.8
     pf = Flats.from_rays(pqo, pqv)
-    t_sp = best_of(args.runs, lambda: single.query(pf, threads=1))
-    t_aq = best_of(args.runs, lambda: af.query(qf, threads=1))
+    t_sp = median_time(lambda: single.query(pf, threads=1), args.runs)[0]
+    t_aq = median_time(lambda: af.query(qf, threads=1), args.runs)[0]
     qa = af.query(qf, threads=1)
     qs = single.query(pf, threads=1)
     err = np.abs(qa.values - line_fn(qo, qv))[qa.inside]

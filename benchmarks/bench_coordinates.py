@@ -18,14 +18,13 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXP
     os.environ[_v] = "1"  # one core, set before NumPy is imported
 
 import argparse  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 from flatserve.basis import Basis  # noqa: E402
 from flatserve.coordinates import OK, ROUNDTRIP_TOL, _fast_rays, coordinates_rays  # noqa: E402
 from flatserve.flats import PINV_RCOND  # noqa: E402
+from timing import median_time
 
 TARGET = 1_000_000  # lines per second
 
@@ -67,16 +66,6 @@ def loop_coordinates(Qb, rb, origins, directions):
     return out, res
 
 
-def timed(fn, runs):
-    times = []
-    result = None
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), result
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=1_000_000)
@@ -92,16 +81,16 @@ def main(argv=None):
           f"basis {B.variant!r} around z, scale 0.01, one thread")
     print(f"fast path: {'native C++ (native/coordinates.hpp)' if native else 'NumPy (no native)'}")
 
-    t_fast, c = timed(lambda: coordinates_rays(B.Q, B.r, origins, directions, threads=1), args.runs)
+    t_fast, c = median_time(lambda: coordinates_rays(B.Q, B.r, origins, directions, threads=1), args.runs)
     ours = args.n / t_fast
 
     nr = min(args.ref_n, args.n)
-    t_ref, ref = timed(lambda: coordinates_rays(B.Q, B.r, origins[:nr], directions[:nr],
+    t_ref, ref = median_time(lambda: coordinates_rays(B.Q, B.r, origins[:nr], directions[:nr],
                                                 native=False), max(1, args.runs // 2))
     ref_rate = nr / t_ref
 
     nl = min(args.loop_n, args.n)
-    t_loop, (wl, resl) = timed(lambda: loop_coordinates(B.Q, B.r, origins[:nl], directions[:nl]),
+    t_loop, (wl, resl) = median_time(lambda: loop_coordinates(B.Q, B.r, origins[:nl], directions[:nl]),
                                3)
     loop_rate = nl / t_loop
 

@@ -41,21 +41,13 @@ from flatserve.service.process import free_port
 from flatserve.field import Field
 from flatserve.service import specs
 from flatserve.service.server import limit_blas_threads
+from timing import median_time
 
 
 def paper_rays(rng, n):
     eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (n, 3))
     screen = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
     return eyes, screen - eyes
-
-
-def timed(fn, runs):
-    out = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return statistics.median(out)
 
 
 def interleaved(peer, ours, runs):
@@ -277,7 +269,7 @@ def main(argv=None) -> int:
 
         # 3. small concurrent queries --------------------------------------------
         small = paper_rays(np.random.default_rng(3), 4)
-        single = timed(lambda: ref.query_rays(*small, threads=1), 200)
+        single = median_time(lambda: ref.query_rays(*small, threads=1), 200)[0]
         bodies = [orjson.dumps({"origins": o, "directions": v}, option=orjson.OPT_SERIALIZE_NUMPY)
                   for o, v in (paper_rays(np.random.default_rng(i), 1 + i % 8)
                                for i in range(64))]

@@ -36,6 +36,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
 from flatserve.triangulation import Triangulation  # noqa: E402
+from timing import median_time  # noqa: E402
 
 N_QUERIES = 250_000
 D = 4
@@ -53,16 +54,6 @@ TARGETS = {
 
 
 # ------------------------------------------------------------------ helpers
-def median_time(fn, runs):
-    ts, out = [], None
-    for _ in range(runs):
-        out = None  # the previous result is freed before the next run
-        t0 = time.perf_counter()
-        out = fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts)), out
-
-
 def row(label, peer_label, peer, ours, unit="s", ratio=None, target=None, note=""):
     def fmt(x):
         if x is None:

@@ -5,24 +5,22 @@ Layout of ``data_dir``::
     flatserve.sqlite3            field definitions + every accepted sample batch
     snapshots/f<id>-s<seq>.snap  Field.save() of field <id> after batch <seq>
 
-A batch row holds the raw input arrays (an uncompressed ``.npz`` blob), its form
-(``rays``, ``parametric`` or ``flats``), the idempotency key, a hash of the
-content and the response sent to the client. A batch is acknowledged only after
-its transaction has committed (fsync'd by SQLite). The response of a batch
-acknowledged before indexing (``wait=false``) is written after the batch's
-commit, into ``batch_results``, without an fsync of its own: it is a cache for
-idempotent retries, recomputed from the stored arrays if a crash lost it. Snapshots are written to a
-temporary file, fsync'd, renamed into place and the directory fsync'd; only then
-does the database point at them.
+A batch row holds the raw input arrays (one blob, :mod:`.blobs`), its form
+(``rays``, ``parametric`` or ``flats``), the idempotency key and a hash of the
+content; its response (for idempotent retries) is in ``batch_results``, written
+in the batch's own transaction and completed once a ``wait=true`` batch is
+inserted. A batch is acknowledged only after its transaction has committed
+(fsync'd by SQLite). Snapshots are written to a temporary file, fsync'd, renamed
+into place and the directory fsync'd; only then does the database point at them.
+One server holds the data directory at a time (an exclusive lock on
+``flatserve.lock``).
 """
 from __future__ import annotations
 
 import errno
 import fcntl
-import hashlib
 import json
 import logging
-import math
 import os
 import sqlite3
 import threading
@@ -33,6 +31,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from .blobs import pack_arrays, unpack_arrays
 from ..errors import (DataDirInUseError, FieldExistsError, FieldNotFoundError, StorageError,
                       StorageFullError)
 
@@ -74,53 +73,6 @@ CREATE TABLE IF NOT EXISTS batch_results (
     PRIMARY KEY (field_id, seq)
 );
 """
-
-
-#: blob layout of stored arrays: this magic, uint32 little-endian length of a JSON
-#: header ``[[name, dtype descr, shape], ...]``, the header, then each array's raw
-#: C-order bytes (8-byte aligned offsets).
-BLOB_MAGIC = b"FSARRAY1"
-
-
-def pack_arrays(arrays: dict[str, np.ndarray]) -> bytes:
-    """Arrays as one blob (a single copy of the data; see :data:`BLOB_MAGIC`)."""
-    arrs = [(name, np.ascontiguousarray(a)) for name, a in arrays.items()]
-    head = json.dumps([[name, np.lib.format.dtype_to_descr(a.dtype), list(a.shape)]
-                       for name, a in arrs]).encode()
-    start = len(BLOB_MAGIC) + 4 + len(head)
-    parts = [BLOB_MAGIC, len(head).to_bytes(4, "little"), head, b"\0" * (-start % 8)]
-    for _, a in arrs:
-        b = a.data.cast("B") if a.size else b""
-        parts += [b, b"\0" * (-len(b) % 8)]
-    return b"".join(parts)
-
-
-def unpack_arrays(blob: bytes) -> dict[str, np.ndarray]:
-    if blob[:len(BLOB_MAGIC)] != BLOB_MAGIC:
-        raise StorageError("stored batch: unknown blob format (bad magic)")
-    p = len(BLOB_MAGIC)
-    n = int.from_bytes(blob[p:p + 4], "little")
-    head = json.loads(blob[p + 4:p + 4 + n])
-    off = p + 4 + n
-    off += -off % 8
-    out = {}
-    for name, descr, shape in head:
-        dt = np.dtype(np.lib.format.descr_to_dtype(descr))
-        count = math.prod(shape)
-        out[name] = np.frombuffer(blob, dt, count, off).reshape(shape)
-        off += count * dt.itemsize
-        off += -off % 8
-    return out
-
-
-def content_hash(form: str, arrays: dict[str, np.ndarray]) -> str:
-    """Hash of a batch's content, independent of its transport encoding."""
-    h = hashlib.sha256(form.encode())
-    for name in sorted(arrays):
-        a = np.ascontiguousarray(arrays[name], dtype=np.float64)
-        h.update(f"|{name}{a.shape}|".encode())
-        h.update(a.data)
-    return h.hexdigest()
 
 
 @dataclass

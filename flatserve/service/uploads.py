@@ -32,7 +32,7 @@ from ..errors import (BacklogFullError, CostLimitError, FieldNotFoundError,
 from ..flats import Flats
 from .entry import FieldEntry, UploadResult
 from .registry import Registry, stored_flats
-from .storage import content_hash, pack_arrays
+from .blobs import content_hash, pack_arrays
 
 log = logging.getLogger("flatserve.service")
 

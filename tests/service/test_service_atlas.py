@@ -67,6 +67,8 @@ def test_covering_atlas_field_accepts_every_orientation_and_restores(make_app, r
                 rep = c.upload_rays(name, o, v, val, binary=bool(i % 2),
                                     idempotency_key=f"k{i}", wait=i != 2)
                 assert rep["accepted"] == len(o) and rep["rejected"] == [], rep
+                if i == 2:  # acknowledged once stored and charted, inserted later
+                    assert not rep["indexed"] and rep["duplicates"] is None
             one = c.upload_rays("one", o, v, val)
             assert one["accepted"] < 0.5 * len(o)  # the single chart refuses most of them
             if i == 1:

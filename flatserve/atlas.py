@@ -58,9 +58,10 @@ import functools
 import json
 import math
 import os
+import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -71,6 +72,7 @@ from .coordinates import NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
 from .errors import InvalidInputError, SnapshotError
 from .field import AddResult, Field, PreparedBatch, QueryResult
 from .flats import Flats
+from .triangulation import RWLock
 
 __all__ = [
     "CHART_LIMIT_DEG",
@@ -381,10 +383,10 @@ class Atlas:
             raise InvalidInputError(
                 f"trusted: need 0 <= inner < trusted <= reach < {CHART_LIMIT_DEG:g} degrees, got "
                 f"inner={inner:g}, trusted={trusted:g}, reach={reach:g}", "trusted")
-        A = np.ascontiguousarray(np.asarray(center_A, dtype=np.float64).reshape(-1, d, k))
-        c = A.shape[0]
+        r = np.ascontiguousarray(np.asarray(center_r, dtype=np.float64).reshape(-1, d))
+        c = r.shape[0]  # (not from center_A: points, k = 0, have empty frames)
+        A = np.ascontiguousarray(np.asarray(center_A, dtype=np.float64).reshape(c, d, k))
         N = np.ascontiguousarray(np.asarray(center_N, dtype=np.float64).reshape(c, d, d - k))
-        r = np.ascontiguousarray(np.asarray(center_r, dtype=np.float64).reshape(c, d))
         s = np.asarray(scales, dtype=np.float64).reshape(-1)
         if c < 1 or s.shape != (c,):
             raise InvalidInputError(f"scales: expected one scale per centre ({c}), got "
@@ -937,7 +939,9 @@ class AtlasField:
     answer is that chart's :class:`~flatserve.field.Field`'s.
 
     Thread safety as :class:`~flatserve.field.Field`: readers together, a
-    writer alone.
+    writer alone.  The field's own readers/writer lock makes a batch atomic
+    across charts: :meth:`query` and :meth:`save` see a whole
+    :meth:`insert_prepared` batch in every chart, or in none.
 
     Parameters
     ----------
@@ -958,6 +962,7 @@ class AtlasField:
         self.roundtrip_tol = self.fields[0].roundtrip_tol
         self._nsamples = 0
         self._nrejected = 0
+        self._lock = RWLock()
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -988,6 +993,11 @@ class AtlasField:
         return self.nstored / self._nsamples if self._nsamples else float("nan")
 
     @property
+    def nsimplex(self) -> int:
+        """Cells over all charts' triangulations."""
+        return int(sum(f.nsimplex for f in self.fields))
+
+    @property
     def samples_per_chart(self) -> list[int]:
         return [f.nsamples for f in self.fields]
 
@@ -1002,7 +1012,8 @@ class AtlasField:
             v = v[:, None]
         return as_array(v, "values", (n, self.channels))
 
-    def prepare(self, flats: Flats, values) -> AtlasPrepared:
+    def prepare(self, flats: Flats, values, *, defer: bool = False
+                ) -> "AtlasPrepared | Callable[[], AtlasPrepared]":
         """Route a batch to the charts whose domain (``reach``) holds each row, and chart it.
 
         Reads only the atlas; :meth:`insert_prepared` completes it.
@@ -1012,10 +1023,14 @@ class AtlasField:
         flats : Flats
             ``n`` k-flats in R^d (rays for oriented atlases).
         values : (n, C) float, or (n,) when C == 1
+        defer : bool
+            Validate now (raising for bad input) but return a zero-argument
+            callable that routes and charts when called (as
+            :meth:`Field.prepare`): once validated, every row gets a decision.
 
         Returns
         -------
-        AtlasPrepared
+        AtlasPrepared, or a callable returning one when ``defer``
 
         Raises
         ------
@@ -1025,6 +1040,11 @@ class AtlasField:
         """
         self.atlas.check_flats(flats)
         values = self._values(values, flats.n)
+        if defer:
+            return functools.partial(self._prepare, flats, values)
+        return self._prepare(flats, values)
+
+    def _prepare(self, flats: Flats, values: np.ndarray) -> AtlasPrepared:
         n = flats.n
         ro = self.atlas.route(flats, self.atlas.reach)
         taken = np.zeros(n, dtype=bool)
@@ -1062,14 +1082,15 @@ class AtlasField:
             raise InvalidInputError("batch: expected an AtlasPrepared made by this field",
                                     "batch")
         duplicates = 0
-        for f, o, s in zip(self.fields, batch.own, batch.shared):
-            if o is not None and o.accepted:
-                res = f.insert_prepared(o)
-                duplicates += res.duplicates
-                self._nsamples += res.accepted - res.duplicates
-            if s is not None and s.accepted:
-                f.insert_prepared(s)
-        self._nrejected += int(batch.rejected.size)
+        with self._lock.write():  # queries see the batch in every chart or in none
+            for f, o, s in zip(self.fields, batch.own, batch.shared):
+                if o is not None and o.accepted:
+                    res = f.insert_prepared(o)
+                    duplicates += res.duplicates
+                    self._nsamples += res.accepted - res.duplicates
+                if s is not None and s.accepted:
+                    f.insert_prepared(s)
+            self._nrejected += int(batch.rejected.size)
         return AddResult(accepted=batch.accepted, rejected=batch.rejected,
                          reasons=batch.reasons, duplicates=duplicates,
                          nsamples=self._nsamples)
@@ -1113,6 +1134,11 @@ class AtlasField:
                                     "outside")
         at = self.atlas
         ro = at.route(flats, at.trusted)
+        with self._lock.read():
+            return self._query(flats, ro, outside, order, threads, return_weights)
+
+    def _query(self, flats, ro, outside, order, threads, return_weights) -> AtlasQueryResult:
+        at = self.atlas
         n, C = flats.n, self.channels
         num = np.zeros((n, C))
         den = np.zeros(n)
@@ -1180,70 +1206,81 @@ class AtlasField:
 
     # ----------------------------------------------------------- persistence
     def save(self, path: str | os.PathLike) -> None:
-        """Write the field to a directory ``path`` (created if missing).
+        """Write the field to one file ``path``.
 
-        Layout::
-
-            path/chart-000.field ...   Field.save() of each chart (flatserve/field.py)
-            path/atlas.json            {"format": "flatserve-atlas", "version": 1,
-                                        "atlas": Atlas.to_dict(), "channels",
-                                        "roundtrip_tol", "nsamples", "nrejected",
-                                        "charts": [file names]}
-
-        ``atlas.json`` is written last (to a temporary name, fsync'd,
-        renamed): a directory without it is incomplete.  A reader: may run
-        beside queries, not beside a writer.
+        Layout: 8-byte magic ``FSATLAS\\0``, uint32 version, uint64 metadata
+        length, the metadata JSON (``{"atlas": Atlas.to_dict(), "channels",
+        "roundtrip_tol", "nsamples", "nrejected", "charts": c}``), then per
+        chart a uint64 length and that chart's field file
+        (:meth:`Field.save`, ``flatserve/field.py``).  Written, flushed and
+        fsync'd; not atomic by itself (the service writes to a temporary
+        file and renames it).  A reader: may run beside queries; a batch
+        inserted meanwhile waits (the snapshot holds whole batches).
         """
-        p = Path(path)
-        p.mkdir(parents=True, exist_ok=True)
-        names = []
-        for i, f in enumerate(self.fields):
-            name = f"chart-{i:03d}.field"
-            f.save(p / name)
-            names.append(name)
-        meta = {"format": _ATLAS_FORMAT, "version": _ATLAS_VERSION,
-                "atlas": self.atlas.to_dict(), "channels": self.channels,
-                "roundtrip_tol": self.roundtrip_tol, "nsamples": self._nsamples,
-                "nrejected": self._nrejected, "charts": names}
-        tmp = p / "atlas.json.tmp"
-        with open(tmp, "w") as fh:
-            json.dump(meta, fh)
+        meta = json.dumps({"atlas": self.atlas.to_dict(), "channels": self.channels,
+                           "roundtrip_tol": self.roundtrip_tol, "nsamples": self._nsamples,
+                           "nrejected": self._nrejected,
+                           "charts": len(self.fields)}).encode()
+        with self._lock.read(), open(path, "wb") as fh:
+            fh.write(_ATLAS_HEADER.pack(_ATLAS_MAGIC, _ATLAS_VERSION, len(meta)))
+            fh.write(meta)
+            for f in self.fields:
+                at = fh.tell()
+                fh.write(_LENGTH.pack(0))
+                size = f.write_to(fh)
+                fh.seek(at)
+                fh.write(_LENGTH.pack(size))
+                fh.seek(0, os.SEEK_END)
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, p / "atlas.json")
-        fd = os.open(p, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "AtlasField":
-        """Read a field written by :meth:`save`; raises SnapshotError if incomplete or damaged."""
-        p = Path(path)
-        try:
-            meta = json.loads((p / "atlas.json").read_text())
-        except (OSError, ValueError) as exc:
-            raise SnapshotError(f"{path}: not a complete atlas field directory: {exc}") from None
-        if meta.get("format") != _ATLAS_FORMAT or meta.get("version") != _ATLAS_VERSION:
-            raise SnapshotError(f"{path}: atlas field format {meta.get('format')!r} version "
-                                f"{meta.get('version')!r}, expected {_ATLAS_FORMAT!r} "
+        """Read a field written by :meth:`save`.
+
+        Raises
+        ------
+        SnapshotError
+            The file is truncated, damaged or of another format.
+        """
+        data = memoryview(Path(path).read_bytes())
+        if len(data) < _ATLAS_HEADER.size:
+            raise SnapshotError(f"{path}: truncated atlas field file ({len(data)} bytes)")
+        magic, version, mlen = _ATLAS_HEADER.unpack_from(data)
+        if magic != _ATLAS_MAGIC:
+            raise SnapshotError(f"{path}: not a flatserve atlas field file (bad magic)")
+        if version != _ATLAS_VERSION:
+            raise SnapshotError(f"{path}: atlas field file version {version}, expected "
                                 f"{_ATLAS_VERSION}")
+        off = _ATLAS_HEADER.size
+        if off + mlen > len(data):
+            raise SnapshotError(f"{path}: truncated atlas field metadata")
         try:
+            meta = json.loads(bytes(data[off:off + mlen]))
             atlas = Atlas.from_dict(meta["atlas"])
-            names = list(meta["charts"])
-        except (KeyError, TypeError, ValueError) as exc:
+            ncharts = int(meta["charts"])
+            obj = cls(atlas, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]))
+            nsamples, nrejected = int(meta["nsamples"]), int(meta["nrejected"])
+        except (KeyError, TypeError, ValueError, InvalidInputError) as exc:
             raise SnapshotError(f"{path}: corrupted atlas metadata: {exc}") from None
-        if len(names) != atlas.ncharts:
-            raise SnapshotError(f"{path}: {len(names)} chart files for {atlas.ncharts} charts")
-        obj = cls(atlas, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]))
-        for i, name in enumerate(names):
-            f = Field.load(p / name)
+        if ncharts != atlas.ncharts:
+            raise SnapshotError(f"{path}: {ncharts} chart files for {atlas.ncharts} charts")
+        off += mlen
+        for i in range(ncharts):
+            if off + _LENGTH.size > len(data):
+                raise SnapshotError(f"{path}: truncated at chart {i}")
+            (size,) = _LENGTH.unpack_from(data, off)
+            off += _LENGTH.size
+            if off + size > len(data):
+                raise SnapshotError(f"{path}: truncated at chart {i}")
+            f = Field.from_bytes(data[off:off + size], source=f"{path}: chart {i}")
+            off += size
             if f.ndim != obj.ndim or f.channels != obj.channels:
-                raise SnapshotError(f"{path}: chart file {name} does not match the atlas")
+                raise SnapshotError(f"{path}: chart {i} does not match the atlas")
             obj.fields[i] = f
-        obj._nsamples = int(meta["nsamples"])
-        obj._nrejected = int(meta["nrejected"])
+        if off != len(data):
+            raise SnapshotError(f"{path}: {len(data) - off} bytes after the last chart")
+        obj._nsamples, obj._nrejected = nsamples, nrejected
         return obj
 
     def __repr__(self) -> str:
@@ -1252,5 +1289,7 @@ class AtlasField:
                 f"nsamples={self.nsamples}, nstored={self.nstored})")
 
 
-_ATLAS_FORMAT = "flatserve-atlas"
+_ATLAS_MAGIC = b"FSATLAS\x00"
 _ATLAS_VERSION = 1
+_ATLAS_HEADER = struct.Struct("<8sIQ")  # magic, version, metadata length
+_LENGTH = struct.Struct("<Q")

@@ -482,6 +482,26 @@ class Field:
             "basis_r": self.basis.r.tolist(),
         }
 
+    def write_to(self, fh) -> int:
+        """Write the field file (layout of :meth:`save`) to an open binary file.
+
+        Parameters
+        ----------
+        fh : binary file object
+            Written at its current position; not flushed.
+
+        Returns
+        -------
+        int
+            Bytes written.
+        """
+        meta = json.dumps(self._metadata()).encode()
+        payload = self._tri.to_bytes()
+        fh.write(_HEADER.pack(_MAGIC, _VERSION, len(meta)))
+        fh.write(meta)
+        fh.write(payload)
+        return _HEADER.size + len(meta) + len(payload)
+
     def save(self, path: str | os.PathLike) -> None:
         """Write the field (basis, values, triangulation) to one file.
 
@@ -491,38 +511,51 @@ class Field:
         Not atomic by itself: the service writes to a temporary file and
         renames it. A reader: may run beside queries, not beside a writer.
         """
-        meta = json.dumps(self._metadata()).encode()
-        payload = self._tri.to_bytes()
         with open(path, "wb") as fh:
-            fh.write(_HEADER.pack(_MAGIC, _VERSION, len(meta)))
-            fh.write(meta)
-            fh.write(payload)
+            self.write_to(fh)
             fh.flush()
             os.fsync(fh.fileno())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Field":
         """Read a field written by :meth:`save`; raises SnapshotError if damaged."""
-        data = Path(path).read_bytes()
+        return cls.from_bytes(Path(path).read_bytes(), source=str(path))
+
+    @classmethod
+    def from_bytes(cls, data, *, source: str = "field") -> "Field":
+        """A field from the bytes of a file written by :meth:`save` (or :meth:`write_to`).
+
+        Parameters
+        ----------
+        data : bytes-like
+            Exactly one field file.
+        source : str
+            Named in error messages.
+
+        Raises
+        ------
+        SnapshotError
+            Truncated or damaged data.
+        """
         if len(data) < _HEADER.size:
-            raise SnapshotError(f"{path}: truncated field file ({len(data)} bytes)")
+            raise SnapshotError(f"{source}: truncated field file ({len(data)} bytes)")
         magic, version, mlen = _HEADER.unpack_from(data)
         if magic != _MAGIC:
-            raise SnapshotError(f"{path}: not a flatserve field file (bad magic)")
+            raise SnapshotError(f"{source}: not a flatserve field file (bad magic)")
         if version != _VERSION:
-            raise SnapshotError(f"{path}: field file version {version}, expected {_VERSION}")
+            raise SnapshotError(f"{source}: field file version {version}, expected {_VERSION}")
         start = _HEADER.size
         if start + mlen > len(data):
-            raise SnapshotError(f"{path}: truncated field metadata")
+            raise SnapshotError(f"{source}: truncated field metadata")
         try:
-            meta = json.loads(data[start : start + mlen])
+            meta = json.loads(bytes(data[start : start + mlen]))
             basis = Basis(np.array(meta["basis_Q"]), np.array(meta["basis_r"]), int(meta["k"]))
         except (ValueError, KeyError, TypeError) as exc:
-            raise SnapshotError(f"{path}: corrupted field metadata: {exc}") from None
+            raise SnapshotError(f"{source}: corrupted field metadata: {exc}") from None
         obj = cls(basis, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]))
         obj._tri = Triangulation.from_bytes(data[start + mlen :])
         if obj._tri.ndim != obj.ndim:
-            raise SnapshotError(f"{path}: triangulation dimension {obj._tri.ndim} does not match basis")
+            raise SnapshotError(f"{source}: triangulation dimension {obj._tri.ndim} does not match basis")
         obj._nrejected = int(meta.get("nrejected", 0))
         return obj
 

@@ -43,7 +43,7 @@ from . import _native
 from ._validate import as_array
 from .errors import InvalidInputError
 
-__all__ = ["Triangulation", "InsertResult", "Location", "LocateKind"]
+__all__ = ["Triangulation", "InsertResult", "Location", "LocateKind", "RWLock"]
 
 
 #: Where a query landed (``Location.kind``): an :class:`enum.IntEnum` defined
@@ -109,8 +109,11 @@ class Location:
         return self.kind <= INSIDE_MAX
 
 
-class _RWLock:
-    """Readers/writer lock, writer-preferring (queries share, insert excludes)."""
+class RWLock:
+    """Readers/writer lock, writer-preferring (queries share, insert excludes).
+
+    Not reentrant. ``with lock.read():`` / ``with lock.write():`` hold it.
+    """
 
     def __init__(self):
         self._cond = threading.Condition(threading.Lock())
@@ -142,6 +145,14 @@ class _RWLock:
         with self._cond:
             self._writer = False
             self._cond.notify_all()
+
+    def read(self) -> "_Reading":
+        """Context manager holding the lock as a reader."""
+        return _Reading(self)
+
+    def write(self) -> "_Writing":
+        """Context manager holding the lock as the writer."""
+        return _Writing(self)
 
 
 class _Reading:
@@ -213,7 +224,7 @@ class Triangulation:
     def _init(self, core, values):
         self._core = core
         self._ndim = int(core.ndim)
-        self._lock = _RWLock()
+        self._lock = RWLock()
         n = int(core.nvertices)
         self._n = n
         self._points_buf = np.ascontiguousarray(core.points()) if n else np.empty((0, self._ndim))

@@ -348,16 +348,34 @@ def test_data_driven_atlas_rejects_with_a_reason():
 
 def test_save_and_load(tmp_path, lines_field):
     field, o, v = lines_field
-    field.save(tmp_path / "f")
-    back = AtlasField.load(tmp_path / "f")
+    path = tmp_path / "f.atlas"
+    field.save(path)
+    assert path.is_file()  # one file (the service renames it into place)
+    back = AtlasField.load(path)
     assert back.nsamples == field.nsamples and back.nstored == field.nstored
+    assert back.nsimplex == field.nsimplex and back.nrejected == field.nrejected
     assert back.atlas.to_dict() == field.atlas.to_dict()
     f = Flats.from_rays(o[:500] * 0.9, v[:500])
     np.testing.assert_array_equal(back.query(f).values, field.query(f).values)
-    (tmp_path / "f" / "atlas.json").unlink()
     from flatserve.errors import SnapshotError
-    with pytest.raises(SnapshotError):
-        AtlasField.load(tmp_path / "f")
+    data = path.read_bytes()
+    for bad in (data[:-1], data + b"\0", b"FSFIELD\0" + data[8:], data[:100]):
+        path.write_bytes(bad)
+        with pytest.raises(SnapshotError):
+            AtlasField.load(path)
+
+
+def test_points_have_one_chart():
+    """k = 0: every point has the same (empty) orientation: one chart, all accepted."""
+    rng = np.random.default_rng(3)
+    atlas = Atlas.covering(0, 3)
+    assert atlas.ncharts == 1 and atlas.info["covering_radius_deg"] == 0.0
+    field = AtlasField(atlas)
+    r = rng.normal(size=(300, 3))
+    f = Flats.from_quadrics(np.broadcast_to(np.eye(3), (300, 3, 3)), r, 0)
+    assert field.add(f, r[:, 0]).accepted == 300
+    np.testing.assert_allclose(field.query(f.take(np.arange(20))).values[:, 0], r[:20, 0],
+                               atol=1e-9)
 
 
 def test_planes_in_r4_field():

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
+from ..atlas import AtlasField
 from ..field import Chart
 from ..flats import Flats
 from .camera import Camera
@@ -103,8 +104,10 @@ def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None)
 
     Parameters
     ----------
-    field : flatserve.Field
-        Lines in R^3 (k = 1, d = 3) with C channels.
+    field : flatserve.Field or flatserve.atlas.AtlasField
+        Lines in R^3 (k = 1, d = 3) with C channels.  An atlas field charts
+        the rays inside its query (per chart): ``coordinates`` is then 0 and
+        the frame has no ``chart``.
     camera : Camera
     fill : float or (C,) float
         Value of pixels with no valued ray.
@@ -120,16 +123,23 @@ def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None)
     t0 = time.perf_counter()
     o, d = camera.rays()
     t_rays = time.perf_counter() - t0
-    chart = field.chart(Flats.from_rays(o, d), threads=threads)
-    t1 = time.perf_counter()
+    rays = Flats.from_rays(o, d)
     # located in serpentine order (each walk starts at the previous ray's answer)
     snake = _serpentine(np.arange(o.shape[0]), camera.width * camera.side)
-    res = field.query(chart.take(snake), order="given", threads=threads)
+    if isinstance(field, AtlasField):
+        chart = None
+        t1 = time.perf_counter()
+        res = field.query(rays.take(snake), order="given", threads=threads)
+    else:
+        chart = field.chart(rays, threads=threads)
+        t1 = time.perf_counter()
+        res = field.query(chart.take(snake), order="given", threads=threads)
     values, inside = res.values[snake], res.inside[snake]  # the permutation is its own inverse
     t2 = time.perf_counter()
     img, covered = frame_from_rays(camera, values, inside, fill)
     t3 = time.perf_counter()
-    return Frame(img, covered, {"rays": t_rays, "coordinates": chart.seconds,
+    t_coords = 0.0 if chart is None else chart.seconds
+    return Frame(img, covered, {"rays": t_rays, "coordinates": t_coords,
                                 "locate_interpolate": t2 - t1, "resolve": t3 - t2}, ray_inside=inside,
                  chart=chart)
 

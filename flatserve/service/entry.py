@@ -19,6 +19,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..atlas import Atlas, AtlasField
 from ..basis import Basis
 from ..errors import FieldNotFoundError, StorageError
 from ..field import AddResult, Field, PreparedBatch
@@ -36,6 +37,9 @@ class FieldSpec:
         The basis spec as given (``{"kind": "tangent_simplex", ...}``), for describe.
     roundtrip_tol : float or None
         None: the library's default.
+    atlas : dict or None
+        Atlas fields: the atlas (:meth:`flatserve.atlas.Atlas.to_dict`: centres,
+        scales, radii), built once at creation; None: one chart.
     """
 
     k: int
@@ -43,19 +47,34 @@ class FieldSpec:
     channels: int
     basis: dict
     roundtrip_tol: Optional[float] = None
+    atlas: Optional[dict] = None
 
     @classmethod
     def from_dict(cls, obj: dict) -> "FieldSpec":
         return cls(int(obj["k"]), int(obj["d"]), int(obj["channels"]), dict(obj.get("basis", {})),
-                   obj.get("roundtrip_tol"))
+                   obj.get("roundtrip_tol"), obj.get("atlas"))
 
     def to_dict(self) -> dict:
         return asdict(self)
 
-    def new_field(self, basis: Basis) -> Field:
-        """An empty :class:`flatserve.Field` of this spec over ``basis``."""
+    @property
+    def is_atlas(self) -> bool:
+        return self.atlas is not None
+
+    def new_field(self, basis: Basis) -> "Field | AtlasField":
+        """An empty field of this spec: a :class:`flatserve.Field` over ``basis``, or
+        for an atlas spec an :class:`flatserve.atlas.AtlasField` (``basis`` is then
+        its chart 0's). Both offer what the service uses: ``prepare``,
+        ``insert_prepared``, ``add``, ``query``, ``save`` / ``load``, ``nsamples``,
+        ``nsimplex``, ``nrejected``, ``ndim``."""
         kw = {} if self.roundtrip_tol is None else {"roundtrip_tol": self.roundtrip_tol}
+        if self.atlas is not None:
+            return AtlasField(Atlas.from_dict(self.atlas), channels=self.channels, **kw)
         return Field(basis, channels=self.channels, **kw)
+
+    def load_field(self, path) -> "Field | AtlasField":
+        """The field of a snapshot file written by its ``save``."""
+        return (AtlasField if self.atlas is not None else Field).load(path)
 
 
 @dataclass(frozen=True)
@@ -97,7 +116,7 @@ class FieldEntry:
     created: float = dc_field(default_factory=time.time)
     snapshot_file: str | None = None
     snapshot_seq: int = 0
-    field: Field | None = None
+    field: Field | AtlasField | None = None
     state: str = "loading"
     error: str | None = None
     #: last batch committed (acknowledged)

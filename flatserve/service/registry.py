@@ -14,9 +14,10 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+from ..atlas import AtlasField
 from ..basis import Basis
-from ..errors import (FieldExistsError, FieldNotFoundError, NotReadyError, StorageError,
-                      TooManyFieldsError)
+from ..errors import (FieldExistsError, FieldNotFoundError, InvalidInputError, NotReadyError,
+                      StorageError, TooManyFieldsError)
 from ..field import Field, PreparedBatch, QueryResult
 from ..flats import Flats
 from .entry import FieldEntry, FieldSpec
@@ -130,14 +131,14 @@ class Registry:
         self.ready.set()
         log.info("ready: %d field(s) loaded", len(entries))
 
-    def _load_snapshot(self, e: FieldEntry, row: FieldRow) -> tuple[Field | None, int]:
+    def _load_snapshot(self, e: FieldEntry, row: FieldRow) -> tuple[Field | AtlasField | None, int]:
         """The field of the row's snapshot and its last batch, or ``(None, 0)``."""
         if not row.snapshot_file:
             return None, 0
         path = self.storage.snapshot_path(row.snapshot_file)
         t0 = time.perf_counter()
         try:
-            fld = Field.load(path)
+            fld = e.spec.load_field(path)
         except Exception as exc:  # corrupt/missing snapshot: rebuild from batches
             log.warning("field %r: snapshot %s unusable (%s); rebuilding from batches",
                         e.name, path, exc)
@@ -236,6 +237,10 @@ class Registry:
             kw.setdefault("threads", 1)
         if e.deleted:
             raise FieldNotFoundError(f"no field named {e.name!r}")
+        if kw.get("return_weights") and e.spec.is_atlas:
+            raise InvalidInputError(
+                f"weights: field {e.name!r} is an atlas field: its answers blend several "
+                "charts, whose sample ids and weights the service does not return", "weights")
         res = e.field.query(flats, **kw)
         if self.metrics is not None:
             self.metrics.queries.labels(e.name).inc()

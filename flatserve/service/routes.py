@@ -63,9 +63,9 @@ def _summary(e: FieldEntry) -> dict:
           openapi_extra=json_body_doc(FieldCreate),
           summary="Create a field (basis + empty triangulation)")
 def create_field(spec: json_body(FieldCreate), registry: RegistryDep) -> Response:
-    basis = specs.build_basis(spec.basis, spec.k, spec.d).require_full()
+    basis, atlas = specs.build_chart_basis(spec.basis, spec.k, spec.d)
     stored = FieldSpec(spec.k, spec.d, spec.channels, specs.spec_dict(spec.basis),
-                       spec.roundtrip_tol)
+                       spec.roundtrip_tol, atlas)
     e = registry.create(spec.name, stored, basis)
     return JSONBytes(_describe(registry, e), status_code=201)
 
@@ -89,7 +89,7 @@ def _describe(registry, e: FieldEntry) -> dict:
         "pending_batches": pending_batches,
         "pending_samples": pending_samples,
         "nrejected": int(f.nrejected) if f is not None else None,
-        "nvertices": int(f.nsamples) if f is not None else None,
+        "nvertices": None if f is None else int(f.nstored if e.spec.is_atlas else f.nsamples),
         "nsimplex": int(f.nsimplex) if f is not None else None,
         "created": e.created,
         "error": e.error,
@@ -98,7 +98,27 @@ def _describe(registry, e: FieldEntry) -> dict:
                     "snapshot_batch": e.snapshot_seq if e.snapshot_file else 0,
                     "snapshot_bytes": snap_bytes, "total_bytes": nbytes + snap_bytes},
     })
+    if e.spec.is_atlas:
+        out.update(_describe_atlas(e))
     return out
+
+
+def _describe_atlas(e: FieldEntry) -> dict:
+    """``atlas`` and ``charts`` of an atlas field's description (sizes null while loading)."""
+    spec = e.spec.atlas
+    f = e.field
+    d = f.describe() if f is not None else None
+    per = [None] * len(spec["scales"]) if d is None else [c["samples"] for c in d["charts"]]
+    return {
+        "atlas": {"oriented": spec["oriented"], "inner": spec["inner"],
+                  "trusted": spec["trusted"], "reach": spec["reach"],
+                  "covering_radius": spec.get("info", {}).get("covering_radius_deg"),
+                  "nstored": None if d is None else d["nstored"],
+                  "duplication": None if d is None else d["duplication"]},
+        "charts": [{"center": {"A": A, "r": r}, "scale": s, "samples": n}
+                   for A, r, s, n in zip(spec["center_A"], spec["center_r"], spec["scales"],
+                                         per)],
+    }
 
 
 @api.get("/fields/{name}", response_model=FieldInfo, tags=["fields"], dependencies=[ReadAccess],

@@ -88,6 +88,20 @@ class FlatsBasis(FlatsModel):
     kind: Literal["flats"] = "flats"
 
 
+class AtlasBasis(_Strict):
+    """Several tangent-simplex charts that together hold every orientation
+    (:class:`flatserve.atlas.Atlas`): samples are inserted into every chart whose
+    domain holds them, queries blended over the charts that hold them."""
+
+    kind: Literal["atlas"] = "atlas"
+    atlas: Literal["covering"] = Field(
+        "covering", description="`covering`: centres chosen so that every orientation of "
+                                "k-flats lies well inside some chart (Atlas.covering).")
+    oriented: bool = Field(
+        False, description="Lines only (k = 1): a ray and its reverse are different samples; "
+                           "uploads and queries must then be rays (origins + directions).")
+
+
 _FLATS_KEYS = tuple(n for names in FORMS.values() for n in names)
 
 
@@ -101,8 +115,15 @@ def _basis_kind(v):
     return getattr(v, "kind", None)
 
 
-BasisSpec = Annotated[
+#: One chart: a tangent simplex or explicit flats (the stateless math routes).
+ChartBasisSpec = Annotated[
     Union[Annotated[TangentSimplexBasis, Tag("tangent_simplex")], Annotated[FlatsBasis, Tag("flats")]],
+    Discriminator(_basis_kind),
+]
+#: A field's basis: one chart, or an atlas of charts.
+BasisSpec = Annotated[
+    Union[Annotated[TangentSimplexBasis, Tag("tangent_simplex")], Annotated[FlatsBasis, Tag("flats")],
+          Annotated[AtlasBasis, Tag("atlas")]],
     Discriminator(_basis_kind),
 ]
 
@@ -127,7 +148,9 @@ class _KD(_Strict):
 class FieldCreate(_KD):
     name: FieldName
     channels: int = Field(1, ge=1, le=64, description="Values per sample (3 for RGB).")
-    basis: Optional[BasisSpec] = Field(None, description="Default: tangent simplex around the default centre.")
+    basis: Optional[BasisSpec] = Field(
+        None, description="Default: tangent simplex around the default centre (one chart). "
+                          "`{\"kind\": \"atlas\"}`: a covering atlas (every orientation).")
     roundtrip_tol: Optional[float] = Field(None, gt=0, le=1.0, allow_inf_nan=False)
 
 
@@ -135,8 +158,36 @@ class BasisInfo(BaseModel):
     m: int
     dim: int = Field(description="(k+1)(d-k): dimension of the coordinate space.")
     spec: dict
-    Q: Mats
+    Q: Mats = Field(description="The basis flats (m, d, d); of an atlas field, chart 0's.")
     r: Mat
+
+
+class ChartCenter(BaseModel):
+    A: Mat = Field(description="(d, k) orthonormal directions of the centre flat (oriented "
+                               "atlases: the chart's ray direction).")
+    r: Vec = Field(description="(d,) the centre flat's point closest to the origin.")
+
+
+class ChartInfo(BaseModel):
+    center: ChartCenter
+    scale: float = Field(description="Tangent-simplex scale of the chart.")
+    samples: Optional[int] = Field(description="Samples (vertices) in the chart's "
+                                               "triangulation; null while loading.")
+
+
+class AtlasInfo(BaseModel):
+    oriented: bool
+    inner: float = Field(description="Degrees from a centre up to which its blending weight is 1.")
+    trusted: float = Field(description="Degrees from a centre beyond which the chart answers no "
+                                       "query (its blending weight is 0).")
+    reach: float = Field(description="Degrees: samples are inserted into every chart whose "
+                                     "centre is closer.")
+    covering_radius: Optional[float] = Field(
+        None, description="Degrees: every orientation measured was this close to a centre.")
+    nstored: Optional[int] = Field(description="Vertices over all charts (a sample in each "
+                                               "chart holding it); null while loading.")
+    duplication: Optional[float] = Field(
+        None, description="nstored / nsamples; null while empty.")
 
 
 class StorageInfo(BaseModel):
@@ -170,12 +221,19 @@ class FieldInfo(FieldSummary):
                                                 "indexed (uploads with wait=false).")
     pending_samples: int = Field(0, description="Accepted samples of the pending batches.")
     nrejected: Optional[int] = None
-    nvertices: Optional[int] = None
-    nsimplex: Optional[int] = None
+    nvertices: Optional[int] = Field(None, description="Vertices of the triangulation (atlas "
+                                                       "fields: over all charts).")
+    nsimplex: Optional[int] = Field(None, description="Cells of the triangulation (atlas "
+                                                      "fields: over all charts).")
     created: float
     error: Optional[str] = None
     basis: BasisInfo
     storage: StorageInfo
+    atlas: Optional[AtlasInfo] = Field(None, description="Atlas fields: the atlas's radii and "
+                                                         "sizes (null: one chart).")
+    charts: Optional[list[ChartInfo]] = Field(
+        None, description="Atlas fields: per chart its centre, scale and samples (null: one "
+                          "chart, described by `basis`).")
 
 
 class UploadResult(BaseModel):
@@ -239,7 +297,7 @@ class QueryResponse(BaseModel):
 
 
 class CoordinatesRequest(_KD):
-    basis: Optional[BasisSpec] = None
+    basis: Optional[ChartBasisSpec] = None
     flats: FlatsModel
     embed: bool = Field(False, description="Also return the embedded coordinates (n, m-1).")
 

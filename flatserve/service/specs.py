@@ -6,10 +6,11 @@ from __future__ import annotations
 from contextlib import contextmanager
 
 from .._validate import as_array
+from ..atlas import Atlas
 from ..basis import Basis
 from ..errors import BatchTooLargeError, InvalidInputError
 from ..flats import FORMS, Flats, form_shapes, infer_form
-from .schemas import CenterFlat, FlatsBasis, TangentSimplexBasis
+from .schemas import AtlasBasis, CenterFlat, FlatsBasis, TangentSimplexBasis
 
 _NAMES = tuple(n for names in FORMS.values() for n in names)
 
@@ -101,6 +102,22 @@ def build_basis(spec, k: int, d: int) -> Basis:
     cQ, cr = center_flat(spec.center, k, d)
     with _within("basis"):
         return Basis.tangent_simplex(cQ, cr, k, scale=spec.scale, variant=spec.variant)
+
+
+def build_chart_basis(spec, k: int, d: int) -> tuple[Basis, dict | None]:
+    """A field's basis from its spec: ``(basis, None)`` for one chart, or for an
+    atlas (:class:`AtlasBasis`) chart 0's basis and the atlas
+    (:meth:`flatserve.atlas.Atlas.to_dict`, stored with the field)."""
+    if isinstance(spec, AtlasBasis):
+        atlas = build_atlas(spec, k, d)
+        return atlas.bases[0], atlas.to_dict()
+    return build_basis(spec, k, d).require_full(), None
+
+
+def build_atlas(spec: AtlasBasis, k: int, d: int) -> Atlas:
+    """The :class:`flatserve.atlas.Atlas` of an atlas spec (errors name ``basis.<member>``)."""
+    with _within("basis"):
+        return Atlas.covering(k, d, oriented=spec.oriented)
 
 
 def spec_dict(spec) -> dict:

@@ -3,7 +3,7 @@
 Layout of ``data_dir``::
 
     flatserve.sqlite3            field definitions + every accepted sample batch
-    snapshots/f<id>-s<seq>.snap  Field.save() of field <id> after batch <seq>
+    snapshots/f<id>-s<seq>.snap  Field.save() (AtlasField.save()) of field <id> after batch <seq>
 
 A batch row holds the raw input arrays (one blob, :mod:`.blobs`), its form
 (``rays``, ``parametric`` or ``flats``), the idempotency key and a hash of the

@@ -1,0 +1,208 @@
+"""Atlas fields over HTTP (``basis: {"kind": "atlas"}``): every orientation accepted,
+answers equal the library's :class:`flatserve.atlas.AtlasField`, restore from batches
+and from a snapshot, ``wait=false``, oriented fields take rays only, describe lists
+the charts."""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+
+from flatserve.atlas import Atlas, AtlasField
+from flatserve.errors import InvalidInputError
+from flatserve.flats import Flats
+
+from .conftest import started
+
+C = 2
+ATLAS = {"kind": "atlas", "atlas": "covering", "oriented": False}
+
+
+def sphere_rays(rng, n, spread=1.0):
+    """Origins in a cube, directions uniform on the sphere (every orientation)."""
+    o = rng.uniform(-spread, spread, (n, 3))
+    v = rng.normal(size=(n, 3))
+    return o, v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def line_values(o, v):
+    """A smooth function of the line (not of the ray's orientation), (n, C)."""
+    u = v / np.linalg.norm(v, axis=1, keepdims=True)
+    p = o - np.einsum("ni,ni->n", o, u)[:, None] * u  # the point closest to the origin
+    return np.c_[p[:, 0] + u[:, 2] ** 2, np.sin(p[:, 1]) + u[:, 0] * u[:, 1]]
+
+
+def same_answers(c, name, probe, want):
+    """The field's answers at ``probe`` (.npy and JSON responses) equal ``want``'s."""
+    for binary in (True, False):
+        got = c.query_rays(name, *probe, binary=binary)
+        np.testing.assert_array_equal(got.inside, want.inside)
+        if not binary:  # (the .npy response carries no status)
+            np.testing.assert_array_equal(got.status, want.status)
+        np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12, equal_nan=True)
+
+
+def test_covering_atlas_field_accepts_every_orientation_and_restores(make_app, rng, tmp_path):
+    batches = [sphere_rays(rng, 700) for _ in range(4)]
+    batches = [(o, v, line_values(o, v)) for o, v in batches]
+    probe = sphere_rays(rng, 400, spread=0.5)
+    ref = AtlasField(Atlas.covering(1, 3), channels=C)
+
+    tc, c = started(make_app())
+    try:
+        info = c.create_field("a", channels=C, basis=ATLAS)
+        assert info["basis"]["spec"] == ATLAS
+        assert len(info["charts"]) == ref.atlas.ncharts == 6
+        assert [ch["samples"] for ch in info["charts"]] == [0] * 6
+        np.testing.assert_array_equal([ch["center"]["A"] for ch in info["charts"]],
+                                      ref.atlas.center_A)
+        assert info["atlas"]["oriented"] is False
+        assert info["atlas"]["covering_radius"] < info["atlas"]["trusted"]
+        c.create_field("b", channels=C, basis=ATLAS)  # never snapshotted
+        c.create_field("one", channels=C)  # today's default: one chart
+        for i, (o, v, val) in enumerate(batches):
+            ref.add(Flats.from_rays(o, v), val)
+            for name in ("a", "b"):
+                rep = c.upload_rays(name, o, v, val, binary=bool(i % 2),
+                                    idempotency_key=f"k{i}", wait=i != 2)
+                assert rep["accepted"] == len(o) and rep["rejected"] == [], rep
+                if i == 2:  # acknowledged once stored and charted, inserted later
+                    assert not rep["indexed"] and rep["duplicates"] is None
+            one = c.upload_rays("one", o, v, val)
+            assert one["accepted"] < 0.5 * len(o)  # the single chart refuses most of them
+            if i == 1:
+                snap = c.snapshot("a")
+                assert snap["batch"] == 2
+        # wait=false (batch 3): acknowledged unindexed, then indexed in the background
+        again = c.upload_rays("a", *batches[2][:2], batches[2][2], idempotency_key="k2",
+                              wait=False)
+        assert again["replayed"] and again["batch"] == 3
+        for name in ("a", "b"):
+            info = c.wait_indexed(name, timeout=60)
+            assert info["indexed_batch"] == 4 and info["pending_samples"] == 0
+            assert info["nsamples"] == ref.nsamples and info["nrejected"] == 0
+            assert info["nvertices"] == ref.nstored and info["nsimplex"] == ref.nsimplex
+            assert [ch["samples"] for ch in info["charts"]] == ref.samples_per_chart
+            assert info["atlas"]["duplication"] == pytest.approx(ref.duplication)
+        want = ref.query(Flats.from_rays(*probe))
+        assert want.inside.mean() > 0.9
+        for name in ("a", "b"):
+            same_answers(c, name, probe, want)
+        r = tc.post("/v1/fields/a/query?weights=true",
+                    json={"origins": probe[0][:3].tolist(), "directions": probe[1][:3].tolist()})
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "weights", r.text
+    finally:
+        tc.__exit__(None, None, None)
+
+    # restart: "a" from its snapshot (after batch 2) plus batches 3-4, "b" from batches
+    snaps = list((tmp_path / "data" / "snapshots").glob("*.snap"))
+    assert len(snaps) == 1 and snaps[0].is_file()  # one file per snapshot, as for one chart
+    tc, c = started(make_app())
+    try:
+        a, b = c.describe("a"), c.describe("b")
+        assert a["storage"]["snapshot_batch"] == 2 and b["storage"]["snapshot_batch"] == 0
+        for info in (a, b):
+            assert info["state"] == "ready" and info["indexed_batch"] == 4
+            assert info["nsamples"] == ref.nsamples and info["nvertices"] == ref.nstored
+            assert [ch["samples"] for ch in info["charts"]] == ref.samples_per_chart
+        for name in ("a", "b"):
+            same_answers(c, name, probe, want)
+        # a snapshot of the restored field reads back to the same answers
+        assert c.snapshot("b")["batch"] == 4
+    finally:
+        tc.__exit__(None, None, None)
+    tc, c = started(make_app())
+    try:
+        assert c.describe("b")["storage"]["snapshot_batch"] == 4
+        same_answers(c, "b", probe, want)
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_oriented_atlas_field_takes_rays_only(api, rng):
+    tc, c = api
+    info = c.create_field("o", channels=C, basis={"kind": "atlas", "oriented": True})
+    assert info["atlas"]["oriented"] is True and len(info["charts"]) == 12
+    A = np.array([ch["center"]["A"] for ch in info["charts"]])[:, :, 0]
+    np.testing.assert_allclose(A[6:], -A[:6])  # each direction hemisphere its own charts
+    o, v = sphere_rays(rng, 1500)
+    val = np.c_[v[:, 2], o[:, 0]]  # changes sign with the ray's direction
+    rep = c.upload_rays("o", o, v, val)
+    assert rep["accepted"] == len(o) and rep["rejected"] == []
+    # a ray and its reverse are different samples: each keeps its own value
+    o2, v2 = o[:200], v[:200]
+    c.upload_rays("o", o2, -v2, np.c_[-v2[:, 2], o2[:, 0]])
+    got = c.query_rays("o", np.r_[o2, o2], np.r_[v2, -v2])
+    np.testing.assert_allclose(got.values[:, 0], np.r_[v2[:, 2], -v2[:, 2]], atol=1e-9)
+
+    # forms without orientation: 422 naming the array, refused before anything is stored
+    f = Flats.from_rays(o[:5], v[:5])
+    Q, r = f.quadrics()
+    Ap = v[:5, :, None]
+    for kw, arr in (({"Q": Q, "r": r}, "Q"), ({"A": Ap, "b": o[:5]}, "A")):
+        for binary in (True, False):
+            with pytest.raises(InvalidInputError) as ei:
+                c.upload("o", val[:5], binary=binary, **kw)
+            assert ei.value.status == 422
+            assert ei.value.detail[0]["loc"] == ["body", arr], ei.value.detail
+            assert "oriented" in ei.value.detail[0]["msg"]
+        with pytest.raises(InvalidInputError) as ei:
+            c.query("o", **kw)
+        assert ei.value.status == 422 and ei.value.detail[0]["loc"] == ["body", arr]
+    assert len(c.batches("o")) == 2
+
+    # oriented is for lines only
+    r = tc.post("/v1/fields", json={"name": "p", "k": 2, "d": 3,
+                                    "basis": {"kind": "atlas", "oriented": True}})
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"][0]["loc"] == ["body", "basis", "oriented"]
+
+
+def test_atlas_spec_is_strict_and_fields_only(api):
+    tc, _ = api
+    for basis in ({"kind": "atlas", "atlas": "data"}, {"kind": "atlas", "scale": 0.1},
+                  {"kind": "atlas", "oriented": "yes"}):
+        r = tc.post("/v1/fields", json={"name": "x", "basis": basis})
+        assert r.status_code == 422, (basis, r.text)
+        assert r.json()["detail"][0]["loc"][:3] == ["body", "basis", "atlas"], r.text
+    # the stateless coordinates route charts in one basis: no atlas there
+    r = tc.post("/v1/math/coordinates", json={"basis": {"kind": "atlas"},
+                                              "flats": {"origins": [[0, 0, 0]],
+                                                        "directions": [[0, 0, 1]]}})
+    assert r.status_code == 422, r.text
+    assert tc.get("/v1/fields").json()["fields"] == []
+
+
+def test_atlas_fields_for_other_dimensions(api, rng):
+    """Planes in R^4 and points: every orientation accepted (one chart takes a part)."""
+    tc, c = api
+    info = c.create_field("p", k=2, d=4, basis={"kind": "atlas"})
+    n = 300
+    A = np.linalg.qr(rng.normal(size=(n, 4, 2)))[0]
+    b = rng.uniform(-1, 1, (n, 4))
+    rep = c.upload("p", b[:, :1], A=A, b=b)
+    assert rep["accepted"] == n and len(info["charts"]) == Atlas.covering(2, 4).ncharts
+    one = c.create_field("q", k=2, d=4)
+    assert one.get("charts") is None and one.get("atlas") is None  # one chart: `basis`
+    assert c.upload("q", b[:, :1], A=A, b=b)["accepted"] < n
+    pts = c.create_field("pts", k=0, d=3, basis={"kind": "atlas"})
+    assert len(pts["charts"]) == 1
+
+
+def test_render_an_oriented_atlas_field(api, rng):
+    tc, c = api
+    c.create_field("lf", basis={"kind": "atlas", "oriented": True})
+    o, v = sphere_rays(rng, 3000, spread=0.3)
+    c.upload_rays("lf", o, v, (v[:, 2] > 0).astype(float))
+    means = []
+    for yaw in (0.0, 180.0):  # eyes on both sides: rays of opposite hemispheres
+        r = tc.post("/v1/fields/lf/render", json={"orbit": {"yaw": yaw}, "width": 16,
+                                                  "height": 16, "supersample": 1,
+                                                  "format": "npy"})
+        assert r.status_code == 200, r.text
+        assert float(r.headers["X-Coverage"]) > 0.5
+        img = np.load(io.BytesIO(r.content))
+        means.append(float(np.nanmean(img)))
+    # the eye at -z sees the rays going +z (value 1), the eye at +z those going -z (0)
+    assert means[0] > 0.95 and means[1] < 0.05, means

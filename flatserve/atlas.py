@@ -958,6 +958,7 @@ class AtlasField:
                                     f"{type(atlas).__name__}", "atlas")
         self.atlas = atlas
         self.fields = [Field(B, channels, roundtrip_tol=roundtrip_tol) for B in atlas.bases]
+        self.k, self.d, self.ndim = atlas.k, atlas.d, self.fields[0].ndim
         self.channels = self.fields[0].channels
         self.roundtrip_tol = self.fields[0].roundtrip_tol
         self._nsamples = 0
@@ -965,18 +966,6 @@ class AtlasField:
         self._lock = RWLock()
 
     # ------------------------------------------------------------------ sizes
-    @property
-    def k(self) -> int:
-        return self.atlas.k
-
-    @property
-    def d(self) -> int:
-        return self.atlas.d
-
-    @property
-    def ndim(self) -> int:
-        return self.fields[0].ndim
-
     @property
     def nsamples(self) -> int:
         """Distinct samples (each counted in its nearest chart)."""

@@ -208,25 +208,14 @@ class Field:
         if not (np.isfinite(roundtrip_tol) and roundtrip_tol > 0):
             raise InvalidInputError(f"roundtrip_tol: expected a positive number, got {roundtrip_tol!r}", "roundtrip_tol")
         self.basis = basis
+        #: dimension of the flats, of their space, of the triangulation (m - 1)
+        self.k, self.d, self.ndim = basis.k, basis.d, basis.m - 1
         self.channels = int(channels)
         self.roundtrip_tol = float(roundtrip_tol)
         self._tri = Triangulation(basis.m - 1)
         self._nrejected = 0
 
     # ------------------------------------------------------------------ sizes
-    @property
-    def k(self) -> int:
-        return self.basis.k
-
-    @property
-    def d(self) -> int:
-        return self.basis.d
-
-    @property
-    def ndim(self) -> int:
-        """Dimension of the triangulation, m − 1."""
-        return self.basis.m - 1
-
     @property
     def nsamples(self) -> int:
         """Distinct samples stored (= vertices of the triangulation)."""

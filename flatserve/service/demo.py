@@ -74,7 +74,7 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, n: int = DEMO_N, seed: i
     nbatches = -(-n * n // batch)
     try:
         e = registry.get(name)
-        if (e.k, e.d, e.channels) != (1, 3, 1):
+        if (e.spec.k, e.spec.d, e.spec.channels) != (1, 3, 1):
             log.warning("field %r exists but is not a grey light field; leaving it alone", name)
             return e
         done = registry.storage.batch_stats(e.id)[0]

@@ -131,18 +131,6 @@ class FieldEntry:
     index_lock: threading.Lock = dc_field(default_factory=threading.Lock)
     indexer: Indexer = dc_field(default_factory=Indexer)
 
-    @property
-    def k(self) -> int:
-        return self.spec.k
-
-    @property
-    def d(self) -> int:
-        return self.spec.d
-
-    @property
-    def channels(self) -> int:
-        return self.spec.channels
-
     def check_writable(self) -> None:
         """Raise unless uploads may change this field now."""
         if self.deleted:

@@ -56,7 +56,8 @@ async def answer(registry: Registry, settings: Settings, name: str, params: Quer
     e = registry.get(name)
 
     def decode():
-        return codec.decode(body, content_type, params.form, k=e.k, d=e.d, channels=None,
+        return codec.decode(body, content_type, params.form, k=e.spec.k, d=e.spec.d,
+                            channels=None,
                             max_rows=settings.max_batch_rows,
                             max_json_bytes=settings.max_json_bytes)[0]
 

@@ -35,7 +35,7 @@ DRAIN_TIMEOUT_S = 10.0
 
 def stored_flats(e: FieldEntry, form: str, arrays: dict) -> Flats:
     """The :class:`Flats` of a stored batch (its arrays by name)."""
-    return Flats.from_arrays(arrays, k=e.k, d=e.d, form=form)
+    return Flats.from_arrays(arrays, k=e.spec.k, d=e.spec.d, form=form)
 
 
 class Registry:

@@ -54,7 +54,8 @@ health = APIRouter()
 # -- fields -------------------------------------------------------------------
 def _summary(e: FieldEntry) -> dict:
     f = e.field
-    return {"name": e.name, "k": e.k, "d": e.d, "channels": e.channels, "state": e.state,
+    return {"name": e.name, "k": e.spec.k, "d": e.spec.d, "channels": e.spec.channels,
+            "state": e.state,
             "nsamples": int(f.nsamples) if f is not None else None}
 
 
@@ -173,8 +174,8 @@ def upload_samples(
 ) -> Response:
     e = registry.get(name)
     t0 = time.perf_counter()
-    flats, values, _ = codec.decode(body, content_type, form, k=e.k, d=e.d,
-                                    channels=e.channels, max_rows=settings.max_batch_rows,
+    flats, values, _ = codec.decode(body, content_type, form, k=e.spec.k, d=e.spec.d,
+                                    channels=e.spec.channels, max_rows=settings.max_batch_rows,
                                     max_json_bytes=settings.max_json_bytes)
     timings = {"decode": time.perf_counter() - t0}
     # an empty Idempotency-Key header means "no key", not the key ""

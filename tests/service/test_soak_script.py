@@ -3,6 +3,7 @@ catch a lost, a half-stored and an unsent batch."""
 from __future__ import annotations
 
 import argparse
+from contextlib import contextmanager
 import importlib.util
 import re
 import sys
@@ -43,6 +44,23 @@ def _soak_on(soak, tmp_path):
     return soak.Soak(args, str(tmp_path / "data"), str(tmp_path / "server.log"))
 
 
+@contextmanager
+def _served(soak, tmp_path):
+    """A soak model and a real server on its data dir, with the field ``soak-a``."""
+    s = _soak_on(soak, tmp_path)
+    (tmp_path / "data").mkdir()
+    srv = soak.Server(s.data_dir, s.log_path, 0)
+    try:
+        srv.wait_ready()
+        with Client(srv.url, retries=0) as c:
+            m = s.models["soak-a"]
+            c.create_field("soak-a", channels=1)
+            m.exists = True
+            yield s, c, m
+    finally:
+        srv.kill9()
+
+
 @pytest.mark.parametrize("tamper, message", [
     ("lost", "acknowledged batch ghost lost"),
     ("rows", "stored with rows"),
@@ -50,54 +68,34 @@ def _soak_on(soak, tmp_path):
     ("half", "half-stored"),
 ])
 def test_checks_catch_violations(soak, tmp_path, tamper, message):
-    s = _soak_on(soak, tmp_path)
-    (tmp_path / "data").mkdir()
-    srv = soak.Server(s.data_dir, s.log_path, 0)
-    try:
-        srv.wait_ready()
-        with Client(srv.url, retries=0) as c:
-            rng = np.random.default_rng(0)
-            m = s.models["soak-a"]
-            c.create_field("soak-a", channels=1)
-            m.exists = True
-            s.upload(c, rng, "soak-a", m)
-            s.upload(c, rng, "soak-a", m)
-            key = next(iter(m.acked))
-            if tamper == "lost":
-                m.acked["ghost"] = (10, 10)
-            elif tamper == "rows":
-                rows, acc = m.acked[key]
-                m.acked[key] = (rows + 1, acc)
-            elif tamper == "unsent":
-                del m.acked[key]
-            else:  # the batch is stored, the client thinks it sent more rows in flight
-                b = m.sent[key]
-                del m.acked[key]
-                m.inflight[key] = soak.Batch(np.r_[b.origins, b.origins[:1]],
-                                             np.r_[b.directions, b.directions[:1]],
-                                             np.r_[b.values, b.values[:1]], b.wait, b.binary)
-            for name in ("soak-b", "soak-c"):
-                s.models[name].exists = False
-            with pytest.raises(soak.SoakFailure, match=message):
-                s.check(c)
-    finally:
-        srv.kill9()
+    with _served(soak, tmp_path) as (s, c, m):
+        rng = np.random.default_rng(0)
+        s.upload(c, rng, "soak-a", m)
+        s.upload(c, rng, "soak-a", m)
+        key = next(iter(m.acked))
+        if tamper == "lost":
+            m.acked["ghost"] = (10, 10)
+        elif tamper == "rows":
+            rows, acc = m.acked[key]
+            m.acked[key] = (rows + 1, acc)
+        elif tamper == "unsent":
+            del m.acked[key]
+        else:  # the batch is stored, the client thinks it sent more rows in flight
+            b = m.sent[key]
+            del m.acked[key]
+            m.inflight[key] = soak.Batch(np.r_[b.origins, b.origins[:1]],
+                                         np.r_[b.directions, b.directions[:1]],
+                                         np.r_[b.values, b.values[:1]], b.wait, b.binary)
+        for name in ("soak-b", "soak-c"):
+            s.models[name].exists = False
+        with pytest.raises(soak.SoakFailure, match=message):
+            s.check(c)
 
 
 def test_checks_pass_on_an_untampered_model(soak, tmp_path):
-    s = _soak_on(soak, tmp_path)
-    (tmp_path / "data").mkdir()
-    srv = soak.Server(s.data_dir, s.log_path, 0)
-    try:
-        srv.wait_ready()
-        with Client(srv.url, retries=0) as c:
-            m = s.models["soak-a"]
-            c.create_field("soak-a", channels=1)
-            m.exists = True
-            rng = np.random.default_rng(1)
-            for _ in range(3):
-                s.upload(c, rng, "soak-a", m)
-            s.check(c)
-            assert s.fig.checked_batches == 3
-    finally:
-        srv.kill9()
+    with _served(soak, tmp_path) as (s, c, m):
+        rng = np.random.default_rng(1)
+        for _ in range(3):
+            s.upload(c, rng, "soak-a", m)
+        s.check(c)
+        assert s.fig.checked_batches == 3

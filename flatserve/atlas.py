@@ -1065,8 +1065,13 @@ class AtlasField:
         return AtlasPrepared(n, own, shared, np.flatnonzero(taken).astype(np.int64), rejected,
                              reasons)
 
-    def insert_prepared(self, batch: AtlasPrepared) -> AddResult:
-        """Insert a :meth:`prepare`-d batch into its charts (a writer)."""
+    def insert_prepared(self, batch: AtlasPrepared, *,
+                        slice_rows: int | None = None) -> AddResult:
+        """Insert a :meth:`prepare`-d batch into its charts (a writer).
+
+        ``slice_rows`` is accepted for :meth:`Field.insert_prepared`'s interface; an
+        atlas batch is always inserted whole (queries see it in every chart or in none).
+        """
         if not isinstance(batch, AtlasPrepared) or len(batch.own) != len(self.fields):
             raise InvalidInputError("batch: expected an AtlasPrepared made by this field",
                                     "batch")

@@ -343,15 +343,35 @@ class Field:
             reasons=self._reasons(ch, rejected),
         )
 
-    def insert_prepared(self, batch: "PreparedBatch") -> AddResult:
-        """Second half of :meth:`add`: insert a :meth:`prepare`-d batch (a writer)."""
+    def insert_prepared(self, batch: "PreparedBatch", *,
+                        slice_rows: int | None = None) -> AddResult:
+        """Second half of :meth:`add`: insert a :meth:`prepare`-d batch (a writer).
+
+        Parameters
+        ----------
+        batch : PreparedBatch
+        slice_rows : int, optional
+            Insert at most this many samples at a time: concurrent queries get in
+            between slices (each slice is atomic; a query sees the batch in part
+            until the last slice is in). Default: the whole batch at once.
+
+        Returns
+        -------
+        AddResult
+        """
         if not isinstance(batch, PreparedBatch) or batch.x.shape[1:] != (self.ndim,) or (
             batch.values.shape[1:] != (self.channels,)
         ):
             raise InvalidInputError("batch: expected a PreparedBatch made by this field", "batch")
+        if slice_rows is not None and not (isinstance(slice_rows, (int, np.integer))
+                                           and slice_rows >= 1):
+            raise InvalidInputError(f"slice_rows: expected a positive integer or None, got "
+                                    f"{slice_rows!r}", "slice_rows")
+        step = batch.accepted if slice_rows is None else int(slice_rows)
         duplicates = 0
-        if batch.accepted:
-            duplicates = int(self._tri.insert(batch.x, batch.values).n_duplicates)
+        for lo in range(0, batch.accepted, max(step, 1)):
+            duplicates += int(self._tri.insert(batch.x[lo:lo + step],
+                                               batch.values[lo:lo + step]).n_duplicates)
         self._nrejected += int(batch.rejected.size)
         return AddResult(
             accepted=batch.accepted,

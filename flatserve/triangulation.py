@@ -110,8 +110,11 @@ class Location:
 
 
 class RWLock:
-    """Readers/writer lock, writer-preferring (queries share, insert excludes).
+    """Readers/writer lock (queries share, an insert excludes them), phase-fair.
 
+    A waiting writer keeps new readers out (writers are not starved), and the
+    readers waiting when a writer releases the lock get in before the next
+    writer (readers are not starved by a writer that inserts slice after slice).
     Not reentrant. ``with lock.read():`` / ``with lock.write():`` hold it.
     """
 
@@ -120,12 +123,20 @@ class RWLock:
         self._readers = 0
         self._writer = False
         self._waiting_writers = 0
+        self._waiting_readers = 0
+        #: readers that waited for a writer enter before the next writer
+        self._readers_turn = False
 
     def acquire_read(self):
         with self._cond:
-            while self._writer or self._waiting_writers:
+            self._waiting_readers += 1
+            while self._writer or (self._waiting_writers and not self._readers_turn):
                 self._cond.wait()
+            self._waiting_readers -= 1
             self._readers += 1
+            if not self._waiting_readers:
+                self._readers_turn = False
+                self._cond.notify_all()
 
     def release_read(self):
         with self._cond:
@@ -136,7 +147,7 @@ class RWLock:
     def acquire_write(self):
         with self._cond:
             self._waiting_writers += 1
-            while self._writer or self._readers:
+            while self._writer or self._readers or self._readers_turn:
                 self._cond.wait()
             self._waiting_writers -= 1
             self._writer = True
@@ -144,6 +155,7 @@ class RWLock:
     def release_write(self):
         with self._cond:
             self._writer = False
+            self._readers_turn = self._waiting_readers > 0
             self._cond.notify_all()
 
     def read(self) -> "_Reading":

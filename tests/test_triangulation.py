@@ -551,3 +551,68 @@ def test_delaunay_exactly_on_degenerate_integer_points(D):
     checked = _assert_delaunay_exactly(P, tri.simplices, D, (2 * side) ** D)
     assert checked > tri.nsimplex
     assert tri.is_valid()
+
+
+def test_rwlock_lets_waiting_readers_in_between_writers():
+    """A writer that takes the lock again at once (an insert in slices) lets the
+    readers that waited for it in first; a waiting writer keeps new readers out."""
+    from flatserve.triangulation import RWLock
+
+    lock = RWLock()
+    order, entered = [], threading.Event()
+    lock.acquire_write()
+
+    def reader():
+        with lock.read():
+            order.append("reader")
+            entered.set()
+
+    t = threading.Thread(target=reader)
+    t.start()
+    for _ in range(200):  # the reader is waiting for the writer
+        if lock._waiting_readers:
+            break
+        threading.Event().wait(0.005)
+    lock.release_write()
+    lock.acquire_write()  # the next slice: only after the waiting reader went in
+    order.append("writer")
+    assert entered.is_set() and order == ["reader", "writer"]
+    lock.release_write()
+    t.join()
+
+    lock.acquire_read()
+    wants = threading.Thread(target=lambda: (lock.acquire_write(), order.append("w2"),
+                                             lock.release_write()))
+    wants.start()
+    for _ in range(200):
+        if lock._waiting_writers:
+            break
+        threading.Event().wait(0.005)
+    late = threading.Thread(target=lambda: (lock.acquire_read(), order.append("late"),
+                                            lock.release_read()))
+    late.start()
+    threading.Event().wait(0.05)
+    assert "late" not in order  # the waiting writer keeps new readers out
+    lock.release_read()
+    wants.join(5)
+    late.join(5)
+    assert order[-2:] == ["w2", "late"]
+
+
+def test_insert_in_slices_gives_the_same_triangulation():
+    from flatserve import Basis, Field, Flats
+
+    rng = np.random.default_rng(31)
+    eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (3000, 3))
+    screen = np.c_[rng.uniform(-1, 1, (3000, 2)), np.zeros(3000)]
+    flats = Flats.from_rays(eyes, screen - eyes)
+    vals = rng.normal(size=(3000, 1))
+    a, b = (Field(Basis.around_axis(), channels=1) for _ in range(2))
+    ra = a.insert_prepared(a.prepare(flats, vals))
+    rb = b.insert_prepared(b.prepare(flats, vals), slice_rows=700)
+    assert (ra.accepted, ra.duplicates, ra.nsamples) == (rb.accepted, rb.duplicates, rb.nsamples)
+    np.testing.assert_array_equal(a.points, b.points)
+    q = Flats.from_rays(eyes[:500] + 0.01, screen[:500] - eyes[:500])
+    np.testing.assert_allclose(a.query(q).values, b.query(q).values, atol=1e-12, equal_nan=True)
+    with pytest.raises(ValueError, match="slice_rows"):
+        b.insert_prepared(b.prepare(flats, vals), slice_rows=0)

@@ -205,7 +205,8 @@ class Registry:
                 if e.deleted:
                     return False
                 if seq > e.indexed_seq:  # (a reload may have replayed it already)
-                    e.field.insert_prepared(batch)
+                    e.field.insert_prepared(batch,
+                                            slice_rows=self.settings.insert_slice_rows)
                     e.indexed_seq = seq
                     e.new_samples += batch.accepted
                     if self.metrics is not None and batch.accepted:

@@ -62,6 +62,12 @@ class Settings(BaseSettings):
         50_000_000, ge=1,
         description="Most cells of one field's triangulation: an upload expected to pass it is "
                     "refused (413) with the estimate (high-dimensional fields grow fast).")
+    insert_slice_rows: int = Field(
+        20_000, ge=1,
+        description="Batches acknowledged before indexing (wait=false) are inserted this "
+                    "many samples at a time, so queries get in between (they see such a batch "
+                    "in part until indexed_batch reaches it); wait=true batches are inserted "
+                    "whole before their acknowledgement.")
     restore_threads: int = Field(
         4, ge=1, le=64, description="Fields restored at once on start (each is ready as soon "
                                     "as it is loaded).")

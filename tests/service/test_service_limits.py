@@ -203,3 +203,36 @@ def test_big_json_bodies_do_not_stall_the_event_loop(tmp_path, rng):
         r = httpx.post(srv.url + "/v1/fields/f/query", content=big, timeout=60,
                        headers={"Content-Type": "application/json"})
         assert r.status_code == 413 and "FLATSERVE_MAX_JSON_BYTES" in r.text
+
+
+def test_reads_keep_flowing_while_a_big_wait_false_batch_is_indexed(make_app, rng):
+    """The indexer inserts a wait=false batch in slices: queries answer between
+    slices instead of waiting for the whole insert."""
+    tc, c = started(make_app(insert_slice_rows=2_000))
+    try:
+        c.create_field("f", channels=1)
+        o, v = paper_rays(rng, 2000)
+        c.upload_rays("f", o, v, np.ones(2000))
+        probe = paper_rays(rng, 4)
+        big = paper_rays(rng, 40_000)
+        lat, stop = [], threading.Event()
+
+        def reads():
+            while not stop.is_set():
+                t = time.perf_counter()
+                c.query_rays("f", *probe)
+                lat.append(time.perf_counter() - t)
+
+        th = threading.Thread(target=reads)
+        th.start()
+        t0 = time.perf_counter()
+        rep = c.upload_rays("f", *big, np.ones(40_000), wait=False)
+        c.wait_indexed("f", timeout=120, interval=0.005)
+        indexing = time.perf_counter() - t0
+        stop.set()
+        th.join()
+        assert not rep["indexed"] and c.describe("f")["nsamples"] > 30_000
+        # about 18 slices: no read waits for more than a few of them
+        assert len(lat) > 10 and max(lat) < indexing / 3, (max(lat), indexing, len(lat))
+    finally:
+        tc.__exit__(None, None, None)

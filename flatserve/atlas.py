@@ -1102,7 +1102,8 @@ class AtlasField:
 
     # --------------------------------------------------------------- readers
     def query(self, flats: Flats, *, outside: str = "nan", order: str = "hilbert",
-              threads: int | None = None, return_weights: bool = False) -> AtlasQueryResult:
+              threads: int | None = None, return_weights: bool = False,
+              blocking: bool = True) -> "AtlasQueryResult | None":
         """Interpolate at flats: every chart holding the query, blended.
 
         Parameters
@@ -1114,6 +1115,8 @@ class AtlasField:
         return_weights : bool
             Also return per contributing chart the sample ids and weights
             (:class:`AtlasQueryResult`).
+        blocking : bool
+            False: return None at once instead of waiting for an insert in progress.
 
         Returns
         -------
@@ -1128,8 +1131,14 @@ class AtlasField:
                                     "outside")
         at = self.atlas
         ro = at.route(flats, at.trusted)
-        with self._lock.read():
+        if blocking:
+            self._lock.acquire_read()
+        elif not self._lock.try_acquire_read():
+            return None
+        try:  # charts change only under this lock's write side: they never make us wait
             return self._query(flats, ro, outside, order, threads, return_weights)
+        finally:
+            self._lock.release_read()
 
     def _query(self, flats, ro, outside, order, threads, return_weights) -> AtlasQueryResult:
         at = self.atlas

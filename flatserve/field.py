@@ -154,7 +154,7 @@ class Chart:
 
     def take(self, rows: np.ndarray) -> "Chart":
         """The chart of the flats at ``rows`` (an index array), in that order."""
-        rows = np.asarray(rows)
+        rows = np.asarray(rows, dtype=np.intp)
         ok = self.ok
         rank = np.cumsum(ok) - 1
         keep = ok[rows]
@@ -423,7 +423,8 @@ class Field:
         order: str = "hilbert",
         threads: int | None = None,
         return_weights: bool = False,
-    ) -> QueryResult:
+        blocking: bool = True,
+    ) -> "QueryResult | None":
         """Interpolate the field at flats.
 
         Parameters
@@ -440,11 +441,15 @@ class Field:
         threads : int, optional
             Threads for coordinates and locate/interpolate (default all cores).
         return_weights : bool
-            Also return the simplex's sample ids and barycentric weights.
+            Also return the simplex's sample ids and barycentric weights (taken
+            under the same read lock as the values: the same triangulation).
+        blocking : bool
+            False: return None at once instead of waiting for an insert in
+            progress (callers on an event loop).
 
         Returns
         -------
-        QueryResult
+        QueryResult, or None (see ``blocking``)
         """
         if outside not in ("nan", "clamp"):
             raise InvalidInputError(f"outside: expected 'nan' or 'clamp', got {outside!r}", "outside")
@@ -462,14 +467,17 @@ class Field:
             ids = np.full((n, D + 1), -1, dtype=np.int64)
             weights = np.full((n, D + 1), np.nan)
         if ch.points.shape[0] and self._tri.npoints > 0:
-            v, ins = self._tri.interpolate(ch.points, outside=outside, order=order, threads=threads)
+            got = self._tri.query(ch.points, outside=outside, order=order, threads=threads,
+                                  locate=return_weights, blocking=blocking)
+            if got is None:
+                return None
+            v, ins, loc = got
             if allok:  # no scatter
                 values, inside = v, ins
             else:
                 values[ok] = v
                 inside[ok] = ins
             if return_weights:
-                loc = self._tri.locate(ch.points, order=order, threads=threads)
                 ids[ok] = loc.ids
                 weights[ok] = loc.weights
         return QueryResult(values=values, inside=inside, status=ch.status, ids=ids, weights=weights)

@@ -721,13 +721,16 @@ class Flats:
     __slots__ = ("form", "k", "d", "arrays", "_quadrics")
 
     def __init__(self, form: str, k: int, d: int, arrays: dict, _quadrics=None):
-        # Private: use the from_* constructors (they validate).
+        # Private: use the from_* constructors (they validate). A writable array may
+        # be the caller's own, who could change it after validation: it is copied.
         self.form = form
         self.k = k
         self.d = d
-        for a in arrays.values():
-            a.setflags(write=False)
-        self.arrays = dict(arrays)
+        self.arrays = {name: _frozen(a) for name, a in arrays.items()}
+        if form == "flats":
+            _quadrics = (self.arrays["Q"], self.arrays["r"])
+        elif _quadrics is not None:
+            _quadrics = (_frozen(_quadrics[0]), _frozen(_quadrics[1]))
         self._quadrics = _quadrics
 
     # ------------------------------------------------------------ constructors
@@ -854,6 +857,14 @@ class Flats:
 
     def __repr__(self) -> str:
         return f"Flats(form={self.form!r}, k={self.k}, d={self.d}, n={self.n})"
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """``a`` read-only and contiguous, copied unless it already was read-only."""
+    if a.flags.writeable or not a.flags.c_contiguous:
+        a = np.array(a, dtype=np.float64, order="C")
+    a.setflags(write=False)
+    return a
 
 
 def _join(prefix: str, text: str, sep: str = ".") -> str:

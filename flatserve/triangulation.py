@@ -130,13 +130,24 @@ class RWLock:
     def acquire_read(self):
         with self._cond:
             self._waiting_readers += 1
-            while self._writer or (self._waiting_writers and not self._readers_turn):
-                self._cond.wait()
-            self._waiting_readers -= 1
+            try:
+                while self._writer or (self._waiting_writers and not self._readers_turn):
+                    self._cond.wait()
+            finally:
+                self._waiting_readers -= 1
+                if not self._waiting_readers and self._readers_turn:
+                    self._readers_turn = False
+                    self._cond.notify_all()
             self._readers += 1
-            if not self._waiting_readers:
-                self._readers_turn = False
-                self._cond.notify_all()
+
+    def try_acquire_read(self) -> bool:
+        """Take the lock as a reader only if that needs no wait (no writer holds or
+        awaits it); pair a True with :meth:`release_read`."""
+        with self._cond:
+            if self._writer or (self._waiting_writers and not self._readers_turn):
+                return False
+            self._readers += 1
+            return True
 
     def release_read(self):
         with self._cond:
@@ -147,9 +158,11 @@ class RWLock:
     def acquire_write(self):
         with self._cond:
             self._waiting_writers += 1
-            while self._writer or self._readers or self._readers_turn:
-                self._cond.wait()
-            self._waiting_writers -= 1
+            try:
+                while self._writer or self._readers or self._readers_turn:
+                    self._cond.wait()
+            finally:
+                self._waiting_writers -= 1
             self._writer = True
 
     def release_write(self):
@@ -247,6 +260,13 @@ class Triangulation:
         self._simplices = None
 
     # ------------------------------------------------------------------ access
+    @property
+    def lock(self) -> RWLock:
+        """The readers/writer lock of this triangulation: every reader method holds
+        its read side, :meth:`insert` its write side. Hold ``lock.write()`` yourself
+        to keep readers out across several calls (never from a reader)."""
+        return self._lock
+
     @property
     def ndim(self) -> int:
         """Dimension D of the points."""
@@ -462,6 +482,49 @@ class Triangulation:
                 vals = as_array(v, "values", (self._n, "C"))
             out, inside = self._core.interpolate(q, vals, outside == "clamp", order == "hilbert", th)
         return out.reshape(lead + (vals.shape[1],)), inside.reshape(lead)
+
+    def query(self, xi, outside: str = "nan", order: str = "hilbert",
+              threads: int | None = None, *, locate: bool = False, blocking: bool = True):
+        """:meth:`interpolate` (and with ``locate`` :meth:`locate`) under one read lock,
+        so both see the same triangulation.
+
+        Parameters
+        ----------
+        xi, outside, order, threads
+            As for :meth:`interpolate`.
+        locate : bool
+            Also return the :class:`Location` of the queries.
+        blocking : bool
+            False: return None at once, instead of waiting, when an insert holds or
+            awaits the lock (for callers that must never wait, an event loop).
+
+        Returns
+        -------
+        (values, inside, Location or None), or None (see ``blocking``)
+        """
+        q, lead = self._queries(xi)
+        _choice(outside, "outside", _OUTSIDE)
+        _choice(order, "order", _ORDERS)
+        th = _threads_arg(threads)
+        if self._values_buf is None:
+            raise InvalidInputError("values: the triangulation has no values", "values")
+        if blocking:
+            self._lock.acquire_read()
+        elif not self._lock.try_acquire_read():
+            return None
+        try:
+            hilbert = order == "hilbert"
+            vals = self._values_buf[: self._n]
+            out, inside = self._core.interpolate(q, vals, outside == "clamp", hilbert, th)
+            loc = None
+            if locate:
+                ids, w, kind, simplex = self._core.locate(q, hilbert, th)
+                D1 = self._ndim + 1
+                loc = Location(ids=ids.reshape(lead + (D1,)), weights=w.reshape(lead + (D1,)),
+                               kind=kind.reshape(lead), simplex=simplex.reshape(lead))
+        finally:
+            self._lock.release_read()
+        return out.reshape(lead + (vals.shape[1],)), inside.reshape(lead), loc
 
     # ------------------------------------------------------------------ checks
     def is_valid(self, verbose: bool = False) -> bool:

@@ -155,3 +155,31 @@ def test_deferred_prepare_validates_now_and_charts_later(basis):
     with pytest.raises(InvalidInputError) as ei:
         field.prepare(flats.Flats.from_rays(o, v), vals[:, :1], defer=True)
     assert ei.value.argument == "values"
+
+
+def test_query_does_not_wait_when_asked_not_to(basis):
+    """blocking=False: None at once while an insert holds the triangulation (an
+    event loop must never wait); the same answer once it is free."""
+    rng = np.random.default_rng(8)
+    o, dirs = paper_rays(rng, 1000)
+    field = Field(basis, channels=1)
+    field.add_rays(o, dirs, rng.uniform(size=1000))
+    q = flatserve.Flats.from_rays(o[:20], dirs[:20])
+    with field.triangulation.lock.write():
+        assert field.query(q, blocking=False) is None
+    a, b = field.query(q, blocking=False, return_weights=True), field.query(q, return_weights=True)
+    np.testing.assert_array_equal(a.values, b.values)
+    np.testing.assert_array_equal(a.ids, b.ids)
+
+
+def test_flats_are_not_changed_through_the_callers_arrays():
+    rng = np.random.default_rng(9)
+    o, dirs = paper_rays(rng, 10)
+    f = flatserve.Flats.from_rays(o, dirs)
+    o[0, 0] = np.nan  # the caller's array stays the caller's
+    assert o.flags.writeable and np.isfinite(f.arrays["origins"]).all()
+    A = dirs[:, :, None] / np.linalg.norm(dirs, axis=1)[:, None, None]
+    p = flatserve.Flats.from_parametric(A, np.zeros_like(dirs))
+    Q, _ = p.quadrics()
+    with pytest.raises(ValueError):
+        Q[0, 0, 0] = 5.0  # read-only

@@ -67,9 +67,10 @@ async def answer(registry: Registry, settings: Settings, name: str, params: Quer
         flats = await anyio.to_thread.run_sync(decode)
     kw = {"outside": params.outside, "order": params.order, "return_weights": params.weights}
     t1 = time.perf_counter()
-    if len(flats) < INLINE_ROWS and not params.wait and not registry.busy(e):
-        res = registry.query(e, flats, threads=1, **kw)
-    else:
+    res = None
+    if len(flats) < INLINE_ROWS and not params.wait:  # inline, unless an insert holds the field
+        res = registry.query(e, flats, threads=1, blocking=False, **kw)
+    if res is None:
         def run():
             if params.wait:
                 registry.wait_indexed(e)

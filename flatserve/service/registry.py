@@ -46,6 +46,8 @@ class Registry:
         self.storage = storage
         self.metrics = metrics
         self._entries: dict[str, FieldEntry] = {}
+        #: names being created (their commit runs without holding ``_lock``)
+        self._creating: set[str] = set()
         self._lock = threading.Lock()
         self.ready = threading.Event()
         self._bg = ThreadPoolExecutor(1, thread_name_prefix="flatserve-bg")
@@ -74,18 +76,24 @@ class Registry:
     # -- create / delete --------------------------------------------------
     def create(self, name: str, spec: FieldSpec, basis: Basis) -> FieldEntry:
         fld = spec.new_field(basis)
-        with self._lock:
-            if name in self._entries:
+        with self._lock:  # the name is reserved; the commit runs without the lock
+            if name in self._entries or name in self._creating:
                 raise FieldExistsError(f"field {name!r} already exists")
-            if len(self._entries) >= self.settings.max_fields:
+            if len(self._entries) + len(self._creating) >= self.settings.max_fields:
                 raise TooManyFieldsError(
                     f"this server holds {len(self._entries)} fields; the limit is "
                     f"{self.settings.max_fields}"
                 )
+            self._creating.add(name)
+        try:
             fid = self.storage.create_field(name, spec.to_dict(),
                                             {"Q": basis.Q, "r": basis.r})
             e = FieldEntry(fid, name, spec, basis, field=fld, state="ready")
-            self._entries[name] = e
+            with self._lock:
+                self._entries[name] = e
+        finally:
+            with self._lock:
+                self._creating.discard(name)
         log.info("created field %r (k=%d, d=%d, channels=%d)", name, spec.k, spec.d,
                  spec.channels)
         return e
@@ -232,8 +240,9 @@ class Registry:
                               alive=lambda: e.state == "ready" and not e.deleted)
 
     # -- query ------------------------------------------------------------
-    def query(self, e: FieldEntry, flats: Flats, **kw) -> QueryResult:
-        """Interpolate field ``e`` at ``flats`` (keywords of :meth:`Field.query`)."""
+    def query(self, e: FieldEntry, flats: Flats, **kw) -> "QueryResult | None":
+        """Interpolate field ``e`` at ``flats`` (keywords of :meth:`Field.query`;
+        ``blocking=False`` gives None instead of waiting for an insert)."""
         if len(flats) < SMALL_QUERY_ROWS:  # not worth starting native worker threads
             kw.setdefault("threads", 1)
         if e.deleted:
@@ -243,16 +252,12 @@ class Registry:
                 f"weights: field {e.name!r} is an atlas field: its answers blend several "
                 "charts, whose sample ids and weights the service does not return", "weights")
         res = e.field.query(flats, **kw)
+        if res is None:
+            return None
         if self.metrics is not None:
             self.metrics.queries.labels(e.name).inc()
             self.metrics.query_rows.labels(e.name).inc(len(res.inside))
         return res
-
-    @staticmethod
-    def busy(e: FieldEntry) -> bool:
-        """True while an insert (or a snapshot, or a reload) may hold the field:
-        callers on the event loop then send even small queries to a thread."""
-        return e.index_lock.locked()
 
     # -- snapshots --------------------------------------------------------
     def maybe_snapshot(self, e: FieldEntry) -> None:

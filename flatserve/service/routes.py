@@ -158,8 +158,9 @@ def snapshot_field(name: FieldNamePath, registry: RegistryDep) -> Response:
                 "triangulation (visible to queries). `wait=false`: acknowledged as soon as the "
                 "batch's coordinates are computed (accepted/rejected rows and reasons are "
                 "exact) and it is committed; it is then inserted in the background in commit "
-                "order, a whole batch at once (`indexed: false` in the response; the field's "
-                "`indexed_batch` / `pending_samples` tell when it is visible; a later "
+                "order, in slices of `insert_slice_rows` samples that queries see as they go "
+                "in (`indexed: false` in the response; the field's `indexed_batch` / "
+                "`pending_samples` tell when it is wholly visible; a later "
                 "`wait=true` upload or a query with `wait=true` waits for it). "
                 + _LAYOUT + " With `Idempotency-Key`, a retried batch is stored once; the same "
                 "key with different content is a 422.",

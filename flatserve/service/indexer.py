@@ -43,11 +43,15 @@ class Indexer:
         with self._cond:
             self._pending.append((seq, batch))
             if self._thread is None and not self._stopped:
-                self._thread = threading.Thread(target=self._run, args=(insert,),
-                                                name=f"flatserve-index-{name}", daemon=True)
-                self._thread.start()
+                self._start(insert, name)
 
-    def _run(self, insert) -> None:
+    def _start(self, insert, name: str) -> None:
+        # (under the condition)
+        self._thread = threading.Thread(target=self._run, args=(insert, name),
+                                        name=f"flatserve-index-{name}", daemon=True)
+        self._thread.start()
+
+    def _run(self, insert, name: str) -> None:
         while True:
             with self._cond:
                 if not self._pending or self._stopped:
@@ -65,6 +69,11 @@ class Indexer:
                 self._cond.notify_all()
                 if not go_on:
                     self._thread = None
+                    # batches queued meanwhile (after the reload this stop asked for:
+                    # uploads wait for it) were not seen by enqueue, which found this
+                    # thread still running: they get a thread of their own
+                    if self._pending and not self._stopped:
+                        self._start(insert, name)
                     return
 
     # -- consumers -------------------------------------------------------------

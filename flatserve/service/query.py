@@ -19,6 +19,7 @@ from typing import Literal, Optional
 import anyio.to_thread
 from fastapi import Response
 
+from ..errors import NotReadyError
 from . import codec
 from .registry import Registry
 from .settings import Settings
@@ -72,8 +73,10 @@ async def answer(registry: Registry, settings: Settings, name: str, params: Quer
         res = registry.query(e, flats, threads=1, blocking=False, **kw)
     if res is None:
         def run():
-            if params.wait:
-                registry.wait_indexed(e)
+            if params.wait and not registry.wait_indexed(e):
+                raise NotReadyError(f"field {name!r}: the acknowledged batches cannot be "
+                                    "indexed now (the server is stopping or the field "
+                                    "reloading); retry shortly")
             return registry.query(e, flats, **kw)
 
         res = await anyio.to_thread.run_sync(run)

@@ -58,6 +58,8 @@ def upload(reg: Registry, e: FieldEntry, flats: Flats, values: np.ndarray,
                 if prev.content_hash != chash:
                     raise IdempotencyConflictError(
                         f"Idempotency-Key {idem_key!r} was used for a different batch")
+                if wait:  # a retry with wait=true answers once its batch is visible
+                    reg.wait_indexed(e, prev.seq)
                 return dict(_stored_result(reg, e, prev.seq, prev.form, prev.result),
                             replayed=True, indexed=prev.seq <= e.indexed_seq)
         pending = e.indexer.counts()[1]

@@ -107,7 +107,10 @@ def presented_key(headers) -> Optional[str]:
 
 
 def _eq(a: str, secret) -> bool:
-    return secret is not None and secrets.compare_digest(a.encode(), secret.get_secret_value().encode())
+    """``a`` (a header value, decoded as latin-1) equals the configured key: compared as
+    the bytes on the wire and the key's UTF-8 bytes, so non-ASCII keys work."""
+    return secret is not None and secrets.compare_digest(
+        a.encode("latin-1"), secret.get_secret_value().encode("utf-8"))
 
 
 def authorize(settings: Settings, key: Optional[str], *, write: bool) -> None:

@@ -151,8 +151,15 @@ def _insert_now(reg, e, seq, prepared, timings) -> dict:
             raise FieldNotFoundError(f"no field named {e.name!r}")
         try:
             res = e.field.insert_prepared(prepared)
+        except Exception as exc:
+            # the batch is committed but maybe half in memory: rebuild from storage,
+            # which indexes it; the client is told so (a 503, not a 500: nothing is lost)
+            reg.reload(e, f"reloading after a failed insert: {exc}")
+            raise NotReadyError(
+                f"field {e.name!r}: batch {seq} is stored, but inserting it failed ({exc}); "
+                "the field is being rebuilt from storage, which indexes it: retry with the "
+                "same Idempotency-Key for its response") from exc
         except BaseException as exc:
-            # the batch is committed but maybe half in memory: rebuild from storage
             reg.reload(e, f"reloading after a failed insert: {exc}")
             raise
         e.indexed_seq = seq

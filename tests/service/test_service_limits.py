@@ -236,3 +236,50 @@ def test_reads_keep_flowing_while_a_big_wait_false_batch_is_indexed(make_app, rn
         assert len(lat) > 10 and max(lat) < indexing / 3, (max(lat), indexing, len(lat))
     finally:
         tc.__exit__(None, None, None)
+
+
+def test_failed_insert_after_the_commit_is_a_503_and_the_retry_gets_the_batch(
+        make_app, rng, monkeypatch):
+    """A wait=true batch is committed before it is inserted: if the insert fails, the
+    client is told the batch is stored (503, not 500), the field is rebuilt from
+    storage, and a retry with the same key gets the batch's response, indexed."""
+    from flatserve.field import Field
+
+    tc, c = started(make_app())
+    try:
+        c.create_field("f", channels=1)
+        o, v = paper_rays(rng, 300)
+        real, calls = Field.insert_prepared, []
+
+        def fails_once(self, batch, **kw):
+            calls.append(1)
+            if len(calls) == 1:
+                raise MemoryError("simulated")
+            return real(self, batch, **kw)
+
+        monkeypatch.setattr(Field, "insert_prepared", fails_once)
+        r = tc.post("/v1/fields/f/samples", headers={"Idempotency-Key": "k"},
+                    json={"origins": o.tolist(), "directions": v.tolist(),
+                          "values": np.ones((300, 1)).tolist()})
+        assert r.status_code == 503 and "batch 1 is stored" in r.text, r.text
+        assert r.headers["retry-after"] == "1"
+        c.wait_ready(30)
+        for _ in range(400):  # the rebuild from storage
+            if c.describe("f")["state"] == "ready":
+                break
+            time.sleep(0.02)
+        again = c.upload_rays("f", o, v, np.ones(300), idempotency_key="k")
+        assert again["replayed"] and again["indexed"] and again["batch"] == 1
+        info = c.describe("f")
+        assert info["storage"]["batches"] == 1 and info["nsamples"] == again["accepted"]
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_non_ascii_api_keys_work(make_app):
+    tc, _ = started(make_app(api_key="clé-secrète", read_only_key="lecture"))
+    try:
+        assert tc.get("/v1/fields", headers={"api-key": "clé-secrète".encode()}).status_code == 200
+        assert tc.get("/v1/fields", headers={"api-key": "cle-secrete"}).status_code == 401
+    finally:
+        tc.__exit__(None, None, None)

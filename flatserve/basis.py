@@ -432,10 +432,10 @@ class Basis:
         InvalidInputError
             ``"basis"``: the count is wrong or a check of Sec. 3 fails.
         """
-        want = _flats.basis_size(self.k, self.d)
-        if self.m != want:
+        if not self.is_full:
             raise InvalidInputError(
-                f"basis: a field needs m = (k+1)(d-k)+1 = {want} flats, got {self.m}", "basis")
+                f"basis: a field needs m = (k+1)(d-k)+1 = {self.dim + 1} flats, got {self.m}",
+                "basis")
         report = self.check()
         if not report.ok:
             raise InvalidInputError("basis: basis check failed: " + "; ".join(report.failures),

@@ -405,6 +405,10 @@ class LogBackend(abc.ABC):
             from the batches).
         """
 
+    def snapshot_location(self, row: FieldRow) -> str:
+        """Where the row's snapshot is, for messages (a path, a large object id)."""
+        return str(row.snapshot_file)
+
     @abc.abstractmethod
     def snapshot_bytes(self, row: FieldRow) -> int:
         """Size of the row's snapshot (0: none or gone)."""

@@ -337,7 +337,7 @@ class Registry:
                 continue
             except Exception as exc:  # corrupt/missing snapshot: rebuild from batches
                 log.warning("field %r: snapshot %s unusable (%s); rebuilding from batches",
-                            e.name, row.snapshot_file, exc)
+                            e.name, self.storage.snapshot_location(row), exc)
                 return None, row
             log.info("field %r: snapshot after batch %d loaded (%d samples) in %.2f s",
                      e.name, row.snapshot_seq, fld.nsamples, time.perf_counter() - t0)
@@ -358,8 +358,8 @@ class Registry:
             if fld is None:
                 fld = e.spec.new_field(e.basis)
             todo = self.storage.batches(e.id, after_seq=start, upto_position=upto)
-            log.info("field %r: replaying %d stored batch(es) after batch %d", e.name,
-                     len(todo), start)
+            nb = self.storage.batch_stats(e.id)[0]
+            log.info("field %r: replaying %d of %d stored batch(es)", e.name, len(todo), nb)
             done, tlast, replayed = 0, time.perf_counter(), 0
             seq, pos = start, start_pos
             for b in todo:

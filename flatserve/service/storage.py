@@ -653,6 +653,9 @@ class SQLiteBackend(LogBackend):
                     raise SnapshotGoneError(f"snapshot {row.snapshot_file} was replaced") from None
             raise
 
+    def snapshot_location(self, row: FieldRow) -> str:
+        return str(self.snapshot_path(row.snapshot_file))
+
     def snapshot_bytes(self, row) -> int:
         file = row if isinstance(row, (str, type(None))) else row.snapshot_file
         if not file:

@@ -419,7 +419,9 @@ class LogBackend(abc.ABC):
         True if ``owner`` holds it now, False if another owner holds an
         unexpired one. Used for :data:`SNAPSHOT_LEASE` (one snapshot writer at a
         time, across replicas); a writer killed holding it blocks others until
-        it expires."""
+        it expires. Owners are ``"<hostname>:<pid>:<random>"``: a backend may
+        take over at once a lease whose owner is a dead process of this host
+        (the SQLite backend does)."""
 
     @abc.abstractmethod
     def release_lease(self, name: str, owner: str) -> None:

@@ -269,6 +269,12 @@ class Registry:
         self.maybe_snapshot(e)
         return res, None
 
+    def fail_field(self, field_id: int, why: str) -> None:
+        """Mark a field failed (its requests get a 503 naming ``why``)."""
+        e = self.entry_by_id(field_id)
+        if e is not None:
+            e.state, e.error = "failed", why
+
     @staticmethod
     def _before_index(e: FieldEntry, seq: int) -> None:
         """Called by the follower before it inserts batch ``seq`` of ``e`` (a test hook)."""

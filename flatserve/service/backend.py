@@ -410,8 +410,9 @@ class LogBackend(abc.ABC):
         return str(row.snapshot_file)
 
     @abc.abstractmethod
-    def snapshot_bytes(self, row: FieldRow) -> int:
-        """Size of the row's snapshot (0: none or gone)."""
+    def snapshot_bytes(self, row: "FieldRow | str | None") -> int:
+        """Size of the row's snapshot, given the row or its ``snapshot_file``
+        (0: none or gone)."""
 
     @abc.abstractmethod
     def acquire_lease(self, name: str, owner: str, ttl: float) -> bool:

@@ -116,18 +116,26 @@ class Registry:
 
         Raises
         ------
+        InvalidInputError
+            ``position`` is beyond the log's head: no write returned it (422).
         ReplicaBehindError
             Not applied within ``timeout`` seconds (or the replica is stopping).
         """
         if self.follower.applied >= position:
             return
+        head = self.storage.head()
+        if position > head:  # a write's position is committed, so never beyond the head
+            raise InvalidInputError(
+                f"min_position: {position} is beyond the log's last position {head}: no "
+                "write returned it (pass the position of an upload's response or of a "
+                "Flatserve-Position header)", "min_position")
         if not self.follower.wait_applied(position, timeout):
             raise ReplicaBehindError(
                 f"this replica has applied the log up to position {self.follower.applied}, "
                 f"not yet {position} (waited {timeout or 0:g} s, FLATSERVE_READ_WAIT_TIMEOUT); "
                 "retry shortly")
 
-    def _await(self, position: int, what: str) -> None:
+    def await_applied(self, position: int, what: str) -> None:
         """A write's request: wait (unbounded, but not past a shutdown) until this
         replica applied its own commit at ``position``."""
         if not self.follower.wait_applied(position):
@@ -151,7 +159,7 @@ class Registry:
                                                  {"Q": basis.Q, "r": basis.r})
             with self._lock:
                 self._built[fid] = fld
-            self._await(pos, f"field {name!r}")
+            self.await_applied(pos, f"field {name!r}")
             e = self.entry_by_id(fid)
             if e is None:  # deleted meanwhile (by another replica)
                 raise FieldNotFoundError(f"field {name!r} was deleted meanwhile")
@@ -169,7 +177,7 @@ class Registry:
             if e.deleted:
                 raise FieldNotFoundError(f"no field named {name!r}")
             pos = self.storage.delete_field(e.id)
-        self._await(pos, f"the delete of {name!r}")
+        self.await_applied(pos, f"the delete of {name!r}")
         log.info("deleted field %r at log position %d", name, pos)
         return pos
 

@@ -137,21 +137,38 @@ def test_replicas_at_the_same_position_answer_bit_identically(group, rng):
             assert cl.describe("f")["nsamples"] == ca.describe("f")["nsamples"]
 
 
-def test_a_read_waits_a_bounded_time_for_a_position_then_503(make_app, rng):
+def test_a_read_waits_a_bounded_time_for_a_position_then_503(make_app, rng, monkeypatch):
+    """A position not yet applied here: 503 with Retry-After after read_wait_timeout
+    (the follower is held, as a replica behind would be); a position beyond the
+    log's head was never returned by a write: 422 at once."""
+    from flatserve.service import registry as registry_mod
+
+    gate = threading.Event()
+    monkeypatch.setattr(registry_mod.Registry, "_before_index",
+                        staticmethod(lambda e, seq: gate.wait(30)))
     tc, c = started(make_app(read_wait_timeout=0.2))
     try:
         info = c.create_field("f")
-        r = tc.get("/v1/fields/f", params={"min_position": info["position"] + 5})
+        o, v = paper_rays(rng, 300)
+        rep = c.upload_rays("f", o, v, np.ones(300), wait=False)
+        r = tc.get("/v1/fields/f", params={"min_position": rep["position"]})
         assert r.status_code == 503 and r.headers["retry-after"] == "1", r.text
         assert "not yet" in r.json()["detail"]
-        o, v = paper_rays(rng, 3)
         with pytest.raises(NotReadyError, match="not yet"):  # 503: the client's class
-            c.query_rays("f", o, v, min_position=info["position"] + 5)
-        assert c.query_rays("f", o, v, min_position=info["position"]).values.shape == (3, 1)
+            c.query_rays("f", o[:3], v[:3], min_position=rep["position"])
+        assert c.query_rays("f", o[:3], v[:3], min_position=info["position"]).values.shape \
+            == (3, 1)
+        r = tc.post("/v1/fields/f/query", params={"min_position": rep["position"] + 1},
+                    json={"origins": o[:3].tolist(), "directions": v[:3].tolist()})
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "min_position"
+        gate.set()
+        got = c.query_rays("f", o[:3], v[:3], min_position=rep["position"])
+        assert got.inside.any()
         spec = tc.get("/openapi.json").json()
         params = spec["paths"]["/v1/fields/{name}/query"]["post"]["parameters"]
         assert "min_position" in [p["name"] for p in params]
     finally:
+        gate.set()
         tc.__exit__(None, None, None)
 
 

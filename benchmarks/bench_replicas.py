@@ -231,12 +231,15 @@ def catch_up(args, rng):
                 o, v = paper_rays(rng, 10_000)
                 pos = ca.upload_rays("big", o, v, rng.uniform(size=10_000))["position"]
         del half
-        # a new replica joins while A runs; then A is stopped and one process restarts
-        joins = [_time_to_ready(lambda: g.start("b"), "big", probe, pos)
-                 for _ in range(args.runs)]
-        a.kill9()
-        restarts = [_time_to_ready(lambda: g.start("restart"), "big", probe, pos)
-                    for _ in range(args.runs)]
+        # interleaved: a new replica joins while A runs; then A is stopped and one
+        # process restarts alone (today's restart); A is started again, untimed
+        joins, restarts = [], []
+        for i in range(args.runs):
+            joins.append(_time_to_ready(lambda: g.start(f"b{i}"), "big", probe, pos))
+            a.kill9()
+            restarts.append(_time_to_ready(lambda: g.start(f"r{i}"), "big", probe, pos))
+            a = g.start(f"a{i}")
+            a.wait_ready(timeout=900)
     finally:
         g.close()
         shutil.rmtree(tmp, ignore_errors=True)

@@ -1069,22 +1069,43 @@ class AtlasField:
                         slice_rows: int | None = None) -> AddResult:
         """Insert a :meth:`prepare`-d batch into its charts (a writer).
 
-        ``slice_rows`` is accepted for :meth:`Field.insert_prepared`'s interface; an
-        atlas batch is always inserted whole (queries see it in every chart or in none).
+        Parameters
+        ----------
+        batch : AtlasPrepared
+        slice_rows : int, optional
+            As :meth:`Field.insert_prepared`: insert chart by chart, at most this
+            many samples at a time, so that concurrent queries get in between
+            slices (each slice is atomic; a query sees the batch in part, in some
+            charts and not yet in others, until the last slice is in). Default:
+            the whole batch at once, atomic across charts (queries see it in every
+            chart or in none).
         """
         if not isinstance(batch, AtlasPrepared) or len(batch.own) != len(self.fields):
             raise InvalidInputError("batch: expected an AtlasPrepared made by this field",
                                     "batch")
+        if slice_rows is not None and not (isinstance(slice_rows, (int, np.integer))
+                                           and slice_rows >= 1):
+            raise InvalidInputError(f"slice_rows: expected a positive integer or None, got "
+                                    f"{slice_rows!r}", "slice_rows")
+        parts = [(f, p, own) for f, o, s in zip(self.fields, batch.own, batch.shared)
+                 for p, own in ((o, True), (s, False)) if p is not None and p.accepted]
+        if slice_rows is None or not parts:
+            groups = [parts]
+        else:
+            step = int(slice_rows)
+            groups = [[(f, PreparedBatch(min(step, p.accepted - lo), p.x[lo:lo + step],
+                                         p.values[lo:lo + step], _NO_ROWS, []), own)]
+                      for f, p, own in parts for lo in range(0, p.accepted, step)]
         duplicates = 0
-        with self._lock.write():  # queries see the batch in every chart or in none
-            for f, o, s in zip(self.fields, batch.own, batch.shared):
-                if o is not None and o.accepted:
-                    res = f.insert_prepared(o)
-                    duplicates += res.duplicates
-                    self._nsamples += res.accepted - res.duplicates
-                if s is not None and s.accepted:
-                    f.insert_prepared(s)
-            self._nrejected += int(batch.rejected.size)
+        for i, group in enumerate(groups):
+            with self._lock.write():  # a whole batch, or one slice
+                for f, p, own in group:
+                    res = f.insert_prepared(p)
+                    if own:  # a sample counts once, in its nearest chart
+                        duplicates += res.duplicates
+                        self._nsamples += res.accepted - res.duplicates
+                if i == len(groups) - 1:
+                    self._nrejected += int(batch.rejected.size)
         return AddResult(accepted=batch.accepted, rejected=batch.rejected,
                          reasons=batch.reasons, duplicates=duplicates,
                          nsamples=self._nsamples)
@@ -1292,6 +1313,8 @@ class AtlasField:
                 f"nsamples={self.nsamples}, nstored={self.nstored})")
 
 
+_NO_ROWS = np.empty(0, np.int64)
+_NO_ROWS.setflags(write=False)
 _ATLAS_MAGIC = b"FSATLAS\x00"
 _ATLAS_VERSION = 1
 _ATLAS_HEADER = struct.Struct("<8sIQ")  # magic, version, metadata length

@@ -802,6 +802,28 @@ class Atlas:
             nearest[better] = i
         return Routing(rows, angles, nearest, np.arccos(np.sqrt(np.clip(best, 0.0, 1.0))))
 
+    def held(self, flats: Flats, radius: float) -> np.ndarray:
+        """Per chart, how many flats are closer than ``radius`` (degrees) to its centre.
+
+        The sizes of :meth:`route`'s ``rows`` (the same test), without the angles:
+        one matrix product for lines.  ``held(flats, reach).sum()`` is the number
+        of chart vertices a batch adds (before round-trip rejections).
+
+        Returns
+        -------
+        ndarray, shape (c,), int64
+        """
+        self.check_flats(flats)
+        F = orientation_frames(flats, normals=False if self.oriented else None)
+        cr = math.cos(math.radians(radius))
+        if self.oriented or F.shape[2] == 1:
+            dots = F[:, :, 0] @ self.frames[:, :, 0].T  # (n, c)
+            if not self.oriented:
+                np.abs(dots, out=dots)
+            return np.count_nonzero(dots > cr, axis=0).astype(np.int64)
+        return np.array([np.count_nonzero(_cos2_max(C, F) > cr * cr) for C in self.frames],
+                        dtype=np.int64)
+
     def covering_radius(self, n: int = COVER_CHECK_N, *, seed: int = 1,
                         return_worst: bool = False, batch: int = 50_000):
         """Largest angle (degrees) of ``n`` Haar-random orientations to the nearest centre.

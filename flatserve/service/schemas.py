@@ -88,6 +88,9 @@ class FlatsBasis(FlatsModel):
     kind: Literal["flats"] = "flats"
 
 
+Scale = Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)]
+
+
 class _AtlasSpec(_Strict):
     """Several tangent-simplex charts that together hold the flats they claim
     (:class:`flatserve.atlas.Atlas`): samples are inserted into every chart whose
@@ -133,7 +136,7 @@ class CentersAtlas(_AtlasSpec):
 
     atlas: Literal["centers"]
     centers: FlatsModel = Field(description="One flat per chart (rays for oriented fields).")
-    scale: Union[float, list[float]] = Field(
+    scale: Union[Scale, list[Scale]] = Field(
         1.0, description="Tangent-simplex scale of every chart, or one per centre.")
 
 

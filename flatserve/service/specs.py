@@ -28,8 +28,10 @@ def _within(prefix: str, rename: dict[str, str] | None = None):
         arg = exc.argument
         if arg is None or arg == prefix or arg.startswith(prefix + "."):
             raise
-        arg = (rename or {}).get(arg, arg)
-        raise type(exc)(f"{prefix}.{exc}", f"{prefix}.{arg}") from None
+        msg, new = str(exc), (rename or {}).get(arg, arg)
+        if msg.startswith(arg + ":"):  # the message names the member as the path does
+            msg = new + msg[len(arg):]
+        raise type(exc)(f"{prefix}.{msg}", f"{prefix}.{new}") from None
 
 
 def _arrays(obj) -> dict:
@@ -171,7 +173,7 @@ def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
         _check_rows(spec.samples, "basis.samples", max_atlas_samples,
                     "FLATSERVE_MAX_ATLAS_SAMPLES")
         flats = flats_of(spec.samples, k, d, "basis.samples")
-        with _within("basis", {"flats": "samples"}):
+        with _within("basis", {"flats": "samples", **{n: f"samples.{n}" for n in _NAMES}}):
             atlas = Atlas.for_samples(flats, oriented=oriented, radius=spec.radius,
                                       fraction=spec.fraction)
         _require_charted(atlas, flats)

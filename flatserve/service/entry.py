@@ -34,7 +34,8 @@ class FieldSpec:
     ----------
     k, d, channels : int
     basis : dict
-        The basis spec as given (``{"kind": "tangent_simplex", ...}``), for describe.
+        The basis spec as stored, for describe (``{"kind": "tangent_simplex", ...}``;
+        an atlas spec without ``oriented``, its sample flats replaced by their count).
     roundtrip_tol : float or None
         None: the library's default.
     atlas : dict or None

@@ -308,7 +308,8 @@ class FieldInfo(FieldSummary):
 class UploadResult(BaseModel):
     batch: int = Field(description="Sequence number of the stored batch.")
     accepted: int
-    rejected: list[int] = Field(description="Row indices not triangulated (outside the chart).")
+    rejected: list[int] = Field(description="Row indices not triangulated (outside the chart; "
+                                            "atlas fields: outside every chart's domain).")
     reasons: list[str]
     duplicates: Optional[int] = Field(
         description="Accepted rows that coincided with an existing sample; null until indexed "

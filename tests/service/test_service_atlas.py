@@ -377,6 +377,7 @@ def test_atlas_specs_that_do_not_cover_what_they_claim_are_refused(api, rng):
     np.testing.assert_allclose(np.abs(np.einsum("ci,ci->c", got, ico)), 1.0)  # the same lines
     refused(centers(ico, scale=1e-12), ["basis", "centers"], "chart 0", "scale 1e-12")
     refused(centers(ico, scale=[1.0] * 5), ["basis", "scale"], "one per centre")
+    refused(centers(np.tile(ico, (200, 1))), ["basis", "centers"], "1200 flats", "at most")
     refused(centers(ico, scale=0), ["basis", "atlas", "centers", "scale", "constrained-float"],
             "greater than 0")
     # flats the data-driven atlas cannot chart (offsets far beyond what a scale holds)

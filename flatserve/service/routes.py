@@ -15,7 +15,7 @@ from . import codec, specs, uploads
 from .codec import JSONBytes
 from .deps import (BodyDep, FieldNamePath, ReadAccess, RegistryDep, SettingsDep, WriteAccess,
                    json_body, json_body_doc)
-from .entry import FieldEntry, FieldSpec
+from .entry import FieldEntry
 from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES
 from .query import Form, QueryParams, answer, server_timing
 from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
@@ -70,9 +70,7 @@ def _summary(e: FieldEntry) -> dict:
                       "cover every orientation).")
 def create_field(spec: json_body(FieldCreate), registry: RegistryDep,
                  settings: SettingsDep) -> Response:
-    basis, basis_spec, atlas = specs.build_chart_basis(
-        spec, max_atlas_samples=settings.max_atlas_samples)
-    stored = FieldSpec(spec.k, spec.d, spec.channels, basis_spec, spec.roundtrip_tol, atlas)
+    stored, basis = specs.field_spec(spec, max_atlas_samples=settings.max_atlas_samples)
     e = registry.create(spec.name, stored, basis)
     return JSONBytes(_describe(registry, e), status_code=201)
 

@@ -12,6 +12,7 @@ from ..atlas import Atlas, AtlasField
 from ..basis import Basis
 from ..errors import BatchTooLargeError, InvalidInputError
 from ..flats import FORMS, Flats, form_shapes, infer_form
+from .entry import FieldSpec
 from .schemas import (ATLAS_SPECS, CenterFlat, CentersAtlas, CoveringAtlas, FlatsBasis,
                       SamplesAtlas, TangentSimplexBasis)
 
@@ -130,6 +131,17 @@ def oriented_of(req) -> bool:
             "an oriented field is an atlas: leave `basis` out (a covering atlas) or give "
             "{\"kind\": \"atlas\", ...}", "oriented")
     return oriented
+
+
+def field_spec(req, *, max_atlas_samples: int | None = None) -> tuple[FieldSpec, Basis]:
+    """What a create request (:class:`~.schemas.FieldCreate`) stores: the field's spec
+    and its (chart 0's) basis, for :meth:`~.registry.Registry.create`.
+
+    Example: the demo's oriented covering atlas of grey rays is
+    ``field_spec(FieldCreate(name="bunny", channels=1, oriented=True))``.
+    """
+    basis, basis_spec, atlas = build_chart_basis(req, max_atlas_samples=max_atlas_samples)
+    return FieldSpec(req.k, req.d, req.channels, basis_spec, req.roundtrip_tol, atlas), basis
 
 
 def build_chart_basis(req, *, max_atlas_samples: int | None = None

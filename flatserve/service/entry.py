@@ -34,7 +34,8 @@ class FieldSpec:
     ----------
     k, d, channels : int
     basis : dict
-        The basis spec as given (``{"kind": "tangent_simplex", ...}``), for describe.
+        The basis spec as stored, for describe (``{"kind": "tangent_simplex", ...}``;
+        an atlas spec without ``oriented``, its sample flats replaced by their count).
     roundtrip_tol : float or None
         None: the library's default.
     atlas : dict or None
@@ -60,6 +61,11 @@ class FieldSpec:
     @property
     def is_atlas(self) -> bool:
         return self.atlas is not None
+
+    @property
+    def oriented(self) -> bool:
+        """Rays keep their direction (atlas fields of lines only; kept in the atlas)."""
+        return bool(self.atlas is not None and self.atlas["oriented"])
 
     def new_field(self, basis: Basis) -> "Field | AtlasField":
         """An empty field of this spec: a :class:`flatserve.Field` over ``basis``, or

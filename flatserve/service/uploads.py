@@ -59,7 +59,7 @@ def upload(reg: Registry, e: FieldEntry, flats: Flats, values: np.ndarray,
         prev = reg.storage.find_batch(e.id, idem_key) if idem_key is not None else None
         if prev is None:
             pending = e.pending_counts()[1]
-            _check_cost(reg, e, pending + len(flats))
+            _check_cost(reg, e, flats, pending)
             if not wait and pending + len(flats) > reg.settings.max_pending_samples:
                 raise BacklogFullError(
                     f"field {e.name!r}: {pending} acknowledged samples wait for their insert; "
@@ -101,22 +101,32 @@ CELLS_PER_SAMPLE = {2: 2.0, 3: 6.6, 4: 28.0, 5: 129.0, 6: 512.0, 7: 1704.0, 8: 5
 COST_MIN_SAMPLES = 1000
 
 
-def _check_cost(reg, e: FieldEntry, adding: int) -> None:
-    """Refuse (413) an upload expected to make the field's triangulation larger than
-    ``max_simplices`` cells: the field's own cells per sample once it has some, else
-    :data:`CELLS_PER_SAMPLE` (high-dimensional fields grow very fast: 200 samples in
-    D = 8 make a million cells)."""
+def _check_cost(reg, e: FieldEntry, flats: Flats, pending: int) -> None:
+    """Refuse (413) an upload expected to make the field's triangulations larger than
+    ``max_simplices`` cells in all: the field's own cells per stored sample once it
+    has some, else :data:`CELLS_PER_SAMPLE` (high-dimensional fields grow very fast:
+    200 samples in D = 8 make a million cells). An atlas field stores a sample once
+    in every chart whose domain holds it: the batch's rows are counted per chart
+    (``Atlas.held``), and the ``pending`` samples with the batch's duplication."""
     f = e.field
-    n, D = f.nsamples, f.ndim
-    per = f.nsimplex / n if n >= COST_MIN_SAMPLES else CELLS_PER_SAMPLE.get(
+    D, n = f.ndim, len(flats)
+    if e.spec.is_atlas:
+        stored = f.nstored
+        copies = float(f.atlas.held(flats, f.atlas.reach).sum()) / n
+    else:
+        stored, copies = f.nsamples, 1.0
+    per = f.nsimplex / stored if stored >= COST_MIN_SAMPLES else CELLS_PER_SAMPLE.get(
         D, CELLS_PER_SAMPLE[8] * 3.0 ** (D - 8))
-    expected = (n + adding) * per
+    total = stored + (pending + n) * copies
+    expected = total * per
     limit = reg.settings.max_simplices
     if expected > limit:
+        held = f" (x {copies:.2f} charts holding each)" if e.spec.is_atlas else ""
         raise CostLimitError(
             f"field {e.name!r}: about {expected:,.0f} cells expected after this upload "
-            f"({n + adding} samples x {per:,.0f} cells per sample in dimension {D}); the limit "
-            f"is {limit:,} (FLATSERVE_MAX_SIMPLICES)")
+            f"({total:,.0f} stored samples: {stored} + {pending + n} new{held}; x {per:,.0f} "
+            f"cells per sample in dimension {D}); the limit is {limit:,} "
+            "(FLATSERVE_MAX_SIMPLICES)")
 
 
 def _commit_and_chart(reg, e, flats, values, idem_key, chash, stored, timings, *,

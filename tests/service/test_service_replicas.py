@@ -24,7 +24,7 @@ from flatserve.service.blobs import content_hash, pack_arrays
 from flatserve.service.process import ServerProcess
 from flatserve.service.storage import DB_NAME, lock_data_dir
 
-from .conftest import paper_rays, started
+from .conftest import DEFAULT, KINDS, ONE_CHART, add_rays, paper_rays, query_rays, started
 from .test_service_crash import _verify
 
 C = 2
@@ -34,10 +34,11 @@ def _ref(channels=C):
     return Field(specs.build_basis(None, 1, 3), channels=channels)
 
 
-def _answers(c, name, probe, pos):
-    """Every array of a query with weights, read at log position ``pos``."""
-    r = c.query_rays(name, *probe, weights=True, min_position=pos)
-    return r.values, r.inside, r.status, r.ids, r.weights
+def _answers(c, name, probe, pos, weights=True):
+    """Every array of a query (with weights unless ``weights`` is False: an atlas
+    field blends charts and returns none), read at log position ``pos``."""
+    r = c.query_rays(name, *probe, weights=weights, min_position=pos)
+    return (r.values, r.inside, r.status) + ((r.ids, r.weights) if weights else ())
 
 
 def _identical(a, b):
@@ -76,7 +77,7 @@ def test_write_through_one_replica_read_through_the_other(group, rng):
     b.wait_ready()
     ref = _ref()
     with Client(a.url) as ca, Client(b.url) as cb:
-        info = ca.create_field("f", channels=C)
+        info = ca.create_field("f", channels=C, basis=ONE_CHART)  # compared with ids, weights
         assert cb.describe("f", min_position=info["position"])["nsamples"] == 0
         probe = paper_rays(rng, 300)
         for i, wait in enumerate((False, True, False)):
@@ -109,14 +110,15 @@ def test_write_through_one_replica_read_through_the_other(group, rng):
         assert "flatserve_log_lag_seconds" in ca.metrics()
 
 
-def test_replicas_at_the_same_position_answer_bit_identically(group, rng):
+@pytest.mark.parametrize("kind", KINDS, ids=str)
+def test_replicas_at_the_same_position_answer_bit_identically(group, rng, kind):
     """Writes through both replicas, duplicates included; a third replica started
     afterwards restores from the log; all three answer alike, bit for bit."""
     a, b = group("a", insert_slice_rows=700), group("b", insert_slice_rows=700)
     a.wait_ready()
     b.wait_ready()
     with Client(a.url) as ca, Client(b.url) as cb:
-        ca.create_field("f", channels=C)
+        ca.create_field("f", channels=C, basis=kind.basis)
         sent = []
         for i in range(6):
             o, v = paper_rays(rng, 1500)
@@ -128,12 +130,13 @@ def test_replicas_at_the_same_position_answer_bit_identically(group, rng):
         assert rep["duplicates"] and rep["duplicates"] > 0
         pos = rep["position"]
         probe = paper_rays(rng, 2000)
-        want = _answers(ca, "f", probe, pos)
-        _identical(_answers(cb, "f", probe, pos), want)
+        w = not kind.atlas
+        want = _answers(ca, "f", probe, pos, w)
+        _identical(_answers(cb, "f", probe, pos, w), want)
         late = group("late", insert_slice_rows=700)
         late.wait_ready()
         with Client(late.url) as cl:
-            _identical(_answers(cl, "f", probe, pos), want)
+            _identical(_answers(cl, "f", probe, pos, w), want)
             assert cl.describe("f")["nsamples"] == ca.describe("f")["nsamples"]
 
 
@@ -183,7 +186,7 @@ def _uploader(url, tag, rng, sent, acked, stop):
             key = f"{tag}-b{i}"
             sent[key] = (o, v, val)
             try:
-                acked[key] = c.upload_rays("crash", o, v, val, idempotency_key=key,
+                acked[key] = c.upload_rays(str(DEFAULT), o, v, val, idempotency_key=key,
                                            binary=bool(i % 3), wait=bool(i % 2))
             except Exception:
                 if stop.is_set():
@@ -204,7 +207,7 @@ def test_kill9_of_a_replica_during_uploads_loses_nothing(group):
     sent, acked = {}, {}
     probe = paper_rays(rng, 300)
     with Client(a.url) as c:
-        c.create_field("crash", channels=1)
+        c.create_field(str(DEFAULT), channels=1)  # the default field: a covering atlas
     for rnd in range(3):
         stop = threading.Event()
         ts = [threading.Thread(target=_uploader, args=(srv.url, f"{tag}{rnd}",
@@ -219,7 +222,7 @@ def test_kill9_of_a_replica_during_uploads_loses_nothing(group):
         n_before = sum(k.startswith(f"b{rnd}") for k in acked)
         time.sleep(0.5)
         with Client(b.url) as cb:
-            cb.query_rays("crash", *probe)
+            cb.query_rays(str(DEFAULT), *probe)
         stop.set()
         for t in ts:
             t.join(60)
@@ -228,9 +231,9 @@ def test_kill9_of_a_replica_during_uploads_loses_nothing(group):
         a.wait_ready()
         head = max(r["position"] for r in acked.values())
         with Client(a.url) as ca:
-            ca.describe("crash", min_position=head)
-    nb = _verify(b.url, sent, acked, probe)
-    na = _verify(a.url, sent, acked, probe)
+            ca.describe(str(DEFAULT), min_position=head)
+    nb = _verify(b.url, DEFAULT, sent, acked, probe)
+    na = _verify(a.url, DEFAULT, sent, acked, probe)
     assert na == nb and acked
 
 
@@ -266,13 +269,13 @@ def test_kill9_of_the_replica_writing_a_snapshot(group, rng):
         o, v = paper_rays(rng, 500)
         rep = cb.upload_rays("f", o, v, rng.uniform(size=500))
         probe = paper_rays(rng, 300)
-        want = _answers(cb, "f", probe, rep["position"])
+        want = _answers(cb, "f", probe, rep["position"], weights=False)  # default: atlas
         r = httpx.post(b.url + "/v1/fields/f/snapshot", timeout=120)
         assert r.status_code == 200 and r.json()["batch"] == 5, r.text
         a = group("a2", snapshot_lease_seconds=5)
         a.wait_ready()
     with Client(a.url) as ca:
-        _identical(_answers(ca, "f", probe, rep["position"])[:2], want[:2])
+        _identical(_answers(ca, "f", probe, rep["position"], weights=False), want)
     assert [p.name for p in snaps.iterdir()] == ["f1-s5.snap"]  # the dead writer's file: gone
     assert "snapshot after batch 5 loaded" in (group.tmp / "a2.log").read_text()
 
@@ -303,21 +306,21 @@ def test_processes_2_share_one_port_and_one_data_dir(tmp_path, rng):
         assert out.returncode == 2
         assert "in use by another flatserve server" in out.stderr, out.stderr
         assert f"pid {srv.proc.pid}" in out.stderr
-        ref = _ref(1)
+        ref = DEFAULT.reference(1)
         with Client(srv.url) as c:
             c.create_field("f", channels=1)
         seen = set()
         for i in range(12):  # a new connection each time: either replica answers
             o, v = paper_rays(rng, 400)
             val = rng.uniform(size=400)
-            ref.add_rays(o, v, val)
+            add_rays(ref, o, v, val)
             with Client(srv.url) as c:
                 rep = c.upload_rays("f", o, v, val, wait=bool(i % 2))
             probe = paper_rays(rng, 50)
             with Client(srv.url) as c:
                 got = c.query_rays("f", *probe, min_position=rep["position"])
                 seen.add(httpx.get(srv.url + "/readyz").json()["pid"])
-            np.testing.assert_array_equal(got.values, ref.query_rays(*probe).values)
+            np.testing.assert_array_equal(got.values, query_rays(ref, *probe).values)
         assert seen <= set(kids)
         # a replica killed is restarted by the supervisor and catches up
         os.kill(kids[0], 9)

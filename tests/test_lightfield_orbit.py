@@ -37,12 +37,23 @@ STRADDLE_TOL_DB = 0.5
 SAME_TOL = 1e-12
 
 
-@pytest.fixture(scope="module")
-def run_result(tmp_path_factory):
-    out = tmp_path_factory.mktemp("orbit")
-    res = orbit_figure(out, n=N_SAMPLES, width=WIDTH, supersample=4, one_chart=True,
+def _run(tmp_path_factory, atlas):
+    out = tmp_path_factory.mktemp(f"orbit-{atlas}")
+    res = orbit_figure(out, n=N_SAMPLES, width=WIDTH, supersample=4, atlas=atlas, one_chart=True,
                        log=lambda s: None, progress=False)
     return out, res
+
+
+@pytest.fixture(scope="module")
+def run_result(tmp_path_factory):
+    """The command with the default covering atlas (12 charts)."""
+    return _run(tmp_path_factory, "covering")
+
+
+@pytest.fixture(scope="module")
+def fine_result(tmp_path_factory):
+    """The command with the finer covering (42 charts, trusted 24 degrees)."""
+    return _run(tmp_path_factory, "fine")
 
 
 @pytest.fixture(scope="module")
@@ -230,7 +241,7 @@ def test_cli_orbit(tmp_path, capsys):
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "measured: at 20,000 rays ours loses to the two-sphere 5-NN baseline on most views (5 of 24 won; "
+    "measured: at 20,000 rays ours loses to the two-sphere 5-NN baseline on most views (5 of 24 won; with the 42-chart covering 11 of 24; "
     "docs/orbit-results.md at 200,000: see the table); the charts of the 12-chart covering atlas "
     "stretch the embedding by 1/cos^2(2 theta) at theta from their centre (4x at 30 degrees)"))
 def test_ours_beats_the_nearest_rays_baseline_on_every_view(run_result):
@@ -242,25 +253,66 @@ def test_ours_beats_the_nearest_rays_baseline_on_every_view(run_result):
     assert not lost, lost
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "measured: views whose rays are blended from 2-3 charts lose up to 4 dB against the same view "
-    "inside one chart centred on it (the blended charts answer 25-37 degrees from their centres)"))
-def test_straddling_views_are_no_worse_than_inside_one_chart(run_result):
+def _straddle_penalties(res) -> list[tuple[str, float]]:
+    """(view, ours - one chart) in dB for the views that straddle chart borders."""
+    return [(r["view"], round(r["methods"]["ours"]["psnr"] - r["one_chart"]["psnr"], 2))
+            for r in res["views"] if r["routing"]["straddles"]]
+
+
+def test_straddling_views_are_no_worse_than_inside_one_chart(fine_result):
     """The issue's criterion: a view whose pixels straddle chart borders is no
     worse (within ``STRADDLE_TOL_DB``) than a view inside one chart at equal
-    sample density.
+    sample density; here with the finer covering (42 charts, every direction
+    within 20.8 degrees of a centre, weights 0 from 24 degrees).
 
     Equal density, honestly: the *same* view and the *same* sample rays,
     rendered twice: by the covering atlas (where the atlas's routing blends
-    two or three charts at some of the view's rays: it straddles) and by a
-    one-chart atlas of the same kind centred on the view's axis (every ray of
-    the view within the chart's inner radius: inside one chart).  Comparing
+    two or more charts at some of the view's rays: it straddles) and by a
+    one-chart atlas of the same radii centred on the view's axis (every ray
+    of the view answered by that chart alone: inside one chart).  Comparing
     different views instead would compare different parts of the bunny, and
     the difference between them (several dB) would drown the border's.
     """
-    _, res = run_result
-    straddling = [r for r in res["views"] if r["routing"]["straddles"]]
-    assert straddling
-    worse = [(r["view"], round(r["methods"]["ours"]["psnr"] - r["one_chart"]["psnr"], 2))
-             for r in straddling if r["methods"]["ours"]["psnr"] < r["one_chart"]["psnr"] - STRADDLE_TOL_DB]
+    _, res = fine_result
+    pen = _straddle_penalties(res)
+    assert len(pen) >= len(res["views"]) // 2  # most views straddle: the check has a subject
+    worse = [(v, p) for v, p in pen if p < -STRADDLE_TOL_DB]
     assert not worse, worse
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "measured: with the 12 charts of Atlas.covering(1, 3, oriented=True), views whose rays are blended "
+    "from 2-3 charts lose up to 4 dB against the same view inside one chart centred on it (the blended "
+    "charts answer up to 37 degrees from their centres, where the embedding is stretched 4-15x); "
+    "the 42-chart covering passes (test above)"))
+def test_straddling_views_are_no_worse_than_inside_one_chart_default_covering(run_result):
+    """As above, with the service's default covering atlas (12 charts)."""
+    _, res = run_result
+    worse = [(v, p) for v, p in _straddle_penalties(res) if p < -STRADDLE_TOL_DB]
+    assert not worse, worse
+
+
+@pytest.mark.parametrize("theta", [0.0, 10.0, 20.0, 30.0, 37.4, 40.0])
+def test_chart_stretch_off_centre(theta):
+    """Why wide charts blur light fields: a chart's embedding (tangent simplex
+    around its centre line) stretches a ray's tilt *within the plane of its
+    tilt* by ``1 / cos^2(2 theta)`` at ``theta`` from the centre, relative to
+    the centre, while a shift of the line stays as at the centre (largest and
+    smallest singular values of the Jacobian of ray -> embedded point).
+    Measured by finite differences: 14.5x at the 12-chart covering's radius of
+    37.4 degrees, 1.8x at the 42-chart covering's 20.8."""
+    from flatserve.basis import Basis
+    from flatserve.field import Field
+
+    f = Field(Basis.around_axis(axis=2, scale=1.0), channels=1)
+    t = math.radians(theta)
+    v = np.array([0.0, math.sin(t), math.cos(t)])
+    e1, h = np.array([1.0, 0.0, 0.0]), 1e-6
+    e2 = np.cross(v, e1)
+    O = [np.zeros(3), h * e1, h * e2, np.zeros(3), np.zeros(3)]
+    D = [v, v, v, v + h * e1, v + h * e2]
+    P = f.chart(flatserve.Flats.from_rays(np.array(O), np.array(D))).points
+    sv = np.linalg.svd((P[1:] - P[0]).T / h, compute_uv=False)
+    centre = 0.5  # every singular value at theta = 0
+    assert sv.max() / centre == pytest.approx(1 / math.cos(2 * t) ** 2, rel=1e-4)
+    assert sv.min() / centre == pytest.approx(1.0, rel=1e-4)

@@ -27,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     fig.add_argument("--rgb", action="store_true", help="RGB instead of grey")
     fig.add_argument("--no-baselines", action="store_true", help="skip the two-plane and nearest baselines")
 
-    from .orbit import DEFAULT_SAMPLES, SCENES, VIEW_WIDTH
+    from .orbit import ATLASES, DEFAULT_SAMPLES, SCENES, VIEW_WIDTH
 
     orb = sub.add_parser("orbit", help="360-degree light field: eyes all around, views all around, "
                                        "against the two-sphere nearest-rays baseline",
@@ -44,6 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     orb.add_argument("--supersample", type=int, default=4, help="rays per pixel (square number; default 4)")
     orb.add_argument("--rgb", action="store_true", help="RGB instead of grey")
     orb.add_argument("--scene", choices=sorted(SCENES), default="bunny", help="scene (default bunny)")
+    orb.add_argument("--atlas", choices=sorted(ATLASES), default="covering",
+                     help="covering: Atlas.covering (12 charts, the service's default); fine: 42 charts "
+                          "within 20.8 degrees of every direction (default covering)")
     orb.add_argument("--no-one-chart", action="store_true",
                      help="skip rendering each view from a one-chart atlas centred on its axis")
 
@@ -74,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             orbit_figure(args.out, n=args.samples, eyes=args.eyes, seed=args.seed, width=args.width,
                          supersample=args.supersample, channels=3 if args.rgb else 1,
-                         scene=args.scene, one_chart=not args.no_one_chart)
+                         scene=args.scene, atlas=args.atlas, one_chart=not args.no_one_chart)
         except (InvalidInputError, FileNotFoundError) as exc:
             print(f"flatserve lightfield orbit: {exc}", file=sys.stderr)
             return 2

@@ -238,6 +238,10 @@ def test_cli_orbit(tmp_path, capsys):
     args = p.parse_args(["orbit", "--out", str(tmp_path), "--samples", "0"])
     assert run(args) == 2
     assert "--samples" in capsys.readouterr().err
+    with pytest.raises(InvalidInputError, match="scene"):
+        orbit_figure(tmp_path, n=10, scene="teapot", log=lambda s: None, progress=False)
+    with pytest.raises(InvalidInputError, match="atlas"):
+        orbit_figure(tmp_path, n=10, atlas="dense", log=lambda s: None, progress=False)
 
 
 @pytest.mark.xfail(strict=True, reason=(

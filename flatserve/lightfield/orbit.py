@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atlas import Atlas, AtlasField
+from ..errors import InvalidInputError
 from ..flats import Flats
 from .baselines import IDW_POWER, TWO_SPHERE_K, TwoSphere
 from .camera import ORBIT_EYE_RADIUS, ORBIT_RADIUS, Camera
@@ -192,6 +193,10 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     dict
         The JSON table (also written to ``out/results.json``).
     """
+    if scene not in SCENES:
+        raise InvalidInputError(f"scene: expected one of {sorted(SCENES)}, got {scene!r}", "scene")
+    if atlas not in ATLASES:
+        raise InvalidInputError(f"atlas: expected one of {sorted(ATLASES)}, got {atlas!r}", "atlas")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}

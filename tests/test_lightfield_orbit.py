@@ -242,6 +242,9 @@ def test_cli_orbit(tmp_path, capsys):
         orbit_figure(tmp_path, n=10, scene="teapot", log=lambda s: None, progress=False)
     with pytest.raises(InvalidInputError, match="atlas"):
         orbit_figure(tmp_path, n=10, atlas="dense", log=lambda s: None, progress=False)
+    for unit in (0.0, -1.0, float("nan")):
+        with pytest.raises(InvalidInputError, match="unit"):
+            orbit_figure(tmp_path, n=10, unit=unit, log=lambda s: None, progress=False)
 
 
 @pytest.mark.xfail(strict=True, reason=(

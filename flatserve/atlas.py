@@ -80,6 +80,9 @@ __all__ = [
     "TRUSTED_DEG",
     "REACH_DEG",
     "COVER_TRAIN_DEG",
+    "COVER_RADII_3D",
+    "DEFAULT_UNIT",
+    "GEODESIC_AXES",
     "DEFAULT_SCALE",
     "ICOSAHEDRON_AXES",
     "Atlas",
@@ -121,6 +124,17 @@ COVER_TRAIN_DEG = 35.0
 #: 0.01 and 7e-9 to 3.9e-7 at 1; at offsets 10^4, 0.01 fails 16-28 % of the
 #: flats against the absolute ``ROUNDTRIP_TOL`` and 1 fails 0-0.5 %.
 DEFAULT_SCALE = 1.0
+#: The unit of length of a chart (:class:`Atlas` ``unit``): the shift of a
+#: line that its chart weighs as much as a turn of one radian.  1: lengths in
+#: the flats' own units (the paper's tangent simplex).
+DEFAULT_UNIT = 1.0
+#: Radii (``inner``, ``trusted``, ``reach``, degrees) of the covering atlases of
+#: lines and planes in R^3 (:data:`GEODESIC_AXES`, covering radius 22.69
+#: degrees): ``trusted`` 1.3 degrees beyond the covering radius, ``reach`` 3
+#: beyond ``trusted``, blending weight 1 up to half of ``trusted``.  A chart
+#: stretches a tilt by at most ``1/cos^2(2 trusted)`` = 2.2 (against 14.5 at
+#: the 6 icosahedral axes' 37.4 degrees); duplication (Haar-random lines) 1.75.
+COVER_RADII_3D = (12.0, 24.0, 27.0)
 #: Largest extra angle a covering must keep below ``trusted`` (degrees): the
 #: margin the checks of :meth:`Atlas.covering` require.
 COVER_MARGIN_DEG = 1.0
@@ -137,6 +151,26 @@ _ico = np.array([[0.0, 1.0, _GOLDEN], [0.0, 1.0, -_GOLDEN], [1.0, _GOLDEN, 0.0],
 #: degrees apart.
 ICOSAHEDRON_AXES = _ico / np.linalg.norm(_ico, axis=1, keepdims=True)
 ICOSAHEDRON_AXES.setflags(write=False)
+
+
+def _geodesic_axes() -> np.ndarray:
+    V = np.concatenate([ICOSAHEDRON_AXES, -ICOSAHEDRON_AXES])  # the 12 vertices
+    near = V @ V.T > 0.4  # neighbours: 63.43 degrees apart (cos 0.447)
+    faces = [(a, b, c) for a in range(12) for b in range(a + 1, 12) for c in range(b + 1, 12)
+             if near[a, b] and near[a, c] and near[b, c]]
+    F = np.array([V[list(f)].sum(axis=0) for f in faces])  # 20 face centres
+    F = F / np.linalg.norm(F, axis=1, keepdims=True)
+    F = F[(F @ np.array([1.0, 2.0, 3.0])) > 0]  # one of each opposite pair: 10 axes
+    return np.concatenate([ICOSAHEDRON_AXES, F])
+
+
+#: 16 axes: the icosahedron's 6 vertex axes and its 10 face axes (the 32
+#: vertices of the pentakis dodecahedron, as oriented directions).  Every
+#: direction is within 22.69 degrees of one of them (measured on 200,000
+#: directions; :meth:`Atlas.covering` stores its measurement); neighbouring
+#: axes are 37.38 degrees apart.
+GEODESIC_AXES = _geodesic_axes()
+GEODESIC_AXES.setflags(write=False)
 
 
 # ------------------------------------------------------------------------ geometry
@@ -295,7 +329,7 @@ def _cover_frames(k: int, d: int, train_deg: float, seed: int, n_train: int) -> 
     if j == 0:
         return np.zeros((1, d, 0))
     if (k, d) in ((1, 3), (2, 3)):
-        return ICOSAHEDRON_AXES[:, :, None].copy()
+        return GEODESIC_AXES[:, :, None].copy()
     rng = np.random.default_rng(seed)
     T = haar_frames(n_train, d, j, rng)
     first = np.eye(d)[:, d - j:]
@@ -364,6 +398,18 @@ class Atlas:
         Rays keep their direction (k = 1 only).
     inner, trusted, reach : float
         Degrees, ``0 <= inner < trusted <= reach < 45`` (module docstring).
+    unit : float
+        The unit of length of the charts (positive, in the flats' units): the
+        shift of a flat that a chart weighs as much as a turn of one radian.
+        At a chart's centre the tangent simplex moves its flats by ``scale``
+        radians of turn and ``scale * unit`` of shift, so a chart of unit
+        ``u`` gives a flat the coordinates the unit-1 chart gives the flat
+        scaled by ``1/u`` about the origin.  Samples whose values change
+        along a shift about as fast as along a turn of ``1/u`` radians are
+        interpolated best: for rays of an object, ``u`` about its half-size
+        (rays that meet on its surface at depth ``z`` from its centre differ
+        by a shift of ``z`` times their turn).  Default
+        :data:`DEFAULT_UNIT` (the paper's chart).
 
     Attributes
     ----------
@@ -377,7 +423,8 @@ class Atlas:
 
     def __init__(self, k: int, d: int, center_A, center_N, center_r, scales, *,
                  oriented: bool = False, inner: float = INNER_DEG,
-                 trusted: float = TRUSTED_DEG, reach: float = REACH_DEG):
+                 trusted: float = TRUSTED_DEG, reach: float = REACH_DEG,
+                 unit: float = DEFAULT_UNIT):
         d = int(d)
         k = _flats.check_k(k, d)
         if oriented and k != 1:
@@ -386,6 +433,10 @@ class Atlas:
         inner = _in_units(inner, "inner")
         trusted = _in_units(trusted, "trusted")
         reach = _in_units(reach, "reach")
+        if not (isinstance(unit, (int, float, np.floating, np.integer))
+                and not isinstance(unit, bool) and math.isfinite(unit) and unit > 0):
+            raise InvalidInputError(f"unit: expected a positive length, got {unit!r}", "unit")
+        unit = float(unit)
         if not 0 <= inner < trusted <= reach < CHART_LIMIT_DEG:
             raise InvalidInputError(
                 f"trusted: need 0 <= inner < trusted <= reach < {CHART_LIMIT_DEG:g} degrees, got "
@@ -399,14 +450,14 @@ class Atlas:
             raise InvalidInputError(f"scales: expected one scale per centre ({c}), got "
                                     f"{s.shape}", "scales")
         self.k, self.d, self.oriented = k, d, bool(oriented)
-        self.inner, self.trusted, self.reach = inner, trusted, reach
+        self.inner, self.trusted, self.reach, self.unit = inner, trusted, reach, unit
         self.center_A, self.center_N, self.center_r, self.scales = A, N, r, s
         self.frames = N if _use_normals(k, d) else A
         self.bases = []
         for i in range(c):
             Q = N[i] @ N[i].T
             try:
-                B = Basis.tangent_simplex(Q, r[i], k, float(s[i]), frames=(A[i], N[i]))
+                B = _unit_simplex(Q, r[i], k, float(s[i]), (A[i], N[i]), unit)
             except InvalidInputError as exc:
                 raise InvalidInputError(f"centers: chart {i}: {exc}", "centers") from None
             self.bases.append(B)
@@ -415,17 +466,33 @@ class Atlas:
     # ----------------------------------------------------------------- builders
     @classmethod
     def covering(cls, k: int, d: int, *, oriented: bool = False, scale: float = DEFAULT_SCALE,
-                 inner: float = INNER_DEG, trusted: float = TRUSTED_DEG,
-                 reach: float = REACH_DEG, train_deg: float = COVER_TRAIN_DEG,
+                 inner: float | None = None, trusted: float | None = None,
+                 reach: float | None = None, train_deg: float = COVER_TRAIN_DEG,
                  seed: int = 0, check_n: int = COVER_CHECK_N,
-                 n_train: int = COVER_TRAIN_N) -> "Atlas":
+                 n_train: int = COVER_TRAIN_N, unit: float = DEFAULT_UNIT) -> "Atlas":
         """An atlas whose charts hold every k-flat of R^d, centres through the origin.
 
-        Centres: for lines (and planes) in R^3 the 6 axes of the icosahedron
-        (:data:`ICOSAHEDRON_AXES`, covering radius 37.38 degrees); otherwise a
-        greedy farthest-point cover of ``n_train`` Haar-random subspaces
-        (seeded), started at the span of the last axes, until every one is
-        within ``train_deg`` of a centre.  The covering radius is then
+        Centres.  A chart is accurate near its centre only: its embedding
+        stretches a flat's tilt by ``1/cos^2(2 theta)`` at ``theta`` from the
+        centre (4x at 30 degrees, 14.5x at 37.4), so its Delaunay cells join
+        ever more distant flats; and every sample is stored in each chart
+        closer than ``reach`` (memory).  The centres are therefore as many
+        as keep the charts narrow while the duplication (charts per sample)
+        stays below 2: a covering of radius ``rho`` with ``c`` centres
+        stores ``c * vol(reach) / vol(sphere)`` samples per sample, at least
+        the covering's density (about 1.2-1.4 for good coverings) times
+        ``vol(rho + margins) / vol(rho)``, which grows as ``rho`` shrinks.
+        For lines and planes in R^3 (directions on the sphere) the 16 axes of
+        :data:`GEODESIC_AXES` (icosahedron vertices and face centres;
+        covering radius 22.69 degrees, radii :data:`COVER_RADII_3D`,
+        duplication 1.75 for Haar-random lines; the 6 icosahedral axes'
+        37.4 degrees stretch 14.5x, 42 subdivided-icosahedron directions
+        need 2.0).  Otherwise (the space of k-subspaces grows as
+        ``k (d - k)`` dimensions, so narrow charts would need hundreds to
+        thousands of centres): a greedy farthest-point cover of ``n_train``
+        Haar-random subspaces (seeded), started at the span of the last
+        axes, until every one is within ``train_deg`` of a centre, with the
+        radii :data:`INNER_DEG`, :data:`TRUSTED_DEG`, :data:`REACH_DEG`.  The covering radius is then
         measured on ``check_n`` fresh Haar-random subspaces and must be below
         ``trusted - COVER_MARGIN_DEG`` (stored in :attr:`info`).  Oriented
         atlases (rays) add every centre's negative.
@@ -436,12 +503,16 @@ class Atlas:
         oriented : bool
         scale : float
             Tangent-simplex scale of every chart (:data:`DEFAULT_SCALE`).
-        inner, trusted, reach : float
-            Degrees (module docstring).
+        inner, trusted, reach : float, optional
+            Degrees (module docstring); default :data:`COVER_RADII_3D` for
+            d = 3, else :data:`INNER_DEG`, :data:`TRUSTED_DEG`,
+            :data:`REACH_DEG`.
         train_deg : float
             Radius of the greedy cover on the training sample.
         seed : int
         check_n, n_train : int
+        unit : float
+            The charts' unit of length (:class:`Atlas`).
 
         Returns
         -------
@@ -455,6 +526,9 @@ class Atlas:
         """
         d = int(d)
         k = _flats.check_k(k, d)
+        radii = COVER_RADII_3D if d == 3 else (INNER_DEG, TRUSTED_DEG, REACH_DEG)
+        inner, trusted, reach = (radii[i] if v is None else v
+                                 for i, v in enumerate((inner, trusted, reach)))
         C = _cover_frames(k, d, float(train_deg), int(seed), int(n_train))
         normals = _use_normals(k, d)
         comp = np.stack([_complement(f) for f in C]) if k and C.shape[2] else None
@@ -467,7 +541,7 @@ class Atlas:
         if oriented:
             A, N = np.concatenate([A, -A]), np.concatenate([N, N])
         atlas = cls(k, d, A, N, np.zeros((A.shape[0], d)), np.full(A.shape[0], float(scale)),
-                    oriented=oriented, inner=inner, trusted=trusted, reach=reach)
+                    oriented=oriented, inner=inner, trusted=trusted, reach=reach, unit=unit)
         key = (k, d, bool(oriented), float(train_deg), int(seed), int(n_train), int(check_n))
         radius = _COVER_RADIUS.get(key)  # the same centres, the same seeded measurement
         if radius is None:
@@ -486,7 +560,8 @@ class Atlas:
     def from_centers(cls, centers: Flats, scales=DEFAULT_SCALE, *, oriented: bool = False,
                      inner: float = INNER_DEG, trusted: float = TRUSTED_DEG,
                      reach: float = REACH_DEG, require_cover: bool = True,
-                     check_n: int = COVER_CHECK_N, seed: int = 0) -> "Atlas":
+                     check_n: int = COVER_CHECK_N, seed: int = 0,
+                     unit: float = DEFAULT_UNIT) -> "Atlas":
         """An atlas with the given centre flats, checked to cover every orientation.
 
         Parameters
@@ -499,6 +574,8 @@ class Atlas:
             Measure the covering radius on ``check_n`` Haar-random subspaces
             (oriented: directions) and refuse centres that leave some farther
             than ``trusted`` from every centre.
+        unit : float
+            The charts' unit of length (:class:`Atlas`).
 
         Raises
         ------
@@ -521,7 +598,7 @@ class Atlas:
         if not (np.isfinite(s).all() and (s > 0).all()):
             raise InvalidInputError("scales: expected positive numbers", "scales")
         atlas = cls(k, d, A, N, r, s, oriented=oriented, inner=inner, trusted=trusted,
-                    reach=reach)
+                    reach=reach, unit=unit)
         for i, B in enumerate(atlas.bases):
             rep = B.check()
             if not rep.ok:
@@ -548,7 +625,7 @@ class Atlas:
                     fraction: float = 0.99, inner: float = INNER_DEG,
                     trusted: float = TRUSTED_DEG, reach: float = REACH_DEG,
                     max_scale_samples: int = 5000, max_cluster_samples: int = 20_000,
-                    seed: int = 0, refine: int = 3) -> "Atlas":
+                    seed: int = 0, refine: int = 3, unit: float = DEFAULT_UNIT) -> "Atlas":
         """A data-driven atlas: charts where the samples' orientations are.
 
         1. Greedy cover of the samples' direction spaces (largest principal
@@ -582,6 +659,9 @@ class Atlas:
             samples until each is within ``radius``.  The bisection uses at
             most ``max_scale_samples`` per chart.
         seed, refine : int
+        unit : float
+            The charts' unit of length (:class:`Atlas`; the bisection
+            chooses each chart's scale in this unit).
 
         Returns
         -------
@@ -671,7 +751,7 @@ class Atlas:
             sub = rows if rows.size <= max_scale_samples else rng.choice(
                 rows, max_scale_samples, replace=False)
             sel = select_scale(Q[sub], r[sub], lambda sc, Qc=Qc, rc=rc, a=a, n=n:
-                               Basis.tangent_simplex(Qc, rc, k, sc, frames=(a, n)),
+                               _unit_simplex(Qc, rc, k, sc, (a, n), unit),
                                fraction=fraction, lo=1e-3, hi=1e3)
             As.append(a)
             Ns.append(n)
@@ -680,19 +760,20 @@ class Atlas:
             counts.append(int(rows.size))
             cover.append(sel.coverage)
         atlas = cls(k, d, np.stack(As), np.stack(Ns), np.stack(rs), np.array(ss),
-                    oriented=oriented, inner=inner, trusted=trusted, reach=reach)
+                    oriented=oriented, inner=inner, trusted=trusted, reach=reach, unit=unit)
         atlas.info = {"method": "samples", "centres": len(As), "radius_deg": radius,
                       "max_sample_angle_deg": float(np.degrees(D.min(axis=1).max())),
                       "samples_per_chart": counts, "convex_coverage": cover}
         return atlas
 
     # ------------------------------------------------------------------ queries
-    def probe(self, chart: int, distance: float = 1.0) -> str:
+    def probe(self, chart: int, distance: float | None = None) -> str:
         """Check that a chart round-trips flats at the edge of its domain.
 
         Probe flats: the centre with each spanning vector ``a_i`` turned by
         ``reach`` toward each normal ``n_j``, moved by ``distance`` along
-        ``n_j``; and the centre moved by ``distance`` along each ``n_j``.
+        ``n_j``; and the centre moved by ``distance`` along each ``n_j``
+        (default: the atlas's ``unit``).
 
         Returns
         -------
@@ -701,6 +782,7 @@ class Atlas:
         """
         A, N, r0 = self.center_A[chart], self.center_N[chart], self.center_r[chart]
         k, d = self.k, self.d
+        distance = self.unit if distance is None else float(distance)
         t = math.radians(self.reach)
         As, bs = [], []
         for j in range(d - k):
@@ -733,7 +815,8 @@ class Atlas:
 
     def __repr__(self) -> str:
         return (f"Atlas(k={self.k}, d={self.d}, charts={self.ncharts}, oriented={self.oriented}, "
-                f"inner={self.inner:g}, trusted={self.trusted:g}, reach={self.reach:g})")
+                f"inner={self.inner:g}, trusted={self.trusted:g}, reach={self.reach:g}, "
+                f"unit={self.unit:g})")
 
     def check_flats(self, flats: Flats) -> Flats:
         """Check that ``flats`` fit the atlas (dimension, orientation).
@@ -866,7 +949,7 @@ class Atlas:
     def to_dict(self) -> dict:
         """JSON-able description (centres, scales, radii); :meth:`from_dict` inverts it."""
         return {"k": self.k, "d": self.d, "oriented": self.oriented, "inner": self.inner,
-                "trusted": self.trusted, "reach": self.reach,
+                "trusted": self.trusted, "reach": self.reach, "unit": self.unit,
                 "center_A": self.center_A.tolist(), "center_N": self.center_N.tolist(),
                 "center_r": self.center_r.tolist(), "scales": self.scales.tolist(),
                 "info": self.info}
@@ -877,9 +960,22 @@ class Atlas:
         atlas = cls(int(spec["k"]), int(spec["d"]), np.array(spec["center_A"]),
                     np.array(spec["center_N"]), np.array(spec["center_r"]),
                     np.array(spec["scales"]), oriented=bool(spec["oriented"]),
-                    inner=spec["inner"], trusted=spec["trusted"], reach=spec["reach"])
+                    inner=spec["inner"], trusted=spec["trusted"], reach=spec["reach"],
+                    unit=spec.get("unit", DEFAULT_UNIT))
         atlas.info = dict(spec.get("info", {}))
         return atlas
+
+
+def _unit_simplex(Q, r, k: int, scale: float, frames, unit: float) -> Basis:
+    """The tangent simplex around the flat (Q, r) whose shifts are ``unit`` times
+    its turns: the unit-1 simplex around (Q, r / unit), scaled by ``unit`` about
+    the origin (Atlas ``unit``)."""
+    if unit == 1.0:
+        return Basis.tangent_simplex(Q, r, k, scale, frames=frames)
+    B = Basis.tangent_simplex(Q, np.asarray(r) / unit, k, scale, frames=frames)
+    U = Basis(B.Q, B.r * unit, k)
+    U.center, U.scale, U.variant = (B.center[0], B.center[1] * unit), B.scale, B.variant
+    return U
 
 
 def _refine(C, dist, mean, rad, rounds, force=False):
@@ -1261,14 +1357,14 @@ class AtlasField:
         Returns
         -------
         dict
-            ``{"k", "d", "oriented", "inner", "trusted", "reach", "info",
+            ``{"k", "d", "oriented", "inner", "trusted", "reach", "unit", "info",
             "nsamples", "nstored", "duplication", "charts": [{"center": {"A",
             "r"}, "scale", "samples"}, ...]}``.
         """
         at = self.atlas
         return {
             "k": at.k, "d": at.d, "oriented": at.oriented, "inner": at.inner,
-            "trusted": at.trusted, "reach": at.reach, "info": at.info,
+            "trusted": at.trusted, "reach": at.reach, "unit": at.unit, "info": at.info,
             "nsamples": self.nsamples, "nstored": self.nstored,
             "duplication": None if not self._nsamples else self.duplication,
             "charts": [{"center": {"A": at.center_A[i].tolist(), "r": at.center_r[i].tolist()},

@@ -201,14 +201,16 @@ class Client:
     # -- fields -------------------------------------------------------------
     def create_field(self, name: str, *, k: int = 1, d: int = 3, channels: int = 1,
                      basis: dict | None = None, oriented: bool | None = None,
-                     roundtrip_tol: float | None = None) -> dict:
+                     roundtrip_tol: float | None = None, unit: float | None = None) -> dict:
         """Create a field; returns its description.
 
         ``basis`` left out: a covering atlas (every orientation accepted), of rays
         when ``oriented`` (k = 1; uploads and queries must then be rays). One chart:
         ``{"kind": "tangent_simplex", "scale": 0.01}`` or ``{"kind": "flats", "Q":
         Q.tolist(), "r": r.tolist()}``. An atlas for given flats: ``{"kind": "atlas",
-        "atlas": "samples", "samples": {"origins": ..., "directions": ...}}``."""
+        "atlas": "samples", "samples": {"origins": ..., "directions": ...}}``.
+        ``unit``: an atlas's unit of length (the shift that counts as much as a turn
+        of one radian; for rays of an object about its half-size; default 1)."""
         body: dict[str, Any] = {"name": name, "k": k, "d": d, "channels": channels}
         if basis is not None:
             body["basis"] = basis
@@ -216,6 +218,8 @@ class Client:
             body["oriented"] = oriented
         if roundtrip_tol is not None:
             body["roundtrip_tol"] = roundtrip_tol
+        if unit is not None:
+            body["unit"] = unit
         return self._request("POST", "/v1/fields", json=body, retry=False).json()
 
     def list_fields(self) -> list[dict]:

@@ -13,6 +13,9 @@ import pytest
 
 from flatserve import Field, Flats
 from flatserve.atlas import (
+    COVER_MARGIN_DEG,
+    COVER_RADII_3D,
+    GEODESIC_AXES,
     ICOSAHEDRON_AXES,
     Atlas,
     AtlasField,
@@ -85,13 +88,41 @@ def test_bump_is_a_smooth_step():
 
 
 def test_icosahedral_axes_cover_lines_in_r3():
-    a = Atlas.covering(1, 3)
+    a = Atlas.from_centers(Flats.from_rays(np.zeros((6, 3)), ICOSAHEDRON_AXES))
     assert a.ncharts == 6
     # the face-centre direction is the farthest from every axis: 37.38 degrees
     face = ICOSAHEDRON_AXES[0] + ICOSAHEDRON_AXES[2] + ICOSAHEDRON_AXES[4]
     ang = np.degrees(max_principal_angle(a.frames, (face / np.linalg.norm(face))[None, :, None]))
     assert ang.min() == pytest.approx(37.377, abs=1e-3)
     assert a.info["covering_radius_deg"] <= ang.min() + 1e-9
+
+
+def test_covering_of_lines_in_r3_is_narrow_and_within_the_memory_budget():
+    """The default covering of (oriented) lines in R^3: the 16 axes of GEODESIC_AXES,
+    every direction well inside a chart, at most 2 charts per sample on average."""
+    a = Atlas.covering(1, 3)
+    assert a.ncharts == 16 and (a.inner, a.trusted, a.reach) == COVER_RADII_3D
+    # the 6 icosahedral axes are among the centres, and the 10 face axes
+    assert (np.abs(ICOSAHEDRON_AXES @ GEODESIC_AXES.T).max(axis=1) > 1 - 1e-12).all()
+    # measured again on a denser independent sample: the stored radius is the covering's
+    fib = np.arange(1_000_000) + 0.5
+    z = 1 - 2 * fib / fib.size
+    phi = np.pi * (1 + 5 ** 0.5) * fib
+    dirs = np.c_[np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z]
+    dense = float(np.degrees(np.arccos(np.abs(dirs @ GEODESIC_AXES.T).max(axis=1).min())))
+    radius = a.info["covering_radius_deg"]
+    print(f"covering radius {radius:.3f} (dense check {dense:.3f}), margin to trusted "
+          f"{a.trusted - radius:.2f} degrees")
+    assert abs(dense - radius) < 0.05  # both measure the same supremum from below
+    assert radius < a.trusted - COVER_MARGIN_DEG
+    o = a.covering(1, 3, oriented=True)
+    assert o.ncharts == 32 and o.info["covering_radius_deg"] == pytest.approx(radius, abs=0.05)
+    rng = np.random.default_rng(4)
+    v = rng.standard_normal((200_000, 3))
+    dup = a.held(Flats.from_rays(np.zeros_like(v), v), a.reach).sum() / v.shape[0]
+    dup_o = o.held(Flats.from_rays(np.zeros_like(v), v), o.reach).sum() / v.shape[0]
+    print(f"duplication (uniform directions): {dup:.3f} (lines), {dup_o:.3f} (rays)")
+    assert dup <= 2.0 and dup_o <= 2.0
 
 
 # ------------------------------------------------------------------ coverage
@@ -125,18 +156,45 @@ def test_covering_atlas_charts_every_flat(k, d):
             assert (co.status == OK).all(), (c, co.residual.max())
 
 
+@pytest.mark.parametrize("unit", [0.5, 3.0])
+def test_unit_is_the_same_chart_of_flats_scaled_by_its_inverse(unit):
+    """A chart of unit u gives a flat the coordinates the unit-1 chart gives the
+    flat scaled by 1/u about the origin (also off-origin centres); the unit is
+    kept by to_dict/from_dict (what snapshots and the service store)."""
+    rng = np.random.default_rng(11)
+    o, v = random_rays(rng, 2000)
+    c0, axes = rng.normal(size=(12, 3)), np.concatenate([ICOSAHEDRON_AXES, -ICOSAHEDRON_AXES])
+    a = Atlas.from_centers(Flats.from_rays(c0, axes), oriented=True, unit=unit)
+    s = Atlas.from_centers(Flats.from_rays(c0 / unit, axes), oriented=True)
+    ro = a.route(Flats.from_rays(o, v), a.reach)  # each chart's domain
+    for c, rows in enumerate(ro.rows):
+        w = a.bases[c].coordinates_rays(o[rows], v[rows]).weights
+        ws = s.bases[c].coordinates_rays(o[rows] / unit, v[rows]).weights
+        np.testing.assert_allclose(w, ws, rtol=0, atol=1e-8)
+    b = Atlas.from_dict(a.to_dict())
+    assert b.unit == unit
+    np.testing.assert_array_equal(b.bases[3].r, a.bases[3].r)
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf"), "1", True])
+def test_unit_must_be_a_positive_length(bad):
+    with pytest.raises(InvalidInputError) as exc:
+        Atlas.covering(1, 3, unit=bad)
+    assert exc.value.argument == "unit"
+
+
 def test_oriented_covering_radius_and_routing():
     a = Atlas.covering(1, 3, oriented=True)
-    assert a.ncharts == 12
-    assert a.info["covering_radius_deg"] < 37.5
+    assert a.ncharts == 32
+    assert a.info["covering_radius_deg"] < a.trusted - COVER_MARGIN_DEG
     rng = np.random.default_rng(3)
     o, v = random_rays(rng, 1000)
     ro = a.route(Flats.from_rays(o, v), a.reach)
     ro2 = a.route(Flats.from_rays(o, -v), a.reach)
     # a ray and its reverse never share a chart; the reverse goes to the negated centres
-    for c in range(6):
+    for c in range(16):
         assert np.intersect1d(ro.rows[c], ro2.rows[c]).size == 0
-        np.testing.assert_array_equal(ro.rows[c], ro2.rows[c + 6])
+        np.testing.assert_array_equal(ro.rows[c], ro2.rows[c + 16])
 
 
 def test_atlas_refuses_what_does_not_cover():
@@ -222,12 +280,15 @@ def test_deep_inside_a_chart_equals_the_single_chart_field(lines_field):
     single = Field(atlas.bases[c], channels=1)
     single.add(Flats.from_rays(o, v), line_fn(o, v))  # rejects what its chart cannot hold
     rng = np.random.default_rng(9)
-    # directions within 15 degrees of centre c: every other centre is > 40 degrees away
+    # directions within (nearest other centre - trusted) of centre c: every other
+    # centre is farther than trusted
     u = atlas.frames[c, :, 0]
+    sep = np.degrees(np.sort(max_principal_angle(atlas.frames, u[None, :, None])[0])[1])
+    deep = sep - atlas.trusted - 0.1
     w = rng.standard_normal((3000, 3))
     w -= np.outer(w @ u, u)
     w /= np.linalg.norm(w, axis=1, keepdims=True)
-    t = np.radians(rng.uniform(0, 15, 3000))
+    t = np.radians(rng.uniform(0, deep, 3000))
     qv = np.cos(t)[:, None] * u + np.sin(t)[:, None] * w
     qo = rng.uniform(-0.8, 0.8, (3000, 3))
     f = Flats.from_rays(qo, qv)

@@ -45,11 +45,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     orb.add_argument("--rgb", action="store_true", help="RGB instead of grey")
     orb.add_argument("--scene", choices=sorted(SCENES), default="bunny", help="scene (default bunny)")
     orb.add_argument("--atlas", choices=sorted(ATLASES), default="covering",
-                     help="covering: Atlas.covering (12 charts, the service's default); fine: 42 charts "
-                          "within 20.8 degrees of every direction (default covering)")
-    orb.add_argument("--unit", type=float, default=1.0,
-                     help="length unit of the field's coordinates in world units (default 1; 0.5: the "
-                          "object's half-size): origins are divided by it; the baseline is unchanged")
+                     help="covering: Atlas.covering (32 charts, the service's default); fine: 42 charts "
+                          "within 20.8 degrees of every direction; icosahedral: the former 12-chart "
+                          "default (default covering)")
+    orb.add_argument("--unit", type=float, default=None,
+                     help="the atlas's unit of length in world units: the shift of a ray that counts "
+                          "as much as a turn of one radian (default 0.5, the scenes' half-size; 1: "
+                          "world units); the baseline is unchanged")
     orb.add_argument("--no-one-chart", action="store_true",
                      help="skip rendering each view from a one-chart atlas centred on its axis")
 

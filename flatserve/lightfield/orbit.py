@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atlas import Atlas, AtlasField
+from ..atlas import ICOSAHEDRON_AXES, Atlas, AtlasField
 from ..errors import InvalidInputError
 from ..flats import Flats
 from .baselines import IDW_POWER, TWO_SPHERE_K, TwoSphere
@@ -46,7 +46,7 @@ from .quality import psnr, ssim
 from .render import frame_from_rays, render_field, render_truth
 from .sampling import ProgressBar, blocks_scene, build_atlas_field, bunny_scene, orbit_samples
 
-__all__ = ["orbit_views", "view_charts", "one_chart_atlas", "fine_atlas", "orbit_figure", "SCENES", "ATLASES",
+__all__ = ["orbit_views", "view_charts", "one_chart_atlas", "fine_atlas", "icosahedral_atlas", "SCENE_HALF_SIZE", "orbit_figure", "SCENES", "ATLASES",
            "DEFAULT_SAMPLES", "AZIMUTHS", "ELEVATIONS", "VIEW_DISTANCE", "VIEW_FOCAL",
            "VIEW_WIDTH"]
 
@@ -127,10 +127,11 @@ def one_chart_atlas(atlas: Atlas, axis) -> Atlas:
     _, V = np.linalg.eigh(np.outer(a, a))
     N = V[:, :2]  # the two eigenvectors orthogonal to a
     return Atlas(1, 3, a[None, :, None], N[None], np.zeros((1, 3)), atlas.scales[:1],
-                 oriented=True, inner=atlas.inner, trusted=atlas.trusted, reach=atlas.reach)
+                 oriented=True, inner=atlas.inner, trusted=atlas.trusted, reach=atlas.reach,
+                 unit=atlas.unit)
 
 
-def fine_atlas() -> Atlas:
+def fine_atlas(unit: float = 1.0) -> Atlas:
     """A finer oriented covering: 42 charts, centred on the vertices of a once-subdivided icosahedron.
 
     Every direction is within 20.8 degrees of a centre (measured by
@@ -144,11 +145,24 @@ def fine_atlas() -> Atlas:
     c = icosphere(1).vertices
     inner, trusted, reach = FINE_RADII
     return Atlas.from_centers(Flats.from_rays(np.zeros_like(c), c), oriented=True, inner=inner,
-                              trusted=trusted, reach=reach)
+                              trusted=trusted, reach=reach, unit=unit)
 
 
-#: Atlases of ``flatserve lightfield orbit --atlas``: name -> builder.
-ATLASES = {"covering": lambda: Atlas.covering(1, 3, oriented=True), "fine": fine_atlas}
+def icosahedral_atlas(unit: float = 1.0) -> Atlas:
+    """The former default covering: 12 charts around the 6 icosahedral axes and their
+    negatives (covering radius 37.4 degrees), weight 1 up to 20 degrees, 0 from 40,
+    samples in every chart closer than 44 (duplication 1.68): for comparison."""
+    return Atlas.from_centers(Flats.from_rays(np.zeros((12, 3)), np.concatenate(
+        [ICOSAHEDRON_AXES, -ICOSAHEDRON_AXES])), oriented=True, inner=20.0, trusted=40.0,
+        reach=44.0, unit=unit)
+
+
+#: Atlases of ``flatserve lightfield orbit --atlas``: name -> builder(unit).
+ATLASES = {"covering": lambda unit=1.0: Atlas.covering(1, 3, oriented=True, unit=unit),
+           "fine": fine_atlas, "icosahedral": icosahedral_atlas}
+#: The scenes fill the unit box: half its side is the length the charts weigh as
+#: much as a radian of turn (:class:`flatserve.atlas.Atlas` ``unit``) by default.
+SCENE_HALF_SIZE = 0.5
 
 
 def _scores(image, truth, covered) -> dict:
@@ -158,7 +172,7 @@ def _scores(image, truth, covered) -> dict:
 
 def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed: int = 0,
                  width: int = VIEW_WIDTH, supersample: int = 4, channels: int = 1,
-                 scene: str = "bunny", atlas: str = "covering", unit: float = 1.0,
+                 scene: str = "bunny", atlas: str = "covering", unit: float | None = None,
                  one_chart: bool = True, log=print,
                  progress: bool = True) -> dict:
     """Build the 360-degree light field and write the views, the contact sheet and the table.
@@ -180,18 +194,16 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     scene : str
         A key of :data:`SCENES`.
     atlas : str
-        A key of :data:`ATLASES`: the default covering (12 charts) or the
-        finer one (:func:`fine_atlas`).
-    unit : float
-        The length unit of our field's coordinates, in world units: rays are
-        stored and queried with their origins divided by ``unit`` (the
-        lines scaled about the object's centre; directions unchanged).  A
-        chart weighs a shift of a line against a turn of it as 1 length unit
-        to 1 radian (isotropic at its centre), so the unit sets how far in
-        position two rays may be and still count as near as two rays a
-        radian apart.  1: world units (the sampled ball has radius 1); 0.5:
-        the objects' half-size (the scenes fill the unit box).  The baseline
-        and the ground truth always use world units.
+        A key of :data:`ATLASES`: the library's default covering (32
+        charts), the 42-chart :func:`fine_atlas` or the former 12-chart
+        :func:`icosahedral_atlas`.
+    unit : float, optional
+        The atlas's unit of length (:class:`flatserve.atlas.Atlas` ``unit``),
+        in world units: the shift of a ray that its charts weigh as much as a
+        turn of one radian (isotropic at a chart's centre).  Default
+        :data:`SCENE_HALF_SIZE` (0.5: the scenes fill the unit box; rays that
+        meet on the surface at depth ``z`` from the centre differ by a shift
+        of ``z`` times their turn); 1: world units (the paper's chart).
     one_chart : bool
         Also render every view from a one-chart atlas centred on its axis
         (:func:`one_chart_atlas`, the same samples).
@@ -208,6 +220,8 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         raise InvalidInputError(f"scene: expected one of {sorted(SCENES)}, got {scene!r}", "scene")
     if atlas not in ATLASES:
         raise InvalidInputError(f"atlas: expected one of {sorted(ATLASES)}, got {atlas!r}", "atlas")
+    if unit is None:
+        unit = SCENE_HALF_SIZE
     if not (isinstance(unit, (int, float)) and math.isfinite(unit) and unit > 0):
         raise InvalidInputError(f"unit: expected a positive length, got {unit!r}", "unit")
     out = Path(out)
@@ -222,8 +236,8 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         f"{timings['sample_and_shade']:.2f} s")
 
     bar = ProgressBar("building atlas field", n) if progress else None
-    field, stats = build_atlas_field(samples.origins / unit, samples.directions, values,
-                                     atlas=ATLASES[atlas](), progress=bar)
+    field, stats = build_atlas_field(samples.origins, samples.directions, values,
+                                     atlas=ATLASES[atlas](unit), progress=bar)
     timings["field_build"] = stats.seconds
     log(f"atlas field: {field.atlas.ncharts} charts, {stats.accepted:,} samples accepted, "
         f"{stats.rejected:,} rejected, {field.nstored:,} vertices over the charts "
@@ -236,8 +250,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     views = orbit_views(width, supersample)
     for name, cam in views:
         truth = render_truth(sc, cam)
-        scaled = cam.with_(eye=cam.eye / unit)  # the same lines in the field's unit
-        fr = render_field(field, scaled, fill=sc.background)
+        fr = render_field(field, cam, fill=sc.background)
         o, d = cam.rays()
         t = time.perf_counter()
         v, ins = base(o, d)
@@ -253,9 +266,9 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         if one_chart:
             t = time.perf_counter()
             single = AtlasField(one_chart_atlas(field.atlas, cam.rotation[:, 2]), channels)
-            single.add(Flats.from_rays(samples.origins / unit, samples.directions), values)
+            single.add(Flats.from_rays(samples.origins, samples.directions), values)
             build = time.perf_counter() - t
-            sfr = render_field(single, scaled, fill=sc.background)
+            sfr = render_field(single, cam, fill=sc.background)
             row["one_chart"] = {**_scores(sfr.image, truth.image, sfr.covered & common),
                                 "coverage": float(sfr.covered.mean()), "seconds": sfr.seconds,
                                 "build_seconds": build, "samples": single.nsamples,
@@ -284,6 +297,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         "eye_radius": ORBIT_EYE_RADIUS, "ball_radius": ORBIT_RADIUS,
         "atlas": {"charts": field.atlas.ncharts, "inner": field.atlas.inner,
                   "trusted": field.atlas.trusted, "reach": field.atlas.reach,
+                  "unit": field.atlas.unit,
                   "covering_radius_deg": field.atlas.info.get("covering_radius_deg")},
         "accepted": stats.accepted, "rejected": stats.rejected, "nstored": field.nstored,
         "duplication": field.duplication,

@@ -212,6 +212,13 @@ class FieldCreate(_KD):
                           "orientation accepted). `{\"kind\": \"tangent_simplex\"}` or "
                           "explicit flats: one chart (the paper's set-up).")
     roundtrip_tol: Optional[float] = Field(None, gt=0, le=1.0, allow_inf_nan=False)
+    unit: Optional[float] = Field(
+        None, gt=0, le=1e6, allow_inf_nan=False,
+        description="Atlas fields: the unit of length of the charts, in the flats' units: the "
+                    "shift of a flat that counts as much as a turn of one radian (at a chart's "
+                    "centre shifts and turns are then weighed alike). Default 1. For rays of "
+                    "an object: about its half-size (rays meeting on its surface at depth z "
+                    "from its centre differ by a shift of z times their turn).")
 
 
 class BasisInfo(BaseModel):
@@ -244,6 +251,7 @@ class AtlasInfo(BaseModel):
                                        "query (its blending weight is 0).")
     reach: float = Field(description="Degrees: samples are inserted into every chart whose "
                                      "centre is closer.")
+    unit: float = Field(1.0, description="The charts' unit of length (the field's `unit`).")
     covering_radius: Optional[float] = Field(
         None, description="Degrees: every orientation measured was this close to a centre "
                           "(`covering` and `centers`; null for `samples`, which charts only "

@@ -159,8 +159,15 @@ def build_chart_basis(req, *, max_atlas_samples: int | None = None
     k, d = req.k, req.d
     spec = CoveringAtlas() if req.basis is None else req.basis
     oriented = oriented_of(req)
+    unit = getattr(req, "unit", None)
+    if unit is not None and not isinstance(spec, ATLAS_SPECS):
+        raise InvalidInputError(
+            f"unit: a single chart (basis kind {spec.kind!r}) has its own `scale`; `unit` is "
+            "an atlas's: leave `basis` out (a covering atlas) or give {\"kind\": \"atlas\", ...}",
+            "unit")
     if isinstance(spec, ATLAS_SPECS):
-        atlas = build_atlas(spec, k, d, oriented=oriented, max_atlas_samples=max_atlas_samples)
+        atlas = build_atlas(spec, k, d, oriented=oriented, max_atlas_samples=max_atlas_samples,
+                            unit=1.0 if unit is None else unit)
         return atlas.bases[0], _atlas_spec_dict(spec), atlas.to_dict()
     return build_basis(spec, k, d).require_full(), spec_dict(spec), None
 
@@ -170,24 +177,25 @@ MAX_ATLAS_CENTERS = 1024
 
 
 def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
-                max_atlas_samples: int | None = None) -> Atlas:
+                max_atlas_samples: int | None = None, unit: float = 1.0) -> Atlas:
     """The :class:`flatserve.atlas.Atlas` of an atlas spec (errors name ``basis.<member>``).
 
     ``covering``: :meth:`Atlas.covering`. ``samples``: :meth:`Atlas.for_samples` of the
     given flats (more than ``max_atlas_samples`` is a 413), refused (422) unless its
     charts hold every one of them. ``centers``: :meth:`Atlas.from_centers`, refused
     (422) unless every orientation lies within a chart's trusted radius and every chart
-    round-trips its domain."""
+    round-trips its domain. ``unit``: the charts' unit of length (the field's `unit`,
+    stored in the atlas: a restored field keeps it)."""
     if isinstance(spec, CoveringAtlas):
         with _within("basis"):
-            return Atlas.covering(k, d, oriented=oriented)
+            return Atlas.covering(k, d, oriented=oriented, unit=unit)
     if isinstance(spec, SamplesAtlas):
         _check_rows(spec.samples, "basis.samples", max_atlas_samples,
                     "FLATSERVE_MAX_ATLAS_SAMPLES")
         flats = flats_of(spec.samples, k, d, "basis.samples")
         with _within("basis", {"flats": "samples", **{n: f"samples.{n}" for n in _NAMES}}):
             atlas = Atlas.for_samples(flats, oriented=oriented, radius=spec.radius,
-                                      fraction=spec.fraction)
+                                      fraction=spec.fraction, unit=unit)
         _require_charted(atlas, flats)
         return atlas
     _check_rows(spec.centers, "basis.centers", MAX_ATLAS_CENTERS, None)
@@ -197,7 +205,7 @@ def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
         raise InvalidInputError(f"basis.scale: expected one scale or {centers.n} (one per "
                                 f"centre), got {len(scale)}", "basis.scale")
     with _within("basis", {"scales": "scale"}):
-        return Atlas.from_centers(centers, scale, oriented=oriented)
+        return Atlas.from_centers(centers, scale, oriented=oriented, unit=unit)
 
 
 def _check_rows(model, where: str, limit: int | None, setting: str | None) -> None:

@@ -183,8 +183,8 @@ def build_atlas_field(origins, directions, values, *, atlas=None, chunk: int = B
         Sample rays (their direction is kept: oriented).
     values : (n, C) float
     atlas : flatserve.atlas.Atlas, optional
-        Default ``Atlas.covering(1, 3, oriented=True)`` (12 charts: every
-        direction).
+        Default ``Atlas.covering(1, 3, oriented=True)`` (32 charts: every
+        direction; unit of length 1).
     chunk : int
         Rays per insertion batch.
     progress : callable(done, total), optional

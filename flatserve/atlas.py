@@ -82,6 +82,7 @@ __all__ = [
     "COVER_TRAIN_DEG",
     "COVER_RADII_3D",
     "DEFAULT_UNIT",
+    "object_unit",
     "GEODESIC_AXES",
     "DEFAULT_SCALE",
     "ICOSAHEDRON_AXES",
@@ -964,6 +965,34 @@ class Atlas:
                     unit=spec.get("unit", DEFAULT_UNIT))
         atlas.info = dict(spec.get("info", {}))
         return atlas
+
+
+def object_unit(radius: float) -> float:
+    """The unit of length (:class:`Atlas` ``unit``) for rays of an object of this radius.
+
+    ``2 radius / 3``: the mean depth, from the centre, of the surface of a
+    ball of that radius as a viewer sees it (``sqrt(R^2 - rho^2)`` averaged
+    over the disc ``rho < R`` it covers).  Two rays that meet on the surface
+    at depth ``z`` differ by a shift of ``z`` times their turn, so in this
+    unit a turn and the shift it makes on a typical visible point count
+    alike.  Measured on the 360-degree bunny (docs/orbit-results.md, 100,000
+    rays, 24 views, radius 0.5): units 0.7, 0.5 and 1/3 gave ours - baseline
+    at least -0.71, -0.22 and +0.05 dB.
+
+    Parameters
+    ----------
+    radius : float
+        Positive: the radius of a ball about the atlas's origin that holds
+        the object (something a user knows without rendering).
+
+    Returns
+    -------
+    float
+    """
+    if not (isinstance(radius, (int, float, np.floating, np.integer))
+            and not isinstance(radius, bool) and math.isfinite(radius) and radius > 0):
+        raise InvalidInputError(f"radius: expected a positive length, got {radius!r}", "radius")
+    return 2.0 * float(radius) / 3.0
 
 
 def _unit_simplex(Q, r, k: int, scale: float, frames, unit: float) -> Basis:

@@ -21,8 +21,8 @@ from flatserve.lightfield.baselines import IDW_POWER, TWO_SPHERE_K, TwoSphere, t
 from flatserve.lightfield.camera import ORBIT_EYE_RADIUS, ORBIT_RADIUS, fibonacci_sphere, sphere_samples
 from flatserve.lightfield.cli import add_arguments, run
 from flatserve.lightfield.mesh import CGAL_DATA_TARBALL
-from flatserve.lightfield.orbit import (AZIMUTHS, ELEVATIONS, one_chart_atlas, orbit_figure, orbit_views,
-                                        view_charts)
+from flatserve.lightfield.orbit import (AZIMUTHS, ELEVATIONS, SCENE_UNIT, icosahedral_atlas,
+                                        one_chart_atlas, orbit_figure, orbit_views, view_charts)
 from flatserve.lightfield.sampling import build_atlas_field, bunny_scene, orbit_samples
 
 pytestmark = pytest.mark.skipif(not CGAL_DATA_TARBALL.is_file(), reason="Debian libcgal-demo not installed")
@@ -46,21 +46,18 @@ def _run(tmp_path_factory, atlas):
 
 @pytest.fixture(scope="module")
 def run_result(tmp_path_factory):
-    """The command with the default covering atlas (12 charts)."""
+    """The command with the default covering atlas (32 charts) and unit (1/3)."""
     return _run(tmp_path_factory, "covering")
-
-
-@pytest.fixture(scope="module")
-def fine_result(tmp_path_factory):
-    """The command with the finer covering (42 charts, trusted 24 degrees)."""
-    return _run(tmp_path_factory, "fine")
 
 
 @pytest.fixture(scope="module")
 def bunny_field():
     scene = bunny_scene(1)
     samples, values = orbit_samples(scene, N_SAMPLES, seed=0)
-    field, stats = build_atlas_field(samples.origins, samples.directions, values)
+    # the 12 wide charts: some orbit views lie inside one of them (none inside one of
+    # the default covering's 32, whose views all straddle)
+    field, stats = build_atlas_field(samples.origins, samples.directions, values,
+                                     atlas=icosahedral_atlas())
     return scene, samples, values, field, stats
 
 
@@ -87,13 +84,13 @@ def test_sphere_samples_are_rays_from_eyes_all_around_through_the_ball():
 
 
 def test_sphere_samples_spread_over_every_direction():
-    """No direction is preferred: the 12 charts of the oriented covering atlas
-    (6 icosahedral axes and their negatives: equal cells of the sphere by
-    symmetry) each are the nearest chart of 1/12 of the rays, up to 5 standard
-    deviations of a binomial count."""
+    """No direction is preferred: the 12 charts around the 6 icosahedral axes
+    and their negatives (equal cells of the sphere by symmetry) each are the
+    nearest chart of 1/12 of the rays, up to 5 standard deviations of a
+    binomial count."""
     n = 24_000
     s = sphere_samples(n, np.random.default_rng(0))
-    atlas = Atlas.covering(1, 3, oriented=True)
+    atlas = icosahedral_atlas()
     near = atlas.route(flatserve.Flats.from_rays(s.origins, s.directions), atlas.trusted).nearest
     counts = np.bincount(near, minlength=12)
     p = 1 / 12
@@ -218,7 +215,8 @@ def test_orbit_command_writes_sheet_and_table(run_result):
     assert json.loads((out / "results.json").read_text())["samples"] == N_SAMPLES
     md = (out / "results.md").read_text()
     assert len(res["views"]) == AZIMUTHS * len(ELEVATIONS)
-    assert res["rejected"] == 0 and res["atlas"]["charts"] == 12
+    assert res["rejected"] == 0 and res["atlas"]["charts"] == 32
+    assert res["atlas"]["unit"] == SCENE_UNIT and res["duplication"] <= 2.0
     assert res["accepted"] == N_SAMPLES
     for r in res["views"]:
         assert r["view"] in md
@@ -227,7 +225,8 @@ def test_orbit_command_writes_sheet_and_table(run_result):
         # every pixel of every view covered, by both methods
         assert r["methods"]["ours"]["coverage"] == 1.0 and r["methods"]["baseline"]["coverage"] == 1.0
         assert not r["one_chart"]["straddles"] and r["one_chart"]["coverage"] == 1.0
-    assert {c for r in res["views"] for c in r["routing"]["charts"]} == set(range(12))
+    used = {c for r in res["views"] for c in r["routing"]["charts"]}
+    assert used <= set(range(32)) and len(used) >= 24
 
 
 def test_cli_orbit(tmp_path, capsys):
@@ -248,15 +247,17 @@ def test_cli_orbit(tmp_path, capsys):
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "measured: at 20,000 rays ours loses to the two-sphere 5-NN baseline on most views (5 of 24 won; with the 42-chart covering 11 of 24; "
-    "docs/orbit-results.md at 200,000: see the table); the charts of the 12-chart covering atlas "
-    "stretch the embedding by 1/cos^2(2 theta) at theta from their centre (4x at 30 degrees)"))
+    "measured with the default covering (32 charts, unit 1/3): at 20,000 rays and 32^2 views ours wins 18 "
+    "of 24, ours - baseline -0.61 to +2.25 dB (before: 12 charts, unit 1, 5 of 24); at 200,000 rays and "
+    "128^2 21 of 24, -0.25 to +2.58 dB (docs/orbit-results.md)"))
 def test_ours_beats_the_nearest_rays_baseline_on_every_view(run_result):
     """The issue's criterion: on the 360-degree bunny, at equal samples (the
     same rays in both), ours has the higher PSNR on every view."""
     _, res = run_result
     lost = [(r["view"], round(r["methods"]["ours"]["psnr"], 2), round(r["methods"]["baseline"]["psnr"], 2))
             for r in res["views"] if not r["methods"]["ours"]["psnr"] > r["methods"]["baseline"]["psnr"]]
+    diff = [r["methods"]["ours"]["psnr"] - r["methods"]["baseline"]["psnr"] for r in res["views"]]
+    print(f"ours - baseline {min(diff):+.2f} to {max(diff):+.2f} dB; lost {lost}")
     assert not lost, lost
 
 
@@ -266,11 +267,16 @@ def _straddle_penalties(res) -> list[tuple[str, float]]:
             for r in res["views"] if r["routing"]["straddles"]]
 
 
-def test_straddling_views_are_no_worse_than_inside_one_chart(fine_result):
+@pytest.mark.xfail(strict=True, reason=(
+    "measured with the default covering (32 charts, unit 1/3): at 20,000 rays and 32^2 views 8 of 24 views "
+    "are more than 0.5 dB worse than one chart centred on the view (down to -1.65 dB, az180_el+00: views "
+    "blended from 4 charts, each 11-24 degrees off the view's axis); at 200,000 rays 5 of 24, down to "
+    "-0.93 dB (docs/orbit-results.md)"))
+def test_straddling_views_are_no_worse_than_inside_one_chart(run_result):
     """The issue's criterion: a view whose pixels straddle chart borders is no
     worse (within ``STRADDLE_TOL_DB``) than a view inside one chart at equal
-    sample density; here with the finer covering (42 charts, every direction
-    within 20.8 degrees of a centre, weights 0 from 24 degrees).
+    sample density, with the default covering (32 charts, every direction
+    within 22.7 degrees of a centre, weights 0 from 24 degrees).
 
     Equal density, honestly: the *same* view and the *same* sample rays,
     rendered twice: by the covering atlas (where the atlas's routing blends
@@ -279,25 +285,13 @@ def test_straddling_views_are_no_worse_than_inside_one_chart(fine_result):
     of the view answered by that chart alone: inside one chart).  Comparing
     different views instead would compare different parts of the bunny, and
     the difference between them (several dB) would drown the border's.
-    At this size every view is within 0.37 dB; at 200,000 rays one view of 24
-    is 0.52 dB worse (docs/orbit-results.md).
     """
-    _, res = fine_result
+    _, res = run_result
     pen = _straddle_penalties(res)
     assert len(pen) >= len(res["views"]) // 2  # most views straddle: the check has a subject
     worse = [(v, p) for v, p in pen if p < -STRADDLE_TOL_DB]
-    assert not worse, worse
-
-
-@pytest.mark.xfail(strict=True, reason=(
-    "measured: with the 12 charts of Atlas.covering(1, 3, oriented=True), views whose rays are blended "
-    "from 2-3 charts lose up to 4 dB against the same view inside one chart centred on it (the blended "
-    "charts answer up to 37 degrees from their centres, where the embedding is stretched 4-15x); "
-    "the 42-chart covering passes (test above)"))
-def test_straddling_views_are_no_worse_than_inside_one_chart_default_covering(run_result):
-    """As above, with the service's default covering atlas (12 charts)."""
-    _, res = run_result
-    worse = [(v, p) for v, p in _straddle_penalties(res) if p < -STRADDLE_TOL_DB]
+    print(f"{len(pen)} views straddle; ours - one chart {min(p for _, p in pen):+.2f} to "
+          f"{max(p for _, p in pen):+.2f} dB; worse by more than {STRADDLE_TOL_DB}: {worse}")
     assert not worse, worse
 
 

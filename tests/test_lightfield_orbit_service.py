@@ -4,13 +4,14 @@
 solid checker, fixed before any light field of it was rendered) is sampled
 from eyes all around, uploaded in batches to a real server
 (:class:`flatserve.service.process.ServerProcess`) into a field created with
-``{"name", "k": 1, "d": 3, "oriented": true, "unit": 0.5}`` and no basis (the
+``{"name", "k": 1, "d": 3, "oriented": true, "unit": 1/3}`` and no basis (the
 service's covering atlas of rays), and queried from views all around.
 
 The ``unit`` (the shift of a ray that the charts weigh as much as a turn of
-one radian) is the half-side of the unit box the scene was built in: a size
-its author knows before rendering anything (:data:`SCENE_HALF_SIZE`), not a
-value chosen from results on this scene.
+one radian) is :func:`flatserve.atlas.object_unit` of the scene's radius: the
+scene was built inside the unit box (radius 0.5 about the origin), a size its
+author knows before rendering anything; not a value chosen from results on
+this scene.
 """
 from __future__ import annotations
 
@@ -21,13 +22,17 @@ import pytest
 
 from flatserve.client import Client
 from flatserve.lightfield.baselines import TwoSphere
-from flatserve.atlas import Atlas
-from flatserve.lightfield.orbit import SCENE_HALF_SIZE, orbit_views
+from flatserve.atlas import Atlas, object_unit
+from flatserve.lightfield.orbit import orbit_views
 from flatserve.lightfield.quality import psnr
 from flatserve.lightfield.render import frame_from_rays, render_truth
 from flatserve.lightfield.sampling import blocks_scene, build_atlas_field, orbit_samples
 from flatserve.service.process import ServerProcess
 
+#: The scene is built inside the unit box: its radius about the origin, and the
+#: field's unit of length.
+SCENE_RADIUS = 0.5
+UNIT = object_unit(SCENE_RADIUS)
 #: Sample rays and upload batches: seconds of uploading, a recognisable scene.
 N_SAMPLES = 20_000
 BATCH = 5_000
@@ -48,7 +53,7 @@ def served(tmp_path_factory):
         srv.wait_ready()
         with Client(srv.url) as c:
             info = c.create_field("blocks", k=1, d=3, oriented=True,
-                                  unit=SCENE_HALF_SIZE)  # no basis
+                                  unit=UNIT)  # no basis
             reports = [c.upload_rays("blocks", samples.origins[i:i + BATCH],
                                      samples.directions[i:i + BATCH], values[i:i + BATCH])
                        for i in range(0, N_SAMPLES, BATCH)]
@@ -65,7 +70,7 @@ def test_field_without_basis_is_an_oriented_covering_atlas(served):
     _, _, _, info, reports, _, described = served
     assert info["oriented"] is True
     assert info["atlas"]["oriented"] is True and len(info["charts"]) == 32
-    assert info["atlas"]["unit"] == SCENE_HALF_SIZE
+    assert info["atlas"]["unit"] == UNIT
     print(f"duplication {described['atlas']['duplication']:.3f}")
     assert described["atlas"]["duplication"] <= 2.0
     assert sum(r["accepted"] for r in reports) == N_SAMPLES
@@ -78,7 +83,7 @@ def test_every_view_all_around_is_covered_and_as_built_here(served):
     same atlas field built in this process from the same samples."""
     scene, samples, values, _, _, views, _ = served
     local, _ = build_atlas_field(samples.origins, samples.directions, values,
-                                 atlas=Atlas.covering(1, 3, oriented=True, unit=SCENE_HALF_SIZE))
+                                 atlas=Atlas.covering(1, 3, oriented=True, unit=UNIT))
 
 
     for name, cam, res in views:

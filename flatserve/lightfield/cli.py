@@ -50,8 +50,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                           "default (default covering)")
     orb.add_argument("--unit", type=float, default=None,
                      help="the atlas's unit of length in world units: the shift of a ray that counts "
-                          "as much as a turn of one radian (default 0.5, the scenes' half-size; 1: "
-                          "world units); the baseline is unchanged")
+                          "as much as a turn of one radian (default 1/3: 2/3 of the scenes' radius 0.5, "
+                          "flatserve.atlas.object_unit; 1: world units); the baseline is unchanged")
     orb.add_argument("--no-one-chart", action="store_true",
                      help="skip rendering each view from a one-chart atlas centred on its axis")
 

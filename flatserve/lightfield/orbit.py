@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atlas import ICOSAHEDRON_AXES, Atlas, AtlasField
+from ..atlas import ICOSAHEDRON_AXES, Atlas, AtlasField, object_unit
 from ..errors import InvalidInputError
 from ..flats import Flats
 from .baselines import IDW_POWER, TWO_SPHERE_K, TwoSphere
@@ -46,7 +46,7 @@ from .quality import psnr, ssim
 from .render import frame_from_rays, render_field, render_truth
 from .sampling import ProgressBar, blocks_scene, build_atlas_field, bunny_scene, orbit_samples
 
-__all__ = ["orbit_views", "view_charts", "one_chart_atlas", "fine_atlas", "icosahedral_atlas", "SCENE_HALF_SIZE", "orbit_figure", "SCENES", "ATLASES",
+__all__ = ["orbit_views", "view_charts", "one_chart_atlas", "fine_atlas", "icosahedral_atlas", "SCENE_HALF_SIZE", "SCENE_UNIT", "orbit_figure", "SCENES", "ATLASES",
            "DEFAULT_SAMPLES", "AZIMUTHS", "ELEVATIONS", "VIEW_DISTANCE", "VIEW_FOCAL",
            "VIEW_WIDTH"]
 
@@ -160,9 +160,11 @@ def icosahedral_atlas(unit: float = 1.0) -> Atlas:
 #: Atlases of ``flatserve lightfield orbit --atlas``: name -> builder(unit).
 ATLASES = {"covering": lambda unit=1.0: Atlas.covering(1, 3, oriented=True, unit=unit),
            "fine": fine_atlas, "icosahedral": icosahedral_atlas}
-#: The scenes fill the unit box: half its side is the length the charts weigh as
-#: much as a radian of turn (:class:`flatserve.atlas.Atlas` ``unit``) by default.
+#: The scenes fill the unit box: half its side is their radius (about the origin).
 SCENE_HALF_SIZE = 0.5
+#: The atlas's unit of length for the scenes (:func:`flatserve.atlas.object_unit`
+#: of their radius: 1/3).
+SCENE_UNIT = object_unit(SCENE_HALF_SIZE)
 
 
 def _scores(image, truth, covered) -> dict:
@@ -201,9 +203,9 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         The atlas's unit of length (:class:`flatserve.atlas.Atlas` ``unit``),
         in world units: the shift of a ray that its charts weigh as much as a
         turn of one radian (isotropic at a chart's centre).  Default
-        :data:`SCENE_HALF_SIZE` (0.5: the scenes fill the unit box; rays that
-        meet on the surface at depth ``z`` from the centre differ by a shift
-        of ``z`` times their turn); 1: world units (the paper's chart).
+        :data:`SCENE_UNIT` (1/3: :func:`flatserve.atlas.object_unit` of the
+        scenes' radius 0.5, they fill the unit box); 1: world units (the
+        paper's chart).
     one_chart : bool
         Also render every view from a one-chart atlas centred on its axis
         (:func:`one_chart_atlas`, the same samples).
@@ -221,7 +223,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     if atlas not in ATLASES:
         raise InvalidInputError(f"atlas: expected one of {sorted(ATLASES)}, got {atlas!r}", "atlas")
     if unit is None:
-        unit = SCENE_HALF_SIZE
+        unit = SCENE_UNIT
     if not (isinstance(unit, (int, float)) and math.isfinite(unit) and unit > 0):
         raise InvalidInputError(f"unit: expected a positive length, got {unit!r}", "unit")
     out = Path(out)

@@ -36,9 +36,9 @@ def test_field_lifecycle(api):
     info = c.create_field("scene", channels=C)
     assert (info["k"], info["d"], info["channels"], info["nsamples"]) == (1, 3, C, 0)
     assert info["basis"]["m"] == 5 and np.asarray(info["basis"]["Q"]).shape == (5, 3, 3)
-    # without basis: a covering atlas of lines (6 charts; `basis` describes chart 0)
+    # without basis: a covering atlas of lines (16 charts; `basis` describes chart 0)
     assert info["basis"]["spec"] == {"kind": "atlas", "atlas": "covering"}
-    assert len(info["charts"]) == 6 and info["oriented"] is False
+    assert len(info["charts"]) == 16 and info["oriented"] is False
     assert [f["name"] for f in c.list_fields()] == ["scene"]
     with pytest.raises(ConflictError):
         c.create_field("scene")
@@ -173,7 +173,8 @@ def test_parametric_and_qr_forms(api, rng, kind):
     assert rep["rejected"] == want_add.rejected.tolist()
     ok = np.setdiff1d(np.arange(300), rep["rejected"])
     want = ref.query(flats.Flats.from_quadrics(Q[ok], r[ok], 1))
-    assert want.inside.mean() > 0.8
+    # (with the default atlas's narrow charts more of 300 samples lie on their hulls)
+    assert want.inside.mean() > 0.7
     np.testing.assert_allclose(want.values[want.inside], val[ok][want.inside], atol=1e-9)
     for res in (c.query_flats("f", Q[ok], r[ok]), c.query_flats("f", Q[ok], r[ok], binary=False)):
         np.testing.assert_array_equal(res.inside, want.inside)

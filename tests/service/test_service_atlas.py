@@ -10,7 +10,7 @@ import io
 import numpy as np
 import pytest
 
-from flatserve.atlas import Atlas, AtlasField
+from flatserve.atlas import ICOSAHEDRON_AXES, Atlas, AtlasField
 from flatserve.errors import InvalidInputError, LimitExceededError
 from flatserve.flats import Flats
 
@@ -57,8 +57,8 @@ def test_covering_atlas_field_accepts_every_orientation_and_restores(make_app, r
     try:
         info = c.create_field("a", channels=C, basis=ATLAS)
         assert info["basis"]["spec"] == COVERING and info["oriented"] is False
-        assert len(info["charts"]) == ref.atlas.ncharts == 6
-        assert [ch["samples"] for ch in info["charts"]] == [0] * 6
+        assert len(info["charts"]) == ref.atlas.ncharts == 16
+        assert [ch["samples"] for ch in info["charts"]] == [0] * 16
         np.testing.assert_array_equal([ch["center"]["A"] for ch in info["charts"]],
                                       ref.atlas.center_A)
         assert info["atlas"]["oriented"] is False
@@ -129,9 +129,9 @@ def test_covering_atlas_field_accepts_every_orientation_and_restores(make_app, r
 def test_oriented_atlas_field_takes_rays_only(api, rng):
     tc, c = api
     info = c.create_field("o", channels=C, basis={"kind": "atlas", "oriented": True})
-    assert info["atlas"]["oriented"] is True and len(info["charts"]) == 12
+    assert info["atlas"]["oriented"] is True and len(info["charts"]) == 32
     A = np.array([ch["center"]["A"] for ch in info["charts"]])[:, :, 0]
-    np.testing.assert_allclose(A[6:], -A[:6])  # each direction hemisphere its own charts
+    np.testing.assert_allclose(A[16:], -A[:16])  # each direction hemisphere its own charts
     o, v = sphere_rays(rng, 1500)
     val = np.c_[v[:, 2], o[:, 0]]  # changes sign with the ray's direction
     rep = c.upload_rays("o", o, v, val)
@@ -174,7 +174,7 @@ def test_oriented_is_a_member_of_the_field(api, rng):
     both = c.create_field("both", oriented=True, basis={"kind": "atlas", "oriented": True})
     for info in (new, old, both):
         assert info["oriented"] is True and info["atlas"]["oriented"] is True
-        assert info["basis"]["spec"] == COVERING and len(info["charts"]) == 12
+        assert info["basis"]["spec"] == COVERING and len(info["charts"]) == 32
         assert info["charts"] == new["charts"]
     assert [f["oriented"] for f in c.list_fields()] == [True] * 3
     o, v = sphere_rays(rng, 50)
@@ -183,7 +183,7 @@ def test_oriented_is_a_member_of_the_field(api, rng):
         c.upload("new", o[:, :1], Q=Q, r=r)
     assert ei.value.detail[0]["loc"] == ["body", "Q"] and "oriented" in str(ei.value)
     plain = c.create_field("plain", oriented=False)
-    assert plain["oriented"] is False and len(plain["charts"]) == 6
+    assert plain["oriented"] is False and len(plain["charts"]) == 16
     assert c.upload("plain", o[:, :1], Q=Q, r=r)["accepted"] == len(o)
 
     def refused(body, loc, *words):
@@ -244,7 +244,9 @@ def test_atlas_fields_for_other_dimensions(api, rng):
 def test_render_an_oriented_atlas_field(api, rng):
     tc, c = api
     c.create_field("lf", basis={"kind": "atlas", "oriented": True})
-    o, v = sphere_rays(rng, 3000, spread=0.3)
+    # origins spread over the region the views' rays pass through (a narrow chart's
+    # hull holds no ray that passes far from every sample)
+    o, v = sphere_rays(rng, 3000, spread=1.5)
     c.upload_rays("lf", o, v, (v[:, 2] > 0).astype(float))
     means = []
     for yaw in (0.0, 180.0):  # eyes on both sides: rays of opposite hemispheres
@@ -369,7 +371,7 @@ def test_atlas_specs_that_do_not_cover_what_they_claim_are_refused(api, rng):
     worst = float(msg.split(" is ")[1].split(" degrees")[0])
     assert 50 < worst <= np.degrees(np.arccos(1 / np.sqrt(3))) + 1e-6
     # the 6 icosahedral axes cover (37.4 degrees), unless a scale collapses a chart
-    ico = Atlas.covering(1, 3).center_A[:, :, 0]
+    ico = ICOSAHEDRON_AXES
     info = c.create_field("ico", basis=centers(ico))
     assert info["atlas"]["method"] == "centers" and len(info["charts"]) == 6
     assert 37 < info["atlas"]["covering_radius"] < 38
@@ -428,5 +430,43 @@ def test_cost_guard_counts_every_chart_holding_a_sample(make_app, rng):
         info = c.describe("a")  # the copies counted are the vertices the charts hold
         assert info["nvertices"] == copies
         assert sum(ch["samples"] for ch in info["charts"]) == copies
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_unit_of_length_is_validated_stored_and_restored(make_app, rng):
+    """``unit`` (top level, atlas fields only): the charts' unit of length; the
+    answers are the library's atlas of that unit, before and after a restart."""
+    o, v = sphere_rays(rng, 1500, spread=0.5)
+    val = line_values(o, v)
+    probe = sphere_rays(rng, 300, spread=0.4)
+    ref = AtlasField(Atlas.covering(1, 3, oriented=True, unit=0.4), channels=C)
+    ref.add(Flats.from_rays(o, v), val)
+    want = ref.query(Flats.from_rays(*probe))
+    assert want.inside.mean() > 0.5
+    plain = AtlasField(Atlas.covering(1, 3, oriented=True), channels=C)
+    plain.add(Flats.from_rays(o, v), val)
+    assert not np.allclose(plain.query(Flats.from_rays(*probe)).values, want.values,
+                           equal_nan=True)  # the unit changes the answers
+    tc, c = started(make_app())
+    try:
+        info = c.create_field("u", channels=C, oriented=True, unit=0.4)  # no basis
+        assert info["atlas"]["unit"] == 0.4 and len(info["charts"]) == 32
+        assert c.create_field("one", channels=C)["atlas"]["unit"] == 1.0  # the default
+        c.upload_rays("u", o, v, val)
+        same_answers(c, "u", probe, want)
+        for body, words in (({"unit": 0}, ()), ({"unit": -1.0}, ()), ({"unit": "x"}, ()),
+                            ({"unit": 0.5, "basis": {"kind": "tangent_simplex"}},
+                             ("single chart", "atlas"))):
+            r = tc.post("/v1/fields", json={"name": "x", **body})
+            assert r.status_code == 422, (body, r.text)
+            det = r.json()["detail"][0]
+            assert det["loc"][-1] == "unit" and all(w in det["msg"] for w in words), det
+    finally:
+        tc.__exit__(None, None, None)
+    tc, c = started(make_app())
+    try:
+        assert c.describe("u")["atlas"]["unit"] == 0.4
+        same_answers(c, "u", probe, want)
     finally:
         tc.__exit__(None, None, None)

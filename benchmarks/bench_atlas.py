@@ -83,7 +83,7 @@ def main():
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     atlas = Atlas.covering(1, 3)
-    print(f"atlas: {atlas.ncharts} charts (icosahedral axes), covering radius "
+    print(f"atlas: {atlas.ncharts} charts (icosahedral vertex and face axes), covering radius "
           f"{atlas.info['covering_radius_deg']:.2f} deg; inner {atlas.inner:g}, trusted "
           f"{atlas.trusted:g}, reach {atlas.reach:g}; scale {atlas.scales[0]:g}")
 

@@ -44,7 +44,7 @@ Example
 -------
 >>> import numpy as np, flatserve
 >>> from flatserve.atlas import Atlas, AtlasField
->>> atlas = Atlas.covering(1, 3)                 # 6 icosahedral axes
+>>> atlas = Atlas.covering(1, 3)                 # 16 icosahedral axes
 >>> field = AtlasField(atlas, channels=1)
 >>> rng = np.random.default_rng(0)
 >>> o, v = rng.normal(size=(3000, 3)), rng.normal(size=(3000, 3))

@@ -22,6 +22,7 @@ from flatserve.atlas import (
     bump,
     haar_frames,
     max_principal_angle,
+    object_unit,
     orientation_frames,
 )
 from flatserve.coordinates import OK
@@ -181,6 +182,17 @@ def test_unit_must_be_a_positive_length(bad):
     with pytest.raises(InvalidInputError) as exc:
         Atlas.covering(1, 3, unit=bad)
     assert exc.value.argument == "unit"
+    with pytest.raises(InvalidInputError) as exc:
+        object_unit(bad)
+    assert exc.value.argument == "radius"
+
+
+def test_object_unit_is_the_mean_visible_depth_of_a_ball():
+    """2R/3: sqrt(R^2 - rho^2) averaged over the disc rho < R (a seeded sample)."""
+    rng = np.random.default_rng(5)
+    R = 0.8
+    rho = R * np.sqrt(rng.uniform(size=400_000))  # uniform over the disc
+    assert object_unit(R) == pytest.approx(np.sqrt(R * R - rho * rho).mean(), rel=2e-3)
 
 
 def test_oriented_covering_radius_and_routing():

@@ -2,7 +2,7 @@
 
 1. Coordinates with routing of 1,000,000 rays whose directions are uniform on
    the sphere (origins uniform in [-1, 1]^3), covering atlas of lines in R^3
-   (6 icosahedral charts): routing (angles to the centres) plus the
+   (16 charts around the icosahedral vertex and face axes): routing (angles to the centres) plus the
    coordinates (paper Fig. 8, native kernel) and embedding (Sec. 5) in every
    chart that holds the ray -- the query path (charts closer than
    ``trusted``) and the upload path (closer than ``reach``).  Peer: one chart

@@ -872,18 +872,13 @@ class Atlas:
         cr = math.cos(math.radians(radius))
         rows, angles = [], []
         if self.oriented or F.shape[2] == 1:
-            # (c, n): each chart's cosines contiguous (the per-chart scans below)
-            dots = self.frames[:, :, 0] @ F[:, :, 0].T
+            dots = F[:, :, 0] @ self.frames[:, :, 0].T  # (n, c)
             if not self.oriented:
                 np.abs(dots, out=dots)
-            nearest = np.zeros(n, dtype=np.int64)
-            best = dots[0].copy()
-            for i in range(c):  # contiguous passes (faster than reductions along axis 0)
-                col = dots[i]
-                if i:
-                    better = col > best
-                    best[better] = col[better]
-                    nearest[better] = i
+            nearest = dots.argmax(axis=1)
+            best = dots[np.arange(n), nearest]
+            for i in range(c):
+                col = dots[:, i]
                 sel = np.flatnonzero(col > cr)
                 rows.append(sel)
                 angles.append(np.arccos(np.minimum(col[sel], 1.0)))
@@ -916,10 +911,10 @@ class Atlas:
         F = orientation_frames(flats, normals=False if self.oriented else None)
         cr = math.cos(math.radians(radius))
         if self.oriented or F.shape[2] == 1:
-            dots = self.frames[:, :, 0] @ F[:, :, 0].T  # (c, n)
+            dots = F[:, :, 0] @ self.frames[:, :, 0].T  # (n, c)
             if not self.oriented:
                 np.abs(dots, out=dots)
-            return np.count_nonzero(dots > cr, axis=1).astype(np.int64)
+            return np.count_nonzero(dots > cr, axis=0).astype(np.int64)
         return np.array([np.count_nonzero(_cos2_max(C, F) > cr * cr) for C in self.frames],
                         dtype=np.int64)
 

@@ -18,9 +18,7 @@
 //   processed in fixed chunks of kChunk; each chunk starts from a hint that
 //   depends only on the triangulation and the chunk's first query, then chains
 //   the previous answer's full cell. Hence the answers do not depend on the
-//   number of threads. One thread walks several chunks at once, a step of
-//   each in turn (kWalkLanes), so that their cache misses overlap; that
-//   changes no chunk's walk either.
+//   number of threads.
 #pragma once
 
 #include <algorithm>
@@ -58,16 +56,16 @@ inline int default_threads() {
   return h ? static_cast<int>(h) : 1;
 }
 
-// Runs body(u) for every u in [0, nunits) on `threads` threads (<= 0: all
-// cores), units handed out in increasing order. Exceptions are rethrown in the
-// caller.
+// Runs body(begin, end) over [0, n) in fixed chunks of kChunk on `threads`
+// threads (<= 0: all cores). Exceptions are rethrown in the caller.
 template <class F>
-void run_units(std::size_t nunits, int threads, F&& body) {
+void run_chunks(std::size_t n, int threads, F&& body) {
+  const std::size_t nchunks = (n + kChunk - 1) / kChunk;
   std::size_t T = threads <= 0 ? static_cast<std::size_t>(default_threads())
                                : static_cast<std::size_t>(threads);
-  T = std::min(T, nunits);
+  T = std::min(T, nchunks);
   if (T <= 1) {
-    for (std::size_t u = 0; u < nunits; ++u) body(u);
+    for (std::size_t c = 0; c < nchunks; ++c) body(c * kChunk, std::min(n, (c + 1) * kChunk));
     return;
   }
   std::atomic<std::size_t> next{0};
@@ -76,14 +74,14 @@ void run_units(std::size_t nunits, int threads, F&& body) {
   auto worker = [&]() {
     try {
       for (;;) {
-        std::size_t u = next.fetch_add(1);
-        if (u >= nunits) break;
-        body(u);
+        std::size_t c = next.fetch_add(1);
+        if (c >= nchunks) break;
+        body(c * kChunk, std::min(n, (c + 1) * kChunk));
       }
     } catch (...) {
       std::lock_guard<std::mutex> lk(err_mutex);
       if (!err) err = std::current_exception();
-      next.store(nunits);
+      next.store(nchunks);
     }
   };
   std::vector<std::thread> pool;
@@ -92,31 +90,6 @@ void run_units(std::size_t nunits, int threads, F&& body) {
   worker();
   for (auto& th : pool) th.join();
   if (err) std::rethrow_exception(err);
-}
-
-// Runs body(begin, end) over [0, n) in fixed chunks of kChunk on `threads`
-// threads (<= 0: all cores). Exceptions are rethrown in the caller.
-template <class F>
-void run_chunks(std::size_t n, int threads, F&& body) {
-  run_units((n + kChunk - 1) / kChunk, threads,
-            [&](std::size_t c) { body(c * kChunk, std::min(n, (c + 1) * kChunk)); });
-}
-
-// Runs body(c0, c1) over the chunks [0, ceil(n / kChunk)) of kChunk queries,
-// in groups of consecutive chunks [c0, c1): at most max_group chunks a group,
-// fewer when more groups keep every thread busy. The grouping only decides
-// which chunks one thread works on together, never what a chunk computes.
-template <class F>
-void run_chunk_groups(std::size_t n, int threads, std::size_t max_group, F&& body) {
-  const std::size_t nchunks = (n + kChunk - 1) / kChunk;
-  if (nchunks == 0) return;
-  std::size_t T = threads <= 0 ? static_cast<std::size_t>(default_threads())
-                               : static_cast<std::size_t>(threads);
-  T = std::max<std::size_t>(1, std::min(T, nchunks));
-  const std::size_t group = std::max<std::size_t>(1, std::min(max_group, (nchunks + T - 1) / T));
-  run_units((nchunks + group - 1) / group, static_cast<int>(T), [&](std::size_t g) {
-    body(g * group, std::min(nchunks, (g + 1) * group));
-  });
 }
 
 // The type-erased interface the bindings see.

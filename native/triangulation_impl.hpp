@@ -21,13 +21,10 @@
 
 namespace flatserve {
 
-// Walk tolerances (see Triangulation::walk_step).
+// Walk tolerances (see Triangulation::locate_one).
 constexpr double kLambdaEps = 1e-10;   // |barycentric| below this (relative) -> exact predicate
 constexpr double kPivotRatio = 1e-8;   // LU pivot ratio below this -> exact predicates only
 constexpr std::size_t kMaxFloatSteps = 4096;
-// Chunks one thread walks at once, a step of each in turn (memory-level
-// parallelism; for_each_query).
-constexpr std::size_t kWalkLanes = 8;
 
 // Hilbert index of a point quantised to `bits` bits per axis (Skilling,
 // "Programming the Hilbert curve", AIP Conf. Proc. 707, 2004), as a key of
@@ -532,33 +529,15 @@ class Triangulation final : public TriangulationBase {
 
     std::vector<std::uint32_t> order;
     if (hilbert && n > 1 && n <= 0xffffffffull) order = hilbert_order(q, n, D, threads);
-    auto query_at = [&](std::size_t pos) { return order.empty() ? pos : order[pos]; };
-    // Each chunk: the first query's walk starts at a sample hint, every later
-    // one at the cell the previous one ended in. The chunks of a group are
-    // walked together, one step of each in turn (the walks are bound by memory
-    // latency; a step of the other chunks runs while a cell is fetched): each
-    // chunk's walks are exactly those of walking it alone.
-    run_chunk_groups(n, threads, kWalkLanes, [&](std::size_t c0, std::size_t c1) {
-      std::vector<Walk> lanes;
-      lanes.reserve(c1 - c0);
-      for (std::size_t c = c0; c < c1; ++c) {
-        lanes.emplace_back(D);
-        Walk& L = lanes.back();
-        L.pos = c * kChunk;
-        L.end = std::min(n, (c + 1) * kChunk);
-        const double* qc = q + query_at(L.pos) * D;
-        walk_begin(L, qc, sample_hint(qc, sample));
-      }
-      std::size_t active = lanes.size();
-      while (active) {
-        for (Walk& L : lanes) {
-          if (L.pos >= L.end || !walk_step(L)) continue;
-          emit(query_at(L.pos), L.s);
-          if (++L.pos < L.end)
-            walk_begin(L, q + query_at(L.pos) * D, L.s.cell);
-          else
-            --active;
-        }
+    run_chunks(n, threads, [&](std::size_t b, std::size_t e) {
+      Scratch s(D);
+      Full_cell_handle hint;
+      for (std::size_t pos = b; pos < e; ++pos) {
+        const std::size_t qi = order.empty() ? pos : order[pos];
+        const double* qc = q + qi * D;
+        if (pos == b) hint = sample_hint(qc, sample);
+        hint = locate_one(qc, hint, s);
+        emit(qi, s);
       }
     });
   }
@@ -663,87 +642,71 @@ class Triangulation final : public TriangulationBase {
                   boost::make_indirect_iterator(s.pts.data() + D + 1));
   }
 
-  // One query's visibility walk (full dimension only), advanced a step at a
-  // time by walk_step so that several walks can take turns.
-  struct Walk {
-    Scratch s;
-    const double* qc = nullptr;
-    Full_cell_handle c;            // the current cell
-    std::optional<Point> exact_p;  // built only if an exact predicate is needed
-    std::size_t steps = 0;
-    bool fetched = false;          // c's vertices and neighbours prefetched
-    std::size_t pos = 0, end = 0;  // the lane's queries (positions in the walk order)
-    explicit Walk(int D) : s(D) {}
-  };
-
-  int inf_index(Full_cell_handle c) const {
-    const Vertex_handle inf = dt_.infinite_vertex();
-    for (int k = 0; k <= D_; ++k)
-      if (c->vertex(k) == inf) return k;
-    return -1;
-  }
-
-  // Starts the walk of query qc at cell `start` (null: anywhere).
-  void walk_begin(Walk& L, const double* qc, Full_cell_handle start) const {
-    Full_cell_handle c = start;
-    if (c == Full_cell_handle()) c = dt_.infinite_vertex()->full_cell();
-    const int fi = inf_index(c);
-    if (fi >= 0) c = c->neighbor(fi);
-    L.qc = qc;
-    L.c = c;
-    L.exact_p.reset();
-    L.steps = 0;
-    L.fetched = false;
-  }
-
-  // One step of the walk: on entering a cell, fetch its vertices and
-  // neighbours and return (the other lanes step meanwhile); at the next call,
-  // compute the query's barycentric coordinates in it (one small LU) and
-  // cross the facet of the most negative one. Signs are trusted in floating
-  // point only when clearly away from zero (|lambda| > kLambdaEps * max(1,
-  // max|lambda|)) in a well-conditioned cell; every other sign is decided by
-  // CGAL's exact Orientation_d, so the final cell and the on-facet/face/vertex
-  // kinds are exact. Any choice of a separating facet terminates in a Delaunay
-  // triangulation (Edelsbrunner's acyclicity theorem); after kMaxFloatSteps
-  // the walk goes exact-only. Returns true when the walk has ended: L.s holds
-  // ids, weights, kind and the cell (the next walk's start).
-  bool walk_step(Walk& L) const {
+  // Visibility walk from `start` (full dimension only). Fills s.ids, s.w,
+  // s.kind; returns the full cell it ended in (the next hint).
+  //
+  // Each step computes the query's barycentric coordinates in the current
+  // cell (one small LU) and crosses the facet of the most negative one. Signs
+  // are trusted in floating point only when clearly away from zero
+  // (|lambda| > kLambdaEps * max(1, max|lambda|)) in a well-conditioned cell;
+  // every other sign is decided by CGAL's exact Orientation_d, so the final
+  // cell and the on-facet/face/vertex kinds are exact. Any choice of a
+  // separating facet terminates in a Delaunay triangulation (Edelsbrunner's
+  // acyclicity theorem); after kMaxFloatSteps the walk goes exact-only.
+  Full_cell_handle locate_one(const double* qc, Full_cell_handle start, Scratch& s) const {
     const int D = D_;
-    Full_cell_handle c = L.c;
-    if (!L.fetched) {
+    const Vertex_handle inf = dt_.infinite_vertex();
+    auto inf_index = [&](Full_cell_handle c) {
+      for (int k = 0; k <= D; ++k)
+        if (c->vertex(k) == inf) return k;
+      return -1;
+    };
+    Full_cell_handle c = start;
+    if (c == Full_cell_handle()) c = inf->full_cell();
+    int fi = inf_index(c);
+    if (fi >= 0) c = c->neighbor(fi);
+    std::optional<Point> exact_p;  // built only if an exact predicate is needed
+    auto P = [&]() -> const Point& {
+      if (!exact_p) exact_p.emplace(qc, qc + D);
+      return *exact_p;
+    };
+    bool outside = false;
+    std::size_t steps = 0;
+    for (;; ++steps) {
+      // the walk is bound by memory latency: fetch the cells it may enter next
+      // while this one's barycentrics are computed
       for (int k = 0; k <= D; ++k) {
         const char* nb = reinterpret_cast<const char*>(&*c->neighbor(k));
         __builtin_prefetch(nb);
         __builtin_prefetch(nb + 64);
-        __builtin_prefetch(&c->vertex(k)->point());
       }
-      L.fetched = true;
-      return false;
-    }
-    Scratch& s = L.s;
-    const double* qc = L.qc;
-    auto P = [&]() -> const Point& {
-      if (!L.exact_p) L.exact_p.emplace(qc, qc + D);
-      return *L.exact_p;
-    };
-    const bool ok = barycentric(c, qc, s) && L.steps < kMaxFloatSteps;
-    int move = -1;
-    if (ok) {
-      double big = 1.0;
-      for (int k = 0; k <= D; ++k) big = std::max(big, std::abs(s.w[k]));
-      const double eps = kLambdaEps * big;
-      double most = -eps;
-      for (int k = 0; k <= D; ++k)
-        if (s.w[k] < most) {
-          most = s.w[k];
-          move = k;
-        }
-      if (move < 0) {
-        for (int k = 0; k <= D; ++k) {
-          if (s.w[k] > eps) {
-            s.ori[k] = CGAL::POSITIVE;
-            continue;
+      const bool ok = barycentric(c, qc, s) && steps < kMaxFloatSteps;
+      int move = -1;
+      if (ok) {
+        double big = 1.0;
+        for (int k = 0; k <= D; ++k) big = std::max(big, std::abs(s.w[k]));
+        const double eps = kLambdaEps * big;
+        double most = -eps;
+        for (int k = 0; k <= D; ++k)
+          if (s.w[k] < most) {
+            most = s.w[k];
+            move = k;
           }
+        if (move < 0) {
+          for (int k = 0; k <= D; ++k) {
+            if (s.w[k] > eps) {
+              s.ori[k] = CGAL::POSITIVE;
+              continue;
+            }
+            s.ori[k] = exact_side(c, k, P(), s);
+            if (s.ori[k] == CGAL::NEGATIVE) {
+              move = k;
+              break;
+            }
+          }
+        }
+      } else {
+        for (int k = 0; k <= D; ++k) {
           s.ori[k] = exact_side(c, k, P(), s);
           if (s.ori[k] == CGAL::NEGATIVE) {
             move = k;
@@ -751,39 +714,28 @@ class Triangulation final : public TriangulationBase {
           }
         }
       }
-    } else {
-      for (int k = 0; k <= D; ++k) {
-        s.ori[k] = exact_side(c, k, P(), s);
-        if (s.ori[k] == CGAL::NEGATIVE) {
-          move = k;
-          break;
-        }
+      if (move < 0) break;
+      c = c->neighbor(move);
+      fi = inf_index(c);
+      if (fi >= 0) {
+        outside = true;
+        break;
       }
     }
-    if (move < 0) {  // inside (or on the boundary of) c
-      for (int k = 0; k <= D; ++k) s.ids[k] = c->vertex(k)->data().id;
-      s.cell = c;
-      int zeros = 0;
-      for (int k = 0; k <= D; ++k) zeros += (s.ori[k] == CGAL::ZERO);
-      s.kind = zeros == 0 ? IN_CELL : zeros == D ? ON_VERTEX : zeros == 1 ? ON_FACET : ON_FACE;
-      if (zeros)  // exact knowledge from the predicate: these weights are 0
-        for (int k = 0; k <= D; ++k)
-          if (s.ori[k] == CGAL::ZERO) s.w[k] = 0.0;
-      return true;
-    }
-    c = c->neighbor(move);
-    const int fi = inf_index(c);
-    if (fi >= 0) {  // crossed a hull facet
-      for (int k = 0; k <= D; ++k) s.ids[k] = c->vertex(k)->data().id;
-      s.cell = c;
+    for (int k = 0; k <= D; ++k) s.ids[k] = c->vertex(k)->data().id;
+    s.cell = c;
+    if (outside) {
       s.kind = OUTSIDE_CONVEX_HULL;
       facet_weights(c, fi, qc, s);
-      return true;
+      return c;
     }
-    L.c = c;
-    ++L.steps;
-    L.fetched = false;
-    return false;
+    int zeros = 0;
+    for (int k = 0; k <= D; ++k) zeros += (s.ori[k] == CGAL::ZERO);
+    s.kind = zeros == 0 ? IN_CELL : zeros == D ? ON_VERTEX : zeros == 1 ? ON_FACET : ON_FACE;
+    if (zeros)  // exact knowledge from the predicate: these weights are 0
+      for (int k = 0; k <= D; ++k)
+        if (s.ori[k] == CGAL::ZERO) s.w[k] = 0.0;
+    return c;
   }
 
   // Outside the hull: least-squares barycentrics of the query's projection on

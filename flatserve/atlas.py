@@ -1250,12 +1250,11 @@ class AtlasField:
             v = res.values
             fin = np.isfinite(v)
             good = fin[:, 0] if C == 1 else fin.all(axis=1)
-            if good.all():  # the common case: no masking passes
-                w = b
-                num[rows] += w[:, None] * v
+            w = b if good.all() else np.where(good, b, 0.0)  # the common case: no masking
+            if C == 1:  # 1-D scatters (much faster than (m, 1) ones)
+                num[:, 0][rows] += w * (v[:, 0] if w is b else np.where(good, v[:, 0], 0.0))
             else:
-                w = np.where(good, b, 0.0)
-                num[rows] += w[:, None] * np.where(good[:, None], v, 0.0)
+                num[rows] += w[:, None] * (v if w is b else np.where(good[:, None], v, 0.0))
             den[rows] += w
             inside[rows] |= res.inside & (w > 0)
             status[rows[res.status == OK]] = OK

@@ -862,7 +862,10 @@ class Flats:
 def _taken(a: np.ndarray, rows) -> np.ndarray:
     """``a[rows]`` contiguous and read-only, copied once: a fresh copy (an index
     array) is nobody else's, so it is frozen in place instead of copied again."""
-    t = np.ascontiguousarray(a[rows])
+    if isinstance(rows, np.ndarray) and rows.dtype.kind in "iu":
+        t = np.take(a, rows, axis=0)  # = a[rows], a few times faster for 2-D and 3-D rows
+    else:
+        t = np.ascontiguousarray(a[rows])
     if t.flags.writeable and not np.may_share_memory(t, a):
         t.setflags(write=False)
     return t

@@ -30,7 +30,7 @@ def test_sphere_eyes_are_uniform_in_direction_and_within_the_radii():
     assert np.abs(u.mean(axis=0)).max() < SIGMAS * np.sqrt(1 / (3 * N))
     assert np.abs(u.T @ u / N - np.eye(3) / 3).max() < SIGMAS * np.sqrt(4 / (45 * N))
     # E[u_x^4] = 1/5 on the sphere (sd sqrt(16/225 n)); directions normalised from a cube
-    # would give 0.2124
+    # would give 0.18
     assert np.abs((u ** 4).mean(axis=0) - 0.2).max() < SIGMAS * np.sqrt(16 / (225 * N))
     # distances uniform in [lo, hi]: mean in the middle
     assert abs(r.mean() - sum(EYE_RADIUS) / 2) < SIGMAS * (EYE_RADIUS[1] - EYE_RADIUS[0]) / np.sqrt(12 * N)

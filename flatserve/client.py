@@ -200,12 +200,20 @@ class Client:
 
     # -- fields -------------------------------------------------------------
     def create_field(self, name: str, *, k: int = 1, d: int = 3, channels: int = 1,
-                     basis: dict | None = None, roundtrip_tol: float | None = None) -> dict:
-        """Create a field. ``basis``: e.g. ``{"kind": "tangent_simplex", "scale": 0.01}`` or
-        ``{"kind": "flats", "Q": Q.tolist(), "r": r.tolist()}``; default tangent simplex."""
+                     basis: dict | None = None, oriented: bool | None = None,
+                     roundtrip_tol: float | None = None) -> dict:
+        """Create a field; returns its description.
+
+        ``basis`` left out: a covering atlas (every orientation accepted), of rays
+        when ``oriented`` (k = 1; uploads and queries must then be rays). One chart:
+        ``{"kind": "tangent_simplex", "scale": 0.01}`` or ``{"kind": "flats", "Q":
+        Q.tolist(), "r": r.tolist()}``. An atlas for given flats: ``{"kind": "atlas",
+        "atlas": "samples", "samples": {"origins": ..., "directions": ...}}``."""
         body: dict[str, Any] = {"name": name, "k": k, "d": d, "channels": channels}
         if basis is not None:
             body["basis"] = basis
+        if oriented is not None:
+            body["oriented"] = oriented
         if roundtrip_tol is not None:
             body["roundtrip_tol"] = roundtrip_tol
         return self._request("POST", "/v1/fields", json=body, retry=False).json()

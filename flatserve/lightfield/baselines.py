@@ -7,6 +7,11 @@
 * :class:`NearestEmbedded`: the value of the nearest sample in the embedded
   basis coordinates (the same points the field triangulates), via
   :class:`scipy.spatial.cKDTree`.
+* :class:`TwoSphere`: for unstructured 360-degree data, the two-sphere
+  parameterisation (a ray is its entry and exit points on a bounding sphere,
+  6 numbers; a ray and its reverse swap them, so it is oriented), the ``k``
+  nearest sample rays in it (:class:`scipy.spatial.cKDTree`), inverse-distance
+  weighted.
 
 Neither is tuned beyond its natural defaults, and neither is the field.
 """
@@ -18,9 +23,10 @@ import numpy as np
 
 from .._validate import as_array
 from ..errors import InvalidInputError
-from .camera import DEFAULT_EYE
+from .camera import DEFAULT_EYE, ORBIT_RADIUS
 
-__all__ = ["TwoPlane", "NearestEmbedded", "PARALLEL_TOL", "TWO_PLANE_Z"]
+__all__ = ["TwoPlane", "NearestEmbedded", "TwoSphere", "two_sphere_coordinates", "PARALLEL_TOL",
+           "TWO_PLANE_Z", "TWO_SPHERE_K", "IDW_POWER"]
 
 #: The two planes: the sampling screen (z = 0) and the plane through the
 #: centre of the eye box (z = -3), the natural "camera" and "focal" planes of
@@ -29,6 +35,15 @@ TWO_PLANE_Z = (0.0, float(DEFAULT_EYE[2]))
 #: Rays whose direction has |dz| below this (relative to its length) do not
 #: cross the planes.
 PARALLEL_TOL = 1e-9
+
+
+#: Neighbours of the two-sphere baseline: the number of samples the field's
+#: interpolant blends (the D + 1 = 5 vertices of a simplex of the
+#: 4-dimensional embedding of lines in R^3), so that both answers are weighted
+#: means of 5 sample values.
+TWO_SPHERE_K = 5
+#: Inverse-distance weights ``1 / distance**IDW_POWER``: Shepard's classic 2.
+IDW_POWER = 2.0
 
 
 def two_plane_coordinates(origins, directions, planes=TWO_PLANE_Z) -> np.ndarray:
@@ -151,3 +166,124 @@ class NearestEmbedded:
             return np.empty((0, self.values.shape[1]))
         _, idx = self._tree.query(x, k=1, workers=workers)
         return self.values[idx]
+
+
+def two_sphere_coordinates(origins, directions, center=(0.0, 0.0, 0.0),
+                           radius: float = ORBIT_RADIUS) -> np.ndarray:
+    """Two-sphere parameters of rays: entry and exit points on a sphere.
+
+    Parameters
+    ----------
+    origins, directions : (n, 3) float
+        Rays (directions need not be unit).
+    center : (3,) float
+    radius : float
+        The bounding sphere.
+
+    Returns
+    -------
+    (n, 6) float64
+        The first point where the ray's line enters the sphere, then where it
+        leaves it (in the direction of travel; a reversed ray swaps them);
+        NaN for lines that miss the sphere (tangent lines count as hitting).
+    """
+    o = as_array(origins, "origins", (None, 3))
+    d = as_array(directions, "directions", (o.shape[0], 3))
+    c = as_array(center, "center", (3,))
+    if not (np.isfinite(radius) and radius > 0):
+        raise InvalidInputError(f"radius: expected a positive number, got {radius!r}", "radius")
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    if not (norm > 0).all():
+        raise InvalidInputError("directions: expected non-zero directions", "directions")
+    u = d / norm
+    oc = o - c
+    b = np.einsum("ij,ij->i", oc, u)
+    disc = b * b - (np.einsum("ij,ij->i", oc, oc) - radius * radius)
+    root = np.sqrt(np.where(disc >= 0, disc, 0.0))
+    out = np.concatenate([oc + (-b - root)[:, None] * u, oc + (-b + root)[:, None] * u], axis=1) + np.tile(c, 2)
+    out[disc < 0] = np.nan
+    return out
+
+
+class TwoSphere:
+    """k nearest sample rays in the two-sphere parameterisation, inverse-distance weighted.
+
+    A query ray's value is ``sum_i w_i v_i / sum_i w_i`` over its ``k``
+    nearest samples in R^6 (:func:`two_sphere_coordinates`), ``w_i = 1 /
+    dist_i**power``; a sample at distance 0 gives its own value.
+
+    Parameters
+    ----------
+    origins, directions : (n, 3) float
+        Sample rays (at least ``k`` of them must meet the sphere).
+    values : (n, C) float, or (n,)
+    center : (3,) float
+    radius : float
+        The bounding sphere (default: the ball the 360-degree samples are
+        drawn through, :data:`~flatserve.lightfield.camera.ORBIT_RADIUS`).
+    k : int
+        Neighbours (:data:`TWO_SPHERE_K`).
+    power : float
+        Of the inverse distance (:data:`IDW_POWER`).
+
+    Attributes
+    ----------
+    build_seconds : float
+        Time of the k-d tree.
+    nsamples : int
+        Samples that meet the sphere (the others are left out).
+    """
+
+    def __init__(self, origins, directions, values, center=(0.0, 0.0, 0.0),
+                 radius: float = ORBIT_RADIUS, k: int = TWO_SPHERE_K, power: float = IDW_POWER):
+        from scipy.spatial import cKDTree
+
+        x = two_sphere_coordinates(origins, directions, center, radius)
+        v = np.asarray(values, dtype=np.float64)
+        v = as_array(v[:, None] if v.ndim == 1 else v, "values", (x.shape[0], None))
+        if not (isinstance(k, (int, np.integer)) and k >= 1):
+            raise InvalidInputError(f"k: expected a positive integer, got {k!r}", "k")
+        if not (np.isfinite(power) and power > 0):
+            raise InvalidInputError(f"power: expected a positive number, got {power!r}", "power")
+        keep = np.isfinite(x).all(axis=1)
+        if keep.sum() < k:
+            raise InvalidInputError(f"origins: need at least k = {k} rays that meet the sphere, "
+                                    f"got {int(keep.sum())}", "origins")
+        self.center = np.asarray(center, dtype=np.float64)
+        self.radius, self.k, self.power = float(radius), int(k), float(power)
+        self.values = v[keep]
+        t0 = time.perf_counter()
+        self._tree = cKDTree(x[keep])
+        self.build_seconds = time.perf_counter() - t0
+        self.nsamples = int(keep.sum())
+
+    def __call__(self, origins, directions, workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Interpolate rays.
+
+        Parameters
+        ----------
+        origins, directions : (q, 3) float
+        workers : int
+            Threads of the k-d tree query (-1: all cores).
+
+        Returns
+        -------
+        values : (q, C) float64
+            NaN for rays whose line misses the sphere.
+        inside : (q,) bool
+            The ray meets the sphere.
+        """
+        x = two_sphere_coordinates(origins, directions, self.center, self.radius)
+        ok = np.isfinite(x).all(axis=1)
+        C = self.values.shape[1]
+        out = np.full((x.shape[0], C), np.nan)
+        if ok.any():
+            dist, idx = self._tree.query(x[ok], k=self.k, workers=workers)
+            dist, idx = dist.reshape(-1, self.k), idx.reshape(-1, self.k)
+            exact = dist[:, 0] == 0
+            with np.errstate(divide="ignore"):
+                w = 1.0 / dist ** self.power
+            w[exact] = 0.0
+            w[exact, 0] = 1.0
+            out[ok] = np.einsum("qk,qkc->qc", w, self.values[idx]) / w.sum(axis=1)[:, None]
+        return out, ok

@@ -25,6 +25,8 @@ __all__ = [
     "Camera",
     "RaySamples",
     "paper_samples",
+    "sphere_samples",
+    "fibonacci_sphere",
     "rotation_about",
     "EYE_LOW",
     "EYE_HIGH",
@@ -33,6 +35,8 @@ __all__ = [
     "DEFAULT_FOCAL",
     "DEFAULT_SUPERSAMPLE",
     "ORTHONORMAL_TOL",
+    "ORBIT_EYE_RADIUS",
+    "ORBIT_RADIUS",
 ]
 
 #: Paper Sec. 5.2: eyes uniform in [-1, 1]^2 x [-4.5, -1.5].
@@ -47,6 +51,12 @@ DEFAULT_FOCAL = 3.0
 DEFAULT_SUPERSAMPLE = 4
 #: How far from orthonormal a camera rotation may be.
 ORTHONORMAL_TOL = 1e-6
+#: 360-degree sampling (:func:`sphere_samples`): eyes on the sphere of this
+#: radius about the origin (the distance of the default camera) ...
+ORBIT_EYE_RADIUS = 3.0
+#: ... with rays through the ball of this radius about the origin: it holds
+#: the unit box [-1/2, 1/2]^3 the scenes are normalised to (radius 0.866).
+ORBIT_RADIUS = 1.0
 
 
 @dataclass(frozen=True)
@@ -60,10 +70,11 @@ class RaySamples:
     directions : (n, 3) float64
         Unit direction from the eye through its screen pixel.
     screen : (n, 3) float64
-        The screen pixel's centre (z = 0).
+        The screen pixel's centre (z = 0); of :func:`sphere_samples`, the
+        ray's point closest to the origin.
     shape : (int, int)
         Raster shape (rows, columns); ray ``i`` is pixel ``divmod(i, columns)``,
-        row 0 at the top (+y).
+        row 0 at the top (+y); ``(1, n)`` for samples without a raster.
     """
 
     origins: np.ndarray
@@ -106,6 +117,85 @@ def paper_samples(n: int, rng: np.random.Generator, *, eye_low=EYE_LOW, eye_high
     d = screen - eyes
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return RaySamples(origins=eyes, directions=d, screen=screen, shape=(int(n), int(n)))
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """``n`` nearly evenly spread unit vectors (the Fibonacci sphere).
+
+    Point ``i`` has ``z = 1 - (2 i + 1) / n`` and longitude ``i`` times the
+    golden angle ``pi (3 - sqrt 5)``: equal-area latitude bands, each holding
+    one point.
+
+    Returns
+    -------
+    (n, 3) float64
+    """
+    if not (isinstance(n, (int, np.integer)) and n >= 1):
+        raise InvalidInputError(f"n: expected a positive integer, got {n!r}", "n")
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = i * (math.pi * (3.0 - math.sqrt(5.0)))
+    s = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
+
+
+def sphere_samples(n: int, rng: np.random.Generator, *, eyes: int | None = None,
+                   eye_radius: float = ORBIT_EYE_RADIUS, radius: float = ORBIT_RADIUS) -> RaySamples:
+    """Rays from eyes all around the object (the 360-degree light field's samples).
+
+    ``eyes`` eyes on a Fibonacci sphere (:func:`fibonacci_sphere`) of radius
+    ``eye_radius`` about the origin; from each eye ``n / eyes`` rays (the
+    first ``n mod eyes`` eyes one more) toward the ball of radius ``radius``
+    about the origin, their directions drawn uniformly by solid angle within
+    the cone of directions that meet the ball (``cos`` of the angle to the
+    eye's axis uniform in ``[cos a, 1]``, ``sin a = radius / eye_radius``;
+    the azimuth uniform).  The distribution of the rays is invariant under
+    rotations about the origin up to the discreteness of the eyes: no
+    direction is preferred.
+
+    Parameters
+    ----------
+    n : int
+        Number of rays.
+    rng : numpy.random.Generator
+        Source of the ray directions.
+    eyes : int, optional
+        Number of eyes (default ``ceil(sqrt(n))``: as many eyes as rays per eye).
+    eye_radius, radius : float
+        ``0 < radius < eye_radius``.
+
+    Returns
+    -------
+    RaySamples
+        ``origins`` the eyes, ``directions`` unit; ``screen`` the point of each
+        ray closest to the origin; ``shape`` ``(1, n)`` (no raster).
+    """
+    if not (isinstance(n, (int, np.integer)) and n >= 1):
+        raise InvalidInputError(f"n: expected a positive integer, got {n!r}", "n")
+    if eyes is None:
+        eyes = math.isqrt(int(n) - 1) + 1
+    if not (isinstance(eyes, (int, np.integer)) and 1 <= eyes <= n):
+        raise InvalidInputError(f"eyes: expected an integer in [1, n = {n}], got {eyes!r}", "eyes")
+    if not (math.isfinite(radius) and math.isfinite(eye_radius) and 0 < radius < eye_radius):
+        raise InvalidInputError(f"radius: expected 0 < radius < eye_radius, got radius={radius!r}, "
+                                f"eye_radius={eye_radius!r}", "radius")
+    e = fibonacci_sphere(int(eyes))
+    which = np.arange(n) % eyes  # eye of each ray
+    axis = -e[which]  # toward the origin
+    o = eye_radius * e[which]
+    cos_a = math.sqrt(1.0 - (radius / eye_radius) ** 2)
+    c = rng.uniform(cos_a, 1.0, n)
+    az = rng.uniform(0.0, 2.0 * math.pi, n)
+    s = np.sqrt(np.maximum(1.0 - c * c, 0.0))
+    # an orthonormal frame (a, b) perpendicular to each axis
+    helper = np.where(np.abs(axis[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    a = np.cross(axis, helper)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = np.cross(axis, a)
+    d = c[:, None] * axis + s[:, None] * (np.cos(az)[:, None] * a + np.sin(az)[:, None] * b)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    closest = o - np.einsum("ij,ij->i", o, d)[:, None] * d
+    return RaySamples(origins=o, directions=d, screen=closest, shape=(1, int(n)))
 
 
 def rotation_about(axis, degrees: float) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 $ flatserve lightfield paper-figure --out figs/            # quick (300^2 samples)
 $ flatserve lightfield paper-figure --out figs/ --full     # the paper's 1000^2
+$ flatserve lightfield orbit --out figs360/                # 360 degrees: eyes all around
 """
 from __future__ import annotations
 
@@ -26,6 +27,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     fig.add_argument("--rgb", action="store_true", help="RGB instead of grey")
     fig.add_argument("--no-baselines", action="store_true", help="skip the two-plane and nearest baselines")
 
+    from .orbit import ATLASES, DEFAULT_SAMPLES, SCENES, VIEW_WIDTH
+
+    orb = sub.add_parser("orbit", help="360-degree light field: eyes all around, views all around, "
+                                       "against the two-sphere nearest-rays baseline",
+                         description="Sample a scene from eyes all around it into an oriented covering "
+                                     "atlas field, render 8 azimuths x 3 elevations, and write a contact "
+                                     "sheet and a table (PSNR, SSIM, coverage, time) against the k "
+                                     "nearest rays in the two-sphere parameterisation.")
+    orb.add_argument("--out", required=True, help="output directory")
+    orb.add_argument("--samples", type=int, default=DEFAULT_SAMPLES,
+                     help=f"sample rays (default {DEFAULT_SAMPLES:,})")
+    orb.add_argument("--eyes", type=int, default=None, help="eyes on the sphere (default ceil(sqrt(samples)))")
+    orb.add_argument("--seed", type=int, default=0, help="seed of the ray directions (default 0)")
+    orb.add_argument("--width", type=int, default=VIEW_WIDTH, help=f"view resolution (default {VIEW_WIDTH})")
+    orb.add_argument("--supersample", type=int, default=4, help="rays per pixel (square number; default 4)")
+    orb.add_argument("--rgb", action="store_true", help="RGB instead of grey")
+    orb.add_argument("--scene", choices=sorted(SCENES), default="bunny", help="scene (default bunny)")
+    orb.add_argument("--atlas", choices=sorted(ATLASES), default="covering",
+                     help="covering: Atlas.covering (12 charts, the service's default); fine: 42 charts "
+                          "within 20.8 degrees of every direction (default covering)")
+    orb.add_argument("--no-one-chart", action="store_true",
+                     help="skip rendering each view from a one-chart atlas centred on its axis")
+
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import InvalidInputError
@@ -41,6 +65,21 @@ def run(args: argparse.Namespace) -> int:
                          channels=3 if args.rgb else 1, baselines=not args.no_baselines)
         except (InvalidInputError, FileNotFoundError) as exc:
             print(f"flatserve lightfield paper-figure: {exc}", file=sys.stderr)
+            return 2
+        return 0
+    if args.lightfield_command == "orbit":
+        from .orbit import orbit_figure
+
+        if args.samples < 1 or (args.eyes is not None and not 1 <= args.eyes <= args.samples):
+            print("flatserve lightfield orbit: need --samples >= 1 and 1 <= --eyes <= --samples",
+                  file=sys.stderr)
+            return 2
+        try:
+            orbit_figure(args.out, n=args.samples, eyes=args.eyes, seed=args.seed, width=args.width,
+                         supersample=args.supersample, channels=3 if args.rgb else 1,
+                         scene=args.scene, atlas=args.atlas, one_chart=not args.no_one_chart)
+        except (InvalidInputError, FileNotFoundError) as exc:
+            print(f"flatserve lightfield orbit: {exc}", file=sys.stderr)
             return 2
         return 0
     return 2  # pragma: no cover - argparse requires a subcommand

@@ -36,7 +36,7 @@ from .quality import psnr, ssim
 from .render import frame_from_rays, render_field, render_truth
 from .sampling import BASIS_SCALE, ProgressBar, build_field, bunny_scene, sample_scene
 
-__all__ = ["paper_views", "paper_figure", "to_uint8", "save_png", "DEFAULT_N", "FULL_N",
+__all__ = ["paper_views", "paper_figure", "to_uint8", "save_png", "contact_sheet", "fmt", "DEFAULT_N", "FULL_N",
            "FOCALS", "ROTATION_DEG", "ROTATION_FOCAL", "METHODS"]
 
 #: Quick default: 300^2 = 90k samples: looks like the bunny; the two-plane
@@ -94,8 +94,18 @@ def _side_by_side(a: np.ndarray, b: np.ndarray, gap: int = 4) -> np.ndarray:
     return out
 
 
-def _contact_sheet(path, rows: list[tuple[str, list[np.ndarray]]], columns: list[str]) -> None:
-    """Grid of images with row and column labels."""
+def contact_sheet(path, rows: list[tuple[str, list[np.ndarray]]], columns: list[str]) -> None:
+    """Grid of images with row and column labels.
+
+    Parameters
+    ----------
+    path : path-like
+        PNG to write.
+    rows : list of (label, images)
+        Images (H, W, C) in [0, 1], all of one shape, one per column.
+    columns : list of str
+        Column labels.
+    """
     from PIL import Image, ImageDraw
 
     H, W = rows[0][1][0].shape[:2]
@@ -122,7 +132,8 @@ class _Method:
     split: dict
 
 
-def _fmt(x, digits=2) -> str:
+def fmt(x, digits=2) -> str:
+    """A number for a table: ``digits`` decimals, "–" for None/NaN, "∞" for inf."""
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "–"
     if isinstance(x, float) and math.isinf(x):
@@ -225,11 +236,11 @@ def paper_figure(out, *, n: int = DEFAULT_N, seed: int = 0, width: int = 250, su
         scores = {k: v["psnr_common"] for k, v in row["methods"].items()}
         row["winner"] = max(scores, key=lambda k: -math.inf if math.isnan(scores[k]) else scores[k])
         rows.append(row)
-        msg = ", ".join(f"{k} {_fmt(v['psnr_common'])} dB" for k, v in row["methods"].items())
+        msg = ", ".join(f"{k} {fmt(v['psnr_common'])} dB" for k, v in row["methods"].items())
         log(f"{name:>10}: {msg}; coverage (ours) {row['methods']['field']['coverage']:.1%}; "
             f"winner: {row['winner']}")
 
-    _contact_sheet(out / "contact_sheet.png",
+    contact_sheet(out / "contact_sheet.png",
                    [(_LABEL[k], sheet[k]) for k in ("field",) + (METHODS[1:] if baselines else ()) + ("truth",)],
                    [name for name, _ in views])
     result = {
@@ -269,7 +280,7 @@ def _markdown(res: dict) -> str:
         cells = []
         for m in methods:
             x = r["methods"][m]
-            cells.append(f"{_fmt(x['psnr_common'])} [{_fmt(x['psnr'])}] / {_fmt(x['ssim_common'], 3)} / "
+            cells.append(f"{fmt(x['psnr_common'])} [{fmt(x['psnr'])}] / {fmt(x['ssim_common'], 3)} / "
                          f"{x['coverage']:.1%} / {x['seconds']:.2f}")
         lines.append(f"| {r['view']} | " + " | ".join(cells) + f" | {r['common_coverage']:.1%} | {r['winner']} |")
     lines += ["", "Wins: " + ", ".join(f"{_LABEL[m]} {c}" for m, c in res["wins"].items()), "",

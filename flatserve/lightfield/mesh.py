@@ -31,6 +31,7 @@ __all__ = [
     "load_bunny",
     "box_mesh",
     "icosphere",
+    "merge_meshes",
     "CGAL_DATA_TARBALL",
     "BUNNY_MEMBER",
 ]
@@ -286,3 +287,37 @@ def icosphere(subdivisions: int = 2, radius: float = 1.0, center=(0.0, 0.0, 0.0)
         faces = new
     center = as_array(center, "center", (3,))
     return Mesh(np.asarray(verts) * radius + center, np.asarray(faces, dtype=np.int64))
+
+
+def merge_meshes(*meshes: Mesh, transforms=None) -> Mesh:
+    """One mesh holding the triangles of several (each optionally moved first).
+
+    Parameters
+    ----------
+    *meshes : Mesh
+    transforms : sequence of (R (3, 3), t (3,)) or None, optional
+        Per mesh, vertices become ``v @ R.T + t`` (None: unchanged).
+
+    Returns
+    -------
+    Mesh
+        Vertices and faces concatenated (faces re-indexed); overlapping
+        parts stay as they are (ray casting takes the first hit).
+    """
+    if not meshes:
+        raise InvalidInputError("meshes: expected at least one mesh", "meshes")
+    transforms = [None] * len(meshes) if transforms is None else list(transforms)
+    if len(transforms) != len(meshes):
+        raise InvalidInputError(f"transforms: expected one per mesh ({len(meshes)}), got "
+                                f"{len(transforms)}", "transforms")
+    vs, fs, off = [], [], 0
+    for m, tr in zip(meshes, transforms):
+        v = m.vertices
+        if tr is not None:
+            R = as_array(tr[0], "transforms", (3, 3))
+            t = as_array(tr[1], "transforms", (3,))
+            v = v @ R.T + t
+        vs.append(v)
+        fs.append(m.faces + off)
+        off += v.shape[0]
+    return Mesh(np.concatenate(vs), np.concatenate(fs))

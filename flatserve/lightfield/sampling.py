@@ -1,11 +1,10 @@
 """From a scene to a light field: the paper's samples, shaded, in a Field.
 
 Shared by ``flatserve lightfield paper-figure``, the service's demo field and
-the benchmarks, so all of them build the same field the same way.  Two
-samplings: the paper's (:func:`sample_scene`, eyes on one side of the object,
-one chart) and all around the object (:func:`sphere_eyes`,
-:func:`sphere_samples`, :func:`sample_scene_sphere`: the 360 degree light field
-of an oriented covering atlas, :func:`build_atlas_field`).
+the benchmark, so all three build the same field the same way.  The
+360-degree light field (``flatserve lightfield orbit``): samples from eyes all
+around (:func:`orbit_samples`) in an oriented covering atlas field
+(:func:`build_atlas_field`).
 """
 from __future__ import annotations
 
@@ -15,32 +14,46 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._validate import as_array
-from ..errors import InvalidInputError
-from .camera import SCREEN_HALF, RaySamples, paper_samples
-from .mesh import load_bunny
-from .scene import Scene
+from .camera import RaySamples, paper_samples, rotation_about, sphere_samples
+from .mesh import box_mesh, icosphere, load_bunny, merge_meshes
+from .scene import Checker, Scene
 
-__all__ = ["BASIS_SCALE", "BUILD_CHUNK", "EYE_RADIUS", "TARGET_BOX", "TARGET_MARGIN", "bunny_scene", "sample_scene",
-           "sphere_eyes", "sphere_samples", "sample_scene_sphere", "build_field",
-           "build_atlas_field", "BuildStats", "ProgressBar"]
+__all__ = ["BASIS_SCALE", "BUILD_CHUNK", "bunny_scene", "blocks_scene", "sample_scene",
+           "orbit_samples", "build_field", "build_atlas_field", "BuildStats", "ProgressBar"]
 
 #: Paper Sec. 5.2: the base simplex multiplied by 0.01.
 BASIS_SCALE = 0.01
 #: Rays per Field.add call (bounds memory of the coordinate computation).
 BUILD_CHUNK = 100_000
-#: Distances of the eyes all around the object (:func:`sphere_eyes`): the
-#: paper's eye depths (Sec. 5.2: 1.5 to 4.5 in front of the screen).
-EYE_RADIUS = (1.5, 4.5)
-#: Targets of :func:`sphere_samples`: the paper's screen [-1, 1]^2 made a cube.
-TARGET_BOX = ((-SCREEN_HALF,) * 3, (SCREEN_HALF,) * 3)
-#: :func:`sample_scene_sphere` aims at the mesh's box grown by this share of its side.
-TARGET_MARGIN = 0.1
 
 
 def bunny_scene(channels: int = 1, cache_dir=None, **kwargs) -> Scene:
     """The paper's scene: the Stanford bunny in the unit box, diffuse shading."""
     return Scene(load_bunny(cache_dir), channels=channels, **kwargs)
+
+
+def blocks_scene(channels: int = 1, **kwargs) -> Scene:
+    """A procedural scene that is not the bunny: three primitives under a solid checker.
+
+    A slab (0.7 x 0.25 x 0.5, turned 25 degrees about y), a sphere (radius
+    0.28, an icosphere of 1,280 faces) resting on it and a pillar (0.12 x
+    0.6 x 0.12) beside them, all inside the unit box, textured by a solid
+    checkerboard (:class:`~flatserve.lightfield.scene.Checker`, cells of
+    0.125, albedo 0.3 / 0.9), lit as the bunny.  Fixed once, before any
+    light field of it was rendered: flat faces, a smooth curved surface,
+    occlusions and sharp texture edges, none of them the bunny's.
+    """
+    slab = box_mesh((-0.35, -0.125, -0.25), (0.35, 0.125, 0.25))
+    ball = icosphere(3, 0.28)
+    pillar = box_mesh((-0.06, -0.3, -0.06), (0.06, 0.3, 0.06))
+    eye = np.eye(3)
+    mesh = merge_meshes(slab, ball, pillar, transforms=[
+        (rotation_about("y", 25.0), (0.0, -0.3, 0.0)),
+        (eye, (0.05, 0.1, 0.0)),
+        (eye, (-0.38, -0.12, 0.3)),
+    ])
+    kwargs.setdefault("texture", Checker())
+    return Scene(mesh, channels=channels, **kwargs)
 
 
 def sample_scene(scene: Scene, n: int, seed: int = 0) -> tuple[RaySamples, np.ndarray]:
@@ -63,97 +76,27 @@ def sample_scene(scene: Scene, n: int, seed: int = 0) -> tuple[RaySamples, np.nd
     return samples, scene.shade(samples.origins, samples.directions)
 
 
-def sphere_eyes(n: int, rng: np.random.Generator, *, radius=EYE_RADIUS) -> np.ndarray:
-    """Eye positions all around the origin: directions uniform on the sphere.
-
-    Parameters
-    ----------
-    n : int
-        Number of eyes.
-    rng : numpy.random.Generator
-    radius : float or (float, float)
-        Distance from the origin: fixed, or uniform in ``[lo, hi]``.
-
-    Returns
-    -------
-    (n, 3) float64
-        Eye positions; ``|eye|`` in ``radius``.
-    """
-    if not (isinstance(n, (int, np.integer)) and n >= 0):
-        raise InvalidInputError(f"n: expected a non-negative integer, got {n!r}", "n")
-    r = np.broadcast_to(np.asarray(radius, dtype=np.float64), (2,)) if np.ndim(radius) == 0 \
-        else as_array(radius, "radius", (2,))
-    if not (0 < r[0] <= r[1] and np.isfinite(r).all()):
-        raise InvalidInputError(f"radius: expected 0 < lo <= hi, got {tuple(r)}", "radius")
-    u = rng.normal(size=(int(n), 3))
-    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), np.finfo(float).tiny)
-    return u * rng.uniform(r[0], r[1], size=(int(n), 1))
-
-
-def sphere_samples(n: int, rng: np.random.Generator, *, radius=EYE_RADIUS,
-                   box=TARGET_BOX) -> tuple[np.ndarray, np.ndarray]:
-    """Rays from eyes all around the object toward it (the 360 degree sampling).
-
-    Each ray starts at its own eye (:func:`sphere_eyes`) and passes through
-    its own target point drawn uniformly from ``box`` (the paper's sampling
-    screen made a volume, so that every viewing direction sees it whole).
-
-    Parameters
-    ----------
-    n : int
-        Number of rays.
-    rng : numpy.random.Generator
-    radius : float or (float, float)
-        Eye distances (:func:`sphere_eyes`).
-    box : ((3,) float, (3,) float)
-        Lower and upper corner of the targets' box.  A target that coincides
-        with its eye is redrawn.
-
-    Returns
-    -------
-    origins : (n, 3) float64
-    directions : (n, 3) float64
-        Unit directions.
-    """
-    lo = as_array(box[0], "box", (3,))
-    hi = as_array(box[1], "box", (3,))
-    if not (lo <= hi).all():
-        raise InvalidInputError(f"box: expected lower <= upper corner, got {lo} and {hi}", "box")
-    eyes = sphere_eyes(n, rng, radius=radius)
-    d = rng.uniform(lo, hi, size=eyes.shape) - eyes
-    norm = np.linalg.norm(d, axis=1, keepdims=True)
-    while (bad := norm[:, 0] < 1e-9).any():  # an eye on its target: redraw the target
-        d[bad] = rng.uniform(lo, hi, size=(int(bad.sum()), 3)) - eyes[bad]
-        norm = np.linalg.norm(d, axis=1, keepdims=True)
-    return eyes, d / norm
-
-
-def sample_scene_sphere(scene: Scene, n: int, seed: int = 0, *, radius=EYE_RADIUS,
-                        margin: float = TARGET_MARGIN
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``n`` rays from eyes all around a scene toward its mesh's box (:func:`sphere_samples`), shaded.
+def orbit_samples(scene: Scene, n: int, seed: int = 0, *, eyes: int | None = None
+                  ) -> tuple[RaySamples, np.ndarray]:
+    """``n`` rays from eyes all around the scene (:func:`~flatserve.lightfield.camera.sphere_samples`), shaded.
 
     Parameters
     ----------
     scene : Scene
     n : int
+        Number of rays.
     seed : int
-        Seed of the eyes and targets.
-    radius : float or (float, float)
-        Eye distances.
-    margin : float
-        The targets' box is the mesh's bounding box grown by this share of
-        its longest side on every face.
+        Seed of the ray directions.
+    eyes : int, optional
+        Number of eyes (default ``ceil(sqrt(n))``).
 
     Returns
     -------
-    origins, directions : (n, 3) float64
+    samples : RaySamples
     values : (n, C) float64
     """
-    lo, hi = scene.mesh.bounds
-    pad = float(margin) * float((hi - lo).max())
-    o, d = sphere_samples(n, np.random.default_rng(seed), radius=radius, box=(lo - pad, hi + pad))
-    return o, d, scene.shade(o, d)
+    samples = sphere_samples(n, np.random.default_rng(seed), eyes=eyes)
+    return samples, scene.shade(samples.origins, samples.directions)
 
 
 class ProgressBar:
@@ -232,20 +175,16 @@ def build_field(origins, directions, values, *, scale: float = BASIS_SCALE, vari
 
 def build_atlas_field(origins, directions, values, *, atlas=None, chunk: int = BUILD_CHUNK,
                       progress=None):
-    """An oriented covering :class:`~flatserve.atlas.AtlasField` of rays, filled with samples.
-
-    The 360 degree counterpart of :func:`build_field`: every ray direction
-    lies inside some chart (:meth:`flatserve.atlas.Atlas.covering` with
-    ``oriented=True``: the 6 icosahedral axes and their negatives).
+    """An oriented atlas field over rays in R^3, filled with samples.
 
     Parameters
     ----------
     origins, directions : (n, 3) float
-        Sample rays (their orientation counts: a ray and its reverse see
-        different surfaces).
+        Sample rays (their direction is kept: oriented).
     values : (n, C) float
     atlas : flatserve.atlas.Atlas, optional
-        Default ``Atlas.covering(1, 3, oriented=True)``.
+        Default ``Atlas.covering(1, 3, oriented=True)`` (12 charts: every
+        direction).
     chunk : int
         Rays per insertion batch.
     progress : callable(done, total), optional
@@ -254,6 +193,7 @@ def build_atlas_field(origins, directions, values, *, atlas=None, chunk: int = B
     -------
     field : flatserve.atlas.AtlasField
     stats : BuildStats
+        Rejected samples are those no chart holds (none with a covering atlas).
     """
     from ..atlas import Atlas, AtlasField
     from ..flats import Flats
@@ -261,8 +201,11 @@ def build_atlas_field(origins, directions, values, *, atlas=None, chunk: int = B
     values = np.asarray(values, dtype=np.float64)
     if values.ndim == 1:
         values = values[:, None]
-    field = AtlasField(atlas if atlas is not None else Atlas.covering(1, 3, oriented=True),
-                       channels=values.shape[1])
+    if atlas is None:
+        atlas = Atlas.covering(1, 3, oriented=True)
+    field = AtlasField(atlas, channels=values.shape[1])
+    origins = np.asarray(origins, dtype=np.float64)
+    directions = np.asarray(directions, dtype=np.float64)
     n = values.shape[0]
     t0 = time.perf_counter()
     accepted = rejected = duplicates = 0

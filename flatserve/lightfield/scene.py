@@ -10,6 +10,7 @@ get the background value.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -18,7 +19,7 @@ from .._validate import as_array
 from ..errors import InvalidInputError
 from .mesh import Mesh
 
-__all__ = ["RayHits", "Scene", "DEFAULT_LIGHT", "DEFAULT_AMBIENT", "BARYCENTRIC_EPS"]
+__all__ = ["RayHits", "Scene", "Checker", "DEFAULT_LIGHT", "DEFAULT_AMBIENT", "BARYCENTRIC_EPS"]
 
 #: Direction *toward* the light (world coordinates, normalised on use):
 #: from above, left and in front of eyes at negative z.
@@ -50,6 +51,32 @@ class RayHits:
         return self.face >= 0
 
 
+@dataclass(frozen=True)
+class Checker:
+    """A solid checkerboard texture: albedo by the parity of a cubic cell.
+
+    ``albedo(p) = high`` where ``floor(px / period) + floor(py / period) +
+    floor(pz / period)`` is even, else ``low`` (the same in every channel).
+
+    Parameters
+    ----------
+    period : float
+        Side of a cell.
+    low, high : float
+        Albedos in [0, 1].
+    """
+
+    period: float = 0.125
+    low: float = 0.3
+    high: float = 0.9
+
+    def __call__(self, points: np.ndarray, channels: int) -> np.ndarray:
+        """(n, 3) points -> (n, channels) albedo."""
+        cells = np.floor(np.asarray(points, dtype=np.float64) / self.period).astype(np.int64)
+        even = (cells.sum(axis=1) % 2) == 0
+        return np.repeat(np.where(even, self.high, self.low)[:, None], channels, axis=1)
+
+
 def _caster(mesh: Mesh):
     return _native.RayCaster(mesh.vertices, mesh.faces)
 
@@ -73,6 +100,8 @@ class Scene:
         Ambient share in [0, 1].
     smooth : bool
         Interpolate vertex normals (True) or use face normals.
+    texture : callable(points (n, 3), channels) -> (n, C), optional
+        Albedo at the hit points (e.g. :class:`Checker`), replacing ``albedo``.
     threads : int
         Threads for casting (0: all cores).
     """
@@ -84,6 +113,7 @@ class Scene:
     light: tuple = DEFAULT_LIGHT
     ambient: float = DEFAULT_AMBIENT
     smooth: bool = True
+    texture: Callable | None = None
     threads: int = 0
     _rc: object = field(default=None, init=False, repr=False)
 
@@ -183,5 +213,6 @@ class Scene:
             n[flip] = -n[flip]
             lambert = np.clip(n @ self._light, 0.0, None)
             shade = self.ambient + (1.0 - self.ambient) * lambert
-            out[h] = shade[:, None] * self.albedo[None, :]
+            albedo = self.albedo[None, :] if self.texture is None else self.texture(p, self.channels)
+            out[h] = shade[:, None] * albedo
         return out

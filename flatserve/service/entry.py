@@ -61,6 +61,11 @@ class FieldSpec:
     def is_atlas(self) -> bool:
         return self.atlas is not None
 
+    @property
+    def oriented(self) -> bool:
+        """Rays keep their direction (atlas fields of lines only; kept in the atlas)."""
+        return bool(self.atlas is not None and self.atlas["oriented"])
+
     def new_field(self, basis: Basis) -> "Field | AtlasField":
         """An empty field of this spec: a :class:`flatserve.Field` over ``basis``, or
         for an atlas spec an :class:`flatserve.atlas.AtlasField` (``basis`` is then

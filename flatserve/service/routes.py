@@ -55,18 +55,24 @@ health = APIRouter()
 def _summary(e: FieldEntry) -> dict:
     f = e.field
     return {"name": e.name, "k": e.spec.k, "d": e.spec.d, "channels": e.spec.channels,
-            "state": e.state,
+            "state": e.state, "oriented": e.spec.oriented,
             "nsamples": int(f.nsamples) if f is not None else None}
 
 
 @api.post("/fields", status_code=201, response_model=FieldInfo, tags=["fields"],
           dependencies=[WriteAccess], responses=BODY_RESPONSES,
           openapi_extra=json_body_doc(FieldCreate),
-          summary="Create a field (basis + empty triangulation)")
-def create_field(spec: json_body(FieldCreate), registry: RegistryDep) -> Response:
-    basis, atlas = specs.build_chart_basis(spec.basis, spec.k, spec.d)
-    stored = FieldSpec(spec.k, spec.d, spec.channels, specs.spec_dict(spec.basis),
-                       spec.roundtrip_tol, atlas)
+          summary="Create a field (basis + empty triangulation)",
+          description="Without `basis`: a covering atlas (every orientation accepted; "
+                      "`oriented: true` for rays). `basis` chooses one chart "
+                      "(`tangent_simplex`, explicit flats) or another atlas (`samples`: "
+                      "charts where given flats are; `centers`: explicit centres, checked to "
+                      "cover every orientation).")
+def create_field(spec: json_body(FieldCreate), registry: RegistryDep,
+                 settings: SettingsDep) -> Response:
+    basis, basis_spec, atlas = specs.build_chart_basis(
+        spec, max_atlas_samples=settings.max_atlas_samples)
+    stored = FieldSpec(spec.k, spec.d, spec.channels, basis_spec, spec.roundtrip_tol, atlas)
     e = registry.create(spec.name, stored, basis)
     return JSONBytes(_describe(registry, e), status_code=201)
 
@@ -110,10 +116,12 @@ def _describe_atlas(e: FieldEntry) -> dict:
     f = e.field
     d = f.describe() if f is not None else None
     per = [None] * len(spec["scales"]) if d is None else [c["samples"] for c in d["charts"]]
+    info = spec.get("info", {})
     return {
-        "atlas": {"oriented": spec["oriented"], "inner": spec["inner"],
-                  "trusted": spec["trusted"], "reach": spec["reach"],
-                  "covering_radius": spec.get("info", {}).get("covering_radius_deg"),
+        "atlas": {"method": info.get("method"), "oriented": spec["oriented"],
+                  "inner": spec["inner"], "trusted": spec["trusted"], "reach": spec["reach"],
+                  "covering_radius": info.get("covering_radius_deg"),
+                  "max_sample_angle": info.get("max_sample_angle_deg"),
                   "nstored": None if d is None else d["nstored"],
                   "duplication": None if d is None else d["duplication"]},
         "charts": [{"center": {"A": A, "r": r}, "scale": s, "samples": n}

@@ -88,18 +88,70 @@ class FlatsBasis(FlatsModel):
     kind: Literal["flats"] = "flats"
 
 
-class AtlasBasis(_Strict):
-    """Several tangent-simplex charts that together hold every orientation
+class _AtlasSpec(_Strict):
+    """Several tangent-simplex charts that together hold the flats they claim
     (:class:`flatserve.atlas.Atlas`): samples are inserted into every chart whose
     domain holds them, queries blended over the charts that hold them."""
 
     kind: Literal["atlas"] = "atlas"
+    oriented: Optional[bool] = Field(
+        None, description="Deprecated: the field's top-level `oriented` (kept for requests "
+                          "written before it; if both are given they must agree).")
+
+
+class CoveringAtlas(_AtlasSpec):
+    """Centres chosen so that every orientation lies well inside some chart
+    (:meth:`flatserve.atlas.Atlas.covering`): the default of a field without `basis`."""
+
     atlas: Literal["covering"] = Field(
-        "covering", description="`covering`: centres chosen so that every orientation of "
-                                "k-flats lies well inside some chart (Atlas.covering).")
-    oriented: bool = Field(
-        False, description="Lines only (k = 1): a ray and its reverse are different samples; "
-                           "uploads and queries must then be rays (origins + directions).")
+        "covering", description="`covering`: every orientation of k-flats lies well inside "
+                                "some chart (Atlas.covering).")
+
+
+class SamplesAtlas(_AtlasSpec):
+    """Charts placed where the given flats are (:meth:`flatserve.atlas.Atlas.for_samples`):
+    a greedy cover of their orientations within `radius` degrees, each chart's centre
+    through the point nearest to its flats and its scale by the paper's bisection. Only
+    the flats' region of the space is charted: a later sample farther than `reach` from
+    every centre is rejected with its reason."""
+
+    atlas: Literal["samples"]
+    samples: FlatsModel = Field(
+        description="The flats the atlas is built for (no values: upload the samples "
+                    "afterwards); at most `max_atlas_samples` (FLATSERVE_MAX_ATLAS_SAMPLES).")
+    radius: float = Field(30.0, gt=0, le=40.0, allow_inf_nan=False,
+                          description="Degrees: every given flat is this close to a centre.")
+    fraction: float = Field(0.99, gt=0, le=1, allow_inf_nan=False,
+                            description="Of each chart's flats inside its simplex (the "
+                                        "bisection of the chart's scale).")
+
+
+class CentersAtlas(_AtlasSpec):
+    """Charts around the given centre flats (:meth:`flatserve.atlas.Atlas.from_centers`),
+    refused unless every orientation is within `trusted` of a centre and every chart
+    round-trips its whole domain at its scale."""
+
+    atlas: Literal["centers"]
+    centers: FlatsModel = Field(description="One flat per chart (rays for oriented fields).")
+    scale: Union[float, list[float]] = Field(
+        1.0, description="Tangent-simplex scale of every chart, or one per centre.")
+
+
+def _atlas_kind(v):
+    """``atlas`` if given, else ``covering``."""
+    if isinstance(v, dict):
+        return v.get("atlas", "covering")
+    return getattr(v, "atlas", None)
+
+
+#: An atlas spec, by its member ``atlas``.
+AtlasBasis = Annotated[
+    Union[Annotated[CoveringAtlas, Tag("covering")], Annotated[SamplesAtlas, Tag("samples")],
+          Annotated[CentersAtlas, Tag("centers")]],
+    Discriminator(_atlas_kind),
+]
+#: The atlas specs' classes (``isinstance``).
+ATLAS_SPECS = (CoveringAtlas, SamplesAtlas, CentersAtlas)
 
 
 _FLATS_KEYS = tuple(n for names in FORMS.values() for n in names)
@@ -148,9 +200,14 @@ class _KD(_Strict):
 class FieldCreate(_KD):
     name: FieldName
     channels: int = Field(1, ge=1, le=64, description="Values per sample (3 for RGB).")
+    oriented: Optional[bool] = Field(
+        None, description="Lines only (k = 1): a ray and its reverse are different samples "
+                          "(charts over oriented lines); uploads and queries must then be rays "
+                          "(origins + directions). Default false. Atlas fields only.")
     basis: Optional[BasisSpec] = Field(
-        None, description="Default: tangent simplex around the default centre (one chart). "
-                          "`{\"kind\": \"atlas\"}`: a covering atlas (every orientation).")
+        None, description="Default: a covering atlas (`{\"kind\": \"atlas\"}`: every "
+                          "orientation accepted). `{\"kind\": \"tangent_simplex\"}` or "
+                          "explicit flats: one chart (the paper's set-up).")
     roundtrip_tol: Optional[float] = Field(None, gt=0, le=1.0, allow_inf_nan=False)
 
 
@@ -176,14 +233,21 @@ class ChartInfo(BaseModel):
 
 
 class AtlasInfo(BaseModel):
-    oriented: bool
+    method: Optional[str] = Field(None, description="How the charts were placed: `covering`, "
+                                                    "`samples` or `centers`.")
+    oriented: bool = Field(description="The field's `oriented`.")
     inner: float = Field(description="Degrees from a centre up to which its blending weight is 1.")
     trusted: float = Field(description="Degrees from a centre beyond which the chart answers no "
                                        "query (its blending weight is 0).")
     reach: float = Field(description="Degrees: samples are inserted into every chart whose "
                                      "centre is closer.")
     covering_radius: Optional[float] = Field(
-        None, description="Degrees: every orientation measured was this close to a centre.")
+        None, description="Degrees: every orientation measured was this close to a centre "
+                          "(`covering` and `centers`; null for `samples`, which charts only "
+                          "the region of its flats).")
+    max_sample_angle: Optional[float] = Field(
+        None, description="`samples`: degrees from the farthest given flat to its nearest "
+                          "centre.")
     nstored: Optional[int] = Field(description="Vertices over all charts (a sample in each "
                                                "chart holding it); null while loading.")
     duplication: Optional[float] = Field(
@@ -207,6 +271,8 @@ class FieldSummary(BaseModel):
     channels: int
     state: Literal["loading", "ready", "failed"]
     nsamples: Optional[int] = None
+    oriented: bool = Field(False, description="Rays keep their direction (uploads and "
+                                              "queries must be rays).")
 
 
 class FieldList(BaseModel):

@@ -62,6 +62,10 @@ class Settings(BaseSettings):
         50_000_000, ge=1,
         description="Most cells of one field's triangulation: an upload expected to pass it is "
                     "refused (413) with the estimate (high-dimensional fields grow fast).")
+    max_atlas_samples: int = Field(
+        100_000, ge=1,
+        description="Most flats given to build a data-driven atlas (`basis: {\"kind\": "
+                    "\"atlas\", \"atlas\": \"samples\"}`) when a field is created (413).")
     insert_slice_rows: int = Field(
         20_000, ge=1,
         description="Batches acknowledged before indexing (wait=false) are inserted this "

@@ -5,12 +5,15 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 
+import numpy as np
+
 from .._validate import as_array
-from ..atlas import Atlas
+from ..atlas import Atlas, AtlasField
 from ..basis import Basis
 from ..errors import BatchTooLargeError, InvalidInputError
 from ..flats import FORMS, Flats, form_shapes, infer_form
-from .schemas import AtlasBasis, CenterFlat, FlatsBasis, TangentSimplexBasis
+from .schemas import (ATLAS_SPECS, CenterFlat, CentersAtlas, CoveringAtlas, FlatsBasis,
+                      SamplesAtlas, TangentSimplexBasis)
 
 _NAMES = tuple(n for names in FORMS.values() for n in names)
 
@@ -104,23 +107,120 @@ def build_basis(spec, k: int, d: int) -> Basis:
         return Basis.tangent_simplex(cQ, cr, k, scale=spec.scale, variant=spec.variant)
 
 
-def build_chart_basis(spec, k: int, d: int) -> tuple[Basis, dict | None]:
-    """A field's basis from its spec: ``(basis, None)`` for one chart, or for an
-    atlas (:class:`AtlasBasis`) chart 0's basis and the atlas
-    (:meth:`flatserve.atlas.Atlas.to_dict`, stored with the field)."""
-    if isinstance(spec, AtlasBasis):
-        atlas = build_atlas(spec, k, d)
-        return atlas.bases[0], atlas.to_dict()
-    return build_basis(spec, k, d).require_full(), None
+def oriented_of(req) -> bool:
+    """A field's ``oriented`` (:class:`~.schemas.FieldCreate`): given at the top level,
+    or (requests written before it) as ``basis.oriented``; both must agree. Only atlas
+    fields of lines (k = 1) may be oriented (errors name where it was given)."""
+    top, basis = req.oriented, req.basis
+    inner = basis.oriented if isinstance(basis, ATLAS_SPECS) else None
+    if top is not None and inner is not None and top != inner:
+        raise InvalidInputError(
+            f"oriented: the field's `oriented` ({str(top).lower()}) and `basis.oriented` "
+            f"({str(inner).lower()}) disagree: give it once, at the top level", "oriented")
+    oriented = bool(inner) if top is None else top
+    where = "oriented" if top is not None else "basis.oriented"
+    if oriented and req.k != 1:
+        raise InvalidInputError(f"{where}: only lines (k = 1) have an orientation, got "
+                                f"k = {req.k}", where)
+    if oriented and basis is not None and not isinstance(basis, ATLAS_SPECS):
+        raise InvalidInputError(
+            f"oriented: a single chart (basis kind {basis.kind!r}) charts unoriented lines; "
+            "an oriented field is an atlas: leave `basis` out (a covering atlas) or give "
+            "{\"kind\": \"atlas\", ...}", "oriented")
+    return oriented
 
 
-def build_atlas(spec: AtlasBasis, k: int, d: int) -> Atlas:
-    """The :class:`flatserve.atlas.Atlas` of an atlas spec (errors name ``basis.<member>``)."""
-    with _within("basis"):
-        return Atlas.covering(k, d, oriented=spec.oriented)
+def build_chart_basis(req, *, max_atlas_samples: int | None = None
+                      ) -> tuple[Basis, dict, dict | None]:
+    """A field's basis from its create request (:class:`~.schemas.FieldCreate`).
+
+    Returns
+    -------
+    (Basis, dict, dict or None)
+        One chart: its basis, its spec (as stored and described), None. An atlas
+        (the default when ``basis`` is left out): chart 0's basis, the atlas spec
+        (the sample flats of ``samples`` replaced by their count), and the atlas
+        (:meth:`flatserve.atlas.Atlas.to_dict`, stored with the field).
+    """
+    k, d = req.k, req.d
+    spec = CoveringAtlas() if req.basis is None else req.basis
+    oriented = oriented_of(req)
+    if isinstance(spec, ATLAS_SPECS):
+        atlas = build_atlas(spec, k, d, oriented=oriented, max_atlas_samples=max_atlas_samples)
+        return atlas.bases[0], _atlas_spec_dict(spec), atlas.to_dict()
+    return build_basis(spec, k, d).require_full(), spec_dict(spec), None
+
+
+#: Most centres of an atlas given explicitly (``atlas: "centers"``).
+MAX_ATLAS_CENTERS = 1024
+
+
+def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
+                max_atlas_samples: int | None = None) -> Atlas:
+    """The :class:`flatserve.atlas.Atlas` of an atlas spec (errors name ``basis.<member>``).
+
+    ``covering``: :meth:`Atlas.covering`. ``samples``: :meth:`Atlas.for_samples` of the
+    given flats (more than ``max_atlas_samples`` is a 413), refused (422) unless its
+    charts hold every one of them. ``centers``: :meth:`Atlas.from_centers`, refused
+    (422) unless every orientation lies within a chart's trusted radius and every chart
+    round-trips its domain."""
+    if isinstance(spec, CoveringAtlas):
+        with _within("basis"):
+            return Atlas.covering(k, d, oriented=oriented)
+    if isinstance(spec, SamplesAtlas):
+        _check_rows(spec.samples, "basis.samples", max_atlas_samples,
+                    "FLATSERVE_MAX_ATLAS_SAMPLES")
+        flats = flats_of(spec.samples, k, d, "basis.samples")
+        with _within("basis", {"flats": "samples"}):
+            atlas = Atlas.for_samples(flats, oriented=oriented, radius=spec.radius,
+                                      fraction=spec.fraction)
+        _require_charted(atlas, flats)
+        return atlas
+    _check_rows(spec.centers, "basis.centers", MAX_ATLAS_CENTERS, None)
+    centers = flats_of(spec.centers, k, d, "basis.centers")
+    scale = spec.scale
+    if isinstance(scale, list) and len(scale) != centers.n:
+        raise InvalidInputError(f"basis.scale: expected one scale or {centers.n} (one per "
+                                f"centre), got {len(scale)}", "basis.scale")
+    with _within("basis", {"scales": "scale"}):
+        return Atlas.from_centers(centers, scale, oriented=oriented)
+
+
+def _check_rows(model, where: str, limit: int | None, setting: str | None) -> None:
+    """A 413 (``setting`` given) or 422 naming ``where`` for more than ``limit`` flats."""
+    arrays = _arrays(model)
+    form = infer_form(arrays)
+    n = 0 if form is None else len(arrays.get(FORMS[form][0]) or ())
+    if limit is not None and n > limit:
+        if setting is not None:
+            raise BatchTooLargeError(f"{where}: {n} flats; the limit is {limit} ({setting})")
+        raise InvalidInputError(f"{where}: {n} flats; at most {limit}", where)
+
+
+def _require_charted(atlas: Atlas, flats: Flats) -> None:
+    """Refuse (422, ``basis.samples``) a data-driven atlas that does not chart every
+    flat it was built for: which rows, and why the first is not."""
+    prepared = AtlasField(atlas).prepare(flats, np.zeros(flats.n))
+    bad = prepared.rejected
+    if bad.size:
+        rows = ", ".join(str(i) for i in bad[:5].tolist()) + (", ..." if bad.size > 5 else "")
+        raise InvalidInputError(
+            f"basis.samples: the atlas built for these {flats.n} flats does not chart "
+            f"{bad.size} of them (rows {rows}); row {int(bad[0])}: {prepared.reasons[0]}",
+            "basis.samples")
+
+
+def _atlas_spec_dict(spec) -> dict:
+    """An atlas spec as stored and described: ``oriented`` is the field's (top level);
+    the flats of ``samples`` are replaced by their number and form."""
+    out = spec.model_dump(exclude_none=True, exclude={"oriented", "samples"})
+    if isinstance(spec, SamplesAtlas):
+        arrays = _arrays(spec.samples)
+        form = infer_form(arrays)
+        out["samples"] = {"form": form, "n": len(arrays[FORMS[form][0]])}
+    return out
 
 
 def spec_dict(spec) -> dict:
-    if spec is None:
-        spec = TangentSimplexBasis()
+    """A one-chart basis spec as stored and described."""
     return spec.model_dump(exclude_none=True)

@@ -1,4 +1,5 @@
-"""Atlas fields over HTTP (``basis: {"kind": "atlas"}``): every orientation accepted,
+"""Atlas fields over HTTP (the default without ``basis``, or ``basis: {"kind": "atlas"}``):
+every orientation accepted,
 answers equal the library's :class:`flatserve.atlas.AtlasField`, restore from batches
 and from a snapshot, ``wait=false``, oriented fields take rays only, describe lists
 the charts."""
@@ -16,7 +17,11 @@ from flatserve.flats import Flats
 from .conftest import started
 
 C = 2
+#: A request written before the top-level ``oriented``: still accepted.
 ATLAS = {"kind": "atlas", "atlas": "covering", "oriented": False}
+#: How an atlas spec is stored and described (``oriented`` is the field's).
+COVERING = {"kind": "atlas", "atlas": "covering"}
+ONE_CHART = {"kind": "tangent_simplex"}
 
 
 def sphere_rays(rng, n, spread=1.0):
@@ -52,15 +57,17 @@ def test_covering_atlas_field_accepts_every_orientation_and_restores(make_app, r
     tc, c = started(make_app())
     try:
         info = c.create_field("a", channels=C, basis=ATLAS)
-        assert info["basis"]["spec"] == ATLAS
+        assert info["basis"]["spec"] == COVERING and info["oriented"] is False
         assert len(info["charts"]) == ref.atlas.ncharts == 6
         assert [ch["samples"] for ch in info["charts"]] == [0] * 6
         np.testing.assert_array_equal([ch["center"]["A"] for ch in info["charts"]],
                                       ref.atlas.center_A)
         assert info["atlas"]["oriented"] is False
         assert info["atlas"]["covering_radius"] < info["atlas"]["trusted"]
-        c.create_field("b", channels=C, basis=ATLAS)  # never snapshotted
-        c.create_field("one", channels=C)  # today's default: one chart
+        b = c.create_field("b", channels=C)  # the default (never snapshotted)
+        assert b["basis"]["spec"] == COVERING and b["oriented"] is False
+        assert b["atlas"] == info["atlas"] and b["charts"] == info["charts"]
+        c.create_field("one", channels=C, basis=ONE_CHART)  # the paper's one chart
         for i, (o, v, val) in enumerate(batches):
             ref.add(Flats.from_rays(o, v), val)
             for name in ("a", "b"):
@@ -159,6 +166,47 @@ def test_oriented_atlas_field_takes_rays_only(api, rng):
     assert r.json()["detail"][0]["loc"] == ["body", "basis", "oriented"]
 
 
+def test_oriented_is_a_member_of_the_field(api, rng):
+    """`oriented` at the top level (the default atlas of rays); `basis.oriented` of
+    older requests still works when it agrees; single charts and k != 1 refuse it."""
+    tc, c = api
+    new = c.create_field("new", oriented=True)  # no basis: a covering atlas of rays
+    old = c.create_field("old", basis={"kind": "atlas", "oriented": True})
+    both = c.create_field("both", oriented=True, basis={"kind": "atlas", "oriented": True})
+    for info in (new, old, both):
+        assert info["oriented"] is True and info["atlas"]["oriented"] is True
+        assert info["basis"]["spec"] == COVERING and len(info["charts"]) == 12
+        assert info["charts"] == new["charts"]
+    assert [f["oriented"] for f in c.list_fields()] == [True] * 3
+    o, v = sphere_rays(rng, 50)
+    Q, r = Flats.from_rays(o, v).quadrics()
+    with pytest.raises(InvalidInputError) as ei:  # oriented: rays only
+        c.upload("new", o[:, :1], Q=Q, r=r)
+    assert ei.value.detail[0]["loc"] == ["body", "Q"] and "oriented" in str(ei.value)
+    plain = c.create_field("plain", oriented=False)
+    assert plain["oriented"] is False and len(plain["charts"]) == 6
+    assert c.upload("plain", o[:, :1], Q=Q, r=r)["accepted"] == len(o)
+
+    def refused(body, loc, *words):
+        r = tc.post("/v1/fields", json={"name": "x", **body})
+        assert r.status_code == 422, (body, r.text)
+        det = r.json()["detail"][0]
+        assert det["loc"] == ["body", *loc], (body, det)
+        assert all(w in det["msg"] for w in words), (body, det)
+
+    refused({"oriented": True, "basis": {"kind": "atlas", "oriented": False}}, ["oriented"],
+            "disagree")
+    refused({"oriented": False, "basis": {"kind": "atlas", "oriented": True}}, ["oriented"],
+            "disagree")
+    refused({"k": 2, "oriented": True}, ["oriented"], "k = 1")
+    refused({"k": 2, "basis": {"kind": "atlas", "oriented": True}}, ["basis", "oriented"],
+            "k = 1")
+    for one in ({"kind": "tangent_simplex"}, {"scale": 0.1}):
+        refused({"oriented": True, "basis": one}, ["oriented"], "single chart")
+    refused({"oriented": "yes"}, ["oriented"])
+    assert {f["name"] for f in c.list_fields()} == {"new", "old", "both", "plain"}
+
+
 def test_atlas_spec_is_strict_and_fields_only(api):
     tc, _ = api
     for basis in ({"kind": "atlas", "atlas": "data"}, {"kind": "atlas", "scale": 0.1},
@@ -183,11 +231,15 @@ def test_atlas_fields_for_other_dimensions(api, rng):
     b = rng.uniform(-1, 1, (n, 4))
     rep = c.upload("p", b[:, :1], A=A, b=b)
     assert rep["accepted"] == n and len(info["charts"]) == Atlas.covering(2, 4).ncharts
-    one = c.create_field("q", k=2, d=4)
+    dflt = c.create_field("dflt", k=2, d=4)  # without basis: the same covering atlas
+    assert dflt["charts"] == info["charts"] and dflt["basis"]["spec"] == COVERING
+    assert c.upload("dflt", b[:, :1], A=A, b=b)["accepted"] == n
+    one = c.create_field("q", k=2, d=4, basis=ONE_CHART)
     assert one.get("charts") is None and one.get("atlas") is None  # one chart: `basis`
     assert c.upload("q", b[:, :1], A=A, b=b)["accepted"] < n
-    pts = c.create_field("pts", k=0, d=3, basis={"kind": "atlas"})
-    assert len(pts["charts"]) == 1
+    for basis in ({"kind": "atlas"}, None):  # points have no orientation: one chart
+        pts = c.create_field(f"pts{basis is None}", k=0, d=3, basis=basis)
+        assert len(pts["charts"]) == 1
 
 
 def test_render_an_oriented_atlas_field(api, rng):

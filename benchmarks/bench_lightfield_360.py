@@ -5,8 +5,8 @@ two fields of the bunny with the same number of samples (default 1,000,000):
 
 * ``bunny360``: an oriented covering atlas (``{"kind": "atlas", "oriented":
   true}``, 12 charts) of rays from eyes all around the bunny
-  (:func:`flatserve.lightfield.sampling.sample_scene_sphere`, the demo's
-  sampling);
+  (:func:`flatserve.lightfield.sampling.orbit_samples`, the demo's and
+  ``flatserve lightfield orbit``'s sampling);
 * ``bunny1`` (the peer): one chart, the paper's basis and sampling (Sec. 5.2,
   n x n screen), as ``benchmarks/bench_lightfield.py``.
 
@@ -77,7 +77,7 @@ def ms(x: float) -> str:
     return f"{x * 1e3:.1f} ms"
 
 
-def ensure_field(c, name: str, basis: dict, make, n: int) -> None:
+def ensure_field(c, name: str, basis: dict, make, n: int, oriented: bool = False) -> None:
     """Create and fill ``name`` through the API unless it holds ``n`` samples already."""
     from flatserve.errors import FieldNotFoundError
 
@@ -89,7 +89,7 @@ def ensure_field(c, name: str, basis: dict, make, n: int) -> None:
         c.delete_field(name)
     except FieldNotFoundError:
         pass
-    c.create_field(name, basis=basis)
+    c.create_field(name, basis=basis, **({"oriented": True} if oriented else {}))
     o, d, v = make()
     t0 = time.perf_counter()
     for lo in range(0, n, UPLOAD_BATCH):
@@ -222,8 +222,7 @@ def main(argv=None) -> int:
     import httpx
 
     from flatserve.client import Client
-    from flatserve.lightfield.sampling import (BASIS_SCALE, bunny_scene, sample_scene,
-                                               sample_scene_sphere)
+    from flatserve.lightfield.sampling import BASIS_SCALE, bunny_scene, orbit_samples, sample_scene
     from flatserve.service.process import ServerProcess
 
     n = args.samples
@@ -231,7 +230,8 @@ def main(argv=None) -> int:
     scene = bunny_scene(1)
 
     def samples360():
-        return sample_scene_sphere(scene, n, args.seed)
+        s, v = orbit_samples(scene, n, args.seed)
+        return s.origins, s.directions, v
 
     def samples1():
         s, v = sample_scene(scene, side, args.seed)
@@ -269,8 +269,8 @@ def main(argv=None) -> int:
             with Client(srv.url, timeout=3600) as c:
                 ensure_field(c, "bunny1", {"kind": "tangent_simplex", "scale": BASIS_SCALE},
                              samples1, side * side)
-                ensure_field(c, "bunny360", {"kind": "atlas", "atlas": "covering",
-                                             "oriented": True}, samples360, n)
+                ensure_field(c, "bunny360", {"kind": "atlas", "atlas": "covering"},
+                             samples360, n, oriented=True)
             http = httpx.Client(timeout=600)
             url = {f: f"{srv.url}/v1/fields/{f}/render" for f in ("bunny1", "bunny360")}
             body = camera_body(width=args.width)

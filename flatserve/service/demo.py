@@ -2,12 +2,13 @@
 
 :func:`ensure_demo_field` is called by the service at start-up (``make run``):
 if the registry has no field called ``bunny`` it creates an oriented covering
-atlas field (``{"kind": "atlas", "atlas": "covering", "oriented": true}``:
-every ray direction lies well inside one of its charts), samples the bunny
-with rays from eyes all around it
-(:func:`flatserve.lightfield.sampling.sample_scene_sphere`) and uploads the
-samples in batches through the registry (so they are stored durably and
-restored on the next start), showing a progress bar. Batches carry
+atlas field (``{"oriented": true, "basis": {"kind": "atlas", "atlas":
+"covering"}}``: every ray direction lies well inside one of its charts),
+samples the bunny with rays from eyes all around it
+(:func:`flatserve.lightfield.sampling.orbit_samples`, as ``flatserve
+lightfield orbit`` does) and uploads the samples in batches through the
+registry (so they are stored durably and restored on the next start), showing
+a progress bar. Batches carry
 idempotency keys, so a start interrupted half-way continues where it stopped.
 The viewer can then orbit the whole way round.
 """
@@ -20,12 +21,12 @@ import numpy as np
 
 from ..errors import FieldNotFoundError
 from ..flats import Flats
-from ..lightfield.sampling import ProgressBar, bunny_scene, sample_scene_sphere
+from ..lightfield.sampling import ProgressBar, bunny_scene, orbit_samples
 from . import specs, uploads
 from .entry import FieldSpec
-from .schemas import AtlasBasis
+from .schemas import FieldCreate
 
-__all__ = ["DEMO_FIELD", "DEMO_SAMPLES", "DEMO_BATCH", "DEMO_BASIS", "ensure_demo_field",
+__all__ = ["DEMO_FIELD", "DEMO_SAMPLES", "DEMO_BATCH", "DEMO_REQUEST", "ensure_demo_field",
            "start_demo_field", "viewer_url"]
 
 log = logging.getLogger("flatserve.service")
@@ -36,8 +37,10 @@ DEMO_FIELD = "bunny"
 DEMO_SAMPLES = 400_000
 #: Rays per upload batch.
 DEMO_BATCH = 50_000
-#: The demo field's basis: a covering atlas of oriented charts (rays).
-DEMO_BASIS = AtlasBasis(atlas="covering", oriented=True)
+#: The demo field's create request (less its name): a covering atlas of oriented
+#: charts (rays keep their direction), as ``POST /v1/fields`` takes it.
+DEMO_REQUEST = {"k": 1, "d": 3, "channels": 1, "oriented": True,
+              "basis": {"kind": "atlas", "atlas": "covering"}}
 #: How long to wait for the registry to finish restoring stored fields.
 READY_TIMEOUT_S = 3600.0
 
@@ -65,7 +68,7 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, samples: int = DEMO_SAMP
     samples : int
         Rays from eyes all around the bunny.
     seed : int
-        Seed of the eyes and the rays' targets.
+        Seed of the ray directions.
     progress : bool or callable(done, total)
         True: a text progress bar on stderr.
     batch : int
@@ -95,8 +98,9 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, samples: int = DEMO_SAMP
             return e
         log.info("demo field %r: %d of %d batches stored; continuing", name, done, nbatches)
     except FieldNotFoundError:
-        basis, atlas = specs.build_chart_basis(DEMO_BASIS, 1, 3)
-        e = registry.create(name, FieldSpec(1, 3, 1, specs.spec_dict(DEMO_BASIS), atlas=atlas),
+        req = FieldCreate(name=name, **DEMO_REQUEST)
+        basis, basis_spec, atlas = specs.build_chart_basis(req)
+        e = registry.create(name, FieldSpec(req.k, req.d, req.channels, basis_spec, None, atlas),
                             basis)
         log.info("demo field %r: building the 360 degree bunny light field from %d samples "
                  "(eyes all around it, %d charts)", name, n, len(atlas["scales"]))
@@ -104,11 +108,10 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, samples: int = DEMO_SAMP
     bar = progress if callable(progress) else (ProgressBar(f"building demo field {name!r}", n) if progress else None)
     if bar is not None:
         bar(0, n)
-    scene = bunny_scene(1)
-    origins, directions, values = sample_scene_sphere(scene, n, seed)
+    samples, values = orbit_samples(bunny_scene(1), n, seed)
     for i, lo in enumerate(range(0, n, batch)):
         hi = min(n, lo + batch)
-        flats = Flats.from_rays(origins[lo:hi], directions[lo:hi])
+        flats = Flats.from_rays(samples.origins[lo:hi], samples.directions[lo:hi])
         uploads.upload(registry, e, flats, np.ascontiguousarray(values[lo:hi]),
                        idem_key=f"demo360-{name}-n{n}-s{seed}-b{batch}-{i}")
         if bar is not None:

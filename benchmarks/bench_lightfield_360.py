@@ -20,9 +20,9 @@ split (``Server-Timing``). The 360 degree field is also timed from views all
 around (yaw 90, 180, pitch 60), which the peer cannot show.
 
 ``--profile``: where the time of the 360 degree frame goes, in-process on the
-same samples (the field built with
-:func:`flatserve.lightfield.sampling.build_atlas_field`, cached in the
-``--keep`` directory): camera rays, routing (``Atlas.route``), per chart
+same samples (the fields built with
+:func:`flatserve.lightfield.sampling.build_atlas_field` and ``build_field``,
+cached in the ``--keep`` directory): camera rays, routing (``Atlas.route``), per chart
 coordinates + embedding (``Field.chart``) and locate + interpolate
 (``Field.query``), the rest of ``AtlasField.query`` (taking the rows, blending,
 scattering back), resolving supersamples, PNG encoding; against the same split
@@ -126,6 +126,7 @@ def profile(args, scene, keep: Path, samples360, samples1) -> None:
     """The in-process split of one frame: 360 degree field vs one chart."""
     from PIL import Image
 
+    from flatserve import Field
     from flatserve.atlas import AtlasField
     from flatserve.flats import Flats
     from flatserve.lightfield import Camera
@@ -145,9 +146,14 @@ def profile(args, scene, keep: Path, samples360, samples1) -> None:
         print(f"profile: 360 degree field of {n:,} samples built in-process in {st.seconds:.1f} s "
               f"(duplication {f360.duplication:.2f})")
         f360.save(cache)
-    o, d, v = samples1()
-    f1, st = build_field(o, d, v)
-    print(f"profile: one-chart field of {n:,} samples built in-process in {st.seconds:.1f} s")
+    cache1 = keep / f"bunny1-{n}-s{args.seed}.field"
+    if cache1.is_file():
+        f1 = Field.load(cache1)
+    else:
+        o, d, v = samples1()
+        f1, st = build_field(o, d, v)
+        print(f"profile: one-chart field of {n:,} samples built in-process in {st.seconds:.1f} s")
+        f1.save(cache1)
 
     cam = Camera(focal=4.0, width=args.width, height=args.width, supersample=4)
 

@@ -43,6 +43,10 @@ from flatserve.service import specs
 from flatserve.service.server import limit_blas_threads
 from timing import median_time
 
+#: The paper's single chart, as the in-process reference (a field without `basis` is
+#: an atlas; its figures are the atlas benchmarks').
+ONE_CHART = {"kind": "tangent_simplex"}
+
 
 def paper_rays(rng, n):
     eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (n, 3))
@@ -192,7 +196,7 @@ def main(argv=None) -> int:
         val = rng.uniform(size=(args.samples, C))
         ref = Field(specs.build_basis(None, 1, 3), channels=C)
         ref.add_rays(o, v, val)
-        c.create_field("bench", channels=C)
+        c.create_field("bench", channels=C, basis=ONE_CHART)  # as `ref`: one chart
         c.upload_rays("bench", o, v, val)
         assert c.describe("bench")["nsamples"] == ref.nsamples
         print(f"field: {ref.nsamples} samples (k=1, d=3, {C} channels), "
@@ -217,7 +221,7 @@ def main(argv=None) -> int:
 
         def fresh():
             name = f"up{next(counter)}"
-            c.create_field(name, channels=C)
+            c.create_field(name, channels=C, basis=ONE_CHART)
             return name
 
         def ack(binary):

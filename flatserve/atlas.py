@@ -302,6 +302,13 @@ def _cover_frames(k: int, d: int, train_deg: float, seed: int, n_train: int) -> 
     return np.stack(_greedy_cover(T, math.radians(train_deg), first))
 
 
+#: Covering radii measured by :meth:`Atlas.covering`, by (k, d, oriented, train_deg,
+#: seed, n_train, check_n): the centres and the measurement are seeded, so a field
+#: created again does not measure again (lines in R^3: 0.05 s; 3-flats in R^5,
+#: 329 charts: about 17 s).
+_COVER_RADIUS: dict[tuple, float] = {}
+
+
 def _in_units(deg, name):
     if not (isinstance(deg, (int, float, np.floating, np.integer)) and math.isfinite(deg)):
         raise InvalidInputError(f"{name}: expected an angle in degrees, got {deg!r}", name)
@@ -461,7 +468,10 @@ class Atlas:
             A, N = np.concatenate([A, -A]), np.concatenate([N, N])
         atlas = cls(k, d, A, N, np.zeros((A.shape[0], d)), np.full(A.shape[0], float(scale)),
                     oriented=oriented, inner=inner, trusted=trusted, reach=reach)
-        radius = atlas.covering_radius(check_n, seed=seed + 1)
+        key = (k, d, bool(oriented), float(train_deg), int(seed), int(n_train), int(check_n))
+        radius = _COVER_RADIUS.get(key)  # the same centres, the same seeded measurement
+        if radius is None:
+            radius = _COVER_RADIUS[key] = atlas.covering_radius(check_n, seed=seed + 1)
         atlas.info = {"method": "covering", "centres": int(A.shape[0]),
                       "covering_radius_deg": radius, "train_deg": float(train_deg),
                       "check_n": int(check_n), "seed": int(seed)}
@@ -802,6 +812,28 @@ class Atlas:
             nearest[better] = i
         return Routing(rows, angles, nearest, np.arccos(np.sqrt(np.clip(best, 0.0, 1.0))))
 
+    def held(self, flats: Flats, radius: float) -> np.ndarray:
+        """Per chart, how many flats are closer than ``radius`` (degrees) to its centre.
+
+        The sizes of :meth:`route`'s ``rows`` (the same test), without the angles:
+        one matrix product for lines.  ``held(flats, reach).sum()`` is the number
+        of chart vertices a batch adds (before round-trip rejections).
+
+        Returns
+        -------
+        ndarray, shape (c,), int64
+        """
+        self.check_flats(flats)
+        F = orientation_frames(flats, normals=False if self.oriented else None)
+        cr = math.cos(math.radians(radius))
+        if self.oriented or F.shape[2] == 1:
+            dots = F[:, :, 0] @ self.frames[:, :, 0].T  # (n, c)
+            if not self.oriented:
+                np.abs(dots, out=dots)
+            return np.count_nonzero(dots > cr, axis=0).astype(np.int64)
+        return np.array([np.count_nonzero(_cos2_max(C, F) > cr * cr) for C in self.frames],
+                        dtype=np.int64)
+
     def covering_radius(self, n: int = COVER_CHECK_N, *, seed: int = 1,
                         return_worst: bool = False, batch: int = 50_000):
         """Largest angle (degrees) of ``n`` Haar-random orientations to the nearest centre.
@@ -923,6 +955,25 @@ class AtlasQueryResult(QueryResult):
     """
 
     charts: np.ndarray | None = None
+
+
+def _slices(parts, step: int) -> list[list]:
+    """``(field, PreparedBatch, own)`` parts cut into groups of at most ``step``
+    samples over all charts, in order (a part larger than ``step`` is cut)."""
+    groups, cur, n = [], [], 0
+    for f, p, own in parts:
+        for lo in range(0, p.accepted, step):
+            size = min(step, p.accepted - lo)
+            piece = p if size == p.accepted else PreparedBatch(
+                size, p.x[lo:lo + step], p.values[lo:lo + step], _NO_ROWS, [])
+            if cur and n + size > step:
+                groups.append(cur)
+                cur, n = [], 0
+            cur.append((f, piece, own))
+            n += size
+    if cur:
+        groups.append(cur)
+    return groups
 
 
 class AtlasField:
@@ -1069,22 +1120,40 @@ class AtlasField:
                         slice_rows: int | None = None) -> AddResult:
         """Insert a :meth:`prepare`-d batch into its charts (a writer).
 
-        ``slice_rows`` is accepted for :meth:`Field.insert_prepared`'s interface; an
-        atlas batch is always inserted whole (queries see it in every chart or in none).
+        Parameters
+        ----------
+        batch : AtlasPrepared
+        slice_rows : int, optional
+            As :meth:`Field.insert_prepared`: insert at most this many samples
+            (counted over the charts) at a time, so that concurrent queries get in
+            between slices. Each slice is atomic: a batch holding at most
+            ``slice_rows`` samples over all its charts is seen in every chart or in
+            none; a larger one is seen in part (some charts, or part of a chart)
+            until its last slice is in. Default: the whole batch at once.
         """
         if not isinstance(batch, AtlasPrepared) or len(batch.own) != len(self.fields):
             raise InvalidInputError("batch: expected an AtlasPrepared made by this field",
                                     "batch")
+        if slice_rows is not None and not (isinstance(slice_rows, (int, np.integer))
+                                           and slice_rows >= 1):
+            raise InvalidInputError(f"slice_rows: expected a positive integer or None, got "
+                                    f"{slice_rows!r}", "slice_rows")
+        parts = [(f, p, own) for f, o, s in zip(self.fields, batch.own, batch.shared)
+                 for p, own in ((o, True), (s, False)) if p is not None and p.accepted]
+        if slice_rows is None or not parts:
+            groups = [parts]
+        else:
+            groups = _slices(parts, int(slice_rows))
         duplicates = 0
-        with self._lock.write():  # queries see the batch in every chart or in none
-            for f, o, s in zip(self.fields, batch.own, batch.shared):
-                if o is not None and o.accepted:
-                    res = f.insert_prepared(o)
-                    duplicates += res.duplicates
-                    self._nsamples += res.accepted - res.duplicates
-                if s is not None and s.accepted:
-                    f.insert_prepared(s)
-            self._nrejected += int(batch.rejected.size)
+        for i, group in enumerate(groups):
+            with self._lock.write():  # a whole batch, or one slice
+                for f, p, own in group:
+                    res = f.insert_prepared(p)
+                    if own:  # a sample counts once, in its nearest chart
+                        duplicates += res.duplicates
+                        self._nsamples += res.accepted - res.duplicates
+                if i == len(groups) - 1:
+                    self._nrejected += int(batch.rejected.size)
         return AddResult(accepted=batch.accepted, rejected=batch.rejected,
                          reasons=batch.reasons, duplicates=duplicates,
                          nsamples=self._nsamples)
@@ -1292,6 +1361,8 @@ class AtlasField:
                 f"nsamples={self.nsamples}, nstored={self.nstored})")
 
 
+_NO_ROWS = np.empty(0, np.int64)
+_NO_ROWS.setflags(write=False)
 _ATLAS_MAGIC = b"FSATLAS\x00"
 _ATLAS_VERSION = 1
 _ATLAS_HEADER = struct.Struct("<8sIQ")  # magic, version, metadata length

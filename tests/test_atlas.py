@@ -391,3 +391,41 @@ def test_planes_in_r4_field():
     q = field.query(f.take(np.arange(300)))
     assert (q.status == OK).all()
     np.testing.assert_allclose(q.values[:, 0], vals[:300], atol=1e-8)
+
+
+@pytest.mark.parametrize("k, d, oriented", [(1, 3, True), (1, 3, False), (2, 4, False),
+                                             (3, 4, False)])
+def test_held_counts_what_route_routes(k, d, oriented):
+    """Atlas.held: per chart, the sizes of Atlas.route's rows (the same test)."""
+    rng = np.random.default_rng(5)
+    at = Atlas.covering(k, d, oriented=oriented)
+    n = 2000
+    f = (Flats.from_rays(rng.normal(size=(n, d)), rng.normal(size=(n, d))) if k == 1 else
+         Flats.from_parametric(rng.normal(size=(n, d, k)), rng.normal(size=(n, d))))
+    for radius in (at.trusted, at.reach):
+        held = at.held(f, radius)
+        assert held.shape == (at.ncharts,)
+        np.testing.assert_array_equal(held, [r.size for r in at.route(f, radius).rows])
+    assert held.sum() > n  # charts overlap: some flats are held by several
+
+
+def test_sliced_insert_equals_the_whole_insert():
+    """AtlasField.insert_prepared(slice_rows=...) (chart by chart, in slices) leaves the
+    field as the whole insert does: the same samples per chart, cells and answers."""
+    rng = np.random.default_rng(6)
+    o, v = rng.uniform(-1, 1, (3000, 3)), rng.normal(size=(3000, 3))
+    flats, val = Flats.from_rays(o, v), line_fn(o, v)
+    whole, sliced = AtlasField(Atlas.covering(1, 3)), AtlasField(Atlas.covering(1, 3))
+    for part in (slice(0, 2000), slice(1500, 3000)):  # the overlap: duplicates
+        a = whole.insert_prepared(whole.prepare(flats.take(np.arange(3000)[part]), val[part]))
+        b = sliced.insert_prepared(sliced.prepare(flats.take(np.arange(3000)[part]), val[part]),
+                                   slice_rows=97)
+        assert (a.accepted, a.duplicates, a.nsamples) == (b.accepted, b.duplicates, b.nsamples)
+    assert a.duplicates == 500
+    assert whole.samples_per_chart == sliced.samples_per_chart
+    assert (whole.nsimplex, whole.nrejected) == (sliced.nsimplex, sliced.nrejected)
+    q = Flats.from_rays(rng.uniform(-0.5, 0.5, (500, 3)), rng.normal(size=(500, 3)))
+    np.testing.assert_allclose(sliced.query(q).values, whole.query(q).values, rtol=0,
+                               atol=ROUNDING, equal_nan=True)
+    with pytest.raises(InvalidInputError):
+        sliced.insert_prepared(sliced.prepare(flats.take([0]), val[:1]), slice_rows=0)

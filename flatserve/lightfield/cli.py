@@ -47,6 +47,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     orb.add_argument("--atlas", choices=sorted(ATLASES), default="covering",
                      help="covering: Atlas.covering (12 charts, the service's default); fine: 42 charts "
                           "within 20.8 degrees of every direction (default covering)")
+    orb.add_argument("--unit", type=float, default=1.0,
+                     help="length unit of the field's coordinates in world units (default 1; 0.5: the "
+                          "object's half-size): origins are divided by it; the baseline is unchanged")
     orb.add_argument("--no-one-chart", action="store_true",
                      help="skip rendering each view from a one-chart atlas centred on its axis")
 
@@ -77,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             orbit_figure(args.out, n=args.samples, eyes=args.eyes, seed=args.seed, width=args.width,
                          supersample=args.supersample, channels=3 if args.rgb else 1,
-                         scene=args.scene, atlas=args.atlas, one_chart=not args.no_one_chart)
+                         scene=args.scene, atlas=args.atlas, unit=args.unit,
+                         one_chart=not args.no_one_chart)
         except (InvalidInputError, FileNotFoundError) as exc:
             print(f"flatserve lightfield orbit: {exc}", file=sys.stderr)
             return 2

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atlas import Atlas, AtlasField
+from ..errors import InvalidInputError
 from ..flats import Flats
 from .baselines import IDW_POWER, TWO_SPHERE_K, TwoSphere
 from .camera import ORBIT_EYE_RADIUS, ORBIT_RADIUS, Camera
@@ -157,7 +158,8 @@ def _scores(image, truth, covered) -> dict:
 
 def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed: int = 0,
                  width: int = VIEW_WIDTH, supersample: int = 4, channels: int = 1,
-                 scene: str = "bunny", atlas: str = "covering", one_chart: bool = True, log=print,
+                 scene: str = "bunny", atlas: str = "covering", unit: float = 1.0,
+                 one_chart: bool = True, log=print,
                  progress: bool = True) -> dict:
     """Build the 360-degree light field and write the views, the contact sheet and the table.
 
@@ -180,6 +182,16 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     atlas : str
         A key of :data:`ATLASES`: the default covering (12 charts) or the
         finer one (:func:`fine_atlas`).
+    unit : float
+        The length unit of our field's coordinates, in world units: rays are
+        stored and queried with their origins divided by ``unit`` (the
+        lines scaled about the object's centre; directions unchanged).  A
+        chart weighs a shift of a line against a turn of it as 1 length unit
+        to 1 radian (isotropic at its centre), so the unit sets how far in
+        position two rays may be and still count as near as two rays a
+        radian apart.  1: world units (the sampled ball has radius 1); 0.5:
+        the objects' half-size (the scenes fill the unit box).  The baseline
+        and the ground truth always use world units.
     one_chart : bool
         Also render every view from a one-chart atlas centred on its axis
         (:func:`one_chart_atlas`, the same samples).
@@ -192,6 +204,12 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     dict
         The JSON table (also written to ``out/results.json``).
     """
+    if scene not in SCENES:
+        raise InvalidInputError(f"scene: expected one of {sorted(SCENES)}, got {scene!r}", "scene")
+    if atlas not in ATLASES:
+        raise InvalidInputError(f"atlas: expected one of {sorted(ATLASES)}, got {atlas!r}", "atlas")
+    if not (isinstance(unit, (int, float)) and math.isfinite(unit) and unit > 0):
+        raise InvalidInputError(f"unit: expected a positive length, got {unit!r}", "unit")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
@@ -204,7 +222,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         f"{timings['sample_and_shade']:.2f} s")
 
     bar = ProgressBar("building atlas field", n) if progress else None
-    field, stats = build_atlas_field(samples.origins, samples.directions, values,
+    field, stats = build_atlas_field(samples.origins / unit, samples.directions, values,
                                      atlas=ATLASES[atlas](), progress=bar)
     timings["field_build"] = stats.seconds
     log(f"atlas field: {field.atlas.ncharts} charts, {stats.accepted:,} samples accepted, "
@@ -218,7 +236,8 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     views = orbit_views(width, supersample)
     for name, cam in views:
         truth = render_truth(sc, cam)
-        fr = render_field(field, cam, fill=sc.background)
+        scaled = cam.with_(eye=cam.eye / unit)  # the same lines in the field's unit
+        fr = render_field(field, scaled, fill=sc.background)
         o, d = cam.rays()
         t = time.perf_counter()
         v, ins = base(o, d)
@@ -234,9 +253,9 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         if one_chart:
             t = time.perf_counter()
             single = AtlasField(one_chart_atlas(field.atlas, cam.rotation[:, 2]), channels)
-            single.add(Flats.from_rays(samples.origins, samples.directions), values)
+            single.add(Flats.from_rays(samples.origins / unit, samples.directions), values)
             build = time.perf_counter() - t
-            sfr = render_field(single, cam, fill=sc.background)
+            sfr = render_field(single, scaled, fill=sc.background)
             row["one_chart"] = {**_scores(sfr.image, truth.image, sfr.covered & common),
                                 "coverage": float(sfr.covered.mean()), "seconds": sfr.seconds,
                                 "build_seconds": build, "samples": single.nsamples,
@@ -260,7 +279,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     azimuths = [name.split("_")[0] for name, _ in views[:AZIMUTHS]]
     contact_sheet(out / "contact_sheet.png", sheet_rows, azimuths)
     result = {
-        "scene": scene, "atlas_kind": atlas, "samples": n, "eyes": neyes, "seed": seed, "width": width,
+        "scene": scene, "atlas_kind": atlas, "unit": unit, "samples": n, "eyes": neyes, "seed": seed, "width": width,
         "supersample": supersample, "channels": channels,
         "eye_radius": ORBIT_EYE_RADIUS, "ball_radius": ORBIT_RADIUS,
         "atlas": {"charts": field.atlas.ncharts, "inner": field.atlas.inner,
@@ -292,7 +311,8 @@ def _markdown(res: dict) -> str:
         f"{res['atlas']['inner']:g}°, 0 from {res['atlas']['trusted']:g}°; samples in every chart "
         f"closer than {res['atlas']['reach']:g}°), {res['nstored']:,} "
         f"vertices over the charts (duplication {res['duplication']:.2f}), {res['rejected']:,} "
-        f"samples rejected. Baseline: the {res['baseline']['k']} nearest sample rays in the "
+        f"samples rejected; lengths of our field in units of {res['unit']:g} (world: 1). "
+        f"Baseline: the {res['baseline']['k']} nearest sample rays in the "
         f"two-sphere parameterisation (sphere of radius {res['baseline']['radius']:g}), weights "
         f"1/distance^{res['baseline']['power']:g}. Views {res['width']}², "
         f"{res['supersample']} rays per pixel.",

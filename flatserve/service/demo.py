@@ -19,11 +19,10 @@ import time
 
 import numpy as np
 
-from ..errors import FieldNotFoundError
+from ..errors import FieldExistsError, FieldNotFoundError
 from ..flats import Flats
 from ..lightfield.sampling import ProgressBar, bunny_scene, orbit_samples
 from . import specs, uploads
-from .entry import FieldSpec
 from .schemas import FieldCreate
 
 __all__ = ["DEMO_FIELD", "DEMO_SAMPLES", "DEMO_BATCH", "DEMO_REQUEST", "ensure_demo_field",
@@ -99,11 +98,14 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, samples: int = DEMO_SAMP
         log.info("demo field %r: %d of %d batches stored; continuing", name, done, nbatches)
     except FieldNotFoundError:
         req = FieldCreate(name=name, **DEMO_REQUEST)
-        basis, basis_spec, atlas = specs.build_chart_basis(req)
-        e = registry.create(name, FieldSpec(req.k, req.d, req.channels, basis_spec, None, atlas),
-                            basis)
+        spec, basis = specs.field_spec(req)
+        try:
+            e = registry.create(name, spec, basis)
+        except FieldExistsError:  # another replica (serve --processes N) created it
+            registry.wait_all_committed()
+            e = registry.get(name)
         log.info("demo field %r: building the 360 degree bunny light field from %d samples "
-                 "(eyes all around it, %d charts)", name, n, len(atlas["scales"]))
+                 "(eyes all around it, %d charts)", name, n, len(spec.atlas["scales"]))
     t0 = time.perf_counter()
     bar = progress if callable(progress) else (ProgressBar(f"building demo field {name!r}", n) if progress else None)
     if bar is not None:

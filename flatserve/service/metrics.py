@@ -26,6 +26,10 @@ class Metrics:
         self.batches = Counter("flatserve_batches", "Upload batches stored", ["field"], registry=r)
         self.query_rows = Counter("flatserve_query_rows", "Flats queried", ["field"], registry=r)
         self.queries = Counter("flatserve_queries", "Query requests", ["field"], registry=r)
+        self.apply_seconds = Histogram(
+            "flatserve_log_apply_seconds", "Seconds this replica took to apply one batch of "
+            "the log (chart unless charted here, then insert)", registry=r,
+            buckets=(0.001, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60))
         self.snapshots = Counter("flatserve_snapshots", "Snapshots written", ["field"], registry=r)
 
     def watch(self, registry_obj) -> None:
@@ -42,6 +46,17 @@ class Metrics:
                         g.add_metric([e.name], e.field.nsamples)
                 yield n
                 yield g
+                lag = getattr(registry_obj, "lag", None)
+                info = lag() if lag is not None else None
+                if info is not None:
+                    for key, doc in (("position", "Log position this replica has applied"),
+                                     ("head", "Position of the log's last committed entry"),
+                                     ("lag_entries", "Log entries committed, not applied here"),
+                                     ("lag_seconds", "Seconds since the oldest entry not "
+                                                     "applied here was committed")):
+                        m = GaugeMetricFamily(f"flatserve_log_{key}", doc)
+                        m.add_metric([], float(info[key]))
+                        yield m
 
         self.registry.register(_Fields())
 

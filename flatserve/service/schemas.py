@@ -88,6 +88,9 @@ class FlatsBasis(FlatsModel):
     kind: Literal["flats"] = "flats"
 
 
+Scale = Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)]
+
+
 class _AtlasSpec(_Strict):
     """Several tangent-simplex charts that together hold the flats they claim
     (:class:`flatserve.atlas.Atlas`): samples are inserted into every chart whose
@@ -133,7 +136,7 @@ class CentersAtlas(_AtlasSpec):
 
     atlas: Literal["centers"]
     centers: FlatsModel = Field(description="One flat per chart (rays for oriented fields).")
-    scale: Union[float, list[float]] = Field(
+    scale: Union[Scale, list[Scale]] = Field(
         1.0, description="Tangent-simplex scale of every chart, or one per centre.")
 
 
@@ -281,6 +284,8 @@ class FieldList(BaseModel):
 
 class FieldInfo(FieldSummary):
     ndim: int
+    position: int = Field(0, description="The log position this replica has applied (a "
+                                         "read-your-writes token for `min_position`).")
     indexed_batch: int = Field(0, description="Last batch inserted into the triangulation "
                                               "(batches up to it are visible to queries).")
     pending_batches: int = Field(0, description="Acknowledged (stored) batches not yet "
@@ -305,7 +310,8 @@ class FieldInfo(FieldSummary):
 class UploadResult(BaseModel):
     batch: int = Field(description="Sequence number of the stored batch.")
     accepted: int
-    rejected: list[int] = Field(description="Row indices not triangulated (outside the chart).")
+    rejected: list[int] = Field(description="Row indices not triangulated (outside the chart; "
+                                            "atlas fields: outside every chart's domain).")
     reasons: list[str]
     duplicates: Optional[int] = Field(
         description="Accepted rows that coincided with an existing sample; null until indexed "
@@ -318,6 +324,9 @@ class UploadResult(BaseModel):
     pending_samples: int = Field(0, description="Accepted samples stored but not yet indexed "
                                                 "when acknowledged (this batch included).")
     replayed: bool = Field(False, description="True: the Idempotency-Key was seen; nothing stored.")
+    position: int = Field(0, description="The batch's position in the shared log: pass it as "
+                                         "`min_position` to a query or describe on any replica "
+                                         "to read this write.")
 
 
 class BatchInfo(BaseModel):
@@ -395,3 +404,13 @@ class Health(BaseModel):
     loading: Optional[int] = None
     loading_fields: Optional[list[str]] = Field(
         None, description="Fields still being restored (the others answer already).")
+    pid: Optional[int] = Field(None, description="This replica's process id.")
+    backend: Optional[str] = Field(None, description="Where the log is: sqlite or postgresql.")
+    position: Optional[int] = Field(None, description="Log position this replica has applied "
+                                                      "(null while restoring).")
+    head: Optional[int] = Field(None, description="Position of the log's last committed entry.")
+    lag_entries: Optional[int] = Field(None, description="head - position.")
+    lag_seconds: Optional[float] = Field(
+        None, description="Seconds since the oldest entry not yet applied here was committed "
+                          "(0: caught up).")
+    error: Optional[str] = None

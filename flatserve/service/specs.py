@@ -12,6 +12,7 @@ from ..atlas import Atlas, AtlasField
 from ..basis import Basis
 from ..errors import BatchTooLargeError, InvalidInputError
 from ..flats import FORMS, Flats, form_shapes, infer_form
+from .entry import FieldSpec
 from .schemas import (ATLAS_SPECS, CenterFlat, CentersAtlas, CoveringAtlas, FlatsBasis,
                       SamplesAtlas, TangentSimplexBasis)
 
@@ -28,8 +29,10 @@ def _within(prefix: str, rename: dict[str, str] | None = None):
         arg = exc.argument
         if arg is None or arg == prefix or arg.startswith(prefix + "."):
             raise
-        arg = (rename or {}).get(arg, arg)
-        raise type(exc)(f"{prefix}.{exc}", f"{prefix}.{arg}") from None
+        msg, new = str(exc), (rename or {}).get(arg, arg)
+        if msg.startswith(arg + ":"):  # the message names the member as the path does
+            msg = new + msg[len(arg):]
+        raise type(exc)(f"{prefix}.{msg}", f"{prefix}.{new}") from None
 
 
 def _arrays(obj) -> dict:
@@ -130,6 +133,17 @@ def oriented_of(req) -> bool:
     return oriented
 
 
+def field_spec(req, *, max_atlas_samples: int | None = None) -> tuple[FieldSpec, Basis]:
+    """What a create request (:class:`~.schemas.FieldCreate`) stores: the field's spec
+    and its (chart 0's) basis, for :meth:`~.registry.Registry.create`.
+
+    Example: the demo's oriented covering atlas of grey rays is
+    ``field_spec(FieldCreate(name="bunny", channels=1, oriented=True))``.
+    """
+    basis, basis_spec, atlas = build_chart_basis(req, max_atlas_samples=max_atlas_samples)
+    return FieldSpec(req.k, req.d, req.channels, basis_spec, req.roundtrip_tol, atlas), basis
+
+
 def build_chart_basis(req, *, max_atlas_samples: int | None = None
                       ) -> tuple[Basis, dict, dict | None]:
     """A field's basis from its create request (:class:`~.schemas.FieldCreate`).
@@ -171,7 +185,7 @@ def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
         _check_rows(spec.samples, "basis.samples", max_atlas_samples,
                     "FLATSERVE_MAX_ATLAS_SAMPLES")
         flats = flats_of(spec.samples, k, d, "basis.samples")
-        with _within("basis", {"flats": "samples"}):
+        with _within("basis", {"flats": "samples", **{n: f"samples.{n}" for n in _NAMES}}):
             atlas = Atlas.for_samples(flats, oriented=oriented, radius=spec.radius,
                                       fraction=spec.fraction)
         _require_charted(atlas, flats)

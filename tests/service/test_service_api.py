@@ -14,15 +14,9 @@ from flatserve.errors import FieldNotFoundError as NotFoundError
 from flatserve.errors import InvalidInputError as InvalidError
 from flatserve.service import specs
 
-from .conftest import paper_rays
+from .conftest import KINDS, add_rays, paper_rays, query_rays
 
 C = 3
-
-
-def in_process_field(channels=C):
-    from flatserve.field import Field
-
-    return Field(specs.build_basis(None, 1, 3), channels=channels)
 
 
 def npy(arr) -> bytes:
@@ -42,6 +36,9 @@ def test_field_lifecycle(api):
     info = c.create_field("scene", channels=C)
     assert (info["k"], info["d"], info["channels"], info["nsamples"]) == (1, 3, C, 0)
     assert info["basis"]["m"] == 5 and np.asarray(info["basis"]["Q"]).shape == (5, 3, 3)
+    # without basis: a covering atlas of lines (6 charts; `basis` describes chart 0)
+    assert info["basis"]["spec"] == {"kind": "atlas", "atlas": "covering"}
+    assert len(info["charts"]) == 6 and info["oriented"] is False
     assert [f["name"] for f in c.list_fields()] == ["scene"]
     with pytest.raises(ConflictError):
         c.create_field("scene")
@@ -66,15 +63,18 @@ def test_explicit_bases(api):
     assert r.status_code == 422 and "basis" in r.text
 
 
-def test_upload_forms_match_in_process_field(api, rng):
-    """JSON, .npy and .npz uploads of the same batches give the in-process Field's answers."""
+@pytest.mark.parametrize("kind", KINDS, ids=str)
+def test_upload_forms_match_in_process_field(api, rng, kind):
+    """JSON, .npy and .npz uploads of the same batches give the in-process field's answers
+    (an AtlasField for the default, a Field for one chart)."""
     tc, c = api
-    ref = in_process_field()
+    ref = kind.reference(C)
     batches = [paper_rays(rng, 300) + (rng.uniform(size=(300, C)),) for _ in range(3)]
     for name in ("json", "npy", "npz"):
-        c.create_field(name, channels=C)
+        c.create_field(name, channels=C, basis=kind.basis)
     for o, v, val in batches:
-        want = ref.add_rays(o, v, val)
+        want = add_rays(ref, o, v, val)
+        assert (want.accepted == 300) == kind.atlas  # one chart: some rays are beyond it
         got_json = c.upload_rays("json", o, v, val, binary=False)
         r = tc.post("/v1/fields/npy/samples", content=npy(np.c_[o, v, val].astype(np.float32)),
                     headers={"Content-Type": "application/x-npy"})
@@ -91,28 +91,39 @@ def test_upload_forms_match_in_process_field(api, rng):
         # float32 transport rounds the rays: only the counts are comparable
         assert abs(got_npy["accepted"] - want.accepted) <= 3
     qo, qv = paper_rays(rng, 500)
-    want = ref.query_rays(qo, qv, return_weights=True)
+    want = query_rays(ref, qo, qv, return_weights=not kind.atlas)
     for name in ("json", "npz"):
         for binary in (True, False):
             got = c.query_rays(name, qo, qv, binary=binary)
             np.testing.assert_array_equal(got.inside, want.inside)
             np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12)
+        if kind.atlas:  # several charts' ids are not returned
+            with pytest.raises(InvalidError) as err:
+                c.query_rays(name, qo, qv, weights=True)
+            assert err.value.argument == "weights"
+            continue
         got = c.query_rays(name, qo, qv, weights=True)
         np.testing.assert_array_equal(got.ids, want.ids)
         np.testing.assert_allclose(got.weights, want.weights, atol=1e-12)
         np.testing.assert_array_equal(got.status, want.status)
 
 
-def test_query_at_samples_returns_their_values(api, rng):
+@pytest.mark.parametrize("kind", KINDS, ids=str)
+def test_query_at_samples_returns_their_values(api, rng, kind):
     tc, c = api
-    c.create_field("f", channels=C)
+    c.create_field("f", channels=C, basis=kind.basis)
     o, v = paper_rays(rng, 1000)
     val = rng.uniform(size=(1000, C))
     rep = c.upload_rays("f", o, v, val)
     ok = np.setdiff1d(np.arange(1000), rep["rejected"])
     assert rep["nsamples"] == ok.size == rep["accepted"]
-    res = c.query_rays("f", o[ok], v[ok], weights=True)
+    res = c.query_rays("f", o[ok], v[ok])
     assert res.inside.all()
+    np.testing.assert_allclose(res.values, val[ok], atol=1e-9)
+    if kind.atlas:  # every orientation is charted: nothing rejected
+        assert rep["rejected"] == [] and rep["reasons"] == []
+        return
+    res = c.query_rays("f", o[ok], v[ok], weights=True)
     np.testing.assert_allclose(res.values, val[ok], atol=1e-9)
     # barycentric weights sum to one; ids are sample ids
     np.testing.assert_allclose(res.weights.sum(axis=1), 1.0, atol=1e-9)
@@ -123,9 +134,10 @@ def test_query_at_samples_returns_their_values(api, rng):
         assert not c.query_rays("f", o[bad], v[bad]).inside.any()
 
 
-def test_query_response_formats_agree(api, rng):
+@pytest.mark.parametrize("kind", KINDS, ids=str)
+def test_query_response_formats_agree(api, rng, kind):
     tc, c = api
-    c.create_field("f", channels=2)
+    c.create_field("f", channels=2, basis=kind.basis)
     o, v = paper_rays(rng, 400)
     c.upload_rays("f", o, v, rng.normal(size=(400, 2)))
     qo, qv = paper_rays(rng, 50)
@@ -133,23 +145,25 @@ def test_query_response_formats_agree(api, rng):
     j = tc.post("/v1/fields/f/query", content=body, headers={"Content-Type": "application/x-npy"})
     assert j.headers["content-type"].startswith("application/json")
     jj = j.json()
-    n = tc.post("/v1/fields/f/query?weights=true", content=body,
+    weights = "false" if kind.atlas else "true"  # (an atlas field refuses weights=true)
+    n = tc.post(f"/v1/fields/f/query?weights={weights}", content=body,
                 headers={"Content-Type": "application/x-npy", "Accept": "application/x-npy"})
     arr = np.load(io.BytesIO(n.content))
-    assert arr.shape == (50, 2 + 1 + 2 * 5)
+    assert arr.shape == (50, 2 + 1 + (0 if kind.atlas else 2 * 5))
     assert "query;dur=" in n.headers["server-timing"]
     vals = np.array([[np.nan if x is None else x for x in row] for row in jj["values"]])
     np.testing.assert_allclose(arr[:, :2], vals, atol=0, equal_nan=True)
     np.testing.assert_array_equal(arr[:, 2] == 1, jj["inside"])
 
 
-def test_parametric_and_qr_forms(api, rng):
-    """(A, b) and (Q, r) forms give the in-process Field's answers; inside the hull the
+@pytest.mark.parametrize("kind", KINDS, ids=str)
+def test_parametric_and_qr_forms(api, rng, kind):
+    """(A, b) and (Q, r) forms give the in-process field's answers; inside the hull the
     value at a sample is the sample's value."""
 
     tc, c = api
-    ref = in_process_field(1)
-    c.create_field("f", channels=1)
+    ref = kind.reference(1)
+    c.create_field("f", channels=1, basis=kind.basis)
     o, v = paper_rays(rng, 300)
     Q, r = flats.from_rays(o, v)
     A, b = flats.to_parametric(Q, r, 1)

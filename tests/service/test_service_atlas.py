@@ -11,17 +11,16 @@ import numpy as np
 import pytest
 
 from flatserve.atlas import Atlas, AtlasField
-from flatserve.errors import InvalidInputError
+from flatserve.errors import InvalidInputError, LimitExceededError
 from flatserve.flats import Flats
 
-from .conftest import started
+from .conftest import ONE_CHART, started
 
 C = 2
 #: A request written before the top-level ``oriented``: still accepted.
 ATLAS = {"kind": "atlas", "atlas": "covering", "oriented": False}
 #: How an atlas spec is stored and described (``oriented`` is the field's).
 COVERING = {"kind": "atlas", "atlas": "covering"}
-ONE_CHART = {"kind": "tangent_simplex"}
 
 
 def sphere_rays(rng, n, spread=1.0):
@@ -258,3 +257,176 @@ def test_render_an_oriented_atlas_field(api, rng):
         means.append(float(np.nanmean(img)))
     # the eye at -z sees the rays going +z (value 1), the eye at +z those going -z (0)
     assert means[0] > 0.95 and means[1] < 0.05, means
+
+
+def cone(rng, n, axis, half_deg):
+    """``n`` unit directions uniform in angle within ``half_deg`` of ``axis``."""
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    w = rng.normal(size=(n, 3))
+    w -= (w @ a)[:, None] * a
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    t = np.radians(half_deg) * np.sqrt(rng.uniform(size=n))
+    return np.cos(t)[:, None] * a + np.sin(t)[:, None] * w
+
+
+def test_samples_atlas_charts_where_the_flats_are(make_app, rng):
+    """`atlas: "samples"`: the library's Atlas.for_samples of the given flats (any form),
+    described chart by chart, stored with the field; a later flat that no chart holds is
+    rejected with its reason; the number of flats is bounded."""
+    n = 1500
+    v = cone(rng, n, [1, 0.3, 0], 40)
+    o = rng.uniform(-2, 2, (n, 3)) + [5, 0, 0]
+    val = np.c_[o[:, 1], v[:, 2]]
+    flats = Flats.from_rays(o, v)
+    ref = AtlasField(Atlas.for_samples(flats), channels=C)
+    assert ref.atlas.ncharts > 1
+    A, b = v[:, :, None], o
+    tc, c = started(make_app(max_atlas_samples=n))
+    try:
+        spec = {"kind": "atlas", "atlas": "samples",
+                "samples": {"origins": o.tolist(), "directions": v.tolist()}}
+        info = c.create_field("s", channels=C, basis=spec)
+        assert info["basis"]["spec"] == {"kind": "atlas", "atlas": "samples", "radius": 30.0,
+                                         "fraction": 0.99, "samples": {"form": "rays", "n": n}}
+        assert info["atlas"]["method"] == "samples" and info["atlas"]["covering_radius"] is None
+        assert info["atlas"]["max_sample_angle"] == ref.atlas.info["max_sample_angle_deg"] < 30
+        assert len(info["charts"]) == ref.atlas.ncharts
+        np.testing.assert_array_equal([ch["center"]["A"] for ch in info["charts"]],
+                                      ref.atlas.center_A)
+        np.testing.assert_array_equal([ch["center"]["r"] for ch in info["charts"]],
+                                      ref.atlas.center_r)
+        assert [ch["scale"] for ch in info["charts"]] == ref.atlas.scales.tolist()
+        # the same flats as (A, b): the same atlas
+        par = c.create_field("p", channels=C, basis={
+            "kind": "atlas", "atlas": "samples", "samples": {"A": A.tolist(), "b": b.tolist()}})
+        assert len(par["charts"]) == len(info["charts"])
+        for key in ("A", "r"):  # (to rounding: the forms give the same flats)
+            np.testing.assert_allclose([ch["center"][key] for ch in par["charts"]],
+                                       [ch["center"][key] for ch in info["charts"]],
+                                       rtol=1e-9, atol=1e-12)
+        # (not the scales: the bisection's answer moves with rounding, the fraction of
+        # flats inside each simplex it reaches does not)
+
+        rep = c.upload_rays("s", o, v, val)
+        ref.add(flats, val)
+        assert rep["accepted"] == n and rep["rejected"] == []
+        got = c.describe("s")
+        assert [ch["samples"] for ch in got["charts"]] == ref.samples_per_chart
+        assert got["nvertices"] == ref.nstored and got["nsimplex"] == ref.nsimplex
+        # lines across the cone (45 degrees and more from every centre): no chart holds them
+        o2 = rng.uniform(-1, 1, (40, 3))
+        v2 = cone(rng, 40, [0, 0, 1], 5)
+        late = c.upload_rays("s", o2, v2, np.ones((40, C)))
+        assert late["accepted"] == 0 and late["rejected"] == list(range(40))
+        want_reasons = ref.prepare(Flats.from_rays(o2, v2), np.ones((40, C))).reasons
+        assert late["reasons"] == want_reasons
+        assert all("outside every chart's domain" in why for why in late["reasons"])
+        probe = (o[:300] + rng.normal(0, 0.05, (300, 3)), v[:300])
+        want = ref.query(Flats.from_rays(*probe))
+        assert want.inside.mean() > 0.9
+        same_answers(c, "s", probe, want)
+        outside = c.query_rays("s", o2, v2)
+        assert not outside.inside.any() and np.isnan(outside.values).all()
+    finally:
+        tc.__exit__(None, None, None)
+    tc, c = started(make_app(max_atlas_samples=n))  # restart: the atlas is stored with it
+    try:
+        assert c.describe("s")["charts"] == got["charts"]
+        same_answers(c, "s", probe, want)
+        # bounded: one flat more than max_atlas_samples is a 413 naming the setting
+        big = np.zeros((n + 1, 3)).tolist()
+        r = tc.post("/v1/fields", json={"name": "big", "basis": {
+            "kind": "atlas", "atlas": "samples", "samples": {"origins": big, "directions": big}}})
+        assert r.status_code == 413 and "FLATSERVE_MAX_ATLAS_SAMPLES" in r.text, r.text
+        assert "basis.samples" in r.text
+        assert sorted(f["name"] for f in c.list_fields()) == ["p", "s"]
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_atlas_specs_that_do_not_cover_what_they_claim_are_refused(api, rng):
+    """At creation, a 422 naming what is not covered: an orientation too far from every
+    centre, a chart whose scale collapses it, flats the data-driven atlas cannot chart;
+    oriented fields take rays only, in the spec too."""
+    tc, c = api
+
+    def refused(basis, loc, *words, **top):
+        r = tc.post("/v1/fields", json={"name": "x", "basis": basis, **top})
+        assert r.status_code == 422, r.text
+        det = r.json()["detail"][0]
+        assert det["loc"] == ["body", *loc], det
+        assert all(w in det["msg"] for w in words), det
+        return det["msg"]
+
+    def centers(axes, **kw):
+        return {"kind": "atlas", "atlas": "centers",
+                "centers": {"origins": np.zeros((len(axes), 3)).tolist(),
+                            "directions": np.asarray(axes).tolist()}, **kw}
+
+    # the 3 coordinate axes leave directions 54.7 degrees from every centre
+    msg = refused(centers(np.eye(3)), ["basis", "centers"], "do not cover every orientation",
+                  "degrees from every centre", "trusted 40")
+    worst = float(msg.split(" is ")[1].split(" degrees")[0])
+    assert 50 < worst <= np.degrees(np.arccos(1 / np.sqrt(3))) + 1e-6
+    # the 6 icosahedral axes cover (37.4 degrees), unless a scale collapses a chart
+    ico = Atlas.covering(1, 3).center_A[:, :, 0]
+    info = c.create_field("ico", basis=centers(ico))
+    assert info["atlas"]["method"] == "centers" and len(info["charts"]) == 6
+    assert 37 < info["atlas"]["covering_radius"] < 38
+    got = np.array([ch["center"]["A"] for ch in info["charts"]])[:, :, 0]
+    np.testing.assert_allclose(np.abs(np.einsum("ci,ci->c", got, ico)), 1.0)  # the same lines
+    refused(centers(ico, scale=1e-12), ["basis", "centers"], "chart 0", "scale 1e-12")
+    refused(centers(ico, scale=[1.0] * 5), ["basis", "scale"], "one per centre")
+    refused(centers(np.tile(ico, (200, 1))), ["basis", "centers"], "1200 flats", "at most")
+    refused(centers(ico, scale=0), ["basis", "atlas", "centers", "scale", "constrained-float"],
+            "greater than 0")
+    # flats the data-driven atlas cannot chart (offsets far beyond what a scale holds)
+    v = cone(rng, 200, [1, 0, 0], 20)
+    o = rng.uniform(-1e6, 1e6, (200, 3))
+    refused({"kind": "atlas", "atlas": "samples",
+             "samples": {"origins": o.tolist(), "directions": v.tolist()}},
+            ["basis", "samples"], "does not chart", "not representable")
+    # oriented: centres and samples must be rays; (Q, r) has no orientation
+    Q, r = Flats.from_rays(np.zeros((6, 3)), ico).quadrics()
+    refused({"kind": "atlas", "atlas": "centers", "centers": {"Q": Q.tolist(), "r": r.tolist()}},
+            ["basis", "centers"], "rays", oriented=True)
+    refused({"kind": "atlas", "atlas": "samples", "samples": {"Q": Q.tolist(), "r": r.tolist()}},
+            ["basis", "samples", "Q"], "oriented", "origins + directions", oriented=True)
+    refused({"kind": "atlas", "atlas": "samples",
+             "samples": {"origins": [[0, 0, 0]], "directions": [[0, 0, 0]]}},
+            ["basis", "samples", "directions"])
+    assert [f["name"] for f in c.list_fields()] == ["ico"]
+
+
+def test_cost_guard_counts_every_chart_holding_a_sample(make_app, rng):
+    """An atlas stores a sample in every chart whose domain holds it: the limit on cells
+    is judged on those copies (lines in R^4: about 4 charts hold each)."""
+    n = 300
+    o, v = rng.uniform(-1, 1, (n, 4)), rng.normal(size=(n, 4))
+    flats = Flats.from_rays(o, v)
+    atlas = Atlas.covering(1, 4)
+    copies = atlas.held(flats, atlas.reach).sum()
+    assert copies > 3 * n
+    per = 512.0  # cells per sample in dimension 6 before a field has its own figure
+    limit = int(2 * n * per)  # above n samples' cells, below the copies'
+    tc, c = started(make_app(max_simplices=limit))
+    try:
+        c.create_field("a", k=1, d=4)
+        c.create_field("one", k=1, d=4, basis=ONE_CHART)
+        with pytest.raises(LimitExceededError) as ei:
+            c.upload_rays("a", o, v, np.ones(n))
+        assert ei.value.status == 413
+        text = str(ei.value)
+        assert f"{copies * per:,.0f} cells expected" in text and "charts holding each" in text
+        assert "FLATSERVE_MAX_SIMPLICES" in text and c.describe("a")["storage"]["batches"] == 0
+        assert c.upload_rays("one", o, v, np.ones(n))["accepted"] > 0  # one copy each
+    finally:
+        tc.__exit__(None, None, None)
+    tc, c = started(make_app(max_simplices=int(copies * per)))
+    try:
+        assert c.upload_rays("a", o, v, np.ones(n))["accepted"] == n
+        info = c.describe("a")  # the copies counted are the vertices the charts hold
+        assert info["nvertices"] == copies
+        assert sum(ch["samples"] for ch in info["charts"]) == copies
+    finally:
+        tc.__exit__(None, None, None)

@@ -1,7 +1,7 @@
 """Crash safety with a REAL server process: kill -9 at random moments (mid-upload
 too), restart, and check that every acknowledged batch is there, that nothing is
 stored twice or half, and that the restored field equals replaying exactly the
-stored batches in-process."""
+stored batches in-process; for the default (atlas) field and one chart at once."""
 from __future__ import annotations
 
 import signal
@@ -15,7 +15,7 @@ import numpy as np
 from flatserve.client import Client
 from flatserve.service.process import ServerProcess, free_port  # noqa: F401
 
-from .conftest import paper_rays
+from .conftest import KINDS, add_rays, paper_rays, query_rays
 
 ROUNDS = 5
 TIME_BUDGET_S = 150
@@ -24,7 +24,7 @@ TIME_BUDGET_S = 150
 Server = ServerProcess  # a real server process (kill -9 in the with block's exit)
 
 
-def _uploader(url, rnd, rng, sent, acked, stop):
+def _uploader(url, name, rnd, rng, sent, acked, stop):
     c = Client(url, retries=0, timeout=30)
     i = 0
     try:
@@ -36,7 +36,7 @@ def _uploader(url, rnd, rng, sent, acked, stop):
             sent[key] = (o, v, val)
             try:
                 # every other batch acknowledged before it is indexed (wait=false)
-                acked[key] = c.upload_rays("crash", o, v, val, idempotency_key=key,
+                acked[key] = c.upload_rays(name, o, v, val, idempotency_key=key,
                                            binary=bool(i % 4), wait=bool(i % 2))
             except Exception:
                 return  # the server died under us
@@ -45,38 +45,40 @@ def _uploader(url, rnd, rng, sent, acked, stop):
         c.close()
 
 
-def _verify(url, sent, acked, probe):
-    from flatserve.field import Field
-    from flatserve.service import specs
-
+def _verify(url, kind, sent, acked, probe):
+    name = str(kind)
     with Client(url, retries=0) as c:
-        stored = c.batches("crash")
+        stored = c.batches(name)
         keys = [b["idempotency_key"] for b in stored]
         assert len(keys) == len(set(keys)), "a batch was stored twice"
         assert [b["batch"] for b in stored] == sorted(b["batch"] for b in stored)
         missing = set(acked) - set(keys)
         assert not missing, f"acknowledged batches lost: {sorted(missing)}"
-        ref = Field(specs.build_basis(None, 1, 3), channels=1)
+        ref = kind.reference(1)
         for b in stored:
             o, v, val = sent[b["idempotency_key"]]
             assert b["rows"] == len(o), "a batch was stored half"
-            res = ref.add_rays(o, v, val)
+            res = add_rays(ref, o, v, val)
             assert b["accepted"] == res.accepted
             if b["idempotency_key"] in acked:
                 assert acked[b["idempotency_key"]]["accepted"] == res.accepted
-        info = c.describe("crash")
+        info = c.describe(name)
         assert info["nsamples"] == ref.nsamples
-        got = c.query_rays("crash", *probe, weights=True)
-        want = ref.query_rays(*probe, return_weights=True)
+        if kind.atlas:  # every chart restored: the same samples per chart
+            assert [ch["samples"] for ch in info["charts"]] == ref.samples_per_chart
+            assert info["nvertices"] == ref.nstored and info["nsimplex"] == ref.nsimplex
+        got = c.query_rays(name, *probe, weights=not kind.atlas)
+        want = query_rays(ref, *probe, return_weights=not kind.atlas)
         np.testing.assert_array_equal(got.inside, want.inside)
-        np.testing.assert_array_equal(got.ids, want.ids)
+        if not kind.atlas:  # (an atlas field returns no simplices)
+            np.testing.assert_array_equal(got.ids, want.ids)
         np.testing.assert_allclose(got.values, want.values, atol=1e-12, equal_nan=True)
         # a retry of an acknowledged batch is recognised, not stored again
         if acked:
             key = sorted(acked)[0]
-            again = c.upload_rays("crash", *sent[key], idempotency_key=key)
+            again = c.upload_rays(name, *sent[key], idempotency_key=key)
             assert again["replayed"]
-            assert len(c.batches("crash")) == len(stored)
+            assert len(c.batches(name)) == len(stored)
         return len(stored)
 
 
@@ -84,7 +86,8 @@ def test_kill9_loses_nothing_acknowledged(tmp_path):
     rng = np.random.default_rng(7)
     data = tmp_path / "data"
     log = tmp_path / "server.log"
-    sent, acked = {}, {}
+    sent = {str(kind): {} for kind in KINDS}
+    acked = {str(kind): {} for kind in KINDS}
     probe = paper_rays(rng, 400)
     t_start = time.monotonic()
     rounds = 0
@@ -94,37 +97,47 @@ def test_kill9_loses_nothing_acknowledged(tmp_path):
                 break
             with Server(data, log, snapshot_every=3000) as srv:
                 srv.wait_ready()
-                if rnd == 0:
-                    with Client(srv.url) as c:
-                        c.create_field("crash", channels=1)
-                else:
-                    _verify(srv.url, sent, acked, probe)
+                for kind in KINDS:
+                    if rnd == 0:
+                        with Client(srv.url) as c:
+                            c.create_field(str(kind), channels=1, basis=kind.basis)
+                    else:
+                        _verify(srv.url, kind, sent[str(kind)], acked[str(kind)], probe)
                 stop = threading.Event()
-                t = threading.Thread(target=_uploader,
-                                     args=(srv.url, rnd, np.random.default_rng(rnd), sent, acked,
-                                           stop))
-                t.start()
+                ts = [threading.Thread(target=_uploader,
+                                       args=(srv.url, str(kind), rnd,
+                                             np.random.default_rng([rnd, i]), sent[str(kind)],
+                                             acked[str(kind)], stop))
+                      for i, kind in enumerate(KINDS)]
+                for t in ts:
+                    t.start()
                 time.sleep(float(rng.uniform(0.5, 2.5)))
                 srv.kill9()
                 stop.set()
-                t.join(timeout=60)
+                for t in ts:
+                    t.join(timeout=60)
             rounds += 1
         with Server(data, log) as srv:
             srv.wait_ready()
-            nstored = _verify(srv.url, sent, acked, probe)
+            nstored = {str(kind): _verify(srv.url, kind, sent[str(kind)], acked[str(kind)],
+                                          probe) for kind in KINDS}
     except BaseException:
         sys.stderr.write(log.read_text(errors="replace")[-5000:])
         raise
     text = log.read_text(errors="replace")
-    inflight = len(sent) - len(acked)
-    deferred = sum(not a["indexed"] for a in acked.values())
-    print(f"\ncrash test: {rounds} kill -9 rounds, {len(sent)} batches sent, {len(acked)} "
-          f"acknowledged ({deferred} with wait=false, before indexing), {nstored} stored, "
-          f"{inflight} in flight at a kill; "
+    print(f"\ncrash test: {rounds} kill -9 rounds; "
           f"{text.count('snapshot after batch') // 1} snapshot log lines, "
           f"{text.count('replaying')} restores")
+    for name in sent:
+        print(f"  {name}: {text.count(repr(name) + ': snapshot after batch')} snapshot lines")
     assert rounds >= 2
-    assert acked and nstored >= len(acked) and deferred
+    for name in sent:
+        inflight = len(sent[name]) - len(acked[name])
+        deferred = sum(not a["indexed"] for a in acked[name].values())
+        print(f"  {name}: {len(sent[name])} batches sent, {len(acked[name])} acknowledged "
+              f"({deferred} with wait=false, before indexing), {nstored[name]} stored, "
+              f"{inflight} in flight at a kill")
+        assert acked[name] and nstored[name] >= len(acked[name]) and deferred
 
 
 def test_flatserve_serve_command_binds_loopback_without_key(tmp_path):

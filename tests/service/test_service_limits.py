@@ -11,7 +11,7 @@ import pytest
 
 from flatserve.service import registry as registry_mod
 
-from .conftest import paper_rays, started
+from .conftest import KINDS, paper_rays, started
 
 
 def _chunks(total: int, size: int = 65536):
@@ -205,12 +205,13 @@ def test_big_json_bodies_do_not_stall_the_event_loop(tmp_path, rng):
         assert r.status_code == 413 and "FLATSERVE_MAX_JSON_BYTES" in r.text
 
 
-def test_reads_keep_flowing_while_a_big_wait_false_batch_is_indexed(make_app, rng):
-    """The indexer inserts a wait=false batch in slices: queries answer between
-    slices instead of waiting for the whole insert."""
+@pytest.mark.parametrize("kind", KINDS, ids=str)
+def test_reads_keep_flowing_while_a_big_wait_false_batch_is_indexed(make_app, rng, kind):
+    """The indexer inserts a wait=false batch in slices (an atlas field's chart by
+    chart): queries answer between slices instead of waiting for the whole insert."""
     tc, c = started(make_app(insert_slice_rows=2_000))
     try:
-        c.create_field("f", channels=1)
+        c.create_field("f", channels=1, basis=kind.basis)
         o, v = paper_rays(rng, 2000)
         c.upload_rays("f", o, v, np.ones(2000))
         probe = paper_rays(rng, 4)

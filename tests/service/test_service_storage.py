@@ -1,5 +1,6 @@
 """Durability in-process: restart from batches, from snapshots, from damaged snapshots;
-concurrency invariants (a query never sees half a batch)."""
+concurrency invariants (a query never sees half a batch); for the default (atlas)
+field and for one chart alike."""
 from __future__ import annotations
 
 import threading
@@ -9,11 +10,13 @@ import pytest
 
 from flatserve.client import Client
 
-from .conftest import paper_rays, started as _started
+from .conftest import KINDS, paper_rays, started as _started
+
+with_kinds = pytest.mark.parametrize("kind", KINDS, ids=str)
 
 
-def _upload_some(c, rng, name="f", batches=3, n=400, channels=2):
-    c.create_field(name, channels=channels)
+def _upload_some(c, rng, name="f", batches=3, n=400, channels=2, basis=None):
+    c.create_field(name, channels=channels, basis=basis)
     sent = []
     for i in range(batches):
         o, v = paper_rays(rng, n)
@@ -23,8 +26,9 @@ def _upload_some(c, rng, name="f", batches=3, n=400, channels=2):
     return sent
 
 
-def _answers(c, probe, name="f"):
-    res = c.query_rays(name, *probe, weights=True)
+def _answers(c, probe, kind, name="f"):
+    """Values, inside and (one chart: an atlas field returns none) simplices."""
+    res = c.query_rays(name, *probe, weights=not kind.atlas)
     return res.values, res.inside, res.ids
 
 
@@ -34,11 +38,12 @@ def _same(a, b):
     np.testing.assert_allclose(a[0], b[0], atol=1e-12, equal_nan=True)
 
 
+@with_kinds
 @pytest.mark.parametrize("snapshot", ["none", "middle", "end"])
-def test_restart_restores_same_field(make_app, rng, snapshot):
+def test_restart_restores_same_field(make_app, rng, snapshot, kind):
     tc, c = _started(make_app())
     try:
-        c.create_field("f", channels=2)
+        c.create_field("f", channels=2, basis=kind.basis)
         for i in range(4):
             o, v = paper_rays(rng, 300)
             c.upload_rays("f", o, v, rng.normal(size=(300, 2)), idempotency_key=f"b{i}")
@@ -46,30 +51,32 @@ def test_restart_restores_same_field(make_app, rng, snapshot):
                 snap = c.snapshot("f")
                 assert snap["batch"] == i + 1 and snap["bytes"] > 0
         probe = paper_rays(rng, 300)
-        before, info = _answers(c, probe), c.describe("f")
+        before, info = _answers(c, probe, kind), c.describe("f")
+        assert (info["nrejected"] == 0) == kind.atlas
     finally:
         tc.__exit__(None, None, None)
     tc, c = _started(make_app())
     try:
         after = c.describe("f")
-        for key in ("nsamples", "nrejected", "nvertices", "nsimplex"):
-            assert after[key] == info[key], key
+        for key in ("nsamples", "nrejected", "nvertices", "nsimplex", "atlas", "charts"):
+            assert after.get(key) == info.get(key), key
         expect = {"none": 0, "middle": 2, "end": 4}[snapshot]
         assert after["storage"]["snapshot_batch"] == expect
-        _same(before, _answers(c, probe))
+        _same(before, _answers(c, probe, kind))
         # a retried upload after the restart is recognised
         assert len(c.batches("f")) == 4
     finally:
         tc.__exit__(None, None, None)
 
 
-def test_damaged_snapshot_rebuilds_from_batches(make_app, rng, tmp_path, caplog):
+@with_kinds
+def test_damaged_snapshot_rebuilds_from_batches(make_app, rng, tmp_path, caplog, kind):
     tc, c = _started(make_app())
     try:
-        _upload_some(c, rng)
+        _upload_some(c, rng, basis=kind.basis)
         c.snapshot("f")
         probe = paper_rays(rng, 200)
-        before = _answers(c, probe)
+        before = _answers(c, probe, kind)
     finally:
         tc.__exit__(None, None, None)
     snaps = list((tmp_path / "data" / "snapshots").glob("*.snap"))
@@ -81,7 +88,7 @@ def test_damaged_snapshot_rebuilds_from_batches(make_app, rng, tmp_path, caplog)
         tc, c = _started(make_app())
     try:
         assert "rebuilding from batches" in caplog.text
-        _same(before, _answers(c, probe))
+        _same(before, _answers(c, probe, kind))
         names = {p.name for p in (tmp_path / "data" / "snapshots").iterdir()}
         assert ".tmp-leftover" not in names
     finally:
@@ -125,12 +132,14 @@ def test_delete_removes_batches_and_snapshot(make_app, rng, tmp_path):
         tc.__exit__(None, None, None)
 
 
-def test_queries_never_see_half_a_batch(make_app, rng):
+@with_kinds
+def test_queries_never_see_half_a_batch(make_app, rng, kind):
     """Per batch, a concurrent query at its accepted rays matches their values exactly
-    either for all of them (inserted) or for none (not yet inserted)."""
+    either for all of them (inserted) or for none (not yet inserted); an atlas field's
+    batch is in every chart or in none."""
     tc, c = _started(make_app(workers=8))
     try:
-        c.create_field("f")
+        c.create_field("f", basis=kind.basis)
         o0, v0 = paper_rays(rng, 500)
         c.upload_rays("f", o0, v0, rng.uniform(size=(500, 1)))
         batches = []

@@ -1,5 +1,6 @@
 """Uploads with ``?wait=false`` (acknowledged once stored and charted, indexed in the
-background), the two-phase insert behind them, and readiness during a restore."""
+background), the two-phase insert behind them, and readiness during a restore; for the
+default (atlas) field and for one chart alike."""
 from __future__ import annotations
 
 import threading
@@ -14,9 +15,10 @@ from flatserve.field import Field
 from flatserve.service import registry as registry_mod
 from flatserve.service import specs
 
-from .conftest import paper_rays, started as _started
+from .conftest import KINDS, add_rays, paper_rays, query_rays, started as _started
 
 C = 2
+with_kinds = pytest.mark.parametrize("kind", KINDS, ids=str)
 
 
 def _ref():
@@ -24,7 +26,8 @@ def _ref():
 
 
 def _rays_with_rejects(rng, n):
-    """Paper rays, a tenth of them turned parallel to the screen (outside the chart)."""
+    """Paper rays, a tenth of them turned parallel to the screen (outside the single
+    chart; an atlas accepts them)."""
     o, v = paper_rays(rng, n)
     bad = rng.choice(n, n // 10, replace=False)
     v[bad, 2] = 0.0
@@ -35,16 +38,27 @@ def _upload(c, ref, rng, n=300, **kw):
     """Upload ``n`` fresh rays (a tenth rejected) to field "f" and add them to the
     reference field ``ref`` too; the upload's report."""
     o, v, val = _rays_with_rejects(rng, n)
-    ref.add_rays(o, v, val)
+    add_rays(ref, o, v, val)
     return c.upload_rays("f", o, v, val, **kw)
 
 
 def _same_answers(got, want):
-    """Same inside mask, values and (inside the hull) simplices. Outside it, the hull
-    facet reported depends on where the walk starts, which a snapshot load changes."""
+    """Same inside mask, values and (inside the hull; one chart) simplices. Outside it,
+    the hull facet reported depends on where the walk starts, which a snapshot load
+    changes."""
     np.testing.assert_array_equal(got.inside, want.inside)
-    np.testing.assert_array_equal(got.ids[got.inside], want.ids[want.inside])
+    if want.ids is not None:
+        np.testing.assert_array_equal(got.ids[got.inside], want.ids[want.inside])
     np.testing.assert_allclose(got.values, want.values, atol=1e-12, equal_nan=True)
+
+
+def _got(c, kind, probe):
+    """The service's answers at ``probe`` (with simplices for one chart)."""
+    return c.query_rays("f", *probe, weights=not kind.atlas)
+
+
+def _want(ref, kind, probe):
+    return query_rays(ref, *probe, return_weights=not kind.atlas)
 
 
 @pytest.mark.parametrize("form", ["rays", "parametric", "flats"])
@@ -79,13 +93,16 @@ def test_prepare_then_insert_equals_field_add(rng, form):
 
 
 class _Gate:
-    """Holds the background indexer (before it locks the field) until ``open()``."""
+    """Holds the log follower (before it locks the field) at batches after ``after``
+    until ``open()``."""
 
-    def __init__(self, monkeypatch):
+    def __init__(self, monkeypatch, after=0):
         self.event = threading.Event()
         self.entered = threading.Event()
 
         def gated(e, seq):
+            if seq <= after:
+                return
             self.entered.set()
             self.event.wait(30)
 
@@ -95,23 +112,26 @@ class _Gate:
         self.event.set()
 
 
-def test_wait_false_acknowledges_then_indexes_in_commit_order(make_app, rng, monkeypatch):
-    gate = _Gate(monkeypatch)
-    ref = _ref()
+@with_kinds
+def test_wait_false_acknowledges_then_indexes_in_commit_order(make_app, rng, monkeypatch, kind):
+    gate = _Gate(monkeypatch, after=1)  # batch 1 (wait=true) is applied before its answer
+    ref = kind.reference(C)
     tc, c = _started(make_app())
     try:
-        c.create_field("f", channels=C)
+        c.create_field("f", channels=C, basis=kind.basis)
         base = _upload(c, ref, rng, 400)  # wait=true: indexed in the request
         assert base["indexed"] and base["nsamples"] == ref.nsamples
         probe = paper_rays(rng, 300)
-        before = ref.query_rays(*probe, return_weights=True)
+        before = _want(ref, kind, probe)
 
         sent, reps = [], []
         for i in range(3):
             o, v, val = _rays_with_rejects(rng, 300)
             rep = c.upload_rays("f", o, v, val, wait=False, idempotency_key=f"k{i}",
                                 binary=bool(i % 2))
-            want = _ref().add_rays(o, v, val)  # accepted/rejected depend on the basis only
+            # accepted/rejected depend on the basis (or atlas) only
+            want = add_rays(kind.reference(C), o, v, val)
+            assert (want.accepted == len(o)) == kind.atlas
             assert not rep["indexed"] and rep["duplicates"] is None
             assert rep["accepted"] == want.accepted
             assert rep["rejected"] == want.rejected.tolist()
@@ -126,7 +146,7 @@ def test_wait_false_acknowledges_then_indexes_in_commit_order(make_app, rng, mon
         assert info["pending_samples"] == sum(r["accepted"] for r in reps)
         assert info["nsamples"] == ref.nsamples
         # queries see the indexed batches only; a snapshot covers only them
-        _same_answers(c.query_rays("f", *probe, weights=True), before)
+        _same_answers(_got(c, kind, probe), before)
         assert c.snapshot("f")["batch"] == 1
         # a retry is recognised while pending
         again = c.upload_rays("f", *sent[0], wait=False, idempotency_key="k0")
@@ -134,11 +154,11 @@ def test_wait_false_acknowledges_then_indexes_in_commit_order(make_app, rng, mon
         gate.open()
         info = c.wait_indexed("f", timeout=30)
         for o, v, val in sent:
-            ref.add_rays(o, v, val)
+            add_rays(ref, o, v, val)
         assert info["indexed_batch"] == 4 and info["pending_samples"] == 0
         assert (info["nsamples"], info["nrejected"]) == (ref.nsamples, ref.nrejected)
-        want = ref.query_rays(*probe, return_weights=True)
-        _same_answers(c.query_rays("f", *probe, weights=True), want)
+        want = _want(ref, kind, probe)
+        _same_answers(_got(c, kind, probe), want)
         assert c.upload_rays("f", *sent[0], idempotency_key="k0")["indexed"]
     finally:
         tc.__exit__(None, None, None)
@@ -148,16 +168,17 @@ def test_wait_false_acknowledges_then_indexes_in_commit_order(make_app, rng, mon
         info = c.describe("f")
         assert info["storage"]["snapshot_batch"] == 1 and info["indexed_batch"] == 4
         assert info["nsamples"] == ref.nsamples
-        _same_answers(c.query_rays("f", *probe, weights=True), want)
+        _same_answers(_got(c, kind, probe), want)
     finally:
         tc.__exit__(None, None, None)
 
 
-def test_wait_true_after_wait_false_sees_every_earlier_batch(make_app, rng):
-    ref = _ref()
+@with_kinds
+def test_wait_true_after_wait_false_sees_every_earlier_batch(make_app, rng, kind):
+    ref = kind.reference(C)
     tc, c = _started(make_app())
     try:
-        c.create_field("f", channels=C)
+        c.create_field("f", channels=C, basis=kind.basis)
         for i in range(4):
             rep = _upload(c, ref, rng, wait=i == 3)
         assert rep["indexed"] and rep["batch"] == 4 and rep["nsamples"] == ref.nsamples
@@ -167,14 +188,15 @@ def test_wait_true_after_wait_false_sees_every_earlier_batch(make_app, rng):
         tc.__exit__(None, None, None)
 
 
-def test_shutdown_leaves_pending_batches_to_the_replay(make_app, rng, monkeypatch):
+@with_kinds
+def test_shutdown_leaves_pending_batches_to_the_replay(make_app, rng, monkeypatch, kind):
     """A batch acknowledged with wait=false but not indexed at shutdown is replayed."""
     monkeypatch.setattr(registry_mod, "DRAIN_TIMEOUT_S", 0.2)
     gate = _Gate(monkeypatch)
-    ref = _ref()
+    ref = kind.reference(C)
     tc, c = _started(make_app())
     try:
-        c.create_field("f", channels=C)
+        c.create_field("f", channels=C, basis=kind.basis)
         for _ in range(2):
             assert not _upload(c, ref, rng, wait=False)["indexed"]
         gate.entered.wait(30)
@@ -188,8 +210,7 @@ def test_shutdown_leaves_pending_batches_to_the_replay(make_app, rng, monkeypatc
         info = c.describe("f")
         assert info["indexed_batch"] == 2 and info["nsamples"] == ref.nsamples
         probe = paper_rays(rng, 200)
-        _same_answers(c.query_rays("f", *probe, weights=True),
-                      ref.query_rays(*probe, return_weights=True))
+        _same_answers(_got(c, kind, probe), _want(ref, kind, probe))
     finally:
         tc.__exit__(None, None, None)
 
@@ -245,16 +266,20 @@ def test_wait_false_refuses_bad_rays_and_stores_nothing(make_app, rng):
         tc.__exit__(None, None, None)
 
 
-def test_wait_false_response_lost_in_a_crash_is_recomputed(make_app, rng, tmp_path):
+@with_kinds
+def test_wait_false_response_lost_in_a_crash_is_recomputed(make_app, rng, tmp_path, kind):
     """A wait=false batch is committed while its coordinates are computed, and its
     response is stored after, without an fsync: if a crash loses that row, a retry
     with the same key gets the same answer, recomputed from the stored arrays."""
     tc, c = _started(make_app())
     try:
-        c.create_field("f", channels=C)
+        c.create_field("f", channels=C, basis=kind.basis)
         o, v, val = _rays_with_rejects(rng, 300)
         first = c.upload_rays("f", o, v, val, wait=False, idempotency_key="k")
-        assert first["rejected"] and not first["replayed"]
+        assert not first["replayed"]
+        # one chart rejects the rays beyond it (with reasons); the atlas none
+        assert (first["rejected"] == [] and first["accepted"] == 300) == kind.atlas
+        assert len(first["reasons"]) == len(first["rejected"])
         c.wait_indexed("f", timeout=30)
     finally:
         tc.__exit__(None, None, None)

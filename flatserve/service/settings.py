@@ -31,9 +31,8 @@ class Settings(BaseSettings):
         ge=1,
         le=256,
         description=(
-            "Threads running CPU-heavy handlers (upload, query, math) in parallel. "
-            "The service runs ONE process: fields live in memory, and several "
-            "processes would each hold a diverging copy."
+            "Threads of each replica process running CPU-heavy handlers (upload, query, "
+            "math) in parallel (see processes for more processes)."
         ),
     )
     blas_threads: int = Field(
@@ -98,6 +97,32 @@ class Settings(BaseSettings):
                     "ones keep working. Each holds a file descriptor: on start the open-files "
                     "limit (ulimit -n) is raised toward its hard limit if needed, else the cap "
                     "is lowered to fit, with a warning (0: as many as the limit allows).")
+    database_url: str | None = Field(
+        None,
+        description="Where the shared batch log lives: unset for SQLite in data_dir (one "
+                    "machine), or postgresql://user:pass@host/db for replicas on several "
+                    "machines.")
+    processes: int = Field(
+        1, ge=1, le=256,
+        description="Replica processes serving one port (SQLite backend: they share the data "
+                    "directory; each holds its own copy of every field's triangulation).")
+    read_wait_timeout: float = Field(
+        10.0, ge=0,
+        description="Seconds a read with min_position waits for this replica to apply that "
+                    "log position; then 503 with Retry-After.")
+    log_poll_interval: float = Field(
+        0.005, gt=0, le=1.0,
+        description="Seconds between two checks for entries other processes appended to the "
+                    "log (SQLite: PRAGMA data_version; this process's own commits wake the "
+                    "follower at once).")
+    snapshot_lease_seconds: float = Field(
+        300.0, gt=0,
+        description="A replica writing a snapshot holds a lease this long (renewed while it "
+                    "writes); a replica killed while writing blocks other writers until then.")
+    lock_fd: int | None = Field(
+        None, ge=0,
+        description="Internal (set by --processes for its children): an inherited open file "
+                    "that holds the data directory's lock for the whole replica group.")
     log_level: str = Field("info")
     demo: bool = Field(
         False,

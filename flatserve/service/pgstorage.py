@@ -229,6 +229,8 @@ class PostgresBackend(LogBackend):
         self._pool_lock = threading.Lock()
         self._closed = False
         self._listen: psycopg.Connection | None = None
+        self._listen_lock = threading.Lock()
+        self._waiting = False
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
@@ -390,9 +392,10 @@ class PostgresBackend(LogBackend):
         self._closed = True
         self.wake()
         self._drop_all()
-        listen, self._listen = self._listen, None
-        if listen is not None:
-            listen.close()
+        with self._listen_lock:  # a wait in progress closes it on its way out
+            if not self._waiting and self._listen is not None:
+                self._listen.close()
+                self._listen = None
 
     # -- the log ----------------------------------------------------------------------
     @staticmethod
@@ -445,13 +448,26 @@ class PostgresBackend(LogBackend):
                 self._wait_pipe(min(timeout, 0.5))
             return
         conn = self._listen
+        with self._listen_lock:
+            if self._closed:
+                return
+            self._waiting = True
         try:
-            r, _, _ = select.select([conn.fileno(), self._wake_r], [], [], timeout)
-        except (OSError, ValueError):
+            fd = conn.fileno()
+            r, _, _ = select.select([fd, self._wake_r], [], [], timeout)
+        except (OSError, ValueError, psycopg.Error):
+            r = []
+        finally:
+            with self._listen_lock:
+                self._waiting = False
+                if self._closed:
+                    conn.close()
+                    self._listen = None
+        if self._closed:
             return
         if self._wake_r in r:
             self._drain_pipe()
-        if conn.fileno() in r:
+        if fd in r:
             try:
                 conn.pgconn.consume_input()
                 while conn.pgconn.notifies() is not None:

@@ -101,6 +101,12 @@ class NotReadyError(FlatserveError):
     """Stored fields are still being restored (or the server is shutting down)."""
 
 
+class ReplicaBehindError(NotReadyError):
+    """This replica has not yet applied the log position a read asked for
+    (``min_position``) within the configured wait; another replica, or a retry,
+    will have."""
+
+
 class IdempotencyConflictError(FlatserveError):
     """An idempotency key was reused with a different request body."""
 
@@ -119,6 +125,7 @@ HTTP_STATUS: dict[type, int] = {
     IdempotencyConflictError: 422,
     ValueError: 422,  # bad input reported by NumPy or other libraries
     NotReadyError: 503,
+    ReplicaBehindError: 503,
     StorageFullError: 507,
     StorageError: 503,
     SnapshotError: 503,

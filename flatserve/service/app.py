@@ -16,7 +16,7 @@ from .metrics import Metrics, MetricsMiddleware
 from .registry import Registry
 from .routes import api, health
 from .settings import Settings
-from .storage import Storage
+from .backend import open_backend
 
 log = logging.getLogger("flatserve.service")
 
@@ -138,7 +138,7 @@ def _openapi(app: FastAPI):
 
 def _start(app: FastAPI, settings: Settings) -> None:
     anyio.to_thread.current_default_thread_limiter().total_tokens = settings.workers
-    storage = Storage(settings.data_dir)
+    storage = open_backend(settings)
     registry = Registry(settings, storage, app.state.metrics)
     app.state.registry = registry
     if not settings.auth_enabled:
@@ -169,3 +169,13 @@ class _EntriesOf:
     def snapshot_entries(self):
         reg = getattr(self.app.state, "registry", None)
         return reg.snapshot_entries() if reg is not None else []
+
+    def lag(self) -> dict | None:
+        """This replica's log position, the head and the lag (None before it follows)."""
+        reg = getattr(self.app.state, "registry", None)
+        if reg is None or not reg.follower.started.is_set():
+            return None
+        try:
+            return reg.follower.lag()
+        except Exception:  # the database is unreachable: no figures this scrape
+            return None

@@ -3,9 +3,10 @@
 Synchronisation of one field (see ``docs/design.md``, "Locks"):
 
 * ``upload_lock`` serialises uploads (commit order, idempotency checks);
-* ``index_lock`` serialises changes of the in-memory field (inserts, reloads)
-  and snapshots, which must see a field no insert changes;
-* the :class:`~.indexer.Indexer`'s condition guards its pending queue;
+* ``index_lock`` serialises changes of the in-memory field (inserts by the log
+  follower, rebuilds) and snapshots, which must see a field no insert changes;
+* ``pending_lock`` guards ``pending``, the batches committed but not yet applied
+  here (describe's pending counts, the ``wait=false`` backlog);
 * queries take no service lock: :class:`flatserve.Triangulation` guards its own
   state (readers share, an insert excludes them), so a query sees a whole
   batch or none of it.
@@ -23,7 +24,6 @@ from ..atlas import Atlas, AtlasField
 from ..basis import Basis
 from ..errors import FieldNotFoundError, StorageError
 from ..field import AddResult, Field, PreparedBatch
-from .indexer import Indexer
 
 
 @dataclass(frozen=True)
@@ -90,16 +90,18 @@ class UploadResult:
     indexed: bool
     pending_samples: int
     replayed: bool = False
+    #: the batch's log position (read-your-writes: pass it back as ``min_position``)
+    position: int = 0
 
     @classmethod
     def of(cls, seq: int, res: "AddResult | PreparedBatch", *, nsamples: int, indexed: bool,
-           pending: int) -> "UploadResult":
+           pending: int, position: int) -> "UploadResult":
         """From an :class:`AddResult` (indexed: duplicates known) or a
         :class:`PreparedBatch` (not yet indexed: duplicates null)."""
         return cls(seq, int(res.accepted), np.asarray(res.rejected, np.int64).tolist(),
                    [str(x) for x in res.reasons],
                    int(res.duplicates) if isinstance(res, AddResult) else None,
-                   int(nsamples), indexed, int(pending))
+                   int(nsamples), indexed, int(pending), False, int(position))
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -119,17 +121,30 @@ class FieldEntry:
     field: Field | AtlasField | None = None
     state: str = "loading"
     error: str | None = None
-    #: last batch committed (acknowledged)
-    last_seq: int = 0
-    #: last batch inserted into the triangulation (<= last_seq)
+    #: log position of the field's ``create`` entry
+    position: int = 0
+    #: last batch inserted into the triangulation, and its log position
     indexed_seq: int = 0
+    indexed_position: int = 0
+    snapshot_position: int = 0
     #: samples inserted since the last snapshot
     new_samples: int = 0
     snapshot_pending: bool = False
+    #: no background snapshot attempt before this time.monotonic() (another replica
+    #: held the lease)
+    snapshot_not_before: float = 0.0
     deleted: bool = False
+    #: batches committed (here or by another replica) and not yet applied here:
+    #: log position -> accepted samples (rows for another replica's batch)
+    pending: dict = dc_field(default_factory=dict)
+    pending_lock: threading.Lock = dc_field(default_factory=threading.Lock)
     upload_lock: threading.Lock = dc_field(default_factory=threading.Lock)
     index_lock: threading.Lock = dc_field(default_factory=threading.Lock)
-    indexer: Indexer = dc_field(default_factory=Indexer)
+
+    def pending_counts(self) -> tuple[int, int]:
+        """``(pending batches, their samples)``."""
+        with self.pending_lock:
+            return len(self.pending), sum(self.pending.values())
 
     def check_writable(self) -> None:
         """Raise unless uploads may change this field now."""

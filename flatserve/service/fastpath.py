@@ -26,6 +26,7 @@ QUERY_ROUTE = "/v1/fields/{name}/query"
 _PATH = re.compile(r"^/v1/fields/(" + FIELD_NAME_PATTERN.strip("^$") + r")/query$")
 _BOOL = {"true": True, "1": True, "yes": True, "on": True,
          "false": False, "0": False, "no": False, "off": False}
+_INTS = ("min_position",)
 _CHOICES = {"form": tuple(FORMS), "outside": OUTSIDE, "order": ORDERS}
 
 
@@ -41,6 +42,10 @@ def parse_params(qs: bytes) -> QueryParams | None:
             if v not in _CHOICES[k]:
                 return None
             out[k] = v
+        elif k in _INTS:
+            if not (v.isascii() and v.isdigit()) or len(v) > 18:
+                return None
+            out[k] = int(v)
         else:
             b = _BOOL.get(v.lower())
             if b is None:

@@ -42,6 +42,17 @@ class Metrics:
                         g.add_metric([e.name], e.field.nsamples)
                 yield n
                 yield g
+                lag = getattr(registry_obj, "lag", None)
+                info = lag() if lag is not None else None
+                if info is not None:
+                    for key, doc in (("position", "Log position this replica has applied"),
+                                     ("head", "Position of the log's last committed entry"),
+                                     ("lag_entries", "Log entries committed, not applied here"),
+                                     ("lag_seconds", "Seconds since the oldest entry not "
+                                                     "applied here was committed")):
+                        m = GaugeMetricFamily(f"flatserve_log_{key}", doc)
+                        m.add_metric([], float(info[key]))
+                        yield m
 
         self.registry.register(_Fields())
 

@@ -43,6 +43,8 @@ class QueryParams:
     order: str = "hilbert"
     weights: bool = False
     wait: bool = False
+    #: read-your-writes: answer once this replica applied this log position
+    min_position: Optional[int] = None
 
 
 def server_timing(t: dict) -> str:
@@ -50,10 +52,22 @@ def server_timing(t: dict) -> str:
     return ", ".join(f"{k};dur={v * 1e3:.3f}" for k, v in t.items())
 
 
+async def wait_position(registry: Registry, settings: Settings, position: int) -> None:
+    """Return once this replica has applied log ``position`` (at once when it has:
+    no thread hop); :class:`~flatserve.errors.ReplicaBehindError` (503,
+    ``Retry-After``) after ``read_wait_timeout`` seconds."""
+    if registry.position >= position:
+        return
+    await anyio.to_thread.run_sync(registry.wait_position, position,
+                                   settings.read_wait_timeout)
+
+
 async def answer(registry: Registry, settings: Settings, name: str, params: QueryParams,
                  body: bytes, content_type: str | None, accept: str | None) -> Response:
     """Interpolate field ``name`` at the flats of ``body``; the HTTP response."""
     t0 = time.perf_counter()
+    if params.min_position is not None:
+        await wait_position(registry, settings, params.min_position)
     e = registry.get(name)
 
     def decode():
@@ -73,7 +87,7 @@ async def answer(registry: Registry, settings: Settings, name: str, params: Quer
         res = registry.query(e, flats, threads=1, blocking=False, **kw)
     if res is None:
         def run():
-            if params.wait and not registry.wait_indexed(e):
+            if params.wait and not registry.wait_all_committed():
                 raise NotReadyError(f"field {name!r}: the acknowledged batches cannot be "
                                     "indexed now (the server is stopping or the field "
                                     "reloading); retry shortly")

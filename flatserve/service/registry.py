@@ -1,59 +1,87 @@
-"""The fields a server holds: names, create, delete, restore on start, queries
-and snapshots. Uploads are in :mod:`.uploads`, the background insert of
-``wait=false`` batches in :mod:`.indexer`, one field's state in :mod:`.entry`.
+"""The fields a replica holds: names, create, delete, restore on start, the
+application of log entries, queries and snapshots. Uploads are in
+:mod:`.uploads`, the log follower in :mod:`.replica`, one field's state in
+:mod:`.entry`, storage behind :class:`.backend.LogBackend`.
 
-Restore: every stored field is registered (state ``loading``), then restored
-one by one from its newest snapshot plus the batches committed after it.
-A field whose in-memory state may disagree with storage (an insert failed
-half-way) is reloaded the same way in the background.
+Restore: the log head and the stored fields are read in one consistent view
+(:meth:`.backend.LogBackend.state`); every field is registered (state
+``loading``), then restored one by one from its newest snapshot plus its
+batches up to that head, and the follower applies the log from there. Every
+change of the fields (create, delete, batches) reaches memory through the
+follower, in log order, on every replica alike; a write's request commits it
+and waits until this replica has applied it. A field whose in-memory state may
+disagree with storage (an insert failed half-way) is rebuilt the same way, by
+the follower, before it goes on.
 """
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import threading
 import time
+import uuid
 from concurrent.futures import ThreadPoolExecutor
 
 from ..atlas import AtlasField
 from ..basis import Basis
 from ..errors import (FieldExistsError, FieldNotFoundError, InvalidInputError, NotReadyError,
-                      StorageError, TooManyFieldsError)
-from ..field import Field, PreparedBatch, QueryResult
+                      ReplicaBehindError, StorageError, TooManyFieldsError)
+from ..field import AddResult, Field, PreparedBatch, QueryResult
 from ..flats import Flats
+from .backend import SNAPSHOT_LEASE, FieldRow, LogBackend, LogEntry, SnapshotGoneError
 from .entry import FieldEntry, FieldSpec
+from .replica import Follower
 from .settings import Settings
-from .storage import FieldRow, Storage
 
 log = logging.getLogger("flatserve.service")
 
 PROGRESS_EVERY_S = 2.0
 #: queries with fewer rows run on one native thread (the request is the unit of parallelism)
 SMALL_QUERY_ROWS = 2048
-#: on shutdown, keep indexing pending batches this long; the rest are replayed on start
+#: on shutdown, keep applying committed entries this long; the rest are applied on start
 DRAIN_TIMEOUT_S = 10.0
+#: a replica that found the snapshot lease taken tries again after this many seconds
+SNAPSHOT_RETRY_S = 10.0
 
 
-def stored_flats(e: FieldEntry, form: str, arrays: dict) -> Flats:
-    """The :class:`Flats` of a stored batch (its arrays by name)."""
+def stored_flats(e: FieldEntry, form: str | None, arrays: dict) -> Flats:
+    """The :class:`Flats` of a stored batch (its arrays by name; the form is
+    inferred from the names when None)."""
     return Flats.from_arrays(arrays, k=e.spec.k, d=e.spec.d, form=form)
 
 
-class Registry:
-    """Named fields, their storage and their background work."""
+def _entry_of(row: FieldRow, state: str = "loading") -> FieldEntry:
+    spec = FieldSpec.from_dict(row.spec)
+    basis = Basis(row.basis["Q"], row.basis["r"], spec.k)
+    return FieldEntry(row.id, row.name, spec, basis, row.created, row.snapshot_file,
+                      row.snapshot_seq, state=state, position=row.position,
+                      snapshot_position=row.snapshot_position)
 
-    def __init__(self, settings: Settings, storage: Storage, metrics=None):
+
+class Registry:
+    """Named fields of this replica, their storage and their background work."""
+
+    def __init__(self, settings: Settings, storage: LogBackend, metrics=None):
         self.settings = settings
         self.storage = storage
         self.metrics = metrics
         self._entries: dict[str, FieldEntry] = {}
+        self._by_id: dict[int, FieldEntry] = {}
         #: names being created (their commit runs without holding ``_lock``)
         self._creating: set[str] = set()
+        #: fields this process built for its own create (field id -> Field)
+        self._built: dict[int, object] = {}
         self._lock = threading.Lock()
         self.ready = threading.Event()
         self._bg = ThreadPoolExecutor(1, thread_name_prefix="flatserve-bg")
-        #: commits of wait=false uploads, overlapped with their coordinates
+        #: commits of uploads, overlapped with their coordinates
         self.commit_pool = ThreadPoolExecutor(2, thread_name_prefix="flatserve-commit")
+        self.follower = Follower(self)
+        #: this replica's name in leases
+        self.owner = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
         self.closed = False
+        self._restore_head = 0
 
     # -- lookup -----------------------------------------------------------
     def snapshot_entries(self) -> list[FieldEntry]:
@@ -73,6 +101,39 @@ class Registry:
             raise StorageError(f"field {name!r} could not be loaded: {e.error}")
         return e
 
+    def entry_by_id(self, field_id: int) -> FieldEntry | None:
+        with self._lock:
+            return self._by_id.get(field_id)
+
+    # -- positions ----------------------------------------------------------
+    @property
+    def position(self) -> int:
+        """The log position this replica has applied."""
+        return self.follower.applied
+
+    def wait_position(self, position: int, timeout: float | None) -> None:
+        """Return once this replica has applied log ``position``.
+
+        Raises
+        ------
+        ReplicaBehindError
+            Not applied within ``timeout`` seconds (or the replica is stopping).
+        """
+        if self.follower.applied >= position:
+            return
+        if not self.follower.wait_applied(position, timeout):
+            raise ReplicaBehindError(
+                f"this replica has applied the log up to position {self.follower.applied}, "
+                f"not yet {position} (waited {timeout or 0:g} s, FLATSERVE_READ_WAIT_TIMEOUT); "
+                "retry shortly")
+
+    def _await(self, position: int, what: str) -> None:
+        """A write's request: wait (unbounded, but not past a shutdown) until this
+        replica applied its own commit at ``position``."""
+        if not self.follower.wait_applied(position):
+            raise NotReadyError(f"{what} is stored (log position {position}); the server is "
+                                "stopping before it is applied here: retry shortly")
+
     # -- create / delete --------------------------------------------------
     def create(self, name: str, spec: FieldSpec, basis: Basis) -> FieldEntry:
         fld = spec.new_field(basis)
@@ -86,96 +147,237 @@ class Registry:
                 )
             self._creating.add(name)
         try:
-            fid = self.storage.create_field(name, spec.to_dict(),
-                                            {"Q": basis.Q, "r": basis.r})
-            e = FieldEntry(fid, name, spec, basis, field=fld, state="ready")
+            fid, pos = self.storage.create_field(name, spec.to_dict(),
+                                                 {"Q": basis.Q, "r": basis.r})
             with self._lock:
-                self._entries[name] = e
+                self._built[fid] = fld
+            self._await(pos, f"field {name!r}")
+            e = self.entry_by_id(fid)
+            if e is None:  # deleted meanwhile (by another replica)
+                raise FieldNotFoundError(f"field {name!r} was deleted meanwhile")
         finally:
             with self._lock:
                 self._creating.discard(name)
-        log.info("created field %r (k=%d, d=%d, channels=%d)", name, spec.k, spec.d,
-                 spec.channels)
+        log.info("created field %r (k=%d, d=%d, channels=%d) at log position %d", name,
+                 spec.k, spec.d, spec.channels, pos)
         return e
 
-    def delete(self, name: str) -> None:
+    def delete(self, name: str) -> int:
+        """Delete a field; the log position of the delete."""
         e = self.get(name, need_ready=False)
-        with e.upload_lock, e.index_lock:
+        with e.upload_lock:
             if e.deleted:
                 raise FieldNotFoundError(f"no field named {name!r}")
-            self.storage.delete_field(e.id)
+            pos = self.storage.delete_field(e.id)
+        self._await(pos, f"the delete of {name!r}")
+        log.info("deleted field %r at log position %d", name, pos)
+        return pos
+
+    # -- applying log entries (the follower's thread) ------------------------
+    def note_pending(self, entries: list[LogEntry]) -> None:
+        """The follower read these entries: count their batches as pending."""
+        for en in entries:
+            if en.kind != "batch":
+                continue
+            e = self.entry_by_id(en.field_id)
+            if e is not None:
+                with e.pending_lock:
+                    e.pending.setdefault(en.position, en.nrows)
+
+    def apply_create(self, entry: LogEntry) -> None:
+        try:
+            row = self.storage.field(entry.field_id)
+        except FieldNotFoundError:
+            return  # deleted later in the log: its delete entry follows
+        e = _entry_of(row, state="ready")
+        with self._lock:
+            fld = self._built.pop(row.id, None)
+        e.field = fld if fld is not None else e.spec.new_field(e.basis)
+        with self._lock:
+            old = self._entries.get(e.name)
+            if old is not None and old.id != e.id:  # pragma: no cover - a delete skipped
+                old.deleted = True
+                self._by_id.pop(old.id, None)
+            self._entries[e.name] = e
+            self._by_id[e.id] = e
+
+    def apply_delete(self, entry: LogEntry) -> None:
+        with self._lock:
+            e = self._by_id.pop(entry.field_id, None)
+            if e is not None and self._entries.get(e.name) is e:
+                del self._entries[e.name]
+        if e is None:
+            return
+        with e.index_lock:
             e.deleted = True
-            e.indexer.clear()
-            with self._lock:
-                if self._entries.get(name) is e:
-                    del self._entries[name]
-        log.info("deleted field %r", name)
+        with e.pending_lock:
+            e.pending.clear()
+
+    def apply_snapshot(self, entry: LogEntry) -> None:
+        e = self.entry_by_id(entry.field_id)
+        if e is None:
+            return
+        try:
+            row = self.storage.field(entry.field_id)
+        except FieldNotFoundError:
+            return
+        if row.snapshot_seq >= e.snapshot_seq:
+            e.snapshot_file, e.snapshot_seq = row.snapshot_file, row.snapshot_seq
+            e.snapshot_position = row.snapshot_position
+            e.new_samples = 0
+
+    def apply_batch(self, entry: LogEntry, prepared: PreparedBatch | None, follower
+                    ) -> tuple[AddResult | None, str | None]:
+        """Insert the batch of a log entry (charting it unless this process did);
+        ``(AddResult, None)``, or ``(None, why)`` if the insert failed (the field
+        is then rebuilt from storage up to this entry), or ``(None, None)`` if
+        there was nothing to insert (field deleted or not held)."""
+        e = self.entry_by_id(entry.field_id)
+        try:
+            if e is None or e.deleted or e.state != "ready" or entry.seq <= e.indexed_seq:
+                return None, None
+            self._before_index(e, entry.seq)
+            follower.check_stop()
+            if prepared is None:
+                try:
+                    arrays = dict(self.storage.batch_arrays(e.id, entry.seq))
+                except FieldNotFoundError:
+                    return None, None  # deleted meanwhile: its delete entry follows
+                values = arrays.pop("values")
+                prepared = e.field.prepare(stored_flats(e, None, arrays), values)
+            try:
+                with e.index_lock:
+                    if e.deleted:
+                        return None, None
+                    res = e.field.insert_prepared(prepared,
+                                                  slice_rows=self.settings.insert_slice_rows)
+                    e.indexed_seq, e.indexed_position = entry.seq, entry.position
+                    e.new_samples += res.accepted
+            except Exception as exc:
+                # memory may hold part of the batch: rebuild the field from storage up
+                # to this entry (it holds every committed batch), then go on
+                log.exception("field %r: inserting batch %d failed; rebuilding", e.name,
+                              entry.seq)
+                self.rebuild(e, entry.position, f"rebuilding after a failed insert: {exc}")
+                return None, str(exc)
+            if self.metrics is not None and res.accepted:
+                self.metrics.samples_accepted.labels(e.name).inc(res.accepted)
+        finally:
+            if e is not None:
+                with e.pending_lock:
+                    e.pending.pop(entry.position, None)
+        self.maybe_snapshot(e)
+        return res, None
+
+    @staticmethod
+    def _before_index(e: FieldEntry, seq: int) -> None:
+        """Called by the follower before it inserts batch ``seq`` of ``e`` (a test hook)."""
 
     # -- restore ----------------------------------------------------------
     def load_stored(self) -> None:
-        """Register every stored field (state ``loading``), then restore them."""
-        rows = self.storage.fields()
-        orphans = self.storage.clean_orphans()
-        if orphans:
-            log.info("removed %d unreferenced snapshot file(s)", orphans)
+        """Register every stored field (state ``loading``), restore them to the log
+        head read with them, then follow the log."""
+        head, rows = self.storage.state()
+        self._restore_head = head
+        self._clean_orphans()
         entries = []
         with self._lock:
             for row in rows:
-                spec = FieldSpec.from_dict(row.spec)
-                basis = Basis(row.basis["Q"], row.basis["r"], spec.k)
-                e = FieldEntry(row.id, row.name, spec, basis, row.created, row.snapshot_file,
-                               row.snapshot_seq)
+                e = _entry_of(row)
                 self._entries[row.name] = e
+                self._by_id[row.id] = e
                 entries.append((e, row))
-        log.info("restoring %d stored field(s) from %s", len(entries), self.storage.data_dir)
+        log.info("restoring %d stored field(s) from %s %s to log position %d", len(entries),
+                 self.storage.kind, self.storage.where, head)
         # fields restore independently: each is ready as soon as it is loaded, and an
         # expensive one holds up only its own thread
         with ThreadPoolExecutor(self.settings.restore_threads,
                                 thread_name_prefix="flatserve-restore") as pool:
             for e, row in entries:
-                pool.submit(lambda e=e, row=row: None if self.closed else self._restore(e, row))
+                pool.submit(lambda e=e, row=row: None if self.closed
+                            else self._restore(e, row))
         if self.closed:
             return
+        self.follower.start(head)
         self.ready.set()
-        log.info("ready: %d field(s) loaded", len(entries))
+        log.info("ready: %d field(s) loaded; following the log from position %d",
+                 len(entries), head)
 
-    def _load_snapshot(self, e: FieldEntry, row: FieldRow) -> tuple[Field | AtlasField | None, int]:
-        """The field of the row's snapshot and its last batch, or ``(None, 0)``."""
-        if not row.snapshot_file:
-            return None, 0
-        path = self.storage.snapshot_path(row.snapshot_file)
-        t0 = time.perf_counter()
+    def _clean_orphans(self) -> None:
+        """Remove snapshot data left by a writer that died (under the snapshot lease:
+        never a snapshot another replica is writing)."""
         try:
-            fld = e.spec.load_field(path)
-        except Exception as exc:  # corrupt/missing snapshot: rebuild from batches
-            log.warning("field %r: snapshot %s unusable (%s); rebuilding from batches",
-                        e.name, path, exc)
-            return None, 0
-        log.info("field %r: snapshot after batch %d loaded (%d samples) in %.2f s",
-                 e.name, row.snapshot_seq, fld.nsamples, time.perf_counter() - t0)
-        return fld, row.snapshot_seq
+            if not self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, 60.0):
+                return
+        except StorageError as exc:  # a full disk: nothing to clean now
+            log.warning("snapshot clean-up skipped: %s", exc)
+            return
+        try:
+            n = self.storage.clean_orphans()
+            if n:
+                log.info("removed %d unreferenced snapshot file(s)", n)
+        finally:
+            try:
+                self.storage.release_lease(SNAPSHOT_LEASE, self.owner)
+            except StorageError:  # pragma: no cover - it expires
+                pass
 
-    def _restore(self, e: FieldEntry, row: FieldRow) -> None:
+    def _load_snapshot(self, e: FieldEntry, row: FieldRow
+                       ) -> tuple[Field | AtlasField | None, FieldRow]:
+        """The field of the row's snapshot (None if there is none or it is unusable)
+        and the row it came from (re-read if the snapshot was replaced meanwhile)."""
+        for _ in range(5):
+            if not row.snapshot_file:
+                return None, row
+            t0 = time.perf_counter()
+            try:
+                fld = self.storage.load_snapshot(row, e.spec.load_field)
+            except SnapshotGoneError:
+                row = self.storage.field(e.id)  # a newer one replaced it: take that
+                continue
+            except Exception as exc:  # corrupt/missing snapshot: rebuild from batches
+                log.warning("field %r: snapshot %s unusable (%s); rebuilding from batches",
+                            e.name, row.snapshot_file, exc)
+                return None, row
+            log.info("field %r: snapshot after batch %d loaded (%d samples) in %.2f s",
+                     e.name, row.snapshot_seq, fld.nsamples, time.perf_counter() - t0)
+            return fld, row
+        return None, row
+
+    def _restore(self, e: FieldEntry, row: FieldRow, upto: int | None = None) -> None:
+        """Restore ``e`` to log position ``upto`` (default: the head the start-up
+        restore read): its snapshot, then its batches up to ``upto`` inserted as
+        the follower inserts them (chart, insert in slices)."""
         t0 = time.perf_counter()
+        if upto is None:
+            upto = self._restore_head
         try:
-            fld, start = self._load_snapshot(e, row)
+            fld, row = self._load_snapshot(e, row)
+            start, start_pos = (row.snapshot_seq, row.snapshot_position) if fld is not None \
+                else (0, 0)
             if fld is None:
                 fld = e.spec.new_field(e.basis)
-            nb, _, _, last = self.storage.batch_stats(e.id)
-            todo = [b for b in self.storage.batches(e.id) if b.seq > start]
-            log.info("field %r: replaying %d of %d stored batch(es)", e.name, len(todo), nb)
+            todo = self.storage.batches(e.id, after_seq=start, upto_position=upto)
+            log.info("field %r: replaying %d stored batch(es) after batch %d", e.name,
+                     len(todo), start)
             done, tlast, replayed = 0, time.perf_counter(), 0
-            for seq, form, arrays in self.storage.iter_batch_arrays(e.id, start):
+            seq, pos = start, start_pos
+            for b in todo:
+                arrays = dict(self.storage.batch_arrays(e.id, b.seq))
                 values = arrays.pop("values")
-                replayed += int(fld.add(stored_flats(e, form, arrays), values).accepted)
+                prepared = fld.prepare(stored_flats(e, b.form, arrays), values)
+                replayed += int(fld.insert_prepared(
+                    prepared, slice_rows=self.settings.insert_slice_rows).accepted)
+                seq, pos = b.seq, b.position
                 done += 1
                 if time.perf_counter() - tlast > PROGRESS_EVERY_S:
                     log.info("field %r: replayed %d/%d batches (%d samples)", e.name, done,
                              len(todo), fld.nsamples)
                     tlast = time.perf_counter()
             e.field = fld
-            e.last_seq = e.indexed_seq = max(last, start)
-            e.snapshot_seq = start
+            e.indexed_seq, e.indexed_position = seq, pos
+            e.snapshot_file = row.snapshot_file if start else None
+            e.snapshot_seq, e.snapshot_position = start, start_pos
             e.new_samples = replayed
             e.state, e.error = "ready", None
             log.info("field %r: restored, %d samples, %d batches replayed in %.2f s", e.name,
@@ -185,59 +387,17 @@ class Registry:
             log.exception("field %r: restore failed", e.name)
             e.state, e.error = "failed", str(exc)
 
-    def reload(self, e: FieldEntry, why: str) -> None:
-        """Rebuild a field from storage in the background (memory may disagree with it)."""
+    def rebuild(self, e: FieldEntry, upto: int, why: str) -> None:
+        """Rebuild a field from storage up to log position ``upto`` (the follower's
+        thread: no later entry is applied meanwhile; queries get 503 until done)."""
         e.state, e.error = "loading", why
-        e.indexer.clear()
-        if not self.closed:
-            self._bg.submit(self._reload, e)
-
-    def _reload(self, e: FieldEntry) -> None:
         try:
             row = self.storage.field(e.id)
         except Exception as exc:
             e.state, e.error = "failed", str(exc)
             return
         with e.upload_lock, e.index_lock:
-            e.indexer.clear()
-            self._restore(e, row)
-
-    # -- indexing ---------------------------------------------------------
-    def index(self, e: FieldEntry, seq: int, batch: PreparedBatch) -> bool:
-        """Insert pending batch ``seq`` (the indexer's work); False stops the indexer."""
-        if e.state != "ready" or self.closed:
-            return False
-        self._before_index(e, seq)
-        try:
-            with e.index_lock:
-                if e.deleted:
-                    return False
-                if seq > e.indexed_seq:  # (a reload may have replayed it already)
-                    e.field.insert_prepared(batch,
-                                            slice_rows=self.settings.insert_slice_rows)
-                    e.indexed_seq = seq
-                    e.new_samples += batch.accepted
-                    if self.metrics is not None and batch.accepted:
-                        self.metrics.samples_accepted.labels(e.name).inc(batch.accepted)
-        except Exception as exc:
-            # memory may hold part of the batch: rebuild the field from storage,
-            # which holds every committed batch (the reload indexes them all)
-            log.exception("field %r: indexing batch %d failed; reloading", e.name, seq)
-            self.reload(e, f"reloading after indexing failure: {exc}")
-            return False
-        self.maybe_snapshot(e)
-        return True
-
-    @staticmethod
-    def _before_index(e: FieldEntry, seq: int) -> None:
-        """Called by the indexer before it takes the field's locks (a test hook)."""
-
-    def wait_indexed(self, e: FieldEntry, seq: int | None = None,
-                     timeout: float | None = None) -> bool:
-        """Block until batch ``seq`` (default: every acknowledged batch) is indexed."""
-        target = e.last_seq if seq is None else seq
-        return e.indexer.wait(target, timeout,
-                              alive=lambda: e.state == "ready" and not e.deleted)
+            self._restore(e, row, upto)
 
     # -- query ------------------------------------------------------------
     def query(self, e: FieldEntry, flats: Flats, **kw) -> "QueryResult | None":
@@ -259,10 +419,16 @@ class Registry:
             self.metrics.query_rows.labels(e.name).inc(len(res.inside))
         return res
 
+    def wait_all_committed(self) -> bool:
+        """Block until this replica has applied every entry committed so far (any
+        replica's); False if it stops first."""
+        return self.follower.wait_applied(self.storage.head())
+
     # -- snapshots --------------------------------------------------------
     def maybe_snapshot(self, e: FieldEntry) -> None:
         every = self.settings.snapshot_every
-        if not every or e.new_samples < every or e.snapshot_pending or self.closed:
+        if not every or e.new_samples < every or e.snapshot_pending or self.closed or \
+                time.monotonic() < e.snapshot_not_before:
             return
         e.snapshot_pending = True
         try:
@@ -276,47 +442,73 @@ class Registry:
                 self.snapshot(e)
         except FieldNotFoundError:
             log.info("field %r: deleted before its queued snapshot", e.name)
+        except NotReadyError as exc:  # another replica writes one
+            log.info("field %r: snapshot skipped: %s", e.name, exc)
+            e.snapshot_not_before = time.monotonic() + SNAPSHOT_RETRY_S
         except Exception:
             log.exception("field %r: background snapshot failed", e.name)
         finally:
             e.snapshot_pending = False
 
     def snapshot(self, e: FieldEntry) -> dict:
-        """Write a snapshot now (uploads wait; queries go on)."""
+        """Write a snapshot now (this replica's field; uploads and queries go on).
+        One replica writes at a time (the snapshot lease): NotReadyError if another
+        does."""
         t0 = time.perf_counter()
-        with e.index_lock:  # the field cannot change meanwhile; queries go on
-            if e.deleted:
-                raise FieldNotFoundError(f"no field named {e.name!r}")
-            if e.state != "ready":
-                raise StorageError(f"field {e.name!r} is not ready ({e.state})")
-            seq = e.indexed_seq  # only indexed batches are in the snapshot
-            if e.snapshot_file and e.snapshot_seq == seq and \
-                    self.storage.snapshot_bytes(e.snapshot_file):
-                return {"batch": seq, "bytes": self.storage.snapshot_bytes(e.snapshot_file),
-                        "seconds": 0.0}
-            path = self.storage.write_snapshot(e.id, seq, lambda p: e.field.save(p))
-            e.snapshot_file, e.snapshot_seq, e.new_samples = path.name, seq, 0
+        ttl = self.settings.snapshot_lease_seconds
+        if not self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, ttl):
+            raise NotReadyError("another replica is writing a snapshot; retry later")
+        renew = threading.Event()
+
+        def renewer():  # keep the lease while a long snapshot is written
+            while not renew.wait(ttl / 3):
+                try:
+                    self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, ttl)
+                except StorageError:  # pragma: no cover - retried
+                    pass
+
+        th = threading.Thread(target=renewer, name="flatserve-lease", daemon=True)
+        th.start()
+        try:
+            with e.index_lock:  # the field cannot change meanwhile; queries go on
+                if e.deleted:
+                    raise FieldNotFoundError(f"no field named {e.name!r}")
+                if e.state != "ready":
+                    raise StorageError(f"field {e.name!r} is not ready ({e.state})")
+                seq, pos = e.indexed_seq, e.indexed_position  # only applied batches
+                row = self.storage.field(e.id)
+                if row.snapshot_file and row.snapshot_seq >= seq and \
+                        self.storage.snapshot_bytes(row):
+                    e.snapshot_file, e.snapshot_seq = row.snapshot_file, row.snapshot_seq
+                    e.snapshot_position, e.new_samples = row.snapshot_position, 0
+                    return {"batch": row.snapshot_seq, "bytes": self.storage.snapshot_bytes(row),
+                            "seconds": 0.0}
+                info = self.storage.write_snapshot(e.id, seq, pos, lambda p: e.field.save(p))
+                e.snapshot_file, e.snapshot_seq, e.snapshot_position = info.file, seq, pos
+                e.new_samples = 0
+        finally:
+            renew.set()
+            th.join()
+            try:
+                self.storage.release_lease(SNAPSHOT_LEASE, self.owner)
+            except StorageError:  # pragma: no cover - it expires
+                pass
         dt = time.perf_counter() - t0
-        size = path.stat().st_size
         log.info("field %r: snapshot after batch %d written (%d bytes, %.2f s)", e.name, seq,
-                 size, dt)
+                 info.bytes, dt)
         if self.metrics is not None:
             self.metrics.snapshots.labels(e.name).inc()
-        return {"batch": seq, "bytes": size, "seconds": dt}
+        return {"batch": seq, "bytes": info.bytes, "seconds": dt}
 
     def close(self, drain_timeout: float | None = None) -> None:
-        """Stop: index pending batches for up to ``drain_timeout`` seconds (default
-        :data:`DRAIN_TIMEOUT_S`; the rest are committed and replayed on the next
+        """Stop: apply committed entries for up to ``drain_timeout`` seconds (default
+        :data:`DRAIN_TIMEOUT_S`; the rest are applied from the log on the next
         start), stop background work."""
         end = time.monotonic() + (DRAIN_TIMEOUT_S if drain_timeout is None else drain_timeout)
-        for e in self.snapshot_entries():
-            left = max(0.0, end - time.monotonic())
-            if not self.wait_indexed(e, timeout=left):
-                log.warning("field %r: %d batch(es) not indexed at shutdown; they are "
-                            "stored and will be replayed on start", e.name, e.indexer.counts()[0])
-            e.indexer.stop()
+        if not self.follower.stop(max(0.0, end - time.monotonic())):
+            log.warning("stopping at log position %d with committed entries not applied; "
+                        "they are stored and applied on the next start", self.follower.applied)
         self.closed = True
         self.commit_pool.shutdown(wait=True)
         self._bg.shutdown(wait=True, cancel_futures=True)
-        for e in self.snapshot_entries():
-            e.indexer.join(max(0.0, end - time.monotonic()) + 1.0)
+        self.follower.join(max(0.0, end - time.monotonic()) + 1.0)

@@ -6,9 +6,11 @@ CPU-heavy handlers are plain ``def`` (FastAPI runs them in the thread pool of
 """
 from __future__ import annotations
 
+import os
 import time
 from typing import Annotated, Literal, Optional
 
+import anyio.to_thread
 from fastapi import APIRouter, Header, Query, Request, Response
 
 from . import codec, specs, uploads
@@ -17,10 +19,19 @@ from .deps import (BodyDep, FieldNamePath, ReadAccess, RegistryDep, SettingsDep,
                    json_body, json_body_doc)
 from .entry import FieldEntry, FieldSpec
 from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES
-from .query import Form, QueryParams, answer, server_timing
+from .query import Form, QueryParams, answer, server_timing, wait_position
 from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
                       FieldInfo, FieldList, Health, ProjectRequest, ProjectResult,
                       QueryBody, QueryResponse, SnapshotResult, UploadBody, UploadResult)
+
+#: header carrying the log position of a write (uploads carry it in the body too)
+POSITION_HEADER = "Flatserve-Position"
+MinPositionQuery = Annotated[Optional[int], Query(
+    ge=0, description="Read-your-writes: answer only once this replica has applied the log "
+                      "position a write returned (`position` of an upload, or the "
+                      "`Flatserve-Position` header of any write), waiting up to "
+                      "`read_wait_timeout` seconds; then 503 with `Retry-After` (any replica "
+                      "answers it; one behind waits).")]
 
 FormQuery = Annotated[Optional[Form], Query(
     description="Flat form of the body. JSON/.npz: inferred from the array names. "
@@ -68,7 +79,8 @@ def create_field(spec: json_body(FieldCreate), registry: RegistryDep) -> Respons
     stored = FieldSpec(spec.k, spec.d, spec.channels, specs.spec_dict(spec.basis),
                        spec.roundtrip_tol, atlas)
     e = registry.create(spec.name, stored, basis)
-    return JSONBytes(_describe(registry, e), status_code=201)
+    return JSONBytes(_describe(registry, e), status_code=201,
+                     headers={POSITION_HEADER: str(registry.position)})
 
 
 @api.get("/fields", response_model=FieldList, tags=["fields"], dependencies=[ReadAccess],
@@ -83,9 +95,10 @@ def _describe(registry, e: FieldEntry) -> dict:
     out = _summary(e)
     f = e.field
     m = e.basis.m
-    pending_batches, pending_samples = e.indexer.counts()
+    pending_batches, pending_samples = e.pending_counts()
     out.update({
         "ndim": m - 1,
+        "position": registry.position,
         "indexed_batch": e.indexed_seq,
         "pending_batches": pending_batches,
         "pending_samples": pending_samples,
@@ -124,15 +137,19 @@ def _describe_atlas(e: FieldEntry) -> dict:
 
 @api.get("/fields/{name}", response_model=FieldInfo, tags=["fields"], dependencies=[ReadAccess],
          responses=FIELD_RESPONSES, summary="Describe a field")
-def describe_field(name: FieldNamePath, registry: RegistryDep) -> Response:
-    return JSONBytes(_describe(registry, registry.get(name, need_ready=False)))
+async def describe_field(name: FieldNamePath, registry: RegistryDep, settings: SettingsDep,
+                         min_position: MinPositionQuery = None) -> Response:
+    if min_position is not None:
+        await wait_position(registry, settings, min_position)
+    e = registry.get(name, need_ready=False)
+    return JSONBytes(await anyio.to_thread.run_sync(_describe, registry, e))
 
 
 @api.delete("/fields/{name}", status_code=204, tags=["fields"], dependencies=[WriteAccess],
             responses=FIELD_RESPONSES, summary="Delete a field and its stored batches")
 def delete_field(name: FieldNamePath, registry: RegistryDep) -> Response:
-    registry.delete(name)
-    return Response(status_code=204)
+    pos = registry.delete(name)
+    return Response(status_code=204, headers={POSITION_HEADER: str(pos)})
 
 
 @api.get("/fields/{name}/batches", response_model=BatchList, tags=["fields"],
@@ -153,7 +170,9 @@ def snapshot_field(name: FieldNamePath, registry: RegistryDep) -> Response:
     "/fields/{name}/samples", response_model=UploadResult, tags=["samples"],
     dependencies=[WriteAccess], responses=BODY_RESPONSES, openapi_extra=_body_doc(UploadBody),
     summary="Upload a batch of samples",
-    description="Stores the batch durably (acknowledged only after its SQLite commit). "
+    description="Stores the batch durably (acknowledged only after its commit to the "
+                "shared log; the response's `position` is its log position, for reads with "
+                "`min_position` on any replica). "
                 "`wait=true` (default): acknowledged once the batch is also inserted into the "
                 "triangulation (visible to queries). `wait=false`: acknowledged as soon as the "
                 "batch's coordinates are computed (accepted/rejected rows and reasons are "
@@ -181,7 +200,8 @@ def upload_samples(
     timings = {"decode": time.perf_counter() - t0}
     # an empty Idempotency-Key header means "no key", not the key ""
     out = uploads.upload(registry, e, flats, values, idempotency_key or None, timings, wait=wait)
-    return JSONBytes(out, headers={"Server-Timing": server_timing(timings)})
+    return JSONBytes(out, headers={"Server-Timing": server_timing(timings),
+                                   POSITION_HEADER: str(out["position"])})
 
 
 @api.post(
@@ -201,13 +221,16 @@ async def query_field(
     order: Annotated[Literal["hilbert", "given"], Query()] = "hilbert",
     weights: Annotated[bool, Query(description="Also return sample ids and weights.")] = False,
     wait: Annotated[bool, Query(description="First wait until every batch acknowledged "
-                                            "so far (also with wait=false) is indexed.")] = False,
+                                            "so far, by any replica (also with wait=false), "
+                                            "is indexed here.")] = False,
+    min_position: MinPositionQuery = None,
     content_type: Annotated[Optional[str], Header()] = None,
     accept: Annotated[Optional[str], Header()] = None,
 ) -> Response:
     # Usually answered by flatserve.service.fastpath (the same answer(), without
     # FastAPI's per-request costs); this route is the documented reference.
-    return await answer(registry, settings, name, QueryParams(form, outside, order, weights, wait),
+    return await answer(registry, settings, name,
+                        QueryParams(form, outside, order, weights, wait, min_position),
                         body, content_type, accept)
 
 
@@ -257,7 +280,15 @@ def healthz() -> Response:
 def readyz(registry: RegistryDep) -> Response:
     entries = registry.snapshot_entries()
     names = [e.name for e in entries if e.state == "loading"]
-    body = {"fields": len(entries), "loading": len(names), "loading_fields": names}
+    body = {"fields": len(entries), "loading": len(names), "loading_fields": names,
+            "pid": os.getpid(), "backend": registry.storage.kind}
+    try:
+        body.update(registry.follower.lag() if registry.follower.started.is_set() else
+                    {"position": None, "head": registry.storage.head(), "lag_entries": None,
+                     "lag_seconds": None})
+    except Exception as exc:  # the database is unreachable: not ready
+        return JSONBytes({"status": "storage unavailable", "error": str(exc), **body},
+                         status_code=503)
     if not registry.ready.is_set():
         return JSONBytes({"status": "loading", **body}, status_code=503)
     return JSONBytes({"status": "ready", **body})

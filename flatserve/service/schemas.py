@@ -215,6 +215,8 @@ class FieldList(BaseModel):
 
 class FieldInfo(FieldSummary):
     ndim: int
+    position: int = Field(0, description="The log position this replica has applied (a "
+                                         "read-your-writes token for `min_position`).")
     indexed_batch: int = Field(0, description="Last batch inserted into the triangulation "
                                               "(batches up to it are visible to queries).")
     pending_batches: int = Field(0, description="Acknowledged (stored) batches not yet "
@@ -252,6 +254,9 @@ class UploadResult(BaseModel):
     pending_samples: int = Field(0, description="Accepted samples stored but not yet indexed "
                                                 "when acknowledged (this batch included).")
     replayed: bool = Field(False, description="True: the Idempotency-Key was seen; nothing stored.")
+    position: int = Field(0, description="The batch's position in the shared log: pass it as "
+                                         "`min_position` to a query or describe on any replica "
+                                         "to read this write.")
 
 
 class BatchInfo(BaseModel):
@@ -329,3 +334,13 @@ class Health(BaseModel):
     loading: Optional[int] = None
     loading_fields: Optional[list[str]] = Field(
         None, description="Fields still being restored (the others answer already).")
+    pid: Optional[int] = Field(None, description="This replica's process id.")
+    backend: Optional[str] = Field(None, description="Where the log is: sqlite or postgresql.")
+    position: Optional[int] = Field(None, description="Log position this replica has applied "
+                                                      "(null while restoring).")
+    head: Optional[int] = Field(None, description="Position of the log's last committed entry.")
+    lag_entries: Optional[int] = Field(None, description="head - position.")
+    lag_seconds: Optional[float] = Field(
+        None, description="Seconds since the oldest entry not yet applied here was committed "
+                          "(0: caught up).")
+    error: Optional[str] = None

@@ -1,24 +1,27 @@
-"""Uploads of sample batches: durable commit, idempotent retries, insert now
-(``wait=true``) or in the field's background indexer (``wait=false``).
+"""Uploads of sample batches: durable commit, idempotent retries, applied by the
+log follower (``wait=true``: before the response; ``wait=false``: after it).
 
 Durability (Qdrant's ``wait`` convention). In both modes the batch is validated
 first (bad input is refused before anything is stored), charted while a storage
 thread packs it, then committed with its response (the accepted / rejected rows
-and their reasons, exact) in one transaction, and acknowledged only after the
-commit:
+and their reasons, exact) and its log entry in one transaction, and
+acknowledged only after the commit. The charted batch is handed to this
+replica's log follower (:mod:`.replica`), which inserts it in log order, as it
+inserts every other replica's batches:
 
-* ``wait=true`` (default): once every earlier batch is indexed, the batch is
-  committed and then inserted into the triangulation; the response is sent
-  after both. A failed commit changes nothing in memory, so reads go on.
-* ``wait=false``: acknowledged once committed and charted; the
-  :class:`~.indexer.Indexer` inserts it later, batch by batch in commit order.
-  ``indexed_seq`` is the last batch in the triangulation; snapshots only cover
-  indexed batches, and a restart replays every committed batch, so nothing
-  acknowledged is lost whenever the process dies.
+* ``wait=true`` (default): the response is sent once this replica has applied
+  the batch (it is visible to queries here; ``duplicates`` and ``nsamples`` are
+  known). A failed commit changes nothing in memory, so reads go on.
+* ``wait=false``: acknowledged once committed and charted (``indexed: false``);
+  at most ``max_pending_samples`` samples of a field may wait (429).
 
-The response of each batch is stored with it for idempotent retries (completed
-durably once a ``wait=true`` batch is inserted); a retry recomputes it from the
-stored arrays if it was ever lost.
+Every response carries the batch's log ``position``: a read that passes it as
+``min_position`` (on any replica) sees the batch. The response of each batch is
+stored with it for idempotent retries (completed durably once a ``wait=true``
+batch is applied); the key is unique per field in the database, so a retry on
+another replica finds it too, and a retry racing the first attempt gets its
+response. A retry recomputes the response from the stored arrays if a crash
+lost it.
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ import numpy as np
 from ..errors import (BacklogFullError, CostLimitError, FieldNotFoundError,
                       IdempotencyConflictError, NotReadyError, StorageError)
 from ..flats import Flats
+from .backend import BatchRow, KeyTakenError
 from .entry import FieldEntry, UploadResult
 from .registry import Registry, stored_flats
 from .blobs import content_hash, pack_arrays
@@ -39,10 +43,10 @@ log = logging.getLogger("flatserve.service")
 
 def upload(reg: Registry, e: FieldEntry, flats: Flats, values: np.ndarray,
            idem_key: str | None, timings: dict | None = None, *, wait: bool = True) -> dict:
-    """Durably store one batch and index it (``wait``) or have it indexed in the
-    background; returns the response (see the module doc). ``timings`` (if
-    given) receives the seconds spent on hashing (``hash``), coordinates
-    (``prepare``), the insert (``insert``) and the commit (``store``)."""
+    """Durably store one batch and have it applied (see the module doc); returns
+    the response. ``timings`` (if given) receives the seconds spent on hashing
+    (``hash``), coordinates (``prepare``), the commit (``store``) and, with
+    ``wait``, the wait for the insert (``insert``)."""
     timings = {} if timings is None else timings
     t0 = time.perf_counter()
     stored = dict(flats.arrays, values=values)
@@ -52,42 +56,42 @@ def upload(reg: Registry, e: FieldEntry, flats: Flats, values: np.ndarray,
         timings["hash"] = time.perf_counter() - t0
     with e.upload_lock:
         e.check_writable()
-        if idem_key is not None:
-            prev = reg.storage.find_batch(e.id, idem_key)
-            if prev is not None:
-                if prev.content_hash != chash:
-                    raise IdempotencyConflictError(
-                        f"Idempotency-Key {idem_key!r} was used for a different batch")
-                if wait:  # a retry with wait=true answers once its batch is visible
-                    reg.wait_indexed(e, prev.seq)
-                return dict(_stored_result(reg, e, prev.seq, prev.form, prev.result),
-                            replayed=True, indexed=prev.seq <= e.indexed_seq)
-        pending = e.indexer.counts()[1]
-        _check_cost(reg, e, pending + len(flats))
-        if not wait and pending + len(flats) > reg.settings.max_pending_samples:
-            raise BacklogFullError(
-                f"field {e.name!r}: {pending} acknowledged samples wait for their insert; "
-                f"{len(flats)} more would pass the limit of {reg.settings.max_pending_samples} "
-                "(FLATSERVE_MAX_PENDING_SAMPLES): retry later, or upload with wait=true")
-        if wait and not reg.wait_indexed(e):  # commit order: every earlier batch first
-            raise NotReadyError(f"field {e.name!r}: the server is shutting down")
-        e.check_writable()
-        seq, prepared, out = _commit_and_chart(reg, e, flats, values, idem_key, chash, stored,
-                                               timings, wait=wait)
-        if wait:
-            out = _insert_now(reg, e, seq, prepared, timings)
-            _store_result(reg, e, seq, out)
-        e.last_seq = seq
-        if not wait:
-            e.indexer.enqueue(seq, prepared, lambda s, b: reg.index(e, s, b), str(e.id))
+        prev = reg.storage.find_batch(e.id, idem_key) if idem_key is not None else None
+        if prev is None:
+            pending = e.pending_counts()[1]
+            _check_cost(reg, e, pending + len(flats))
+            if not wait and pending + len(flats) > reg.settings.max_pending_samples:
+                raise BacklogFullError(
+                    f"field {e.name!r}: {pending} acknowledged samples wait for their insert; "
+                    f"{len(flats)} more would pass the limit of "
+                    f"{reg.settings.max_pending_samples} (FLATSERVE_MAX_PENDING_SAMPLES): "
+                    "retry later, or upload with wait=true")
+            e.check_writable()
+            try:
+                seq, pos, out = _commit_and_chart(reg, e, flats, values, idem_key, chash,
+                                                  stored, timings, wait=wait)
+            except KeyTakenError as exc:  # stored meanwhile through another replica
+                prev = exc.existing
+    if prev is not None:
+        return _replay(reg, e, prev, chash, idem_key, wait)
+    if wait:
+        out = _await_insert(reg, e, seq, pos, timings)
+        _store_result(reg, e, seq, out)
     if reg.metrics is not None:
         reg.metrics.batches.labels(e.name).inc()
         reg.metrics.samples_rejected.labels(e.name).inc(len(out["rejected"]))
-        if wait:
-            reg.metrics.samples_accepted.labels(e.name).inc(out["accepted"])
-    if wait:
-        reg.maybe_snapshot(e)
     return out
+
+
+def _replay(reg, e: FieldEntry, prev: BatchRow, chash: str, idem_key: str, wait: bool) -> dict:
+    """The response to a retry of a stored batch (``wait``: once applied here)."""
+    if prev.content_hash != chash:
+        raise IdempotencyConflictError(
+            f"Idempotency-Key {idem_key!r} was used for a different batch")
+    if wait:  # a retry with wait=true answers once its batch is visible
+        reg._await(prev.position, f"batch {prev.seq} of {e.name!r}")
+    return dict(_stored_result(reg, e, prev.seq, prev.form, prev.result),
+                replayed=True, indexed=prev.seq <= e.indexed_seq, position=prev.position)
 
 
 #: Cells of a Delaunay triangulation per sample by dimension D (uniform points,
@@ -118,9 +122,11 @@ def _check_cost(reg, e: FieldEntry, adding: int) -> None:
 def _commit_and_chart(reg, e, flats, values, idem_key, chash, stored, timings, *,
                       wait: bool):
     """Validate the batch, chart it while a storage thread packs (and hashes) it,
-    then commit it together with its first response in one transaction: every
-    stored batch is listed with its accepted / rejected rows, whenever the process
-    dies. Returns ``(seq, PreparedBatch, response)``; on failure nothing is stored."""
+    then commit it together with its first response and its log entry in one
+    transaction: every stored batch is listed with its accepted / rejected rows,
+    whenever the process dies. The charted batch is handed to the follower inside
+    the commit. Returns ``(seq, position, response)``; on failure nothing is
+    stored."""
     t1 = time.perf_counter()
     # bad input is refused here, before anything is stored; charting cannot fail
     # on validated input (each row gets a status)
@@ -131,41 +137,53 @@ def _commit_and_chart(reg, e, flats, values, idem_key, chash, stored, timings, *
     prepared = chart()  # no lock: reads the basis only
     timings["prepare"] = time.perf_counter() - t1
     h, blob = packing.result()
-    pending = 0 if wait else e.indexer.counts()[1] + prepared.accepted
+    pending = e.pending_counts()[1] + prepared.accepted
+    handed: list[int] = []
 
-    def response(seq: int) -> dict:
+    def response(seq: int, position: int) -> dict:
         return UploadResult.of(seq, prepared, nsamples=e.field.nsamples, indexed=False,
-                               pending=pending).to_dict()
+                               pending=pending, position=position).to_dict()
 
-    seq = reg.storage.add_batch(e.id, idem_key=idem_key, chash=h, form=flats.form,
-                                nrows=len(flats), blob=blob, result_fn=response)
+    def first_response(seq: int, position: int) -> dict:
+        # inside the transaction: the follower finds the charted batch when it reads
+        # the entry (taken back below if the commit fails)
+        reg.follower.hand_over(position, e.id, seq, prepared, want_result=wait)
+        handed.append(position)
+        with e.pending_lock:
+            e.pending[position] = prepared.accepted
+        return response(seq, position)
+
+    try:
+        seq, pos = reg.storage.add_batch(e.id, idem_key=idem_key, chash=h, form=flats.form,
+                                         nrows=len(flats), blob=blob, result_fn=first_response)
+    except BaseException:
+        for p in handed:
+            reg.follower.take_back(p)
+            with e.pending_lock:
+                e.pending.pop(p, None)
+        raise
     timings["store"] = time.perf_counter() - t1 - timings["prepare"]
-    return seq, prepared, response(seq)
+    return seq, pos, response(seq, pos)
 
 
-def _insert_now(reg, e, seq, prepared, timings) -> dict:
-    """wait=true: insert a committed batch (storage is ahead of memory until then)."""
+def _await_insert(reg, e, seq, pos, timings) -> dict:
+    """wait=true: wait until the follower has inserted the committed batch here."""
     t2 = time.perf_counter()
-    with e.index_lock:
-        if e.deleted:
-            raise FieldNotFoundError(f"no field named {e.name!r}")
-        try:
-            res = e.field.insert_prepared(prepared)
-        except Exception as exc:
-            # the batch is committed but maybe half in memory: rebuild from storage,
-            # which indexes it; the client is told so (a 503, not a 500: nothing is lost)
-            reg.reload(e, f"reloading after a failed insert: {exc}")
-            raise NotReadyError(
-                f"field {e.name!r}: batch {seq} is stored, but inserting it failed ({exc}); "
-                "the field is being rebuilt from storage, which indexes it: retry with the "
-                "same Idempotency-Key for its response") from exc
-        except BaseException as exc:
-            reg.reload(e, f"reloading after a failed insert: {exc}")
-            raise
-        e.indexed_seq = seq
-        e.new_samples += res.accepted
+    reg._await(pos, f"batch {seq} of {e.name!r}")
+    res, failed = reg.follower.take_result(pos)
+    if failed is not None:
+        # the batch is committed but its insert failed: the follower rebuilt the field
+        # from storage, which indexes it; the client is told so (a 503, not a 500)
+        raise NotReadyError(
+            f"field {e.name!r}: batch {seq} is stored, but inserting it failed ({failed}); "
+            "the field is being rebuilt from storage, which indexes it: retry with the "
+            "same Idempotency-Key for its response")
+    if res is None:
+        raise FieldNotFoundError(f"no field named {e.name!r} (deleted after batch {seq} was "
+                                 "stored)")
     timings["insert"] = time.perf_counter() - t2
-    return UploadResult.of(seq, res, nsamples=res.nsamples, indexed=True, pending=0).to_dict()
+    return UploadResult.of(seq, res, nsamples=res.nsamples, indexed=True, pending=0,
+                           position=pos).to_dict()
 
 
 def _store_result(reg, e, seq, out) -> None:
@@ -185,9 +203,10 @@ def _stored_result(reg, e: FieldEntry, seq: int, form: str, result: dict | None)
     arrays = reg.storage.batch_arrays(e.id, seq)
     values = arrays.pop("values")
     prepared = e.field.prepare(stored_flats(e, form, arrays), values)
+    row = next((b for b in reg.storage.batches(e.id, after_seq=seq - 1) if b.seq == seq), None)
     result = UploadResult.of(seq, prepared, nsamples=e.field.nsamples,
-                             indexed=seq <= e.indexed_seq,
-                             pending=e.indexer.counts()[1]).to_dict()
+                             indexed=seq <= e.indexed_seq, pending=e.pending_counts()[1],
+                             position=row.position if row is not None else 0).to_dict()
     try:
         reg.storage.set_result(e.id, seq, result, replace=False)
     except StorageError:  # pragma: no cover - a cache: recomputed next time

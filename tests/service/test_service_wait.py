@@ -79,13 +79,16 @@ def test_prepare_then_insert_equals_field_add(rng, form):
 
 
 class _Gate:
-    """Holds the background indexer (before it locks the field) until ``open()``."""
+    """Holds the log follower (before it locks the field) at batches after ``after``
+    until ``open()``."""
 
-    def __init__(self, monkeypatch):
+    def __init__(self, monkeypatch, after=0):
         self.event = threading.Event()
         self.entered = threading.Event()
 
         def gated(e, seq):
+            if seq <= after:
+                return
             self.entered.set()
             self.event.wait(30)
 
@@ -96,7 +99,7 @@ class _Gate:
 
 
 def test_wait_false_acknowledges_then_indexes_in_commit_order(make_app, rng, monkeypatch):
-    gate = _Gate(monkeypatch)
+    gate = _Gate(monkeypatch, after=1)  # batch 1 (wait=true) is applied before its answer
     ref = _ref()
     tc, c = _started(make_app())
     try:

@@ -1,0 +1,217 @@
+"""The log follower of a replica: applies the shared log's entries in log order.
+
+Every server process is a replica (see :mod:`.backend`). After the restore
+(each field from its newest snapshot plus its batches up to the log position
+the restore read, :meth:`.registry.Registry.load_stored`), one thread per
+process, the :class:`Follower`, reads the log after that position and applies
+``create``, ``delete``, ``batch`` and ``snapshot`` entries one by one, in log
+order, whichever replica committed them. Its own uploads too: an upload
+commits its batch and hands the batch it already charted to the follower
+(:meth:`Follower.hand_over`, so it is not charted twice); a ``wait=true``
+upload then waits until the follower has applied its position. All replicas
+apply the same entries through the same code (chart, then insert in slices of
+``insert_slice_rows``), so replicas at the same position hold bit-identical
+fields, duplicates included.
+
+``applied`` is the position up to which every entry is applied; reads with a
+``min_position`` wait for it (:meth:`Follower.wait_applied`). The follower
+wakes at once on this process's own commits, else within ``log_poll_interval``
+(:meth:`.backend.LogBackend.wait_for_change`).
+
+This module knows no SQL: the backend is behind :class:`.backend.LogBackend`.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+from ..errors import StorageError
+from ..field import AddResult, PreparedBatch
+from .backend import LogEntry
+
+log = logging.getLogger("flatserve.service")
+
+#: entries read from the log at a time
+READ_CHUNK = 256
+#: longest sleep between two looks at the log when nothing wakes the follower
+IDLE_WAIT_S = 1.0
+
+
+@dataclass(frozen=True)
+class Handoff:
+    """A batch this process committed and already charted (see the module doc)."""
+
+    field_id: int
+    seq: int
+    prepared: PreparedBatch
+    #: a wait=true upload waits for the result of its insert
+    want_result: bool
+
+
+class _Stopped(Exception):
+    """The follower was asked to stop in the middle of an entry."""
+
+
+class Follower:
+    """The thread that applies the log to this replica's fields (see the module doc).
+
+    Parameters
+    ----------
+    registry : flatserve.service.registry.Registry
+        The fields; entries are applied through its ``apply_*`` methods.
+    """
+
+    def __init__(self, registry) -> None:
+        self.reg = registry
+        self.backend = registry.storage
+        #: every entry up to this position is applied
+        self.applied = 0
+        self._cond = threading.Condition()
+        self._handoff: dict[int, Handoff] = {}
+        self._results: dict[int, tuple[AddResult | None, str | None]] = {}
+        self._thread: threading.Thread | None = None
+        self._stop = False
+        self.started = threading.Event()
+
+    # -- life cycle -------------------------------------------------------------------------
+    def start(self, position: int) -> None:
+        """Follow the log from ``position`` (every entry up to it is applied)."""
+        with self._cond:
+            self.applied = position
+            self._cond.notify_all()
+        self._thread = threading.Thread(target=self._run, name="flatserve-follower",
+                                        daemon=True)
+        self._thread.start()
+        self.started.set()
+
+    @property
+    def running(self) -> bool:
+        t = self._thread
+        return t is not None and t.is_alive() and not self._stop
+
+    def stop(self, drain_timeout: float) -> bool:
+        """Apply what is committed now for up to ``drain_timeout`` seconds, then stop
+        (the rest is applied from the log on the next start). True if drained."""
+        drained = True
+        if self.running:
+            try:
+                target = self.backend.head()
+            except StorageError:
+                target = self.applied
+            drained = self.wait_applied(target, drain_timeout)
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self.backend.wake()
+        return drained
+
+    def join(self, timeout: float) -> None:
+        t = self._thread
+        if t is not None:
+            t.join(timeout)
+
+    # -- hand-over of this process's batches --------------------------------------------------
+    def hand_over(self, position: int, field_id: int, seq: int, prepared: PreparedBatch,
+                  want_result: bool) -> None:
+        """Called by an upload inside its commit: the batch at ``position`` is charted
+        already (:meth:`take_back` if the commit fails)."""
+        with self._cond:
+            self._handoff[position] = Handoff(field_id, seq, prepared, want_result)
+
+    def take_back(self, position: int) -> None:
+        with self._cond:
+            self._handoff.pop(position, None)
+
+    def take_result(self, position: int) -> tuple[AddResult | None, str | None]:
+        """``(AddResult, None)`` of an applied hand-over that wanted it, ``(None,
+        why)`` if its insert failed, ``(None, None)`` if it was not inserted (the
+        field was deleted)."""
+        with self._cond:
+            return self._results.pop(position, (None, None))
+
+    # -- waiting ----------------------------------------------------------------------------
+    def wait_applied(self, position: int, timeout: float | None = None) -> bool:
+        """Block until every entry up to ``position`` is applied (True), or
+        ``timeout`` seconds passed, or the follower stopped (False)."""
+        end = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while self.applied < position:
+                if self._stop or (self.started.is_set() and not self.running):
+                    return False
+                left = None if end is None else end - time.monotonic()
+                if left is not None and left <= 0:
+                    return False
+                self._cond.wait(left if left is not None else 1.0)
+        return True
+
+    def lag(self) -> dict:
+        """``{"position", "head", "lag_entries", "lag_seconds"}``: this replica's applied
+        position, the log's head, and how far behind it is (seconds since the
+        first entry not applied here was committed; 0 when caught up)."""
+        applied = self.applied
+        head = self.backend.head()
+        seconds = 0.0
+        if head > applied:
+            nxt = self.backend.read_log(applied, 1)
+            if nxt:
+                seconds = max(0.0, time.time() - nxt[0].committed)
+        return {"position": applied, "head": head, "lag_entries": max(0, head - applied),
+                "lag_seconds": seconds}
+
+    # -- the loop -----------------------------------------------------------------------------
+    def _run(self) -> None:
+        failures = 0
+        while not self._stop:
+            try:
+                entries = self.backend.read_log(self.applied, READ_CHUNK)
+                if not entries:
+                    self.backend.wait_for_change(IDLE_WAIT_S)
+                    continue
+                self.reg.note_pending(entries)
+                for entry in entries:
+                    if self._stop:
+                        return
+                    self._apply(entry)
+                    with self._cond:
+                        self.applied = entry.position
+                        self._cond.notify_all()
+                failures = 0
+            except _Stopped:
+                return
+            except Exception as exc:  # the database is unreachable: retry, do not skip
+                if self._stop:
+                    return
+                failures += 1
+                log.warning("log follower: %s; retrying (applied up to position %d)", exc,
+                            self.applied)
+                time.sleep(min(1.0, 0.05 * failures))
+
+    def _apply(self, entry: LogEntry) -> None:
+        reg = self.reg
+        if entry.kind == "batch":
+            with self._cond:
+                h = self._handoff.pop(entry.position, None)
+            if h is not None and (h.field_id, h.seq) != (entry.field_id, entry.seq):
+                h = None  # (a commit that failed left it; the entry is another batch)
+            # (AddResult, None), (None, why) if the insert failed (the field was rebuilt),
+            # (None, None) if not inserted; a storage error propagates: retried
+            res = reg.apply_batch(entry, h.prepared if h else None, self)
+            if h is not None and h.want_result:
+                with self._cond:
+                    self._results[entry.position] = res
+        elif entry.kind == "create":
+            reg.apply_create(entry)
+        elif entry.kind == "delete":
+            reg.apply_delete(entry)
+        elif entry.kind == "snapshot":
+            reg.apply_snapshot(entry)
+        else:  # pragma: no cover - a newer server's entry
+            log.warning("log entry %d: unknown kind %r skipped", entry.position, entry.kind)
+
+    def check_stop(self) -> None:
+        """Raise :class:`_Stopped` if asked to stop (between the steps of an entry)."""
+        if self._stop:
+            raise _Stopped()
+

@@ -748,12 +748,14 @@ class PostgresBackend(LogBackend):
         finally:
             shutil.rmtree(stage, ignore_errors=True)
 
-    def snapshot_bytes(self, row: FieldRow) -> int:
-        if not row.snapshot_file:
+    def snapshot_bytes(self, row) -> int:
+        """Size of the row's snapshot (a :class:`FieldRow`, or its ``snapshot_file``)."""
+        file = row if isinstance(row, (str, type(None))) else row.snapshot_file
+        if not file:
             return 0
         self._ensure_schema()
         r = self._run(lambda c: c.execute("SELECT bytes FROM snapshots WHERE name=%s",
-                                          (row.snapshot_file,)).fetchone(), tx=False)
+                                          (file,)).fetchone(), tx=False)
         return 0 if r is None else int(r[0])
 
     def clean_orphans(self) -> int:

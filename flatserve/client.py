@@ -213,8 +213,11 @@ class Client:
     def list_fields(self) -> list[dict]:
         return self._request("GET", "/v1/fields").json()["fields"]
 
-    def describe(self, name: str) -> dict:
-        return self._request("GET", f"/v1/fields/{name}").json()
+    def describe(self, name: str, *, min_position: int | None = None) -> dict:
+        """The field's description; ``min_position``: as this replica sees it once it
+        has applied that log position (read-your-writes, see :meth:`query`)."""
+        params = {} if min_position is None else {"min_position": str(int(min_position))}
+        return self._request("GET", f"/v1/fields/{name}", params=params).json()
 
     def delete_field(self, name: str) -> None:
         self._request("DELETE", f"/v1/fields/{name}", retry=False)
@@ -300,8 +303,13 @@ class Client:
 
     def query(self, name: str, flats: Flats | None = None, *, origins=None, directions=None,
               A=None, b=None, Q=None, r=None, weights: bool = False, outside: str = "nan",
-              order: str = "hilbert", binary: bool = True) -> QueryResult:
+              order: str = "hilbert", binary: bool = True,
+              min_position: int | None = None) -> QueryResult:
         """Interpolate the field at a batch of flats (a :class:`Flats`, or arrays by name).
+
+        ``min_position``: read-your-writes across replicas: the ``position`` of an
+        upload's report (on any replica); the server answers once it has applied
+        it (503 :class:`~flatserve.errors.ReplicaBehindError` after its wait).
 
         Returns the library's :class:`flatserve.QueryResult`; ``status``, ``ids``
         and ``weights`` are filled when the response carries them."""
@@ -309,6 +317,8 @@ class Client:
                                                 b=b, Q=Q, r=r))
         params = {"form": form, "outside": outside, "order": order,
                   "weights": "true" if weights else "false"}
+        if min_position is not None:
+            params["min_position"] = str(int(min_position))
         url = f"/v1/fields/{name}/query"
         if not binary:
             body = {"form": form, **{k: v.tolist() for k, v in arrays.items()}}

@@ -405,9 +405,14 @@ class LogBackend(abc.ABC):
             from the batches).
         """
 
+    def snapshot_location(self, row: FieldRow) -> str:
+        """Where the row's snapshot is, for messages (a path, a large object id)."""
+        return str(row.snapshot_file)
+
     @abc.abstractmethod
-    def snapshot_bytes(self, row: FieldRow) -> int:
-        """Size of the row's snapshot (0: none or gone)."""
+    def snapshot_bytes(self, row: "FieldRow | str | None") -> int:
+        """Size of the row's snapshot, given the row or its ``snapshot_file``
+        (0: none or gone)."""
 
     @abc.abstractmethod
     def acquire_lease(self, name: str, owner: str, ttl: float) -> bool:
@@ -415,7 +420,9 @@ class LogBackend(abc.ABC):
         True if ``owner`` holds it now, False if another owner holds an
         unexpired one. Used for :data:`SNAPSHOT_LEASE` (one snapshot writer at a
         time, across replicas); a writer killed holding it blocks others until
-        it expires."""
+        it expires. Owners are ``"<hostname>:<pid>:<random>"``: a backend may
+        take over at once a lease whose owner is a dead process of this host
+        (the SQLite backend does)."""
 
     @abc.abstractmethod
     def release_lease(self, name: str, owner: str) -> None:

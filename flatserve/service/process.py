@@ -36,10 +36,13 @@ class ServerProcess:
     log_level : str
     **options
         More settings as ``flatserve serve`` options (``snapshot_every=3000`` gives
-        ``--snapshot-every 3000``).
+        ``--snapshot-every 3000``). ``lock_fd`` (from
+        :func:`flatserve.service.storage.lock_data_dir`) is inherited: the process
+        joins that replica group on the data directory. ``processes=N``: N
+        replica processes behind this one port (their supervisor is ``proc``).
 
-    Leaving the ``with`` block kills the process (``kill -9``): none is ever left
-    behind, whatever failed.
+    Leaving the ``with`` block kills the process and its children (``kill -9`` of
+    its process group): none is ever left behind, whatever failed.
     """
 
     def __init__(self, data_dir, log_path, *, log_level: str = "info", **options):
@@ -50,8 +53,9 @@ class ServerProcess:
         for k, v in options.items():
             cmd += [f"--{k.replace('_', '-')}", str(v)]
         self.log = open(log_path, "ab")
+        fds = (options["lock_fd"],) if options.get("lock_fd") is not None else ()
         self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=subprocess.STDOUT,
-                                     start_new_session=True)
+                                     start_new_session=True, pass_fds=fds)
 
     def wait_ready(self, timeout: float = 90.0, interval: float = 0.05) -> None:
         """Wait until ``/readyz`` says ready; RuntimeError if the process exits,
@@ -69,11 +73,22 @@ class ServerProcess:
         raise TimeoutError(f"server not ready after {timeout} s")
 
     def kill9(self) -> None:
-        """``kill -9`` the process (if alive) and wait for it."""
+        """``kill -9`` the process and its process group (replicas of ``processes``)
+        and wait for it."""
+        try:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
         if self.proc.poll() is None:
             os.kill(self.proc.pid, signal.SIGKILL)
         self.proc.wait(timeout=60)
         self.log.close()
+
+    def readyz(self) -> dict:
+        """The replica's ``/readyz`` document (any status)."""
+        import httpx
+
+        return httpx.get(self.url + "/readyz", timeout=10).json()
 
     def __enter__(self) -> "ServerProcess":
         return self

@@ -116,18 +116,26 @@ class Registry:
 
         Raises
         ------
+        InvalidInputError
+            ``position`` is beyond the log's head: no write returned it (422).
         ReplicaBehindError
             Not applied within ``timeout`` seconds (or the replica is stopping).
         """
         if self.follower.applied >= position:
             return
+        head = self.storage.head()
+        if position > head:  # a write's position is committed, so never beyond the head
+            raise InvalidInputError(
+                f"min_position: {position} is beyond the log's last position {head}: no "
+                "write returned it (pass the position of an upload's response or of a "
+                "Flatserve-Position header)", "min_position")
         if not self.follower.wait_applied(position, timeout):
             raise ReplicaBehindError(
                 f"this replica has applied the log up to position {self.follower.applied}, "
                 f"not yet {position} (waited {timeout or 0:g} s, FLATSERVE_READ_WAIT_TIMEOUT); "
                 "retry shortly")
 
-    def _await(self, position: int, what: str) -> None:
+    def await_applied(self, position: int, what: str) -> None:
         """A write's request: wait (unbounded, but not past a shutdown) until this
         replica applied its own commit at ``position``."""
         if not self.follower.wait_applied(position):
@@ -151,7 +159,7 @@ class Registry:
                                                  {"Q": basis.Q, "r": basis.r})
             with self._lock:
                 self._built[fid] = fld
-            self._await(pos, f"field {name!r}")
+            self.await_applied(pos, f"field {name!r}")
             e = self.entry_by_id(fid)
             if e is None:  # deleted meanwhile (by another replica)
                 raise FieldNotFoundError(f"field {name!r} was deleted meanwhile")
@@ -169,7 +177,7 @@ class Registry:
             if e.deleted:
                 raise FieldNotFoundError(f"no field named {name!r}")
             pos = self.storage.delete_field(e.id)
-        self._await(pos, f"the delete of {name!r}")
+        self.await_applied(pos, f"the delete of {name!r}")
         log.info("deleted field %r at log position %d", name, pos)
         return pos
 
@@ -269,6 +277,12 @@ class Registry:
         self.maybe_snapshot(e)
         return res, None
 
+    def fail_field(self, field_id: int, why: str) -> None:
+        """Mark a field failed (its requests get a 503 naming ``why``)."""
+        e = self.entry_by_id(field_id)
+        if e is not None:
+            e.state, e.error = "failed", why
+
     @staticmethod
     def _before_index(e: FieldEntry, seq: int) -> None:
         """Called by the follower before it inserts batch ``seq`` of ``e`` (a test hook)."""
@@ -337,7 +351,7 @@ class Registry:
                 continue
             except Exception as exc:  # corrupt/missing snapshot: rebuild from batches
                 log.warning("field %r: snapshot %s unusable (%s); rebuilding from batches",
-                            e.name, row.snapshot_file, exc)
+                            e.name, self.storage.snapshot_location(row), exc)
                 return None, row
             log.info("field %r: snapshot after batch %d loaded (%d samples) in %.2f s",
                      e.name, row.snapshot_seq, fld.nsamples, time.perf_counter() - t0)
@@ -358,8 +372,8 @@ class Registry:
             if fld is None:
                 fld = e.spec.new_field(e.basis)
             todo = self.storage.batches(e.id, after_seq=start, upto_position=upto)
-            log.info("field %r: replaying %d stored batch(es) after batch %d", e.name,
-                     len(todo), start)
+            nb = self.storage.batch_stats(e.id)[0]
+            log.info("field %r: replaying %d of %d stored batch(es)", e.name, len(todo), nb)
             done, tlast, replayed = 0, time.perf_counter(), 0
             seq, pos = start, start_pos
             for b in todo:

@@ -173,14 +173,23 @@ class Follower:
                 for entry in entries:
                     if self._stop:
                         return
-                    self._apply(entry)
+                    try:
+                        self._apply(entry)
+                    except (_Stopped, StorageError):
+                        raise
+                    except Exception as exc:  # a bug, or an entry this code cannot apply:
+                        # the field is marked failed (503 naming it), the others go on
+                        log.exception("log entry %d (%s of field %d) cannot be applied",
+                                      entry.position, entry.kind, entry.field_id)
+                        self.reg.fail_field(entry.field_id, f"log entry {entry.position} "
+                                                            f"could not be applied: {exc}")
                     with self._cond:
                         self.applied = entry.position
                         self._cond.notify_all()
                 failures = 0
             except _Stopped:
                 return
-            except Exception as exc:  # the database is unreachable: retry, do not skip
+            except Exception as exc:  # the database is unreachable: retry, never skip
                 if self._stop:
                     return
                 failures += 1

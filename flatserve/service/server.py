@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 
 from .settings import Settings
@@ -48,7 +49,10 @@ def limit_blas_threads(n: int = 1) -> str | None:
     return None
 
 
-def serve(settings: Settings | None = None) -> None:
+def serve(settings: Settings | None = None, listen_fd: int | None = None) -> None:
+    """Run the service: one replica process, or with ``settings.processes`` > 1 a
+    :class:`~.supervisor.Supervisor` of that many on one port. ``listen_fd``: an
+    inherited listening socket to serve (a supervisor's child)."""
     import uvicorn
 
     from .app import create_app
@@ -57,18 +61,27 @@ def serve(settings: Settings | None = None) -> None:
     level = settings.log_level.upper()
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("flatserve").setLevel(level)
+    host = settings.bind_host()
+    if host != settings.host and listen_fd is None:
+        log.warning("no API key set: binding to %s instead of %s", host, settings.host)
+    from ..errors import StorageError
+    from .backend import open_backend
+
+    if settings.processes > 1 and listen_fd is None:
+        from .supervisor import Supervisor
+
+        try:
+            sys.exit(Supervisor(settings, host).run())
+        except StorageError as exc:  # in use by another server, unreadable, damaged
+            log.error("%s", exc)
+            sys.exit(2)
     if settings.blas_threads:
         how = limit_blas_threads(settings.blas_threads)
         log.debug("BLAS threads capped at %d (%s)", settings.blas_threads, how)
-    host = settings.bind_host()
-    if host != settings.host:
-        log.warning("no API key set: binding to %s instead of %s", host, settings.host)
-    from ..errors import StorageError
     from .connections import connection_cap, guarded_protocol
-    from .storage import Storage
 
     try:  # refuse at once, with a clear message, rather than in the middle of start-up
-        storage = Storage(settings.data_dir)
+        storage = open_backend(settings)
         try:
             storage.check()
         finally:
@@ -76,18 +89,27 @@ def serve(settings: Settings | None = None) -> None:
     except StorageError as exc:  # in use by another server, unreadable, damaged
         log.error("%s", exc)
         sys.exit(2)
-    log.info("flatserve on http://%s:%d, data in %s, %d worker threads", host, settings.port,
-             settings.data_dir, settings.workers)
+    where = f"log in {settings.database_url.split('@')[-1]}" if settings.database_url else \
+        f"data in {settings.data_dir}"
+    log.info("flatserve on http://%s:%d, %s, %d worker threads (pid %d)", host, settings.port,
+             where, settings.workers, os.getpid())
     cap, note = connection_cap(settings.max_connections)
     if note:
         log.warning("%s", note)
     protocol = guarded_protocol(header_timeout=settings.header_timeout,
                                 body_timeout=settings.body_timeout,
                                 body_min_rate=settings.body_min_rate, max_connections=cap)
-    uvicorn.run(create_app(settings), host=host, port=settings.port, workers=1,
-                log_level=settings.log_level.lower(), access_log=False,
-                timeout_graceful_shutdown=10, http=protocol,
-                timeout_keep_alive=settings.keepalive_timeout)
+    kw = dict(log_level=settings.log_level.lower(), access_log=False,
+              timeout_graceful_shutdown=10, http=protocol,
+              timeout_keep_alive=settings.keepalive_timeout)
+    if listen_fd is None:
+        uvicorn.run(create_app(settings), host=host, port=settings.port, workers=1, **kw)
+        return
+    import socket
+
+    sock = socket.socket(fileno=listen_fd)  # family and type from the descriptor
+    config = uvicorn.Config(create_app(settings), **kw)
+    uvicorn.Server(config).run(sockets=[sock])
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -116,7 +138,9 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m flatserve.service", description=__doc__)
     add_arguments(p)
-    serve(settings_from_args(p.parse_args(argv)))
+    p.add_argument("--listen-fd", type=int, default=None, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    serve(settings_from_args(args), listen_fd=args.listen_fd)
     return 0
 
 

@@ -35,6 +35,7 @@ import fcntl
 import json
 import logging
 import os
+import socket
 import sqlite3
 import threading
 import time
@@ -178,6 +179,22 @@ def storage_error(exc: sqlite3.Error, db_path: Path | None = None) -> StorageErr
         return StorageError(f"storage failed: the database {db_path} is damaged ({exc}); "
                             "restore it from a backup or move it away")
     return (StorageFullError if full else StorageError)(f"storage failed: {exc}")
+
+
+def _owner_dead(owner: str) -> bool:
+    """A lease owner ``host:pid:...`` that is a process of this machine no longer
+    running (its lease is taken over at once instead of when it expires)."""
+    host, _, rest = owner.partition(":")
+    pid = rest.partition(":")[0]
+    if host != socket.gethostname() or not pid.isdigit():
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # alive (another user's)
+        return False
+    return False
 
 
 def _fsync_dir(path: Path) -> None:
@@ -653,6 +670,9 @@ class SQLiteBackend(LogBackend):
                     raise SnapshotGoneError(f"snapshot {row.snapshot_file} was replaced") from None
             raise
 
+    def snapshot_location(self, row: FieldRow) -> str:
+        return str(self.snapshot_path(row.snapshot_file))
+
     def snapshot_bytes(self, row) -> int:
         file = row if isinstance(row, (str, type(None))) else row.snapshot_file
         if not file:
@@ -666,7 +686,8 @@ class SQLiteBackend(LogBackend):
         def fn(db):
             now = time.time()
             row = db.execute("SELECT owner, expires FROM leases WHERE name=?", (name,)).fetchone()
-            if row is not None and row[0] != owner and row[1] > now:
+            if row is not None and row[0] != owner and row[1] > now and \
+                    not _owner_dead(row[0]):
                 return False
             db.execute("INSERT OR REPLACE INTO leases(name, owner, expires) VALUES (?, ?, ?)",
                        (name, owner, now + ttl))

@@ -89,7 +89,7 @@ def _replay(reg, e: FieldEntry, prev: BatchRow, chash: str, idem_key: str, wait:
         raise IdempotencyConflictError(
             f"Idempotency-Key {idem_key!r} was used for a different batch")
     if wait:  # a retry with wait=true answers once its batch is visible
-        reg._await(prev.position, f"batch {prev.seq} of {e.name!r}")
+        reg.await_applied(prev.position, f"batch {prev.seq} of {e.name!r}")
     return dict(_stored_result(reg, e, prev.seq, prev.form, prev.result),
                 replayed=True, indexed=prev.seq <= e.indexed_seq, position=prev.position)
 
@@ -169,7 +169,7 @@ def _commit_and_chart(reg, e, flats, values, idem_key, chash, stored, timings, *
 def _await_insert(reg, e, seq, pos, timings) -> dict:
     """wait=true: wait until the follower has inserted the committed batch here."""
     t2 = time.perf_counter()
-    reg._await(pos, f"batch {seq} of {e.name!r}")
+    reg.await_applied(pos, f"batch {seq} of {e.name!r}")
     res, failed = reg.follower.take_result(pos)
     if failed is not None:
         # the batch is committed but its insert failed: the follower rebuilt the field

@@ -1,0 +1,162 @@
+"""``flatserve serve --processes N``: N replica processes on one port.
+
+The parent binds the listening socket and (SQLite backend) takes the data
+directory's lock, then starts N children (``python -m flatserve.service`` with
+the same settings) that inherit both: each runs uvicorn on the shared socket
+(the kernel hands each new connection to one of them) and opens the data
+directory with the inherited lock (``lock_fd``), so the N replicas share it
+while any other server is refused. The parent holds no database connection and
+serves no request: it restarts a child that dies (kill -9 included; the new one
+restores and catches up from the log) and, on SIGTERM / SIGINT, stops them all
+(each drains its follower). A child dies with the parent (``PR_SET_PDEATHSIG``),
+so no replica outlives it holding the port.
+"""
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+from pydantic import SecretStr
+
+from .settings import Settings
+
+log = logging.getLogger("flatserve.service")
+
+#: a child that exits sooner than this after its start counts as a failed start
+QUICK_EXIT_S = 5.0
+#: failed starts in a row after which the supervisor gives up
+MAX_QUICK_EXITS = 5
+#: seconds children get to stop on SIGTERM before SIGKILL
+STOP_TIMEOUT_S = 30.0
+
+
+def settings_env(settings: Settings) -> dict[str, str]:
+    """``FLATSERVE_*`` variables that give a child process these settings."""
+    env = {}
+    for name in Settings.model_fields:
+        v = getattr(settings, name)
+        if v is None:
+            continue
+        if isinstance(v, SecretStr):
+            v = v.get_secret_value()
+        elif isinstance(v, bool):
+            v = "true" if v else "false"
+        env[f"FLATSERVE_{name.upper()}"] = str(v)
+    return env
+
+
+def bind_socket(host: str, port: int) -> socket.socket:
+    """A listening TCP socket on ``host:port``, inheritable by children."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind((host, port))
+    sock.listen(2048)
+    sock.set_inheritable(True)
+    return sock
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+class Supervisor:
+    """Starts, restarts and stops the replica processes (see the module doc).
+
+    Parameters
+    ----------
+    settings : Settings
+        ``processes`` children are started with these settings (``processes=1``).
+    host : str
+        The interface bound.
+    """
+
+    def __init__(self, settings: Settings, host: str):
+        self.settings = settings
+        self.host = host
+        self.children: list[subprocess.Popen | None] = [None] * settings.processes
+        self.started_at = [0.0] * settings.processes
+        self.quick_exits = 0
+        self.stopping = False
+
+    def run(self) -> int:
+        s = self.settings
+        lock_fd = None
+        if not s.database_url:
+            from .storage import SQLiteBackend, lock_data_dir
+
+            lock_fd = lock_data_dir(s.data_dir)  # DataDirInUseError: refused as one server
+            SQLiteBackend(s.data_dir, lock_fd=lock_fd).close()  # create / migrate once
+        sock = bind_socket(self.host, s.port)
+        env = dict(os.environ, **settings_env(s))
+        env.update(FLATSERVE_PROCESSES="1", FLATSERVE_HOST=self.host)
+        pass_fds = [sock.fileno()]
+        if lock_fd is not None:
+            env["FLATSERVE_LOCK_FD"] = str(lock_fd)
+            pass_fds.append(lock_fd)
+        self.cmd = [sys.executable, "-m", "flatserve.service", "--listen-fd", str(sock.fileno())]
+        self.env, self.pass_fds = env, pass_fds
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, self._on_signal)
+        log.info("flatserve: %d replica processes on http://%s:%d (%s)", s.processes,
+                 self.host, s.port, "PostgreSQL" if s.database_url else f"SQLite in {s.data_dir}")
+        try:
+            for i in range(s.processes):
+                self._start(i)
+            while not self.stopping:
+                time.sleep(0.2)
+                for i, p in enumerate(self.children):
+                    if self.stopping or p is None or p.poll() is None:
+                        continue
+                    quick = time.monotonic() - self.started_at[i] < QUICK_EXIT_S
+                    self.quick_exits = self.quick_exits + 1 if quick else 0
+                    log.warning("replica %d (pid %d) exited with status %s; restarting it", i,
+                                p.pid, p.returncode)
+                    if self.quick_exits >= MAX_QUICK_EXITS:
+                        log.error("replicas keep failing at start; stopping")
+                        self.stopping = True
+                        break
+                    if quick:
+                        time.sleep(1.0)
+                    self._start(i)
+        finally:
+            self._stop_all()
+            sock.close()
+            if lock_fd is not None:
+                os.close(lock_fd)
+        return 1 if self.quick_exits >= MAX_QUICK_EXITS else 0
+
+    def _start(self, i: int) -> None:
+        self.children[i] = subprocess.Popen(self.cmd, env=self.env, pass_fds=self.pass_fds,
+                                            preexec_fn=_die_with_parent)
+        self.started_at[i] = time.monotonic()
+        log.info("replica %d started (pid %d)", i, self.children[i].pid)
+
+    def _on_signal(self, signum, frame) -> None:
+        self.stopping = True
+
+    def _stop_all(self) -> None:
+        live = [p for p in self.children if p is not None and p.poll() is None]
+        for p in live:
+            p.send_signal(signal.SIGTERM)
+        end = time.monotonic() + STOP_TIMEOUT_S
+        for p in live:
+            try:
+                p.wait(timeout=max(0.1, end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+    @property
+    def pids(self) -> list[int]:
+        return [p.pid for p in self.children if p is not None]

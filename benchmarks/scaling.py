@@ -119,10 +119,78 @@ def through_postgres(url: str, snap: Path, batches, n: int) -> dict:
             "pg_snapshot_get_s": t_get, "pg_restore_s": t_restore, "pg_snapshot_bytes": snap_bytes}
 
 
+def kd_tiles(points: np.ndarray, ntiles: int) -> np.ndarray:
+    """Tile number of each point: recursive median cuts along the widest axis
+    (tiles of equal counts, as a k-d tree over the chart's coordinates)."""
+    tile = np.zeros(len(points), dtype=np.int64)
+    parts = [np.arange(len(points))]
+    while len(parts) < ntiles:
+        parts.sort(key=len)
+        rows = parts.pop()
+        p = points[rows]
+        axis = int(np.argmax(p.max(0) - p.min(0)))
+        order = rows[np.argsort(p[:, axis], kind="stable")]
+        parts += [order[:len(order) // 2], order[len(order) // 2:]]
+    for t, rows in enumerate(parts):
+        tile[rows] = t
+    return tile
+
+
+def tiles(n: int, counts: list[int]) -> list[dict]:
+    """What a tile of one chart must hold (Tile & Merge's converged state): its own
+    samples plus the *halo*, the other tiles' vertices of the Delaunay cells that
+    have a local vertex (the stars of its local vertices); and how often a query
+    falls in a cell without a vertex of the tile it lies in (one forward hop)."""
+    from flatserve import Basis, Field
+
+    rng = np.random.default_rng(n + 1)
+    field = Field(Basis.around_axis(axis=2, scale=0.01), channels=1)
+    for i in range(0, n, BATCH):
+        o, d = paper_rays(rng, min(BATCH, n - i))
+        field.add_rays(o, d, rng.uniform(size=len(o)))
+    pts = field.points
+    cells = field.triangulation.simplices  # (ncells, 5) vertex ids
+    qo, qd = paper_rays(rng, 20_000)
+    chart = field.chart(__import__("flatserve").Flats.from_rays(qo, qd))
+    qpts = chart.points
+    qcell = field.triangulation.find_simplex(qpts)
+    found = qcell >= 0
+    out = []
+    for T in counts:
+        tile = kd_tiles(pts, T)
+        halo = []
+        ct = tile[cells]  # (ncells, 5) tile of each vertex
+        for t in range(T):
+            has = (ct == t).any(axis=1)
+            verts = np.unique(cells[has])
+            halo.append(int((tile[verts] != t).sum()) / max(1, int((tile == t).sum())))
+        # a router knows the tiles' boxes, not the cells: the query goes to the
+        # tile whose box holds its chart point, which answers if the cell it finds
+        # has a vertex of its own (then the cell is in that vertex's star: global)
+        qt = route(pts, tile, qpts[found])
+        owner_has = (ct[qcell[found]] == qt[:, None]).any(axis=1)
+        out.append({"tiles": T, "samples": int(len(pts)), "halo_mean": float(np.mean(halo)),
+                    "halo_max": float(np.max(halo)),
+                    "forward_hop": float(1 - owner_has.mean())})
+    return out
+
+
+def route(points: np.ndarray, tile: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """The tile of each query point: the tile whose box (of its own samples) holds
+    it, nearest box when several or none do."""
+    T = int(tile.max()) + 1
+    lo = np.stack([points[tile == t].min(0) for t in range(T)])
+    hi = np.stack([points[tile == t].max(0) for t in range(T)])
+    gap = np.maximum(0, np.maximum(lo[None] - q[:, None], q[:, None] - hi[None]))  # (q, T, dim)
+    return np.argmin((gap ** 2).sum(-1), axis=1)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[100_000, 200_000])
     ap.add_argument("--no-postgres", action="store_true")
+    ap.add_argument("--tiles", type=int, nargs="*", default=[2, 4, 8, 16],
+                    help="tile counts for the halo measurement (on the first size)")
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--url", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -157,6 +225,14 @@ def main() -> int:
         print(f"{a:9d} {r['field_rss'] / a:7.0f} {r['snapshot_bytes'] / a:7.0f} "
               f"{r['blob_bytes'] / r['n']:7.0f} {r['insert_s'] * per:14.2f} "
               f"{r['load_s'] * per:12.3f} {r['save_s'] * per:12.3f} {pg_cols}")
+    if args.tiles:
+        print(f"\none chart split into k-d tiles of equal counts ({args.sizes[0]} rays): the "
+              "halo a tile holds beyond its own samples (stars of its vertices), and the "
+              "share of queries whose cell has no vertex in the tile they fall in")
+        for r in tiles(args.sizes[0], args.tiles):
+            print(f"  {r['tiles']:3d} tiles of {r['samples'] // r['tiles']:7d}: halo mean "
+                  f"{r['halo_mean']:6.1%}, max {r['halo_max']:6.1%}; forward hop "
+                  f"{r['forward_hop']:6.2%}")
     return 0
 
 

@@ -14,7 +14,8 @@ Everything lives in the schema ``flatserve`` of the database the URL names
                      seq, commit time, rows
     snapshots        name: field_id, bytes      \\ a snapshot is chunked rows, so a
     snapshot_chunks  (name, idx): data (8 MiB)  / new replica needs only the URL
-    leases           name: owner, expiry (database time)
+    leases           name: owner, renewal due (the lease itself is a session-level
+                     advisory lock: it dies with its holder's connection)
 
 **Positions in commit order.** Every transaction that appends to the log takes
 the transaction-scoped advisory lock :data:`POSITION_LOCK` right before it draws
@@ -42,6 +43,7 @@ twice.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -191,6 +193,12 @@ def storage_error(exc: Exception, where: str) -> StorageError:
     return StorageError(f"storage failed ({where}): {exc}")
 
 
+def _lease_key(name: str) -> int:
+    """The advisory lock key of a lease (a signed 64-bit integer)."""
+    h = hashlib.sha256(f"flatserve-lease:{name}".encode()).digest()
+    return int.from_bytes(h[:8], "big", signed=True)
+
+
 class _Retry(Exception):
     """A pooled connection was found broken before anything was sent: retry once."""
 
@@ -235,6 +243,9 @@ class PostgresBackend(LogBackend):
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         self._schema_ready = False
+        #: leases held: name -> (owner, the connection holding its advisory lock)
+        self._leases: dict[str, tuple[str, psycopg.Connection]] = {}
+        self._lease_lock = threading.Lock()
 
     @classmethod
     def from_settings(cls, settings) -> "PostgresBackend":
@@ -396,6 +407,10 @@ class PostgresBackend(LogBackend):
         self._closed = True
         self.wake()
         self._drop_all()
+        with self._lease_lock:
+            leases, self._leases = self._leases, {}
+        for _, conn in leases.values():
+            conn.close()
         with self._listen_lock:  # a wait in progress closes it on its way out
             if not self._waiting and self._listen is not None:
                 self._listen.close()
@@ -770,16 +785,56 @@ class PostgresBackend(LogBackend):
 
     # -- leases ---------------------------------------------------------------------
     def acquire_lease(self, name: str, owner: str, ttl: float) -> bool:
+        """The lease is a session-level advisory lock held on a connection of its own
+        for as long as ``owner`` holds it: a holder killed with kill -9 loses it as
+        soon as PostgreSQL sees its connection close (at once; a vanished host
+        within the keepalive time), not after ``ttl``. The ``leases`` row says who
+        holds it and until when it renews (``ttl``), for people looking."""
         self._ensure_schema()
-        r = self._run(lambda c: c.execute(
+        with self._lease_lock:
+            held = self._leases.get(name)
+            if held is not None and held[0] != owner:
+                return False  # another owner in this process
+            if held is not None:
+                try:  # a renewal on the session that holds the lock
+                    self._lease_row(held[1], name, owner, ttl)
+                    return True
+                except psycopg.OperationalError:
+                    # that session ended (PostgreSQL restarted, the backend was
+                    # terminated) and the lock with it: take it again below
+                    del self._leases[name]
+                    held[1].close()
+                except psycopg.Error as exc:
+                    raise storage_error(exc, self.where) from exc
+            conn = None
+            try:
+                conn = self._connect()
+                if not conn.execute("SELECT pg_try_advisory_lock(%s)",
+                                    (_lease_key(name),)).fetchone()[0]:
+                    conn.close()
+                    return False
+                self._lease_row(conn, name, owner, ttl)
+            except psycopg.Error as exc:
+                if conn is not None:
+                    conn.close()
+                raise storage_error(exc, self.where) from exc
+            self._leases[name] = (owner, conn)
+            return True
+
+    @staticmethod
+    def _lease_row(conn, name: str, owner: str, ttl: float) -> None:
+        conn.execute(
             "INSERT INTO leases(name, owner, expires)"
             " VALUES (%s, %s, clock_timestamp() + make_interval(secs => %s))"
-            " ON CONFLICT (name) DO UPDATE SET owner=EXCLUDED.owner, expires=EXCLUDED.expires"
-            " WHERE leases.owner=EXCLUDED.owner OR leases.expires < clock_timestamp()"
-            " RETURNING owner", (name, owner, float(ttl))).fetchone())
-        return r is not None
+            " ON CONFLICT (name) DO UPDATE SET owner=EXCLUDED.owner, expires=EXCLUDED.expires",
+            (name, owner, float(ttl)))
 
     def release_lease(self, name: str, owner: str) -> None:
         self._ensure_schema()
+        with self._lease_lock:
+            held = self._leases.get(name)
+            if held is not None and held[0] == owner:
+                del self._leases[name]
+                held[1].close()  # ends the session: its advisory lock goes with it
         self._run(lambda c: c.execute("DELETE FROM leases WHERE name=%s AND owner=%s",
                                       (name, owner)))

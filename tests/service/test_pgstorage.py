@@ -220,19 +220,33 @@ def test_snapshots_are_chunked_rows_replaced_whole_and_removed_with_their_field(
         assert c.execute("SELECT count(*) FROM flatserve.snapshot_chunks").fetchone()[0] == 0
 
 
-def test_lease_is_exclusive_renewable_and_expires(two):
+def test_lease_is_exclusive_and_dies_with_its_holder(two, pg_url):
+    """One holder at a time across backends; renewals by the holder; a holder whose
+    connection dies (a process killed: PostgreSQL ends its session) loses the
+    lease at once, whatever its ttl."""
     a, b = two
-    assert a.acquire_lease("snapshot", "A", 30)
-    assert not b.acquire_lease("snapshot", "B", 30)
-    assert a.acquire_lease("snapshot", "A", 0.2)  # renewal, shorter
-    time.sleep(0.4)
-    assert b.acquire_lease("snapshot", "B", 30)  # expired: taken over
-    assert not a.acquire_lease("snapshot", "A", 30)
-    a.release_lease("snapshot", "A")  # not A's: no effect
-    assert not a.acquire_lease("snapshot", "A", 30)
-    b.release_lease("snapshot", "B")
-    assert a.acquire_lease("snapshot", "A", 30)
-    assert b.acquire_lease("other", "B", 30)
+    assert a.acquire_lease("snapshot", "A", 300)
+    assert not b.acquire_lease("snapshot", "B", 300)
+    assert a.acquire_lease("snapshot", "A", 300)  # renewal
+    assert not a.acquire_lease("snapshot", "other owner, same process", 300)
+    with psycopg.connect(pg_url) as c:
+        assert c.execute("SELECT owner FROM flatserve.leases WHERE name='snapshot'"
+                         ).fetchone() == ("A",)
+        a.release_lease("snapshot", "B")  # not B's: no effect
+        assert not b.acquire_lease("snapshot", "B", 300)
+        a.release_lease("snapshot", "A")
+        assert b.acquire_lease("snapshot", "B", 300)
+        # B's holder dies (its session ends, as when its process is killed): the one
+        # session holding an advisory lock now is B's lease
+        n = c.execute("SELECT count(pg_terminate_backend(pid)) FROM pg_locks"
+                      " WHERE locktype='advisory' AND granted").fetchone()[0]
+    assert n >= 1
+    t0 = time.monotonic()
+    while not a.acquire_lease("snapshot", "A", 300):  # taken over, no ttl to wait for
+        assert time.monotonic() - t0 < 30
+        time.sleep(0.05)
+    assert not b.acquire_lease("snapshot", "B", 300)
+    assert b.acquire_lease("other", "B", 300)  # leases are independent
 
 
 def test_a_restart_of_postgresql_is_survived(own_pg_cluster):

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from ..errors import FieldNotFoundError
+from ..errors import FieldExistsError, FieldNotFoundError
 from ..flats import Flats
 from ..lightfield.sampling import BASIS_SCALE, ProgressBar, bunny_scene, sample_scene
 from . import specs, uploads
@@ -85,7 +85,11 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, n: int = DEMO_N, seed: i
         # the paper's basis: tangent simplex around the z-axis, scale 0.01
         spec = TangentSimplexBasis(scale=BASIS_SCALE)
         basis = specs.build_basis(spec, 1, 3)
-        e = registry.create(name, FieldSpec(1, 3, 1, specs.spec_dict(spec)), basis)
+        try:
+            e = registry.create(name, FieldSpec(1, 3, 1, specs.spec_dict(spec)), basis)
+        except FieldExistsError:  # another replica (serve --processes N) created it
+            registry.wait_all_committed()
+            e = registry.get(name)
         log.info("demo field %r: building the bunny light field from %d^2 samples", name, n)
     t0 = time.perf_counter()
     scene = bunny_scene(1)

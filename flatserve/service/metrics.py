@@ -26,6 +26,10 @@ class Metrics:
         self.batches = Counter("flatserve_batches", "Upload batches stored", ["field"], registry=r)
         self.query_rows = Counter("flatserve_query_rows", "Flats queried", ["field"], registry=r)
         self.queries = Counter("flatserve_queries", "Query requests", ["field"], registry=r)
+        self.apply_seconds = Histogram(
+            "flatserve_log_apply_seconds", "Seconds this replica took to apply one batch of "
+            "the log (chart unless charted here, then insert)", registry=r,
+            buckets=(0.001, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60))
         self.snapshots = Counter("flatserve_snapshots", "Snapshots written", ["field"], registry=r)
 
     def watch(self, registry_obj) -> None:

@@ -246,6 +246,7 @@ class Registry:
                 return None, None
             self._before_index(e, entry.seq)
             follower.check_stop()
+            t0 = time.perf_counter()
             if prepared is None:
                 try:
                     arrays = dict(self.storage.batch_arrays(e.id, entry.seq))
@@ -268,8 +269,10 @@ class Registry:
                               entry.seq)
                 self.rebuild(e, entry.position, f"rebuilding after a failed insert: {exc}")
                 return None, str(exc)
-            if self.metrics is not None and res.accepted:
-                self.metrics.samples_accepted.labels(e.name).inc(res.accepted)
+            if self.metrics is not None:
+                self.metrics.apply_seconds.observe(time.perf_counter() - t0)
+                if res.accepted:
+                    self.metrics.samples_accepted.labels(e.name).inc(res.accepted)
         finally:
             if e is not None:
                 with e.pending_lock:

@@ -73,8 +73,8 @@ def lag(args, pg: PgCluster) -> None:
     url = pg.create_database("bench_lag")
     lag_args = argparse.Namespace(database_url=url, lag_rays=args.lag_rays, lag_base=args.lag_base,
                                   lag_batches=args.lag_batches, lag_period=args.lag_period)
-    print("2. replication lag on PostgreSQL:", end=" ")
     bench_replicas.replication_lag(lag_args, np.random.default_rng(2))
+    print("   (both replicas on the PostgreSQL cluster: bench_replicas.py gives SQLite's)")
 
 
 def main(argv=None) -> int:

@@ -10,8 +10,12 @@ throwaway PostgreSQL cluster started here (fsync on: commits are real).
    (a steady stream of 10k-ray uploads to replica A, acknowledgement on A to
    applied on B, p50 / p99, beside B's own chart + insert time) with both
    replicas on the cluster.
+3. catch-up: a new replica on an empty machine (an empty data directory, the
+   URL) restoring a ``--catchup-samples`` field from PostgreSQL (its snapshot,
+   then the log after it), vs today's restart of one process on its own data
+   directory (SQLite) with the same field    -> ratio
 
-    PYTHONPATH=. python benchmarks/bench_pg.py [--rays 10000 50000] [--runs 7]
+    PYTHONPATH=. python benchmarks/bench_pg.py [--rays 10000 50000] [--runs 7] [--only catchup]
 """
 from __future__ import annotations
 
@@ -77,6 +81,56 @@ def lag(args, pg: PgCluster) -> None:
     print("   (both replicas on the PostgreSQL cluster: bench_replicas.py gives SQLite's)")
 
 
+def _ready_at(start, probe, pos) -> float:
+    """Seconds from starting a server process to its answer at log position ``pos``."""
+    t0 = time.perf_counter()
+    srv = start()
+    srv.wait_ready(timeout=900, interval=0.02)
+    with Client(srv.url, timeout=900) as c:
+        c.query_rays("big", *probe, min_position=pos)
+    dt = time.perf_counter() - t0
+    srv.kill9()
+    return dt
+
+
+def catch_up(args, pg: PgCluster) -> None:
+    """A new replica on an empty machine, from PostgreSQL alone, vs today's restart of
+    a single process on its own data directory (SQLite), for the same field."""
+    import bench_replicas
+
+    n = args.catchup_samples
+    tmp = tempfile.mkdtemp(prefix="bench-pg-")
+    url = pg.create_database("bench_catchup")
+    times = {}
+    try:
+        for kind, opts in (("sqlite", {}), ("postgresql", {"database_url": url})):
+            rng = np.random.default_rng(3)
+            data = os.path.join(tmp, kind)
+            common = dict(log_level="warning", snapshot_every=0, read_wait_timeout=900, **opts)
+            with ServerProcess(data, os.path.join(tmp, f"{kind}.log"), **common) as a:
+                a.wait_ready(timeout=300)
+                with Client(a.url, timeout=900) as c:
+                    bench_replicas.fill(c, "big", n // 2, 10_000, rng)
+                    c.snapshot("big")
+                    for _ in range(n // 2 // 10_000):
+                        o, d = paper_rays(rng, 10_000)
+                        pos = c.upload_rays("big", o, d, rng.uniform(size=10_000))["position"]
+            probe = paper_rays(rng, 10)
+            runs = []
+            for i in range(args.runs):  # SQLite: the same directory; PostgreSQL: an empty one
+                where = data if kind == "sqlite" else os.path.join(tmp, f"empty{i}")
+                runs.append(_ready_at(lambda: ServerProcess(
+                    where, os.path.join(tmp, f"{kind}-{i}.log"), **common), probe, pos))
+            times[kind] = statistics.median(runs)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    s, p = times["sqlite"], times["postgresql"]
+    print(f"3. catch-up of a {n}-sample field (snapshot after half, half in the log), start to "
+          f"answering (medians of {args.runs}): single-process restart on its data directory "
+          f"(SQLite) {s:.2f} s | new replica on an empty machine from PostgreSQL {p:.2f} s | "
+          f"ratio {p / s:.2f}x")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rays", type=int, nargs="+", default=[10_000, 50_000])
@@ -85,7 +139,8 @@ def main(argv=None) -> int:
     ap.add_argument("--lag-base", type=int, default=20_000)
     ap.add_argument("--lag-batches", type=int, default=20)
     ap.add_argument("--lag-period", type=float, default=1.0)
-    ap.add_argument("--only", choices=("ingest", "lag"), default=None)
+    ap.add_argument("--catchup-samples", type=int, default=100_000)
+    ap.add_argument("--only", choices=("ingest", "lag", "catchup"), default=None)
     args = ap.parse_args(argv)
     limit_blas_threads(1)
     with PgCluster(fsync=True) as pg:
@@ -95,6 +150,8 @@ def main(argv=None) -> int:
             ingest(args, pg)
         if args.only in (None, "lag"):
             lag(args, pg)
+        if args.only in (None, "catchup"):
+            catch_up(args, pg)
     return 0
 
 

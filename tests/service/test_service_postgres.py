@@ -241,8 +241,9 @@ def test_postgresql_restart_while_replicas_run(tmp_path, own_pg_cluster, rng):
             # writers keep trying through the restart, as a client following Retry-After
             stop = threading.Event()
             seen: list = []
+            refused = [threading.Event(), threading.Event()]
 
-            def writer(c, prefix, r):
+            def writer(c, prefix, r, refused):
                 i = 0
                 while not stop.is_set() or i < 3:
                     key = f"{prefix}{i}"
@@ -251,21 +252,23 @@ def test_postgresql_restart_while_replicas_run(tmp_path, own_pg_cluster, rng):
                         book.ack(key, c.upload_rays(FIELD, *args, idempotency_key=key))
                         i += 1
                     except ServiceError as exc:
-                        seen.append(exc.status)
-                        assert exc.status == 503
-                        time.sleep(float(c.last_response.headers.get("retry-after", 1)) / 4)
+                        seen.append((exc.status, c.last_response.headers.get("retry-after")))
+                        refused.set()
+                        time.sleep(0.25)
 
             with Client(a.url, retries=0, timeout=60) as wa, Client(b.url, retries=0, timeout=60) as wb:
-                ts = [threading.Thread(target=writer, args=(w, p, np.random.default_rng(s)))
-                      for w, p, s in ((wa, "wa", 1), (wb, "wb", 2))]
+                ts = [threading.Thread(target=writer, args=(w, p, np.random.default_rng(s), ev))
+                      for w, p, s, ev in ((wa, "wa", 1, refused[0]), (wb, "wb", 2, refused[1]))]
                 for t in ts:
                     t.start()
-                time.sleep(1.0)
+                for ev in refused:  # both writers are retrying against the dead database
+                    assert ev.wait(120)
                 own_pg_cluster.start()
                 stop.set()
                 for t in ts:
                     t.join(180)
-            assert seen and set(seen) == {503}
+                assert not any(t.is_alive() for t in ts)
+            assert seen and set(seen) == {(503, "1")}
             # the batches refused while it was down: retried with their keys
             for c, key in ((ca, "down-a"), (cb, "down-b")):
                 book.ack(key, c.upload_rays(FIELD, *book.sent[key], idempotency_key=key))

@@ -5,7 +5,9 @@ either during uploads; PostgreSQL stopped and restarted under running replicas;
 kill -9 of a replica writing a snapshot; a replica started on an empty machine
 with only the database URL. After each: every acknowledged batch is stored once
 and whole, and every replica answers exactly as a field built in-process from
-the stored batches, in their order."""
+the stored batches, in their order. The fields are single charts (compared sample
+ids and weights included); the default (atlas) field goes through the same log in
+tests/service/test_service_replicas.py."""
 from __future__ import annotations
 
 import contextlib
@@ -22,7 +24,7 @@ from flatserve.field import Field
 from flatserve.service import specs
 from flatserve.service.process import ServerProcess
 
-from .conftest import paper_rays
+from .conftest import ONE_CHART, paper_rays
 
 FIELD = "pg"
 
@@ -78,7 +80,7 @@ class Book:
 
 def reference(book: Book, stored: list[dict]) -> Field:
     """The field built in-process from the stored batches in their order."""
-    ref = Field(specs.build_basis(None, 1, 3), channels=2)
+    ref = Field(specs.build_basis(None, 1, 3), channels=2)  # as ONE_CHART fields
     for b in stored:
         o, d, v = book.sent[b["idempotency_key"]]
         assert b["rows"] == len(o), "a batch was stored half"
@@ -121,7 +123,7 @@ def test_write_through_one_read_through_the_other(replicas, rng):
     book = Book()
     probe = paper_rays(rng, 500)
     with Client(a.url, retries=0) as ca, Client(b.url, retries=0) as cb:
-        ca.create_field(FIELD, channels=2)
+        ca.create_field(FIELD, channels=2, basis=ONE_CHART)
         for i in range(6):
             writer, reader = (ca, cb) if i % 2 == 0 else (cb, ca)  # any replica takes writes
             o, d, v = book.batch(rng, f"k{i}", 1500)
@@ -178,7 +180,7 @@ def test_kill9_of_either_replica_during_uploads_loses_nothing(replicas, rng, vic
     book = Book()
     probe = paper_rays(rng, 400)
     with Client(a.url, retries=0) as c:
-        c.create_field(FIELD, channels=2)
+        c.create_field(FIELD, channels=2, basis=ONE_CHART)
     for rnd in range(2):
         stop = threading.Event()
         errors: list = []
@@ -219,7 +221,7 @@ def test_postgresql_restart_while_replicas_run(tmp_path, own_pg_cluster, rng):
         book = Book()
         probe = paper_rays(rng, 400)
         with Client(a.url, retries=0) as ca, Client(b.url, retries=0) as cb:
-            ca.create_field(FIELD, channels=2)
+            ca.create_field(FIELD, channels=2, basis=ONE_CHART)
             for i in range(4):
                 key = f"before{i}"
                 book.ack(key, (ca if i % 2 else cb).upload_rays(FIELD, *book.batch(rng, key),
@@ -281,7 +283,7 @@ def test_a_replica_on_an_empty_machine_needs_only_the_database_url(replicas, rng
     book = Book()
     probe = paper_rays(rng, 400)
     with Client(a.url, retries=0) as c:
-        c.create_field(FIELD, channels=2)
+        c.create_field(FIELD, channels=2, basis=ONE_CHART)
         for i in range(5):
             key = f"s{i}"
             book.ack(key, c.upload_rays(FIELD, *book.batch(rng, key, 2000), idempotency_key=key))
@@ -315,7 +317,7 @@ def test_kill9_of_the_replica_writing_a_snapshot(replicas, rng, pg_url):
     book = Book()
     probe = paper_rays(rng, 400)
     with Client(a.url, retries=0) as c:
-        c.create_field(FIELD, channels=2)
+        c.create_field(FIELD, channels=2, basis=ONE_CHART)
         for i in range(6):
             key = f"s{i}"
             book.ack(key, c.upload_rays(FIELD, *book.batch(rng, key, 4000), idempotency_key=key))

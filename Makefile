@@ -63,7 +63,12 @@ run: build
 test: build $(BIN)/.test-deps $(BIN)/.browser $(BIN)/.docker $(BIN)/.postgres
 	FLATSERVE_STRICT=1 $(BIN)/python -m pytest -q tests
 
-bench: build
+# wrk: the load generator of benchmarks/bench_service.py and bench_replicas.py.
+$(BIN)/.bench-tools: scripts/install-system-deps.sh
+	bash scripts/install-system-deps.sh --bench
+	touch $@
+
+bench: build $(BIN)/.test-deps $(BIN)/.postgres $(BIN)/.bench-tools
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
 
 clean:

@@ -11,6 +11,7 @@
 #              for the tests and benchmarks of the PostgreSQL backend: they start
 #              their own throwaway clusters (flatserve/service/pgcluster.py), never
 #              the system's own cluster
+#   --bench    wrk, the HTTP load generator of the service benchmarks
 set -euo pipefail
 mode=build
 extra=()
@@ -21,6 +22,7 @@ for arg in "$@"; do
     --browser) extra+=(chromium chromium-driver) ;;
     --docker) extra+=(docker.io debootstrap ca-certificates) ;;
     --postgres) extra+=(postgresql) ;;
+    --bench) extra+=(wrk) ;;
     *) echo "unknown option $arg" >&2; exit 2 ;;
   esac
 done

@@ -34,9 +34,9 @@ build: $(BIN)/.built
 stub: build
 	$(BIN)/python -m nanobind.stubgen -q -m flatserve._core -p native/stubgen_patterns.txt -o flatserve/_core.pyi
 
-# The test extra, installed beside the package (no rebuild of the extension).
+# The test extra and the PostgreSQL driver, installed beside the package (no rebuild of the extension).
 $(BIN)/.test-deps: $(BIN)/.built pyproject.toml scripts/requirements.py
-	$(BIN)/python scripts/requirements.py --no-core test > $(BIN)/test-requirements.txt
+	$(BIN)/python scripts/requirements.py --no-core test postgres > $(BIN)/test-requirements.txt
 	$(BIN)/python -m pip install -q -r $(BIN)/test-requirements.txt
 	touch $@
 
@@ -50,14 +50,25 @@ $(BIN)/.docker: scripts/install-system-deps.sh
 	bash scripts/install-system-deps.sh --docker
 	touch $@
 
+# Debian's PostgreSQL server, for the tests of the PostgreSQL backend (they run
+# their own throwaway clusters: flatserve/service/pgcluster.py).
+$(BIN)/.postgres: scripts/install-system-deps.sh
+	bash scripts/install-system-deps.sh --postgres
+	touch $@
+
 run: build
 	$(BIN)/flatserve serve --demo --host $(HOST) --port $(PORT) --data-dir $(DATA)
 
 # FLATSERVE_STRICT=1: a skipped test counts as failed (see tests/conftest.py).
-test: build $(BIN)/.test-deps $(BIN)/.browser $(BIN)/.docker
+test: build $(BIN)/.test-deps $(BIN)/.browser $(BIN)/.docker $(BIN)/.postgres
 	FLATSERVE_STRICT=1 $(BIN)/python -m pytest -q tests
 
-bench: build
+# wrk: the load generator of benchmarks/bench_service.py and bench_replicas.py.
+$(BIN)/.bench-tools: scripts/install-system-deps.sh
+	bash scripts/install-system-deps.sh --bench
+	touch $@
+
+bench: build $(BIN)/.test-deps $(BIN)/.postgres $(BIN)/.bench-tools
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
 
 clean:

@@ -363,9 +363,10 @@ class Routing(NamedTuple):
         chart's centre is below the routing radius.
     angles : list of ndarray (float64)
         Per chart, those flats' angles to the centre (radians).
-    nearest : ndarray, shape (n,), int64
-        The chart whose centre is closest to each flat.
-    nearest_angle : ndarray, shape (n,)
+    nearest : ndarray, shape (n,), int64, or None
+        The chart whose centre is closest to each flat (None when routed
+        with ``nearest=False``).
+    nearest_angle : ndarray, shape (n,), or None
         That angle (radians).
     """
 
@@ -850,17 +851,22 @@ class Atlas:
         F = orientation_frames(flats, normals=False if self.oriented else None)
         return max_principal_angle(self.frames, F, oriented=self.oriented)
 
-    def route(self, flats: Flats, radius: float) -> Routing:
+    def route(self, flats: Flats, radius: float, *, nearest: bool = True) -> Routing:
         """Per chart, the flats closer than ``radius`` (degrees) to its centre.
 
         Batched: one matrix product (lines) or one closed-form 2x2 eigenvalue
-        per flat and chart; ``arccos`` only for the rows kept.
+        per flat and chart, one comparison pass over all of them; ``arccos``
+        only for the rows kept.
 
         Parameters
         ----------
         flats : Flats
         radius : float
             Degrees (``reach`` for samples, ``trusted`` for queries).
+        nearest : bool
+            Also find each flat's nearest chart (the upload path needs it, a
+            query does not): ``Routing.nearest`` and ``nearest_angle`` are
+            None when False.
 
         Returns
         -------
@@ -875,26 +881,32 @@ class Atlas:
             dots = F[:, :, 0] @ self.frames[:, :, 0].T  # (n, c)
             if not self.oriented:
                 np.abs(dots, out=dots)
-            nearest = dots.argmax(axis=1)
-            best = dots[np.arange(n), nearest]
+            held = np.ascontiguousarray((dots > cr).T)  # (c, n): one pass, rows contiguous
             for i in range(c):
-                col = dots[:, i]
-                sel = np.flatnonzero(col > cr)
+                sel = np.flatnonzero(held[i])
                 rows.append(sel)
-                angles.append(np.arccos(np.minimum(col[sel], 1.0)))
-            return Routing(rows, angles, nearest, np.arccos(np.clip(best, -1.0, 1.0)))
+                angles.append(np.arccos(np.minimum(dots[sel, i], 1.0)))
+            if not nearest:
+                return Routing(rows, angles, None, None)
+            near = dots.argmax(axis=1)
+            best = dots[np.arange(n), near]
+            return Routing(rows, angles, near, np.arccos(np.clip(best, -1.0, 1.0)))
         cr2 = cr * cr
-        best = np.full(n, -1.0)
-        nearest = np.zeros(n, dtype=np.int64)
+        if nearest:
+            best = np.full(n, -1.0)
+            near = np.zeros(n, dtype=np.int64)
         for i in range(c):
             c2 = _cos2_max(self.frames[i], F)
             sel = np.flatnonzero(c2 > cr2)
             rows.append(sel)
             angles.append(np.arccos(np.sqrt(c2[sel])))
-            better = c2 > best
-            best[better] = c2[better]
-            nearest[better] = i
-        return Routing(rows, angles, nearest, np.arccos(np.sqrt(np.clip(best, 0.0, 1.0))))
+            if nearest:
+                better = c2 > best
+                best[better] = c2[better]
+                near[better] = i
+        if not nearest:
+            return Routing(rows, angles, None, None)
+        return Routing(rows, angles, near, np.arccos(np.sqrt(np.clip(best, 0.0, 1.0))))
 
     def held(self, flats: Flats, radius: float) -> np.ndarray:
         """Per chart, how many flats are closer than ``radius`` (degrees) to its centre.
@@ -1324,7 +1336,7 @@ class AtlasField:
             raise InvalidInputError(f"outside: expected 'nan' or 'clamp', got {outside!r}",
                                     "outside")
         at = self.atlas
-        ro = at.route(flats, at.trusted)
+        ro = at.route(flats, at.trusted, nearest=False)
         if blocking:
             self._lock.acquire_read()
         elif not self._lock.try_acquire_read():
@@ -1335,6 +1347,9 @@ class AtlasField:
             self._lock.release_read()
 
     def _query(self, flats, ro, outside, order, threads, return_weights) -> AtlasQueryResult:
+        # Per chart holding rows: its Field's answer on those rows only, blended
+        # into num / den in chart order (the sums of a row are always added in
+        # increasing chart order, from 0.0).
         at = self.atlas
         n, C = flats.n, self.channels
         num = np.zeros((n, C))
@@ -1357,9 +1372,14 @@ class AtlasField:
             b = bump(ro.angles[c], inner, trusted)
             res = self.fields[c].query(flats.take(rows), outside=outside, order=order,
                                        threads=threads, return_weights=return_weights)
-            good = np.isfinite(res.values).all(axis=1)
-            w = np.where(good, b, 0.0)
-            num[rows] += w[:, None] * np.where(good[:, None], res.values, 0.0)
+            v = res.values
+            fin = np.isfinite(v)
+            good = fin[:, 0] if C == 1 else fin.all(axis=1)
+            w = b if good.all() else np.where(good, b, 0.0)  # the common case: no masking
+            if C == 1:  # 1-D scatters (much faster than (m, 1) ones)
+                num[:, 0][rows] += w * (v[:, 0] if w is b else np.where(good, v[:, 0], 0.0))
+            else:
+                num[rows] += w[:, None] * (v if w is b else np.where(good[:, None], v, 0.0))
             den[rows] += w
             inside[rows] |= res.inside & (w > 0)
             status[rows[res.status == OK]] = OK
@@ -1372,7 +1392,7 @@ class AtlasField:
                 slot[rows] += 1
         has = den > 0
         values = np.full((n, C), np.nan)
-        values[has] = num[has] / den[has, None]
+        np.divide(num, den[:, None], out=values, where=has[:, None])
         if return_weights:
             with np.errstate(invalid="ignore", divide="ignore"):
                 wts *= (blend / np.where(has, den, np.nan)[:, None])[:, :, None]

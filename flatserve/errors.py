@@ -67,6 +67,12 @@ class StorageFullError(StorageError):
     """Durable storage is out of space (a write was refused; nothing changed)."""
 
 
+class StorageUnavailableError(StorageError):
+    """The database cannot be reached right now (a restart, a network failure): a
+    write in flight may or may not be stored (a retry with its idempotency key
+    tells); retry after a moment."""
+
+
 class DataDirInUseError(StorageError):
     """Another server holds the data directory."""
 

@@ -7,6 +7,11 @@
 #   --docker   Debian's Docker engine (docker.io) + debootstrap, for the image
 #              tests (scripts/docker-engine.sh starts the engine,
 #              scripts/docker-base.sh builds the base image without a registry)
+#   --postgres Debian's PostgreSQL server (binaries in /usr/lib/postgresql/15/bin),
+#              for the tests and benchmarks of the PostgreSQL backend: they start
+#              their own throwaway clusters (flatserve/service/pgcluster.py), never
+#              the system's own cluster
+#   --bench    wrk, the HTTP load generator of the service benchmarks
 set -euo pipefail
 mode=build
 extra=()
@@ -16,6 +21,8 @@ for arg in "$@"; do
     --runtime) mode=runtime ;;
     --browser) extra+=(chromium chromium-driver) ;;
     --docker) extra+=(docker.io debootstrap ca-certificates) ;;
+    --postgres) extra+=(postgresql) ;;
+    --bench) extra+=(wrk) ;;
     *) echo "unknown option $arg" >&2; exit 2 ;;
   esac
 done

@@ -22,3 +22,34 @@ def pytest_runtest_makereport(item, call):
         reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
         report.outcome = "failed"
         report.longrepr = f"skipped under FLATSERVE_STRICT=1 (set-up incomplete?): {reason}"
+
+
+# -- PostgreSQL: throwaway clusters (Debian's postgresql binaries, never the system's cluster)
+@pytest.fixture(scope="session")
+def pg_cluster():
+    """One throwaway cluster for the session (``fsync=off``: only processes die in
+    these tests, never the machine). Tests that stop or restart PostgreSQL use
+    :func:`own_pg_cluster` instead."""
+    from flatserve.service.pgcluster import PgCluster
+
+    with PgCluster(fsync=False) as pg:
+        yield pg
+
+
+@pytest.fixture
+def pg_url(pg_cluster, request):
+    """The URL of a fresh database on the session's cluster, for one test."""
+    import re
+    import uuid
+
+    stem = re.sub(r"[^a-z0-9_]", "_", request.node.name.lower())[:40]
+    return pg_cluster.create_database(f"t_{stem}_{uuid.uuid4().hex[:8]}")
+
+
+@pytest.fixture
+def own_pg_cluster():
+    """A cluster of this test's own (it may stop, crash and restart it)."""
+    from flatserve.service.pgcluster import PgCluster
+
+    with PgCluster(fsync=False) as pg:
+        yield pg

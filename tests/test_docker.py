@@ -12,7 +12,10 @@ progress lines reach the terminal even without ``pytest -s``.
 
 Then a container serves on a named volume with an API key, takes uploads,
 is ``docker kill``-ed, and a new container on the same volume must answer
-with every acknowledged sample.
+with every acknowledged sample. And two containers serve one PostgreSQL on the
+host (a throwaway cluster, tests/conftest.py): a write through one is read
+through the other with its log position; a third container with nothing but
+the database URL catches up.
 """
 from __future__ import annotations
 
@@ -146,12 +149,17 @@ class Containers:
         self.names: list[str] = []
         docker("volume", "create", self.volume)
 
-    def run(self, port: int, api_key: str) -> str:
+    def run(self, port: int, api_key: str, env: dict | None = None, volume: bool = True) -> str:
+        """A container on the host's network; ``volume=False``: no data volume of
+        its own (a replica on PostgreSQL keeps nothing)."""
         name = f"flatserve-test-{self.tag}-{len(self.names)}"
         self.names.append(name)
+        extra = [a for k, v in (env or {}).items() for a in ("-e", f"{k}={v}")]
+        if volume:
+            extra += ["-v", f"{self.volume}:/var/lib/flatserve"]
         docker("run", "-d", "--name", name, "--network", "host",
                "-e", f"FLATSERVE_API_KEY={api_key}", "-e", f"FLATSERVE_PORT={port}",
-               "-v", f"{self.volume}:/var/lib/flatserve", self.image)
+               *extra, self.image)
         return name
 
     def logs(self) -> str:
@@ -177,7 +185,7 @@ class Containers:
 
     def close(self) -> None:
         for name in self.names:
-            docker("rm", "-f", name, check=False)
+            docker("rm", "-f", "-v", name, check=False)  # with its anonymous volume
         docker("volume", "rm", "-f", self.volume, check=False)
 
 
@@ -257,3 +265,50 @@ def test_container_keeps_acknowledged_samples_across_docker_kill(containers):
     hit = own.inside
     np.testing.assert_allclose(own.values[hit], v4[hit], rtol=0, atol=1e-9)
     assert q3.inside.sum() >= q1.inside.sum()
+
+
+def test_two_containers_on_one_postgresql(containers, pg_cluster):
+    """Replicas in containers on PostgreSQL running on the host (``--network host``):
+    written through one, read through the other with the upload's position."""
+    rng = np.random.default_rng(12)
+    key = uuid.uuid4().hex
+    env = {"FLATSERVE_DATABASE_URL": pg_cluster.create_database(f"docker_{containers.tag}")}
+    ports = [free_port(), free_port()]
+    names = [containers.run(p, key, env=env, volume=False) for p in ports]
+    clients = [Client(f"http://127.0.0.1:{p}", api_key=key, retries=0) for p in ports]
+    try:
+        for name, c in zip(names, clients):
+            containers.wait_ready(name, c)
+        a, b = clients
+        a.create_field("pg", channels=2)
+        qo, qd = paper_rays(rng, 300)
+        total = 0
+        for i in range(4):
+            writer, reader = (a, b) if i % 2 == 0 else (b, a)
+            o, d = paper_rays(rng, 1500)
+            v = rng.uniform(size=(1500, 2))
+            rep = writer.upload_rays("pg", o, d, v, idempotency_key=f"k{i}", wait=bool(i % 2))
+            total += rep["accepted"]
+            own = reader.query_rays("pg", o, d, min_position=rep["position"])
+            mine = np.ones(1500, bool)
+            mine[rep["rejected"]] = False
+            hit = mine & own.inside
+            assert hit.mean() > 0.9
+            np.testing.assert_allclose(own.values[hit], v[hit], rtol=0, atol=1e-9)
+        head = rep["position"]
+        qa = a.query_rays("pg", qo, qd, min_position=head)
+        qb = b.query_rays("pg", qo, qd, min_position=head)
+        np.testing.assert_array_equal(qa.values, qb.values)  # same position, same answers
+        assert a.describe("pg", min_position=head)["nsamples"] == total
+        containers.kill(names[0])
+        # a new container with nothing but the database URL catches up
+        port = free_port()
+        third = containers.run(port, key, env=env, volume=False)
+        with Client(f"http://127.0.0.1:{port}", api_key=key, retries=0) as c:
+            containers.wait_ready(third, c)
+            assert c.describe("pg", min_position=head)["nsamples"] == total
+            np.testing.assert_array_equal(c.query_rays("pg", qo, qd, min_position=head).values,
+                                          qa.values)
+    finally:
+        for c in clients:
+            c.close()

@@ -17,7 +17,7 @@ from flatserve.service import Settings, create_app
 
 pytestmark = pytest.mark.skipif(not CGAL_DATA_TARBALL.is_file(), reason="Debian libcgal-demo not installed")
 
-DEMO_N = 50  # 2500 samples: a coarse but recognisable field for the API tests
+DEMO_SAMPLES = 10_000  # all around the bunny: a coarse but recognisable 360 degree field
 CONSTANT_MARGIN_DB = 2.0
 
 
@@ -26,8 +26,8 @@ def client(tmp_path_factory):
     settings = Settings(data_dir=tmp_path_factory.mktemp("lf") / "data", snapshot_every=0, max_batch_rows=200_000)
     with TestClient(create_app(settings)) as tc:
         reg = tc.app.state.registry
-        e = ensure_demo_field(reg, n=DEMO_N, batch=1000, progress=False)
-        assert e.field.nsamples > 0.9 * DEMO_N**2
+        e = ensure_demo_field(reg, samples=DEMO_SAMPLES, batch=2500, progress=False)
+        assert e.field.nsamples == DEMO_SAMPLES  # an oriented covering atlas takes every ray
         yield tc
 
 
@@ -42,7 +42,7 @@ def test_demo_field_is_created_once(client):
     e = reg.get("bunny")
     n_before = e.field.nsamples
     batches = reg.storage.batch_stats(e.id)[0]
-    assert ensure_demo_field(reg, n=DEMO_N, batch=1000, progress=False) is e
+    assert ensure_demo_field(reg, samples=DEMO_SAMPLES, batch=2500, progress=False) is e
     assert e.field.nsamples == n_before and reg.storage.batch_stats(e.id)[0] == batches
     assert viewer_url("127.0.0.1", 8000) == "http://127.0.0.1:8000/viewer/bunny"
     assert viewer_url("0.0.0.0", 9, "x") == "http://127.0.0.1:9/viewer/x"
@@ -63,6 +63,43 @@ def test_render_png_matches_ground_truth(client):
     truth = render_truth(bunny_scene(1), Camera(eye=(0, 0, -3), focal=3.5, width=48, height=40)).image[..., 0]
     constant = np.full_like(truth, truth.mean())
     assert psnr(img, truth) > psnr(constant, truth) + CONSTANT_MARGIN_DB
+
+
+def test_demo_field_is_a_360_degree_atlas(client):
+    info = client.get("/v1/fields/bunny").json()
+    assert info["atlas"]["oriented"] is True
+    charts = info["charts"]
+    assert len(charts) == 12  # 6 icosahedral axes, both orientations
+    # samples from eyes all around: every chart holds some
+    assert all(c["samples"] > 0 for c in charts)
+
+
+@pytest.mark.parametrize("yaw, pitch", [(180, 0), (90, 60), (-120, -75), (45, 85)])
+def test_render_views_all_around_match_ground_truth(client, yaw, pitch):
+    # from behind, the side and (nearly) the poles: no 45 degree limit, and oriented rays
+    # (from behind the bunny's back is seen, not its front mirrored)
+    w = 40
+    r = client.post("/v1/fields/bunny/render",
+                    json={"orbit": {"yaw": yaw, "pitch": pitch}, "focal": 4, "width": w,
+                          "height": w, "supersample": 4})
+    assert r.status_code == 200, r.text
+    assert float(r.headers["x-coverage"]) > 0.8
+    img = png_array(r.content)
+    truth = render_truth(bunny_scene(1), Camera.orbit(yaw, pitch, 3.0, focal=4, width=w,
+                                                      height=w)).image[..., 0]
+    constant = np.full_like(truth, truth.mean())
+    assert psnr(img, truth) > psnr(constant, truth) + CONSTANT_MARGIN_DB
+
+
+def test_an_older_one_chart_demo_field_is_left_alone(tmp_path):
+    settings = Settings(data_dir=tmp_path / "data", snapshot_every=0)
+    with TestClient(create_app(settings)) as tc:
+        r = tc.post("/v1/fields", json={"name": "bunny", "k": 1, "d": 3,
+                                         "basis": {"kind": "tangent_simplex"}})
+        assert r.status_code == 201, r.text
+        e = tc.app.state.registry.get("bunny")
+        assert ensure_demo_field(tc.app.state.registry, samples=100, progress=False) is e
+        assert e.field.nsamples == 0 and tc.app.state.registry.storage.batch_stats(e.id)[0] == 0
 
 
 def test_render_npy_and_orbit(client):
@@ -119,7 +156,7 @@ def test_start_demo_field_in_the_background(client):
     from flatserve.service.demo import start_demo_field
 
     lines = []
-    th = start_demo_field(client.app.state.registry, "127.0.0.1", 8000, name="bunny2", n=20,
+    th = start_demo_field(client.app.state.registry, "127.0.0.1", 8000, name="bunny2", samples=400,
                           announce=lines.append)
     th.join(timeout=120)
     assert not th.is_alive()

@@ -1,11 +1,16 @@
-"""The server's demo field: the paper's bunny light field, built on first start.
+"""The server's demo field: a 360 degree light field of the bunny, built on first start.
 
 :func:`ensure_demo_field` is called by the service at start-up (``make run``):
-if the registry has no field called ``bunny`` it creates one with the paper's
-basis, samples the bunny (Sec. 5.2) and uploads the samples in batches
-through the registry (so they are stored durably and restored on the next
-start), showing a progress bar. Batches carry idempotency keys, so a start
-interrupted half-way continues where it stopped.
+if the registry has no field called ``bunny`` it creates an oriented covering
+atlas field (``{"oriented": true, "basis": {"kind": "atlas", "atlas":
+"covering"}}``: every ray direction lies well inside one of its charts),
+samples the bunny with rays from eyes all around it
+(:func:`flatserve.lightfield.sampling.orbit_samples`, as ``flatserve
+lightfield orbit`` does) and uploads the samples in batches through the
+registry (so they are stored durably and restored on the next start), showing
+a progress bar. Batches carry
+idempotency keys, so a start interrupted half-way continues where it stopped.
+The viewer can then orbit the whole way round.
 """
 from __future__ import annotations
 
@@ -16,21 +21,25 @@ import numpy as np
 
 from ..errors import FieldExistsError, FieldNotFoundError
 from ..flats import Flats
-from ..lightfield.sampling import BASIS_SCALE, ProgressBar, bunny_scene, sample_scene
+from ..lightfield.sampling import ProgressBar, bunny_scene, orbit_samples
 from . import specs, uploads
-from .entry import FieldSpec
-from .schemas import TangentSimplexBasis
+from .schemas import FieldCreate
 
-__all__ = ["DEMO_FIELD", "DEMO_N", "DEMO_BATCH", "ensure_demo_field", "start_demo_field", "viewer_url"]
+__all__ = ["DEMO_FIELD", "DEMO_SAMPLES", "DEMO_BATCH", "DEMO_REQUEST", "ensure_demo_field",
+           "start_demo_field", "viewer_url"]
 
 log = logging.getLogger("flatserve.service")
 
 #: Name of the demo field.
 DEMO_FIELD = "bunny"
-#: Screen side of the demo samples (DEMO_N^2 rays; the paper uses 1000).
-DEMO_N = 600
+#: Rays sampled all around the bunny (README: build time on 2 cores).
+DEMO_SAMPLES = 400_000
 #: Rays per upload batch.
 DEMO_BATCH = 50_000
+#: The demo field's create request (less its name): a covering atlas of oriented
+#: charts (rays keep their direction), as ``POST /v1/fields`` takes it.
+DEMO_REQUEST = {"k": 1, "d": 3, "channels": 1, "oriented": True,
+              "basis": {"kind": "atlas", "atlas": "covering"}}
 #: How long to wait for the registry to finish restoring stored fields.
 READY_TIMEOUT_S = 3600.0
 
@@ -44,9 +53,9 @@ def viewer_url(host: str, port: int, name: str = DEMO_FIELD) -> str:
     return f"http://{host}:{port}/viewer/{name}"
 
 
-def ensure_demo_field(registry, name: str = DEMO_FIELD, n: int = DEMO_N, seed: int = 0, *,
-                      progress=True, batch: int = DEMO_BATCH):
-    """Create the bunny light field in a running registry unless it is there.
+def ensure_demo_field(registry, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES,
+                      seed: int = 0, *, progress=True, batch: int = DEMO_BATCH):
+    """Create the 360 degree bunny light field in a running registry unless it is there.
 
     Parameters
     ----------
@@ -55,10 +64,10 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, n: int = DEMO_N, seed: i
         waits until it is ready.
     name : str
         Field name.
-    n : int
-        Samples on an n x n screen.
+    samples : int
+        Rays from eyes all around the bunny.
     seed : int
-        Seed of the eye positions.
+        Seed of the ray directions.
     progress : bool or callable(done, total)
         True: a text progress bar on stderr.
     batch : int
@@ -71,44 +80,51 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, n: int = DEMO_N, seed: i
     """
     if not registry.ready.wait(READY_TIMEOUT_S):
         raise TimeoutError("stored fields did not finish loading")
-    nbatches = -(-n * n // batch)
+    n = int(samples)
+    nbatches = -(-n // batch)
     try:
         e = registry.get(name)
         if (e.spec.k, e.spec.d, e.spec.channels) != (1, 3, 1):
             log.warning("field %r exists but is not a grey light field; leaving it alone", name)
+            return e
+        if not (e.spec.atlas or {}).get("oriented"):
+            log.warning("field %r exists but is not a 360 degree (oriented atlas) field, as built "
+                        "by earlier versions; leaving it alone (delete it to build the 360 "
+                        "degree demo)", name)
             return e
         done = registry.storage.batch_stats(e.id)[0]
         if done >= nbatches:
             return e
         log.info("demo field %r: %d of %d batches stored; continuing", name, done, nbatches)
     except FieldNotFoundError:
-        # the paper's basis: tangent simplex around the z-axis, scale 0.01
-        spec = TangentSimplexBasis(scale=BASIS_SCALE)
-        basis = specs.build_basis(spec, 1, 3)
+        req = FieldCreate(name=name, **DEMO_REQUEST)
+        spec, basis = specs.field_spec(req)
         try:
-            e = registry.create(name, FieldSpec(1, 3, 1, specs.spec_dict(spec)), basis)
+            e = registry.create(name, spec, basis)
         except FieldExistsError:  # another replica (serve --processes N) created it
             registry.wait_all_committed()
             e = registry.get(name)
-        log.info("demo field %r: building the bunny light field from %d^2 samples", name, n)
+        log.info("demo field %r: building the 360 degree bunny light field from %d samples "
+                 "(eyes all around it, %d charts)", name, n, len(spec.atlas["scales"]))
     t0 = time.perf_counter()
-    scene = bunny_scene(1)
-    samples, values = sample_scene(scene, n, seed)
-    bar = progress if callable(progress) else (ProgressBar(f"building demo field {name!r}", n * n) if progress else None)
-    for i, lo in enumerate(range(0, n * n, batch)):
-        hi = min(n * n, lo + batch)
+    bar = progress if callable(progress) else (ProgressBar(f"building demo field {name!r}", n) if progress else None)
+    if bar is not None:
+        bar(0, n)
+    samples, values = orbit_samples(bunny_scene(1), n, seed)
+    for i, lo in enumerate(range(0, n, batch)):
+        hi = min(n, lo + batch)
         flats = Flats.from_rays(samples.origins[lo:hi], samples.directions[lo:hi])
         uploads.upload(registry, e, flats, np.ascontiguousarray(values[lo:hi]),
-                       idem_key=f"demo-{name}-n{n}-s{seed}-b{batch}-{i}")
+                       idem_key=f"demo360-{name}-n{n}-s{seed}-b{batch}-{i}")
         if bar is not None:
-            bar(hi, n * n)
+            bar(hi, n)
     log.info("demo field %r: %d samples in %.1f s", name, e.field.nsamples, time.perf_counter() - t0)
     return e
 
 
 
-def start_demo_field(registry, host: str, port: int, *, name: str = DEMO_FIELD, n: int = DEMO_N,
-                     announce=print):
+def start_demo_field(registry, host: str, port: int, *, name: str = DEMO_FIELD,
+                     samples: int = DEMO_SAMPLES, announce=print):
     """Run :func:`ensure_demo_field` in a daemon thread and announce the viewer URL.
 
     For the service's start-up (``make run``): the server answers at once
@@ -118,7 +134,7 @@ def start_demo_field(registry, host: str, port: int, *, name: str = DEMO_FIELD, 
     ----------
     registry : Registry
     host, port : the address the server listens on (for the URL)
-    name, n : see :func:`ensure_demo_field`
+    name, samples : see :func:`ensure_demo_field`
     announce : callable(str)
         Receives the "open the viewer at ..." line (default print).
 
@@ -133,7 +149,7 @@ def start_demo_field(registry, host: str, port: int, *, name: str = DEMO_FIELD, 
     def run():
         try:
             announce(f"flatserve: preparing the demo light field {name!r}; viewer: {url}")
-            ensure_demo_field(registry, name, n)
+            ensure_demo_field(registry, name, samples)
             announce(f"flatserve: demo field {name!r} ready - open {url}")
         except Exception:  # the server keeps serving; the log says why
             log.exception("demo field %r could not be built", name)

@@ -76,7 +76,8 @@ def error_response(exc: BaseException) -> ORJSONResponse:
     status = status_of(exc)
     msg = _message(exc)
     headers = getattr(exc, "headers", None)
-    if (status == 503 and isinstance(exc, fe.NotReadyError)) or status in (429, 507):
+    if (status == 503 and isinstance(exc, (fe.NotReadyError, fe.StorageUnavailableError))
+            or status in (429, 507)):
         headers = {**(headers or {}), "Retry-After": "1"}
     if status == 422:
         arg = getattr(exc, "argument", None)

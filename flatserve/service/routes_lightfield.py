@@ -4,10 +4,13 @@
   frame as PNG (default) or ``.npy`` (float32, (H, W, C), NaN where no ray
   has a value; ``Accept: application/x-npy`` or ``"format": "npy"``).
   Timing split in ``Server-Timing`` (rays, coordinates, locate, encode) and
-  coverage in ``X-Coverage``.
+  coverage in ``X-Coverage``. One-chart and atlas fields alike (the demo is an
+  oriented covering atlas: the camera's rays keep their direction, and the
+  view exists from every side); an atlas field charts the rays inside its
+  query, so its ``coordinates`` are counted in ``locate``.
 * ``GET /viewer/{name}`` — a static page (HTML + JS, no build step): drag to
-  orbit the eye, wheel for the focal length; it shows each frame and its
-  render time.
+  orbit the eye (all the way round), wheel for the focal length; it shows each
+  frame and its render time.
 
 Owned by the light-field engineer; included by :func:`flatserve.service.app.create_app`.
 """

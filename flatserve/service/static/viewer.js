@@ -9,9 +9,11 @@
   const hash = new URLSearchParams(location.hash.slice(1));
   const apiKey = hash.get("key");                       // #key=... when the server needs one
   const DEFAULT = { yaw: 0, pitch: 0, distance: 3, focal: 4 };
-  // the samples see the bunny from eyes in [-1,1]^2 x [-4.5,-1.5]: beyond ~20 degrees the views
-  // nothing is covered, so the orbit stays within that
-  const LIMITS = { yaw: 20, pitch: 20, focalMin: 1.5, focalMax: 12 };
+  // yaw turns all the way round (wrapped to (-180, 180]); pitch stops short of the poles
+  // (the server takes |pitch| <= 89). A 360 degree field (an oriented atlas, the demo) has
+  // every view; a one-chart field only those within ~45 degrees of its axis (the rest is
+  // uncovered: the coverage line says so).
+  const LIMITS = { pitch: 85, focalMin: 1.5, focalMax: 12 };
   const DEG_PER_PX = 0.15;                              // drag sensitivity
   const WHEEL_STEP = 1.1;                               // focal factor per wheel notch
   const SIZE = 250;                                     // frame resolution (shown at 2x)
@@ -25,6 +27,9 @@
   document.title = "flatserve viewer: " + name;
 
   let inFlight = false, pending = null, renders = 0, lastUrl = null;
+
+  const wrapYaw = (y) => { y = ((y + 180) % 360 + 360) % 360 - 180; return y === -180 ? 180 : y; };
+  const clampPitch = (p) => Math.max(-LIMITS.pitch, Math.min(LIMITS.pitch, p));
 
   function request(supersample) {
     pending = { supersample: supersample, cam: Object.assign({}, cam) };
@@ -66,6 +71,8 @@
       renders += 1;
       img.dataset.renders = String(renders);
       img.dataset.supersample = String(job.supersample);
+      img.dataset.yaw = String(job.cam.yaw);            // the camera of the frame shown
+      img.dataset.pitch = String(job.cam.pitch);
       $("render-time").textContent = ms.toFixed(0) + " ms round trip (" + (SIZE * SIZE * job.supersample).toLocaleString() +
         " rays, " + job.supersample + " per pixel)";
       $("server-timing").textContent = (resp.headers.get("Server-Timing") || "")
@@ -94,8 +101,8 @@
   });
   stage.addEventListener("pointermove", (ev) => {
     if (!drag) return;
-    cam.yaw = Math.max(-LIMITS.yaw, Math.min(LIMITS.yaw, drag.yaw - (ev.clientX - drag.x) * DEG_PER_PX));
-    cam.pitch = Math.max(-LIMITS.pitch, Math.min(LIMITS.pitch, drag.pitch + (ev.clientY - drag.y) * DEG_PER_PX));
+    cam.yaw = wrapYaw(drag.yaw - (ev.clientX - drag.x) * DEG_PER_PX);
+    cam.pitch = clampPitch(drag.pitch + (ev.clientY - drag.y) * DEG_PER_PX);
     request(1);
   });
   const endDrag = (ev) => {
@@ -123,10 +130,10 @@
   // keyboard: arrows orbit, +/- zoom
   stage.addEventListener("keydown", (ev) => {
     const step = 5;
-    if (ev.key === "ArrowLeft") cam.yaw = Math.min(LIMITS.yaw, cam.yaw + step);
-    else if (ev.key === "ArrowRight") cam.yaw = Math.max(-LIMITS.yaw, cam.yaw - step);
-    else if (ev.key === "ArrowUp") cam.pitch = Math.min(LIMITS.pitch, cam.pitch + step);
-    else if (ev.key === "ArrowDown") cam.pitch = Math.max(-LIMITS.pitch, cam.pitch - step);
+    if (ev.key === "ArrowLeft") cam.yaw = wrapYaw(cam.yaw + step);
+    else if (ev.key === "ArrowRight") cam.yaw = wrapYaw(cam.yaw - step);
+    else if (ev.key === "ArrowUp") cam.pitch = clampPitch(cam.pitch + step);
+    else if (ev.key === "ArrowDown") cam.pitch = clampPitch(cam.pitch - step);
     else if (ev.key === "+" || ev.key === "=") cam.focal = Math.min(LIMITS.focalMax, cam.focal * WHEEL_STEP);
     else if (ev.key === "-") cam.focal = Math.max(LIMITS.focalMin, cam.focal / WHEEL_STEP);
     else return;

@@ -1,0 +1,840 @@
+"""The PostgreSQL backend of the replica log (``FLATSERVE_DATABASE_URL=postgresql://...``):
+replicas on several machines share one database. psycopg 3 (the ``postgres`` extra).
+
+Everything lives in the schema ``flatserve`` of the database the URL names
+(created on first use, by whichever replica comes first)::
+
+    meta             schema version
+    fields           id (never reused), name, spec JSON, basis blob, position of its
+                     create entry, the snapshot it points at (name, seq, position)
+    batches          (field_id, seq): position, idempotency key, content hash, form,
+                     rows, the arrays (one blob, flatserve.service.blobs)
+    batch_results    (field_id, seq): the response of each batch (JSON)
+    log              position: kind (create | delete | batch | snapshot), field_id,
+                     seq, commit time, rows
+    snapshots        name: field_id, bytes      \\ a snapshot is chunked rows, so a
+    snapshot_chunks  (name, idx): data (8 MiB)  / new replica needs only the URL
+    leases           name: owner, renewal due (the lease itself is a session-level
+                     advisory lock: it dies with its holder's connection)
+
+**Positions in commit order.** Every transaction that appends to the log takes
+the transaction-scoped advisory lock :data:`POSITION_LOCK` right before it draws
+its position (a sequence) and holds it until it commits, so a reader that sees
+position ``p`` sees every position below ``p`` that will ever commit (PostgreSQL
+makes a transaction visible before it releases its locks). The slow part of an
+upload (sending its arrays) happens before the lock: the lock covers a few
+small statements and the commit. Per field, appends are serialised by the
+field's row lock (``SELECT ... FOR UPDATE``) taken first: ``seq`` increases with
+the position, and the lock order (field row, then the position lock) is the
+same everywhere.
+
+**Following.** Each append sends ``NOTIFY flatserve_log, '<position>'`` in its
+transaction (delivered at commit). :meth:`PostgresBackend.wait_for_change`
+listens on a connection of its own and also wakes for this process's own
+commits (a pipe).
+
+**Faults.** Connections come from a small pool; one found broken (a restart of
+PostgreSQL, a network failure) is dropped with every idle one, and a statement
+that had not begun is retried once on a new connection. Otherwise the error is
+a :class:`~flatserve.errors.StorageUnavailableError` (503 with ``Retry-After``):
+a write whose commit was in flight may be stored or not; a retry with its
+idempotency key tells, so nothing acknowledged is lost and nothing is stored
+twice.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import select
+import shutil
+import tempfile
+import threading
+import time
+import uuid
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Iterator, TypeVar
+from urllib.parse import urlsplit, urlunsplit
+
+import numpy as np
+
+from ..errors import (FieldExistsError, FieldNotFoundError, StorageError, StorageFullError,
+                      StorageUnavailableError)
+from .backend import (BatchRow, FieldRow, KeyTakenError, LogBackend, LogEntry, SnapshotGoneError,
+                      SnapshotInfo)
+from .blobs import pack_arrays, unpack_arrays
+
+try:
+    import psycopg
+    from psycopg import errors as pgerr
+except ModuleNotFoundError as _exc:  # pragma: no cover - depends on the install
+    raise StorageError("FLATSERVE_DATABASE_URL names PostgreSQL, which needs psycopg 3: "
+                       "pip install 'flatserve[postgres]'") from _exc
+
+log = logging.getLogger("flatserve.service.pgstorage")
+
+T = TypeVar("T")
+
+SCHEMA = "flatserve"
+SCHEMA_VERSION = 1
+#: advisory lock keys (one bigint each): the log's append order; schema creation
+POSITION_LOCK = 0x666C6174_6C6F6701  # "flatlog" + 1
+SCHEMA_LOCK = 0x666C6174_6C6F6702
+#: NOTIFY channel of appends (payload: the position)
+CHANNEL = "flatserve_log"
+#: bytes per snapshot chunk row
+CHUNK_BYTES = 8 << 20
+
+_DDL = f"""
+CREATE SCHEMA IF NOT EXISTS {SCHEMA};
+SET search_path TO {SCHEMA};
+CREATE TABLE IF NOT EXISTS meta (key text PRIMARY KEY, value text NOT NULL);
+CREATE TABLE IF NOT EXISTS fields (
+    id bigserial PRIMARY KEY,
+    name text NOT NULL UNIQUE,
+    spec text NOT NULL,
+    basis bytea NOT NULL,
+    created double precision NOT NULL,
+    position bigint NOT NULL DEFAULT 0,
+    snapshot_file text,
+    snapshot_seq bigint NOT NULL DEFAULT 0,
+    snapshot_position bigint NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS batches (
+    field_id bigint NOT NULL REFERENCES fields(id) ON DELETE CASCADE,
+    seq bigint NOT NULL,
+    position bigint NOT NULL DEFAULT 0,
+    idem_key text,
+    content_hash text NOT NULL,
+    form text NOT NULL,
+    nrows bigint NOT NULL,
+    arrays bytea NOT NULL,
+    created double precision NOT NULL,
+    PRIMARY KEY (field_id, seq)
+);
+-- float arrays hardly compress: stored out of line as they are (no pglz pass)
+ALTER TABLE batches ALTER COLUMN arrays SET STORAGE EXTERNAL;
+CREATE UNIQUE INDEX IF NOT EXISTS batches_idem ON batches(field_id, idem_key)
+    WHERE idem_key IS NOT NULL;
+CREATE TABLE IF NOT EXISTS batch_results (
+    field_id bigint NOT NULL,
+    seq bigint NOT NULL,
+    result text NOT NULL,
+    PRIMARY KEY (field_id, seq),
+    FOREIGN KEY (field_id, seq) REFERENCES batches(field_id, seq) ON DELETE CASCADE
+);
+CREATE SEQUENCE IF NOT EXISTS log_position;
+CREATE TABLE IF NOT EXISTS log (
+    position bigint PRIMARY KEY,
+    kind text NOT NULL,
+    field_id bigint NOT NULL,
+    seq bigint NOT NULL DEFAULT 0,
+    committed double precision NOT NULL,
+    nrows bigint NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS snapshots (
+    name text PRIMARY KEY,
+    field_id bigint NOT NULL,
+    bytes bigint NOT NULL,
+    created double precision NOT NULL
+);
+CREATE TABLE IF NOT EXISTS snapshot_chunks (
+    name text NOT NULL REFERENCES snapshots(name) ON DELETE CASCADE,
+    idx integer NOT NULL,
+    data bytea NOT NULL,
+    PRIMARY KEY (name, idx)
+);
+ALTER TABLE snapshot_chunks ALTER COLUMN data SET STORAGE EXTERNAL;
+CREATE TABLE IF NOT EXISTS leases (
+    name text PRIMARY KEY,
+    owner text NOT NULL,
+    expires timestamptz NOT NULL
+);
+"""
+
+_BATCH_COLS = ("SELECT b.seq, b.position, b.idem_key, b.content_hash, b.form, b.nrows, r.result"
+               " FROM batches b LEFT JOIN batch_results r ON r.field_id=b.field_id AND r.seq=b.seq ")
+_FIELD_COLS = ("SELECT id, name, spec, basis, created, position, snapshot_file, snapshot_seq,"
+               " snapshot_position FROM fields ")
+
+#: SQLSTATE classes of a server that is going away or cannot be reached
+_UNAVAILABLE = ("08", "57P01", "57P02", "57P03", "53300")
+
+
+def redact(url: str) -> str:
+    """The URL without its password (for logs and error messages)."""
+    try:
+        parts = urlsplit(url)
+    except ValueError:
+        return "postgresql://?"
+    if parts.password is None:
+        return url
+    host = parts.hostname or ""
+    if parts.port:
+        host = f"{host}:{parts.port}"
+    return urlunsplit(parts._replace(netloc=f"{parts.username}:***@{host}"))
+
+
+def storage_error(exc: Exception, where: str) -> StorageError:
+    """The :class:`StorageError` for a psycopg error: out of space
+    (:class:`StorageFullError`, 507), unreachable (:class:`StorageUnavailableError`,
+    503 with ``Retry-After``), else :class:`StorageError` (503)."""
+    state = getattr(exc, "sqlstate", None) or ""
+    if isinstance(exc, pgerr.DiskFull) or state == "53100":
+        return StorageFullError(f"storage failed: the database is out of space ({exc})")
+    if (isinstance(exc, (psycopg.OperationalError, psycopg.InterfaceError))
+            or state.startswith(_UNAVAILABLE)):
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        return StorageUnavailableError(f"the database {where} cannot be reached ({msg}); "
+                                       "retry (a write in flight may be stored: retry it with "
+                                       "its Idempotency-Key)")
+    return StorageError(f"storage failed ({where}): {exc}")
+
+
+def _lease_key(name: str) -> int:
+    """The advisory lock key of a lease (a signed 64-bit integer)."""
+    h = hashlib.sha256(f"flatserve-lease:{name}".encode()).digest()
+    return int.from_bytes(h[:8], "big", signed=True)
+
+
+class _Retry(Exception):
+    """A pooled connection was found broken before anything was sent: retry once."""
+
+
+class PostgresBackend(LogBackend):
+    """The replica log in PostgreSQL (see the module doc).
+
+    Parameters
+    ----------
+    url : str
+        ``postgresql://user:password@host:port/database`` (libpq's URL; its
+        query parameters such as ``sslmode`` are passed on).
+    tmp_dir : str or path, optional
+        Where snapshots are staged on their way to and from the database
+        (default: the system's temporary directory).
+    connect_timeout : float
+        Seconds to wait for one connection.
+    start_timeout : float
+        Seconds :meth:`check` (at start) keeps trying to reach the database
+        (a replica and its database started together).
+    pool_size : int
+        Idle connections kept for reuse.
+    """
+
+    kind = "postgresql"
+
+    def __init__(self, url: str, *, tmp_dir=None, connect_timeout: float = 5.0,
+                 start_timeout: float = 30.0, pool_size: int = 8):
+        self.url = url
+        self.where = redact(url)
+        self.tmp_dir = Path(tmp_dir) if tmp_dir else None
+        self.connect_timeout = connect_timeout
+        self.start_timeout = start_timeout
+        self.pool_size = pool_size
+        self._idle: list[psycopg.Connection] = []
+        self._pool_lock = threading.Lock()
+        self._closed = False
+        self._listen: psycopg.Connection | None = None
+        self._listen_lock = threading.Lock()
+        self._waiting = False
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self._schema_ready = False
+        #: leases held: name -> (owner, the connection holding its advisory lock)
+        self._leases: dict[str, tuple[str, psycopg.Connection]] = {}
+        self._lease_lock = threading.Lock()
+
+    @classmethod
+    def from_settings(cls, settings) -> "PostgresBackend":
+        """From a server's :class:`~flatserve.service.settings.Settings`
+        (``database_url``; snapshots are staged in ``data_dir`` when it exists)."""
+        data_dir = Path(settings.data_dir)
+        return cls(settings.database_url, tmp_dir=data_dir if data_dir.is_dir() else None)
+
+    # -- connections --------------------------------------------------------------
+    def _connect(self) -> "psycopg.Connection":
+        # TCP keepalives: a database that vanished without closing the connection
+        # (a network partition, a host that died) is noticed within ~25 s
+        conn = psycopg.connect(self.url, autocommit=True,
+                               connect_timeout=max(1, int(self.connect_timeout)),
+                               application_name="flatserve", keepalives=1, keepalives_idle=10,
+                               keepalives_interval=5, keepalives_count=3)
+        conn.execute(f"SET search_path TO {SCHEMA}")
+        return conn
+
+    def _take(self) -> "psycopg.Connection":
+        if self._closed:
+            raise StorageError(f"storage is closed ({self.where})")
+        with self._pool_lock:
+            while self._idle:
+                conn = self._idle.pop()
+                if not conn.closed and not conn.broken:
+                    return conn
+                conn.close()
+        try:
+            return self._connect()
+        except psycopg.Error as exc:
+            raise storage_error(exc, self.where) from exc
+
+    def _give(self, conn: "psycopg.Connection") -> None:
+        if conn.closed or conn.broken or self._closed:
+            conn.close()
+            return
+        with self._pool_lock:
+            if len(self._idle) < self.pool_size:
+                self._idle.append(conn)
+                return
+        conn.close()
+
+    def _drop_all(self) -> None:
+        with self._pool_lock:
+            idle, self._idle = self._idle, []
+        for c in idle:
+            c.close()
+
+    @contextmanager
+    def _session(self, tx: bool, isolation: str | None = None
+                 ) -> Iterator["psycopg.Connection"]:
+        """A connection (in a transaction if ``tx``), returned to the pool after."""
+        conn = self._take()
+        began = False
+        try:
+            if tx:
+                try:
+                    conn.execute("BEGIN" + (f" ISOLATION LEVEL {isolation}" if isolation else ""))
+                except psycopg.OperationalError as exc:
+                    raise _Retry() from exc
+                began = True
+                yield conn
+                conn.execute("COMMIT")
+            else:
+                yield conn
+        except _Retry:
+            conn.close()
+            self._drop_all()
+            raise
+        except BaseException as exc:
+            if began and not conn.closed and not conn.broken:
+                try:
+                    conn.execute("ROLLBACK")
+                except psycopg.Error:
+                    conn.close()
+            if conn.broken or conn.closed:
+                self._drop_all()
+            self._give(conn)
+            if isinstance(exc, psycopg.Error):
+                raise storage_error(exc, self.where) from exc
+            raise
+        else:
+            self._give(conn)
+
+    def _run(self, fn: Callable[["psycopg.Connection"], T], *, tx: bool = True,
+             isolation: str | None = None, write: bool = False) -> T:
+        """``fn(conn)`` in a transaction (a stale pooled connection is replaced
+        once). A write wakes this process's follower after its commit."""
+        for attempt in range(2):
+            try:
+                with self._session(tx, isolation) as conn:
+                    out = fn(conn)
+                break
+            except _Retry as r:
+                if attempt:
+                    raise storage_error(r.__cause__, self.where) from r.__cause__
+            except StorageUnavailableError:
+                # a read on a connection that broke: once more on a new one
+                if write or attempt:
+                    raise
+                self._drop_all()
+        if write:
+            self.wake()
+        return out
+
+    # -- life cycle -----------------------------------------------------------------
+    def _ensure_schema(self) -> None:
+        if self._schema_ready:
+            return
+
+        def fn(conn):
+            conn.execute("SELECT pg_advisory_xact_lock(%s)", (SCHEMA_LOCK,))
+            have = conn.execute(
+                "SELECT 1 FROM information_schema.tables WHERE table_schema=%s AND table_name='meta'",
+                (SCHEMA,)).fetchone()
+            if have:
+                row = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+                ver = int(row[0]) if row else 0
+                if ver != SCHEMA_VERSION:
+                    raise StorageError(f"the database {self.where} has flatserve schema version "
+                                       f"{ver}; this server knows {SCHEMA_VERSION}")
+                return
+            for stmt in _DDL.split(";"):
+                if stmt.strip():
+                    conn.execute(stmt)
+            conn.execute("INSERT INTO meta(key, value) VALUES ('schema_version', %s)",
+                         (str(SCHEMA_VERSION),))
+
+        self._run(fn)
+        self._schema_ready = True
+
+    def check(self) -> None:
+        """Reach the database (trying for ``start_timeout`` seconds: a replica and
+        its database may start together), create the schema if it is new, and
+        refuse another schema version.
+
+        Raises
+        ------
+        StorageError
+            Unreachable after ``start_timeout`` seconds (naming the URL without
+            its password), or a schema this server does not know.
+        """
+        end = time.monotonic() + self.start_timeout
+        while True:
+            try:
+                self._ensure_schema()
+                return
+            except StorageUnavailableError as exc:
+                if time.monotonic() >= end:
+                    raise StorageError(f"cannot reach the database {self.where} "
+                                       f"(tried for {self.start_timeout:g} s): {exc}") from exc
+                log.warning("waiting for the database %s: %s", self.where, exc)
+                time.sleep(0.5)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.wake()
+        self._drop_all()
+        with self._lease_lock:
+            leases, self._leases = self._leases, {}
+        for _, conn in leases.values():
+            conn.close()
+        with self._listen_lock:  # a wait in progress closes it on its way out
+            if not self._waiting and self._listen is not None:
+                self._listen.close()
+                self._listen = None
+
+    # -- the log ----------------------------------------------------------------------
+    @staticmethod
+    def _append(conn, kind: str, field_id: int, seq: int = 0, nrows: int = 0) -> int:
+        """Draw the next position and append an entry (the position lock is held to
+        the commit: see the module doc)."""
+        conn.execute("SELECT pg_advisory_xact_lock(%s)", (POSITION_LOCK,))
+        pos = conn.execute("SELECT nextval('log_position')").fetchone()[0]
+        conn.execute(
+            "INSERT INTO log(position, kind, field_id, seq, committed, nrows)"
+            " VALUES (%s, %s, %s, %s, extract(epoch FROM clock_timestamp()), %s)",
+            (pos, kind, field_id, seq, nrows))
+        conn.execute("SELECT pg_notify(%s, %s)", (CHANNEL, str(pos)))
+        return pos
+
+    def head(self) -> int:
+        self._ensure_schema()
+        return self._run(lambda c: c.execute("SELECT COALESCE(max(position), 0) FROM log")
+                         .fetchone()[0], tx=False)
+
+    def read_log(self, after: int, limit: int = 256) -> list[LogEntry]:
+        self._ensure_schema()
+        rows = self._run(lambda c: c.execute(
+            "SELECT position, kind, field_id, seq, committed, nrows FROM log WHERE position > %s"
+            " ORDER BY position LIMIT %s", (after, limit)).fetchall(), tx=False)
+        return [LogEntry(int(r[0]), r[1], int(r[2]), int(r[3]), float(r[4]), int(r[5]))
+                for r in rows]
+
+    def wake(self) -> None:
+        try:
+            os.write(self._wake_w, b"x")
+        except (BlockingIOError, OSError):
+            pass  # a byte is already waiting (or closed)
+
+    def wait_for_change(self, timeout: float) -> None:
+        """LISTEN on a connection of its own; after (re)connecting it returns at once
+        (changes may have happened meanwhile)."""
+        if self._closed:
+            return
+        if self._listen is None or self._listen.closed or self._listen.broken:
+            if self._listen is not None:
+                self._listen.close()
+                self._listen = None
+            try:
+                conn = self._connect()
+                conn.execute(f"LISTEN {CHANNEL}")
+                self._listen = conn
+            except psycopg.Error as exc:
+                log.debug("LISTEN on %s failed: %s", self.where, exc)
+                self._wait_pipe(min(timeout, 0.5))
+            return
+        conn = self._listen
+        with self._listen_lock:
+            if self._closed:
+                return
+            self._waiting = True
+        try:
+            fd = conn.fileno()
+            r, _, _ = select.select([fd, self._wake_r], [], [], timeout)
+        except (OSError, ValueError, psycopg.Error):
+            r = []
+        finally:
+            with self._listen_lock:
+                self._waiting = False
+                if self._closed:
+                    conn.close()
+                    self._listen = None
+        if self._closed:
+            return
+        if self._wake_r in r:
+            self._drain_pipe()
+        if fd in r:
+            try:
+                conn.pgconn.consume_input()
+                while conn.pgconn.notifies() is not None:
+                    pass
+            except psycopg.Error:
+                conn.close()  # reconnected on the next call
+            if conn.pgconn.status != psycopg.pq.ConnStatus.OK:
+                conn.close()
+
+    def _wait_pipe(self, timeout: float) -> None:
+        try:
+            r, _, _ = select.select([self._wake_r], [], [], timeout)
+        except (OSError, ValueError):
+            return
+        if r:
+            self._drain_pipe()
+
+    def _drain_pipe(self) -> None:
+        try:
+            while os.read(self._wake_r, 4096):
+                pass
+        except (BlockingIOError, OSError):
+            pass
+
+    # -- fields ---------------------------------------------------------------------
+    def create_field(self, name: str, spec: dict, basis: dict[str, np.ndarray]) -> tuple[int, int]:
+        self._ensure_schema()
+        blob = pack_arrays(basis)
+
+        def fn(conn):
+            try:
+                fid = conn.execute(
+                    "INSERT INTO fields(name, spec, basis, created) VALUES (%s, %s, %b, %s)"
+                    " RETURNING id", (name, json.dumps(spec), blob, time.time())).fetchone()[0]
+            except pgerr.UniqueViolation:
+                raise FieldExistsError(f"field {name!r} already exists") from None
+            pos = self._append(conn, "create", fid)
+            conn.execute("UPDATE fields SET position=%s WHERE id=%s", (pos, fid))
+            return int(fid), pos
+
+        return self._run(fn, write=True)
+
+    def delete_field(self, field_id: int) -> int:
+        self._ensure_schema()
+
+        def fn(conn):
+            if conn.execute("SELECT 1 FROM fields WHERE id=%s FOR UPDATE", (field_id,)).fetchone() is None:
+                raise FieldNotFoundError(f"field id {field_id} not stored")
+            conn.execute("DELETE FROM batches WHERE field_id=%s", (field_id,))  # results cascade
+            conn.execute("DELETE FROM snapshots WHERE field_id=%s", (field_id,))  # chunks cascade
+            conn.execute("DELETE FROM fields WHERE id=%s", (field_id,))
+            return self._append(conn, "delete", field_id)
+
+        return self._run(fn, write=True)
+
+    @staticmethod
+    def _field_row(r) -> FieldRow:
+        return FieldRow(int(r[0]), r[1], json.loads(r[2]), unpack_arrays(bytes(r[3])), float(r[4]),
+                        int(r[5]), r[6], int(r[7]), int(r[8]))
+
+    def state(self) -> tuple[int, list[FieldRow]]:
+        self._ensure_schema()
+
+        def fn(conn):
+            head = conn.execute("SELECT COALESCE(max(position), 0) FROM log").fetchone()[0]
+            with conn.cursor(binary=True) as cur:
+                rows = cur.execute(_FIELD_COLS + "ORDER BY id").fetchall()
+            return int(head), [self._field_row(r) for r in rows]
+
+        return self._run(fn, isolation="REPEATABLE READ")
+
+    def field(self, field_id: int) -> FieldRow:
+        self._ensure_schema()
+
+        def fn(conn):
+            with conn.cursor(binary=True) as cur:
+                return cur.execute(_FIELD_COLS + "WHERE id=%s", (field_id,)).fetchone()
+
+        r = self._run(fn, tx=False)
+        if r is None:
+            raise FieldNotFoundError(f"field id {field_id} not stored")
+        return self._field_row(r)
+
+    # -- batches --------------------------------------------------------------------
+    @staticmethod
+    def _batch_row(r) -> BatchRow:
+        return BatchRow(int(r[0]), int(r[1]), r[2], r[3], r[4], int(r[5]),
+                        None if r[6] is None else json.loads(r[6]))
+
+    def find_batch(self, field_id: int, idem_key: str) -> BatchRow | None:
+        self._ensure_schema()
+        r = self._run(lambda c: c.execute(_BATCH_COLS + "WHERE b.field_id=%s AND b.idem_key=%s",
+                                          (field_id, idem_key)).fetchone(), tx=False)
+        return None if r is None else self._batch_row(r)
+
+    def add_batch(self, field_id: int, *, idem_key: str | None, chash: str, form: str,
+                  nrows: int, blob: bytes,
+                  result_fn: Callable[[int, int], dict] | None = None) -> tuple[int, int]:
+        self._ensure_schema()
+
+        def fn(conn):
+            row = conn.execute("SELECT snapshot_seq FROM fields WHERE id=%s FOR UPDATE",
+                               (field_id,)).fetchone()
+            if row is None:
+                raise FieldNotFoundError(f"field id {field_id} was deleted")
+            if idem_key is not None:
+                r = conn.execute(_BATCH_COLS + "WHERE b.field_id=%s AND b.idem_key=%s",
+                                 (field_id, idem_key)).fetchone()
+                if r is not None:
+                    raise KeyTakenError(self._batch_row(r))
+            seq = conn.execute("SELECT COALESCE(max(seq), 0) + 1 FROM batches WHERE field_id=%s",
+                               (field_id,)).fetchone()[0]
+            seq = max(int(seq), int(row[0]) + 1)
+            # the arrays travel before the position lock is taken
+            conn.execute(
+                "INSERT INTO batches(field_id, seq, idem_key, content_hash, form, nrows, arrays,"
+                " created) VALUES (%s, %s, %s, %s, %s, %s, %b, %s)",
+                (field_id, seq, idem_key, chash, form, nrows, blob, time.time()))
+            pos = self._append(conn, "batch", field_id, seq, nrows)
+            conn.execute("UPDATE batches SET position=%s WHERE field_id=%s AND seq=%s",
+                         (pos, field_id, seq))
+            if result_fn is not None:
+                conn.execute("INSERT INTO batch_results(field_id, seq, result) VALUES (%s, %s, %s)",
+                             (field_id, seq, json.dumps(result_fn(seq, pos))))
+            return seq, pos
+
+        return self._run(fn, write=True)
+
+    def set_result(self, field_id: int, seq: int, result: dict, *, replace: bool = True,
+                   durable: bool = False) -> None:
+        self._ensure_schema()
+        action = "UPDATE SET result=EXCLUDED.result" if replace else "NOTHING"
+
+        def fn(conn):
+            if not durable:
+                conn.execute("SET LOCAL synchronous_commit = off")
+            conn.execute(
+                "INSERT INTO batch_results(field_id, seq, result)"
+                " SELECT %s, %s, %s WHERE EXISTS (SELECT 1 FROM batches WHERE field_id=%s AND seq=%s)"
+                f" ON CONFLICT (field_id, seq) DO {action}",
+                (field_id, seq, json.dumps(result), field_id, seq))
+
+        try:
+            self._run(fn)
+        except StorageError as exc:
+            if isinstance(exc.__cause__, pgerr.ForeignKeyViolation):
+                return  # the batch was deleted meanwhile
+            raise
+
+    def batches(self, field_id: int, after_seq: int = 0,
+                upto_position: int | None = None) -> list[BatchRow]:
+        self._ensure_schema()
+        upto = (1 << 62) if upto_position is None else upto_position
+        rows = self._run(lambda c: c.execute(
+            _BATCH_COLS + "WHERE b.field_id=%s AND b.seq>%s AND b.position<=%s ORDER BY b.seq",
+            (field_id, after_seq, upto)).fetchall(), tx=False)
+        return [self._batch_row(r) for r in rows]
+
+    def batch_arrays(self, field_id: int, seq: int) -> dict[str, np.ndarray]:
+        self._ensure_schema()
+
+        def fn(conn):
+            with conn.cursor(binary=True) as cur:
+                return cur.execute("SELECT arrays FROM batches WHERE field_id=%s AND seq=%s",
+                                   (field_id, seq)).fetchone()
+
+        r = self._run(fn, tx=False)
+        if r is None:
+            raise FieldNotFoundError(f"field id {field_id} has no batch {seq}")
+        return unpack_arrays(r[0])
+
+    def batch_stats(self, field_id: int) -> tuple[int, int, int, int]:
+        self._ensure_schema()
+        r = self._run(lambda c: c.execute(
+            "SELECT count(*), COALESCE(sum(nrows), 0), COALESCE(sum(octet_length(arrays)), 0),"
+            " COALESCE(max(seq), 0) FROM batches WHERE field_id=%s", (field_id,)).fetchone(),
+            tx=False)
+        return int(r[0]), int(r[1]), int(r[2]), int(r[3])
+
+    # -- snapshots ------------------------------------------------------------------
+    def _stage(self) -> Path:
+        """A private temporary directory for one snapshot on its way."""
+        return Path(tempfile.mkdtemp(prefix="flatserve-snap-", dir=self.tmp_dir))
+
+    def write_snapshot(self, field_id: int, seq: int, position: int,
+                       save: Callable[[Path], None]) -> SnapshotInfo:
+        self._ensure_schema()
+        stage = self._stage()
+        name = f"f{field_id}-s{seq}-{uuid.uuid4().hex[:12]}.snap"
+        try:
+            path = stage / name
+            save(path)
+            if not path.exists():  # a writer that appended an extension
+                cands = [p for p in stage.iterdir()]
+                if len(cands) != 1:
+                    raise StorageError(f"snapshot writer did not create {path}")
+                path = cands[0]
+            size = path.stat().st_size
+
+            def store(conn):  # the data first, in a transaction of its own
+                conn.execute("INSERT INTO snapshots(name, field_id, bytes, created)"
+                             " VALUES (%s, %s, %s, %s)", (name, field_id, size, time.time()))
+                with open(path, "rb") as fh, conn.cursor() as cur, cur.copy(
+                        "COPY snapshot_chunks(name, idx, data) FROM STDIN (FORMAT BINARY)") as cp:
+                    cp.set_types(["text", "int4", "bytea"])
+                    idx = 0
+                    while True:
+                        chunk = fh.read(CHUNK_BYTES)
+                        if not chunk and idx:
+                            break
+                        cp.write_row((name, idx, chunk))
+                        idx += 1
+                        if len(chunk) < CHUNK_BYTES:
+                            break
+
+            self._run(store)
+        except OSError as exc:
+            raise StorageError(f"snapshot failed: {exc}") from exc
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+
+        old: list[str] = []
+
+        def point(conn):  # then the field points at it, and the log says so
+            row = conn.execute("SELECT snapshot_file FROM fields WHERE id=%s FOR UPDATE",
+                               (field_id,)).fetchone()
+            if row is None:
+                raise FieldNotFoundError(f"field id {field_id} was deleted")
+            if row[0] and row[0] != name:
+                old.append(row[0])
+            conn.execute("UPDATE fields SET snapshot_file=%s, snapshot_seq=%s, snapshot_position=%s"
+                         " WHERE id=%s", (name, seq, position, field_id))
+            return self._append(conn, "snapshot", field_id, seq)
+
+        try:
+            pos = self._run(point, write=True)
+        except BaseException:
+            self._remove_snapshots([name])
+            raise
+        self._remove_snapshots(old)
+        return SnapshotInfo(name, size, pos)
+
+    def _remove_snapshots(self, names: list[str]) -> None:
+        if not names:
+            return
+        try:
+            self._run(lambda c: c.execute("DELETE FROM snapshots WHERE name = ANY(%s)", (names,)))
+        except StorageError as exc:  # best effort: clean_orphans removes it later
+            log.warning("could not remove snapshots %s: %s", names, exc)
+
+    def load_snapshot(self, row: FieldRow, load: Callable[[Path], T]) -> T:
+        if not row.snapshot_file:
+            raise SnapshotGoneError(f"field id {row.id} has no snapshot")
+        self._ensure_schema()
+        stage = self._stage()
+        path = stage / row.snapshot_file
+        try:
+            def fetch(conn):  # one view: a snapshot replaced meanwhile is still read whole
+                if conn.execute("SELECT 1 FROM snapshots WHERE name=%s",
+                                (row.snapshot_file,)).fetchone() is None:
+                    return False
+                with open(path, "wb") as fh, conn.cursor(binary=True) as cur, cur.copy(
+                        "COPY (SELECT data FROM snapshot_chunks WHERE name=%s ORDER BY idx)"
+                        " TO STDOUT (FORMAT BINARY)", (row.snapshot_file,)) as cp:
+                    cp.set_types(["bytea"])
+                    for (data,) in cp.rows():
+                        fh.write(data)
+                return True
+
+            try:
+                found = self._run(fetch, isolation="REPEATABLE READ")
+            except OSError as exc:
+                raise StorageError(f"snapshot staging failed: {exc}") from exc
+            if not found:
+                raise SnapshotGoneError(f"snapshot {row.snapshot_file} of field id {row.id} "
+                                        "was replaced")
+            return load(path)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+
+    def snapshot_bytes(self, row) -> int:
+        """Size of the row's snapshot (a :class:`FieldRow`, or its ``snapshot_file``)."""
+        file = row if isinstance(row, (str, type(None))) else row.snapshot_file
+        if not file:
+            return 0
+        self._ensure_schema()
+        r = self._run(lambda c: c.execute("SELECT bytes FROM snapshots WHERE name=%s",
+                                          (file,)).fetchone(), tx=False)
+        return 0 if r is None else int(r[0])
+
+    def clean_orphans(self) -> int:
+        self._ensure_schema()
+        return self._run(lambda c: c.execute(
+            "DELETE FROM snapshots s WHERE NOT EXISTS"
+            " (SELECT 1 FROM fields f WHERE f.snapshot_file = s.name)").rowcount)
+
+    # -- leases ---------------------------------------------------------------------
+    def acquire_lease(self, name: str, owner: str, ttl: float) -> bool:
+        """The lease is a session-level advisory lock held on a connection of its own
+        for as long as ``owner`` holds it: a holder killed with kill -9 loses it as
+        soon as PostgreSQL sees its connection close (at once; a vanished host
+        within the keepalive time), not after ``ttl``. The ``leases`` row says who
+        holds it and until when it renews (``ttl``), for people looking."""
+        self._ensure_schema()
+        with self._lease_lock:
+            held = self._leases.get(name)
+            if held is not None and held[0] != owner:
+                return False  # another owner in this process
+            if held is not None:
+                try:  # a renewal on the session that holds the lock
+                    self._lease_row(held[1], name, owner, ttl)
+                    return True
+                except psycopg.OperationalError:
+                    # that session ended (PostgreSQL restarted, the backend was
+                    # terminated) and the lock with it: take it again below
+                    del self._leases[name]
+                    held[1].close()
+                except psycopg.Error as exc:
+                    raise storage_error(exc, self.where) from exc
+            conn = None
+            try:
+                conn = self._connect()
+                if not conn.execute("SELECT pg_try_advisory_lock(%s)",
+                                    (_lease_key(name),)).fetchone()[0]:
+                    conn.close()
+                    return False
+                self._lease_row(conn, name, owner, ttl)
+            except psycopg.Error as exc:
+                if conn is not None:
+                    conn.close()
+                raise storage_error(exc, self.where) from exc
+            self._leases[name] = (owner, conn)
+            return True
+
+    @staticmethod
+    def _lease_row(conn, name: str, owner: str, ttl: float) -> None:
+        conn.execute(
+            "INSERT INTO leases(name, owner, expires)"
+            " VALUES (%s, %s, clock_timestamp() + make_interval(secs => %s))"
+            " ON CONFLICT (name) DO UPDATE SET owner=EXCLUDED.owner, expires=EXCLUDED.expires",
+            (name, owner, float(ttl)))
+
+    def release_lease(self, name: str, owner: str) -> None:
+        self._ensure_schema()
+        with self._lease_lock:
+            held = self._leases.get(name)
+            if held is not None and held[0] == owner:
+                del self._leases[name]
+                held[1].close()  # ends the session: its advisory lock goes with it
+        self._run(lambda c: c.execute("DELETE FROM leases WHERE name=%s AND owner=%s",
+                                      (name, owner)))

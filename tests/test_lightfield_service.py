@@ -69,7 +69,8 @@ def test_demo_field_is_a_360_degree_atlas(client):
     info = client.get("/v1/fields/bunny").json()
     assert info["atlas"]["oriented"] is True
     charts = info["charts"]
-    assert len(charts) == 12  # 6 icosahedral axes, both orientations
+    assert len(charts) == 32  # 16 icosahedral vertex and face axes, both orientations
+    assert info["atlas"]["unit"] == pytest.approx(1 / 3)  # object_unit of the bunny's 0.5
     # samples from eyes all around: every chart holds some
     assert all(c["samples"] > 0 for c in charts)
 

@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 
+from ..atlas import object_unit
 from ..errors import FieldExistsError, FieldNotFoundError
 from ..flats import Flats
 from ..lightfield.sampling import ProgressBar, bunny_scene, orbit_samples
@@ -37,9 +38,10 @@ DEMO_SAMPLES = 400_000
 #: Rays per upload batch.
 DEMO_BATCH = 50_000
 #: The demo field's create request (less its name): a covering atlas of oriented
-#: charts (rays keep their direction), as ``POST /v1/fields`` takes it.
-DEMO_REQUEST = {"k": 1, "d": 3, "channels": 1, "oriented": True,
-              "basis": {"kind": "atlas", "atlas": "covering"}}
+#: charts (rays keep their direction), as ``POST /v1/fields`` takes it; lengths in
+#: the unit for the bunny's radius 0.5 (it fills the unit box): ``object_unit``, 1/3.
+DEMO_REQUEST = {"k": 1, "d": 3, "channels": 1, "oriented": True, "unit": object_unit(0.5),
+                "basis": {"kind": "atlas", "atlas": "covering"}}
 #: How long to wait for the registry to finish restoring stored fields.
 READY_TIMEOUT_S = 3600.0
 

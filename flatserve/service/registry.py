@@ -339,12 +339,14 @@ class Registry:
             except StorageError:  # pragma: no cover - it expires
                 pass
 
-    def _load_snapshot(self, e: FieldEntry, row: FieldRow
+    def _load_snapshot(self, e: FieldEntry, row: FieldRow, upto: int
                        ) -> tuple[Field | AtlasField | None, FieldRow]:
-        """The field of the row's snapshot (None if there is none or it is unusable)
-        and the row it came from (re-read if the snapshot was replaced meanwhile)."""
+        """The field of the row's snapshot (None if there is none, it is unusable, or
+        it holds batches after log position ``upto``: a newer snapshot that replaced
+        it meanwhile would carry the field past ``upto``) and the row it came from
+        (re-read if the snapshot was replaced meanwhile)."""
         for _ in range(5):
-            if not row.snapshot_file:
+            if not row.snapshot_file or row.snapshot_position > upto:
                 return None, row
             t0 = time.perf_counter()
             try:
@@ -369,7 +371,7 @@ class Registry:
         if upto is None:
             upto = self._restore_head
         try:
-            fld, row = self._load_snapshot(e, row)
+            fld, row = self._load_snapshot(e, row, upto)
             start, start_pos = (row.snapshot_seq, row.snapshot_position) if fld is not None \
                 else (0, 0)
             if fld is None:

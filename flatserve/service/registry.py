@@ -154,6 +154,7 @@ class Registry:
                     f"{self.settings.max_fields}"
                 )
             self._creating.add(name)
+        fid = None
         try:
             fid, pos = self.storage.create_field(name, spec.to_dict(),
                                                  {"Q": basis.Q, "r": basis.r})
@@ -166,6 +167,8 @@ class Registry:
         finally:
             with self._lock:
                 self._creating.discard(name)
+                # the follower may have applied the create before the hand-over
+                self._built.pop(fid, None)
         log.info("created field %r (k=%d, d=%d, channels=%d) at log position %d", name,
                  spec.k, spec.d, spec.channels, pos)
         return e

@@ -209,9 +209,16 @@ def test_restore_never_goes_past_its_log_position(make_app, rng, kind):
     """A snapshot replaced while a replica restores (another replica wrote a newer
     one) must not carry the field past the log position the restore read: the
     replica would answer at position p with batches committed after p."""
+    _restore_to_its_position(make_app(), rng, kind)
+
+
+def test_restore_never_goes_past_its_log_position_postgresql(make_app, rng, pg_url):
+    _restore_to_its_position(make_app(database_url=pg_url), rng, KINDS[1])
+
+
+def _restore_to_its_position(app, rng, kind):
     from flatserve.service import registry as registry_mod
 
-    app = make_app()
     tc, c = _started(app)
     try:
         reg = app.state.registry

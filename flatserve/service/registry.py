@@ -347,6 +347,8 @@ class Registry:
             n = self.storage.clean_orphans()
             if n:
                 log.info("removed %d unreferenced snapshot file(s)", n)
+        except (StorageError, OSError) as exc:  # best effort: the restore goes on
+            log.warning("snapshot clean-up failed: %s", exc)
         finally:
             try:
                 self.storage.release_lease(SNAPSHOT_LEASE, self.owner)

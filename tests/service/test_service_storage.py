@@ -245,3 +245,23 @@ def _restore_to_its_position(app, rng, kind):
         np.testing.assert_allclose(res.values, at_two[0], atol=1e-12, equal_nan=True)
     finally:
         tc.__exit__(None, None, None)
+
+
+def test_a_stray_directory_among_the_snapshots_does_not_stop_the_start(make_app, rng, tmp_path):
+    """The start-up clean-up of unreferenced snapshot files meets something it cannot
+    remove (a directory: ``lost+found`` of a volume mounted there): it is kept, and
+    the server still restores its fields and becomes ready."""
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=1)
+        c.upload_rays("f", *paper_rays(rng, 300), np.ones(300))
+        c.snapshot("f")
+    finally:
+        tc.__exit__(None, None, None)
+    (tmp_path / "data" / "snapshots" / "lost+found").mkdir()
+    tc, c = _started(make_app())
+    try:
+        assert c.describe("f")["nsamples"] > 0
+    finally:
+        tc.__exit__(None, None, None)
+    assert (tmp_path / "data" / "snapshots" / "lost+found").is_dir()

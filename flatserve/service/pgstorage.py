@@ -43,6 +43,7 @@ twice.
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import logging
@@ -674,9 +675,10 @@ class PostgresBackend(LogBackend):
     def write_snapshot(self, field_id: int, seq: int, position: int,
                        save: Callable[[Path], None]) -> SnapshotInfo:
         self._ensure_schema()
-        stage = self._stage()
+        stage = None
         name = f"f{field_id}-s{seq}-{uuid.uuid4().hex[:12]}.snap"
         try:
+            stage = self._stage()
             path = stage / name
             save(path)
             if not path.exists():  # a writer that appended an extension
@@ -703,10 +705,13 @@ class PostgresBackend(LogBackend):
                             break
 
             self._run(store)
-        except OSError as exc:
-            raise StorageError(f"snapshot failed: {exc}") from exc
+        except OSError as exc:  # staging: out of space is a 507, as with SQLite
+            full = exc.errno in (errno.ENOSPC, errno.EDQUOT)
+            raise (StorageFullError if full else StorageError)(
+                f"snapshot failed: {exc}") from exc
         finally:
-            shutil.rmtree(stage, ignore_errors=True)
+            if stage is not None:
+                shutil.rmtree(stage, ignore_errors=True)
 
         old: list[str] = []
 

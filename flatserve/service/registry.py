@@ -26,7 +26,8 @@ from concurrent.futures import ThreadPoolExecutor
 from ..atlas import AtlasField
 from ..basis import Basis
 from ..errors import (FieldExistsError, FieldNotFoundError, InvalidInputError, NotReadyError,
-                      ReplicaBehindError, StorageError, TooManyFieldsError)
+                      ReplicaBehindError, StorageError, StorageUnavailableError,
+                      TooManyFieldsError)
 from ..field import AddResult, Field, PreparedBatch, QueryResult
 from ..flats import Flats
 from .backend import SNAPSHOT_LEASE, FieldRow, LogBackend, LogEntry, SnapshotGoneError
@@ -43,6 +44,8 @@ SMALL_QUERY_ROWS = 2048
 DRAIN_TIMEOUT_S = 10.0
 #: a replica that found the snapshot lease taken tries again after this many seconds
 SNAPSHOT_RETRY_S = 10.0
+#: a restore that found the database unreachable tries again after this many seconds
+RESTORE_RETRY_S = 1.0
 
 
 def stored_flats(e: FieldEntry, form: str | None, arrays: dict) -> Flats:
@@ -154,6 +157,7 @@ class Registry:
                     f"{self.settings.max_fields}"
                 )
             self._creating.add(name)
+        fid = None
         try:
             fid, pos = self.storage.create_field(name, spec.to_dict(),
                                                  {"Q": basis.Q, "r": basis.r})
@@ -166,6 +170,8 @@ class Registry:
         finally:
             with self._lock:
                 self._creating.discard(name)
+                # the follower may have applied the create before the hand-over
+                self._built.pop(fid, None)
         log.info("created field %r (k=%d, d=%d, channels=%d) at log position %d", name,
                  spec.k, spec.d, spec.channels, pos)
         return e
@@ -294,7 +300,15 @@ class Registry:
     def load_stored(self) -> None:
         """Register every stored field (state ``loading``), restore them to the log
         head read with them, then follow the log."""
-        head, rows = self.storage.state()
+        while True:
+            try:
+                head, rows = self.storage.state()
+                break
+            except StorageError as exc:  # unreachable: wait for it (never ready otherwise)
+                if self.closed:
+                    return
+                log.warning("restore: %s; retrying in %g s", exc, RESTORE_RETRY_S)
+                time.sleep(RESTORE_RETRY_S)
         self._restore_head = head
         self._clean_orphans()
         entries = []
@@ -333,18 +347,22 @@ class Registry:
             n = self.storage.clean_orphans()
             if n:
                 log.info("removed %d unreferenced snapshot file(s)", n)
+        except (StorageError, OSError) as exc:  # best effort: the restore goes on
+            log.warning("snapshot clean-up failed: %s", exc)
         finally:
             try:
                 self.storage.release_lease(SNAPSHOT_LEASE, self.owner)
             except StorageError:  # pragma: no cover - it expires
                 pass
 
-    def _load_snapshot(self, e: FieldEntry, row: FieldRow
+    def _load_snapshot(self, e: FieldEntry, row: FieldRow, upto: int
                        ) -> tuple[Field | AtlasField | None, FieldRow]:
-        """The field of the row's snapshot (None if there is none or it is unusable)
-        and the row it came from (re-read if the snapshot was replaced meanwhile)."""
+        """The field of the row's snapshot (None if there is none, it is unusable, or
+        it holds batches after log position ``upto``: a newer snapshot that replaced
+        it meanwhile would carry the field past ``upto``) and the row it came from
+        (re-read if the snapshot was replaced meanwhile)."""
         for _ in range(5):
-            if not row.snapshot_file:
+            if not row.snapshot_file or row.snapshot_position > upto:
                 return None, row
             t0 = time.perf_counter()
             try:
@@ -364,12 +382,25 @@ class Registry:
     def _restore(self, e: FieldEntry, row: FieldRow, upto: int | None = None) -> None:
         """Restore ``e`` to log position ``upto`` (default: the head the start-up
         restore read): its snapshot, then its batches up to ``upto`` inserted as
-        the follower inserts them (chart, insert in slices)."""
-        t0 = time.perf_counter()
+        the follower inserts them (chart, insert in slices). The database
+        unreachable meanwhile: tried again until it answers (or the replica stops)."""
         if upto is None:
             upto = self._restore_head
+        while True:
+            try:
+                return self._restore_once(e, row, upto)
+            except StorageUnavailableError as exc:
+                if self.closed:
+                    e.state, e.error = "failed", str(exc)
+                    return
+                log.warning("field %r: restore interrupted (%s); retrying in %g s", e.name,
+                            exc, RESTORE_RETRY_S)
+                time.sleep(RESTORE_RETRY_S)
+
+    def _restore_once(self, e: FieldEntry, row: FieldRow, upto: int) -> None:
+        t0 = time.perf_counter()
         try:
-            fld, row = self._load_snapshot(e, row)
+            fld, row = self._load_snapshot(e, row, upto)
             start, start_pos = (row.snapshot_seq, row.snapshot_position) if fld is not None \
                 else (0, 0)
             if fld is None:
@@ -400,6 +431,8 @@ class Registry:
             log.info("field %r: restored, %d samples, %d batches replayed in %.2f s", e.name,
                      fld.nsamples, done, time.perf_counter() - t0)
             self.maybe_snapshot(e)
+        except StorageUnavailableError:
+            raise  # retried by _restore
         except Exception as exc:
             log.exception("field %r: restore failed", e.name)
             e.state, e.error = "failed", str(exc)
@@ -408,11 +441,18 @@ class Registry:
         """Rebuild a field from storage up to log position ``upto`` (the follower's
         thread: no later entry is applied meanwhile; queries get 503 until done)."""
         e.state, e.error = "loading", why
-        try:
-            row = self.storage.field(e.id)
-        except Exception as exc:
-            e.state, e.error = "failed", str(exc)
-            return
+        while True:
+            try:
+                row = self.storage.field(e.id)
+                break
+            except StorageUnavailableError as exc:  # as _restore: wait for the database
+                if self.closed:
+                    e.state, e.error = "failed", str(exc)
+                    return
+                time.sleep(RESTORE_RETRY_S)
+            except Exception as exc:
+                e.state, e.error = "failed", str(exc)
+                return
         with e.upload_lock, e.index_lock:
             self._restore(e, row, upto)
 

@@ -704,7 +704,7 @@ class SQLiteBackend(LogBackend):
         keep = {f.snapshot_file for f in self.fields() if f.snapshot_file}
         n = 0
         for p in self.snapshot_dir.iterdir():
-            if p.name not in keep:
+            if p.name not in keep and p.is_file():  # (never a directory mounted there)
                 p.unlink(missing_ok=True)
                 n += 1
         return n

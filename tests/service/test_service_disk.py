@@ -106,3 +106,24 @@ def test_full_disk_refuses_writes_with_507_and_reads_go_on(tmp_path, make_app, r
             assert rep["batch"] == 2 and c.describe("f")["storage"]["batches"] == 2
         finally:
             tc.__exit__(None, None, None)
+
+
+def test_postgresql_snapshot_staged_on_a_full_disk_is_507(tmp_path, make_app, rng, pg_url):
+    """The PostgreSQL backend stages a snapshot in the data directory: a full disk
+    there is a 507, as with the SQLite backend (not a 503, never a 500); the field
+    and its stored batches are untouched."""
+    with small_disk(tmp_path / "disk") as disk:
+        data = disk / "data"
+        data.mkdir()
+        tc, c = started(make_app(data_dir=data, database_url=pg_url))
+        try:
+            c.create_field("f", channels=1)
+            c.upload_rays("f", *paper_rays(rng, 1000), np.ones(1000))
+            fill(disk / "filler")
+            r = tc.post("/v1/fields/f/snapshot")
+            assert r.status_code == 507, r.text
+            os.unlink(disk / "filler")
+            assert c.snapshot("f")["batch"] == 1
+            assert c.describe("f")["storage"]["batches"] == 1
+        finally:
+            tc.__exit__(None, None, None)

@@ -284,3 +284,26 @@ def test_non_ascii_api_keys_work(make_app):
         assert tc.get("/v1/fields", headers={"api-key": "cle-secrete"}).status_code == 401
     finally:
         tc.__exit__(None, None, None)
+
+
+def test_a_create_the_follower_applies_first_keeps_nothing_behind(make_app, monkeypatch):
+    """The follower may apply a create's log entry before the request that committed
+    it hands its field over: the field the request built must not stay behind (one
+    empty field held for ever per create)."""
+    tc, c = started(make_app())
+    try:
+        reg = tc.app.state.registry
+        real = reg.storage.create_field
+
+        def create_field(*a, **kw):  # the follower wins the race
+            fid, pos = real(*a, **kw)
+            assert reg.follower.wait_applied(pos, 30)
+            return fid, pos
+
+        monkeypatch.setattr(reg.storage, "create_field", create_field)
+        for i in range(3):
+            c.create_field(f"g{i}", channels=1)
+            c.delete_field(f"g{i}")
+        assert reg._built == {}
+    finally:
+        tc.__exit__(None, None, None)

@@ -366,3 +366,60 @@ def _quiet(fn, *args):
         fn(*args)
     except Exception:
         pass
+
+
+def test_a_database_outage_during_the_restore_is_waited_out(tmp_path, own_pg_cluster, rng,
+                                                             monkeypatch):
+    """PostgreSQL unreachable while a replica restores (down when it starts; gone in
+    the middle of a field's restore): the replica waits for it and then serves every
+    stored field, instead of never becoming ready or holding the field as failed."""
+    from fastapi.testclient import TestClient
+
+    from flatserve.service import Settings, create_app
+    from flatserve.service import registry as registry_mod
+
+    url = own_pg_cluster.create_database("outage")
+
+    def app():
+        return create_app(Settings(data_dir=tmp_path / "data", database_url=url,
+                                   snapshot_every=0))
+
+    def restart_later(delay):
+        t = threading.Timer(delay, own_pg_cluster.start)
+        t.start()
+        return t
+
+    probe = paper_rays(rng, 300)
+    with TestClient(app()) as tc:
+        c = Client(http=tc)
+        c.wait_ready(60)
+        c.create_field(FIELD, channels=1, basis=ONE_CHART)
+        for _ in range(3):
+            c.upload_rays(FIELD, *paper_rays(rng, 300), rng.uniform(size=300))
+        want = c.query_rays(FIELD, *probe)
+
+    def check_serves(tc):
+        c = Client(http=tc)
+        c.wait_ready(90)
+        assert c.describe(FIELD)["state"] == "ready"
+        np.testing.assert_array_equal(c.query_rays(FIELD, *probe).values, want.values)
+
+    own_pg_cluster.stop("immediate")  # down when the replica starts
+    t = restart_later(1.0)
+    with TestClient(app()) as tc:
+        check_serves(tc)
+    t.join()
+
+    real = registry_mod.Registry._restore
+    calls = []
+
+    def restore(self, e, row, upto=None):  # the database goes in the middle of it
+        if not calls:
+            own_pg_cluster.stop("immediate")
+            calls.append(restart_later(1.0))
+        return real(self, e, row, upto)
+
+    monkeypatch.setattr(registry_mod.Registry, "_restore", restore)
+    with TestClient(app()) as tc:
+        check_serves(tc)
+    calls[0].join()

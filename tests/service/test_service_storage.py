@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from flatserve.client import Client
+from flatserve.flats import Flats
 
 from .conftest import KINDS, paper_rays, started as _started
 
@@ -201,3 +202,66 @@ def test_uploads_to_one_field_are_serialised(make_app, rng):
         assert last["nsamples"] == c.describe("f")["nsamples"]
     finally:
         tc.__exit__(None, None, None)
+
+
+@with_kinds
+def test_restore_never_goes_past_its_log_position(make_app, rng, kind):
+    """A snapshot replaced while a replica restores (another replica wrote a newer
+    one) must not carry the field past the log position the restore read: the
+    replica would answer at position p with batches committed after p."""
+    _restore_to_its_position(make_app(), rng, kind)
+
+
+def test_restore_never_goes_past_its_log_position_postgresql(make_app, rng, pg_url):
+    _restore_to_its_position(make_app(database_url=pg_url), rng, KINDS[1])
+
+
+def _restore_to_its_position(app, rng, kind):
+    from flatserve.service import registry as registry_mod
+
+    tc, c = _started(app)
+    try:
+        reg = app.state.registry
+        c.create_field("f", channels=2, basis=kind.basis)
+        for i in range(2):
+            o, v = paper_rays(rng, 300)
+            c.upload_rays("f", o, v, rng.normal(size=(300, 2)), idempotency_key=f"b{i}")
+        assert c.snapshot("f")["batch"] == 2
+        probe = paper_rays(rng, 200)
+        at_two = _answers(c, probe, kind)
+        head, rows = reg.storage.state()  # what a starting replica reads
+        (row,) = rows
+        assert row.snapshot_seq == 2
+        o, v = paper_rays(rng, 300)  # meanwhile: a third batch and a newer snapshot
+        c.upload_rays("f", o, v, rng.normal(size=(300, 2)), idempotency_key="b2")
+        assert c.snapshot("f")["batch"] == 3
+        # the starting replica restores the row it read, to the head it read
+        e = registry_mod._entry_of(row)
+        reg._restore(e, row, upto=head)
+        assert e.state == "ready", e.error
+        assert e.indexed_seq == 2 and e.indexed_position <= head
+        res = e.field.query(Flats.from_rays(*probe), threads=1)
+        np.testing.assert_array_equal(res.inside, at_two[1])
+        np.testing.assert_allclose(res.values, at_two[0], atol=1e-12, equal_nan=True)
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_a_stray_directory_among_the_snapshots_does_not_stop_the_start(make_app, rng, tmp_path):
+    """The start-up clean-up of unreferenced snapshot files meets something it cannot
+    remove (a directory: ``lost+found`` of a volume mounted there): it is kept, and
+    the server still restores its fields and becomes ready."""
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=1)
+        c.upload_rays("f", *paper_rays(rng, 300), np.ones(300))
+        c.snapshot("f")
+    finally:
+        tc.__exit__(None, None, None)
+    (tmp_path / "data" / "snapshots" / "lost+found").mkdir()
+    tc, c = _started(make_app())
+    try:
+        assert c.describe("f")["nsamples"] > 0
+    finally:
+        tc.__exit__(None, None, None)
+    assert (tmp_path / "data" / "snapshots" / "lost+found").is_dir()

@@ -49,7 +49,7 @@ def ingest(args, pg: PgCluster) -> None:
             pgs.wait_ready()
             with Client(lite.url, timeout=600) as cl, Client(pgs.url, timeout=600) as cp:
                 for c in (cl, cp):
-                    c.create_field("ingest", channels=3)
+                    c.create_field("ingest", channels=3, basis={"kind": "tangent_simplex"})
                 for n in args.rays:
                     times = {"sqlite": [], "postgresql": []}
                     for run in range(args.runs):

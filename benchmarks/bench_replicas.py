@@ -80,7 +80,9 @@ class Group:
 
 
 def fill(c, name, n, batch, rng, channels=1):
-    c.create_field(name, channels=channels)
+    # the paper's single chart (its rays all lie in it): figures comparable with the
+    # README's earlier ones, and a 1M-sample field within the default max_simplices
+    c.create_field(name, channels=channels, basis={"kind": "tangent_simplex"})
     pos = 0
     for lo in range(0, n, batch):
         m = min(batch, n - lo)

@@ -526,24 +526,46 @@ class Registry:
 
         th = threading.Thread(target=renewer, name="flatserve-lease", daemon=True)
         th.start()
+        held = False
         try:
-            with e.index_lock:  # the field cannot change meanwhile; queries go on
-                if e.deleted:
-                    raise FieldNotFoundError(f"no field named {e.name!r}")
-                if e.state != "ready":
-                    raise StorageError(f"field {e.name!r} is not ready ({e.state})")
-                seq, pos = e.indexed_seq, e.indexed_position  # only applied batches
-                row = self.storage.field(e.id)
-                if row.snapshot_file and row.snapshot_seq >= seq and \
-                        self.storage.snapshot_bytes(row):
-                    e.snapshot_file, e.snapshot_seq = row.snapshot_file, row.snapshot_seq
-                    e.snapshot_position, e.new_samples = row.snapshot_position, 0
-                    return {"batch": row.snapshot_seq, "bytes": self.storage.snapshot_bytes(row),
-                            "seconds": 0.0}
-                info = self.storage.write_snapshot(e.id, seq, pos, lambda p: e.field.save(p))
-                e.snapshot_file, e.snapshot_seq, e.snapshot_position = info.file, seq, pos
-                e.new_samples = 0
+            if e.deleted:
+                raise FieldNotFoundError(f"no field named {e.name!r}")
+            row = self.storage.field(e.id)  # (a read: outside the field's lock)
+            if row.snapshot_file and row.snapshot_seq >= e.indexed_seq and \
+                    self.storage.snapshot_bytes(row):
+                e.snapshot_file, e.snapshot_seq = row.snapshot_file, row.snapshot_seq
+                e.snapshot_position, e.new_samples = row.snapshot_position, 0
+                return {"batch": row.snapshot_seq, "bytes": self.storage.snapshot_bytes(row),
+                        "seconds": 0.0}
+            # index_lock is held from reading the position until the field is
+            # serialised to the backend's local file (the snapshot is exactly the state
+            # at ``seq`` / ``pos``), and released before the database part of
+            # write_snapshot: the follower (every field's entries) waits only that long
+            e.index_lock.acquire()
+            held = True
+            if e.deleted:
+                raise FieldNotFoundError(f"no field named {e.name!r}")
+            if e.state != "ready":
+                raise StorageError(f"field {e.name!r} is not ready ({e.state})")
+            seq, pos = e.indexed_seq, e.indexed_position  # only applied batches
+            counted = e.new_samples
+
+            def save(path):
+                nonlocal held
+                try:
+                    e.field.save(path)
+                finally:
+                    held = False
+                    e.index_lock.release()
+
+            info = self.storage.write_snapshot(e.id, seq, pos, save)
+            with e.index_lock:
+                if seq >= e.snapshot_seq:
+                    e.snapshot_file, e.snapshot_seq, e.snapshot_position = info.file, seq, pos
+                e.new_samples = max(0, e.new_samples - counted)
         finally:
+            if held:
+                e.index_lock.release()
             renew.set()
             th.join()
             try:

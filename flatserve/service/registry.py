@@ -139,11 +139,23 @@ class Registry:
                 "retry shortly")
 
     def await_applied(self, position: int, what: str) -> None:
-        """A write's request: wait (unbounded, but not past a shutdown) until this
-        replica applied its own commit at ``position``."""
-        if not self.follower.wait_applied(position):
-            raise NotReadyError(f"{what} is stored (log position {position}); the server is "
-                                "stopping before it is applied here: retry shortly")
+        """A write's request: wait until this replica applied its own commit at
+        ``position``, for up to ``apply_wait_timeout`` seconds (a database outage, a
+        follower held up) and not past a shutdown.
+
+        Raises
+        ------
+        NotReadyError
+            Not applied by then (503 with Retry-After): the write IS stored.
+        """
+        timeout = self.settings.apply_wait_timeout
+        if not self.follower.wait_applied(position, timeout):
+            raise NotReadyError(
+                f"{what} is stored (log position {position}) but not yet applied on this "
+                f"replica (it has applied up to position {self.follower.applied}; waited at "
+                f"most {timeout:g} s, FLATSERVE_APPLY_WAIT_TIMEOUT, or the server is "
+                "stopping): retry shortly (an upload retried with the same Idempotency-Key "
+                "gets its response)")
 
     # -- create / delete --------------------------------------------------
     def create(self, name: str, spec: FieldSpec, basis: Basis) -> FieldEntry:
@@ -478,8 +490,9 @@ class Registry:
 
     def wait_all_committed(self) -> bool:
         """Block until this replica has applied every entry committed so far (any
-        replica's); False if it stops first."""
-        return self.follower.wait_applied(self.storage.head())
+        replica's); False if it stops first or ``apply_wait_timeout`` seconds pass."""
+        return self.follower.wait_applied(self.storage.head(),
+                                          self.settings.apply_wait_timeout)
 
     # -- snapshots --------------------------------------------------------
     def maybe_snapshot(self, e: FieldEntry) -> None:

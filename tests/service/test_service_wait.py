@@ -368,3 +368,38 @@ def test_a_committed_upload_waits_a_bounded_time_then_503_stored(make_app, rng, 
         gate.open()
         tc.__exit__(None, None, None)
 
+
+def test_a_field_failed_between_commit_and_insert_is_503_not_404(make_app, rng, monkeypatch):
+    """The field is marked failed (not deleted) after a wait=true batch is committed
+    and before the follower reaches it: 503 saying the batch is stored, not 404."""
+    gate = _Gate(monkeypatch)  # holds the follower at batch 1
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=C)
+        o, v, val = _rays_with_rejects(rng, 200)
+        c.upload_rays("f", o[:100], v[:100], val[:100], wait=False)
+        assert gate.entered.wait(30)
+        reg = tc.app.state.registry
+        e = reg.get("f")
+        out = {}
+
+        def upload():
+            try:
+                out["ok"] = Client(http=tc).upload_rays("f", o[100:], v[100:], val[100:],
+                                                        idempotency_key="k2")
+            except Exception as exc:
+                out["exc"] = exc
+
+        th = threading.Thread(target=upload, daemon=True)
+        th.start()
+        while reg.storage.head() < 3 and th.is_alive():  # create, batch 1, batch 2
+            threading.Event().wait(0.01)
+        reg.fail_field(e.id, "marked failed by the test")
+        gate.open()
+        th.join(60)
+        assert isinstance(out.get("exc"), NotReadyError), out
+        assert "batch 2 is stored" in str(out["exc"])
+        assert reg.entry_by_id(e.id) is e and not e.deleted
+    finally:
+        gate.open()
+        tc.__exit__(None, None, None)

@@ -62,6 +62,18 @@ def _entry_of(row: FieldRow, state: str = "loading") -> FieldEntry:
                       snapshot_position=row.snapshot_position)
 
 
+def _failed_entry(row: FieldRow, exc: Exception) -> FieldEntry:
+    """A stored field whose entry cannot be built (``_entry_of`` raised ``exc``):
+    state ``failed``, no basis, its spec's sizes where readable (else 0)."""
+    try:
+        spec = FieldSpec.from_dict(row.spec)
+    except Exception:
+        spec = FieldSpec(0, 0, 0, {})
+    return FieldEntry(row.id, row.name, spec, None, row.created, row.snapshot_file,
+                      row.snapshot_seq, state="failed", position=row.position,
+                      error=f"its stored definition cannot be read: {exc}")
+
+
 class Registry:
     """Named fields of this replica, their storage and their background work."""
 
@@ -326,7 +338,12 @@ class Registry:
         entries = []
         with self._lock:
             for row in rows:
-                e = _entry_of(row)
+                try:
+                    e = _entry_of(row)
+                except Exception as exc:  # (a spec this version cannot read): that field only
+                    log.exception("field %r: its stored definition cannot be read", row.name)
+                    self._entries[row.name] = self._by_id[row.id] = _failed_entry(row, exc)
+                    continue
                 self._entries[row.name] = e
                 self._by_id[row.id] = e
                 entries.append((e, row))

@@ -404,12 +404,16 @@ def test_one_snapshot_writer_at_a_time(make_app, rng):
         tc.__exit__(None, None, None)
 
 
-def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng):
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng, request,
+                                                               backend):
     """The field is serialised under its lock; storing the snapshot (the database
-    part) runs outside it: held there, the follower still applies a batch of the
-    same field and a wait=true upload to another field answers; the snapshot
-    recorded is the state at its batch (a restart from it answers as before)."""
-    tc, c = started(make_app())
+    part: SQLite's commit, PostgreSQL's chunks) runs outside it: held there, the
+    follower still applies a batch of the same field and a wait=true upload to
+    another field answers; the snapshot recorded is the state at its batch (a
+    restart from it answers as before)."""
+    opts = {} if backend == "sqlite" else {"database_url": request.getfixturevalue("pg_url")}
+    tc, c = started(make_app(**opts))
     try:
         c.create_field("f")
         c.create_field("g")
@@ -460,7 +464,7 @@ def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng):
     finally:
         gate.set()
         tc.__exit__(None, None, None)
-    tc, c = started(make_app())  # restored from the snapshot at batch 1 plus batch 2
+    tc, c = started(make_app(**opts))  # restored from the snapshot at batch 1 + batch 2
     try:
         after = c.query_rays("f", *probe)
         assert c.describe("f")["nsamples"] == d["nsamples"]

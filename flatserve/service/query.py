@@ -88,9 +88,11 @@ async def answer(registry: Registry, settings: Settings, name: str, params: Quer
     if res is None:
         def run():
             if params.wait and not registry.wait_all_committed():
-                raise NotReadyError(f"field {name!r}: the acknowledged batches cannot be "
-                                    "indexed now (the server is stopping or the field "
-                                    "reloading); retry shortly")
+                raise NotReadyError(f"field {name!r}: the acknowledged batches are not "
+                                    "indexed here yet (waited at most "
+                                    f"{registry.settings.apply_wait_timeout:g} s, "
+                                    "FLATSERVE_APPLY_WAIT_TIMEOUT, or the server is "
+                                    "stopping); retry shortly")
             return registry.query(e, flats, **kw)
 
         res = await anyio.to_thread.run_sync(run)

@@ -62,6 +62,18 @@ def _entry_of(row: FieldRow, state: str = "loading") -> FieldEntry:
                       snapshot_position=row.snapshot_position)
 
 
+def _failed_entry(row: FieldRow, exc: Exception) -> FieldEntry:
+    """A stored field whose entry cannot be built (``_entry_of`` raised ``exc``):
+    state ``failed``, no basis, its spec's sizes where readable (else 0)."""
+    try:
+        spec = FieldSpec.from_dict(row.spec)
+    except Exception:
+        spec = FieldSpec(0, 0, 0, {})
+    return FieldEntry(row.id, row.name, spec, None, row.created, row.snapshot_file,
+                      row.snapshot_seq, state="failed", position=row.position,
+                      error=f"its stored definition cannot be read: {exc}")
+
+
 class Registry:
     """Named fields of this replica, their storage and their background work."""
 
@@ -139,11 +151,23 @@ class Registry:
                 "retry shortly")
 
     def await_applied(self, position: int, what: str) -> None:
-        """A write's request: wait (unbounded, but not past a shutdown) until this
-        replica applied its own commit at ``position``."""
-        if not self.follower.wait_applied(position):
-            raise NotReadyError(f"{what} is stored (log position {position}); the server is "
-                                "stopping before it is applied here: retry shortly")
+        """A write's request: wait until this replica applied its own commit at
+        ``position``, for up to ``apply_wait_timeout`` seconds (a database outage, a
+        follower held up) and not past a shutdown.
+
+        Raises
+        ------
+        NotReadyError
+            Not applied by then (503 with Retry-After): the write IS stored.
+        """
+        timeout = self.settings.apply_wait_timeout
+        if not self.follower.wait_applied(position, timeout):
+            raise NotReadyError(
+                f"{what} is stored (log position {position}) but not yet applied on this "
+                f"replica (it has applied up to position {self.follower.applied}; waited at "
+                f"most {timeout:g} s, FLATSERVE_APPLY_WAIT_TIMEOUT, or the server is "
+                "stopping): retry shortly (an upload retried with the same Idempotency-Key "
+                "gets its response)")
 
     # -- create / delete --------------------------------------------------
     def create(self, name: str, spec: FieldSpec, basis: Basis) -> FieldEntry:
@@ -314,7 +338,12 @@ class Registry:
         entries = []
         with self._lock:
             for row in rows:
-                e = _entry_of(row)
+                try:
+                    e = _entry_of(row)
+                except Exception as exc:  # (a spec this version cannot read): that field only
+                    log.exception("field %r: its stored definition cannot be read", row.name)
+                    self._entries[row.name] = self._by_id[row.id] = _failed_entry(row, exc)
+                    continue
                 self._entries[row.name] = e
                 self._by_id[row.id] = e
                 entries.append((e, row))
@@ -478,8 +507,9 @@ class Registry:
 
     def wait_all_committed(self) -> bool:
         """Block until this replica has applied every entry committed so far (any
-        replica's); False if it stops first."""
-        return self.follower.wait_applied(self.storage.head())
+        replica's); False if it stops first or ``apply_wait_timeout`` seconds pass."""
+        return self.follower.wait_applied(self.storage.head(),
+                                          self.settings.apply_wait_timeout)
 
     # -- snapshots --------------------------------------------------------
     def maybe_snapshot(self, e: FieldEntry) -> None:
@@ -526,24 +556,46 @@ class Registry:
 
         th = threading.Thread(target=renewer, name="flatserve-lease", daemon=True)
         th.start()
+        held = False
         try:
-            with e.index_lock:  # the field cannot change meanwhile; queries go on
-                if e.deleted:
-                    raise FieldNotFoundError(f"no field named {e.name!r}")
-                if e.state != "ready":
-                    raise StorageError(f"field {e.name!r} is not ready ({e.state})")
-                seq, pos = e.indexed_seq, e.indexed_position  # only applied batches
-                row = self.storage.field(e.id)
-                if row.snapshot_file and row.snapshot_seq >= seq and \
-                        self.storage.snapshot_bytes(row):
-                    e.snapshot_file, e.snapshot_seq = row.snapshot_file, row.snapshot_seq
-                    e.snapshot_position, e.new_samples = row.snapshot_position, 0
-                    return {"batch": row.snapshot_seq, "bytes": self.storage.snapshot_bytes(row),
-                            "seconds": 0.0}
-                info = self.storage.write_snapshot(e.id, seq, pos, lambda p: e.field.save(p))
-                e.snapshot_file, e.snapshot_seq, e.snapshot_position = info.file, seq, pos
-                e.new_samples = 0
+            if e.deleted:
+                raise FieldNotFoundError(f"no field named {e.name!r}")
+            row = self.storage.field(e.id)  # (a read: outside the field's lock)
+            if row.snapshot_file and row.snapshot_seq >= e.indexed_seq and \
+                    self.storage.snapshot_bytes(row):
+                e.snapshot_file, e.snapshot_seq = row.snapshot_file, row.snapshot_seq
+                e.snapshot_position, e.new_samples = row.snapshot_position, 0
+                return {"batch": row.snapshot_seq, "bytes": self.storage.snapshot_bytes(row),
+                        "seconds": 0.0}
+            # index_lock is held from reading the position until the field is
+            # serialised to the backend's local file (the snapshot is exactly the state
+            # at ``seq`` / ``pos``), and released before the database part of
+            # write_snapshot: the follower (every field's entries) waits only that long
+            e.index_lock.acquire()
+            held = True
+            if e.deleted:
+                raise FieldNotFoundError(f"no field named {e.name!r}")
+            if e.state != "ready":
+                raise StorageError(f"field {e.name!r} is not ready ({e.state})")
+            seq, pos = e.indexed_seq, e.indexed_position  # only applied batches
+            counted = e.new_samples
+
+            def save(path):
+                nonlocal held
+                try:
+                    e.field.save(path)
+                finally:
+                    held = False
+                    e.index_lock.release()
+
+            info = self.storage.write_snapshot(e.id, seq, pos, save)
+            with e.index_lock:
+                if seq >= e.snapshot_seq:
+                    e.snapshot_file, e.snapshot_seq, e.snapshot_position = info.file, seq, pos
+                e.new_samples = max(0, e.new_samples - counted)
         finally:
+            if held:
+                e.index_lock.release()
             renew.set()
             th.join()
             try:

@@ -13,6 +13,7 @@ from typing import Annotated, Literal, Optional
 import anyio.to_thread
 from fastapi import APIRouter, Header, Query, Request, Response
 
+from ..errors import StorageError
 from . import codec, specs, uploads
 from .codec import JSONBytes
 from .deps import (BodyDep, FieldNamePath, ReadAccess, RegistryDep, SettingsDep, WriteAccess,
@@ -94,6 +95,8 @@ def list_fields(registry: RegistryDep) -> Response:
 
 
 def _describe(registry, e: FieldEntry) -> dict:
+    if e.basis is None:  # a stored definition this version cannot read
+        raise StorageError(f"field {e.name!r} could not be loaded: {e.error}")
     nb, nrows, nbytes, last = registry.storage.batch_stats(e.id)
     snap_bytes = registry.storage.snapshot_bytes(e.snapshot_file)
     out = _summary(e)
@@ -283,11 +286,19 @@ def healthz() -> Response:
 
 
 @health.get("/readyz", response_model=Health, tags=["health"], summary="Readiness",
+            description="200 once the stored fields are restored and the replica follows "
+                        "the log; 503 while they load or the database is unreachable. A "
+                        "field that failed (its restore, or a log entry it cannot apply) "
+                        "does not make the replica unready (every replica would fail it "
+                        "alike): it is listed in `failed_fields` (its requests get 503 "
+                        "naming the error).",
             responses={503: {"model": Health, "description": "Stored fields still loading."}})
 def readyz(registry: RegistryDep) -> Response:
     entries = registry.snapshot_entries()
     names = [e.name for e in entries if e.state == "loading"]
+    failed = [e.name for e in entries if e.state == "failed"]
     body = {"fields": len(entries), "loading": len(names), "loading_fields": names,
+            "failed": len(failed), "failed_fields": failed,
             "pid": os.getpid(), "backend": registry.storage.kind}
     try:
         body.update(registry.follower.lag() if registry.follower.started.is_set() else

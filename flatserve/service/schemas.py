@@ -412,6 +412,11 @@ class Health(BaseModel):
     loading: Optional[int] = None
     loading_fields: Optional[list[str]] = Field(
         None, description="Fields still being restored (the others answer already).")
+    failed: Optional[int] = None
+    failed_fields: Optional[list[str]] = Field(
+        None, description="Fields that failed (their restore, or a log entry they cannot "
+                          "apply): their requests get 503 naming the error; the replica "
+                          "stays ready for the others.")
     pid: Optional[int] = Field(None, description="This replica's process id.")
     backend: Optional[str] = Field(None, description="Where the log is: sqlite or postgresql.")
     position: Optional[int] = Field(None, description="Log position this replica has applied "

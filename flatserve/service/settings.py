@@ -114,6 +114,12 @@ class Settings(BaseSettings):
         10.0, ge=0,
         description="Seconds a read with min_position waits for this replica to apply that "
                     "log position; then 503 with Retry-After.")
+    apply_wait_timeout: float = Field(
+        60.0, gt=0,
+        description="Seconds a committed write (a wait=true upload, a create, a delete, a "
+                    "query with wait=true) waits for this replica to apply it; then 503 with "
+                    "Retry-After: the write is stored (an upload retried with the same "
+                    "Idempotency-Key gets its response).")
     log_poll_interval: float = Field(
         0.005, gt=0, le=1.0,
         description="Seconds between two checks for entries other processes appended to the "

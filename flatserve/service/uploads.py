@@ -188,9 +188,14 @@ def _await_insert(reg, e, seq, pos, timings) -> dict:
             f"field {e.name!r}: batch {seq} is stored, but inserting it failed ({failed}); "
             "the field is being rebuilt from storage, which indexes it: retry with the "
             "same Idempotency-Key for its response")
-    if res is None:
+    if res is None and (e.deleted or reg.entry_by_id(e.id) is not e):
         raise FieldNotFoundError(f"no field named {e.name!r} (deleted after batch {seq} was "
                                  "stored)")
+    if res is None:  # not inserted here: the field was marked failed (or is being rebuilt)
+        raise NotReadyError(
+            f"field {e.name!r}: batch {seq} is stored, but the field is not indexed on this "
+            f"replica now ({e.state}: {e.error}); it is restored from storage, which indexes "
+            "it: retry with the same Idempotency-Key for its response")
     timings["insert"] = time.perf_counter() - t2
     return UploadResult.of(seq, res, nsamples=res.nsamples, indexed=True, pending=0,
                            position=pos).to_dict()

@@ -402,3 +402,73 @@ def test_one_snapshot_writer_at_a_time(make_app, rng):
         assert storage.acquire_lease("snapshot", other, 60)  # released after the write
     finally:
         tc.__exit__(None, None, None)
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng, request,
+                                                               backend):
+    """The field is serialised under its lock; storing the snapshot (the database
+    part: SQLite's commit, PostgreSQL's chunks) runs outside it: held there, the
+    follower still applies a batch of the same field and a wait=true upload to
+    another field answers; the snapshot recorded is the state at its batch (a
+    restart from it answers as before)."""
+    opts = {} if backend == "sqlite" else {"database_url": request.getfixturevalue("pg_url")}
+    tc, c = started(make_app(**opts))
+    try:
+        c.create_field("f")
+        c.create_field("g")
+        o, v = paper_rays(rng, 400)
+        c.upload_rays("f", o[:200], v[:200], np.ones(200))
+        n1 = c.describe("f")["nsamples"]
+        reg = tc.app.state.registry
+        storage = reg.storage
+        write = storage.write_snapshot
+        stored, gate = threading.Event(), threading.Event()
+
+        def held_write(field_id, seq, position, save):
+            def save_then_hold(path):
+                save(path)
+                stored.set()
+                gate.wait(60)  # the database part of the write, held
+            return write(field_id, seq, position, save_then_hold)
+
+        storage.write_snapshot = held_write
+        out = {}
+        snap = threading.Thread(target=lambda: out.update(reg.snapshot(reg.get("f"))))
+        snap.start()
+        assert stored.wait(30)
+        rep_f = c.upload_rays("f", o[200:300], v[200:300], np.ones(100), wait=False)
+        done = threading.Event()
+        got = {}
+
+        def upload_g():
+            got.update(c.upload_rays("g", o[300:], v[300:], np.ones(100)))
+            done.set()
+
+        th = threading.Thread(target=upload_g, daemon=True)
+        th.start()
+        finished = done.wait(30)
+        gate.set()
+        snap.join(60)
+        th.join(60)
+        assert finished, "the follower waited for the snapshot's database part"
+        assert got["indexed"] and reg.follower.applied >= rep_f["position"]
+        assert out["batch"] == 1  # the state when serialised, not batch 2 applied later
+        d = c.describe("f")
+        assert d["storage"]["snapshot_batch"] == 1 and d["nsamples"] > n1
+        e = reg.get("f")
+        row = storage.field(e.id)
+        assert storage.load_snapshot(row, e.spec.load_field).nsamples == n1
+        probe = (o[:50], v[:50])
+        before = c.query_rays("f", *probe)
+    finally:
+        gate.set()
+        tc.__exit__(None, None, None)
+    tc, c = started(make_app(**opts))  # restored from the snapshot at batch 1 + batch 2
+    try:
+        after = c.query_rays("f", *probe)
+        assert c.describe("f")["nsamples"] == d["nsamples"]
+        np.testing.assert_array_equal(after.inside, before.inside)
+        np.testing.assert_allclose(after.values, before.values, rtol=1e-12, atol=1e-12)
+    finally:
+        tc.__exit__(None, None, None)

@@ -7,6 +7,7 @@ import threading
 
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 
 from flatserve.client import Client
 from flatserve.flats import Flats
@@ -265,3 +266,46 @@ def test_a_stray_directory_among_the_snapshots_does_not_stop_the_start(make_app,
     finally:
         tc.__exit__(None, None, None)
     assert (tmp_path / "data" / "snapshots" / "lost+found").is_dir()
+
+
+def test_a_stored_field_this_version_cannot_read_fails_alone(make_app, rng, tmp_path):
+    """A stored definition that cannot be read (here: a spec with k = "one") fails
+    that field only: the others restore and answer, /readyz is 200 and lists it in
+    failed_fields, its own requests get 503 naming the error, and it can be deleted."""
+    import sqlite3
+
+    from flatserve.service.storage import DB_NAME
+
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f")
+        c.create_field("g")
+        o, v = paper_rays(rng, 200)
+        c.upload_rays("f", o, v, np.ones(200))
+        c.upload_rays("g", o, v, np.ones(200))
+        want = c.query_rays("f", o[:20], v[:20])
+    finally:
+        tc.__exit__(None, None, None)
+    db = sqlite3.connect(tmp_path / "data" / DB_NAME)
+    with db:
+        db.execute("""UPDATE fields SET spec='{"k": "one", "d": 3}' WHERE name='g'""")
+    db.close()
+    tc = TestClient(make_app())
+    tc.__enter__()
+    try:
+        c = Client(http=tc)
+        c.wait_ready(20)
+        r = tc.get("/readyz").json()
+        assert r["status"] == "ready" and r["failed_fields"] == ["g"] and r["failed"] == 1
+        got = c.query_rays("f", o[:20], v[:20])
+        np.testing.assert_array_equal(got.values, want.values)
+        states = {f["name"]: f["state"] for f in c.list_fields()}
+        assert states == {"f": "ready", "g": "failed"}
+        for r in (tc.get("/v1/fields/g"),
+                  tc.post("/v1/fields/g/query", json={"origins": o[:2].tolist(),
+                                                      "directions": v[:2].tolist()})):
+            assert r.status_code == 503 and "cannot be read" in r.text, r.text
+        assert tc.delete("/v1/fields/g").status_code == 204
+        assert "g" not in {f["name"] for f in c.list_fields()}
+    finally:
+        tc.__exit__(None, None, None)

@@ -11,11 +11,12 @@ from fastapi.testclient import TestClient
 
 from flatserve import flats
 from flatserve.client import Client
+from flatserve.errors import NotReadyError
 from flatserve.field import Field
 from flatserve.service import registry as registry_mod
 from flatserve.service import specs
 
-from .conftest import KINDS, add_rays, paper_rays, query_rays, started as _started
+from .conftest import DEFAULT, KINDS, add_rays, paper_rays, query_rays, started as _started
 
 C = 2
 with_kinds = pytest.mark.parametrize("kind", KINDS, ids=str)
@@ -333,4 +334,72 @@ def test_wait_false_failure_after_the_commit_leaves_nothing_stored(make_app, rng
         c.wait_indexed("f", timeout=30)
         assert c.describe("f")["nsamples"] == rep["accepted"]
     finally:
+        tc.__exit__(None, None, None)
+
+
+def test_a_committed_upload_waits_a_bounded_time_then_503_stored(make_app, rng, monkeypatch):
+    """A wait=true upload whose batch is committed but not applied within
+    apply_wait_timeout (the follower held, as in a database outage): 503 with
+    Retry-After saying the batch is stored; the retry with the same key gets its
+    response once applied, and the batch is stored once."""
+    gate = _Gate(monkeypatch)
+    tc, c = _started(make_app(apply_wait_timeout=0.3))
+    try:
+        c.create_field("f", channels=C)
+        o, v, val = _rays_with_rejects(rng, 200)
+        with pytest.raises(NotReadyError, match="is stored"):
+            c.upload_rays("f", o, v, val, idempotency_key="k")
+        r = c.last_response
+        assert r.status_code == 503 and r.headers["retry-after"] == "1"
+        with pytest.raises(NotReadyError, match="is stored"):  # a retry meanwhile: the same
+            c.upload_rays("f", o, v, val, idempotency_key="k")
+        r = tc.post("/v1/fields/f/query", params={"wait": "true"},
+                    json={"origins": o[:2].tolist(), "directions": v[:2].tolist()})
+        assert r.status_code == 503 and r.headers["retry-after"] == "1", r.text
+        gate.open()
+        again = c.upload_rays("f", o, v, val, idempotency_key="k")
+        ref = DEFAULT.reference(C)
+        want = add_rays(ref, o, v, val)
+        assert again["replayed"] and again["indexed"] and again["batch"] == 1
+        assert again["accepted"] == want.accepted
+        d = c.describe("f")
+        assert d["storage"]["last_batch"] == 1 and d["nsamples"] == ref.nsamples
+    finally:
+        gate.open()
+        tc.__exit__(None, None, None)
+
+
+def test_a_field_failed_between_commit_and_insert_is_503_not_404(make_app, rng, monkeypatch):
+    """The field is marked failed (not deleted) after a wait=true batch is committed
+    and before the follower reaches it: 503 saying the batch is stored, not 404."""
+    gate = _Gate(monkeypatch)  # holds the follower at batch 1
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=C)
+        o, v, val = _rays_with_rejects(rng, 200)
+        c.upload_rays("f", o[:100], v[:100], val[:100], wait=False)
+        assert gate.entered.wait(30)
+        reg = tc.app.state.registry
+        e = reg.get("f")
+        out = {}
+
+        def upload():
+            try:
+                out["ok"] = Client(http=tc).upload_rays("f", o[100:], v[100:], val[100:],
+                                                        idempotency_key="k2")
+            except Exception as exc:
+                out["exc"] = exc
+
+        th = threading.Thread(target=upload, daemon=True)
+        th.start()
+        while reg.storage.head() < 3 and th.is_alive():  # create, batch 1, batch 2
+            threading.Event().wait(0.01)
+        reg.fail_field(e.id, "marked failed by the test")
+        gate.open()
+        th.join(60)
+        assert isinstance(out.get("exc"), NotReadyError), out
+        assert "batch 2 is stored" in str(out["exc"])
+        assert reg.entry_by_id(e.id) is e and not e.deleted
+    finally:
+        gate.open()
         tc.__exit__(None, None, None)

@@ -12,6 +12,7 @@ hull, ``clamp``, several channels, oriented rays, planes).
 from __future__ import annotations
 
 import math
+import zlib
 
 import numpy as np
 import pytest
@@ -147,7 +148,7 @@ def fields():
 def queries(name, rng, n):
     if name == "planes":
         return Flats.from_parametric(haar_frames(n, 4, 2, rng), rng.uniform(-10, 10, (n, 4)))
-    return rays(rng, n, 10.0)  # far beyond the samples: some rows outside a chart's hull
+    return rays(rng, n, 1.6)  # beyond the samples' [-1, 1]^3: some rows outside a chart's hull
 
 
 @pytest.mark.parametrize("name", ["lines1", "lines3", "rays", "planes"])
@@ -155,7 +156,7 @@ def queries(name, rng, n):
 @pytest.mark.parametrize("return_weights", [False, True])
 def test_query_equals_the_reference_bit_for_bit(fields, name, outside, return_weights):
     field = fields[name]
-    rng = np.random.default_rng(abs(hash((name, outside, return_weights))) % 2**32)
+    rng = np.random.default_rng(zlib.crc32(repr((name, outside, return_weights)).encode()))
     f = queries(name, rng, 3000)
     got = field.query(f, outside=outside, return_weights=return_weights)
     want = reference_query(field, f, outside=outside, return_weights=return_weights)

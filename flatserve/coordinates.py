@@ -73,6 +73,7 @@ import numpy as np
 from . import _native
 from . import flats as _flats
 from ._validate import as_array
+from .embedding import row_product
 from .errors import InvalidInputError
 
 __all__ = [
@@ -242,7 +243,7 @@ def solve_system(M, rcond: float = SINGULAR_RCOND):
         inv = np.where(keep, 1.0 / np.where(keep, s[rest], 1.0), 0.0)
         y = np.einsum("nji,nj->ni", U[rest], c[rest]) * inv
         z = np.einsum("nji,nj->ni", Vt[rest], y)
-        w[rest] = 1.0 / m + z @ H.T
+        w[rest] = 1.0 / m + row_product(z, H.T)  # a row's bits: its own (see there)
     return w, singular
 
 

@@ -65,6 +65,39 @@ def regular_simplex(m: int) -> np.ndarray:
     return np.array(_helmert(int(m)))
 
 
+def row_product(a: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``a @ B``, each row computed on its own in a fixed order.
+
+    BLAS rounds a matrix product differently for different numbers of rows
+    (other kernels, other blockings), so ``(a @ B)[i]`` may differ in the last
+    bit from ``a[i:i+1] @ B``. The points of a sample and of a query at the same
+    flat must be the same bits, whatever else is in their batches: a sample on
+    the hull of a triangulation queried alone would otherwise fall just
+    outside it. This sums ``a[:, j] * B[j]`` over ``j`` in order (``B`` is
+    small: m x (m-1)).
+
+    Parameters
+    ----------
+    a : ndarray, shape (n, m)
+    B : ndarray, shape (m, p)
+
+    Returns
+    -------
+    ndarray, shape (n, p)
+
+    Examples
+    --------
+    >>> a = np.random.default_rng(0).normal(size=(500, 5))
+    >>> H = np.linalg.qr(np.random.default_rng(1).normal(size=(5, 4)))[0]
+    >>> bool((row_product(a[:1], H) == row_product(a, H)[:1]).all())
+    True
+    """
+    out = a[:, :1] * B[0]
+    for j in range(1, a.shape[1]):
+        out += a[:, j:j + 1] * B[j]
+    return out
+
+
 def embed(w) -> np.ndarray:
     """Map affine coordinates to Euclidean points: ``x = w V`` (Sec. 5).
 
@@ -81,7 +114,7 @@ def embed(w) -> np.ndarray:
     w = as_array(w, "w", ("n", None))
     if w.shape[1] < 2:
         raise InvalidInputError(f"w: need m >= 2 coordinates, got {w.shape[1]}", "w")
-    return w @ _helmert(w.shape[1])
+    return row_product(w, _helmert(w.shape[1]))
 
 
 def unembed(x) -> np.ndarray:
@@ -100,4 +133,4 @@ def unembed(x) -> np.ndarray:
     m = x.shape[1] + 1
     if m < 2:
         raise InvalidInputError("x: need at least one column", "x")
-    return x @ _helmert(m).T + 1.0 / m
+    return row_product(x, _helmert(m).T) + 1.0 / m

@@ -502,3 +502,20 @@ def test_sliced_insert_equals_the_whole_insert():
                                atol=ROUNDING, equal_nan=True)
     with pytest.raises(InvalidInputError):
         sliced.insert_prepared(sliced.prepare(flats.take([0]), val[:1]), slice_rows=0)
+
+
+def test_a_sample_queried_alone_gets_its_value_back():
+    """Each sample, queried on its own, is found (a vertex on a chart's hull
+    included: its point is the same bits as when it was inserted) and answers
+    its own value."""
+    rng = np.random.default_rng(3)
+    n = 500
+    o = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (n, 3))
+    v = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)] - o
+    vals = rng.uniform(size=(n, 1))
+    field = AtlasField(Atlas.covering(1, 3), channels=1)
+    field.add(Flats.from_rays(o, v), vals)
+    for i in range(0, n, 3):
+        got = field.query(Flats.from_rays(o[i:i + 1], v[i:i + 1]))
+        assert got.inside[0], i
+        np.testing.assert_allclose(got.values[0], vals[i], rtol=0, atol=1e-9)

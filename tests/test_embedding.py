@@ -46,3 +46,17 @@ def test_bad_input(call, arg):
     with pytest.raises(InvalidInputError) as e:
         call()
     assert e.value.argument == arg
+
+
+@pytest.mark.parametrize("m", [2, 5, 13])
+def test_a_row_gets_the_same_bits_whatever_its_batch(m):
+    """A sample and a query at the same flat must land on the same point: embed
+    and unembed of a row do not depend on the rows beside it (a BLAS product
+    rounds one row and many rows differently)."""
+    rng = np.random.default_rng(m)
+    w, y = rng.normal(size=(700, m)), rng.normal(size=(700, m - 1))
+    x, back = embed(w), unembed(y)
+    for n in (1, 2, 3, 7, 64, 699):
+        rows = rng.choice(700, n, replace=False)
+        assert np.array_equal(embed(w[rows]), x[rows])
+        assert np.array_equal(unembed(y[rows]), back[rows])

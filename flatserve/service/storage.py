@@ -266,12 +266,7 @@ class SQLiteBackend(LogBackend):
         self._closed = False
         try:
             self._db = self._connect()
-            # 64 KiB pages (new databases only): a batch blob of a few MB is written
-            # as few WAL frames, and the auto-checkpoint (1000 pages) runs every 64 MB
-            # instead of every 4 MB; durability is unchanged (synchronous=FULL).
-            self._db.execute("PRAGMA page_size=65536")
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._open_schema()
+            self._open_retrying()
         except (sqlite3.Error, StorageError) as exc:
             self.close()
             raise StorageError(f"cannot open the database {db_path}: {exc} (a damaged or "
@@ -286,6 +281,30 @@ class SQLiteBackend(LogBackend):
     def from_settings(cls, settings) -> "SQLiteBackend":
         return cls(settings.data_dir, lock_fd=settings.lock_fd,
                    poll_interval=settings.log_poll_interval)
+
+    def _open_retrying(self) -> None:
+        """Page size, WAL and schema, retried while another replica of the group
+        opens the same new database: SQLite answers the switch to WAL with
+        'database is locked' at once, without waiting (its busy handler is not
+        called there), when another connection holds the file meanwhile."""
+        deadline = time.monotonic() + BUSY_TIMEOUT_S
+        while True:
+            try:
+                # 64 KiB pages (new databases only): a batch blob of a few MB is
+                # written as few WAL frames, and the auto-checkpoint (1000 pages)
+                # runs every 64 MB instead of every 4 MB; durability is unchanged
+                # (synchronous=FULL).
+                self._db.execute("PRAGMA page_size=65536")
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._open_schema()
+                return
+            except sqlite3.OperationalError as exc:
+                busy = "locked" in str(exc) or "busy" in str(exc)
+                if not busy or time.monotonic() > deadline:
+                    raise
+                if self._db.in_transaction:
+                    self._db.rollback()
+                time.sleep(0.02)
 
     def _connect(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.db_path, check_same_thread=False, isolation_level=None,

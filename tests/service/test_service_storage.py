@@ -3,6 +3,7 @@ concurrency invariants (a query never sees half a batch); for the default (atlas
 field and for one chart alike."""
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
@@ -309,3 +310,37 @@ def test_a_stored_field_this_version_cannot_read_fails_alone(make_app, rng, tmp_
         assert "g" not in {f["name"] for f in c.list_fields()}
     finally:
         tc.__exit__(None, None, None)
+
+
+def _open_at_once(data, fd, start, out):
+    from flatserve.service.storage import SQLiteBackend
+
+    start.wait()
+    try:
+        SQLiteBackend(data, lock_fd=fd).close()
+        out.put("ok")
+    except Exception as exc:  # reported by the test
+        out.put(repr(exc))
+
+
+def test_replicas_opening_a_new_data_dir_at_once_all_open(tmp_path):
+    """The replicas of one group (processes) start together on an empty directory:
+    each opens the database (WAL switch, schema) while the others do; none may fail
+    with 'database is locked' (a replica of --processes N would exit)."""
+    import multiprocessing as mp
+
+    from flatserve.service.storage import lock_data_dir
+
+    ctx = mp.get_context("fork")
+    for rnd in range(20):
+        data = tmp_path / f"d{rnd}"
+        fd = lock_data_dir(data)
+        start, out = ctx.Barrier(8), ctx.Queue()
+        ps = [ctx.Process(target=_open_at_once, args=(data, fd, start, out)) for _ in range(8)]
+        for p in ps:
+            p.start()
+        got = [out.get(timeout=120) for _ in ps]
+        for p in ps:
+            p.join(30)
+        os.close(fd)
+        assert got == ["ok"] * 8, (rnd, got)

@@ -64,15 +64,6 @@ BLAS_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 AROUND = ((90.0, 0.0), (180.0, 0.0), (30.0, 60.0))
 
 
-def parse_server_timing(header: str) -> dict[str, float]:
-    out = {}
-    for part in header.split(","):
-        name, _, dur = part.strip().partition(";dur=")
-        if dur:
-            out[name] = float(dur) / 1e3
-    return out
-
-
 def ms(x: float) -> str:
     return f"{x * 1e3:.1f} ms"
 
@@ -119,6 +110,8 @@ def frame(http, url, body):
     t0 = time.perf_counter()
     r = http.post(url, json=body)
     r.raise_for_status()
+    from bench_lightfield import parse_server_timing  # the 2D benchmark's reader
+
     return time.perf_counter() - t0, parse_server_timing(r.headers["server-timing"]), r
 
 

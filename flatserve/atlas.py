@@ -69,6 +69,7 @@ from . import flats as _flats
 from ._validate import as_array
 from .basis import Basis, select_scale
 from .coordinates import NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
+from .embedding import row_product
 from .errors import InvalidInputError, SnapshotError
 from .field import AddResult, Field, PreparedBatch, QueryResult
 from .flats import Flats
@@ -258,7 +259,7 @@ def _cos2_max(C: np.ndarray, F: np.ndarray) -> np.ndarray:
     if j == 0:
         return np.ones(F.shape[0])
     if j == 1:
-        c = F[:, :, 0] @ C[:, 0]
+        c = row_product(F[:, :, 0], C[:, :1])[:, 0]  # batch-independent bits (route)
         return np.minimum(c * c, 1.0)
     M = np.einsum("di,ndj->nij", C, F)
     if j == 2:
@@ -878,7 +879,9 @@ class Atlas:
         cr = math.cos(math.radians(radius))
         rows, angles = [], []
         if self.oriented or F.shape[2] == 1:
-            dots = F[:, :, 0] @ self.frames[:, :, 0].T  # (n, c)
+            # (n, c); row by row in a fixed order: a flat's routing (which
+            # charts, what weights) must not depend on the rest of its batch
+            dots = row_product(F[:, :, 0], self.frames[:, :, 0].T)
             if not self.oriented:
                 np.abs(dots, out=dots)
             held = np.ascontiguousarray((dots > cr).T)  # (c, n): one pass, rows contiguous
@@ -923,7 +926,7 @@ class Atlas:
         F = orientation_frames(flats, normals=False if self.oriented else None)
         cr = math.cos(math.radians(radius))
         if self.oriented or F.shape[2] == 1:
-            dots = F[:, :, 0] @ self.frames[:, :, 0].T  # (n, c)
+            dots = row_product(F[:, :, 0], self.frames[:, :, 0].T)  # (n, c), as route
             if not self.oriented:
                 np.abs(dots, out=dots)
             return np.count_nonzero(dots > cr, axis=0).astype(np.int64)

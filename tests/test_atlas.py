@@ -519,3 +519,22 @@ def test_a_sample_queried_alone_gets_its_value_back():
         got = field.query(Flats.from_rays(o[i:i + 1], v[i:i + 1]))
         assert got.inside[0], i
         np.testing.assert_allclose(got.values[0], vals[i], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("oriented", [False, True])
+def test_a_flats_routing_does_not_depend_on_its_batch(oriented):
+    """Which charts hold a flat and at what angle (hence its blending weights)
+    are the same bits whether the flat is routed alone, in a small batch or in
+    a large one: a query near a border must not change charts with its company."""
+    rng = np.random.default_rng(12)
+    at = Atlas.covering(1, 3, oriented=oriented)
+    n = 3000
+    flats = Flats.from_rays(rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)))
+    whole = at.route(flats, at.trusted)
+    for size in (1, 7, 333):
+        for lo in range(0, n if size > 1 else 300, size):
+            part = at.route(flats.take(np.arange(lo, min(n, lo + size))), at.trusted)
+            for c in range(at.ncharts):
+                sel = (whole.rows[c] >= lo) & (whole.rows[c] < lo + size)
+                np.testing.assert_array_equal(part.rows[c], whole.rows[c][sel] - lo)
+                assert part.angles[c].tobytes() == whole.angles[c][sel].tobytes()

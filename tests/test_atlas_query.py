@@ -36,7 +36,12 @@ def reference_route(atlas: Atlas, flats: Flats, radius: float):
     cr = math.cos(math.radians(radius))
     rows, angles = [], []
     if atlas.oriented or F.shape[2] == 1:
-        dots = F[:, :, 0] @ atlas.frames[:, :, 0].T
+        # each row's cosines summed coordinate by coordinate in order (the
+        # routing's bits do not depend on the batch)
+        a, C = F[:, :, 0], atlas.frames[:, :, 0]
+        dots = a[:, :1] * C[:, 0]
+        for j in range(1, a.shape[1]):
+            dots += a[:, j:j + 1] * C[:, j]
         if not atlas.oriented:
             np.abs(dots, out=dots)
         for i in range(atlas.ncharts):

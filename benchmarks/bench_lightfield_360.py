@@ -4,7 +4,7 @@ A real server process (:class:`flatserve.service.process.ServerProcess`) holds
 two fields of the bunny with the same number of samples (default 1,000,000):
 
 * ``bunny360``: an oriented covering atlas (``{"kind": "atlas", "oriented":
-  true}``, 12 charts) of rays from eyes all around the bunny
+  true}``, the default 32 charts) of rays from eyes all around the bunny
   (:func:`flatserve.lightfield.sampling.orbit_samples`, the demo's and
   ``flatserve lightfield orbit``'s sampling);
 * ``bunny1`` (the peer): one chart, the paper's basis and sampling (Sec. 5.2,
@@ -92,7 +92,7 @@ def ensure_field(c, name: str, basis: dict, make, n: int, oriented: bool = False
     info = c.describe(name)
     print(f"{name}: {info['nsamples']:,} samples built through the API in "
           f"{time.perf_counter() - t0:.1f} s" + (
-              f" (12 charts, {info['atlas']['nstored']:,} vertices, duplication "
+              f" ({len(info['atlas']['charts'])} charts, {info['atlas']['nstored']:,} vertices, duplication "
               f"{info['atlas']['duplication']:.2f})" if info.get("atlas") else ""))
     c.snapshot(name)
 

@@ -74,6 +74,7 @@ from .errors import InvalidInputError, SnapshotError
 from .field import AddResult, Field, PreparedBatch, QueryResult
 from .flats import Flats
 from .triangulation import RWLock
+from .warp import LineWarp
 
 __all__ = [
     "CHART_LIMIT_DEG",
@@ -133,9 +134,10 @@ DEFAULT_UNIT = 1.0
 #: Radii (``inner``, ``trusted``, ``reach``, degrees) of the covering atlases of
 #: lines and planes in R^3 (:data:`GEODESIC_AXES`, covering radius 22.69
 #: degrees): ``trusted`` 1.3 degrees beyond the covering radius, ``reach`` 3
-#: beyond ``trusted``, blending weight 1 up to half of ``trusted``.  A chart
-#: stretches a tilt by at most ``1/cos^2(2 trusted)`` = 2.2 (against 14.5 at
-#: the 6 icosahedral axes' 37.4 degrees); duplication (Haar-random lines) 1.75.
+#: beyond ``trusted``, blending weight 1 up to half of ``trusted``.  The paper's
+#: chart stretches a tilt by at most ``1/cos^2(2 trusted)`` = 2.2 there (against
+#: 14.5 at the 6 icosahedral axes' 37.4 degrees; the isometric charts of lines,
+#: :mod:`flatserve.warp`, undo it); duplication (Haar-random lines) 1.75.
 COVER_RADII_3D = (12.0, 24.0, 27.0)
 #: Largest extra angle a covering must keep below ``trusted`` (degrees): the
 #: margin the checks of :meth:`Atlas.covering` require.
@@ -413,6 +415,11 @@ class Atlas:
         (rays that meet on its surface at depth ``z`` from its centre differ
         by a shift of ``z`` times their turn).  Default
         :data:`DEFAULT_UNIT` (the paper's chart).
+    isometric : bool, optional
+        Warp each chart's points so that it measures turns and shifts
+        everywhere as at its centre (:mod:`flatserve.warp`; lines in R^3
+        only).  Default: True for lines in R^3, False otherwise (and for
+        atlases stored before there was a choice: :meth:`from_dict`).
 
     Attributes
     ----------
@@ -427,7 +434,7 @@ class Atlas:
     def __init__(self, k: int, d: int, center_A, center_N, center_r, scales, *,
                  oriented: bool = False, inner: float = INNER_DEG,
                  trusted: float = TRUSTED_DEG, reach: float = REACH_DEG,
-                 unit: float = DEFAULT_UNIT):
+                 unit: float = DEFAULT_UNIT, isometric: bool | None = None):
         d = int(d)
         k = _flats.check_k(k, d)
         if oriented and k != 1:
@@ -456,6 +463,12 @@ class Atlas:
         self.inner, self.trusted, self.reach, self.unit = inner, trusted, reach, unit
         self.center_A, self.center_N, self.center_r, self.scales = A, N, r, s
         self.frames = N if _use_normals(k, d) else A
+        if isometric is None:
+            isometric = (k, d) == (1, 3)
+        if not isinstance(isometric, (bool, np.bool_)) or (isometric and (k, d) != (1, 3)):
+            raise InvalidInputError(f"isometric: only charts of lines in R^3 can be made isometric, "
+                                    f"got {isometric!r} for {k}-flats in R^{d}", "isometric")
+        self.isometric = bool(isometric)
         self.bases = []
         for i in range(c):
             Q = N[i] @ N[i].T
@@ -472,13 +485,17 @@ class Atlas:
                  inner: float | None = None, trusted: float | None = None,
                  reach: float | None = None, train_deg: float = COVER_TRAIN_DEG,
                  seed: int = 0, check_n: int = COVER_CHECK_N,
-                 n_train: int = COVER_TRAIN_N, unit: float = DEFAULT_UNIT) -> "Atlas":
+                 n_train: int = COVER_TRAIN_N, unit: float = DEFAULT_UNIT,
+                 isometric: bool | None = None) -> "Atlas":
         """An atlas whose charts hold every k-flat of R^d, centres through the origin.
 
         Centres.  A chart is accurate near its centre only: its embedding
         stretches a flat's tilt by ``1/cos^2(2 theta)`` at ``theta`` from the
         centre (4x at 30 degrees, 14.5x at 37.4), so its Delaunay cells join
-        ever more distant flats; and every sample is stored in each chart
+        ever more distant flats (for lines in R^3 the isometric charts,
+        :mod:`flatserve.warp`, undo the stretch; the covering was chosen
+        before them, and measured again with them: 24 of 24 bunny views beat
+        the baseline); and every sample is stored in each chart
         closer than ``reach`` (memory).  The centres are therefore as many
         as keep the charts narrow while the duplication (charts per sample)
         stays below 2: a covering of radius ``rho`` with ``c`` centres
@@ -516,6 +533,8 @@ class Atlas:
         check_n, n_train : int
         unit : float
             The charts' unit of length (:class:`Atlas`).
+        isometric : bool, optional
+            Warp the charts' points (:class:`Atlas`; default: lines in R^3).
 
         Returns
         -------
@@ -544,7 +563,8 @@ class Atlas:
         if oriented:
             A, N = np.concatenate([A, -A]), np.concatenate([N, N])
         atlas = cls(k, d, A, N, np.zeros((A.shape[0], d)), np.full(A.shape[0], float(scale)),
-                    oriented=oriented, inner=inner, trusted=trusted, reach=reach, unit=unit)
+                    oriented=oriented, inner=inner, trusted=trusted, reach=reach, unit=unit,
+                    isometric=isometric)
         key = (k, d, bool(oriented), float(train_deg), int(seed), int(n_train), int(check_n))
         radius = _COVER_RADIUS.get(key)  # the same centres, the same seeded measurement
         if radius is None:
@@ -564,7 +584,7 @@ class Atlas:
                      inner: float = INNER_DEG, trusted: float = TRUSTED_DEG,
                      reach: float = REACH_DEG, require_cover: bool = True,
                      check_n: int = COVER_CHECK_N, seed: int = 0,
-                     unit: float = DEFAULT_UNIT) -> "Atlas":
+                     unit: float = DEFAULT_UNIT, isometric: bool | None = None) -> "Atlas":
         """An atlas with the given centre flats, checked to cover every orientation.
 
         Parameters
@@ -579,6 +599,8 @@ class Atlas:
             than ``trusted`` from every centre.
         unit : float
             The charts' unit of length (:class:`Atlas`).
+        isometric : bool, optional
+            Warp the charts' points (:class:`Atlas`; default: lines in R^3).
 
         Raises
         ------
@@ -601,7 +623,7 @@ class Atlas:
         if not (np.isfinite(s).all() and (s > 0).all()):
             raise InvalidInputError("scales: expected positive numbers", "scales")
         atlas = cls(k, d, A, N, r, s, oriented=oriented, inner=inner, trusted=trusted,
-                    reach=reach, unit=unit)
+                    reach=reach, unit=unit, isometric=isometric)
         for i, B in enumerate(atlas.bases):
             rep = B.check()
             if not rep.ok:
@@ -628,7 +650,8 @@ class Atlas:
                     fraction: float = 0.99, inner: float = INNER_DEG,
                     trusted: float = TRUSTED_DEG, reach: float = REACH_DEG,
                     max_scale_samples: int = 5000, max_cluster_samples: int = 20_000,
-                    seed: int = 0, refine: int = 3, unit: float = DEFAULT_UNIT) -> "Atlas":
+                    seed: int = 0, refine: int = 3, unit: float = DEFAULT_UNIT,
+                    isometric: bool | None = None) -> "Atlas":
         """A data-driven atlas: charts where the samples' orientations are.
 
         1. Greedy cover of the samples' direction spaces (largest principal
@@ -665,6 +688,8 @@ class Atlas:
         unit : float
             The charts' unit of length (:class:`Atlas`; the bisection
             chooses each chart's scale in this unit).
+        isometric : bool, optional
+            Warp the charts' points (:class:`Atlas`; default: lines in R^3).
 
         Returns
         -------
@@ -763,7 +788,8 @@ class Atlas:
             counts.append(int(rows.size))
             cover.append(sel.coverage)
         atlas = cls(k, d, np.stack(As), np.stack(Ns), np.stack(rs), np.array(ss),
-                    oriented=oriented, inner=inner, trusted=trusted, reach=reach, unit=unit)
+                    oriented=oriented, inner=inner, trusted=trusted, reach=reach, unit=unit,
+                    isometric=isometric)
         atlas.info = {"method": "samples", "centres": len(As), "radius_deg": radius,
                       "max_sample_angle_deg": float(np.degrees(D.min(axis=1).max())),
                       "samples_per_chart": counts, "convex_coverage": cover}
@@ -962,10 +988,34 @@ class Atlas:
         return (deg, worst_f) if return_worst else deg
 
     # ------------------------------------------------------------- persistence
+    @functools.cached_property
+    def warps(self) -> list:
+        """Per chart its :class:`~flatserve.warp.LineWarp` (isometric atlases), else None.
+
+        Calibrated on first use (the builders check the charts first, so a
+        chart that cannot be used is refused naming its scale)."""
+        if not self.isometric:
+            return [None] * self.ncharts
+        out = []
+        for i, B in enumerate(self.bases):
+            try:
+                out.append(LineWarp.calibrate(B))
+            except InvalidInputError as exc:
+                raise InvalidInputError(f"centers: chart {i} (scale {self.scales[i]:g}): {exc}",
+                                        "centers") from None
+        return out
+
+    def chart_field(self, i: int, channels: int = 1, *,
+                    roundtrip_tol: float = ROUNDTRIP_TOL) -> Field:
+        """An empty single-chart :class:`~flatserve.field.Field` of chart ``i``
+        (its basis, and its warp when the atlas is isometric)."""
+        return Field(self.bases[i], channels, roundtrip_tol=roundtrip_tol, warp=self.warps[i])
+
     def to_dict(self) -> dict:
         """JSON-able description (centres, scales, radii); :meth:`from_dict` inverts it."""
         return {"k": self.k, "d": self.d, "oriented": self.oriented, "inner": self.inner,
                 "trusted": self.trusted, "reach": self.reach, "unit": self.unit,
+                "isometric": self.isometric,
                 "center_A": self.center_A.tolist(), "center_N": self.center_N.tolist(),
                 "center_r": self.center_r.tolist(), "scales": self.scales.tolist(),
                 "info": self.info}
@@ -977,7 +1027,8 @@ class Atlas:
                     np.array(spec["center_N"]), np.array(spec["center_r"]),
                     np.array(spec["scales"]), oriented=bool(spec["oriented"]),
                     inner=spec["inner"], trusted=spec["trusted"], reach=spec["reach"],
-                    unit=spec.get("unit", DEFAULT_UNIT))
+                    unit=spec.get("unit", DEFAULT_UNIT),
+                    isometric=bool(spec.get("isometric", False)))
         atlas.info = dict(spec.get("info", {}))
         return atlas
 
@@ -1148,7 +1199,8 @@ class AtlasField:
             raise InvalidInputError(f"atlas: expected a flatserve.atlas.Atlas, got "
                                     f"{type(atlas).__name__}", "atlas")
         self.atlas = atlas
-        self.fields = [Field(B, channels, roundtrip_tol=roundtrip_tol) for B in atlas.bases]
+        self.fields = [atlas.chart_field(i, channels, roundtrip_tol=roundtrip_tol)
+                       for i in range(atlas.ncharts)]
         self.k, self.d, self.ndim = atlas.k, atlas.d, self.fields[0].ndim
         self.channels = self.fields[0].channels
         self.roundtrip_tol = self.fields[0].roundtrip_tol
@@ -1409,14 +1461,15 @@ class AtlasField:
         Returns
         -------
         dict
-            ``{"k", "d", "oriented", "inner", "trusted", "reach", "unit", "info",
+            ``{"k", "d", "oriented", "inner", "trusted", "reach", "unit", "isometric", "info",
             "nsamples", "nstored", "duplication", "charts": [{"center": {"A",
             "r"}, "scale", "samples"}, ...]}``.
         """
         at = self.atlas
         return {
             "k": at.k, "d": at.d, "oriented": at.oriented, "inner": at.inner,
-            "trusted": at.trusted, "reach": at.reach, "unit": at.unit, "info": at.info,
+            "trusted": at.trusted, "reach": at.reach, "unit": at.unit,
+            "isometric": at.isometric, "info": at.info,
             "nsamples": self.nsamples, "nstored": self.nstored,
             "duplication": None if not self._nsamples else self.duplication,
             "charts": [{"center": {"A": at.center_A[i].tolist(), "r": at.center_r[i].tolist()},

@@ -30,6 +30,7 @@ from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
 from .flats import Flats
 from .triangulation import Triangulation
+from .warp import LineWarp
 
 __all__ = ["Field", "AddResult", "Chart", "PreparedBatch", "QueryResult"]
 
@@ -187,6 +188,10 @@ class Field:
     roundtrip_tol : float
         Largest round-trip residual (see :func:`flatserve.coordinates.coordinates`)
         for which a sample's or query's coordinates are trusted.
+    warp : flatserve.warp.LineWarp, optional
+        Applied to the embedded points before they are triangulated (the
+        isometric charts of an atlas of lines in R^3, :mod:`flatserve.warp`);
+        None (the default): the paper's chart.
 
     Examples
     --------
@@ -200,7 +205,8 @@ class Field:
     >>> out = field.query_rays(eyes[:5], screen[:5] - eyes[:5])
     """
 
-    def __init__(self, basis: Basis, channels: int = 1, *, roundtrip_tol: float = ROUNDTRIP_TOL):
+    def __init__(self, basis: Basis, channels: int = 1, *, roundtrip_tol: float = ROUNDTRIP_TOL,
+                 warp: LineWarp | None = None):
         if not isinstance(basis, Basis):
             raise InvalidInputError(f"basis: expected a flatserve.Basis, got {type(basis).__name__}", "basis")
         if not (isinstance(channels, (int, np.integer)) and channels >= 1):
@@ -212,6 +218,11 @@ class Field:
         self.k, self.d, self.ndim = basis.k, basis.d, basis.m - 1
         self.channels = int(channels)
         self.roundtrip_tol = float(roundtrip_tol)
+        if warp is not None and not (isinstance(warp, LineWarp) and self.k == 1 and self.d == 3):
+            raise InvalidInputError("warp: expected a flatserve.warp.LineWarp on a field of lines "
+                                    "in R^3", "warp")
+        #: the chart's warp (None: the paper's chart)
+        self.warp = warp
         self._tri = Triangulation(basis.m - 1)
         self._nrejected = 0
 
@@ -290,6 +301,8 @@ class Field:
             x = embed(coords.weights) if ok.size else np.empty((0, self.ndim))
         else:
             x = embed(coords.weights[ok]) if ok.any() else np.empty((0, self.ndim))
+        if self.warp is not None:
+            x = self.warp(x)
         return Chart(status, np.ascontiguousarray(x), np.asarray(coords.residual),
                      time.perf_counter() - t0)
 
@@ -497,6 +510,7 @@ class Field:
             "nrejected": self._nrejected,
             "basis_Q": self.basis.Q.tolist(),
             "basis_r": self.basis.r.tolist(),
+            **({"warp": self.warp.to_dict()} if self.warp is not None else {}),
         }
 
     def write_to(self, fh) -> int:
@@ -567,9 +581,11 @@ class Field:
         try:
             meta = json.loads(bytes(data[start : start + mlen]))
             basis = Basis(np.array(meta["basis_Q"]), np.array(meta["basis_r"]), int(meta["k"]))
-        except (ValueError, KeyError, TypeError) as exc:
+            warp = LineWarp.from_dict(meta["warp"]) if "warp" in meta else None
+        except (ValueError, KeyError, TypeError, InvalidInputError) as exc:
             raise SnapshotError(f"{source}: corrupted field metadata: {exc}") from None
-        obj = cls(basis, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]))
+        obj = cls(basis, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]),
+                  warp=warp)
         obj._tri = Triangulation.from_bytes(data[start + mlen :])
         if obj._tri.ndim != obj.ndim:
             raise SnapshotError(f"{source}: triangulation dimension {obj._tri.ndim} does not match basis")

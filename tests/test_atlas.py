@@ -289,7 +289,7 @@ def test_deep_inside_a_chart_equals_the_single_chart_field(lines_field):
     field, o, v = lines_field
     atlas = field.atlas
     c = 2
-    single = Field(atlas.bases[c], channels=1)
+    single = atlas.chart_field(c, channels=1)
     single.add(Flats.from_rays(o, v), line_fn(o, v))  # rejects what its chart cannot hold
     rng = np.random.default_rng(9)
     # directions within (nearest other centre - trusted) of centre c: every other

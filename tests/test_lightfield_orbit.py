@@ -1,9 +1,12 @@
 """The 360-degree light field (``flatserve lightfield orbit``) and its two-sphere baseline.
 
-One small run of :func:`orbit_figure` (module fixture: the bunny, 20,000 rays
-from eyes all around, 24 views of 32^2 pixels) feeds the checks of the
-issue's quality criteria; the sampling, the baseline and the routing are
-checked against independent oracles.
+The issue's quality criteria are checked on the run that
+``docs/orbit-results.md`` reports (:func:`orbit_figure` with its defaults: the
+bunny, 200,000 rays from 448 eyes all around, 24 views of 128^2 pixels, 4
+rays per pixel; about two minutes); a small run (20,000 rays from 142 eyes,
+32^2 views) feeds the other checks and records, as strict expected failures,
+where the criteria are not met with eyes that sparse.  The sampling, the
+baseline and the routing are checked against independent oracles.
 """
 from __future__ import annotations
 
@@ -21,7 +24,8 @@ from flatserve.lightfield.baselines import IDW_POWER, TWO_SPHERE_K, TwoSphere, t
 from flatserve.lightfield.camera import ORBIT_EYE_RADIUS, ORBIT_RADIUS, fibonacci_sphere, sphere_samples
 from flatserve.lightfield.cli import add_arguments, run
 from flatserve.lightfield.mesh import CGAL_DATA_TARBALL
-from flatserve.lightfield.orbit import (AZIMUTHS, ELEVATIONS, SCENE_UNIT, icosahedral_atlas,
+from flatserve.lightfield.orbit import (AZIMUTHS, DEFAULT_SAMPLES, ELEVATIONS, SCENE_UNIT,
+                                        VIEW_WIDTH, icosahedral_atlas,
                                         one_chart_atlas, orbit_figure, orbit_views, view_charts)
 from flatserve.lightfield.sampling import build_atlas_field, bunny_scene, orbit_samples
 
@@ -37,17 +41,23 @@ STRADDLE_TOL_DB = 0.5
 SAME_TOL = 1e-12
 
 
-def _run(tmp_path_factory, atlas):
-    out = tmp_path_factory.mktemp(f"orbit-{atlas}")
-    res = orbit_figure(out, n=N_SAMPLES, width=WIDTH, supersample=4, atlas=atlas, one_chart=True,
+def _run(tmp_path_factory, atlas, n=N_SAMPLES, width=WIDTH):
+    out = tmp_path_factory.mktemp(f"orbit-{atlas}-{n}")
+    res = orbit_figure(out, n=n, width=width, supersample=4, atlas=atlas, one_chart=True,
                        log=lambda s: None, progress=False)
     return out, res
 
 
 @pytest.fixture(scope="module")
 def run_result(tmp_path_factory):
-    """The command with the default covering atlas (32 charts) and unit (1/3)."""
+    """The command with the default covering atlas (32 charts) and unit (1/3), small."""
     return _run(tmp_path_factory, "covering")
+
+
+@pytest.fixture(scope="module")
+def documented_result(tmp_path_factory):
+    """The command with all its defaults: the run docs/orbit-results.md reports."""
+    return _run(tmp_path_factory, "covering", n=DEFAULT_SAMPLES, width=VIEW_WIDTH)
 
 
 @pytest.fixture(scope="module")
@@ -246,18 +256,30 @@ def test_cli_orbit(tmp_path, capsys):
             orbit_figure(tmp_path, n=10, unit=unit, log=lambda s: None, progress=False)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "measured with the default covering (32 charts, unit 1/3): at 20,000 rays and 32^2 views ours wins 18 "
-    "of 24, ours - baseline -0.61 to +2.25 dB (before: 12 charts, unit 1, 5 of 24); at 200,000 rays and "
-    "128^2 21 of 24, -0.25 to +2.58 dB (docs/orbit-results.md)"))
-def test_ours_beats_the_nearest_rays_baseline_on_every_view(run_result):
-    """The issue's criterion: on the 360-degree bunny, at equal samples (the
-    same rays in both), ours has the higher PSNR on every view."""
-    _, res = run_result
+def _lost_views(res) -> list:
+    """Views where ours is not above the baseline: (view, ours, baseline) dB."""
     lost = [(r["view"], round(r["methods"]["ours"]["psnr"], 2), round(r["methods"]["baseline"]["psnr"], 2))
             for r in res["views"] if not r["methods"]["ours"]["psnr"] > r["methods"]["baseline"]["psnr"]]
     diff = [r["methods"]["ours"]["psnr"] - r["methods"]["baseline"]["psnr"] for r in res["views"]]
     print(f"ours - baseline {min(diff):+.2f} to {max(diff):+.2f} dB; lost {lost}")
+    return lost
+
+
+def test_ours_beats_the_nearest_rays_baseline_on_every_view(documented_result):
+    """The issue's criterion: on the 360-degree bunny, at equal samples (the
+    same rays in both), ours has the higher PSNR on every view."""
+    _, res = documented_result
+    lost = _lost_views(res)
+    assert not lost, lost
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "with eyes 3x sparser (20,000 rays from 142 eyes, about 17 degrees apart; 32^2 views) ours loses "
+    "3 of 24 views, by up to 0.34 dB (before the isometric charts: 6 of 24, by up to 0.61 dB; "
+    "docs/orbit-results.md)"))
+def test_ours_beats_the_nearest_rays_baseline_with_sparse_eyes(run_result):
+    _, res = run_result
+    lost = _lost_views(res)
     assert not lost, lost
 
 
@@ -267,12 +289,16 @@ def _straddle_penalties(res) -> list[tuple[str, float]]:
             for r in res["views"] if r["routing"]["straddles"]]
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "measured with the default covering (32 charts, unit 1/3): at 20,000 rays and 32^2 views 8 of 24 views "
-    "are more than 0.5 dB worse than one chart centred on the view (down to -1.65 dB, az180_el+00: views "
-    "blended from 4 charts, each 11-24 degrees off the view's axis); at 200,000 rays 4 of 24, down to "
-    "-0.93 dB (docs/orbit-results.md)"))
-def test_straddling_views_are_no_worse_than_inside_one_chart(run_result):
+def _worse_straddling(res) -> list:
+    pen = _straddle_penalties(res)
+    assert len(pen) >= len(res["views"]) // 2  # most views straddle: the check has a subject
+    worse = [(v, p) for v, p in pen if p < -STRADDLE_TOL_DB]
+    print(f"{len(pen)} views straddle; ours - one chart {min(p for _, p in pen):+.2f} to "
+          f"{max(p for _, p in pen):+.2f} dB; worse by more than {STRADDLE_TOL_DB}: {worse}")
+    return worse
+
+
+def test_straddling_views_are_no_worse_than_inside_one_chart(documented_result):
     """The issue's criterion: a view whose pixels straddle chart borders is no
     worse (within ``STRADDLE_TOL_DB``) than a view inside one chart at equal
     sample density, with the default covering (32 charts, every direction
@@ -281,17 +307,26 @@ def test_straddling_views_are_no_worse_than_inside_one_chart(run_result):
     Equal density, honestly: the *same* view and the *same* sample rays,
     rendered twice: by the covering atlas (where the atlas's routing blends
     two or more charts at some of the view's rays: it straddles) and by a
-    one-chart atlas of the same radii centred on the view's axis (every ray
-    of the view answered by that chart alone: inside one chart).  Comparing
-    different views instead would compare different parts of the bunny, and
-    the difference between them (several dB) would drown the border's.
+    one-chart atlas of the same kind and radii centred on the view's axis
+    (every ray of the view answered by that chart alone: inside one chart).
+    Comparing different views instead would compare different parts of the
+    bunny, and the difference between them (several dB) would drown the
+    border's.
     """
+    _, res = documented_result
+    worse = _worse_straddling(res)
+    assert not worse, worse
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "with eyes 3x sparser (20,000 rays from 142 eyes, about 17 degrees apart; 32^2 views) 5 of 24 "
+    "views are more than 0.5 dB worse than one chart centred on the view, down to -2.21 dB "
+    "(az000_el+00): a chart holds samples only 3 degrees beyond where it answers, less than the "
+    "eyes' spacing; samples in every chart closer than 35 degrees leave 1 view, -0.64 dB, but "
+    "duplicate each sample 2.9 times (docs/orbit-results.md)"))
+def test_straddling_views_with_sparse_eyes(run_result):
     _, res = run_result
-    pen = _straddle_penalties(res)
-    assert len(pen) >= len(res["views"]) // 2  # most views straddle: the check has a subject
-    worse = [(v, p) for v, p in pen if p < -STRADDLE_TOL_DB]
-    print(f"{len(pen)} views straddle; ours - one chart {min(p for _, p in pen):+.2f} to "
-          f"{max(p for _, p in pen):+.2f} dB; worse by more than {STRADDLE_TOL_DB}: {worse}")
+    worse = _worse_straddling(res)
     assert not worse, worse
 
 
@@ -364,3 +399,21 @@ def test_checker_texture_shades_by_the_hit_point():
     np.testing.assert_allclose(textured[h, 0], want, rtol=1e-12)
     assert (parity == 0).any() and (parity == 1).any()
     np.testing.assert_array_equal(textured[~h], 0.0)
+
+
+def test_cli_orbit_with_the_papers_charts(tmp_path):
+    """``--paper-charts``: the atlas and the one-chart comparison both use the
+    paper's charts (no warp), and the table says so."""
+    import argparse
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    args = p.parse_args(["orbit", "--out", str(tmp_path), "--samples", "3000", "--width", "8",
+                         "--supersample", "1", "--paper-charts"])
+    assert run(args) == 0
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert res["isometric"] is False
+    assert "paper charts" in (tmp_path / "results.md").read_text()
+    at = Atlas.covering(1, 3, oriented=True, isometric=False)
+    assert not one_chart_atlas(at, [0, 0, 1]).isometric
+    assert one_chart_atlas(Atlas.covering(1, 3, oriented=True), [0, 0, 1]).isometric

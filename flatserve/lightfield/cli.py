@@ -52,6 +52,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="the atlas's unit of length in world units: the shift of a ray that counts "
                           "as much as a turn of one radian (default 1/3: 2/3 of the scenes' radius 0.5, "
                           "flatserve.atlas.object_unit; 1: world units); the baseline is unchanged")
+    orb.add_argument("--paper-charts", action="store_true",
+                     help="the paper's tangent-simplex charts instead of the isometric ones "
+                          "(flatserve.warp) in the atlas and the one-chart comparison")
     orb.add_argument("--no-one-chart", action="store_true",
                      help="skip rendering each view from a one-chart atlas centred on its axis")
 
@@ -83,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
             orbit_figure(args.out, n=args.samples, eyes=args.eyes, seed=args.seed, width=args.width,
                          supersample=args.supersample, channels=3 if args.rgb else 1,
                          scene=args.scene, atlas=args.atlas, unit=args.unit,
-                         one_chart=not args.no_one_chart)
+                         isometric=not args.paper_charts, one_chart=not args.no_one_chart)
         except (InvalidInputError, FileNotFoundError) as exc:
             print(f"flatserve lightfield orbit: {exc}", file=sys.stderr)
             return 2

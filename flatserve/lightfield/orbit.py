@@ -120,8 +120,9 @@ def view_charts(atlas: Atlas, camera: Camera) -> dict:
 def one_chart_atlas(atlas: Atlas, axis) -> Atlas:
     """An atlas of one chart of ``atlas``'s kind, centred on the oriented line along ``axis``.
 
-    Same scale and radii as ``atlas`` (k = 1, d = 3, oriented); a view whose
-    rays are all within ``inner`` of ``axis`` lies inside this one chart.
+    Same scale, radii, unit and charts (isometric or the paper's) as ``atlas``
+    (k = 1, d = 3, oriented); a view whose rays are all within ``inner`` of
+    ``axis`` lies inside this one chart.
     """
     a = np.asarray(axis, dtype=np.float64)
     a = a / np.linalg.norm(a)
@@ -129,10 +130,10 @@ def one_chart_atlas(atlas: Atlas, axis) -> Atlas:
     N = V[:, :2]  # the two eigenvectors orthogonal to a
     return Atlas(1, 3, a[None, :, None], N[None], np.zeros((1, 3)), atlas.scales[:1],
                  oriented=True, inner=atlas.inner, trusted=atlas.trusted, reach=atlas.reach,
-                 unit=atlas.unit)
+                 unit=atlas.unit, isometric=atlas.isometric)
 
 
-def fine_atlas(unit: float = 1.0) -> Atlas:
+def fine_atlas(unit: float = 1.0, isometric: bool = True) -> Atlas:
     """A finer oriented covering: 42 charts, centred on the vertices of a once-subdivided icosahedron.
 
     Every direction is within 20.8 degrees of a centre (measured by
@@ -145,20 +146,21 @@ def fine_atlas(unit: float = 1.0) -> Atlas:
     c = icosphere(1).vertices
     inner, trusted, reach = FINE_RADII
     return Atlas.from_centers(Flats.from_rays(np.zeros_like(c), c), oriented=True, inner=inner,
-                              trusted=trusted, reach=reach, unit=unit)
+                              trusted=trusted, reach=reach, unit=unit, isometric=isometric)
 
 
-def icosahedral_atlas(unit: float = 1.0) -> Atlas:
+def icosahedral_atlas(unit: float = 1.0, isometric: bool = True) -> Atlas:
     """The former default covering: 12 charts around the 6 icosahedral axes and their
     negatives (covering radius 37.4 degrees), weight 1 up to 20 degrees, 0 from 40,
     samples in every chart closer than 44 (duplication 1.68): for comparison."""
     return Atlas.from_centers(Flats.from_rays(np.zeros((12, 3)), np.concatenate(
         [ICOSAHEDRON_AXES, -ICOSAHEDRON_AXES])), oriented=True, inner=20.0, trusted=40.0,
-        reach=44.0, unit=unit)
+        reach=44.0, unit=unit, isometric=isometric)
 
 
-#: Atlases of ``flatserve lightfield orbit --atlas``: name -> builder(unit).
-ATLASES = {"covering": lambda unit=1.0: Atlas.covering(1, 3, oriented=True, unit=unit),
+#: Atlases of ``flatserve lightfield orbit --atlas``: name -> builder(unit, isometric).
+ATLASES = {"covering": lambda unit=1.0, isometric=True: Atlas.covering(1, 3, oriented=True, unit=unit,
+                                                                       isometric=isometric),
            "fine": fine_atlas, "icosahedral": icosahedral_atlas}
 #: The scenes fill the unit box: half its side is their radius (about the origin).
 SCENE_HALF_SIZE = 0.5
@@ -175,7 +177,7 @@ def _scores(image, truth, covered) -> dict:
 def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed: int = 0,
                  width: int = VIEW_WIDTH, supersample: int = 4, channels: int = 1,
                  scene: str = "bunny", atlas: str = "covering", unit: float | None = None,
-                 one_chart: bool = True, log=print,
+                 isometric: bool = True, one_chart: bool = True, log=print,
                  progress: bool = True) -> dict:
     """Build the 360-degree light field and write the views, the contact sheet and the table.
 
@@ -206,6 +208,9 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         :data:`SCENE_UNIT` (1/3: :func:`flatserve.atlas.object_unit` of the
         scenes' radius 0.5, they fill the unit box); 1: world units (the
         paper's chart).
+    isometric : bool
+        The atlas's charts warped to be isometric (:mod:`flatserve.warp`, the
+        library's default); False: the paper's charts.
     one_chart : bool
         Also render every view from a one-chart atlas centred on its axis
         (:func:`one_chart_atlas`, the same samples).
@@ -239,7 +244,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
 
     bar = ProgressBar("building atlas field", n) if progress else None
     field, stats = build_atlas_field(samples.origins, samples.directions, values,
-                                     atlas=ATLASES[atlas](unit), progress=bar)
+                                     atlas=ATLASES[atlas](unit, isometric), progress=bar)
     timings["field_build"] = stats.seconds
     log(f"atlas field: {field.atlas.ncharts} charts, {stats.accepted:,} samples accepted, "
         f"{stats.rejected:,} rejected, {field.nstored:,} vertices over the charts "
@@ -294,7 +299,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     azimuths = [name.split("_")[0] for name, _ in views[:AZIMUTHS]]
     contact_sheet(out / "contact_sheet.png", sheet_rows, azimuths)
     result = {
-        "scene": scene, "atlas_kind": atlas, "unit": unit, "samples": n, "eyes": neyes, "seed": seed, "width": width,
+        "scene": scene, "atlas_kind": atlas, "unit": unit, "isometric": isometric, "samples": n, "eyes": neyes, "seed": seed, "width": width,
         "supersample": supersample, "channels": channels,
         "eye_radius": ORBIT_EYE_RADIUS, "ball_radius": ORBIT_RADIUS,
         "atlas": {"charts": field.atlas.ncharts, "inner": field.atlas.inner,
@@ -322,7 +327,8 @@ def _markdown(res: dict) -> str:
         "",
         f"{res['samples']:,} sample rays from {res['eyes']:,} eyes on a Fibonacci sphere of radius "
         f"{res['eye_radius']:g}, each ray through the ball of radius {res['ball_radius']:g} "
-        f"(seed {res['seed']}); an oriented covering atlas of {res['atlas']['charts']} charts "
+        f"(seed {res['seed']}); an oriented covering atlas of {res['atlas']['charts']} "
+        f"{'isometric' if res.get('isometric', True) else 'paper'} charts "
         f"(covering radius {fmt(res['atlas']['covering_radius_deg'])}°; blending weight 1 up to "
         f"{res['atlas']['inner']:g}°, 0 from {res['atlas']['trusted']:g}°; samples in every chart "
         f"closer than {res['atlas']['reach']:g}°), {res['nstored']:,} "

@@ -134,7 +134,7 @@ def _describe_atlas(e: FieldEntry) -> dict:
     return {
         "atlas": {"method": info.get("method"), "oriented": spec["oriented"],
                   "inner": spec["inner"], "trusted": spec["trusted"], "reach": spec["reach"],
-                  "unit": spec.get("unit", 1.0),
+                  "unit": spec.get("unit", 1.0), "isometric": spec.get("isometric", False),
                   "covering_radius": info.get("covering_radius_deg"),
                   "max_sample_angle": info.get("max_sample_angle_deg"),
                   "nstored": None if d is None else d["nstored"],

@@ -252,6 +252,10 @@ class AtlasInfo(BaseModel):
     reach: float = Field(description="Degrees: samples are inserted into every chart whose "
                                      "centre is closer.")
     unit: float = Field(1.0, description="The charts' unit of length (the field's `unit`).")
+    isometric: bool = Field(False, description="The charts' points are warped to measure turns "
+                                               "and shifts everywhere as at their centres "
+                                               "(lines in R^3, created since this existed; "
+                                               "flatserve.warp).")
     covering_radius: Optional[float] = Field(
         None, description="Degrees: every orientation measured was this close to a centre "
                           "(`covering` and `centers`; null for `samples`, which charts only "

@@ -1,0 +1,178 @@
+"""Isometric charts of lines in R^3: undo a tangent-simplex chart's stretch off its centre.
+
+A tangent-simplex chart (paper Sec. 5.1) of lines in R^3 is isometric at its
+centre line (a shift of one unit of length and a turn of one radian move the
+embedded point as far, in every direction: :class:`flatserve.atlas.Atlas`
+``unit``) but not away from it.  Its embedded point (Sec. 5) splits into two
+planes (measured, and tested in ``tests/test_warp.py``):
+
+* a *turn* part ``T`` that depends only on the line's direction: at angle
+  ``phi`` from the centre's axis, ``|T| = kT tan(2 phi) / 2`` towards the
+  direction of the tilt (``tan(2 phi) = 2 t``, :mod:`flatserve.basis`);
+* a *shift* part ``S``, linear in the line's offset for a fixed direction.
+
+So a turn away from the centre is stretched by ``1 / cos^2(2 phi)`` (2.2 at 24
+degrees), a turn about the centre's axis and a shift in the plane of the
+tilt by ``cos(phi) / cos(2 phi)`` (1.4), a shift across it not at all.  The
+chart's Delaunay cells then join samples far apart in one direction and close
+in another, and a view interpolated in a chart whose centre is 24 degrees off
+its axis loses 1-2 dB against the same samples in a chart centred on it
+(``docs/orbit-results.md``).
+
+:class:`LineWarp` maps a chart's embedded points ``x`` to ``y`` with
+``|T_y| = kT phi`` (the angle itself) and the in-plane shift shrunk by
+``cos(2 phi) / cos(phi)``.  The Jacobian of the warped chart, measured by
+finite differences at lines through the centre's point up to 24 degrees off
+its axis, has condition number at most 1.03 (the paper's chart: 2.23); at
+offsets of one unit, 1.2 (against up to 4).  It is the identity to first
+order at the centre, continuous and invertible on the chart's domain (below
+45 degrees), and computed row by row in a fixed order (a line's point does not
+depend on its batch).  Only lines in R^3 (the light field's rays) have it.
+
+Example
+-------
+>>> import numpy as np, flatserve
+>>> from flatserve.warp import LineWarp
+>>> basis = flatserve.Basis.around_axis(axis=2, scale=1.0)
+>>> warp = LineWarp.calibrate(basis)
+>>> f = flatserve.Field(basis, warp=warp)
+>>> f.chart(flatserve.Flats.from_rays([[0, 0, 0.0]], [[0, 0, 1.0]])).points.shape
+(1, 4)
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .coordinates import OK, ROUNDTRIP_TOL
+from .embedding import embed, row_product
+from .errors import InvalidInputError
+from .flats import Flats
+
+__all__ = ["LineWarp", "CALIBRATION_DEG"]
+
+#: The tilt (degrees) of the calibration line that measures ``kT``; any angle
+#: below 45 gives the same ``kT`` up to rounding (``|T| = kT tan(2 phi) / 2``).
+CALIBRATION_DEG = 10.0
+
+
+def _row_norm(a: np.ndarray) -> np.ndarray:
+    """Euclidean norms of the rows of a (n, 2) array, in a fixed order."""
+    return np.sqrt(a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1])
+
+
+class LineWarp:
+    """The warp of one tangent-simplex chart of lines in R^3 (module docstring).
+
+    Parameters
+    ----------
+    origin : ndarray, shape (4,)
+        The embedded point of the chart's centre line.
+    frame : ndarray, shape (4, 4)
+        Rows: unit vectors of the turn plane (2) and of the shift plane (2),
+        paired (a tilt towards a direction and a shift along it).
+    kT : float
+        ``|T| = kT tan(2 phi) / 2``.
+
+    Use :meth:`calibrate` to build one from a basis.
+    """
+
+    def __init__(self, origin, frame, kT: float):
+        self.origin = np.ascontiguousarray(origin, dtype=np.float64).reshape(4)
+        self.frame = np.ascontiguousarray(frame, dtype=np.float64).reshape(4, 4)
+        self.kT = float(kT)
+        if not (np.isfinite(self.origin).all() and np.isfinite(self.frame).all()
+                and math.isfinite(self.kT) and self.kT > 0):
+            raise InvalidInputError("warp: expected a finite origin, frame and kT > 0", "warp")
+        # orthonormal by construction (calibrate); its transpose is its inverse
+        self._FT = np.ascontiguousarray(self.frame.T)
+
+    @classmethod
+    def calibrate(cls, basis, *, roundtrip_tol: float = ROUNDTRIP_TOL,
+                  calibration_deg: float = CALIBRATION_DEG) -> "LineWarp":
+        """The warp of the chart of ``basis`` (a tangent simplex of lines in R^3).
+
+        Measures the chart on five lines: its centre, the centre tilted by
+        ``calibration_deg`` towards two orthogonal directions about the
+        centre's point, and the centre shifted along them.
+
+        Parameters
+        ----------
+        basis : flatserve.Basis
+            With ``basis.center`` set (a tangent simplex), k = 1, d = 3.
+        roundtrip_tol : float
+            Tolerance of the calibration lines' round trip.
+        calibration_deg : float
+            Tilt of the calibration lines (degrees, in (0, 45)).
+
+        Returns
+        -------
+        LineWarp
+        """
+        if basis.k != 1 or basis.d != 3 or basis.center is None:
+            raise InvalidInputError("warp: only tangent-simplex charts of lines in R^3 have one",
+                                    "warp")
+        Qc, rc = basis.center
+        w, V = np.linalg.eigh(np.asarray(Qc, dtype=np.float64))
+        axis, n1, n2 = V[:, 0], V[:, 1], V[:, 2]  # Q = I - a a^T: eigenvalue 0 along a
+        p = np.asarray(rc, dtype=np.float64)  # the centre's point closest to the origin
+        ph = math.radians(calibration_deg)
+        t1 = math.cos(ph) * axis + math.sin(ph) * n1
+        t2 = math.cos(ph) * axis + math.sin(ph) * n2
+        o = np.stack([p, p, p, p + n1, p + n2])
+        d = np.stack([axis, t1, t2, axis, axis])
+        co = basis.coordinates_of(Flats.from_rays(o, d), roundtrip_tol)
+        if not (np.asarray(co.status) == OK).all():
+            raise InvalidInputError("warp: the chart does not hold its calibration lines", "warp")
+        x = embed(co.weights)
+        c0 = x[0]
+        cols = x[1:] - c0
+        kT = float(np.linalg.norm(cols[0])) / (math.tan(2 * ph) / 2)
+        frame = cols / np.linalg.norm(cols, axis=1, keepdims=True)
+        # the two planes are orthogonal and each pair is orthonormal (measured;
+        # re-orthonormalised so that the frame is a rotation to the last bit)
+        q, rr = np.linalg.qr(frame.T)
+        frame = (q * np.sign(np.diag(rr))).T
+        return cls(c0, frame, kT)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """Warp embedded points: (n, 4) -> (n, 4), row by row (module docstring)."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape[0] == 0:
+            return np.empty((0, 4))
+        y = row_product(x - self.origin, self._FT)
+        T0, T1, S0, S1 = y[:, 0], y[:, 1], y[:, 2], y[:, 3]
+        nT = np.sqrt(T0 * T0 + T1 * T1)
+        t2 = nT * (2.0 / self.kT)  # tan(2 phi)
+        c2 = 1.0 / np.sqrt(1.0 + t2 * t2)  # cos(2 phi)
+        # f = phi / t (the turn's new length over its old), g = cos(2 phi) / cos(phi) - 1
+        f = np.ones_like(nT)
+        np.divide(np.arctan(t2), t2, out=f, where=t2 > 1e-8)
+        g = c2 / np.sqrt(0.5 + 0.5 * c2) - 1.0
+        # the in-plane shift (along the tilt's direction T / |T|) times g: g (S.T) T / |T|^2
+        inv = np.zeros_like(nT)
+        np.divide(g, nT * nT, out=inv, where=t2 > 1e-8)
+        h = (S0 * T0 + S1 * T1) * inv
+        y[:, 2] = S0 + h * T0
+        y[:, 3] = S1 + h * T1
+        y[:, 0] = T0 * f
+        y[:, 1] = T1 * f
+        out = row_product(y, self.frame)
+        out += self.origin
+        return out
+
+    # --------------------------------------------------------------- persistence
+    def to_dict(self) -> dict:
+        """JSON-able (floats round-trip exactly); :meth:`from_dict` inverts it."""
+        return {"kind": "lines3", "origin": self.origin.tolist(), "frame": self.frame.tolist(),
+                "kT": self.kT}
+
+    @classmethod
+    def from_dict(cls, spec: dict) -> "LineWarp":
+        if spec.get("kind") != "lines3":
+            raise InvalidInputError(f"warp: unknown kind {spec.get('kind')!r}", "warp")
+        return cls(np.array(spec["origin"]), np.array(spec["frame"]), spec["kT"])
+
+    def __repr__(self) -> str:
+        return f"LineWarp(kT={self.kT:.6g})"

@@ -1,0 +1,182 @@
+"""The isometric warp of a tangent-simplex chart of lines in R^3 (flatserve.warp).
+
+Oracles: finite differences of the chart (its Jacobian in turns and shifts
+about each line), the measured structure of the paper's chart that the warp
+relies on, and round trips through the field file.
+"""
+import io
+import math
+
+import numpy as np
+import pytest
+
+from flatserve import Basis, Field, Flats
+from flatserve.atlas import Atlas
+from flatserve.errors import InvalidInputError, SnapshotError
+from flatserve.warp import LineWarp
+
+H = 1e-5  # finite-difference step (radians of turn, units of shift)
+
+
+def _rotate(v, axis, a):
+    axis = axis / np.linalg.norm(axis)
+    return v * math.cos(a) + np.cross(axis, v) * math.sin(a) + axis * (axis @ v) * (1 - math.cos(a))
+
+
+def jacobian(field: Field, o, u, unit: float = 1.0) -> np.ndarray:
+    """(4, 4): the chart's points' derivatives along two turns of the line about
+    its point ``o`` (radians) and two shifts across it (``unit`` lengths)."""
+    e1 = np.cross(u, [0.3, 1.0, 0.2])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    # turns about the line's point closest to the chart centre's point
+    c = field.basis.center[1]
+    o0 = c + (o - c) - ((o - c) @ u) * u
+    lines = [(o0, u)] + [(o0, _rotate(u, ax, H)) for ax in (e2, e1)] + \
+            [(o0 + H * unit * e, u) for e in (e1, e2)]
+    c = field.chart(Flats.from_rays(np.array([l[0] for l in lines]), np.array([l[1] for l in lines])))
+    assert c.ok.all()
+    return ((c.points[1:] - c.points[0]) / H).T
+
+
+def cond(J) -> float:
+    s = np.linalg.svd(J, compute_uv=False)
+    return float(s[0] / s[-1])
+
+
+def tilted(axis, n1, n2, phi_deg, psi_deg):
+    p, q = math.radians(phi_deg), math.radians(psi_deg)
+    return math.cos(p) * axis + math.sin(p) * (math.cos(q) * n1 + math.sin(q) * n2)
+
+
+def chart(axis=(0.0, 0.0, 1.0), point=(0.0, 0.0, 0.0), unit=1.0):
+    """The isometric and the paper's single-chart fields of one covering-atlas chart kind
+    centred on the line through ``point`` along ``axis``."""
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    _, V = np.linalg.eigh(np.outer(a, a))
+    N = V[:, :2]
+    p = np.asarray(point, float)
+    p = p - (p @ a) * a
+    iso = Atlas(1, 3, a[None, :, None], N[None], p[None], [1.0], unit=unit, inner=12,
+                trusted=24, reach=27)
+    raw = Atlas(1, 3, a[None, :, None], N[None], p[None], [1.0], unit=unit, inner=12,
+                trusted=24, reach=27, isometric=False)
+    return iso.chart_field(0), raw.chart_field(0), a, N[:, 0], N[:, 1], p
+
+
+def test_the_paper_chart_has_the_structure_the_warp_relies_on():
+    """Turn part: depends on the direction only, |T| = kT tan(2 phi)/2; shift part
+    linear in the offset of lines along the axis (what :mod:`flatserve.warp` says)."""
+    _, raw, a, n1, n2, p = chart()
+    warp = LineWarp.calibrate(raw.basis)
+    rng = np.random.default_rng(0)
+    n = 300
+    phi, psi = rng.uniform(0, 40, n), rng.uniform(0, 360, n)
+    u = np.array([tilted(a, n1, n2, f, s) for f, s in zip(phi, psi)])
+    x0 = raw.chart(Flats.from_rays(np.zeros((n, 3)), u)).points
+    y0 = (x0 - warp.origin) @ warp.frame.T
+    np.testing.assert_allclose(np.linalg.norm(y0[:, :2], axis=1),
+                               warp.kT * np.tan(np.radians(2 * phi)) / 2, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(y0[:, 2:], 0, atol=1e-12)
+    off = rng.normal(size=(n, 3)) * 2
+    x1 = raw.chart(Flats.from_rays(off, u)).points
+    y1 = (x1 - warp.origin) @ warp.frame.T
+    np.testing.assert_allclose(y1[:, :2], y0[:, :2], atol=1e-12)  # the turn part ignores the offset
+    par = raw.chart(Flats.from_rays(off, np.tile(a, (n, 1)))).points
+    ys = (par - warp.origin) @ warp.frame.T
+    M, res, *_ = np.linalg.lstsq(np.c_[off @ n1, off @ n2], ys[:, 2:], rcond=None)
+    assert res.max() < 1e-20  # exactly linear in the offset
+    # isotropic: kT times a rotation (or reflection) of the shift plane
+    np.testing.assert_allclose(M @ M.T, warp.kT ** 2 * np.eye(2), atol=1e-9)
+
+
+@pytest.mark.parametrize("axis,point", [((0, 0, 1), (0, 0, 0)), ((1, 2, -2), (0.4, -1, 0.3)),
+                                        ((0, 0, -1), (0, 0, 0))])
+def test_the_warped_chart_is_nearly_isometric_off_its_centre(axis, point):
+    """Finite differences: at lines through the centre's point up to 24 degrees
+    off its axis the warped chart's Jacobian has condition <= 1.05 (the paper's
+    chart: up to 2.2); at offsets of one unit <= 1.3 (the paper's: up to 4)."""
+    iso, raw, a, n1, n2, p = chart(axis, point, unit=0.5)
+    worst_iso = {0: 1.0, 1: 1.0}
+    worst_raw = {0: 1.0, 1: 1.0}
+    for off in (np.zeros(3), 0.5 * n1, 0.5 * n2, 0.35 * (n1 + n2)):
+        key = int(np.any(off))
+        for phi in (0, 8, 16, 24):
+            for psi in (0, 50, 130, 250):
+                u = tilted(a, n1, n2, phi, psi)
+                Ji = jacobian(iso, p + off, u, unit=0.5)
+                Jr = jacobian(raw, p + off, u, unit=0.5)
+                worst_iso[key] = max(worst_iso[key], cond(Ji))
+                worst_raw[key] = max(worst_raw[key], cond(Jr))
+    assert worst_iso[0] < 1.05 and worst_raw[0] > 2.0, (worst_iso, worst_raw)
+    assert worst_iso[1] < 1.3 and worst_raw[1] > 3.0, (worst_iso, worst_raw)
+
+
+def test_the_warp_is_the_identity_to_first_order_at_the_centre():
+    iso, raw, a, n1, n2, p = chart((1, 1, 0), (0, 0, 2))
+    np.testing.assert_allclose(jacobian(iso, p, a), jacobian(raw, p, a), atol=1e-6)
+    c = Flats.from_rays(p[None], a[None])
+    np.testing.assert_allclose(iso.chart(c).points, raw.chart(c).points, atol=1e-12)
+
+
+def test_a_lines_warped_point_does_not_depend_on_its_batch():
+    iso, *_ = chart((0.2, 1, 0.5))
+    rng = np.random.default_rng(3)
+    n = 700
+    f = Flats.from_rays(rng.normal(size=(n, 3)), np.array([0.2, 1, 0.5]) + 0.4 * rng.normal(size=(n, 3)))
+    whole = iso.chart(f)
+    for i in range(0, n, 37):
+        one = iso.chart(f.take([i]))
+        if whole.ok[i]:
+            rank = np.cumsum(whole.ok) - 1
+            assert one.points[0].tobytes() == whole.points[rank[i]].tobytes()
+
+
+def test_the_warp_is_continuous_and_one_to_one_on_the_domain():
+    """Neighbouring lines stay neighbours (no fold): along a sweep of directions
+    from the centre out to 44 degrees, the warped points move monotonically away."""
+    iso, raw, a, n1, n2, p = chart()
+    phis = np.linspace(0, 44, 400)
+    u = np.array([tilted(a, n1, n2, f, 30) for f in phis])
+    x = iso.chart(Flats.from_rays(np.zeros((400, 3)) + p, u)).points
+    dist = np.linalg.norm(x - x[0], axis=1)
+    assert (np.diff(dist) > 0).all()
+    np.testing.assert_allclose(dist, iso.warp.kT * np.radians(phis), rtol=1e-9, atol=1e-12)
+
+
+def test_a_warped_field_file_round_trips():
+    iso, *_ = chart((0, 1, 1), (1, 0, 0))
+    rng = np.random.default_rng(4)
+    f = Flats.from_rays(rng.normal(size=(400, 3)), np.array([0, 1, 1.0]) + 0.3 * rng.normal(size=(400, 3)))
+    iso.add(f, rng.uniform(size=400))
+    buf = io.BytesIO()
+    iso.write_to(buf)
+    back = Field.from_bytes(buf.getvalue())
+    assert back.warp is not None and back.warp.to_dict() == iso.warp.to_dict()
+    q = Flats.from_rays(rng.normal(size=(200, 3)), np.array([0, 1, 1.0]) + 0.3 * rng.normal(size=(200, 3)))
+    a, b = iso.query(q), back.query(q)
+    assert a.values.tobytes() == b.values.tobytes()
+    # a damaged warp in the metadata is a SnapshotError, not a crash
+    data = buf.getvalue().replace(b'"kind": "lines3"', b'"kind": "lines4"')
+    with pytest.raises(SnapshotError):
+        Field.from_bytes(data)
+
+
+def test_only_charts_of_lines_in_r3_can_be_warped():
+    a = Atlas.covering(1, 4)
+    with pytest.raises(InvalidInputError, match="isometric"):
+        Atlas(1, 4, a.center_A, a.center_N, a.center_r, a.scales, isometric=True)
+    assert not Atlas.covering(2, 4).isometric and Atlas.covering(1, 3).isometric
+    with pytest.raises(InvalidInputError, match="warp"):
+        LineWarp.calibrate(Basis.around_axis(axis=2, d=4, scale=1.0))
+    with pytest.raises(InvalidInputError, match="warp"):
+        Field(Basis.around_axis(axis=3, d=4, scale=1.0),
+              warp=LineWarp.calibrate(Basis.around_axis(axis=2, scale=1.0)))
+
+
+def test_an_atlas_stored_without_the_choice_restores_unwarped():
+    """Atlases stored before charts could be warped come back as they were built."""
+    spec = Atlas.covering(1, 3).to_dict()
+    assert spec["isometric"] is True
+    del spec["isometric"]
+    assert not Atlas.from_dict(spec).isometric

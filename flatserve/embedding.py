@@ -65,6 +65,10 @@ def regular_simplex(m: int) -> np.ndarray:
     return np.array(_helmert(int(m)))
 
 
+#: Rows per block of :func:`row_product` (its temporaries stay in cache).
+_ROW_BLOCK = 2048
+
+
 def row_product(a: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``a @ B``, each row computed on its own in a fixed order.
 
@@ -92,9 +96,18 @@ def row_product(a: np.ndarray, B: np.ndarray) -> np.ndarray:
     >>> bool((row_product(a[:1], H) == row_product(a, H)[:1]).all())
     True
     """
-    out = a[:, :1] * B[0]
-    for j in range(1, a.shape[1]):
-        out += a[:, j:j + 1] * B[j]
+    n, m = a.shape
+    out = np.empty((n, B.shape[1]), dtype=np.result_type(a, B))
+    tmp = np.empty((min(n, _ROW_BLOCK), B.shape[1]), dtype=out.dtype)
+    # in blocks of rows that stay in cache (one pass over the output instead
+    # of 2m over arrays as large as it); the same operations per row
+    for lo in range(0, n, _ROW_BLOCK):
+        hi = min(n, lo + _ROW_BLOCK)
+        o, blk, t = out[lo:hi], a[lo:hi], tmp[:hi - lo]
+        np.multiply(blk[:, :1], B[0], out=o)
+        for j in range(1, m):
+            np.multiply(blk[:, j:j + 1], B[j], out=t)
+            o += t
     return out
 
 

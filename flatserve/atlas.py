@@ -448,9 +448,12 @@ class Atlas:
             raise InvalidInputError(f"unit: expected a positive length, got {unit!r}", "unit")
         unit = float(unit)
         if not 0 <= inner < trusted <= reach < CHART_LIMIT_DEG:
+            # named after the radius that breaks the order (reach: too small or too large)
+            bad = "reach" if (0 <= inner < trusted and not trusted <= reach < CHART_LIMIT_DEG) \
+                else "trusted"
             raise InvalidInputError(
-                f"trusted: need 0 <= inner < trusted <= reach < {CHART_LIMIT_DEG:g} degrees, got "
-                f"inner={inner:g}, trusted={trusted:g}, reach={reach:g}", "trusted")
+                f"{bad}: need 0 <= inner < trusted <= reach < {CHART_LIMIT_DEG:g} degrees, got "
+                f"inner={inner:g}, trusted={trusted:g}, reach={reach:g}", bad)
         r = np.ascontiguousarray(np.asarray(center_r, dtype=np.float64).reshape(-1, d))
         c = r.shape[0]  # (not from center_A: points, k = 0, have empty frames)
         A = np.ascontiguousarray(np.asarray(center_A, dtype=np.float64).reshape(c, d, k))

@@ -409,10 +409,12 @@ def test_cli_orbit_with_the_papers_charts(tmp_path):
     p = argparse.ArgumentParser()
     add_arguments(p)
     args = p.parse_args(["orbit", "--out", str(tmp_path), "--samples", "3000", "--width", "8",
-                         "--supersample", "1", "--paper-charts"])
+                         "--supersample", "1", "--paper-charts", "--reach", "31"])
     assert run(args) == 0
     res = json.loads((tmp_path / "results.json").read_text())
-    assert res["isometric"] is False
+    assert res["isometric"] is False and res["atlas"]["reach"] == 31.0
+    bad = p.parse_args(["orbit", "--out", str(tmp_path), "--samples", "30", "--reach", "20"])
+    assert run(bad) == 2  # below trusted (24): refused, naming reach
     assert "paper charts" in (tmp_path / "results.md").read_text()
     at = Atlas.covering(1, 3, oriented=True, isometric=False)
     assert not one_chart_atlas(at, [0, 0, 1]).isometric

@@ -55,6 +55,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     orb.add_argument("--paper-charts", action="store_true",
                      help="the paper's tangent-simplex charts instead of the isometric ones "
                           "(flatserve.warp) in the atlas and the one-chart comparison")
+    orb.add_argument("--reach", type=float, default=None,
+                     help="degrees: store samples in every chart whose centre is closer (default "
+                          "the atlas's: 27 for the covering); wider helps sparse eyes, at the cost "
+                          "of storing each sample in more charts")
     orb.add_argument("--no-one-chart", action="store_true",
                      help="skip rendering each view from a one-chart atlas centred on its axis")
 
@@ -86,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
             orbit_figure(args.out, n=args.samples, eyes=args.eyes, seed=args.seed, width=args.width,
                          supersample=args.supersample, channels=3 if args.rgb else 1,
                          scene=args.scene, atlas=args.atlas, unit=args.unit,
-                         isometric=not args.paper_charts, one_chart=not args.no_one_chart)
+                         isometric=not args.paper_charts, reach=args.reach,
+                         one_chart=not args.no_one_chart)
         except (InvalidInputError, FileNotFoundError) as exc:
             print(f"flatserve lightfield orbit: {exc}", file=sys.stderr)
             return 2

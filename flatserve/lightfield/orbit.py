@@ -169,6 +169,17 @@ SCENE_HALF_SIZE = 0.5
 SCENE_UNIT = object_unit(SCENE_HALF_SIZE)
 
 
+def _with_reach(atlas: Atlas, reach: float | None) -> Atlas:
+    """``atlas`` with samples stored up to ``reach`` degrees from each centre (None: as is)."""
+    if reach is None:
+        return atlas
+    out = Atlas(atlas.k, atlas.d, atlas.center_A, atlas.center_N, atlas.center_r, atlas.scales,
+                oriented=atlas.oriented, inner=atlas.inner, trusted=atlas.trusted, reach=reach,
+                unit=atlas.unit, isometric=atlas.isometric)
+    out.info = dict(atlas.info)
+    return out
+
+
 def _scores(image, truth, covered) -> dict:
     return {"coverage": float(covered.mean()), "psnr": psnr(image, truth, covered),
             "ssim": ssim(image, truth, covered)}
@@ -177,7 +188,8 @@ def _scores(image, truth, covered) -> dict:
 def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed: int = 0,
                  width: int = VIEW_WIDTH, supersample: int = 4, channels: int = 1,
                  scene: str = "bunny", atlas: str = "covering", unit: float | None = None,
-                 isometric: bool = True, one_chart: bool = True, log=print,
+                 isometric: bool = True, reach: float | None = None, one_chart: bool = True,
+                 log=print,
                  progress: bool = True) -> dict:
     """Build the 360-degree light field and write the views, the contact sheet and the table.
 
@@ -211,6 +223,10 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     isometric : bool
         The atlas's charts warped to be isometric (:mod:`flatserve.warp`, the
         library's default); False: the paper's charts.
+    reach : float, optional
+        Degrees: store the samples in every chart whose centre is closer than
+        this (default the atlas's own; wider helps sparse eyes and stores
+        each sample in more charts).
     one_chart : bool
         Also render every view from a one-chart atlas centred on its axis
         (:func:`one_chart_atlas`, the same samples).
@@ -244,7 +260,8 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
 
     bar = ProgressBar("building atlas field", n) if progress else None
     field, stats = build_atlas_field(samples.origins, samples.directions, values,
-                                     atlas=ATLASES[atlas](unit, isometric), progress=bar)
+                                     atlas=_with_reach(ATLASES[atlas](unit, isometric), reach),
+                                     progress=bar)
     timings["field_build"] = stats.seconds
     log(f"atlas field: {field.atlas.ncharts} charts, {stats.accepted:,} samples accepted, "
         f"{stats.rejected:,} rejected, {field.nstored:,} vertices over the charts "

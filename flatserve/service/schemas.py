@@ -109,6 +109,14 @@ class CoveringAtlas(_AtlasSpec):
     atlas: Literal["covering"] = Field(
         "covering", description="`covering`: every orientation of k-flats lies well inside "
                                 "some chart (Atlas.covering).")
+    reach: Optional[float] = Field(
+        None, gt=0, lt=45, allow_inf_nan=False,
+        description="Degrees: samples are stored in every chart whose centre is closer (at "
+                    "least the charts' `trusted`, below 45). Default: 3 degrees beyond "
+                    "`trusted` (lines in R^3: 27). Wider keeps more samples around a chart's "
+                    "border, which sparse samples need (eyes far apart: about the covering "
+                    "radius plus their spacing), at the cost of storing each sample in more "
+                    "charts (describe's `atlas.duplication`).")
 
 
 class SamplesAtlas(_AtlasSpec):

@@ -188,7 +188,7 @@ def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
     stored in the atlas: a restored field keeps it)."""
     if isinstance(spec, CoveringAtlas):
         with _within("basis"):
-            return Atlas.covering(k, d, oriented=oriented, unit=unit)
+            return Atlas.covering(k, d, oriented=oriented, unit=unit, reach=spec.reach)
     if isinstance(spec, SamplesAtlas):
         _check_rows(spec.samples, "basis.samples", max_atlas_samples,
                     "FLATSERVE_MAX_ATLAS_SAMPLES")

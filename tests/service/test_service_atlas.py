@@ -471,3 +471,84 @@ def test_unit_of_length_is_validated_stored_and_restored(make_app, rng):
         same_answers(c, "u", probe, want)
     finally:
         tc.__exit__(None, None, None)
+
+
+def test_reach_of_a_covering_atlas_is_validated_stored_and_restored(make_app, rng):
+    """``basis.reach`` of a covering atlas: samples stored in every chart closer than
+    it (more duplication, the library's atlas of that reach), kept across a restart;
+    a reach that breaks ``trusted <= reach < 45`` is a 422 naming ``reach``."""
+    o, v = sphere_rays(rng, 1500, spread=0.5)
+    val = line_values(o, v)
+    probe = sphere_rays(rng, 300, spread=0.4)
+    ref = AtlasField(Atlas.covering(1, 3, oriented=True, reach=35.0), channels=C)
+    ref.add(Flats.from_rays(o, v), val)
+    want = ref.query(Flats.from_rays(*probe))
+    tc, c = started(make_app())
+    try:
+        info = c.create_field("r", channels=C, oriented=True,
+                              basis={"kind": "atlas", "atlas": "covering", "reach": 35})
+        assert info["atlas"]["reach"] == 35.0 and info["basis"]["spec"]["reach"] == 35.0
+        default = c.create_field("d", channels=C, oriented=True)
+        assert default["atlas"]["reach"] == 27.0 and "reach" not in default["basis"]["spec"]
+        c.upload_rays("r", o, v, val)
+        c.upload_rays("d", o, v, val)
+        wide, narrow = c.describe("r")["atlas"], c.describe("d")["atlas"]
+        assert wide["nstored"] == ref.nstored and wide["duplication"] > narrow["duplication"]
+        same_answers(c, "r", probe, want)
+        for reach, words in ((20, ("reach", "trusted=24")), (45, ()), (0, ()), ("x", ())):
+            r = tc.post("/v1/fields", json={"name": "x", "basis": {
+                "kind": "atlas", "atlas": "covering", "reach": reach}})
+            assert r.status_code == 422, (reach, r.text)
+            det = r.json()["detail"][0]
+            assert det["loc"][-1] == "reach" or "reach" in det["loc"], det
+            assert all(w in det["msg"] for w in words), det
+    finally:
+        tc.__exit__(None, None, None)
+    tc, c = started(make_app())
+    try:
+        assert c.describe("r")["atlas"]["reach"] == 35.0
+        same_answers(c, "r", probe, want)
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_app, rng,
+                                                                        tmp_path):
+    """A stored atlas spec without ``isometric`` (written before charts could be warped)
+    comes back with the paper's charts: its answers are the library's unwarped atlas's,
+    and describe says so; a new field's charts are isometric."""
+    import json
+    import sqlite3
+
+    from flatserve.service.storage import DB_NAME
+
+    o, v = sphere_rays(rng, 1500, spread=0.5)
+    val = line_values(o, v)
+    probe = sphere_rays(rng, 300, spread=0.4)
+    paper = AtlasField(Atlas.covering(1, 3, oriented=True, isometric=False), channels=C)
+    paper.add(Flats.from_rays(o, v), val)
+    iso = AtlasField(Atlas.covering(1, 3, oriented=True), channels=C)
+    iso.add(Flats.from_rays(o, v), val)
+    want_paper = paper.query(Flats.from_rays(*probe))
+    assert not np.allclose(iso.query(Flats.from_rays(*probe)).values, want_paper.values,
+                           equal_nan=True)  # the warp changes the answers
+    tc, c = started(make_app())
+    try:
+        assert c.create_field("old", channels=C, oriented=True)["atlas"]["isometric"] is True
+        c.upload_rays("old", o, v, val)
+        same_answers(c, "old", probe, iso.query(Flats.from_rays(*probe)))
+    finally:
+        tc.__exit__(None, None, None)
+    db = sqlite3.connect(tmp_path / "data" / DB_NAME)
+    (spec,) = db.execute("SELECT spec FROM fields WHERE name = 'old'").fetchone()
+    spec = json.loads(spec)
+    del spec["atlas"]["isometric"]  # as an earlier version stored it
+    db.execute("UPDATE fields SET spec = ? WHERE name = 'old'", (json.dumps(spec),))
+    db.commit()
+    db.close()
+    tc, c = started(make_app())
+    try:
+        assert c.describe("old")["atlas"]["isometric"] is False
+        same_answers(c, "old", probe, want_paper)
+    finally:
+        tc.__exit__(None, None, None)

@@ -472,6 +472,7 @@ class Atlas:
             raise InvalidInputError(f"isometric: only charts of lines in R^3 can be made isometric, "
                                     f"got {isometric!r} for {k}-flats in R^{d}", "isometric")
         self.isometric = bool(isometric)
+        self._warps: list | None = None  # calibrated on first use (warps)
         self.bases = []
         for i in range(c):
             Q = N[i] @ N[i].T
@@ -991,22 +992,32 @@ class Atlas:
         return (deg, worst_f) if return_worst else deg
 
     # ------------------------------------------------------------- persistence
-    @functools.cached_property
+    @property
     def warps(self) -> list:
         """Per chart its :class:`~flatserve.warp.LineWarp` (isometric atlases), else None.
 
-        Calibrated on first use (the builders check the charts first, so a
-        chart that cannot be used is refused naming its scale)."""
-        if not self.isometric:
-            return [None] * self.ncharts
-        out = []
-        for i, B in enumerate(self.bases):
-            try:
-                out.append(LineWarp.calibrate(B))
-            except InvalidInputError as exc:
-                raise InvalidInputError(f"centers: chart {i} (scale {self.scales[i]:g}): {exc}",
-                                        "centers") from None
-        return out
+        Calibrated on first use, or as stored (:meth:`from_dict`: a field
+        rebuilt from its log keeps the warps it was built with, whatever
+        the calibration of the code that rebuilds it)."""
+        if self._warps is None:
+            if not self.isometric:
+                self._warps = [None] * self.ncharts
+            else:
+                out = []
+                for i, B in enumerate(self.bases):
+                    try:
+                        out.append(LineWarp.calibrate(B))
+                    except InvalidInputError as exc:
+                        raise InvalidInputError(f"centers: chart {i} (scale "
+                                                f"{self.scales[i]:g}): {exc}", "centers") from None
+                self._warps = out
+        return self._warps
+
+    @staticmethod
+    def spec_isometric(spec: dict) -> bool:
+        """Whether the atlas stored as ``spec`` (:meth:`to_dict`) has isometric charts:
+        a spec written before there was a choice has the paper's charts."""
+        return bool(spec.get("isometric", False))
 
     def chart_field(self, i: int, channels: int = 1, *,
                     roundtrip_tol: float = ROUNDTRIP_TOL) -> Field:
@@ -1019,6 +1030,7 @@ class Atlas:
         return {"k": self.k, "d": self.d, "oriented": self.oriented, "inner": self.inner,
                 "trusted": self.trusted, "reach": self.reach, "unit": self.unit,
                 "isometric": self.isometric,
+                **({"warps": [w.to_dict() for w in self.warps]} if self.isometric else {}),
                 "center_A": self.center_A.tolist(), "center_N": self.center_N.tolist(),
                 "center_r": self.center_r.tolist(), "scales": self.scales.tolist(),
                 "info": self.info}
@@ -1031,7 +1043,12 @@ class Atlas:
                     np.array(spec["scales"]), oriented=bool(spec["oriented"]),
                     inner=spec["inner"], trusted=spec["trusted"], reach=spec["reach"],
                     unit=spec.get("unit", DEFAULT_UNIT),
-                    isometric=bool(spec.get("isometric", False)))
+                    isometric=cls.spec_isometric(spec))
+        if atlas.isometric and "warps" in spec:
+            warps = [LineWarp.from_dict(w) for w in spec["warps"]]
+            if len(warps) != atlas.ncharts:
+                raise InvalidInputError(f"warps: {len(warps)} for {atlas.ncharts} charts", "warps")
+            atlas._warps = warps  # as stored
         atlas.info = dict(spec.get("info", {}))
         return atlas
 
@@ -1553,6 +1570,10 @@ class AtlasField:
             off += size
             if f.ndim != obj.ndim or f.channels != obj.channels:
                 raise SnapshotError(f"{path}: chart {i} does not match the atlas")
+            want = atlas.warps[i]
+            if (f.warp is None) != (want is None) or (
+                    want is not None and f.warp.to_dict() != want.to_dict()):
+                raise SnapshotError(f"{path}: chart {i}'s warp does not match the atlas's")
             obj.fields[i] = f
         if off != len(data):
             raise SnapshotError(f"{path}: {len(data) - off} bytes after the last chart")

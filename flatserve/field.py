@@ -36,6 +36,9 @@ __all__ = ["Field", "AddResult", "Chart", "PreparedBatch", "QueryResult"]
 
 _MAGIC = b"FSFIELD\x00"
 _VERSION = 1
+#: The version of a field file with a warp (its points are warped: a reader of
+#: version 1 would chart its queries without it). Both are read.
+_VERSION_WARP = 2
 _HEADER = struct.Struct("<8sIQ")  # magic, version, metadata length
 
 
@@ -502,7 +505,7 @@ class Field:
     # ----------------------------------------------------------- persistence
     def _metadata(self) -> dict:
         return {
-            "version": _VERSION,
+            "version": self._version,
             "k": self.k,
             "d": self.d,
             "channels": self.channels,
@@ -512,6 +515,10 @@ class Field:
             "basis_r": self.basis.r.tolist(),
             **({"warp": self.warp.to_dict()} if self.warp is not None else {}),
         }
+
+    @property
+    def _version(self) -> int:
+        return _VERSION if self.warp is None else _VERSION_WARP
 
     def write_to(self, fh) -> int:
         """Write the field file (layout of :meth:`save`) to an open binary file.
@@ -528,7 +535,7 @@ class Field:
         """
         meta = json.dumps(self._metadata()).encode()
         payload = self._tri.to_bytes()
-        fh.write(_HEADER.pack(_MAGIC, _VERSION, len(meta)))
+        fh.write(_HEADER.pack(_MAGIC, self._version, len(meta)))
         fh.write(meta)
         fh.write(payload)
         return _HEADER.size + len(meta) + len(payload)
@@ -573,8 +580,9 @@ class Field:
         magic, version, mlen = _HEADER.unpack_from(data)
         if magic != _MAGIC:
             raise SnapshotError(f"{source}: not a flatserve field file (bad magic)")
-        if version != _VERSION:
-            raise SnapshotError(f"{source}: field file version {version}, expected {_VERSION}")
+        if version not in (_VERSION, _VERSION_WARP):
+            raise SnapshotError(f"{source}: field file version {version}, expected {_VERSION} "
+                                f"or {_VERSION_WARP}")
         start = _HEADER.size
         if start + mlen > len(data):
             raise SnapshotError(f"{source}: truncated field metadata")
@@ -582,10 +590,12 @@ class Field:
             meta = json.loads(bytes(data[start : start + mlen]))
             basis = Basis(np.array(meta["basis_Q"]), np.array(meta["basis_r"]), int(meta["k"]))
             warp = LineWarp.from_dict(meta["warp"]) if "warp" in meta else None
+            if (warp is not None) != (version == _VERSION_WARP):
+                raise ValueError(f"version {version} with{'' if warp else 'out'} a warp")
+            obj = cls(basis, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]),
+                      warp=warp)
         except (ValueError, KeyError, TypeError, InvalidInputError) as exc:
             raise SnapshotError(f"{source}: corrupted field metadata: {exc}") from None
-        obj = cls(basis, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]),
-                  warp=warp)
         obj._tri = Triangulation.from_bytes(data[start + mlen :])
         if obj._tri.ndim != obj.ndim:
             raise SnapshotError(f"{source}: triangulation dimension {obj._tri.ndim} does not match basis")

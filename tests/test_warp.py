@@ -180,3 +180,72 @@ def test_an_atlas_stored_without_the_choice_restores_unwarped():
     assert spec["isometric"] is True
     del spec["isometric"]
     assert not Atlas.from_dict(spec).isometric
+
+
+def test_charts_far_from_the_origin_calibrate():
+    """A chart's rounding grows with its centre's distance from the origin; the
+    calibration needs the points, not the field's trust (2.8e-6 at 1000 failed the
+    field's 1e-6 before): every chart of centres up to 1e5 away is warped and
+    nearly isometric, and a data-driven atlas of flats far away charts them all."""
+    rng = np.random.default_rng(7)
+    for dist in (1e3, 1e4, 1e5):
+        for _ in range(6):
+            a = rng.normal(size=3)
+            iso, raw, a, n1, n2, p = chart(a, dist * rng.normal(size=3) / math.sqrt(3))
+            u = tilted(a, n1, n2, 20, 40)
+            assert cond(jacobian(iso, p, u)) < 1.05
+    n = 2000
+    o = rng.normal(size=(n, 3)) + [1000, 500, 0]
+    v = np.array([1.0, 0.2, 0.1]) + 0.3 * rng.normal(size=(n, 3))
+    f = Flats.from_rays(o, v)
+    from flatserve.atlas import AtlasField
+    field = AtlasField(Atlas.for_samples(f, unit=1.0))
+    assert field.add(f, np.ones(n)).accepted == n
+
+
+def test_a_stored_atlas_keeps_its_warps(monkeypatch):
+    """The atlas spec carries its charts' warps: a field rebuilt from its log gets the
+    warps it was built with even if the calibration changes (here: its angle)."""
+    import flatserve.warp as W
+
+    at = Atlas.covering(1, 3, oriented=True)
+    spec = at.to_dict()
+    monkeypatch.setattr(W.LineWarp.calibrate.__func__, "__kwdefaults__",
+                        {"calibration_tol": W.CALIBRATION_TOL, "calibration_deg": 30.0})
+    fresh = Atlas.covering(1, 3, oriented=True)
+    assert any(a.to_dict() != b.to_dict() for a, b in zip(fresh.warps, at.warps))  # it moved
+    back = Atlas.from_dict(spec)
+    assert [w.to_dict() for w in back.warps] == [w.to_dict() for w in at.warps]
+
+
+def test_damaged_or_mismatched_warps_are_snapshot_errors(tmp_path):
+    from flatserve.atlas import AtlasField
+
+    # a warp on a field of planes in R^4, a frame that is not orthonormal
+    f4 = Field(Basis.around_axis(axis=3, d=4, scale=1.0))
+    buf = io.BytesIO()
+    f4.write_to(buf)
+    data = buf.getvalue()
+    import json
+    import struct
+
+    magic, version, mlen = struct.unpack_from("<8sIQ", data)
+    meta = json.loads(data[20:20 + mlen])
+    meta["warp"] = LineWarp.calibrate(Basis.around_axis(axis=2, scale=1.0)).to_dict()
+    for m, v in ((meta, 2), ({**meta, "k": 1, "warp": {**meta["warp"], "frame": (
+            2 * np.array(meta["warp"]["frame"])).tolist()}}, 2)):
+        blob = json.dumps(m).encode()
+        with pytest.raises(SnapshotError):
+            Field.from_bytes(struct.pack("<8sIQ", magic, v, len(blob)) + blob + data[20 + mlen:])
+    # an atlas file whose chart files have no warp while its atlas is isometric
+    iso = AtlasField(Atlas.covering(1, 3))
+    rng = np.random.default_rng(2)
+    iso.add(Flats.from_rays(rng.normal(size=(300, 3)), rng.normal(size=(300, 3))), np.ones(300))
+    iso.save(tmp_path / "a.atlas")
+    raw = AtlasField(Atlas.covering(1, 3, isometric=False))
+    raw.add(Flats.from_rays(rng.normal(size=(300, 3)), rng.normal(size=(300, 3))), np.ones(300))
+    raw.atlas = iso.atlas  # an isometric atlas spec over paper charts: a damaged file
+    raw.save(tmp_path / "b.atlas")
+    assert AtlasField.load(tmp_path / "a.atlas").nsamples == 300
+    with pytest.raises(SnapshotError, match="warp"):
+        AtlasField.load(tmp_path / "b.atlas")

@@ -13,6 +13,7 @@ from typing import Annotated, Literal, Optional
 import anyio.to_thread
 from fastapi import APIRouter, Header, Query, Request, Response
 
+from ..atlas import Atlas
 from ..errors import StorageError
 from . import codec, specs, uploads
 from .codec import JSONBytes
@@ -134,7 +135,7 @@ def _describe_atlas(e: FieldEntry) -> dict:
     return {
         "atlas": {"method": info.get("method"), "oriented": spec["oriented"],
                   "inner": spec["inner"], "trusted": spec["trusted"], "reach": spec["reach"],
-                  "unit": spec.get("unit", 1.0), "isometric": spec.get("isometric", False),
+                  "unit": spec.get("unit", 1.0), "isometric": Atlas.spec_isometric(spec),
                   "covering_radius": info.get("covering_radius_deg"),
                   "max_sample_angle": info.get("max_sample_angle_deg"),
                   "nstored": None if d is None else d["nstored"],

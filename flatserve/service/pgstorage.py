@@ -204,6 +204,23 @@ class _Retry(Exception):
     """A pooled connection was found broken before anything was sent: retry once."""
 
 
+#: Prefix of the snapshot staging directories (``<prefix><pid>-<random>``).
+_STAGE_PREFIX = "flatserve-snap-"
+#: Seconds after which a staging directory without a process id is an orphan.
+STAGE_ORPHAN_AGE = 3600.0
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process with this id exists (signal 0: no signal is sent)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, someone else's
+        return True
+    return True
+
+
 class PostgresBackend(LogBackend):
     """The replica log in PostgreSQL (see the module doc).
 
@@ -247,6 +264,7 @@ class PostgresBackend(LogBackend):
         #: leases held: name -> (owner, the connection holding its advisory lock)
         self._leases: dict[str, tuple[str, psycopg.Connection]] = {}
         self._lease_lock = threading.Lock()
+        self._sweep_stages()
 
     @classmethod
     def from_settings(cls, settings) -> "PostgresBackend":
@@ -669,8 +687,34 @@ class PostgresBackend(LogBackend):
 
     # -- snapshots ------------------------------------------------------------------
     def _stage(self) -> Path:
-        """A private temporary directory for one snapshot on its way."""
-        return Path(tempfile.mkdtemp(prefix="flatserve-snap-", dir=self.tmp_dir))
+        """A private temporary directory for one snapshot on its way (named with
+        this process's id: :meth:`_sweep_stages`)."""
+        return Path(tempfile.mkdtemp(prefix=f"{_STAGE_PREFIX}{os.getpid()}-", dir=self.tmp_dir))
+
+    def _sweep_stages(self) -> None:
+        """Remove the staging directories of processes that died with a snapshot
+        on its way (kill -9 skips their cleanup). Replicas may share the
+        directory (``serve --processes N``), so a live process's are kept; a
+        directory without a process id (written before they had one) once it
+        is :data:`STAGE_ORPHAN_AGE` seconds old."""
+        root = Path(self.tmp_dir) if self.tmp_dir else Path(tempfile.gettempdir())
+        try:
+            found = [p for p in root.iterdir() if p.name.startswith(_STAGE_PREFIX) and p.is_dir()]
+        except OSError:
+            return
+        now = time.time()
+        for p in found:
+            pid = p.name[len(_STAGE_PREFIX):].split("-", 1)[0]
+            try:
+                if pid.isdigit() and "-" in p.name[len(_STAGE_PREFIX):]:
+                    if _alive(int(pid)):
+                        continue
+                elif now - p.stat().st_mtime < STAGE_ORPHAN_AGE:
+                    continue
+            except OSError:
+                continue
+            shutil.rmtree(p, ignore_errors=True)
+            log.info("removed the snapshot staging directory %s of a process that is gone", p)
 
     def write_snapshot(self, field_id: int, seq: int, position: int,
                        save: Callable[[Path], None]) -> SnapshotInfo:

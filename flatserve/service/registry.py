@@ -496,7 +496,9 @@ class Registry:
         if kw.get("return_weights") and e.spec.is_atlas:
             raise InvalidInputError(
                 f"weights: field {e.name!r} is an atlas field: its answers blend several "
-                "charts, whose sample ids and weights the service does not return", "weights")
+                "charts, whose sample ids and weights the service does not return; a field "
+                "created with basis {\"kind\": \"tangent_simplex\"} (one chart) returns them",
+                "weights")
         res = e.field.query(flats, **kw)
         if res is None:
             return None

@@ -305,3 +305,32 @@ def test_unreachable_database_and_foreign_schema_are_refused(pg_url, pg_cluster)
     with pytest.raises(fe.StorageError, match="schema version 99"):
         other.check()
     other.close()
+
+
+def test_staging_directories_of_dead_processes_are_removed_at_start(tmp_path):
+    """A kill -9 during a snapshot leaves its staging directory behind; the next
+    backend on that directory removes those of processes that are gone and keeps
+    those of live ones (replicas of one server share it) and young ones without a
+    process id."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from flatserve.service.pgstorage import STAGE_ORPHAN_AGE, PostgresBackend
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead = tmp_path / f"flatserve-snap-{gone.pid}-abc"
+    live = tmp_path / f"flatserve-snap-{os.getpid()}-def"
+    old = tmp_path / "flatserve-snap-k2j3h4g5"
+    young = tmp_path / "flatserve-snap-z9y8x7w6"
+    other = tmp_path / "unrelated"
+    for d in (dead, live, old, young, other):
+        d.mkdir()
+        (d / "part").write_bytes(b"x" * 10)
+    t = time.time() - STAGE_ORPHAN_AGE - 10
+    os.utime(old, (t, t))
+    PostgresBackend("postgresql://nobody@127.0.0.1:1/none", tmp_dir=tmp_path).close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        p.name for p in (live, young, other))

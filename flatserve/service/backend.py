@@ -367,7 +367,8 @@ class LogBackend(abc.ABC):
     # -- snapshots -------------------------------------------------------------------------
     @abc.abstractmethod
     def write_snapshot(self, field_id: int, seq: int, position: int,
-                       save: Callable[[Path], None]) -> SnapshotInfo:
+                       save: Callable[[Path], None],
+                       check: Callable[[], None] | None = None) -> SnapshotInfo:
         """Store a snapshot of a field holding its batches ``1..seq`` (the last at
         log ``position``) and announce it: the field's row points at it and a
         ``snapshot`` entry is appended, in one transaction, only once the data is
@@ -379,6 +380,11 @@ class LogBackend(abc.ABC):
         save : callable
             ``save(path)`` writes the snapshot to a local file ``path`` (it may
             append an extension: the one file it creates is taken).
+        check : callable, optional
+            Called once the data is stored, just before the field is pointed at
+            it; an exception it raises abandons the snapshot (its data is
+            removed) and is raised (the writer's lease was lost: another
+            replica's clean-up may be removing what is not pointed at).
 
         Returns
         -------

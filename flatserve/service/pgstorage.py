@@ -717,7 +717,8 @@ class PostgresBackend(LogBackend):
             log.info("removed the snapshot staging directory %s of a process that is gone", p)
 
     def write_snapshot(self, field_id: int, seq: int, position: int,
-                       save: Callable[[Path], None]) -> SnapshotInfo:
+                       save: Callable[[Path], None],
+                       check: Callable[[], None] | None = None) -> SnapshotInfo:
         self._ensure_schema()
         stage = None
         name = f"f{field_id}-s{seq}-{uuid.uuid4().hex[:12]}.snap"
@@ -771,6 +772,8 @@ class PostgresBackend(LogBackend):
             return self._append(conn, "snapshot", field_id, seq)
 
         try:
+            if check is not None:
+                check()
             pos = self._run(point, write=True)
         except BaseException:
             self._remove_snapshots([name])

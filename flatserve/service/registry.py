@@ -548,13 +548,24 @@ class Registry:
         if not self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, ttl):
             raise NotReadyError("another replica is writing a snapshot; retry later")
         renew = threading.Event()
+        lost = threading.Event()  # another replica took the lease: do not point at ours
 
         def renewer():  # keep the lease while a long snapshot is written
             while not renew.wait(ttl / 3):
                 try:
-                    self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, ttl)
+                    if not self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, ttl):
+                        lost.set()
+                        log.error("field %r: the snapshot lease was taken by another replica "
+                                  "while this one wrote; the snapshot is abandoned", e.name)
+                        return
                 except StorageError:  # pragma: no cover - retried
                     pass
+
+        def still_held():  # another replica's clean-up may remove what is not pointed at
+            if lost.is_set() or not self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, ttl):
+                lost.set()
+                raise NotReadyError("the snapshot lease was lost while writing (another "
+                                    "replica holds it); the snapshot is abandoned, retry later")
 
         th = threading.Thread(target=renewer, name="flatserve-lease", daemon=True)
         th.start()
@@ -585,12 +596,13 @@ class Registry:
             def save(path):
                 nonlocal held
                 try:
+                    still_held()
                     e.field.save(path)
                 finally:
                     held = False
                     e.index_lock.release()
 
-            info = self.storage.write_snapshot(e.id, seq, pos, save)
+            info = self.storage.write_snapshot(e.id, seq, pos, save, check=still_held)
             with e.index_lock:
                 if seq >= e.snapshot_seq:
                     e.snapshot_file, e.snapshot_seq, e.snapshot_position = info.file, seq, pos

@@ -626,7 +626,8 @@ class SQLiteBackend(LogBackend):
         return self.snapshot_dir / file
 
     def write_snapshot(self, field_id: int, seq: int, position: int,
-                       save: Callable[[Path], None]) -> SnapshotInfo:
+                       save: Callable[[Path], None],
+                       check: Callable[[], None] | None = None) -> SnapshotInfo:
         """Write a snapshot atomically, then point the field at it and announce it."""
         name = f"f{field_id}-s{seq}.snap"
         final = self.snapshot_dir / name
@@ -644,6 +645,8 @@ class SQLiteBackend(LogBackend):
             finally:
                 os.close(fd)
             size = tmp.stat().st_size
+            if check is not None:
+                check()
             os.replace(tmp, final)
             _fsync_dir(self.snapshot_dir)
         except OSError as exc:

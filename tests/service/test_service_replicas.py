@@ -405,6 +405,45 @@ def test_one_snapshot_writer_at_a_time(make_app, rng):
 
 
 @pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_a_snapshot_whose_lease_is_taken_meanwhile_is_abandoned(make_app, rng, request,
+                                                                 backend):
+    """The writer's lease lost while it writes (a pause longer than the lease, a
+    database connection dropped): another replica may hold it and remove what no
+    field points at, so the writer must not point the field at its snapshot. It
+    answers 503 and leaves nothing stored; once the lease is free again a snapshot
+    is written."""
+    import socket
+
+    opts = {} if backend == "sqlite" else {"database_url": request.getfixturevalue("pg_url")}
+    tc, c = started(make_app(**opts))
+    try:
+        c.create_field("f")
+        c.upload_rays("f", *paper_rays(rng, 300), np.ones(300))
+        reg = tc.app.state.registry
+        storage = reg.storage
+        write = storage.write_snapshot
+        other = f"{socket.gethostname()}:{os.getpid()}:another-replica"  # alive: this pid
+
+        def stolen_write(field_id, seq, position, save, check=None):
+            def save_then_lose(path):
+                save(path)
+                storage.release_lease("snapshot", reg.owner)  # as if it had expired ...
+                assert storage.acquire_lease("snapshot", other, 60)  # ... and been taken
+            return write(field_id, seq, position, save_then_lose, check)
+
+        storage.write_snapshot = stolen_write
+        r = tc.post("/v1/fields/f/snapshot")
+        assert r.status_code == 503 and "lease was lost" in r.text, r.text
+        assert c.describe("f")["storage"]["snapshot_batch"] == 0
+        assert storage.clean_orphans() == 0  # nothing of it was left stored
+        storage.write_snapshot = write
+        storage.release_lease("snapshot", other)
+        assert c.snapshot("f")["batch"] == 1
+    finally:
+        tc.__exit__(None, None, None)
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
 def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng, request,
                                                                backend):
     """The field is serialised under its lock; storing the snapshot (the database
@@ -425,12 +464,12 @@ def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng, re
         write = storage.write_snapshot
         stored, gate = threading.Event(), threading.Event()
 
-        def held_write(field_id, seq, position, save):
+        def held_write(field_id, seq, position, save, check=None):
             def save_then_hold(path):
                 save(path)
                 stored.set()
                 gate.wait(60)  # the database part of the write, held
-            return write(field_id, seq, position, save_then_hold)
+            return write(field_id, seq, position, save_then_hold, check)
 
         storage.write_snapshot = held_write
         out = {}

@@ -14,6 +14,7 @@ so no replica outlives it holding the port.
 from __future__ import annotations
 
 import ctypes
+import functools
 import logging
 import os
 import signal
@@ -62,12 +63,16 @@ def bind_socket(host: str, port: int) -> socket.socket:
     return sock
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+def _die_with_parent(parent: int) -> None:  # pragma: no cover - in the child before exec
+    """Ask for SIGTERM when the supervisor ``parent`` dies; if it died already (between
+    the fork and this request, which then never fires), exit now."""
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
         pass
+    if os.getppid() != parent:  # re-parented: the supervisor is gone
+        os._exit(1)
 
 
 class Supervisor:
@@ -138,7 +143,7 @@ class Supervisor:
 
     def _start(self, i: int) -> None:
         self.children[i] = subprocess.Popen(self.cmd, env=self.env, pass_fds=self.pass_fds,
-                                            preexec_fn=_die_with_parent)
+                                            preexec_fn=functools.partial(_die_with_parent, os.getpid()))
         self.started_at[i] = time.monotonic()
         log.info("replica %d started (pid %d)", i, self.children[i].pid)
 

@@ -511,3 +511,18 @@ def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng, re
         np.testing.assert_allclose(after.values, before.values, rtol=1e-12, atol=1e-12)
     finally:
         tc.__exit__(None, None, None)
+
+
+def test_a_child_whose_supervisor_died_before_its_death_signal_was_set_exits():
+    """A replica started just as its supervisor dies: the request to die with the
+    parent (PR_SET_PDEATHSIG) would never fire, so the child checks that its parent is
+    still the supervisor and exits otherwise."""
+    code = ("import os, sys\n"
+            "from flatserve.service.supervisor import _die_with_parent\n"
+            "_die_with_parent(os.getppid())\n"  # its parent is there: goes on
+            "print('alive', flush=True)\n"
+            "_die_with_parent(int(sys.argv[1]))\n"  # a parent it no longer has: exits
+            "print('still here', flush=True)\n")
+    out = subprocess.run([sys.executable, "-c", code, str(os.getpid() + 10**6)],
+                         capture_output=True, text=True, timeout=60)
+    assert out.stdout.split() == ["alive"] and out.returncode == 1, out

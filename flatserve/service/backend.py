@@ -431,6 +431,13 @@ class LogBackend(abc.ABC):
         (the SQLite backend does)."""
 
     @abc.abstractmethod
+    def renew_lease(self, name: str, owner: str, ttl: float) -> bool:
+        """Extend the lease ``name`` that ``owner`` holds without a break: False if
+        it lapsed meanwhile (expired, taken by another owner, its session gone),
+        even if it is free now. Never takes it anew (a lapse may have let another
+        replica's clean-up remove what ``owner`` was writing under it)."""
+
+    @abc.abstractmethod
     def release_lease(self, name: str, owner: str) -> None:
         """Give the lease up if ``owner`` holds it."""
 

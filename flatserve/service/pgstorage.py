@@ -44,6 +44,7 @@ twice.
 from __future__ import annotations
 
 import errno
+import fcntl
 import hashlib
 import json
 import logging
@@ -206,19 +207,10 @@ class _Retry(Exception):
 
 #: Prefix of the snapshot staging directories (``<prefix><pid>-<random>``).
 _STAGE_PREFIX = "flatserve-snap-"
-#: Seconds after which a staging directory without a process id is an orphan.
+#: The file of a staging directory that its writer holds locked (``flock``).
+_STAGE_LOCK = ".lock"
+#: Seconds after which a staging directory without a lock is an orphan.
 STAGE_ORPHAN_AGE = 3600.0
-
-
-def _alive(pid: int) -> bool:
-    """Whether a process with this id exists (signal 0: no signal is sent)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, someone else's
-        return True
-    return True
 
 
 class PostgresBackend(LogBackend):
@@ -264,6 +256,8 @@ class PostgresBackend(LogBackend):
         #: leases held: name -> (owner, the connection holding its advisory lock)
         self._leases: dict[str, tuple[str, psycopg.Connection]] = {}
         self._lease_lock = threading.Lock()
+        self._stage_fds: dict[Path, int] = {}  # staging directory -> its held lock
+        self._stage_guard = threading.Lock()
         self._sweep_stages()
 
     @classmethod
@@ -687,34 +681,67 @@ class PostgresBackend(LogBackend):
 
     # -- snapshots ------------------------------------------------------------------
     def _stage(self) -> Path:
-        """A private temporary directory for one snapshot on its way (named with
-        this process's id: :meth:`_sweep_stages`)."""
-        return Path(tempfile.mkdtemp(prefix=f"{_STAGE_PREFIX}{os.getpid()}-", dir=self.tmp_dir))
+        """A private temporary directory for one snapshot on its way, locked
+        (``flock`` on its :data:`_STAGE_LOCK` file, held until :meth:`_unstage`):
+        :meth:`_sweep_stages` of any process removes it only once nobody holds it."""
+        d = Path(tempfile.mkdtemp(prefix=f"{_STAGE_PREFIX}{os.getpid()}-", dir=self.tmp_dir))
+        try:
+            fd = os.open(d / ".lock-new", os.O_CREAT | os.O_RDWR, 0o600)
+        except OSError:
+            shutil.rmtree(d, ignore_errors=True)
+            raise
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        os.rename(d / ".lock-new", d / _STAGE_LOCK)  # visible to a sweep only once held
+        with self._stage_guard:
+            self._stage_fds[d] = fd
+        return d
+
+    def _unstage(self, d: Path) -> None:
+        shutil.rmtree(d, ignore_errors=True)
+        with self._stage_guard:
+            fd = self._stage_fds.pop(d, None)
+        if fd is not None:
+            os.close(fd)
 
     def _sweep_stages(self) -> None:
-        """Remove the staging directories of processes that died with a snapshot
-        on its way (kill -9 skips their cleanup). Replicas may share the
-        directory (``serve --processes N``), so a live process's are kept; a
-        directory without a process id (written before they had one) once it
-        is :data:`STAGE_ORPHAN_AGE` seconds old."""
+        """Remove the staging directories left by processes that died with a
+        snapshot on its way (kill -9 skips their cleanup): those whose lock
+        nobody holds. Replicas and other servers may share the directory (a
+        shared volume, the system's temporary directory), whatever their process
+        ids; a directory without a lock (being made, or from before there was
+        one) is removed once it is :data:`STAGE_ORPHAN_AGE` seconds old."""
         root = Path(self.tmp_dir) if self.tmp_dir else Path(tempfile.gettempdir())
         try:
-            found = [p for p in root.iterdir() if p.name.startswith(_STAGE_PREFIX) and p.is_dir()]
+            found = [p for p in root.iterdir() if p.name.startswith(_STAGE_PREFIX)
+                     and p.is_dir() and not p.is_symlink()]
         except OSError:
             return
         now = time.time()
         for p in found:
-            pid = p.name[len(_STAGE_PREFIX):].split("-", 1)[0]
             try:
-                if pid.isdigit() and "-" in p.name[len(_STAGE_PREFIX):]:
-                    if _alive(int(pid)):
+                fd = os.open(p / _STAGE_LOCK, os.O_RDWR)
+            except FileNotFoundError:
+                try:
+                    if now - p.stat().st_mtime < STAGE_ORPHAN_AGE:
                         continue
-                elif now - p.stat().st_mtime < STAGE_ORPHAN_AGE:
+                except OSError:
                     continue
-            except OSError:
+                fd = None
+            except OSError:  # not ours to open
                 continue
-            shutil.rmtree(p, ignore_errors=True)
-            log.info("removed the snapshot staging directory %s of a process that is gone", p)
+            try:
+                if fd is not None:
+                    try:
+                        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    except OSError:  # held: a live writer's
+                        continue
+                shutil.rmtree(p, ignore_errors=True)
+            finally:
+                if fd is not None:
+                    os.close(fd)
+            if not p.exists():
+                log.info("removed the snapshot staging directory %s left by a process that "
+                         "is gone", p)
 
     def write_snapshot(self, field_id: int, seq: int, position: int,
                        save: Callable[[Path], None],
@@ -727,7 +754,7 @@ class PostgresBackend(LogBackend):
             path = stage / name
             save(path)
             if not path.exists():  # a writer that appended an extension
-                cands = [p for p in stage.iterdir()]
+                cands = [p for p in stage.iterdir() if p.name != _STAGE_LOCK]
                 if len(cands) != 1:
                     raise StorageError(f"snapshot writer did not create {path}")
                 path = cands[0]
@@ -756,7 +783,7 @@ class PostgresBackend(LogBackend):
                 f"snapshot failed: {exc}") from exc
         finally:
             if stage is not None:
-                shutil.rmtree(stage, ignore_errors=True)
+                self._unstage(stage)
 
         old: list[str] = []
 
@@ -765,6 +792,9 @@ class PostgresBackend(LogBackend):
                                (field_id,)).fetchone()
             if row is None:
                 raise FieldNotFoundError(f"field id {field_id} was deleted")
+            if conn.execute("SELECT 1 FROM snapshots WHERE name=%s FOR SHARE",
+                            (name,)).fetchone() is None:  # removed by a clean-up meanwhile
+                raise StorageError(f"snapshot {name} was removed before the field pointed at it")
             if row[0] and row[0] != name:
                 old.append(row[0])
             conn.execute("UPDATE fields SET snapshot_file=%s, snapshot_seq=%s, snapshot_position=%s"
@@ -776,10 +806,21 @@ class PostgresBackend(LogBackend):
                 check()
             pos = self._run(point, write=True)
         except BaseException:
-            self._remove_snapshots([name])
+            if not self._points_at(field_id, name):  # (a commit whose reply was lost: keep)
+                self._remove_snapshots([name])
             raise
         self._remove_snapshots(old)
         return SnapshotInfo(name, size, pos)
+
+    def _points_at(self, field_id: int, name: str) -> bool:
+        """Whether the field points at snapshot ``name`` (True when it cannot be told:
+        what no field points at is removed by clean_orphans later)."""
+        try:
+            r = self._run(lambda c: c.execute("SELECT snapshot_file FROM fields WHERE id=%s",
+                                              (field_id,)).fetchone(), tx=False)
+        except (StorageError, OSError):
+            return True
+        return r is not None and r[0] == name
 
     def _remove_snapshots(self, names: list[str]) -> None:
         if not names:
@@ -817,7 +858,7 @@ class PostgresBackend(LogBackend):
                                         "was replaced")
             return load(path)
         finally:
-            shutil.rmtree(stage, ignore_errors=True)
+            self._unstage(stage)
 
     def snapshot_bytes(self, row) -> int:
         """Size of the row's snapshot (a :class:`FieldRow`, or its ``snapshot_file``)."""
@@ -872,6 +913,23 @@ class PostgresBackend(LogBackend):
                 raise storage_error(exc, self.where) from exc
             self._leases[name] = (owner, conn)
             return True
+
+    def renew_lease(self, name: str, owner: str, ttl: float) -> bool:
+        """True only while the session that took the lock for ``owner`` lives: a
+        session that ended released the lock (another replica may have held it
+        since), so it is not taken again here."""
+        self._ensure_schema()
+        with self._lease_lock:
+            held = self._leases.get(name)
+            if held is None or held[0] != owner:
+                return False
+            try:
+                self._lease_row(held[1], name, owner, ttl)
+                return True
+            except psycopg.Error:
+                del self._leases[name]
+                held[1].close()
+                return False
 
     @staticmethod
     def _lease_row(conn, name: str, owner: str, ttl: float) -> None:

@@ -553,7 +553,7 @@ class Registry:
         def renewer():  # keep the lease while a long snapshot is written
             while not renew.wait(ttl / 3):
                 try:
-                    if not self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, ttl):
+                    if not self.storage.renew_lease(SNAPSHOT_LEASE, self.owner, ttl):
                         lost.set()
                         log.error("field %r: the snapshot lease was taken by another replica "
                                   "while this one wrote; the snapshot is abandoned", e.name)
@@ -561,11 +561,14 @@ class Registry:
                 except StorageError:  # pragma: no cover - retried
                     pass
 
-        def still_held():  # another replica's clean-up may remove what is not pointed at
-            if lost.is_set() or not self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, ttl):
+        def still_held(renew: bool = True):  # another replica's clean-up may remove
+            # what no field points at: held without a break since it was taken, or abandon
+            if lost.is_set() or (renew and not self.storage.renew_lease(
+                    SNAPSHOT_LEASE, self.owner, ttl)):
                 lost.set()
                 raise NotReadyError("the snapshot lease was lost while writing (another "
-                                    "replica holds it); the snapshot is abandoned, retry later")
+                                    "replica may hold it); the snapshot is abandoned, retry "
+                                    "later")
 
         th = threading.Thread(target=renewer, name="flatserve-lease", daemon=True)
         th.start()
@@ -596,7 +599,7 @@ class Registry:
             def save(path):
                 nonlocal held
                 try:
-                    still_held()
+                    still_held(renew=False)  # (no database round trip under the field's lock)
                     e.field.save(path)
                 finally:
                     held = False

@@ -663,6 +663,8 @@ class SQLiteBackend(LogBackend):
             row = db.execute("SELECT snapshot_file FROM fields WHERE id=?", (field_id,)).fetchone()
             if row is None:
                 raise FieldNotFoundError(f"field id {field_id} was deleted")
+            if not final.is_file():  # removed since (a clean-up under a lease we lost)
+                raise StorageError(f"snapshot {name} was removed before the field pointed at it")
             if row[0] and row[0] != name:
                 old.append(row[0])
             db.execute("UPDATE fields SET snapshot_file=?, snapshot_seq=?, snapshot_position=? "
@@ -714,6 +716,14 @@ class SQLiteBackend(LogBackend):
             db.execute("INSERT OR REPLACE INTO leases(name, owner, expires) VALUES (?, ?, ?)",
                        (name, owner, now + ttl))
             return True
+
+        return self._tx(fn, appends=False)
+
+    def renew_lease(self, name: str, owner: str, ttl: float) -> bool:
+        def fn(db):
+            now = time.time()
+            return db.execute("UPDATE leases SET expires=? WHERE name=? AND owner=? AND "
+                              "expires > ?", (now + ttl, name, owner, now)).rowcount == 1
 
         return self._tx(fn, appends=False)
 

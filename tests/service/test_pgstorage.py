@@ -309,9 +309,9 @@ def test_unreachable_database_and_foreign_schema_are_refused(pg_url, pg_cluster)
 
 def test_staging_directories_of_dead_processes_are_removed_at_start(tmp_path):
     """A kill -9 during a snapshot leaves its staging directory behind; the next
-    backend on that directory removes those of processes that are gone and keeps
-    those of live ones (replicas of one server share it) and young ones without a
-    process id."""
+    backend on that directory removes those whose lock nobody holds (whatever the
+    process ids: other PID namespaces, a restarted PID 1) and keeps a live writer's
+    (another process here), young ones without a lock, symlinks and other files."""
     import os
     import subprocess
     import sys
@@ -319,18 +319,80 @@ def test_staging_directories_of_dead_processes_are_removed_at_start(tmp_path):
 
     from flatserve.service.pgstorage import STAGE_ORPHAN_AGE, PostgresBackend
 
-    gone = subprocess.Popen([sys.executable, "-c", "pass"])
-    gone.wait()
-    dead = tmp_path / f"flatserve-snap-{gone.pid}-abc"
-    live = tmp_path / f"flatserve-snap-{os.getpid()}-def"
+    holder = ("import fcntl, os, sys, time\n"
+              "fd = os.open(sys.argv[1], os.O_RDWR)\n"
+              "fcntl.flock(fd, fcntl.LOCK_EX)\n"
+              "print('held', flush=True)\n"
+              "time.sleep(60)\n")
+    live = tmp_path / "flatserve-snap-1-live"
+    dead = tmp_path / "flatserve-snap-1-dead"  # the same "pid" as a live one: not asked
     old = tmp_path / "flatserve-snap-k2j3h4g5"
     young = tmp_path / "flatserve-snap-z9y8x7w6"
     other = tmp_path / "unrelated"
-    for d in (dead, live, old, young, other):
+    target = tmp_path / "target"
+    for d in (dead, live, old, young, other, target):
         d.mkdir()
         (d / "part").write_bytes(b"x" * 10)
+    for d in (dead, live):
+        (d / ".lock").write_bytes(b"")
+    (tmp_path / "flatserve-snap-2-link").symlink_to(target)
     t = time.time() - STAGE_ORPHAN_AGE - 10
     os.utime(old, (t, t))
+    proc = subprocess.Popen([sys.executable, "-c", holder, str(live / ".lock")],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "held"
+        be = PostgresBackend("postgresql://nobody@127.0.0.1:1/none", tmp_dir=tmp_path)
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+            [p.name for p in (live, young, other, target)] + ["flatserve-snap-2-link"])
+        assert (target / "part").exists()
+        # a backend's own staging directory is locked until it is done with it
+        d = be._stage()
+        PostgresBackend("postgresql://nobody@127.0.0.1:1/none", tmp_dir=tmp_path).close()
+        assert d.is_dir()
+        be._unstage(d)
+        assert not d.exists()
+        be.close()
+    finally:
+        proc.kill()
+        proc.wait()
     PostgresBackend("postgresql://nobody@127.0.0.1:1/none", tmp_dir=tmp_path).close()
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-        p.name for p in (live, young, other))
+    assert not live.exists()  # its holder is gone
+
+
+def test_a_lapsed_lease_is_not_renewed_even_when_free_again(two, pg_url):
+    """The writer's lease session ends (a restart, a terminated backend); another
+    replica takes the lease, cleans up what no field points at (the writer's stored
+    snapshot data) and releases it. The writer's renewal must say the lease lapsed
+    (acquire_lease would take the free lock again), and pointing the field at data
+    that was removed is refused: the field keeps no dangling snapshot."""
+    a, b = two
+    fid, _ = a.create_field("f", {"k": 1}, BASIS)
+    assert a.acquire_lease("snapshot", "A", 300) and a.renew_lease("snapshot", "A", 300)
+    assert not a.renew_lease("snapshot", "B", 300) and not b.renew_lease("snapshot", "A", 300)
+
+    def lose_it():
+        with psycopg.connect(pg_url) as c:
+            c.execute("SELECT pg_terminate_backend(pid) FROM pg_locks"
+                      " WHERE locktype='advisory' AND granted")
+        t0 = time.monotonic()
+        while not b.acquire_lease("snapshot", "B", 300):
+            assert time.monotonic() - t0 < 30
+            time.sleep(0.05)
+        assert b.clean_orphans() == 1  # the writer's data, pointed at by no field
+        b.release_lease("snapshot", "B")
+
+    def check():
+        lose_it()
+        if not a.renew_lease("snapshot", "A", 300):
+            raise RuntimeError("lease lapsed")
+
+    with pytest.raises(RuntimeError, match="lapsed"):
+        a.write_snapshot(fid, 0, 0, lambda p: p.write_bytes(b"snap" * 100), check)
+    assert a.field(fid).snapshot_file is None
+    # without the check: the removed data is noticed in the pointing transaction
+    assert a.acquire_lease("snapshot", "A", 300)
+
+    with pytest.raises(fe.StorageError, match="removed before the field pointed"):
+        a.write_snapshot(fid, 0, 0, lambda p: p.write_bytes(b"snap" * 100), lose_it)
+    assert a.field(fid).snapshot_file is None

@@ -344,3 +344,39 @@ def test_replicas_opening_a_new_data_dir_at_once_all_open(tmp_path):
             p.join(30)
         os.close(fd)
         assert got == ["ok"] * 8, (rnd, got)
+
+
+def test_sqlite_lease_renewal_and_a_snapshot_removed_before_it_is_pointed_at(tmp_path):
+    """renew_lease: True while the owner holds the lease without a break, False once
+    it expired (even if free again: another replica may have cleaned up meanwhile).
+    A snapshot file removed between its write and the pointing transaction (that
+    clean-up) is refused: the field keeps no dangling snapshot."""
+    import time
+
+    from flatserve.errors import StorageError
+    from flatserve.service.storage import SQLiteBackend, lock_data_dir
+
+    fd = lock_data_dir(tmp_path / "data")
+    be = SQLiteBackend(tmp_path / "data", lock_fd=fd)
+    try:
+        fid, _ = be.create_field("f", {"k": 1}, {"Q": np.eye(3)[None].repeat(5, 0),
+                                                 "r": np.zeros((5, 3))})
+        assert be.acquire_lease("snapshot", "A", 300) and be.renew_lease("snapshot", "A", 300)
+        assert not be.renew_lease("snapshot", "B", 300)
+        assert be.acquire_lease("snapshot", "A", 0.05)
+        time.sleep(0.1)  # expired: taken by B, cleaned up under it, released
+        assert be.acquire_lease("snapshot", "B", 300)
+        be.release_lease("snapshot", "B")
+        assert not be.renew_lease("snapshot", "A", 300)  # lapsed, though free now
+
+        def removed_meanwhile():  # the clean-up of a replica holding the lease
+            for p in be.snapshot_dir.glob(".tmp-*"):
+                os.replace(p, be.snapshot_dir / "moved-away")
+            be.clean_orphans()
+
+        with pytest.raises(StorageError):  # (no file to publish)
+            be.write_snapshot(fid, 0, 0, lambda p: p.write_bytes(b"snap"), removed_meanwhile)
+        assert be.field(fid).snapshot_file is None
+    finally:
+        be.close()
+        os.close(fd)

@@ -19,7 +19,7 @@ import pytest
 import flatserve
 from flatserve.errors import InvalidInputError
 from flatserve.atlas import Atlas, AtlasField
-from flatserve.lightfield import Camera, render_field
+from flatserve.lightfield import render_field
 from flatserve.lightfield.baselines import IDW_POWER, TWO_SPHERE_K, TwoSphere, two_sphere_coordinates
 from flatserve.lightfield.camera import ORBIT_EYE_RADIUS, ORBIT_RADIUS, fibonacci_sphere, sphere_samples
 from flatserve.lightfield.cli import add_arguments, run

@@ -40,9 +40,9 @@ import numpy as np
 from ..atlas import ICOSAHEDRON_AXES, Atlas, AtlasField, object_unit
 from ..errors import InvalidInputError
 from ..flats import Flats
-from .baselines import IDW_POWER, TWO_SPHERE_K, TwoSphere
+from .baselines import TWO_SPHERE_K, TwoSphere
 from .camera import ORBIT_EYE_RADIUS, ORBIT_RADIUS, Camera
-from .figure import contact_sheet, fmt, save_png
+from .figure import contact_sheet, fmt
 from .quality import psnr, ssim
 from .render import frame_from_rays, render_field, render_truth
 from .sampling import ProgressBar, blocks_scene, build_atlas_field, bunny_scene, orbit_samples

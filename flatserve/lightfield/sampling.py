@@ -159,18 +159,7 @@ def build_field(origins, directions, values, *, scale: float = BASIS_SCALE, vari
         values = values[:, None]
     kw = {} if variant is None else {"variant": variant}
     field = Field(Basis.around_axis(axis=2, scale=scale, **kw), channels=values.shape[1])
-    n = values.shape[0]
-    t0 = time.perf_counter()
-    accepted = rejected = duplicates = 0
-    for lo in range(0, n, chunk):
-        hi = min(n, lo + chunk)
-        res = field.add_rays(origins[lo:hi], directions[lo:hi], values[lo:hi])
-        accepted += res.accepted
-        rejected += len(res.rejected)
-        duplicates += res.duplicates
-        if progress is not None:
-            progress(hi, n)
-    return field, BuildStats(n, accepted, rejected, duplicates, time.perf_counter() - t0)
+    return field, _fill(field, origins, directions, values, chunk, progress)
 
 
 def build_atlas_field(origins, directions, values, *, atlas=None, chunk: int = BUILD_CHUNK,
@@ -196,7 +185,6 @@ def build_atlas_field(origins, directions, values, *, atlas=None, chunk: int = B
         Rejected samples are those no chart holds (none with a covering atlas).
     """
     from ..atlas import Atlas, AtlasField
-    from ..flats import Flats
 
     values = np.asarray(values, dtype=np.float64)
     if values.ndim == 1:
@@ -204,6 +192,13 @@ def build_atlas_field(origins, directions, values, *, atlas=None, chunk: int = B
     if atlas is None:
         atlas = Atlas.covering(1, 3, oriented=True)
     field = AtlasField(atlas, channels=values.shape[1])
+    return field, _fill(field, origins, directions, values, chunk, progress)
+
+
+def _fill(field, origins, directions, values, chunk: int, progress) -> BuildStats:
+    """Add the rays to ``field`` (a Field or an AtlasField) ``chunk`` at a time."""
+    from ..flats import Flats
+
     origins = np.asarray(origins, dtype=np.float64)
     directions = np.asarray(directions, dtype=np.float64)
     n = values.shape[0]
@@ -217,4 +212,4 @@ def build_atlas_field(origins, directions, values, *, atlas=None, chunk: int = B
         duplicates += res.duplicates
         if progress is not None:
             progress(hi, n)
-    return field, BuildStats(n, accepted, rejected, duplicates, time.perf_counter() - t0)
+    return BuildStats(n, accepted, rejected, duplicates, time.perf_counter() - t0)

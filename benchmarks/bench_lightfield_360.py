@@ -70,7 +70,7 @@ def ms(x: float) -> str:
 
 def ensure_field(c, name: str, basis: dict, make, n: int, oriented: bool = False) -> None:
     """Create and fill ``name`` through the API unless it holds ``n`` samples already."""
-    from flatserve.errors import FieldNotFoundError
+    from flatserve.service.status import FieldNotFoundError
 
     try:
         info = c.describe(name)

@@ -41,7 +41,7 @@ import numpy as np
 
 from flatserve.client import Client
 from flatserve.service.process import ServerProcess
-from flatserve.errors import FieldNotFoundError
+from flatserve.service.status import FieldNotFoundError
 
 FIELDS = ("soak-a", "soak-b", "soak-c")
 

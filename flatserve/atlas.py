@@ -71,6 +71,7 @@ from .basis import Basis, select_scale
 from .coordinates import NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
 from .embedding import row_product
 from .errors import InvalidInputError, SnapshotError
+from .options import Order, Outside, choice
 from .field import AddResult, Field, PreparedBatch, QueryResult
 from .flats import Flats
 from .triangulation import RWLock
@@ -1382,7 +1383,8 @@ class AtlasField:
         return self.insert_prepared(self.prepare(flats, values))
 
     # --------------------------------------------------------------- readers
-    def query(self, flats: Flats, *, outside: str = "nan", order: str = "hilbert",
+    def query(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
+              order: Order | str = Order.HILBERT,
               threads: int | None = None, return_weights: bool = False,
               blocking: bool = True) -> "AtlasQueryResult | None":
         """Interpolate at flats: every chart holding the query, blended.
@@ -1407,9 +1409,7 @@ class AtlasField:
             ``inside`` when some chart with positive weight answered from
             inside its samples' hull.
         """
-        if outside not in ("nan", "clamp"):
-            raise InvalidInputError(f"outside: expected 'nan' or 'clamp', got {outside!r}",
-                                    "outside")
+        outside, order = choice(outside, Outside, "outside"), choice(order, Order, "order")
         at = self.atlas
         ro = at.route(flats, at.trusted, nearest=False)
         if blocking:

@@ -25,7 +25,8 @@ import numpy as np
 import orjson
 
 from . import _npy as _npy_mod
-from .errors import FlatserveError, InvalidInputError, error_class
+from .errors import FlatserveError, InvalidInputError
+from .service.status import error_class
 from .field import QueryResult
 from .flats import FORMS, Flats, infer_form
 
@@ -37,16 +38,16 @@ class ServiceError(FlatserveError):
     """An error response of the service: ``status`` and ``detail`` as sent.
 
     The client raises it combined with the library class of the status
-    (:func:`flatserve.errors.error_class`, the inverse of
-    :data:`flatserve.errors.HTTP_STATUS`): a 404 is a
-    :class:`~flatserve.errors.FieldNotFoundError`, a 409 a
-    :class:`~flatserve.errors.FieldExistsError`, a 413 a
-    :class:`~flatserve.errors.LimitExceededError`, a 422 an
+    (:func:`flatserve.service.status.error_class`, the inverse of
+    :data:`flatserve.service.status.HTTP_STATUS`): a 404 is a
+    :class:`~flatserve.service.status.FieldNotFoundError`, a 409 a
+    :class:`~flatserve.service.status.FieldExistsError`, a 413 a
+    :class:`~flatserve.service.status.LimitExceededError`, a 422 an
     :class:`~flatserve.errors.InvalidInputError` (``argument`` is the last
     element of ``detail[0].loc``), a 429 a
-    :class:`~flatserve.errors.BacklogFullError`, a 503 a
-    :class:`~flatserve.errors.NotReadyError`, a 507 a
-    :class:`~flatserve.errors.StorageFullError`; other statuses raise it alone.
+    :class:`~flatserve.service.status.BacklogFullError`, a 503 a
+    :class:`~flatserve.service.status.NotReadyError`, a 507 a
+    :class:`~flatserve.service.status.StorageFullError`; other statuses raise it alone.
 
     Attributes
     ----------
@@ -321,7 +322,7 @@ class Client:
 
         ``min_position``: read-your-writes across replicas: the ``position`` of an
         upload's report (on any replica); the server answers once it has applied
-        it (503 :class:`~flatserve.errors.ReplicaBehindError` after its wait).
+        it (503 :class:`~flatserve.service.status.ReplicaBehindError` after its wait).
 
         Returns the library's :class:`flatserve.QueryResult`; ``status``, ``ids``
         and ``weights`` are filled when the response carries them."""

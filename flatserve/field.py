@@ -28,6 +28,7 @@ from .basis import Basis
 from .coordinates import OK, ROUNDTRIP_TOL, reason
 from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
+from .options import Order, Outside, choice
 from .flats import Flats
 from .triangulation import Triangulation
 from .warp import LineWarp
@@ -435,8 +436,8 @@ class Field:
         self,
         flats: "Flats | Chart",
         *,
-        outside: str = "nan",
-        order: str = "hilbert",
+        outside: Outside | str = Outside.NAN,
+        order: Order | str = Order.HILBERT,
         threads: int | None = None,
         return_weights: bool = False,
         blocking: bool = True,
@@ -467,8 +468,7 @@ class Field:
         -------
         QueryResult, or None (see ``blocking``)
         """
-        if outside not in ("nan", "clamp"):
-            raise InvalidInputError(f"outside: expected 'nan' or 'clamp', got {outside!r}", "outside")
+        outside, order = choice(outside, Outside, "outside"), choice(order, Order, "order")
         ch = flats if isinstance(flats, Chart) else self.chart(flats, threads=threads)
         if ch.points.shape[1:] != (self.ndim,):
             raise InvalidInputError(f"flats: a chart of dimension {self.ndim} expected", "flats")

@@ -34,6 +34,7 @@ import numpy as np
 
 from ._validate import as_array
 from .errors import InvalidFlatError, InvalidInputError, WeightsError
+from .options import Form
 
 __all__ = [
     "FLAT_TOL",
@@ -645,9 +646,9 @@ def basis_size(k: int, d: int) -> int:
 #: binary column order: rays (lines through an origin along a direction, k = 1),
 #: parametric ``{A y + b}`` and the quadrics ``(Q, r)`` of Eq. 3.
 FORMS: dict[str, tuple[str, str]] = {
-    "rays": ("origins", "directions"),
-    "parametric": ("A", "b"),
-    "flats": ("Q", "r"),
+    Form.RAYS.value: ("origins", "directions"),
+    Form.PARAMETRIC.value: ("A", "b"),
+    Form.FLATS.value: ("Q", "r"),
 }
 
 

@@ -42,6 +42,7 @@ import numpy as np
 from . import _native
 from ._validate import as_array
 from .errors import InvalidInputError
+from .options import Order, Outside, choice
 
 __all__ = ["Triangulation", "InsertResult", "Location", "LocateKind", "RWLock"]
 
@@ -54,8 +55,6 @@ LocateKind = _native.LocateKind
 #: ``kind <= INSIDE_MAX`` means the query is in the closed convex hull.
 INSIDE_MAX = int(LocateKind.ON_VERTEX)
 
-_ORDERS = ("hilbert", "given")
-_OUTSIDE = ("nan", "clamp")
 
 
 @dataclass(frozen=True)
@@ -214,12 +213,6 @@ def _threads_arg(threads) -> int:
         raise InvalidInputError(
             f"threads: expected an integer in [1, {MAX_THREADS}] or None, got {threads!r}", "threads")
     return int(threads)
-
-
-def _choice(value, name, allowed):
-    if value not in allowed:
-        raise InvalidInputError(f"{name}: expected one of {allowed}, got {value!r}", name)
-    return value
 
 
 class Triangulation:
@@ -400,7 +393,7 @@ class Triangulation:
         flat = as_array(np.reshape(arr, (-1, self._ndim)), name, (None, self._ndim))
         return flat, lead
 
-    def locate(self, xi, order: str = "hilbert", threads: int | None = None) -> Location:
+    def locate(self, xi, order: Order | str = Order.HILBERT, threads: int | None = None) -> Location:
         """Locate queries: containing cell, barycentric weights, kind.
 
         Parameters
@@ -420,19 +413,19 @@ class Triangulation:
             Arrays shaped (..., D+1) / (...,).
         """
         q, lead = self._queries(xi)
-        _choice(order, "order", _ORDERS)
+        order = choice(order, Order, "order")
         th = _threads_arg(threads)
         with _Reading(self._lock):
-            ids, w, kind, simplex = self._core.locate(q, order == "hilbert", th)
+            ids, w, kind, simplex = self._core.locate(q, order is Order.HILBERT, th)
         D1 = self._ndim + 1
         return Location(ids=ids.reshape(lead + (D1,)), weights=w.reshape(lead + (D1,)),
                         kind=kind.reshape(lead), simplex=simplex.reshape(lead))
 
-    def find_simplex(self, xi, order: str = "hilbert", threads: int | None = None) -> np.ndarray:
+    def find_simplex(self, xi, order: Order | str = Order.HILBERT, threads: int | None = None) -> np.ndarray:
         """Row of :attr:`simplices` containing each query, -1 outside (shape (...,))."""
         return self.locate(xi, order=order, threads=threads).simplex
 
-    def barycentric(self, xi, order: str = "hilbert", threads: int | None = None) -> np.ndarray:
+    def barycentric(self, xi, order: Order | str = Order.HILBERT, threads: int | None = None) -> np.ndarray:
         """Barycentric coordinates (..., D+1) in the simplex ``find_simplex(xi)``.
 
         Weights follow the vertex order of ``simplices[find_simplex(xi)]``;
@@ -443,7 +436,7 @@ class Triangulation:
         w[~loc.inside] = np.nan
         return w
 
-    def interpolate(self, xi, outside: str = "nan", order: str = "hilbert",
+    def interpolate(self, xi, outside: Outside | str = Outside.NAN, order: Order | str = Order.HILBERT,
                     threads: int | None = None, values=None):
         """Piecewise-linear interpolation of the sample values.
 
@@ -466,8 +459,8 @@ class Triangulation:
         inside : ndarray, shape (...,), bool
         """
         q, lead = self._queries(xi)
-        _choice(outside, "outside", _OUTSIDE)
-        _choice(order, "order", _ORDERS)
+        outside = choice(outside, Outside, "outside")
+        order = choice(order, Order, "order")
         th = _threads_arg(threads)
         with _Reading(self._lock):
             if values is None:
@@ -480,10 +473,10 @@ class Triangulation:
                 if v.ndim == 1:
                     v = v.reshape(-1, 1)
                 vals = as_array(v, "values", (self._n, "C"))
-            out, inside = self._core.interpolate(q, vals, outside == "clamp", order == "hilbert", th)
+            out, inside = self._core.interpolate(q, vals, outside is Outside.CLAMP, order is Order.HILBERT, th)
         return out.reshape(lead + (vals.shape[1],)), inside.reshape(lead)
 
-    def query(self, xi, outside: str = "nan", order: str = "hilbert",
+    def query(self, xi, outside: Outside | str = Outside.NAN, order: Order | str = Order.HILBERT,
               threads: int | None = None, *, locate: bool = False, blocking: bool = True):
         """:meth:`interpolate` (and with ``locate`` :meth:`locate`) under one read lock,
         so both see the same triangulation.
@@ -503,8 +496,8 @@ class Triangulation:
         (values, inside, Location or None), or None (see ``blocking``)
         """
         q, lead = self._queries(xi)
-        _choice(outside, "outside", _OUTSIDE)
-        _choice(order, "order", _ORDERS)
+        outside = choice(outside, Outside, "outside")
+        order = choice(order, Order, "order")
         th = _threads_arg(threads)
         if self._values_buf is None:
             raise InvalidInputError("values: the triangulation has no values", "values")
@@ -513,9 +506,9 @@ class Triangulation:
         elif not self._lock.try_acquire_read():
             return None
         try:
-            hilbert = order == "hilbert"
+            hilbert = order is Order.HILBERT
             vals = self._values_buf[: self._n]
-            out, inside = self._core.interpolate(q, vals, outside == "clamp", hilbert, th)
+            out, inside = self._core.interpolate(q, vals, outside is Outside.CLAMP, hilbert, th)
             loc = None
             if locate:
                 ids, w, kind, simplex = self._core.locate(q, hilbert, th)

@@ -4,7 +4,8 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from flatserve import errors as fe
+from flatserve import errors as le
+from flatserve.service import status as fe
 from flatserve.client import Client, ServiceError
 
 
@@ -17,17 +18,17 @@ from flatserve.client import Client, ServiceError
     (fe.CostLimitError("x"), 413),
     (fe.BacklogFullError("x"), 429),
     (fe.LimitExceededError("x"), 413),
-    (fe.InvalidFlatError("x"), 422),
-    (fe.WeightsError("x"), 422),
-    (fe.BasisError("x"), 422),
+    (le.InvalidFlatError("x"), 422),
+    (le.WeightsError("x"), 422),
+    (le.BasisError("x"), 422),
     (fe.IdempotencyConflictError("x"), 422),
     (ValueError("x"), 422),
     (fe.NotReadyError("x"), 503),
     (fe.StorageError("x"), 503),
     (fe.StorageFullError("x"), 507),
     (fe.DataDirInUseError("x"), 503),
-    (fe.SnapshotError("x"), 503),
-    (fe.FlatserveError("x"), 500),
+    (le.SnapshotError("x"), 503),
+    (le.FlatserveError("x"), 500),
     (RuntimeError("x"), 500),
     (KeyError("x"), 500),
 ])
@@ -60,7 +61,7 @@ def _client_answering(status, detail):
 
 @pytest.mark.parametrize("status, base", [(404, fe.FieldNotFoundError), (409, fe.FieldExistsError),
                                           (413, fe.LimitExceededError), (429, fe.BacklogFullError),
-                                          (422, fe.InvalidInputError), (503, fe.NotReadyError),
+                                          (422, le.InvalidInputError), (503, fe.NotReadyError),
                                           (507, fe.StorageFullError)])
 def test_client_raises_the_library_class(status, base):
     detail = [{"loc": ["body", "origins"], "msg": "bad", "type": "x"}] if status == 422 else "why"

@@ -9,7 +9,7 @@ import anyio.to_thread
 from fastapi import FastAPI
 
 from .. import __version__
-from ..errors import BodyTooLargeError
+from .status import BodyTooLargeError
 from . import errors
 from .fastpath import FastQueryMiddleware
 from .metrics import Metrics, MetricsMiddleware

@@ -36,8 +36,8 @@ Threads
 A backend is used by many threads of one process at once (request handlers,
 the log follower, the snapshot writer): every method is thread-safe.
 :meth:`LogBackend.wait_for_change` is called by one thread only (the follower).
-Errors of the database are raised as :class:`flatserve.errors.StorageError`
-(:class:`~flatserve.errors.StorageFullError` when out of space: a 507), never as
+Errors of the database are raised as :class:`flatserve.service.status.StorageError`
+(:class:`~flatserve.service.status.StorageFullError` when out of space: a 507), never as
 the driver's own exceptions.
 """
 from __future__ import annotations
@@ -199,7 +199,7 @@ class LogBackend(abc.ABC):
 
         Raises
         ------
-        flatserve.errors.StorageError
+        flatserve.service.status.StorageError
             Naming what is damaged and what to do.
         """
 
@@ -227,7 +227,7 @@ class LogBackend(abc.ABC):
 
         Raises
         ------
-        flatserve.errors.FieldExistsError
+        flatserve.service.status.FieldExistsError
             A stored field has this name.
         """
 
@@ -243,7 +243,7 @@ class LogBackend(abc.ABC):
 
         Raises
         ------
-        flatserve.errors.FieldNotFoundError
+        flatserve.service.status.FieldNotFoundError
             No stored field has this id (deleted meanwhile, e.g. by another replica).
         """
 
@@ -278,11 +278,11 @@ class LogBackend(abc.ABC):
 
         Raises
         ------
-        flatserve.errors.FieldNotFoundError
+        flatserve.service.status.FieldNotFoundError
             The field was deleted.
         KeyTakenError
             ``idem_key`` is already stored for this field (nothing is stored).
-        flatserve.errors.StorageFullError
+        flatserve.service.status.StorageFullError
             Out of space (nothing is stored).
         """
 
@@ -315,7 +315,7 @@ class LogBackend(abc.ABC):
 
         Raises
         ------
-        flatserve.errors.FieldNotFoundError
+        flatserve.service.status.FieldNotFoundError
         """
 
     @abc.abstractmethod
@@ -334,7 +334,7 @@ class LogBackend(abc.ABC):
 
         Raises
         ------
-        flatserve.errors.FieldNotFoundError
+        flatserve.service.status.FieldNotFoundError
             No such batch (the field was deleted meanwhile).
         """
 
@@ -393,9 +393,9 @@ class LogBackend(abc.ABC):
 
         Raises
         ------
-        flatserve.errors.FieldNotFoundError
+        flatserve.service.status.FieldNotFoundError
             The field was deleted (nothing is kept).
-        flatserve.errors.StorageFullError
+        flatserve.service.status.StorageFullError
         """
 
     @abc.abstractmethod
@@ -461,7 +461,7 @@ def backend_class(url: str | None) -> type[LogBackend]:
     scheme = "sqlite" if not url else url.split(":", 1)[0].lower()
     target = BACKENDS.get(scheme)
     if target is None:
-        from ..errors import StorageError
+        from .status import StorageError
 
         raise StorageError(f"database_url: unknown scheme {scheme!r} (known: "
                            f"{', '.join(sorted(BACKENDS))})")

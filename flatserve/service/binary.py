@@ -38,7 +38,8 @@ import zlib
 import numpy as np
 
 from .. import _npy
-from ..errors import BatchTooLargeError, BodyTooLargeError, InvalidInputError
+from ..errors import InvalidInputError
+from .status import BatchTooLargeError, BodyTooLargeError
 
 #: Byte cap of a binary body's arrays when the caller gives none: this, or the
 #: body's own length when that is larger (an uncompressed body is already in memory).
@@ -141,7 +142,7 @@ def load_npy(body: bytes, name: str = "body", *, max_bytes: int | None = None,
     ------
     flatserve.errors.InvalidInputError
         Anything malformed: magic, version, header, dtype, shape, data length (422).
-    flatserve.errors.LimitExceededError
+    flatserve.service.status.LimitExceededError
         The header declares more than the limits (413), judged before the data.
     """
     try:
@@ -212,7 +213,7 @@ def load_npz(body: bytes, *, max_bytes: int | None = None, max_rows: int | None 
     ------
     flatserve.errors.InvalidInputError
         A malformed archive or member (422), naming the member and what is wrong.
-    flatserve.errors.LimitExceededError
+    flatserve.service.status.LimitExceededError
         The headers declare more rows or bytes than the limits (413).
     """
 

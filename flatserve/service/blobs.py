@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from ..errors import StorageError
+from .status import StorageError
 
 
 #: blob layout of stored arrays: this magic, uint32 little-endian length of a JSON

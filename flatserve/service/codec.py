@@ -35,7 +35,8 @@ from fastapi import Response
 
 from .. import _npy
 from .._validate import as_array
-from ..errors import BatchTooLargeError, BodyTooLargeError, InvalidInputError
+from ..errors import InvalidInputError
+from .status import BatchTooLargeError, BodyTooLargeError
 from ..flats import FORMS, Flats, form_shapes, infer_form
 from .binary import load_npy, load_npz
 from .errors import ApiError

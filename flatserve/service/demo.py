@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from ..atlas import object_unit
-from ..errors import FieldExistsError, FieldNotFoundError
+from .status import FieldExistsError, FieldNotFoundError
 from ..flats import Flats
 from ..lightfield.sampling import ProgressBar, bunny_scene, orbit_samples
 from . import specs, uploads

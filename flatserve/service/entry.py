@@ -22,7 +22,7 @@ import numpy as np
 
 from ..atlas import Atlas, AtlasField
 from ..basis import Basis
-from ..errors import FieldNotFoundError, StorageError
+from .status import FieldNotFoundError, StorageError
 from ..field import AddResult, Field, PreparedBatch
 
 

@@ -1,7 +1,7 @@
 """Where exceptions become HTTP responses.
 
-Library code raises :mod:`flatserve.errors`, whose ``HTTP_STATUS`` table gives
-the status; the service raises :class:`ApiError` for HTTP-only conditions
+The library raises :mod:`flatserve.errors` and the service :mod:`.status`, whose
+``HTTP_STATUS`` table gives the status; the service raises :class:`ApiError` for HTTP-only conditions
 (content type, auth). Bad input is always a 4xx: a 422 names the offending
 argument in ``detail[].loc`` (FastAPI's ``HTTPValidationError`` shape, so it
 matches the documented schema).
@@ -16,7 +16,8 @@ from .responses import JSONBytes as ORJSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from .. import errors as fe
+from ..errors import FlatserveError
+from . import status as st
 log = logging.getLogger("flatserve.service")
 
 
@@ -59,11 +60,11 @@ BODY_RESPONSES: dict[int | str, dict] = {
 def status_of(exc: BaseException) -> int:
     """HTTP status of an exception: :class:`ApiError`'s own, else the library table.
 
-    See :data:`flatserve.errors.HTTP_STATUS`.
+    See :data:`flatserve.service.status.HTTP_STATUS`.
     """
     if isinstance(exc, ApiError):
         return exc.status
-    return fe.status_of(exc)
+    return st.status_of(exc)
 
 
 def _message(exc: BaseException) -> str:
@@ -76,7 +77,7 @@ def error_response(exc: BaseException) -> ORJSONResponse:
     status = status_of(exc)
     msg = _message(exc)
     headers = getattr(exc, "headers", None)
-    if (status == 503 and isinstance(exc, (fe.NotReadyError, fe.StorageUnavailableError))
+    if (status == 503 and isinstance(exc, (st.NotReadyError, st.StorageUnavailableError))
             or status in (429, 507)):
         headers = {**(headers or {}), "Retry-After": "1"}
     if status == 422:
@@ -104,12 +105,12 @@ def install(app: FastAPI) -> None:
         status = status_of(exc)
         if status >= 500:
             log_failure(request.method, request.url.path, exc, status)
-        elif isinstance(exc, ValueError) and not isinstance(exc, fe.FlatserveError):
+        elif isinstance(exc, ValueError) and not isinstance(exc, FlatserveError):
             log.warning("%s %s: unclassified ValueError mapped to 422: %s",
                         request.method, request.url.path, exc)
         return error_response(exc)
 
-    for cls in (ApiError, fe.FlatserveError, ValueError):
+    for cls in (ApiError, FlatserveError, ValueError):
         app.add_exception_handler(cls, _handle)
 
     async def _validation(request: Request, exc: RequestValidationError):
@@ -122,7 +123,7 @@ def install(app: FastAPI) -> None:
 
     async def _http(request: Request, exc: StarletteHTTPException):
         cause = exc.__cause__
-        if isinstance(cause, (ApiError, fe.FlatserveError)):  # raised while FastAPI read the body
+        if isinstance(cause, (ApiError, FlatserveError)):  # raised while FastAPI read the body
             return error_response(cause)
         if exc.status_code == 400:  # FastAPI could not decode the body: same shape as a 422
             return ORJSONResponse({"detail": [{"loc": ["body"], "msg": str(exc.detail),

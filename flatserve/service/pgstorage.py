@@ -36,7 +36,7 @@ commits (a pipe).
 **Faults.** Connections come from a small pool; one found broken (a restart of
 PostgreSQL, a network failure) is dropped with every idle one, and a statement
 that had not begun is retried once on a new connection. Otherwise the error is
-a :class:`~flatserve.errors.StorageUnavailableError` (503 with ``Retry-After``):
+a :class:`~flatserve.service.status.StorageUnavailableError` (503 with ``Retry-After``):
 a write whose commit was in flight may be stored or not; a retry with its
 idempotency key tells, so nothing acknowledged is lost and nothing is stored
 twice.
@@ -62,8 +62,7 @@ from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
 
-from ..errors import (FieldExistsError, FieldNotFoundError, StorageError, StorageFullError,
-                      StorageUnavailableError)
+from .status import FieldExistsError, FieldNotFoundError, StorageError, StorageFullError, StorageUnavailableError
 from .backend import (BatchRow, FieldRow, KeyTakenError, LogBackend, LogEntry, SnapshotGoneError,
                       SnapshotInfo)
 from .blobs import pack_arrays, unpack_arrays

@@ -19,7 +19,7 @@ from typing import Literal, Optional
 import anyio.to_thread
 from fastapi import Response
 
-from ..errors import NotReadyError
+from .status import NotReadyError
 from . import codec
 from .registry import Registry
 from .settings import Settings
@@ -54,7 +54,7 @@ def server_timing(t: dict) -> str:
 
 async def wait_position(registry: Registry, settings: Settings, position: int) -> None:
     """Return once this replica has applied log ``position`` (at once when it has:
-    no thread hop); :class:`~flatserve.errors.ReplicaBehindError` (503,
+    no thread hop); :class:`~flatserve.service.status.ReplicaBehindError` (503,
     ``Retry-After``) after ``read_wait_timeout`` seconds."""
     if registry.position >= position:
         return

@@ -25,9 +25,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 from ..atlas import AtlasField
 from ..basis import Basis
-from ..errors import (FieldExistsError, FieldNotFoundError, InvalidInputError, NotReadyError,
-                      ReplicaBehindError, StorageError, StorageUnavailableError,
-                      TooManyFieldsError)
+from ..errors import InvalidInputError
+from .status import FieldExistsError, FieldNotFoundError, NotReadyError, ReplicaBehindError, StorageError, StorageUnavailableError, TooManyFieldsError
 from ..field import AddResult, Field, PreparedBatch, QueryResult
 from ..flats import Flats
 from .backend import SNAPSHOT_LEASE, FieldRow, LogBackend, LogEntry, SnapshotGoneError

@@ -27,7 +27,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from ..errors import StorageError
+from .status import StorageError
 from ..field import AddResult, PreparedBatch
 from .backend import LogEntry
 

@@ -14,7 +14,7 @@ import anyio.to_thread
 from fastapi import APIRouter, Header, Query, Request, Response
 
 from ..atlas import Atlas
-from ..errors import StorageError
+from .status import StorageError
 from . import codec, specs, uploads
 from .codec import JSONBytes
 from .deps import (BodyDep, FieldNamePath, ReadAccess, RegistryDep, SettingsDep, WriteAccess,
@@ -273,7 +273,7 @@ def math_project(req: json_body(ProjectRequest), settings: SettingsDep) -> Respo
                             validate=False)
     w = as_array(req.weights, "weights", ("n", Q.shape[0]))
     if w.shape[0] > settings.max_batch_rows:
-        from ..errors import BatchTooLargeError
+        from .status import BatchTooLargeError
         raise BatchTooLargeError(f"{w.shape[0]} weight rows; the limit is {settings.max_batch_rows}")
     p = flats.affine_combination(w, Q, r, req.k)
     A, b = flats.to_parametric(p.Q, p.r, req.k)

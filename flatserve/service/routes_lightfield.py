@@ -26,7 +26,8 @@ from fastapi import APIRouter, Header, Response
 from fastapi.responses import FileResponse, HTMLResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..errors import BatchTooLargeError, InvalidInputError
+from ..errors import InvalidInputError
+from .status import BatchTooLargeError
 from . import codec
 from .deps import FieldNamePath, ReadAccess, RegistryDep, SettingsDep, json_body, json_body_doc
 from .errors import COMMON_RESPONSES, FIELD_RESPONSES

@@ -64,7 +64,7 @@ def serve(settings: Settings | None = None, listen_fd: int | None = None) -> Non
     host = settings.bind_host()
     if host != settings.host and listen_fd is None:
         log.warning("no API key set: binding to %s instead of %s", host, settings.host)
-    from ..errors import StorageError
+    from .status import StorageError
     from .backend import open_backend
 
     if settings.processes > 1 and listen_fd is None:

@@ -10,7 +10,8 @@ import numpy as np
 from .._validate import as_array
 from ..atlas import Atlas, AtlasField
 from ..basis import Basis
-from ..errors import BatchTooLargeError, InvalidInputError
+from ..errors import InvalidInputError
+from .status import BatchTooLargeError
 from ..flats import FORMS, Flats, form_shapes, infer_form
 from .entry import FieldSpec
 from .schemas import (ATLAS_SPECS, CenterFlat, CentersAtlas, CoveringAtlas, FlatsBasis,

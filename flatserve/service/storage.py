@@ -22,7 +22,7 @@ announce them).
 Several processes may use one database: the replicas of one ``flatserve serve
 --processes N``, which share the data directory's lock (an inherited open file,
 ``lock_fd``). Any other server finds the lock taken and refuses to start
-(:class:`~flatserve.errors.DataDirInUseError`).
+(:class:`~flatserve.service.status.DataDirInUseError`).
 
 Schema versions: 2 (fields, batches, batch_results) is migrated on open to 3
 (adds the log, backfilled field by field in creation and batch order, the
@@ -47,8 +47,7 @@ import numpy as np
 from .backend import (BatchRow, FieldRow, KeyTakenError, LogBackend, LogEntry, SnapshotGoneError,
                       SnapshotInfo)
 from .blobs import pack_arrays, unpack_arrays
-from ..errors import (DataDirInUseError, FieldExistsError, FieldNotFoundError, StorageError,
-                      StorageFullError)
+from .status import DataDirInUseError, FieldExistsError, FieldNotFoundError, StorageError, StorageFullError
 
 log = logging.getLogger("flatserve.service.storage")
 
@@ -158,7 +157,7 @@ def _lock_data_dir(data_dir: Path, lock_fd: int | None = None):
 def lock_data_dir(data_dir: Path | str) -> int:
     """Take the data directory's lock for a replica group; the descriptor to pass
     to its processes (``lock_fd``; inheritable). Raises
-    :class:`~flatserve.errors.DataDirInUseError` as a server would."""
+    :class:`~flatserve.service.status.DataDirInUseError` as a server would."""
     data_dir = Path(data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
     fh = _lock_data_dir(data_dir)

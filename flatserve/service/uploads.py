@@ -30,8 +30,7 @@ import time
 
 import numpy as np
 
-from ..errors import (BacklogFullError, CostLimitError, FieldNotFoundError,
-                      IdempotencyConflictError, NotReadyError, StorageError)
+from .status import BacklogFullError, CostLimitError, FieldNotFoundError, IdempotencyConflictError, NotReadyError, StorageError
 from ..flats import Flats
 from .backend import BatchRow, KeyTakenError
 from .entry import FieldEntry, UploadResult

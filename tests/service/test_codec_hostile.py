@@ -1,6 +1,6 @@
 """Hostile ``.npy`` / ``.npz`` bodies at the codec level: every one is refused with
 :class:`~flatserve.errors.InvalidInputError` (422) or
-:class:`~flatserve.errors.LimitExceededError` (413) naming what is wrong, before
+:class:`~flatserve.service.status.LimitExceededError` (413) naming what is wrong, before
 any large allocation; valid bodies read as NumPy reads them."""
 from __future__ import annotations
 
@@ -16,9 +16,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from flatserve import _npy
-from flatserve.errors import InvalidInputError, LimitExceededError
+from flatserve.errors import InvalidInputError
+from flatserve.service.status import LimitExceededError
 from flatserve.service import binary
-from flatserve.errors import BatchTooLargeError, BodyTooLargeError
+from flatserve.service.status import BatchTooLargeError, BodyTooLargeError
 
 from .hostile import (BZIP2, DEFLATED, STORED, Member, descr_header, npy, npy_header, npz,
                       raw_zip, zeros_bomb)

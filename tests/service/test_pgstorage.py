@@ -12,7 +12,7 @@ import numpy as np
 import psycopg
 import pytest
 
-from flatserve import errors as fe
+from flatserve.service import status as fe
 from flatserve.service.backend import KeyTakenError, SnapshotGoneError, open_backend
 from flatserve.service.blobs import pack_arrays, unpack_arrays
 from flatserve.service.pgstorage import CHUNK_BYTES, PostgresBackend, redact

@@ -9,8 +9,8 @@ from fastapi.testclient import TestClient
 
 from flatserve import flats
 from flatserve.client import Client
-from flatserve.errors import FieldExistsError as ConflictError
-from flatserve.errors import FieldNotFoundError as NotFoundError
+from flatserve.service.status import FieldExistsError as ConflictError
+from flatserve.service.status import FieldNotFoundError as NotFoundError
 from flatserve.errors import InvalidInputError as InvalidError
 from flatserve.service import specs
 

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from flatserve.atlas import ICOSAHEDRON_AXES, Atlas, AtlasField
-from flatserve.errors import InvalidInputError, LimitExceededError
+from flatserve.errors import InvalidInputError
+from flatserve.service.status import LimitExceededError
 from flatserve.flats import Flats
 
 from .conftest import ONE_CHART, started

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from flatserve.errors import DataDirInUseError
+from flatserve.service.status import DataDirInUseError
 from flatserve.service.storage import Storage
 
 from .conftest import paper_rays, started

@@ -138,7 +138,7 @@ def test_fields_restore_independently(make_app, rng, monkeypatch):
 
     with TestClient(make_app()) as tc:
         c = Client(http=tc)
-        from flatserve.errors import NotReadyError
+        from flatserve.service.status import NotReadyError
 
         for _ in range(400):  # the quick field answers while the slow one loads
             try:

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from flatserve.client import Client
-from flatserve.errors import FieldNotFoundError, NotReadyError
+from flatserve.service.status import FieldNotFoundError, NotReadyError
 from flatserve.field import Field
 from flatserve.service import specs
 from flatserve.service.blobs import content_hash, pack_arrays

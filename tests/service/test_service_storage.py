@@ -353,7 +353,7 @@ def test_sqlite_lease_renewal_and_a_snapshot_removed_before_it_is_pointed_at(tmp
     clean-up) is refused: the field keeps no dangling snapshot."""
     import time
 
-    from flatserve.errors import StorageError
+    from flatserve.service.status import StorageError
     from flatserve.service.storage import SQLiteBackend, lock_data_dir
 
     fd = lock_data_dir(tmp_path / "data")

@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from flatserve import flats
 from flatserve.client import Client
-from flatserve.errors import NotReadyError
+from flatserve.service.status import NotReadyError
 from flatserve.field import Field
 from flatserve.service import registry as registry_mod
 from flatserve.service import specs

@@ -25,7 +25,7 @@ CONSTANT_MARGIN_DB = 2.0
 def client(tmp_path_factory):
     settings = Settings(data_dir=tmp_path_factory.mktemp("lf") / "data", snapshot_every=0, max_batch_rows=200_000)
     with TestClient(create_app(settings)) as tc:
-        reg = tc.app.state.registry
+        reg = tc.app.state.rooms
         e = ensure_demo_field(reg, samples=DEMO_SAMPLES, batch=2500, progress=False)
         assert e.field.nsamples == DEMO_SAMPLES  # an oriented covering atlas takes every ray
         yield tc
@@ -38,8 +38,8 @@ def png_array(content: bytes) -> np.ndarray:
 
 
 def test_demo_field_is_created_once(client):
-    reg = client.app.state.registry
-    e = reg.get("bunny")
+    reg = client.app.state.rooms
+    e = reg.catalogue.get("bunny")
     n_before = e.field.nsamples
     batches = reg.storage.batch_stats(e.id)[0]
     assert ensure_demo_field(reg, samples=DEMO_SAMPLES, batch=2500, progress=False) is e
@@ -98,9 +98,9 @@ def test_an_older_one_chart_demo_field_is_left_alone(tmp_path):
         r = tc.post("/v1/fields", json={"name": "bunny", "k": 1, "d": 3,
                                          "basis": {"kind": "tangent_simplex"}})
         assert r.status_code == 201, r.text
-        e = tc.app.state.registry.get("bunny")
-        assert ensure_demo_field(tc.app.state.registry, samples=100, progress=False) is e
-        assert e.field.nsamples == 0 and tc.app.state.registry.storage.batch_stats(e.id)[0] == 0
+        e = tc.app.state.rooms.catalogue.get("bunny")
+        assert ensure_demo_field(tc.app.state.rooms, samples=100, progress=False) is e
+        assert e.field.nsamples == 0 and tc.app.state.rooms.storage.batch_stats(e.id)[0] == 0
 
 
 def test_render_npy_and_orbit(client):
@@ -157,10 +157,10 @@ def test_start_demo_field_in_the_background(client):
     from flatserve.service.demo import start_demo_field
 
     lines = []
-    th = start_demo_field(client.app.state.registry, "127.0.0.1", 8000, name="bunny2", samples=400,
+    th = start_demo_field(client.app.state.rooms, "127.0.0.1", 8000, name="bunny2", samples=400,
                           announce=lines.append)
     th.join(timeout=120)
     assert not th.is_alive()
-    assert client.app.state.registry.get("bunny2").field.nsamples > 300
+    assert client.app.state.rooms.catalogue.get("bunny2").field.nsamples > 300
     assert lines and all("http://127.0.0.1:8000/viewer/bunny2" in s for s in lines)
     assert "ready" in lines[-1]

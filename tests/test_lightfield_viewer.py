@@ -97,7 +97,7 @@ def server(tmp_path_factory):
         if time.monotonic() - t0 > WAIT_S or not th.is_alive():
             raise RuntimeError("uvicorn did not start")
         time.sleep(0.05)
-    ensure_demo_field(app.state.registry, samples=DEMO_SAMPLES, batch=5000, progress=False)
+    ensure_demo_field(app.state.rooms, samples=DEMO_SAMPLES, batch=5000, progress=False)
     yield f"http://127.0.0.1:{port}"
     srv.should_exit = True
     th.join(timeout=30)

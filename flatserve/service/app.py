@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import logging
-import threading
 from contextlib import asynccontextmanager
 
 import anyio.to_thread
@@ -13,10 +12,9 @@ from .status import BodyTooLargeError
 from . import errors
 from .fastpath import FastQueryMiddleware
 from .metrics import Metrics, MetricsMiddleware
-from .registry import Registry
+from .rooms import Rooms
 from .routes import api, health
 from .settings import Settings
-from .backend import open_backend
 
 log = logging.getLogger("flatserve.service")
 
@@ -138,44 +136,39 @@ def _openapi(app: FastAPI):
 
 def _start(app: FastAPI, settings: Settings) -> None:
     anyio.to_thread.current_default_thread_limiter().total_tokens = settings.workers
-    storage = open_backend(settings)
-    registry = Registry(settings, storage, app.state.metrics)
-    app.state.registry = registry
+    rooms = Rooms.open(settings, app.state.metrics)
+    app.state.rooms = rooms
     if not settings.auth_enabled:
         log.warning("no API key set: no authentication; listen on loopback only "
                     "(set FLATSERVE_API_KEY to serve other hosts)")
-    loader = threading.Thread(target=registry.load_stored, name="flatserve-restore",
-                              daemon=True)
-    app.state.loader = loader
-    loader.start()
+    rooms.start()
     if settings.demo:
         from .demo import start_demo_field
 
-        start_demo_field(registry, settings.bind_host(), settings.port)
+        start_demo_field(rooms, settings.bind_host(), settings.port)
 
 
 def _stop(app: FastAPI) -> None:
-    registry = app.state.registry
-    registry.close()
-    app.state.loader.join(timeout=30)
-    registry.storage.close()
-    del app.state.registry
+    app.state.rooms.close()
+    del app.state.rooms
 
 
 class _EntriesOf:
+    """What the metrics read at scrape time: the fields, and the log's lag."""
+
     def __init__(self, app):
         self.app = app
 
     def snapshot_entries(self):
-        reg = getattr(self.app.state, "registry", None)
-        return reg.snapshot_entries() if reg is not None else []
+        rooms = getattr(self.app.state, "rooms", None)
+        return rooms.catalogue.entries() if rooms is not None else []
 
     def lag(self) -> dict | None:
         """This replica's log position, the head and the lag (None before it follows)."""
-        reg = getattr(self.app.state, "registry", None)
-        if reg is None or not reg.follower.started.is_set():
+        rooms = getattr(self.app.state, "rooms", None)
+        if rooms is None or not rooms.follower.started.is_set():
             return None
         try:
-            return reg.follower.lag()
+            return rooms.follower.lag()
         except Exception:  # the database is unreachable: no figures this scrape
             return None

@@ -40,7 +40,8 @@ from .status import BatchTooLargeError, BodyTooLargeError
 from ..flats import FORMS, Flats, form_shapes, infer_form
 from .binary import load_npy, load_npz
 from .errors import ApiError
-from .responses import JSONBytes
+from .responses import JSONBytes, model_body
+from .schemas import QueryResponse
 
 NPY = "application/x-npy"
 NPZ = "application/x-npz"
@@ -245,9 +246,6 @@ def query_response(accept: str | None, values, inside, status, ids=None, weights
         if weights is not None:
             arrs["weights"] = weights
         return Response(npz_bytes(arrs), media_type=NPZ)
-    out = {"values": values, "inside": inside, "status": status}
-    if ids is not None:
-        out["ids"] = ids
-    if weights is not None:
-        out["weights"] = weights
-    return JSONBytes(out)
+    return model_body(QueryResponse, values=values, inside=inside, status=status,
+                      **({} if ids is None else {"ids": ids}),
+                      **({} if weights is None else {"weights": weights}))

@@ -1,13 +1,13 @@
 """The server's demo field: a 360 degree light field of the bunny, built on first start.
 
 :func:`ensure_demo_field` is called by the service at start-up (``make run``):
-if the registry has no field called ``bunny`` it creates an oriented covering
+if the service has no field called ``bunny`` it creates an oriented covering
 atlas field (``{"oriented": true, "basis": {"kind": "atlas", "atlas":
 "covering"}}``: every ray direction lies well inside one of its charts),
 samples the bunny with rays from eyes all around it
 (:func:`flatserve.lightfield.sampling.orbit_samples`, as ``flatserve
 lightfield orbit`` does) and uploads the samples in batches through the
-registry (so they are stored durably and restored on the next start), showing
+service (so they are stored durably and restored on the next start), showing
 a progress bar. Batches carry
 idempotency keys, so a start interrupted half-way continues where it stopped.
 The viewer can then orbit the whole way round.
@@ -23,7 +23,7 @@ from ..atlas import object_unit
 from .status import FieldExistsError, FieldNotFoundError
 from ..flats import Flats
 from ..lightfield.sampling import ProgressBar, bunny_scene, orbit_samples
-from . import specs, uploads
+from . import specs
 from .schemas import FieldCreate
 
 __all__ = ["DEMO_FIELD", "DEMO_SAMPLES", "DEMO_BATCH", "DEMO_REQUEST", "ensure_demo_field",
@@ -42,7 +42,7 @@ DEMO_BATCH = 50_000
 #: the unit for the bunny's radius 0.5 (it fills the unit box): ``object_unit``, 1/3.
 DEMO_REQUEST = {"k": 1, "d": 3, "channels": 1, "oriented": True, "unit": object_unit(0.5),
                 "basis": {"kind": "atlas", "atlas": "covering"}}
-#: How long to wait for the registry to finish restoring stored fields.
+#: How long to wait for the service to finish restoring stored fields.
 READY_TIMEOUT_S = 3600.0
 
 
@@ -55,15 +55,15 @@ def viewer_url(host: str, port: int, name: str = DEMO_FIELD) -> str:
     return f"http://{host}:{port}/viewer/{name}"
 
 
-def ensure_demo_field(registry, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES,
+def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES,
                       seed: int = 0, *, progress=True, batch: int = DEMO_BATCH):
-    """Create the 360 degree bunny light field in a running registry unless it is there.
+    """Create the 360 degree bunny light field in a running service unless it is there.
 
     Parameters
     ----------
-    registry : flatserve.service.registry.Registry
-        Must have started restoring (``load_stored`` in its thread); this
-        waits until it is ready.
+    rooms : flatserve.service.rooms.Rooms
+        Must have started restoring (:meth:`~.rooms.Rooms.start`); this waits
+        until it is ready.
     name : str
         Field name.
     samples : int
@@ -78,14 +78,14 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, samples: int = DEMO_SAMP
     Returns
     -------
     FieldEntry
-        The registry's entry of the field.
+        The catalogue's entry of the field.
     """
-    if not registry.ready.wait(READY_TIMEOUT_S):
+    if not rooms.catalogue.ready.wait(READY_TIMEOUT_S):
         raise TimeoutError("stored fields did not finish loading")
     n = int(samples)
     nbatches = -(-n // batch)
     try:
-        e = registry.get(name)
+        e = rooms.catalogue.get(name)
         if (e.spec.k, e.spec.d, e.spec.channels) != (1, 3, 1):
             log.warning("field %r exists but is not a grey light field; leaving it alone", name)
             return e
@@ -94,7 +94,7 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, samples: int = DEMO_SAMP
                         "by earlier versions; leaving it alone (delete it to build the 360 "
                         "degree demo)", name)
             return e
-        done = registry.storage.batch_stats(e.id)[0]
+        done = len(rooms.uploads.batches(e))
         if done >= nbatches:
             return e
         log.info("demo field %r: %d of %d batches stored; continuing", name, done, nbatches)
@@ -102,10 +102,10 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, samples: int = DEMO_SAMP
         req = FieldCreate(name=name, **DEMO_REQUEST)
         spec, basis = specs.field_spec(req)
         try:
-            e = registry.create(name, spec, basis)
+            e = rooms.fields.create(name, spec, basis)
         except FieldExistsError:  # another replica (serve --processes N) created it
-            registry.wait_all_committed()
-            e = registry.get(name)
+            rooms.follower.wait_all_committed(rooms.settings.apply_wait_timeout)
+            e = rooms.catalogue.get(name)
         log.info("demo field %r: building the 360 degree bunny light field from %d samples "
                  "(eyes all around it, %d charts)", name, n, len(spec.atlas["scales"]))
     t0 = time.perf_counter()
@@ -116,7 +116,7 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, samples: int = DEMO_SAMP
     for i, lo in enumerate(range(0, n, batch)):
         hi = min(n, lo + batch)
         flats = Flats.from_rays(samples.origins[lo:hi], samples.directions[lo:hi])
-        uploads.upload(registry, e, flats, np.ascontiguousarray(values[lo:hi]),
+        rooms.uploads.upload(e, flats, np.ascontiguousarray(values[lo:hi]),
                        idem_key=f"demo360-{name}-n{n}-s{seed}-b{batch}-{i}")
         if bar is not None:
             bar(hi, n)
@@ -125,7 +125,7 @@ def ensure_demo_field(registry, name: str = DEMO_FIELD, samples: int = DEMO_SAMP
 
 
 
-def start_demo_field(registry, host: str, port: int, *, name: str = DEMO_FIELD,
+def start_demo_field(rooms, host: str, port: int, *, name: str = DEMO_FIELD,
                      samples: int = DEMO_SAMPLES, announce=print):
     """Run :func:`ensure_demo_field` in a daemon thread and announce the viewer URL.
 
@@ -134,7 +134,7 @@ def start_demo_field(registry, host: str, port: int, *, name: str = DEMO_FIELD,
 
     Parameters
     ----------
-    registry : Registry
+    rooms : flatserve.service.rooms.Rooms
     host, port : the address the server listens on (for the URL)
     name, samples : see :func:`ensure_demo_field`
     announce : callable(str)
@@ -151,7 +151,7 @@ def start_demo_field(registry, host: str, port: int, *, name: str = DEMO_FIELD,
     def run():
         try:
             announce(f"flatserve: preparing the demo light field {name!r}; viewer: {url}")
-            ensure_demo_field(registry, name, samples)
+            ensure_demo_field(rooms, name, samples)
             announce(f"flatserve: demo field {name!r} ready - open {url}")
         except Exception:  # the server keeps serving; the log says why
             log.exception("demo field %r could not be built", name)

@@ -1,4 +1,9 @@
-"""FastAPI dependencies (``Annotated`` aliases): state, body, API keys.
+"""FastAPI dependencies (``Annotated`` aliases): each room, the field of a path,
+the body, API keys.
+
+A route names the rooms it uses (``FieldsDep``, ``UploadsDep``, ``QueriesDep``,
+``SnapshotsDep``, ``FollowerDep``, ``CatalogueDep``); none reaches one room
+through another.
 
 All are ``async def``: they never block, and FastAPI would run a plain ``def``
 dependency in the thread pool (one thread hop per dependency per request).
@@ -15,8 +20,14 @@ from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBea
 
 from .codec import check_json_size
 from .errors import ApiError
-from .registry import Registry
+from .catalogue import FieldCatalogue
+from .entry import FieldEntry
+from .fields import FieldService
+from .query import QueryService
+from .replica import Follower
 from .settings import FIELD_NAME_PATTERN, Settings
+from .snapshots import SnapshotWriter
+from .uploads import UploadService
 
 _api_key_header = APIKeyHeader(name="api-key", auto_error=False,
                                description="API key (read-write or read-only).")
@@ -27,13 +38,52 @@ async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-async def get_registry(request: Request) -> Registry:
-    return request.app.state.registry
+async def get_catalogue(request: Request) -> FieldCatalogue:
+    return request.app.state.rooms.catalogue
+
+
+async def get_fields(request: Request) -> FieldService:
+    return request.app.state.rooms.fields
+
+
+async def get_uploads(request: Request) -> UploadService:
+    return request.app.state.rooms.uploads
+
+
+async def get_queries(request: Request) -> QueryService:
+    return request.app.state.rooms.queries
+
+
+async def get_snapshots(request: Request) -> SnapshotWriter:
+    return request.app.state.rooms.snapshots
+
+
+async def get_follower(request: Request) -> Follower:
+    return request.app.state.rooms.follower
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-RegistryDep = Annotated[Registry, Depends(get_registry)]
+CatalogueDep = Annotated[FieldCatalogue, Depends(get_catalogue)]
+FieldsDep = Annotated[FieldService, Depends(get_fields)]
+UploadsDep = Annotated[UploadService, Depends(get_uploads)]
+QueriesDep = Annotated[QueryService, Depends(get_queries)]
+SnapshotsDep = Annotated[SnapshotWriter, Depends(get_snapshots)]
+FollowerDep = Annotated[Follower, Depends(get_follower)]
 FieldNamePath = Annotated[str, Path(pattern=FIELD_NAME_PATTERN, description="Field name.")]
+
+
+async def get_ready_field(name: FieldNamePath, catalogue: CatalogueDep) -> FieldEntry:
+    """The field of the path, ready (404, or 503 while it loads or if it failed)."""
+    return catalogue.get(name)
+
+
+async def get_any_field(name: FieldNamePath, catalogue: CatalogueDep) -> FieldEntry:
+    """The field of the path in whatever state (404 if there is none)."""
+    return catalogue.get(name, need_ready=False)
+
+
+ReadyField = Annotated[FieldEntry, Depends(get_ready_field)]
+AnyField = Annotated[FieldEntry, Depends(get_any_field)]
 
 
 async def read_body(receive) -> bytes:

@@ -18,12 +18,11 @@ import time
 from dataclasses import asdict, dataclass, field as dc_field
 from typing import Optional
 
-import numpy as np
-
-from ..atlas import Atlas, AtlasField
+from ..atlas import Atlas
 from ..basis import Basis
+from ..contract import SampledField, describe_definition, load_field, new_field
+from .catalogue import FieldState
 from .status import FieldNotFoundError, StorageError
-from ..field import AddResult, Field, PreparedBatch
 
 
 @dataclass(frozen=True)
@@ -59,63 +58,36 @@ class FieldSpec:
         return asdict(self)
 
     @property
-    def is_atlas(self) -> bool:
-        return self.atlas is not None
-
-    @property
     def oriented(self) -> bool:
         """Rays keep their direction (atlas fields of lines only; kept in the atlas)."""
         return bool(self.atlas is not None and self.atlas["oriented"])
 
-    def new_field(self, basis: Basis) -> "Field | AtlasField":
-        """An empty field of this spec: a :class:`flatserve.Field` over ``basis``, or
-        for an atlas spec an :class:`flatserve.atlas.AtlasField` (``basis`` is then
-        its chart 0's). Both offer what the service uses: ``prepare``,
-        ``insert_prepared``, ``add``, ``query``, ``save`` / ``load``, ``nsamples``,
-        ``nsimplex``, ``nrejected``, ``ndim``."""
-        kw = {} if self.roundtrip_tol is None else {"roundtrip_tol": self.roundtrip_tol}
-        if self.atlas is not None:
-            return AtlasField(Atlas.from_dict(self.atlas), channels=self.channels, **kw)
-        return Field(basis, channels=self.channels, **kw)
+    def new_field(self, basis: Basis) -> SampledField:
+        """An empty field of this spec (:func:`flatserve.contract.new_field`: one chart
+        over ``basis``, or the spec's atlas, ``basis`` then being its chart 0's)."""
+        return new_field(self.channels, basis=None if self.atlas is not None else basis,
+                         atlas=None if self.atlas is None else Atlas.from_dict(self.atlas),
+                         roundtrip_tol=self.roundtrip_tol)
 
-    def load_field(self, path) -> "Field | AtlasField":
-        """The field of a snapshot file written by its ``save``."""
-        return (AtlasField if self.atlas is not None else Field).load(path)
+    @staticmethod
+    def load_field(path) -> SampledField:
+        """The field of a snapshot file written by its ``save`` (either kind)."""
+        return load_field(path)
 
-
-@dataclass(frozen=True)
-class UploadResult:
-    """The response to an upload (stored with its batch for idempotent retries)."""
-
-    batch: int
-    accepted: int
-    rejected: list
-    reasons: list
-    duplicates: Optional[int]
-    nsamples: int
-    indexed: bool
-    pending_samples: int
-    replayed: bool = False
-    #: the batch's log position (read-your-writes: pass it back as ``min_position``)
-    position: int = 0
-
-    @classmethod
-    def of(cls, seq: int, res: "AddResult | PreparedBatch", *, nsamples: int, indexed: bool,
-           pending: int, position: int) -> "UploadResult":
-        """From an :class:`AddResult` (indexed: duplicates known) or a
-        :class:`PreparedBatch` (not yet indexed: duplicates null)."""
-        return cls(seq, int(res.accepted), np.asarray(res.rejected, np.int64).tolist(),
-                   [str(x) for x in res.reasons],
-                   int(res.duplicates) if isinstance(res, AddResult) else None,
-                   int(nsamples), indexed, int(pending), False, int(position))
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+    def describe_unloaded(self) -> dict:
+        """:meth:`~flatserve.contract.SampledField.describe` of a field of this spec
+        not loaded yet: its definition, sizes None."""
+        return describe_definition(self.atlas)
 
 
 @dataclass(eq=False)
 class FieldEntry:
-    """One field of the server (state ``loading`` until restored, then ``ready``)."""
+    """One field of the server (:class:`~.catalogue.FieldState` ``LOADING`` until
+    restored, then ``READY``; ``FAILED`` with ``error`` saying why).
+
+    Its state changes through :meth:`mark_ready`, :meth:`mark_loading` and
+    :meth:`mark_failed` only (the log applier's), its pending batches through
+    :meth:`add_pending` / :meth:`drop_pending`."""
 
     id: int
     name: str
@@ -124,8 +96,8 @@ class FieldEntry:
     created: float = dc_field(default_factory=time.time)
     snapshot_file: str | None = None
     snapshot_seq: int = 0
-    field: Field | AtlasField | None = None
-    state: str = "loading"
+    field: SampledField | None = None
+    state: FieldState = FieldState.LOADING
     error: str | None = None
     #: log position of the field's ``create`` entry
     position: int = 0
@@ -147,6 +119,33 @@ class FieldEntry:
     upload_lock: threading.Lock = dc_field(default_factory=threading.Lock)
     index_lock: threading.Lock = dc_field(default_factory=threading.Lock)
 
+    # -- state ----------------------------------------------------------------------------
+    def mark_ready(self) -> None:
+        self.state, self.error = FieldState.READY, None
+
+    def mark_loading(self, why: str) -> None:
+        self.state, self.error = FieldState.LOADING, why
+
+    def mark_failed(self, why: str) -> None:
+        self.state, self.error = FieldState.FAILED, why
+
+    # -- batches committed, not yet applied here -----------------------------------------
+    def add_pending(self, position: int, samples: int, *, keep: bool = False) -> None:
+        """Count the batch at log ``position`` as pending (``keep``: unless counted)."""
+        with self.pending_lock:
+            if keep:
+                self.pending.setdefault(position, samples)
+            else:
+                self.pending[position] = samples
+
+    def drop_pending(self, position: int | None = None) -> None:
+        """The batch at ``position`` is applied (or not stored); None: all of them."""
+        with self.pending_lock:
+            if position is None:
+                self.pending.clear()
+            else:
+                self.pending.pop(position, None)
+
     def pending_counts(self) -> tuple[int, int]:
         """``(pending batches, their samples)``."""
         with self.pending_lock:
@@ -156,5 +155,5 @@ class FieldEntry:
         """Raise unless uploads may change this field now."""
         if self.deleted:
             raise FieldNotFoundError(f"no field named {self.name!r}")
-        if self.state != "ready":
+        if self.state is not FieldState.READY:
             raise StorageError(f"field {self.name!r} is not ready ({self.state})")

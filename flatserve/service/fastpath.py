@@ -1,9 +1,10 @@
 """A lean ASGI path for ``POST /v1/fields/{name}/query`` (the hot endpoint).
 
 It answers with the endpoint's one implementation (:func:`.query.answer`) but
-without FastAPI's per-request machinery (dependency solving, parameter models,
-a thread-pool hop per dependency and handler), which costs more than a small
-query itself. Anything unusual (bad or repeated query parameters, other
+without FastAPI's per-request machinery (dependency solving, a thread-pool hop
+per dependency and handler), which costs more than a small query itself. Its
+query string is validated by the route's own model (:class:`.query.QueryParams`);
+anything unusual (parameters the model refuses, repeated parameters, other
 methods) is passed on untouched to FastAPI, so statuses and error bodies stay
 exactly those of the route. Keys are checked by the same function as the
 routes' (:func:`.deps.authorize`).
@@ -14,44 +15,33 @@ import logging
 import re
 from urllib.parse import parse_qsl
 
+from pydantic import ValidationError
+
 from . import errors
 from .deps import authorize, presented_key, read_body
-from .query import ORDERS, OUTSIDE, QueryParams, answer
+from .query import QueryParams, answer
 from .settings import FIELD_NAME_PATTERN
-from ..flats import FORMS
 
 log = logging.getLogger("flatserve.service")
 
 QUERY_ROUTE = "/v1/fields/{name}/query"
 _PATH = re.compile(r"^/v1/fields/(" + FIELD_NAME_PATTERN.strip("^$") + r")/query$")
-_BOOL = {"true": True, "1": True, "yes": True, "on": True,
-         "false": False, "0": False, "no": False, "off": False}
-_INTS = ("min_position",)
-_CHOICES = {"form": tuple(FORMS), "outside": OUTSIDE, "order": ORDERS}
+_NO_PARAMS = QueryParams()
 
 
 def parse_params(qs: bytes) -> QueryParams | None:
     """The route's query parameters, or None to let FastAPI handle (and judge) them."""
-    out: dict = {}
     if not qs:
-        return QueryParams()
+        return _NO_PARAMS
+    out: dict = {}
     for k, v in parse_qsl(qs.decode("latin-1"), keep_blank_values=True):
-        if k in out or k not in QueryParams.__dataclass_fields__:
+        if k in out or k not in QueryParams.model_fields:
             return None
-        if k in _CHOICES:
-            if v not in _CHOICES[k]:
-                return None
-            out[k] = v
-        elif k in _INTS:
-            if not (v.isascii() and v.isdigit()) or len(v) > 18:
-                return None
-            out[k] = int(v)
-        else:
-            b = _BOOL.get(v.lower())
-            if b is None:
-                return None
-            out[k] = b
-    return QueryParams(**out)
+        out[k] = v
+    try:
+        return QueryParams.model_validate(out)
+    except ValidationError:
+        return None
 
 
 class FastQueryMiddleware:
@@ -78,8 +68,8 @@ class FastQueryMiddleware:
             return await self.app(scope, receive, send)
         params = parse_params(scope.get("query_string", b""))
         state = self.fastapi_app.state
-        registry = getattr(state, "registry", None)
-        if params is None or registry is None:
+        rooms = getattr(state, "rooms", None)
+        if params is None or rooms is None:
             return await self.app(scope, receive, send)
         headers = scope["headers"]
         scope["route"] = self._route_obj()  # the metrics label: the route template
@@ -88,7 +78,7 @@ class FastQueryMiddleware:
             body = await read_body(receive)
             ctype = _header(headers, b"content-type")
             accept = _header(headers, b"accept")
-            resp = await answer(registry, state.settings, m.group(1), params, body, ctype, accept)
+            resp = await answer(rooms.queries, m.group(1), params, body, ctype, accept)
         except Exception as exc:
             status = errors.status_of(exc)
             if status >= 500:

@@ -1,9 +1,13 @@
-"""The query endpoint's one implementation: ``POST /v1/fields/{name}/query``.
+"""The query room: interpolation of a field at a batch of flats, and the one
+implementation of ``POST /v1/fields/{name}/query``.
 
-:func:`answer` decodes the body, interpolates and encodes the response. The
-FastAPI route (:func:`flatserve.service.routes.query_field`, the documented
-reference) and the lean ASGI path (:mod:`.fastpath`, which skips FastAPI's
-per-request machinery on the hot endpoint) both call it.
+:class:`QueryService` answers a query in the domain's terms (a
+:class:`~flatserve.field.QueryResult`); :func:`answer` is the endpoint: it
+decodes the body, asks the service and encodes the response. The FastAPI route
+(:func:`flatserve.service.routes.query_field`, the documented reference) and
+the lean ASGI path (:mod:`.fastpath`, which skips FastAPI's per-request
+machinery on the hot endpoint) both call it with a :class:`QueryParams`
+validated by the same model.
 
 Where the work runs: small bodies are decoded on the event loop, larger ones
 in the thread pool; queries of fewer than :data:`INLINE_ROWS` rows run inline
@@ -13,38 +17,119 @@ the loop), everything else in the thread pool (the C++ releases the GIL).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import Literal, Optional
+from typing import Optional
 
 import anyio.to_thread
 from fastapi import Response
+from pydantic import BaseModel, Field
 
-from .status import NotReadyError
+from ..errors import InvalidInputError
+from ..field import QueryResult
+from ..flats import Flats
+from ..options import Form, Order, Outside
 from . import codec
-from .registry import Registry
+from .catalogue import FieldCatalogue
+from .entry import FieldEntry
+from .replica import Follower
 from .settings import Settings
+from .status import FieldNotFoundError, NotReadyError
 
 #: queries with fewer rows run inline on the event loop (about 0.1-0.3 ms of CPU)
 INLINE_ROWS = 64
 #: bodies larger than this are decoded and validated in the thread pool
 INLINE_BODY_BYTES = 64 * 1024
-
-Form = Literal["rays", "parametric", "flats"]
-OUTSIDE = ("nan", "clamp")
-ORDERS = ("hilbert", "given")
+#: queries with fewer rows run on one native thread (the request is the unit of parallelism)
+SMALL_QUERY_ROWS = 2048
 
 
-@dataclass(frozen=True)
-class QueryParams:
-    """The query parameters of the endpoint (validated by FastAPI or :mod:`.fastpath`)."""
+class QueryParams(BaseModel):
+    """The query parameters of ``POST /v1/fields/{name}/query`` (the route's query
+    model, and what the lean path validates the query string with)."""
 
-    form: Optional[str] = None
-    outside: str = "nan"
-    order: str = "hilbert"
-    weights: bool = False
-    wait: bool = False
-    #: read-your-writes: answer once this replica applied this log position
-    min_position: Optional[int] = None
+    form: Optional[Form] = Field(
+        None, description="Flat form of the body. JSON/.npz: inferred from the array names. "
+                          "`.npy`: required unless the field holds lines (k = 1; default "
+                          "`rays`).")
+    outside: Outside = Outside.NAN
+    order: Order = Order.HILBERT
+    weights: bool = Field(False, description="Also return sample ids and weights.")
+    wait: bool = Field(False, description="First wait until every batch acknowledged so far, "
+                                          "by any replica (also with wait=false), is indexed "
+                                          "here.")
+    min_position: Optional[int] = Field(
+        None, ge=0,
+        description="Read-your-writes: answer only once this replica has applied the log "
+                    "position a write returned (`position` of an upload, or the "
+                    "`Flatserve-Position` header of any write), waiting up to "
+                    "`read_wait_timeout` seconds; then 503 with `Retry-After` (any replica "
+                    "answers it; one behind waits).")
+
+
+class QueryService:
+    """Interpolation of this replica's fields.
+
+    Parameters
+    ----------
+    settings : Settings
+        ``read_wait_timeout``, ``apply_wait_timeout``.
+    catalogue : FieldCatalogue
+    follower : Follower
+        For reads that wait for a log position.
+    metrics : Metrics, optional
+    """
+
+    def __init__(self, settings: Settings, catalogue: FieldCatalogue, follower: Follower,
+                 metrics=None) -> None:
+        self.settings = settings
+        self.catalogue = catalogue
+        self.follower = follower
+        self.metrics = metrics
+
+    def query(self, e: FieldEntry, flats: Flats, *, weights: bool = False, wait: bool = False,
+              **kw) -> QueryResult | None:
+        """Interpolate field ``e`` at ``flats`` (keywords of the field's ``query``;
+        ``blocking=False`` gives None instead of waiting for an insert; ``wait``
+        first waits until every acknowledged batch is indexed here).
+
+        Raises
+        ------
+        InvalidInputError
+            ``weights`` for a field whose answers blend several shards (422).
+        NotReadyError
+            ``wait`` and the batches are not indexed in ``apply_wait_timeout`` (503).
+        """
+        if len(flats) < SMALL_QUERY_ROWS:  # not worth starting native worker threads
+            kw.setdefault("threads", 1)
+        if e.deleted:
+            raise FieldNotFoundError(f"no field named {e.name!r}")
+        if weights and e.field.blends:
+            raise InvalidInputError(
+                f"weights: field {e.name!r} is an atlas field: its answers blend several "
+                "charts, whose sample ids and weights the service does not return; a field "
+                "created with basis {\"kind\": \"tangent_simplex\"} (one chart) returns them",
+                "weights")
+        timeout = self.settings.apply_wait_timeout
+        if wait and not self.follower.wait_all_committed(timeout):
+            raise NotReadyError(f"field {e.name!r}: the acknowledged batches are not indexed "
+                                f"here yet (waited at most {timeout:g} s, "
+                                "FLATSERVE_APPLY_WAIT_TIMEOUT, or the server is stopping); "
+                                "retry shortly")
+        res = e.field.query(flats, return_weights=weights, **kw)
+        if res is None:
+            return None
+        if self.metrics is not None:
+            self.metrics.queries.labels(e.name).inc()
+            self.metrics.query_rows.labels(e.name).inc(len(res.inside))
+        return res
+
+    async def wait_position(self, position: int | None) -> None:
+        """Return once this replica has applied log ``position`` (at once when it has:
+        no thread hop); :class:`~flatserve.service.status.ReplicaBehindError` (503,
+        ``Retry-After``) after ``read_wait_timeout`` seconds."""
+        if position is None or self.follower.applied >= position:
+            return
+        await anyio.to_thread.run_sync(self.follower.wait_position, position,
+                                       self.settings.read_wait_timeout)
 
 
 def server_timing(t: dict) -> str:
@@ -52,50 +137,31 @@ def server_timing(t: dict) -> str:
     return ", ".join(f"{k};dur={v * 1e3:.3f}" for k, v in t.items())
 
 
-async def wait_position(registry: Registry, settings: Settings, position: int) -> None:
-    """Return once this replica has applied log ``position`` (at once when it has:
-    no thread hop); :class:`~flatserve.service.status.ReplicaBehindError` (503,
-    ``Retry-After``) after ``read_wait_timeout`` seconds."""
-    if registry.position >= position:
-        return
-    await anyio.to_thread.run_sync(registry.wait_position, position,
-                                   settings.read_wait_timeout)
-
-
-async def answer(registry: Registry, settings: Settings, name: str, params: QueryParams,
-                 body: bytes, content_type: str | None, accept: str | None) -> Response:
+async def answer(queries: QueryService, name: str, params: QueryParams, body: bytes,
+                 content_type: str | None, accept: str | None) -> Response:
     """Interpolate field ``name`` at the flats of ``body``; the HTTP response."""
     t0 = time.perf_counter()
-    if params.min_position is not None:
-        await wait_position(registry, settings, params.min_position)
-    e = registry.get(name)
+    await queries.wait_position(params.min_position)
+    e = queries.catalogue.get(name)
+    settings = queries.settings
 
     def decode():
         return codec.decode(body, content_type, params.form, k=e.spec.k, d=e.spec.d,
-                            channels=None,
-                            max_rows=settings.max_batch_rows,
+                            channels=None, max_rows=settings.max_batch_rows,
                             max_json_bytes=settings.max_json_bytes)[0]
 
     if len(body) <= INLINE_BODY_BYTES:
         flats = decode()
     else:
         flats = await anyio.to_thread.run_sync(decode)
-    kw = {"outside": params.outside, "order": params.order, "return_weights": params.weights}
+    kw = {"outside": params.outside, "order": params.order, "weights": params.weights}
     t1 = time.perf_counter()
     res = None
     if len(flats) < INLINE_ROWS and not params.wait:  # inline, unless an insert holds the field
-        res = registry.query(e, flats, threads=1, blocking=False, **kw)
+        res = queries.query(e, flats, threads=1, blocking=False, **kw)
     if res is None:
-        def run():
-            if params.wait and not registry.wait_all_committed():
-                raise NotReadyError(f"field {name!r}: the acknowledged batches are not "
-                                    "indexed here yet (waited at most "
-                                    f"{registry.settings.apply_wait_timeout:g} s, "
-                                    "FLATSERVE_APPLY_WAIT_TIMEOUT, or the server is "
-                                    "stopping); retry shortly")
-            return registry.query(e, flats, **kw)
-
-        res = await anyio.to_thread.run_sync(run)
+        res = await anyio.to_thread.run_sync(
+            lambda: queries.query(e, flats, wait=params.wait, **kw))
     t2 = time.perf_counter()
     w = params.weights
     resp = codec.query_response(accept, res.values, res.inside, res.status,

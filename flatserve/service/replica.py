@@ -2,10 +2,11 @@
 
 Every server process is a replica (see :mod:`.backend`). After the restore
 (each field from its newest snapshot plus its batches up to the log position
-the restore read, :meth:`.registry.Registry.load_stored`), one thread per
-process, the :class:`Follower`, reads the log after that position and applies
-``create``, ``delete``, ``batch`` and ``snapshot`` entries one by one, in log
-order, whichever replica committed them. Its own uploads too: an upload
+the restore read, :meth:`.applier.LogApplier.restore_all`), one thread per
+process, the :class:`Follower`, reads the log after that position and has its
+:class:`~.applier.LogApplier` apply ``create``, ``delete``, ``batch`` and
+``snapshot`` entries one by one, in log order, whichever replica committed
+them. Its own uploads too: an upload
 commits its batch and hands the batch it already charted to the follower
 (:meth:`Follower.hand_over`, so it is not charted twice); a ``wait=true``
 upload then waits until the follower has applied its position. All replicas
@@ -14,7 +15,8 @@ apply the same entries through the same code (chart, then insert in slices of
 fields, duplicates included.
 
 ``applied`` is the position up to which every entry is applied; reads with a
-``min_position`` wait for it (:meth:`Follower.wait_applied`). The follower
+``min_position`` wait for it (:meth:`Follower.wait_position`), and a write's
+request for its own commit (:meth:`Follower.await_applied`). The follower
 wakes at once on this process's own commits, else within ``log_poll_interval``
 (:meth:`.backend.LogBackend.wait_for_change`).
 
@@ -27,9 +29,11 @@ import threading
 import time
 from dataclasses import dataclass
 
-from .status import StorageError
+from ..errors import InvalidInputError
 from ..field import AddResult, PreparedBatch
-from .backend import LogEntry
+from .applier import LogApplier, Stopped
+from .backend import LogBackend, LogEntry
+from .status import NotReadyError, ReplicaBehindError, StorageError
 
 log = logging.getLogger("flatserve.service")
 
@@ -50,22 +54,20 @@ class Handoff:
     want_result: bool
 
 
-class _Stopped(Exception):
-    """The follower was asked to stop in the middle of an entry."""
-
-
 class Follower:
     """The thread that applies the log to this replica's fields (see the module doc).
 
     Parameters
     ----------
-    registry : flatserve.service.registry.Registry
-        The fields; entries are applied through its ``apply_*`` methods.
+    backend : LogBackend
+        The shared log.
+    applier : LogApplier
+        Applies each entry (owned by the follower: it stops with it).
     """
 
-    def __init__(self, registry) -> None:
-        self.reg = registry
-        self.backend = registry.storage
+    def __init__(self, backend: LogBackend, applier: LogApplier) -> None:
+        self.applier = applier
+        self.backend = backend
         #: every entry up to this position is applied
         self.applied = 0
         self._cond = threading.Condition()
@@ -76,6 +78,17 @@ class Follower:
         self.started = threading.Event()
 
     # -- life cycle -------------------------------------------------------------------------
+    def restore_and_follow(self) -> None:
+        """Restore every stored field (:meth:`.applier.LogApplier.restore_all`), then
+        follow the log from the head the restore read; the catalogue is then ready."""
+        head = self.applier.restore_all()
+        if head is None or self._stop:
+            return
+        self.start(head)
+        self.applier.catalogue.ready.set()
+        log.info("ready: %d field(s) loaded; following the log from position %d",
+                 len(self.applier.catalogue.entries()), head)
+
     def start(self, position: int) -> None:
         """Follow the log from ``position`` (every entry up to it is applied)."""
         with self._cond:
@@ -104,6 +117,7 @@ class Follower:
         with self._cond:
             self._stop = True
             self._cond.notify_all()
+        self.applier.stop()
         self.backend.wake()
         return drained
 
@@ -146,6 +160,71 @@ class Follower:
                 self._cond.wait(left if left is not None else 1.0)
         return True
 
+    def wait_position(self, position: int, timeout: float | None) -> None:
+        """A read's ``min_position``: return once ``position`` is applied here.
+
+        Raises
+        ------
+        InvalidInputError
+            ``position`` is beyond the log's head: no write returned it (422).
+        ReplicaBehindError
+            Not applied within ``timeout`` seconds (or the replica is stopping).
+        """
+        if self.applied >= position:
+            return
+        head = self.backend.head()
+        if position > head:  # a write's position is committed, so never beyond the head
+            raise InvalidInputError(
+                f"min_position: {position} is beyond the log's last position {head}: no "
+                "write returned it (pass the position of an upload's response or of a "
+                "Flatserve-Position header)", "min_position")
+        if not self.wait_applied(position, timeout):
+            raise ReplicaBehindError(
+                f"this replica has applied the log up to position {self.applied}, "
+                f"not yet {position} (waited {timeout or 0:g} s, FLATSERVE_READ_WAIT_TIMEOUT); "
+                "retry shortly")
+
+    def await_applied(self, position: int, what: str, timeout: float) -> None:
+        """A write's request: wait until its own commit at ``position`` is applied
+        here, for up to ``timeout`` seconds (a database outage, a follower held
+        up) and not past a shutdown.
+
+        Raises
+        ------
+        NotReadyError
+            Not applied by then (503 with Retry-After): the write IS stored.
+        """
+        if not self.wait_applied(position, timeout):
+            raise NotReadyError(
+                f"{what} is stored (log position {position}) but not yet applied on this "
+                f"replica (it has applied up to position {self.applied}; waited at "
+                f"most {timeout:g} s, FLATSERVE_APPLY_WAIT_TIMEOUT, or the server is "
+                "stopping): retry shortly (an upload retried with the same Idempotency-Key "
+                "gets its response)")
+
+    def wait_all_committed(self, timeout: float) -> bool:
+        """Block until every entry committed so far (any replica's) is applied here;
+        False if the follower stops first or ``timeout`` seconds pass."""
+        return self.wait_applied(self.backend.head(), timeout)
+
+    @property
+    def backend_kind(self) -> str:
+        """Where the log is: ``sqlite`` or ``postgresql``."""
+        return self.backend.kind
+
+    def progress(self) -> dict:
+        """:meth:`lag`, or before the follower started ``{"position": None, "head", ...}``.
+
+        Raises
+        ------
+        StorageError
+            The database is unreachable.
+        """
+        if self.started.is_set():
+            return self.lag()
+        return {"position": None, "head": self.backend.head(), "lag_entries": None,
+                "lag_seconds": None}
+
     def lag(self) -> dict:
         """``{"position", "head", "lag_entries", "lag_seconds"}``: this replica's applied
         position, the log's head, and how far behind it is (seconds since the
@@ -169,25 +248,25 @@ class Follower:
                 if not entries:
                     self.backend.wait_for_change(IDLE_WAIT_S)
                     continue
-                self.reg.note_pending(entries)
+                self.applier.note_pending(entries)
                 for entry in entries:
                     if self._stop:
                         return
                     try:
                         self._apply(entry)
-                    except (_Stopped, StorageError):
+                    except (Stopped, StorageError):
                         raise
                     except Exception as exc:  # a bug, or an entry this code cannot apply:
                         # the field is marked failed (503 naming it), the others go on
                         log.exception("log entry %d (%s of field %d) cannot be applied",
                                       entry.position, entry.kind, entry.field_id)
-                        self.reg.fail_field(entry.field_id, f"log entry {entry.position} "
+                        self.applier.fail_field(entry.field_id, f"log entry {entry.position} "
                                                             f"could not be applied: {exc}")
                     with self._cond:
                         self.applied = entry.position
                         self._cond.notify_all()
                 failures = 0
-            except _Stopped:
+            except Stopped:
                 return
             except Exception as exc:  # the database is unreachable: retry, never skip
                 if self._stop:
@@ -198,7 +277,7 @@ class Follower:
                 time.sleep(min(1.0, 0.05 * failures))
 
     def _apply(self, entry: LogEntry) -> None:
-        reg = self.reg
+        ap = self.applier
         if entry.kind == "batch":
             with self._cond:
                 h = self._handoff.pop(entry.position, None)
@@ -206,21 +285,15 @@ class Follower:
                 h = None  # (a commit that failed left it; the entry is another batch)
             # (AddResult, None), (None, why) if the insert failed (the field was rebuilt),
             # (None, None) if not inserted; a storage error propagates: retried
-            res = reg.apply_batch(entry, h.prepared if h else None, self)
+            res = ap.apply_batch(entry, h.prepared if h else None)
             if h is not None and h.want_result:
                 with self._cond:
                     self._results[entry.position] = res
         elif entry.kind == "create":
-            reg.apply_create(entry)
+            ap.apply_create(entry)
         elif entry.kind == "delete":
-            reg.apply_delete(entry)
+            ap.apply_delete(entry)
         elif entry.kind == "snapshot":
-            reg.apply_snapshot(entry)
+            ap.apply_snapshot(entry)
         else:  # pragma: no cover - a newer server's entry
             log.warning("log entry %d: unknown kind %r skipped", entry.position, entry.kind)
-
-    def check_stop(self) -> None:
-        """Raise :class:`_Stopped` if asked to stop (between the steps of an entry)."""
-        if self._stop:
-            raise _Stopped()
-

@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from ..errors import InvalidInputError
 from .status import BatchTooLargeError
 from . import codec
-from .deps import FieldNamePath, ReadAccess, RegistryDep, SettingsDep, json_body, json_body_doc
+from .deps import FieldNamePath, ReadAccess, ReadyField, SettingsDep, json_body, json_body_doc
 from .errors import COMMON_RESPONSES, FIELD_RESPONSES
 from .query import server_timing
 
@@ -140,11 +140,9 @@ viewer = APIRouter(include_in_schema=False)
                      "description": "The frame (PNG, or .npy float32 (H, W, C))."}},
     response_class=Response, openapi_extra=json_body_doc(CameraSpec),
     summary="Render a camera's view of a light field (lines in R^3)")
-def render(name: FieldNamePath, camera: json_body(CameraSpec), registry: RegistryDep,
-           settings: SettingsDep,
+def render(e: ReadyField, camera: json_body(CameraSpec), settings: SettingsDep,
            accept: Annotated[Optional[str], Header()] = None) -> Response:
     t0 = time.perf_counter()
-    e = registry.get(name)
     cam = camera.camera()
     if cam.nrays > settings.max_batch_rows:
         raise BatchTooLargeError(f"{cam.nrays} rays in one frame; the limit is {settings.max_batch_rows}")

@@ -12,6 +12,8 @@ from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_val
 
 from ..coordinates import REASONS
 from ..flats import FORMS, basis_size
+from ..options import Form
+from .catalogue import FieldState
 from .settings import FIELD_NAME_PATTERN
 
 Vec = list[float]
@@ -292,7 +294,7 @@ class FieldSummary(BaseModel):
     k: int
     d: int
     channels: int
-    state: Literal["loading", "ready", "failed"]
+    state: FieldState
     nsamples: Optional[int] = None
     oriented: bool = Field(False, description="Rays keep their direction (uploads and "
                                               "queries must be rays).")
@@ -373,7 +375,7 @@ class SnapshotResult(BaseModel):
 class QueryBody(FlatsModel):
     """JSON query (small batches): one flat form."""
 
-    form: Optional[Literal["rays", "parametric", "flats"]] = None
+    form: Optional[Form] = None
 
 
 class UploadBody(QueryBody):

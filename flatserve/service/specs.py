@@ -136,7 +136,7 @@ def oriented_of(req) -> bool:
 
 def field_spec(req, *, max_atlas_samples: int | None = None) -> tuple[FieldSpec, Basis]:
     """What a create request (:class:`~.schemas.FieldCreate`) stores: the field's spec
-    and its (chart 0's) basis, for :meth:`~.registry.Registry.create`.
+    and its (chart 0's) basis, for :meth:`~.fields.FieldService.create`.
 
     Example: the demo's oriented covering atlas of grey rays is
     ``field_spec(FieldCreate(name="bunny", channels=1, oriented=True))``.

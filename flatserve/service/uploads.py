@@ -27,71 +27,23 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from .status import BacklogFullError, CostLimitError, FieldNotFoundError, IdempotencyConflictError, NotReadyError, StorageError
+from ..field import AddResult, PreparedBatch
 from ..flats import Flats
-from .backend import BatchRow, KeyTakenError
-from .entry import FieldEntry, UploadResult
-from .registry import Registry, stored_flats
+from .applier import stored_flats
+from .backend import BatchRow, KeyTakenError, LogBackend
 from .blobs import content_hash, pack_arrays
+from .entry import FieldEntry
+from .replica import Follower
+from .schemas import BatchInfo, UploadResult
+from .settings import Settings
+from .status import (BacklogFullError, CostLimitError, FieldNotFoundError,
+                     IdempotencyConflictError, NotReadyError, StorageError)
 
 log = logging.getLogger("flatserve.service")
-
-
-def upload(reg: Registry, e: FieldEntry, flats: Flats, values: np.ndarray,
-           idem_key: str | None, timings: dict | None = None, *, wait: bool = True) -> dict:
-    """Durably store one batch and have it applied (see the module doc); returns
-    the response. ``timings`` (if given) receives the seconds spent on hashing
-    (``hash``), coordinates (``prepare``), the commit (``store``) and, with
-    ``wait``, the wait for the insert (``insert``)."""
-    timings = {} if timings is None else timings
-    t0 = time.perf_counter()
-    stored = dict(flats.arrays, values=values)
-    chash = None
-    if idem_key is not None:
-        chash = content_hash(flats.form, stored)
-        timings["hash"] = time.perf_counter() - t0
-    with e.upload_lock:
-        e.check_writable()
-        prev = reg.storage.find_batch(e.id, idem_key) if idem_key is not None else None
-        if prev is None:
-            pending = e.pending_counts()[1]
-            _check_cost(reg, e, flats, pending)
-            if not wait and pending + len(flats) > reg.settings.max_pending_samples:
-                raise BacklogFullError(
-                    f"field {e.name!r}: {pending} acknowledged samples wait for their insert; "
-                    f"{len(flats)} more would pass the limit of "
-                    f"{reg.settings.max_pending_samples} (FLATSERVE_MAX_PENDING_SAMPLES): "
-                    "retry later, or upload with wait=true")
-            e.check_writable()
-            try:
-                seq, pos, out = _commit_and_chart(reg, e, flats, values, idem_key, chash,
-                                                  stored, timings, wait=wait)
-            except KeyTakenError as exc:  # stored meanwhile through another replica
-                prev = exc.existing
-    if prev is not None:
-        return _replay(reg, e, prev, chash, idem_key, wait)
-    if wait:
-        out = _await_insert(reg, e, seq, pos, timings)
-        _store_result(reg, e, seq, out)
-    if reg.metrics is not None:
-        reg.metrics.batches.labels(e.name).inc()
-        reg.metrics.samples_rejected.labels(e.name).inc(len(out["rejected"]))
-    return out
-
-
-def _replay(reg, e: FieldEntry, prev: BatchRow, chash: str, idem_key: str, wait: bool) -> dict:
-    """The response to a retry of a stored batch (``wait``: once applied here)."""
-    if prev.content_hash != chash:
-        raise IdempotencyConflictError(
-            f"Idempotency-Key {idem_key!r} was used for a different batch")
-    if wait:  # a retry with wait=true answers once its batch is visible
-        reg.await_applied(prev.position, f"batch {prev.seq} of {e.name!r}")
-    return dict(_stored_result(reg, e, prev.seq, prev.form, prev.result),
-                replayed=True, indexed=prev.seq <= e.indexed_seq, position=prev.position)
-
 
 #: Cells of a Delaunay triangulation per sample by dimension D (uniform points,
 #: measured with flatserve.Triangulation: 5,000 points for D <= 3, 200 for D = 8);
@@ -100,137 +52,224 @@ CELLS_PER_SAMPLE = {2: 2.0, 3: 6.6, 4: 28.0, 5: 129.0, 6: 512.0, 7: 1704.0, 8: 5
 COST_MIN_SAMPLES = 1000
 
 
-def _check_cost(reg, e: FieldEntry, flats: Flats, pending: int) -> None:
-    """Refuse (413) an upload expected to make the field's triangulations larger than
-    ``max_simplices`` cells in all: the field's own cells per stored sample once it
-    has some, else :data:`CELLS_PER_SAMPLE` (high-dimensional fields grow very fast:
-    200 samples in D = 8 make a million cells). An atlas field stores a sample once
-    in every chart whose domain holds it: the batch's rows are counted per chart
-    (``Atlas.held``), and the ``pending`` samples with the batch's duplication."""
-    f = e.field
-    D, n = f.ndim, len(flats)
-    if e.spec.is_atlas:
-        stored = f.nstored
-        copies = float(f.atlas.held(flats, f.atlas.reach).sum()) / n
-    else:
-        stored, copies = f.nsamples, 1.0
-    per = f.nsimplex / stored if stored >= COST_MIN_SAMPLES else CELLS_PER_SAMPLE.get(
-        D, CELLS_PER_SAMPLE[8] * 3.0 ** (D - 8))
-    total = stored + (pending + n) * copies
-    expected = total * per
-    limit = reg.settings.max_simplices
-    if expected > limit:
-        held = f" (x {copies:.2f} charts holding each)" if e.spec.is_atlas else ""
-        raise CostLimitError(
-            f"field {e.name!r}: about {expected:,.0f} cells expected after this upload "
-            f"({total:,.0f} stored samples: {stored} + {pending + n} new{held}; x {per:,.0f} "
-            f"cells per sample in dimension {D}); the limit is {limit:,} "
-            "(FLATSERVE_MAX_SIMPLICES)")
+def upload_result(seq: int, res: AddResult | PreparedBatch, *, nsamples: int, indexed: bool,
+                  pending: int, position: int) -> UploadResult:
+    """The response to an upload, from an :class:`AddResult` (indexed: duplicates
+    known) or a :class:`PreparedBatch` (not yet indexed: duplicates null)."""
+    return UploadResult(
+        batch=seq, accepted=int(res.accepted),
+        rejected=np.asarray(res.rejected, np.int64).tolist(),
+        reasons=[str(x) for x in res.reasons],
+        duplicates=int(res.duplicates) if isinstance(res, AddResult) else None,
+        nsamples=int(nsamples), indexed=indexed, pending_samples=int(pending),
+        replayed=False, position=int(position))
 
 
-def _commit_and_chart(reg, e, flats, values, idem_key, chash, stored, timings, *,
-                      wait: bool):
-    """Validate the batch, chart it while a storage thread packs (and hashes) it,
-    then commit it together with its first response and its log entry in one
-    transaction: every stored batch is listed with its accepted / rejected rows,
-    whenever the process dies. The charted batch is handed to the follower inside
-    the commit. Returns ``(seq, position, response)``; on failure nothing is
-    stored."""
-    t1 = time.perf_counter()
-    # bad input is refused here, before anything is stored; charting cannot fail
-    # on validated input (each row gets a status)
-    chart = e.field.prepare(flats, values, defer=True)
-    packing = reg.commit_pool.submit(
-        lambda: (content_hash(flats.form, stored) if chash is None else chash,
-                 pack_arrays(stored)))
-    prepared = chart()  # no lock: reads the basis only
-    timings["prepare"] = time.perf_counter() - t1
-    h, blob = packing.result()
-    pending = e.pending_counts()[1] + prepared.accepted
-    handed: list[int] = []
+class UploadService:
+    """Uploads of sample batches (see the module doc).
 
-    def response(seq: int, position: int) -> dict:
-        return UploadResult.of(seq, prepared, nsamples=e.field.nsamples, indexed=False,
-                               pending=pending, position=position).to_dict()
+    Parameters
+    ----------
+    settings : Settings
+        ``max_pending_samples``, ``max_simplices``, ``apply_wait_timeout``.
+    storage : LogBackend
+    follower : Follower
+        Takes the charted batches (hand-over) and tells when they are applied.
+    metrics : Metrics, optional
+    """
 
-    def first_response(seq: int, position: int) -> dict:
-        # inside the transaction: the follower finds the charted batch when it reads
-        # the entry (taken back below if the commit fails)
-        reg.follower.hand_over(position, e.id, seq, prepared, want_result=wait)
-        handed.append(position)
-        with e.pending_lock:
-            e.pending[position] = prepared.accepted
-        return response(seq, position)
+    def __init__(self, settings: Settings, storage: LogBackend, follower: Follower,
+                 metrics=None) -> None:
+        self.settings = settings
+        self.storage = storage
+        self.follower = follower
+        self.metrics = metrics
+        #: commits of uploads, overlapped with their coordinates
+        self._commits = ThreadPoolExecutor(2, thread_name_prefix="flatserve-commit")
 
-    try:
-        seq, pos = reg.storage.add_batch(e.id, idem_key=idem_key, chash=h, form=flats.form,
-                                         nrows=len(flats), blob=blob, result_fn=first_response)
-    except BaseException:
-        for p in handed:
-            reg.follower.take_back(p)
-            with e.pending_lock:
-                e.pending.pop(p, None)
-        raise
-    timings["store"] = time.perf_counter() - t1 - timings["prepare"]
-    return seq, pos, response(seq, pos)
+    def close(self) -> None:
+        self._commits.shutdown(wait=True)
 
+    # -- the upload ---------------------------------------------------------------------------
+    def upload(self, e: FieldEntry, flats: Flats, values: np.ndarray, idem_key: str | None,
+               timings: dict | None = None, *, wait: bool = True) -> UploadResult:
+        """Durably store one batch and have it applied (see the module doc); returns
+        the response. ``timings`` (if given) receives the seconds spent on hashing
+        (``hash``), coordinates (``prepare``), the commit (``store``) and, with
+        ``wait``, the wait for the insert (``insert``)."""
+        timings = {} if timings is None else timings
+        t0 = time.perf_counter()
+        stored = dict(flats.arrays, values=values)
+        chash = None
+        if idem_key is not None:
+            chash = content_hash(flats.form, stored)
+            timings["hash"] = time.perf_counter() - t0
+        with e.upload_lock:
+            e.check_writable()
+            prev = self.storage.find_batch(e.id, idem_key) if idem_key is not None else None
+            if prev is None:
+                pending = e.pending_counts()[1]
+                self._check_cost(e, flats, pending)
+                if not wait and pending + len(flats) > self.settings.max_pending_samples:
+                    raise BacklogFullError(
+                        f"field {e.name!r}: {pending} acknowledged samples wait for their "
+                        f"insert; {len(flats)} more would pass the limit of "
+                        f"{self.settings.max_pending_samples} (FLATSERVE_MAX_PENDING_SAMPLES): "
+                        "retry later, or upload with wait=true")
+                e.check_writable()
+                try:
+                    seq, pos, out = self._commit_and_chart(e, flats, values, idem_key, chash,
+                                                           stored, timings, wait=wait)
+                except KeyTakenError as exc:  # stored meanwhile through another replica
+                    prev = exc.existing
+        if prev is not None:
+            return self._replay(e, prev, chash, idem_key, wait)
+        if wait:
+            out = self._await_insert(e, seq, pos, timings)
+            self._store_result(e, seq, out)
+        if self.metrics is not None:
+            self.metrics.batches.labels(e.name).inc()
+            self.metrics.samples_rejected.labels(e.name).inc(len(out.rejected))
+        return out
 
-def _await_insert(reg, e, seq, pos, timings) -> dict:
-    """wait=true: wait until the follower has inserted the committed batch here."""
-    t2 = time.perf_counter()
-    reg.await_applied(pos, f"batch {seq} of {e.name!r}")
-    res, failed = reg.follower.take_result(pos)
-    if failed is not None:
-        # the batch is committed but its insert failed: the follower rebuilt the field
-        # from storage, which indexes it; the client is told so (a 503, not a 500)
-        raise NotReadyError(
-            f"field {e.name!r}: batch {seq} is stored, but inserting it failed ({failed}); "
-            "the field is being rebuilt from storage, which indexes it: retry with the "
-            "same Idempotency-Key for its response")
-    if res is None and (e.deleted or reg.entry_by_id(e.id) is not e):
-        raise FieldNotFoundError(f"no field named {e.name!r} (deleted after batch {seq} was "
-                                 "stored)")
-    if res is None:  # not inserted here: the field was marked failed (or is being rebuilt)
-        raise NotReadyError(
-            f"field {e.name!r}: batch {seq} is stored, but the field is not indexed on this "
-            f"replica now ({e.state}: {e.error}); it is restored from storage, which indexes "
-            "it: retry with the same Idempotency-Key for its response")
-    timings["insert"] = time.perf_counter() - t2
-    return UploadResult.of(seq, res, nsamples=res.nsamples, indexed=True, pending=0,
-                           position=pos).to_dict()
+    def _replay(self, e: FieldEntry, prev: BatchRow, chash: str | None, idem_key: str,
+                wait: bool) -> UploadResult:
+        """The response to a retry of a stored batch (``wait``: once applied here)."""
+        if prev.content_hash != chash:
+            raise IdempotencyConflictError(
+                f"Idempotency-Key {idem_key!r} was used for a different batch")
+        if wait:  # a retry with wait=true answers once its batch is visible
+            self.follower.await_applied(prev.position, f"batch {prev.seq} of {e.name!r}",
+                                        self.settings.apply_wait_timeout)
+        return self._stored_result(e, prev.seq, prev.form, prev.result).model_copy(
+            update={"replayed": True, "indexed": prev.seq <= e.indexed_seq,
+                    "position": prev.position})
 
+    def _check_cost(self, e: FieldEntry, flats: Flats, pending: int) -> None:
+        """Refuse (413) an upload expected to make the field's triangulations larger than
+        ``max_simplices`` cells in all: the field's own cells per stored sample once it
+        has some, else :data:`CELLS_PER_SAMPLE` (high-dimensional fields grow very fast:
+        200 samples in D = 8 make a million cells). A field of several shards stores a
+        sample once in every shard that holds it: the batch's rows are counted with
+        their copies (``copies``), and the ``pending`` samples with the batch's."""
+        f = e.field
+        D, n = f.ndim, len(flats)
+        stored, copies = f.nstored, f.copies(flats)
+        per = f.nsimplex / stored if stored >= COST_MIN_SAMPLES else CELLS_PER_SAMPLE.get(
+            D, CELLS_PER_SAMPLE[8] * 3.0 ** (D - 8))
+        total = stored + (pending + n) * copies
+        expected = total * per
+        limit = self.settings.max_simplices
+        if expected > limit:
+            held = f" (x {copies:.2f} charts holding each)" if len(f.shards) > 1 else ""
+            raise CostLimitError(
+                f"field {e.name!r}: about {expected:,.0f} cells expected after this upload "
+                f"({total:,.0f} stored samples: {stored} + {pending + n} new{held}; x "
+                f"{per:,.0f} cells per sample in dimension {D}); the limit is {limit:,} "
+                "(FLATSERVE_MAX_SIMPLICES)")
 
-def _store_result(reg, e, seq, out) -> None:
-    """Store the complete response of an indexed batch (wait=true), durably, before
-    the acknowledgement."""
-    try:
-        reg.storage.set_result(e.id, seq, out, durable=True)
-    except StorageError as exc:  # the batch is durable; its response is a cache
-        log.warning("field %r: could not store the response of batch %d: %s", e.name, seq, exc)
+    def _commit_and_chart(self, e, flats, values, idem_key, chash, stored, timings, *,
+                          wait: bool) -> tuple[int, int, UploadResult]:
+        """Validate the batch, chart it while a storage thread packs (and hashes) it,
+        then commit it together with its first response and its log entry in one
+        transaction: every stored batch is listed with its accepted / rejected rows,
+        whenever the process dies. The charted batch is handed to the follower inside
+        the commit. Returns ``(seq, position, response)``; on failure nothing is
+        stored."""
+        t1 = time.perf_counter()
+        # bad input is refused here, before anything is stored; charting cannot fail
+        # on validated input (each row gets a status)
+        chart = e.field.prepare(flats, values, defer=True)
+        packing = self._commits.submit(
+            lambda: (content_hash(flats.form, stored) if chash is None else chash,
+                     pack_arrays(stored)))
+        prepared = chart()  # no lock: reads the basis only
+        timings["prepare"] = time.perf_counter() - t1
+        h, blob = packing.result()
+        pending = e.pending_counts()[1] + prepared.accepted
+        handed: list[int] = []
 
+        def response(seq: int, position: int) -> UploadResult:
+            return upload_result(seq, prepared, nsamples=e.field.nsamples, indexed=False,
+                                 pending=pending, position=position)
 
-def _stored_result(reg, e: FieldEntry, seq: int, form: str, result: dict | None) -> dict:
-    """The response stored for batch ``seq``; recomputed (and stored again) from
-    the batch's arrays if a crash lost it (see the storage module doc)."""
-    if result is not None:
-        return result
-    arrays = reg.storage.batch_arrays(e.id, seq)
-    values = arrays.pop("values")
-    prepared = e.field.prepare(stored_flats(e, form, arrays), values)
-    row = next((b for b in reg.storage.batches(e.id, after_seq=seq - 1) if b.seq == seq), None)
-    result = UploadResult.of(seq, prepared, nsamples=e.field.nsamples,
-                             indexed=seq <= e.indexed_seq, pending=e.pending_counts()[1],
-                             position=row.position if row is not None else 0).to_dict()
-    try:
-        reg.storage.set_result(e.id, seq, result, replace=False)
-    except StorageError:  # pragma: no cover - a cache: recomputed next time
-        log.warning("field %r: could not store the response of batch %d", e.name, seq)
-    return result
+        def first_response(seq: int, position: int) -> dict:
+            # inside the transaction: the follower finds the charted batch when it reads
+            # the entry (taken back below if the commit fails)
+            self.follower.hand_over(position, e.id, seq, prepared, want_result=wait)
+            handed.append(position)
+            e.add_pending(position, prepared.accepted)
+            return response(seq, position).model_dump()
 
+        try:
+            seq, pos = self.storage.add_batch(e.id, idem_key=idem_key, chash=h,
+                                              form=flats.form, nrows=len(flats), blob=blob,
+                                              result_fn=first_response)
+        except BaseException:
+            for p in handed:
+                self.follower.take_back(p)
+                e.drop_pending(p)
+            raise
+        timings["store"] = time.perf_counter() - t1 - timings["prepare"]
+        return seq, pos, response(seq, pos)
 
-def batches(reg: Registry, e: FieldEntry) -> list[dict]:
-    """The stored batches of a field: seq, key, rows, accepted (None while the
-    response is not stored: in flight, or lost in a crash), form. Reads only."""
-    return [{"batch": b.seq, "idempotency_key": b.idem_key, "rows": b.nrows,
-             "accepted": None if b.result is None else int(b.result["accepted"]),
-             "form": b.form} for b in reg.storage.batches(e.id)]
+    def _await_insert(self, e: FieldEntry, seq: int, pos: int, timings: dict) -> UploadResult:
+        """wait=true: wait until the follower has inserted the committed batch here."""
+        t2 = time.perf_counter()
+        self.follower.await_applied(pos, f"batch {seq} of {e.name!r}",
+                                    self.settings.apply_wait_timeout)
+        res, failed = self.follower.take_result(pos)
+        if failed is not None:
+            # the batch is committed but its insert failed: the follower rebuilt the field
+            # from storage, which indexes it; the client is told so (a 503, not a 500)
+            raise NotReadyError(
+                f"field {e.name!r}: batch {seq} is stored, but inserting it failed ({failed}); "
+                "the field is being rebuilt from storage, which indexes it: retry with the "
+                "same Idempotency-Key for its response")
+        if res is None and e.deleted:
+            raise FieldNotFoundError(f"no field named {e.name!r} (deleted after batch {seq} "
+                                     "was stored)")
+        if res is None:  # not inserted here: the field was marked failed (or is being rebuilt)
+            raise NotReadyError(
+                f"field {e.name!r}: batch {seq} is stored, but the field is not indexed on "
+                f"this replica now ({e.state}: {e.error}); it is restored from storage, which "
+                "indexes it: retry with the same Idempotency-Key for its response")
+        timings["insert"] = time.perf_counter() - t2
+        return upload_result(seq, res, nsamples=res.nsamples, indexed=True, pending=0,
+                             position=pos)
+
+    def _store_result(self, e: FieldEntry, seq: int, out: UploadResult) -> None:
+        """Store the complete response of an indexed batch (wait=true), durably, before
+        the acknowledgement."""
+        try:
+            self.storage.set_result(e.id, seq, out.model_dump(), durable=True)
+        except StorageError as exc:  # the batch is durable; its response is a cache
+            log.warning("field %r: could not store the response of batch %d: %s", e.name,
+                        seq, exc)
+
+    def _stored_result(self, e: FieldEntry, seq: int, form: str, result: dict | None
+                       ) -> UploadResult:
+        """The response stored for batch ``seq``; recomputed (and stored again) from
+        the batch's arrays if a crash lost it (see the storage module doc)."""
+        if result is not None:
+            return UploadResult.model_validate(result)
+        arrays = self.storage.batch_arrays(e.id, seq)
+        values = arrays.pop("values")
+        prepared = e.field.prepare(stored_flats(e, form, arrays), values)
+        row = next((b for b in self.storage.batches(e.id, after_seq=seq - 1) if b.seq == seq),
+                   None)
+        out = upload_result(seq, prepared, nsamples=e.field.nsamples,
+                            indexed=seq <= e.indexed_seq, pending=e.pending_counts()[1],
+                            position=row.position if row is not None else 0)
+        try:
+            self.storage.set_result(e.id, seq, out.model_dump(), replace=False)
+        except StorageError:  # pragma: no cover - a cache: recomputed next time
+            log.warning("field %r: could not store the response of batch %d", e.name, seq)
+        return out
+
+    def batches(self, e: FieldEntry) -> list[BatchInfo]:
+        """The stored batches of a field: seq, key, rows, accepted (None while the
+        response is not stored: in flight, or lost in a crash), form. Reads only."""
+        return [BatchInfo(batch=b.seq, idempotency_key=b.idem_key, rows=b.nrows,
+                          accepted=None if b.result is None else int(b.result["accepted"]),
+                          form=b.form) for b in self.storage.batches(e.id)]

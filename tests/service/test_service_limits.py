@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from flatserve.service import registry as registry_mod
+from flatserve.service import applier as applier_mod
 
 from .conftest import KINDS, paper_rays, started
 
@@ -40,7 +40,7 @@ def test_chunked_body_past_the_limit_is_413_on_every_route(make_app, path):
 
 def test_wait_false_backlog_is_bounded_with_429(make_app, rng, monkeypatch):
     gate = threading.Event()
-    monkeypatch.setattr(registry_mod.Registry, "_before_index",
+    monkeypatch.setattr(applier_mod.LogApplier, "_before_index",
                         staticmethod(lambda e, seq: gate.wait(30)))
     tc, c = started(make_app(max_pending_samples=500))
     try:
@@ -125,14 +125,14 @@ def test_fields_restore_independently(make_app, rng, monkeypatch):
     finally:
         tc.__exit__(None, None, None)
     gate = threading.Event()
-    real = registry_mod.Registry._restore
+    real = applier_mod.LogApplier._restore
 
     def restore(self, e, row):
         if e.name == "slow":
             gate.wait(30)
         return real(self, e, row)
 
-    monkeypatch.setattr(registry_mod.Registry, "_restore", restore)
+    monkeypatch.setattr(applier_mod.LogApplier, "_restore", restore)
     from fastapi.testclient import TestClient
     from flatserve.client import Client
 
@@ -292,7 +292,7 @@ def test_a_create_the_follower_applies_first_keeps_nothing_behind(make_app, monk
     empty field held for ever per create)."""
     tc, c = started(make_app())
     try:
-        reg = tc.app.state.registry
+        reg = tc.app.state.rooms
         real = reg.storage.create_field
 
         def create_field(*a, **kw):  # the follower wins the race

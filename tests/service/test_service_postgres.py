@@ -376,7 +376,7 @@ def test_a_database_outage_during_the_restore_is_waited_out(tmp_path, own_pg_clu
     from fastapi.testclient import TestClient
 
     from flatserve.service import Settings, create_app
-    from flatserve.service import registry as registry_mod
+    from flatserve.service import applier as applier_mod
 
     url = own_pg_cluster.create_database("outage")
 
@@ -410,7 +410,7 @@ def test_a_database_outage_during_the_restore_is_waited_out(tmp_path, own_pg_clu
         check_serves(tc)
     t.join()
 
-    real = registry_mod.Registry._restore
+    real = applier_mod.LogApplier._restore
     calls = []
 
     def restore(self, e, row, upto=None):  # the database goes in the middle of it
@@ -419,7 +419,7 @@ def test_a_database_outage_during_the_restore_is_waited_out(tmp_path, own_pg_clu
             calls.append(restart_later(1.0))
         return real(self, e, row, upto)
 
-    monkeypatch.setattr(registry_mod.Registry, "_restore", restore)
+    monkeypatch.setattr(applier_mod.LogApplier, "_restore", restore)
     with TestClient(app()) as tc:
         check_serves(tc)
     calls[0].join()

@@ -144,10 +144,10 @@ def test_a_read_waits_a_bounded_time_for_a_position_then_503(make_app, rng, monk
     """A position not yet applied here: 503 with Retry-After after read_wait_timeout
     (the follower is held, as a replica behind would be); a position beyond the
     log's head was never returned by a write: 422 at once."""
-    from flatserve.service import registry as registry_mod
+    from flatserve.service import applier as applier_mod
 
     gate = threading.Event()
-    monkeypatch.setattr(registry_mod.Registry, "_before_index",
+    monkeypatch.setattr(applier_mod.LogApplier, "_before_index",
                         staticmethod(lambda e, seq: gate.wait(30)))
     tc, c = started(make_app(read_wait_timeout=0.2))
     try:
@@ -391,7 +391,7 @@ def test_one_snapshot_writer_at_a_time(make_app, rng):
     try:
         c.create_field("f")
         c.upload_rays("f", *paper_rays(rng, 300), np.ones(300))
-        storage = tc.app.state.registry.storage
+        storage = tc.app.state.rooms.storage
         other = f"{socket.gethostname()}:{os.getpid()}:another-replica"  # alive: this pid
         assert storage.acquire_lease("snapshot", other, 60)
         r = tc.post("/v1/fields/f/snapshot")
@@ -419,7 +419,7 @@ def test_a_snapshot_whose_lease_is_taken_meanwhile_is_abandoned(make_app, rng, r
     try:
         c.create_field("f")
         c.upload_rays("f", *paper_rays(rng, 300), np.ones(300))
-        reg = tc.app.state.registry
+        reg = tc.app.state.rooms
         storage = reg.storage
         write = storage.write_snapshot
         other = f"{socket.gethostname()}:{os.getpid()}:another-replica"  # alive: this pid
@@ -459,7 +459,7 @@ def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng, re
         o, v = paper_rays(rng, 400)
         c.upload_rays("f", o[:200], v[:200], np.ones(200))
         n1 = c.describe("f")["nsamples"]
-        reg = tc.app.state.registry
+        reg = tc.app.state.rooms
         storage = reg.storage
         write = storage.write_snapshot
         stored, gate = threading.Event(), threading.Event()
@@ -473,7 +473,7 @@ def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng, re
 
         storage.write_snapshot = held_write
         out = {}
-        snap = threading.Thread(target=lambda: out.update(reg.snapshot(reg.get("f"))))
+        snap = threading.Thread(target=lambda: out.update(reg.snapshot(reg.catalogue.get("f"))))
         snap.start()
         assert stored.wait(30)
         rep_f = c.upload_rays("f", o[200:300], v[200:300], np.ones(100), wait=False)
@@ -495,7 +495,7 @@ def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng, re
         assert out["batch"] == 1  # the state when serialised, not batch 2 applied later
         d = c.describe("f")
         assert d["storage"]["snapshot_batch"] == 1 and d["nsamples"] > n1
-        e = reg.get("f")
+        e = reg.catalogue.get("f")
         row = storage.field(e.id)
         assert storage.load_snapshot(row, e.spec.load_field).nsamples == n1
         probe = (o[:50], v[:50])

@@ -219,11 +219,11 @@ def test_restore_never_goes_past_its_log_position_postgresql(make_app, rng, pg_u
 
 
 def _restore_to_its_position(app, rng, kind):
-    from flatserve.service import registry as registry_mod
+    from flatserve.service import applier as applier_mod
 
     tc, c = _started(app)
     try:
-        reg = app.state.registry
+        reg = app.state.rooms
         c.create_field("f", channels=2, basis=kind.basis)
         for i in range(2):
             o, v = paper_rays(rng, 300)
@@ -238,7 +238,7 @@ def _restore_to_its_position(app, rng, kind):
         c.upload_rays("f", o, v, rng.normal(size=(300, 2)), idempotency_key="b2")
         assert c.snapshot("f")["batch"] == 3
         # the starting replica restores the row it read, to the head it read
-        e = registry_mod._entry_of(row)
+        e = applier_mod.entry_of(row)
         reg._restore(e, row, upto=head)
         assert e.state == "ready", e.error
         assert e.indexed_seq == 2 and e.indexed_position <= head

@@ -13,7 +13,8 @@ from flatserve import flats
 from flatserve.client import Client
 from flatserve.service.status import NotReadyError
 from flatserve.field import Field
-from flatserve.service import registry as registry_mod
+from flatserve.service import applier as applier_mod
+from flatserve.service import rooms as rooms_mod
 from flatserve.service import specs
 
 from .conftest import DEFAULT, KINDS, add_rays, paper_rays, query_rays, started as _started
@@ -107,7 +108,7 @@ class _Gate:
             self.entered.set()
             self.event.wait(30)
 
-        monkeypatch.setattr(registry_mod.Registry, "_before_index", staticmethod(gated))
+        monkeypatch.setattr(applier_mod.LogApplier, "_before_index", staticmethod(gated))
 
     def open(self):
         self.event.set()
@@ -192,7 +193,7 @@ def test_wait_true_after_wait_false_sees_every_earlier_batch(make_app, rng, kind
 @with_kinds
 def test_shutdown_leaves_pending_batches_to_the_replay(make_app, rng, monkeypatch, kind):
     """A batch acknowledged with wait=false but not indexed at shutdown is replayed."""
-    monkeypatch.setattr(registry_mod, "DRAIN_TIMEOUT_S", 0.2)
+    monkeypatch.setattr(rooms_mod, "DRAIN_TIMEOUT_S", 0.2)
     gate = _Gate(monkeypatch)
     ref = kind.reference(C)
     tc, c = _started(make_app())
@@ -225,14 +226,14 @@ def test_readyz_is_503_while_stored_fields_restore(make_app, rng, monkeypatch):
     finally:
         tc.__exit__(None, None, None)
     release, entered = threading.Event(), threading.Event()
-    real = registry_mod.Registry._restore
+    real = applier_mod.LogApplier._restore
 
     def slow_restore(self, e, row):
         entered.set()
         release.wait(30)
         return real(self, e, row)
 
-    monkeypatch.setattr(registry_mod.Registry, "_restore", slow_restore)
+    monkeypatch.setattr(applier_mod.LogApplier, "_restore", slow_restore)
     with TestClient(make_app()) as tc:
         try:
             assert entered.wait(30)
@@ -379,8 +380,8 @@ def test_a_field_failed_between_commit_and_insert_is_503_not_404(make_app, rng, 
         o, v, val = _rays_with_rejects(rng, 200)
         c.upload_rays("f", o[:100], v[:100], val[:100], wait=False)
         assert gate.entered.wait(30)
-        reg = tc.app.state.registry
-        e = reg.get("f")
+        reg = tc.app.state.rooms
+        e = reg.catalogue.get("f")
         out = {}
 
         def upload():

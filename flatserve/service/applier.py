@@ -1,0 +1,354 @@
+"""The log applier: what a log entry does to this replica's fields.
+
+Owned by the log follower (:mod:`.replica`), which reads the shared log and
+hands each entry here in log order: a ``create`` registers a field in the
+catalogue (:mod:`.catalogue`), a ``delete`` removes it, a ``batch`` is inserted
+into its field (charted first unless this process charted it for its upload),
+a ``snapshot`` points the entry at the newest snapshot. Restore is the same
+work from storage: on start every stored field is registered (``LOADING``) and
+restored from its newest snapshot plus its batches up to the log head read
+with it (:meth:`LogApplier.restore_all`); a field whose memory may disagree
+with storage (an insert failed half-way) is rebuilt the same way
+(:meth:`LogApplier.rebuild`) before the follower goes on.
+
+Every replica applies the same entries through this code (chart, then insert
+in slices of ``insert_slice_rows``), so replicas at one position hold
+bit-identical fields.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+from ..basis import Basis
+from ..field import AddResult, PreparedBatch
+from ..flats import Flats
+from .backend import FieldRow, LogBackend, LogEntry, SnapshotGoneError
+from .catalogue import FieldCatalogue, FieldState
+from .entry import FieldEntry, FieldSpec, SampledField
+from .settings import Settings
+from .snapshots import SnapshotWriter
+from .status import FieldNotFoundError, StorageError, StorageUnavailableError
+
+log = logging.getLogger("flatserve.service")
+
+PROGRESS_EVERY_S = 2.0
+#: a restore that found the database unreachable tries again after this many seconds
+RESTORE_RETRY_S = 1.0
+
+
+class Stopped(Exception):
+    """The applier was asked to stop in the middle of an entry."""
+
+
+def stored_flats(e: FieldEntry, form: str | None, arrays: dict) -> Flats:
+    """The :class:`Flats` of a stored batch (its arrays by name; the form is
+    inferred from the names when None)."""
+    return Flats.from_arrays(arrays, k=e.spec.k, d=e.spec.d, form=form)
+
+
+def entry_of(row: FieldRow, state: FieldState = FieldState.LOADING) -> FieldEntry:
+    """The entry of a stored field's row (its field not built yet)."""
+    spec = FieldSpec.from_dict(row.spec)
+    basis = Basis(row.basis["Q"], row.basis["r"], spec.k)
+    return FieldEntry(row.id, row.name, spec, basis, row.created, row.snapshot_file,
+                      row.snapshot_seq, state=state, position=row.position,
+                      snapshot_position=row.snapshot_position)
+
+
+def failed_entry(row: FieldRow, exc: Exception) -> FieldEntry:
+    """A stored field whose entry cannot be built (:func:`entry_of` raised ``exc``):
+    ``FAILED``, no basis, its spec's sizes where readable (else 0)."""
+    try:
+        spec = FieldSpec.from_dict(row.spec)
+    except Exception:
+        spec = FieldSpec(0, 0, 0, {})
+    return FieldEntry(row.id, row.name, spec, None, row.created, row.snapshot_file,
+                      row.snapshot_seq, state=FieldState.FAILED, position=row.position,
+                      error=f"its stored definition cannot be read: {exc}")
+
+
+class LogApplier:
+    """Applies log entries and restores fields (the follower's thread; see the module doc).
+
+    Parameters
+    ----------
+    settings : Settings
+    storage : LogBackend
+    catalogue : FieldCatalogue
+        Where entries are registered.
+    snapshots : SnapshotWriter
+        Asked for a background snapshot after inserts (``snapshot_every``).
+    metrics : Metrics, optional
+    """
+
+    def __init__(self, settings: Settings, storage: LogBackend, catalogue: FieldCatalogue,
+                 snapshots: SnapshotWriter, metrics=None) -> None:
+        self.settings = settings
+        self.storage = storage
+        self.catalogue = catalogue
+        self.snapshots = snapshots
+        self.metrics = metrics
+        #: fields this process built for its own create (field id -> field)
+        self._built: dict[int, SampledField] = {}
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._restore_head = 0
+
+    def stop(self) -> None:
+        """Stop between the steps of an entry (:class:`Stopped`) and stop restoring."""
+        self._stopping.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stopping.is_set()
+
+    # -- a create's own field ---------------------------------------------------------------
+    def offer_built(self, field_id: int, fld: SampledField) -> None:
+        """The field a create request built: its create entry uses it (not built twice)."""
+        with self._lock:
+            self._built[field_id] = fld
+
+    def withdraw_built(self, field_id: int | None) -> None:
+        with self._lock:
+            self._built.pop(field_id, None)
+
+    # -- entries ----------------------------------------------------------------------------
+    def note_pending(self, entries: list[LogEntry]) -> None:
+        """The follower read these entries: count their batches as pending."""
+        for en in entries:
+            if en.kind == "batch":
+                e = self.catalogue.by_id(en.field_id)
+                if e is not None:
+                    e.add_pending(en.position, en.nrows, keep=True)
+
+    def apply_create(self, entry: LogEntry) -> None:
+        try:
+            row = self.storage.field(entry.field_id)
+        except FieldNotFoundError:
+            return  # deleted later in the log: its delete entry follows
+        e = entry_of(row, state=FieldState.READY)
+        with self._lock:
+            fld = self._built.pop(row.id, None)
+        e.field = fld if fld is not None else e.spec.new_field(e.basis)
+        self.catalogue.put(e)
+
+    def apply_delete(self, entry: LogEntry) -> None:
+        e = self.catalogue.remove(entry.field_id)
+        if e is None:
+            return
+        with e.index_lock:
+            e.deleted = True
+        e.drop_pending()
+
+    def apply_snapshot(self, entry: LogEntry) -> None:
+        e = self.catalogue.by_id(entry.field_id)
+        if e is None:
+            return
+        try:
+            row = self.storage.field(entry.field_id)
+        except FieldNotFoundError:
+            return
+        self.snapshots.adopt(e, row)
+
+    def apply_batch(self, entry: LogEntry, prepared: PreparedBatch | None
+                    ) -> tuple[AddResult | None, str | None]:
+        """Insert the batch of a log entry (charting it unless this process did);
+        ``(AddResult, None)``, or ``(None, why)`` if the insert failed (the field
+        is then rebuilt from storage up to this entry), or ``(None, None)`` if
+        there was nothing to insert (field deleted or not held).
+
+        Raises
+        ------
+        Stopped
+            The applier was stopped before the insert.
+        """
+        e = self.catalogue.by_id(entry.field_id)
+        try:
+            if e is None or e.deleted or e.state is not FieldState.READY or \
+                    entry.seq <= e.indexed_seq:
+                return None, None
+            self._before_index(e, entry.seq)
+            if self.stopping:
+                raise Stopped()
+            t0 = time.perf_counter()
+            if prepared is None:
+                try:
+                    arrays = dict(self.storage.batch_arrays(e.id, entry.seq))
+                except FieldNotFoundError:
+                    return None, None  # deleted meanwhile: its delete entry follows
+                values = arrays.pop("values")
+                prepared = e.field.prepare(stored_flats(e, None, arrays), values)
+            try:
+                with e.index_lock:
+                    if e.deleted:
+                        return None, None
+                    res = e.field.insert_prepared(prepared,
+                                                  slice_rows=self.settings.insert_slice_rows)
+                    e.indexed_seq, e.indexed_position = entry.seq, entry.position
+                    e.new_samples += res.accepted
+            except Exception as exc:
+                # memory may hold part of the batch: rebuild the field from storage up
+                # to this entry (it holds every committed batch), then go on
+                log.exception("field %r: inserting batch %d failed; rebuilding", e.name,
+                              entry.seq)
+                self.rebuild(e, entry.position, f"rebuilding after a failed insert: {exc}")
+                return None, str(exc)
+            if self.metrics is not None:
+                self.metrics.apply_seconds.observe(time.perf_counter() - t0)
+                if res.accepted:
+                    self.metrics.samples_accepted.labels(e.name).inc(res.accepted)
+        finally:
+            if e is not None:
+                e.drop_pending(entry.position)
+        self.snapshots.maybe_snapshot(e)
+        return res, None
+
+    def fail_field(self, field_id: int, why: str) -> None:
+        """Mark a field failed (its requests get a 503 naming ``why``)."""
+        e = self.catalogue.by_id(field_id)
+        if e is not None:
+            e.mark_failed(why)
+
+    @staticmethod
+    def _before_index(e: FieldEntry, seq: int) -> None:
+        """Called before batch ``seq`` of ``e`` is inserted (a test hook)."""
+
+    # -- restore ----------------------------------------------------------------------------
+    def restore_all(self) -> int | None:
+        """Register every stored field (``LOADING``) and restore each to the log head
+        read with them; that head (None if stopped first). Waits for the database."""
+        while True:
+            try:
+                head, rows = self.storage.state()
+                break
+            except StorageError as exc:  # unreachable: wait for it (never ready otherwise)
+                if self.stopping:
+                    return None
+                log.warning("restore: %s; retrying in %g s", exc, RESTORE_RETRY_S)
+                time.sleep(RESTORE_RETRY_S)
+        self._restore_head = head
+        self.snapshots.clean_orphans()
+        entries = []
+        for row in rows:
+            try:
+                e = entry_of(row)
+            except Exception as exc:  # (a spec this version cannot read): that field only
+                log.exception("field %r: its stored definition cannot be read", row.name)
+                self.catalogue.put(failed_entry(row, exc))
+                continue
+            self.catalogue.put(e)
+            entries.append((e, row))
+        log.info("restoring %d stored field(s) from %s %s to log position %d", len(entries),
+                 self.storage.kind, self.storage.where, head)
+        # fields restore independently: each is ready as soon as it is loaded, and an
+        # expensive one holds up only its own thread
+        with ThreadPoolExecutor(self.settings.restore_threads,
+                                thread_name_prefix="flatserve-restore") as pool:
+            for e, row in entries:
+                pool.submit(lambda e=e, row=row: None if self.stopping
+                            else self._restore(e, row))
+        return None if self.stopping else head
+
+    def _load_snapshot(self, e: FieldEntry, row: FieldRow, upto: int
+                       ) -> tuple[SampledField | None, FieldRow]:
+        """The field of the row's snapshot (None if there is none, it is unusable, or
+        it holds batches after log position ``upto``: a newer snapshot that replaced
+        it meanwhile would carry the field past ``upto``) and the row it came from
+        (re-read if the snapshot was replaced meanwhile)."""
+        for _ in range(5):
+            if not row.snapshot_file or row.snapshot_position > upto:
+                return None, row
+            t0 = time.perf_counter()
+            try:
+                fld = self.storage.load_snapshot(row, e.spec.load_field)
+            except SnapshotGoneError:
+                row = self.storage.field(e.id)  # a newer one replaced it: take that
+                continue
+            except Exception as exc:  # corrupt/missing snapshot: rebuild from batches
+                log.warning("field %r: snapshot %s unusable (%s); rebuilding from batches",
+                            e.name, self.storage.snapshot_location(row), exc)
+                return None, row
+            log.info("field %r: snapshot after batch %d loaded (%d samples) in %.2f s",
+                     e.name, row.snapshot_seq, fld.nsamples, time.perf_counter() - t0)
+            return fld, row
+        return None, row
+
+    def _restore(self, e: FieldEntry, row: FieldRow, upto: int | None = None) -> None:
+        """Restore ``e`` to log position ``upto`` (default: the head the start-up
+        restore read): its snapshot, then its batches up to ``upto`` inserted as
+        the follower inserts them (chart, insert in slices). The database
+        unreachable meanwhile: tried again until it answers (or the applier stops)."""
+        if upto is None:
+            upto = self._restore_head
+        while True:
+            try:
+                return self._restore_once(e, row, upto)
+            except StorageUnavailableError as exc:
+                if self.stopping:
+                    e.mark_failed(str(exc))
+                    return
+                log.warning("field %r: restore interrupted (%s); retrying in %g s", e.name,
+                            exc, RESTORE_RETRY_S)
+                time.sleep(RESTORE_RETRY_S)
+
+    def _restore_once(self, e: FieldEntry, row: FieldRow, upto: int) -> None:
+        t0 = time.perf_counter()
+        try:
+            fld, row = self._load_snapshot(e, row, upto)
+            start, start_pos = (row.snapshot_seq, row.snapshot_position) if fld is not None \
+                else (0, 0)
+            if fld is None:
+                fld = e.spec.new_field(e.basis)
+            todo = self.storage.batches(e.id, after_seq=start, upto_position=upto)
+            nb = self.storage.batch_stats(e.id)[0]
+            log.info("field %r: replaying %d of %d stored batch(es)", e.name, len(todo), nb)
+            done, tlast, replayed = 0, time.perf_counter(), 0
+            seq, pos = start, start_pos
+            for b in todo:
+                arrays = dict(self.storage.batch_arrays(e.id, b.seq))
+                values = arrays.pop("values")
+                prepared = fld.prepare(stored_flats(e, b.form, arrays), values)
+                replayed += int(fld.insert_prepared(
+                    prepared, slice_rows=self.settings.insert_slice_rows).accepted)
+                seq, pos = b.seq, b.position
+                done += 1
+                if time.perf_counter() - tlast > PROGRESS_EVERY_S:
+                    log.info("field %r: replayed %d/%d batches (%d samples)", e.name, done,
+                             len(todo), fld.nsamples)
+                    tlast = time.perf_counter()
+            e.field = fld
+            e.indexed_seq, e.indexed_position = seq, pos
+            e.snapshot_file = row.snapshot_file if start else None
+            e.snapshot_seq, e.snapshot_position = start, start_pos
+            e.new_samples = replayed
+            e.mark_ready()
+            log.info("field %r: restored, %d samples, %d batches replayed in %.2f s", e.name,
+                     fld.nsamples, done, time.perf_counter() - t0)
+            self.snapshots.maybe_snapshot(e)
+        except StorageUnavailableError:
+            raise  # retried by _restore
+        except Exception as exc:
+            log.exception("field %r: restore failed", e.name)
+            e.mark_failed(str(exc))
+
+    def rebuild(self, e: FieldEntry, upto: int, why: str) -> None:
+        """Rebuild a field from storage up to log position ``upto`` (the follower's
+        thread: no later entry is applied meanwhile; queries get 503 until done)."""
+        e.mark_loading(why)
+        while True:
+            try:
+                row = self.storage.field(e.id)
+                break
+            except StorageUnavailableError as exc:  # as _restore: wait for the database
+                if self.stopping:
+                    e.mark_failed(str(exc))
+                    return
+                time.sleep(RESTORE_RETRY_S)
+            except Exception as exc:
+                e.mark_failed(str(exc))
+                return
+        with e.upload_lock, e.index_lock:
+            self._restore(e, row, upto)

@@ -1,0 +1,246 @@
+"""The snapshot writer: a field's state written to storage under the snapshot lease.
+
+One room for the snapshot protocol: the lease (one replica writes at a time;
+renewed while a long snapshot is written; a writer whose lease lapsed abandons
+its snapshot, because the new holder's clean-up removes whatever no field points
+at), the field's lock (held from reading the field's log position until the
+field is serialised, never during the database part), background snapshots
+every ``snapshot_every`` new samples, and the clean-up of data a dead writer
+left. Storage does the writing (:meth:`.backend.LogBackend.write_snapshot`).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+import uuid
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from typing import Iterator
+
+from .schemas import SnapshotResult
+from .backend import SNAPSHOT_LEASE, FieldRow, LogBackend
+from .catalogue import FieldState
+from .entry import FieldEntry
+from .settings import Settings
+from .status import FieldNotFoundError, NotReadyError, StorageError
+
+log = logging.getLogger("flatserve.service")
+
+#: a replica that found the snapshot lease taken tries again after this many seconds
+SNAPSHOT_RETRY_S = 10.0
+
+
+class SnapshotWriter:
+    """Writes snapshots of this replica's fields (see the module doc).
+
+    Parameters
+    ----------
+    settings : Settings
+        ``snapshot_every``, ``snapshot_lease_seconds``.
+    storage : LogBackend
+    metrics : Metrics, optional
+    """
+
+    def __init__(self, settings: Settings, storage: LogBackend, metrics=None) -> None:
+        self.settings = settings
+        self.storage = storage
+        self.metrics = metrics
+        #: this replica's name in leases
+        self.owner = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
+        self._bg = ThreadPoolExecutor(1, thread_name_prefix="flatserve-bg")
+        self.closed = False
+
+    # -- the entry's view of its snapshot ---------------------------------------------------
+    def adopt(self, e: FieldEntry, row: FieldRow) -> None:
+        """Point ``e`` at the stored row's snapshot if it is newer (a ``snapshot`` log
+        entry, another replica's)."""
+        if row.snapshot_seq >= e.snapshot_seq:
+            e.snapshot_file, e.snapshot_seq = row.snapshot_file, row.snapshot_seq
+            e.snapshot_position = row.snapshot_position
+            e.new_samples = 0
+
+    # -- background snapshots ---------------------------------------------------------------
+    def maybe_snapshot(self, e: FieldEntry) -> None:
+        """Queue a snapshot of ``e`` if ``snapshot_every`` samples came since its last."""
+        every = self.settings.snapshot_every
+        if not every or e.new_samples < every or e.snapshot_pending or self.closed or \
+                time.monotonic() < e.snapshot_not_before:
+            return
+        e.snapshot_pending = True
+        try:
+            self._bg.submit(self._background_snapshot, e)
+        except RuntimeError:  # shut down meanwhile
+            e.snapshot_pending = False
+
+    def _background_snapshot(self, e: FieldEntry) -> None:
+        try:
+            if not e.deleted:
+                self.snapshot(e)
+        except FieldNotFoundError:
+            log.info("field %r: deleted before its queued snapshot", e.name)
+        except NotReadyError as exc:  # another replica writes one
+            log.info("field %r: snapshot skipped: %s", e.name, exc)
+            e.snapshot_not_before = time.monotonic() + SNAPSHOT_RETRY_S
+        except Exception:
+            log.exception("field %r: background snapshot failed", e.name)
+        finally:
+            e.snapshot_pending = False
+
+    # -- the lease ----------------------------------------------------------------------------
+    @contextmanager
+    def _lease(self, what: str) -> Iterator["_Held"]:
+        """Hold the snapshot lease, renewed in a thread, for the ``with`` block.
+
+        Raises
+        ------
+        NotReadyError
+            Another replica holds it.
+        """
+        ttl = self.settings.snapshot_lease_seconds
+        if not self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, ttl):
+            raise NotReadyError("another replica is writing a snapshot; retry later")
+        held = _Held(self.storage, self.owner, ttl)
+        renew = threading.Event()
+
+        def renewer():  # keep the lease while a long snapshot is written
+            while not renew.wait(ttl / 3):
+                try:
+                    if not self.storage.renew_lease(SNAPSHOT_LEASE, self.owner, ttl):
+                        held.lost.set()
+                        log.error("%s: the snapshot lease was taken by another replica while "
+                                  "this one wrote; the snapshot is abandoned", what)
+                        return
+                except StorageError:  # pragma: no cover - retried
+                    pass
+
+        th = threading.Thread(target=renewer, name="flatserve-lease", daemon=True)
+        th.start()
+        try:
+            yield held
+        finally:
+            renew.set()
+            th.join()
+            try:
+                self.storage.release_lease(SNAPSHOT_LEASE, self.owner)
+            except StorageError:  # pragma: no cover - it expires
+                pass
+
+    # -- writing --------------------------------------------------------------------------------
+    def snapshot(self, e: FieldEntry) -> SnapshotResult:
+        """Write a snapshot of ``e`` now (uploads and queries go on).
+
+        Raises
+        ------
+        NotReadyError
+            Another replica writes one, or the lease was lost while writing.
+        FieldNotFoundError
+            The field was deleted.
+        """
+        t0 = time.perf_counter()
+        with self._lease(f"field {e.name!r}") as lease:
+            if e.deleted:
+                raise FieldNotFoundError(f"no field named {e.name!r}")
+            row = self.storage.field(e.id)  # (a read: outside the field's lock)
+            if row.snapshot_file and row.snapshot_seq >= e.indexed_seq and \
+                    self.storage.snapshot_bytes(row):
+                self.adopt(e, row)
+                return SnapshotResult(batch=row.snapshot_seq,
+                                      bytes=self.storage.snapshot_bytes(row), seconds=0.0)
+            frozen = _Frozen(e, lease)
+            try:
+                info = self.storage.write_snapshot(e.id, frozen.seq, frozen.pos, frozen.save,
+                                                   check=lease.check)
+            finally:
+                frozen.release()
+            with e.index_lock:
+                if frozen.seq >= e.snapshot_seq:
+                    e.snapshot_file, e.snapshot_seq = info.file, frozen.seq
+                    e.snapshot_position = frozen.pos
+                e.new_samples = max(0, e.new_samples - frozen.counted)
+        dt = time.perf_counter() - t0
+        log.info("field %r: snapshot after batch %d written (%d bytes, %.2f s)", e.name,
+                 frozen.seq, info.bytes, dt)
+        if self.metrics is not None:
+            self.metrics.snapshots.labels(e.name).inc()
+        return SnapshotResult(batch=frozen.seq, bytes=info.bytes, seconds=dt)
+
+    def clean_orphans(self) -> None:
+        """Remove snapshot data left by a writer that died (under the snapshot lease:
+        never a snapshot another replica is writing)."""
+        try:
+            if not self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, 60.0):
+                return
+        except StorageError as exc:  # a full disk: nothing to clean now
+            log.warning("snapshot clean-up skipped: %s", exc)
+            return
+        try:
+            n = self.storage.clean_orphans()
+            if n:
+                log.info("removed %d unreferenced snapshot file(s)", n)
+        except (StorageError, OSError) as exc:  # best effort: the restore goes on
+            log.warning("snapshot clean-up failed: %s", exc)
+        finally:
+            try:
+                self.storage.release_lease(SNAPSHOT_LEASE, self.owner)
+            except StorageError:  # pragma: no cover - it expires
+                pass
+
+    def close(self) -> None:
+        self.closed = True
+        self._bg.shutdown(wait=True, cancel_futures=True)
+
+
+class _Held:
+    """The snapshot lease while held: ``check`` raises once it was lost."""
+
+    def __init__(self, storage: LogBackend, owner: str, ttl: float) -> None:
+        self.storage, self.owner, self.ttl = storage, owner, ttl
+        self.lost = threading.Event()
+
+    def check(self, renew: bool = True) -> None:
+        """Raise unless the lease was held without a break since it was taken
+        (``renew``: renewed now, a database round trip). Another replica's clean-up
+        may remove what no field points at: a writer that lost it abandons."""
+        if self.lost.is_set() or (renew and not self.storage.renew_lease(
+                SNAPSHOT_LEASE, self.owner, self.ttl)):
+            self.lost.set()
+            raise NotReadyError("the snapshot lease was lost while writing (another replica "
+                                "may hold it); the snapshot is abandoned, retry later")
+
+
+class _Frozen:
+    """A field held still for its snapshot: ``index_lock`` is taken here, with the
+    log position it is at, and released once the field is serialised to the
+    backend's local file (:meth:`save`, called by the backend) or by
+    :meth:`release`, whichever comes first: the follower (every field's entries)
+    waits only that long, never during the database part."""
+
+    def __init__(self, e: FieldEntry, lease: _Held) -> None:
+        self.e, self.lease = e, lease
+        e.index_lock.acquire()
+        self._held = True
+        try:
+            if e.deleted:
+                raise FieldNotFoundError(f"no field named {e.name!r}")
+            if e.state is not FieldState.READY:
+                raise StorageError(f"field {e.name!r} is not ready ({e.state})")
+            self.seq, self.pos = e.indexed_seq, e.indexed_position  # only applied batches
+            self.counted = e.new_samples
+        except BaseException:
+            self.release()
+            raise
+
+    def save(self, path) -> None:
+        try:
+            self.lease.check(renew=False)  # (no database round trip under the field's lock)
+            self.e.field.save(path)
+        finally:
+            self.release()
+
+    def release(self) -> None:
+        if self._held:
+            self._held = False
+            self.e.index_lock.release()

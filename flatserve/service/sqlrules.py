@@ -214,6 +214,21 @@ class SQLBackend(LogBackend):
         rows = self._rows(conn, sql, args, binary=binary)
         return rows[0] if rows else None
 
+    def _lock_field(self, conn, field_id: int, column: str):
+        """A write to a field locks its row first (the same lock order everywhere:
+        the field's row, then the log's position); ``column``'s value.
+
+        Raises
+        ------
+        FieldNotFoundError
+            The field is not stored (deleted meanwhile).
+        """
+        row = self._one(conn, f"SELECT {column} FROM fields WHERE id=?" + self.dialect.for_update,
+                        (field_id,))
+        if row is None:
+            raise FieldNotFoundError(f"field id {field_id} is not stored (deleted meanwhile?)")
+        return row[0]
+
     # -- fields -----------------------------------------------------------------------
     def create_field(self, name: str, spec: dict, basis: dict[str, np.ndarray]) -> tuple[int, int]:
         blob = pack_arrays(basis)
@@ -236,13 +251,10 @@ class SQLBackend(LogBackend):
         later: list[str] = []
 
         def fn(conn):
-            row = self._one(conn, "SELECT snapshot_file FROM fields WHERE id=?"
-                            + self.dialect.for_update, (field_id,))
-            if row is None:
-                raise FieldNotFoundError(f"field id {field_id} is not stored")
+            snap = self._lock_field(conn, field_id, "snapshot_file")
             self._run_sql(conn, "DELETE FROM batch_results WHERE field_id=?", (field_id,))
             self._run_sql(conn, "DELETE FROM batches WHERE field_id=?", (field_id,))
-            later[:] = self._forget_snapshot(conn, field_id, row[0])
+            later[:] = self._forget_snapshot(conn, field_id, snap)
             self._run_sql(conn, "DELETE FROM fields WHERE id=?", (field_id,))
             return self._append(conn, "delete", field_id)
 
@@ -285,10 +297,7 @@ class SQLBackend(LogBackend):
         insert = f"INSERT INTO batches({cols}) VALUES ({vals})"
 
         def fn(conn):
-            row = self._one(conn, "SELECT snapshot_seq FROM fields WHERE id=?" + d.for_update,
-                            (field_id,))
-            if row is None:
-                raise FieldNotFoundError(f"field id {field_id} was deleted")
+            snap_seq = self._lock_field(conn, field_id, "snapshot_seq")
             if idem_key is not None:
                 r = self._one(conn, self._batch_cols + "WHERE b.field_id=? AND b.idem_key=?",
                               (field_id, idem_key))
@@ -296,7 +305,7 @@ class SQLBackend(LogBackend):
                     raise KeyTakenError(self._batch_row(r))
             last = self._one(conn, "SELECT COALESCE(MAX(seq), 0) FROM batches WHERE field_id=?",
                              (field_id,))[0]
-            seq = max(int(last), int(row[0])) + 1
+            seq = max(int(last), int(snap_seq)) + 1
             args = (field_id, seq, idem_key, chash, form, nrows, blob, time.time())
             if d.arrays_before_position:
                 self._run_sql(conn, insert, args + (0,))
@@ -370,13 +379,10 @@ class SQLBackend(LogBackend):
         old: list[str] = []
 
         def fn(conn):
-            row = self._one(conn, "SELECT snapshot_file FROM fields WHERE id=?"
-                            + self.dialect.for_update, (field_id,))
-            if row is None:
-                raise FieldNotFoundError(f"field id {field_id} was deleted")
+            now = self._lock_field(conn, field_id, "snapshot_file")
             if not self._snapshot_stored(conn, name):  # a clean-up under a lease we lost
                 raise StorageError(f"snapshot {name} was removed before the field pointed at it")
-            old[:] = [row[0]] if row[0] and row[0] != name else []
+            old[:] = [now] if now and now != name else []
             self._run_sql(conn, "UPDATE fields SET snapshot_file=?, snapshot_seq=?,"
                                 " snapshot_position=? WHERE id=?",
                           (name, seq, position, field_id))

@@ -2,7 +2,8 @@
 (:mod:`.storage`, SQLite; :mod:`.pgstorage`, PostgreSQL) and the DDL of each
 dialect made from that description.
 
-A :class:`Table` lists its columns by *kind* (``int``, ``text``, ``blob``...);
+A :class:`Table` lists its columns by *kind* (``int``, ``text``, ``blob``...),
+one line each;
 :data:`TYPES` says what each kind is called in each dialect. A table or column
 marked ``only=`` exists in one dialect: PostgreSQL keeps snapshots as rows
 (``snapshots``, ``snapshot_chunks``) and its schema version in ``meta``;
@@ -68,68 +69,85 @@ class Table:
         raise KeyError(f"{self.name} has no column {name!r}")
 
 
-C = Column
+def _table(name: str, columns: str, *constraints: str, only: str | None = None,
+           dialect_constraints: tuple[tuple[str, str], ...] = ()) -> Table:
+    """A :class:`Table` from one line per column: ``name kind [constraints]``,
+    ending in ``+external`` (:attr:`Column.external`) or ``@dialect``
+    (:attr:`Column.only`)."""
+    cols = []
+    for line in columns.strip().splitlines():
+        words = line.split()
+        col_only = words.pop()[1:] if words[-1].startswith("@") else None
+        external = words[-1] == "+external"
+        if external:
+            words.pop()
+        cols.append(Column(words[0], words[1], " ".join(words[2:]), external, col_only))
+    return Table(name, tuple(cols), constraints, only, dialect_constraints)
+
+
 TABLES: tuple[Table, ...] = (
-    Table("meta", (C("key", "text", "PRIMARY KEY"), C("value", "text", "NOT NULL")),
-          only="postgresql"),
-    Table("fields", (
-        C("id", "id"),
-        C("name", "text", "NOT NULL UNIQUE"),
-        C("spec", "text", "NOT NULL"),
-        C("basis", "blob", "NOT NULL"),
-        C("created", "real", "NOT NULL"),
-        C("position", "int", "NOT NULL DEFAULT 0"),
-        C("snapshot_file", "text"),
-        C("snapshot_seq", "int", "NOT NULL DEFAULT 0"),
-        C("snapshot_position", "int", "NOT NULL DEFAULT 0"),
-    )),
-    Table("batches", (
-        C("field_id", "int", "NOT NULL REFERENCES fields(id) ON DELETE CASCADE"),
-        C("seq", "int", "NOT NULL"),
-        C("position", "int", "NOT NULL DEFAULT 0"),
-        C("idem_key", "text"),
-        C("content_hash", "text", "NOT NULL"),
-        C("form", "text", "NOT NULL"),
-        C("nrows", "int", "NOT NULL"),
-        C("arrays", "blob", "NOT NULL", external=True),
-        C("result", "text", "NOT NULL", only="sqlite"),  # schema 2's responses
-        C("created", "real", "NOT NULL"),
-    ), ("PRIMARY KEY (field_id, seq)",)),
-    # responses, kept apart so that writing one does not rewrite the batch's arrays
-    Table("batch_results", (
-        C("field_id", "int", "NOT NULL"),
-        C("seq", "int", "NOT NULL"),
-        C("result", "text", "NOT NULL"),
-    ), ("PRIMARY KEY (field_id, seq)",), dialect_constraints=(
+    _table("meta", """
+        key                text PRIMARY KEY
+        value              text NOT NULL
+    """, only="postgresql"),
+    _table("fields", """
+        id                 id
+        name               text NOT NULL UNIQUE
+        spec               text NOT NULL
+        basis              blob NOT NULL
+        created            real NOT NULL
+        position           int NOT NULL DEFAULT 0
+        snapshot_file      text
+        snapshot_seq       int NOT NULL DEFAULT 0
+        snapshot_position  int NOT NULL DEFAULT 0
+    """),
+    _table("batches", """
+        field_id           int NOT NULL REFERENCES fields(id) ON DELETE CASCADE
+        seq                int NOT NULL
+        position           int NOT NULL DEFAULT 0
+        idem_key           text
+        content_hash       text NOT NULL
+        form               text NOT NULL
+        nrows              int NOT NULL
+        arrays             blob NOT NULL +external
+        result             text NOT NULL @sqlite
+        created            real NOT NULL
+    """, "PRIMARY KEY (field_id, seq)"),
+    # batches.result: schema 2's responses (SQLite); since, responses are kept
+    # apart, so that writing one does not rewrite the batch's arrays
+    _table("batch_results", """
+        field_id           int NOT NULL
+        seq                int NOT NULL
+        result             text NOT NULL
+    """, "PRIMARY KEY (field_id, seq)", dialect_constraints=(
         ("postgresql", "FOREIGN KEY (field_id, seq) REFERENCES batches(field_id, seq) "
                        "ON DELETE CASCADE"),)),
     # the log of field operations; no foreign key: a delete outlives its field
-    Table("log", (
-        C("position", "position"),
-        C("kind", "text", "NOT NULL"),
-        C("field_id", "int", "NOT NULL"),
-        C("seq", "int", "NOT NULL DEFAULT 0"),
-        C("nrows", "int", "NOT NULL DEFAULT 0"),
-        C("committed", "real", "NOT NULL"),
-    )),
-    Table("snapshots", (
-        C("name", "text", "PRIMARY KEY"),
-        C("field_id", "int", "NOT NULL"),
-        C("bytes", "int", "NOT NULL"),
-        C("created", "real", "NOT NULL"),
-    ), only="postgresql"),
-    Table("snapshot_chunks", (
-        C("name", "text", "NOT NULL REFERENCES snapshots(name) ON DELETE CASCADE"),
-        C("idx", "int4", "NOT NULL"),
-        C("data", "blob", "NOT NULL", external=True),
-    ), ("PRIMARY KEY (name, idx)",), only="postgresql"),
-    Table("leases", (
-        C("name", "text", "PRIMARY KEY"),
-        C("owner", "text", "NOT NULL"),
-        C("expires", "deadline", "NOT NULL"),
-    )),
+    _table("log", """
+        position           position
+        kind               text NOT NULL
+        field_id           int NOT NULL
+        seq                int NOT NULL DEFAULT 0
+        nrows              int NOT NULL DEFAULT 0
+        committed          real NOT NULL
+    """),
+    _table("snapshots", """
+        name               text PRIMARY KEY
+        field_id           int NOT NULL
+        bytes              int NOT NULL
+        created            real NOT NULL
+    """, only="postgresql"),
+    _table("snapshot_chunks", """
+        name               text NOT NULL REFERENCES snapshots(name) ON DELETE CASCADE
+        idx                int4 NOT NULL
+        data               blob NOT NULL +external
+    """, "PRIMARY KEY (name, idx)", only="postgresql"),
+    _table("leases", """
+        name               text PRIMARY KEY
+        owner              text NOT NULL
+        expires            deadline NOT NULL
+    """),
 )
-del C
 
 #: Indexes of every dialect (after the tables).
 INDEXES: tuple[str, ...] = (

@@ -33,10 +33,8 @@ fields, batches and snapshots, and the leases).
 """
 from __future__ import annotations
 
-import fcntl
 import logging
 import os
-import socket
 import sqlite3
 import threading
 import time
@@ -45,8 +43,10 @@ from typing import Callable, TypeVar
 
 from . import sqlschema
 from .backend import FieldRow, SnapshotGoneError, SnapshotInfo
+from .datadir import LOCK_NAME, fsync_dir, hold_data_dir, lock_data_dir, owner_dead  # noqa: F401
+from .sqlitemigrate import SCHEMA_V2 as _SCHEMA_V2, migrate_v2, run_script  # noqa: F401
 from .sqlrules import Dialect, Failure, SQLBackend, snapshot_failure, snapshot_name, storage_failure
-from .status import DataDirInUseError, FieldNotFoundError, StorageError
+from .status import FieldNotFoundError, StorageError
 
 log = logging.getLogger("flatserve.service.storage")
 
@@ -56,97 +56,6 @@ SCHEMA_VERSION = 3
 DB_NAME = "flatserve.sqlite3"
 #: seconds a writer waits for another process's write transaction
 BUSY_TIMEOUT_S = 60.0
-
-#: Schema 2 as it was written (frozen: the history a migration starts from; new
-#: databases are made from :mod:`.sqlschema`).
-_SCHEMA_V2 = """
-CREATE TABLE IF NOT EXISTS fields (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    name TEXT NOT NULL UNIQUE,
-    spec TEXT NOT NULL,
-    basis BLOB NOT NULL,
-    created REAL NOT NULL,
-    snapshot_file TEXT,
-    snapshot_seq INTEGER NOT NULL DEFAULT 0
-);
-CREATE TABLE IF NOT EXISTS batches (
-    field_id INTEGER NOT NULL REFERENCES fields(id) ON DELETE CASCADE,
-    seq INTEGER NOT NULL,
-    idem_key TEXT,
-    content_hash TEXT NOT NULL,
-    form TEXT NOT NULL,
-    nrows INTEGER NOT NULL,
-    arrays BLOB NOT NULL,
-    result TEXT NOT NULL,
-    created REAL NOT NULL,
-    PRIMARY KEY (field_id, seq)
-);
-CREATE UNIQUE INDEX IF NOT EXISTS batches_idem ON batches(field_id, idem_key)
-    WHERE idem_key IS NOT NULL;
--- responses written after their batch's commit (batches.result is then 'null'):
--- kept apart so that writing one does not rewrite the batch's arrays
-CREATE TABLE IF NOT EXISTS batch_results (
-    field_id INTEGER NOT NULL,
-    seq INTEGER NOT NULL,
-    result TEXT NOT NULL,
-    PRIMARY KEY (field_id, seq)
-);
-"""
-
-LOCK_NAME = "flatserve.lock"
-
-
-def _lock_data_dir(data_dir: Path, lock_fd: int | None = None):
-    """Hold an exclusive lock on the data directory for this process's lifetime
-    (released by :meth:`SQLiteBackend.close` or when the process dies, kill -9
-    included). A second server on the same directory would diverge from the
-    first: refused. ``lock_fd``: an inherited descriptor of the lock file whose
-    lock the parent (``serve --processes N``) holds for the replica group."""
-    path = data_dir / LOCK_NAME
-    if lock_fd is not None:
-        try:
-            mine, theirs = os.fstat(lock_fd), os.stat(path)
-            if (mine.st_dev, mine.st_ino) != (theirs.st_dev, theirs.st_ino):
-                raise StorageError(f"lock_fd {lock_fd} is not {path}")
-            fh = os.fdopen(os.dup(lock_fd), "a+")
-            # the same open file description as the holder's: a no-op if it holds it
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            raise StorageError(f"lock_fd {lock_fd}: not the lock of {data_dir} ({exc})") from exc
-        return fh
-    try:
-        fh = open(path, "a+")
-    except OSError as exc:
-        raise StorageError(f"cannot open {path}: {exc}") from exc
-    try:
-        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        fh.seek(0)
-        holder = fh.read().strip() or "unknown"
-        fh.close()
-        raise DataDirInUseError(
-            f"the data directory {data_dir} is in use by another flatserve server (pid "
-            f"{holder}); stop it, or give this one another --data-dir") from None
-    fh.seek(0)
-    fh.truncate()
-    fh.write(f"{os.getpid()}\n")
-    fh.flush()
-    return fh
-
-
-def lock_data_dir(data_dir: Path | str) -> int:
-    """Take the data directory's lock for a replica group; the descriptor to pass
-    to its processes (``lock_fd``; inheritable). Raises
-    :class:`~flatserve.service.status.DataDirInUseError` as a server would."""
-    data_dir = Path(data_dir)
-    data_dir.mkdir(parents=True, exist_ok=True)
-    fh = _lock_data_dir(data_dir)
-    fd = os.dup(fh.fileno())
-    fh.close()  # the dup keeps the open file description (and its lock)
-    os.set_inheritable(fd, True)
-    return fd
-
-
 
 #: SQLite's spelling of the rulebook (:mod:`.sqlrules`)
 DIALECT = Dialect("sqlite", param="?", blob_param="?", legacy_result=True,
@@ -167,73 +76,6 @@ def storage_error(exc: sqlite3.Error, db_path: Path) -> StorageError:
     return storage_failure(kind, exc, str(db_path))
 
 
-def _owner_dead(owner: str) -> bool:
-    """A lease owner ``host:pid:...`` that is a process of this machine no longer
-    running (its lease is taken over at once instead of when it expires)."""
-    host, _, rest = owner.partition(":")
-    pid = rest.partition(":")[0]
-    if host != socket.gethostname() or not pid.isdigit():
-        return False
-    try:
-        os.kill(int(pid), 0)
-    except ProcessLookupError:
-        return True
-    except OSError:  # alive (another user's)
-        return False
-    return False
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-
-def _run_script(db: sqlite3.Connection, script) -> None:
-    """Run statements (a script's text, or a list) one by one inside the caller's
-    transaction (``executescript`` would commit it first)."""
-    if isinstance(script, str):
-        script = "\n".join(ln for ln in script.splitlines() if not ln.strip().startswith("--"))
-        script = script.split(";")
-    for sql in script:
-        if sql.strip():
-            db.execute(sql)
-
-
-def _migrate(db: sqlite3.Connection) -> None:
-    """Schema 2 -> 3 inside the caller's write transaction: the columns and tables
-    schema 3 added (:data:`.sqlschema.SQLITE_V3_COLUMNS`, ``SQLITE_V3_TABLES``);
-    the log is backfilled field by field (ids in creation order), each field's
-    ``create`` then its batches in seq order; snapshots get the position of
-    their last batch."""
-    _run_script(db, [sqlschema.add_column(t, c, "sqlite") for t, c in sqlschema.SQLITE_V3_COLUMNS])
-    for name in sqlschema.SQLITE_V3_TABLES:
-        _run_script(db, sqlschema.create_table(sqlschema.table(name), "sqlite"))
-    fields = db.execute("SELECT id, created, snapshot_seq FROM fields ORDER BY id").fetchall()
-    nb = 0
-    for fid, created, snap_seq in fields:
-        pos = db.execute("INSERT INTO log(kind, field_id, committed) VALUES ('create', ?, ?)",
-                         (fid, created)).lastrowid
-        db.execute("UPDATE fields SET position=? WHERE id=?", (pos, fid))
-        snap_pos = pos if snap_seq else 0
-        for seq, nrows, bcreated in db.execute(
-                "SELECT seq, nrows, created FROM batches WHERE field_id=? ORDER BY seq",
-                (fid,)).fetchall():
-            bpos = db.execute("INSERT INTO log(kind, field_id, seq, nrows, committed) VALUES "
-                              "('batch', ?, ?, ?, ?)", (fid, seq, nrows, bcreated)).lastrowid
-            db.execute("UPDATE batches SET position=? WHERE field_id=? AND seq=?",
-                       (bpos, fid, seq))
-            if seq <= snap_seq:
-                snap_pos = bpos
-            nb += 1
-        db.execute("UPDATE fields SET snapshot_position=? WHERE id=?", (snap_pos, fid))
-    log.info("database migrated to schema %d: log backfilled with %d field(s), %d batch(es)",
-             SCHEMA_VERSION, len(fields), nb)
-
-
 class SQLiteBackend(SQLBackend):
     """All durable state of a data directory (see the module doc). Thread-safe:
     writes go through one connection under a lock; reads use a connection per
@@ -252,7 +94,7 @@ class SQLiteBackend(SQLBackend):
             self.snapshot_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise StorageError(f"cannot create the data directory {self.data_dir}: {exc}") from exc
-        self._dir_lock = _lock_data_dir(self.data_dir, lock_fd)
+        self._dir_lock = hold_data_dir(self.data_dir, lock_fd)
         self.db_path = db_path = self.data_dir / DB_NAME
         self._conns: list[sqlite3.Connection] = []
         self._conns_lock = threading.Lock()
@@ -323,9 +165,9 @@ class SQLiteBackend(SQLBackend):
         try:
             ver = db.execute("PRAGMA user_version").fetchone()[0]
             if ver == 0:  # a new database: the schema of today
-                _run_script(db, sqlschema.ddl("sqlite"))
+                run_script(db, sqlschema.ddl("sqlite"))
             elif ver == 2:
-                _migrate(db)
+                migrate_v2(db, SCHEMA_VERSION)
             if ver in (0, 2):
                 db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
             db.execute("COMMIT")
@@ -491,7 +333,7 @@ class SQLiteBackend(SQLBackend):
             if check is not None:  # before the rename: a lost lease leaves the old file be
                 check()
             os.replace(tmp, final)
-            _fsync_dir(self.snapshot_dir)
+            fsync_dir(self.snapshot_dir)
         except OSError as exc:
             tmp.unlink(missing_ok=True)
             raise snapshot_failure(exc) from exc
@@ -544,7 +386,7 @@ class SQLiteBackend(SQLBackend):
             now = time.time()
             row = db.execute("SELECT owner, expires FROM leases WHERE name=?", (name,)).fetchone()
             if row is not None and row[0] != owner and row[1] > now and \
-                    not _owner_dead(row[0]):
+                    not owner_dead(row[0]):
                 return False
             db.execute("INSERT OR REPLACE INTO leases(name, owner, expires) VALUES (?, ?, ?)",
                        (name, owner, now + ttl))

@@ -30,8 +30,9 @@ import numpy as np
 
 from PIL import Image
 
+import timing  # noqa: F401  (first: the repository root on sys.path, for tests.harness)
 from flatserve.client import Client
-from flatserve.service.process import free_port
+from tests.harness.process import free_port
 from flatserve.lightfield import Camera
 from flatserve.lightfield.baselines import TwoPlane
 from flatserve.lightfield.quality import psnr

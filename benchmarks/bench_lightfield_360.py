@@ -1,6 +1,6 @@
 """A frame of the 360 degree light field through HTTP vs one chart (issue 10).
 
-A real server process (:class:`flatserve.service.process.ServerProcess`) holds
+A real server process (:class:`tests.harness.process.ServerProcess`) holds
 two fields of the bunny with the same number of samples (default 1,000,000):
 
 * ``bunny360``: an oriented covering atlas (``{"kind": "atlas", "oriented":
@@ -53,6 +53,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+import timing  # noqa: F401  (first: the repository root on sys.path, for tests.harness)
 
 TARGET_S = 0.25  # issue 10: a 250^2 x 4 frame of the 360 degree field at 1M samples via HTTP
 UPLOAD_BATCH = 100_000
@@ -222,7 +224,7 @@ def main(argv=None) -> int:
 
     from flatserve.client import Client
     from flatserve.lightfield.sampling import BASIS_SCALE, bunny_scene, orbit_samples, sample_scene
-    from flatserve.service.process import ServerProcess
+    from tests.harness.process import ServerProcess
 
     n = args.samples
     side = math.isqrt(n)

@@ -29,9 +29,10 @@ import time
 import numpy as np
 
 from bench_service import paper_rays
+import timing  # noqa: F401  (first: the repository root on sys.path, for tests.harness)
 from flatserve.client import Client
-from flatserve.service.pgcluster import PgCluster
-from flatserve.service.process import ServerProcess
+from tests.harness.pgcluster import PgCluster
+from tests.harness.process import ServerProcess
 from flatserve.service.server import limit_blas_threads
 
 

@@ -36,10 +36,11 @@ import numpy as np
 import orjson
 
 from bench_service import paper_rays, small_queries_wrk
+import timing  # noqa: F401  (first: the repository root on sys.path, for tests.harness)
 from flatserve.client import Client
 from flatserve.field import Field
 from flatserve.service import specs
-from flatserve.service.process import ServerProcess
+from tests.harness.process import ServerProcess
 from flatserve.service.server import limit_blas_threads
 
 

@@ -36,12 +36,12 @@ import time
 import numpy as np
 import orjson
 
+from timing import median_time  # first: the repository root on sys.path (tests.harness)
 from flatserve.client import Client
-from flatserve.service.process import free_port
+from tests.harness.process import free_port
 from flatserve.field import Field
 from flatserve.service import specs
 from flatserve.service.server import limit_blas_threads
-from timing import median_time
 
 #: The paper's single chart, as the in-process reference (a field without `basis` is
 #: an atlas; its figures are the atlas benchmarks').

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+import timing  # noqa: F401  (first: the repository root on sys.path, for tests.harness)
+
 BATCH = 10_000
 CHANNELS = 3
 
@@ -200,7 +202,7 @@ def main() -> int:
 
     from contextlib import nullcontext
 
-    from flatserve.service.pgcluster import PgCluster
+    from tests.harness.pgcluster import PgCluster
 
     rows = []
     with (nullcontext() if args.no_postgres else PgCluster(fsync=True)) as pg:

@@ -39,8 +39,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+try:
+    import timing  # noqa: F401  (run as a script: the repository root on sys.path, for tests.harness)
+except ModuleNotFoundError:  # imported by its test, which has the root on sys.path
+    pass
 from flatserve.client import Client
-from flatserve.service.process import ServerProcess
+from tests.harness.process import ServerProcess
 from flatserve.service.status import FieldNotFoundError
 
 FIELDS = ("soak-a", "soak-b", "soak-c")

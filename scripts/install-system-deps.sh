@@ -9,7 +9,7 @@
 #              scripts/docker-base.sh builds the base image without a registry)
 #   --postgres Debian's PostgreSQL server (binaries in /usr/lib/postgresql/15/bin),
 #              for the tests and benchmarks of the PostgreSQL backend: they start
-#              their own throwaway clusters (flatserve/service/pgcluster.py), never
+#              their own throwaway clusters (tests/harness/pgcluster.py), never
 #              the system's own cluster
 #   --bench    wrk, the HTTP load generator of the service benchmarks
 set -euo pipefail

@@ -30,7 +30,7 @@ def pg_cluster():
     """One throwaway cluster for the session (``fsync=off``: only processes die in
     these tests, never the machine). Tests that stop or restart PostgreSQL use
     :func:`own_pg_cluster` instead."""
-    from flatserve.service.pgcluster import PgCluster
+    from tests.harness.pgcluster import PgCluster
 
     with PgCluster(fsync=False) as pg:
         yield pg
@@ -49,7 +49,7 @@ def pg_url(pg_cluster, request):
 @pytest.fixture
 def own_pg_cluster():
     """A cluster of this test's own (it may stop, crash and restart it)."""
-    from flatserve.service.pgcluster import PgCluster
+    from tests.harness.pgcluster import PgCluster
 
     with PgCluster(fsync=False) as pg:
         yield pg

@@ -31,7 +31,7 @@ import numpy as np
 import pytest
 
 from flatserve.client import Client, ServiceError
-from flatserve.service.process import free_port
+from tests.harness.process import free_port
 
 REPO = Path(__file__).resolve().parent.parent
 IMAGE = "flatserve:test"

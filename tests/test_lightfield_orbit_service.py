@@ -3,7 +3,7 @@
 :func:`flatserve.lightfield.sampling.blocks_scene` (three primitives under a
 solid checker, fixed before any light field of it was rendered) is sampled
 from eyes all around, uploaded in batches to a real server
-(:class:`flatserve.service.process.ServerProcess`) into a field created with
+(:class:`tests.harness.process.ServerProcess`) into a field created with
 ``{"name", "k": 1, "d": 3, "oriented": true, "unit": 1/3}`` and no basis (the
 service's covering atlas of rays), and queried from views all around.
 
@@ -27,7 +27,7 @@ from flatserve.lightfield.orbit import orbit_views
 from flatserve.lightfield.quality import psnr
 from flatserve.lightfield.render import frame_from_rays, render_truth
 from flatserve.lightfield.sampling import blocks_scene, build_atlas_field, orbit_samples
-from flatserve.service.process import ServerProcess
+from tests.harness.process import ServerProcess
 
 #: The scene is built inside the unit box: its radius about the origin, and the
 #: field's unit of length.

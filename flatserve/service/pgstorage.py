@@ -1,5 +1,12 @@
-"""The PostgreSQL backend of the replica log (``FLATSERVE_DATABASE_URL=postgresql://...``):
+"""The storage room's PostgreSQL backend (``FLATSERVE_DATABASE_URL=postgresql://...``):
 replicas on several machines share one database. psycopg 3 (the ``postgres`` extra).
+
+The domain rules (batch numbers, idempotency, pointing a field at a snapshot,
+row mapping, error wording) are :mod:`.sqlrules`'s, the tables
+:mod:`.sqlschema`'s; this module owns what is PostgreSQL's own: the connection
+pool and its faults, the schema check (once, on the backend's first
+connection), positions under an advisory lock, snapshots as chunk rows (staged
+through :mod:`.pgstage`), leases as session advisory locks and LISTEN/NOTIFY.
 
 Everything lives in the schema ``flatserve`` of the database the URL names
 (created on first use, by whichever replica comes first)::
@@ -43,15 +50,8 @@ twice.
 """
 from __future__ import annotations
 
-import errno
-import fcntl
-import hashlib
-import json
 import logging
 import os
-import select
-import shutil
-import tempfile
 import threading
 import time
 import uuid
@@ -60,12 +60,12 @@ from pathlib import Path
 from typing import Callable, Iterator, TypeVar
 from urllib.parse import urlsplit, urlunsplit
 
-import numpy as np
-
-from .status import FieldExistsError, FieldNotFoundError, StorageError, StorageFullError, StorageUnavailableError
-from .backend import (BatchRow, FieldRow, KeyTakenError, LogBackend, LogEntry, SnapshotGoneError,
-                      SnapshotInfo)
-from .blobs import pack_arrays, unpack_arrays
+from . import sqlschema
+from .backend import FieldRow, SnapshotGoneError, SnapshotInfo
+from .pgsession import CHANNEL, AdvisoryLeases, LogListener
+from .pgstage import STAGE_LOCK, STAGE_ORPHAN_AGE, Stages  # noqa: F401  (STAGE_ORPHAN_AGE: re-exported)
+from .sqlrules import Dialect, Failure, SQLBackend, snapshot_failure, snapshot_name, storage_failure
+from .status import StorageError, StorageUnavailableError
 
 try:
     import psycopg
@@ -83,82 +83,8 @@ SCHEMA_VERSION = 1
 #: advisory lock keys (one bigint each): the log's append order; schema creation
 POSITION_LOCK = 0x666C6174_6C6F6701  # "flatlog" + 1
 SCHEMA_LOCK = 0x666C6174_6C6F6702
-#: NOTIFY channel of appends (payload: the position)
-CHANNEL = "flatserve_log"
 #: bytes per snapshot chunk row
 CHUNK_BYTES = 8 << 20
-
-_DDL = f"""
-CREATE SCHEMA IF NOT EXISTS {SCHEMA};
-SET search_path TO {SCHEMA};
-CREATE TABLE IF NOT EXISTS meta (key text PRIMARY KEY, value text NOT NULL);
-CREATE TABLE IF NOT EXISTS fields (
-    id bigserial PRIMARY KEY,
-    name text NOT NULL UNIQUE,
-    spec text NOT NULL,
-    basis bytea NOT NULL,
-    created double precision NOT NULL,
-    position bigint NOT NULL DEFAULT 0,
-    snapshot_file text,
-    snapshot_seq bigint NOT NULL DEFAULT 0,
-    snapshot_position bigint NOT NULL DEFAULT 0
-);
-CREATE TABLE IF NOT EXISTS batches (
-    field_id bigint NOT NULL REFERENCES fields(id) ON DELETE CASCADE,
-    seq bigint NOT NULL,
-    position bigint NOT NULL DEFAULT 0,
-    idem_key text,
-    content_hash text NOT NULL,
-    form text NOT NULL,
-    nrows bigint NOT NULL,
-    arrays bytea NOT NULL,
-    created double precision NOT NULL,
-    PRIMARY KEY (field_id, seq)
-);
--- float arrays hardly compress: stored out of line as they are (no pglz pass)
-ALTER TABLE batches ALTER COLUMN arrays SET STORAGE EXTERNAL;
-CREATE UNIQUE INDEX IF NOT EXISTS batches_idem ON batches(field_id, idem_key)
-    WHERE idem_key IS NOT NULL;
-CREATE TABLE IF NOT EXISTS batch_results (
-    field_id bigint NOT NULL,
-    seq bigint NOT NULL,
-    result text NOT NULL,
-    PRIMARY KEY (field_id, seq),
-    FOREIGN KEY (field_id, seq) REFERENCES batches(field_id, seq) ON DELETE CASCADE
-);
-CREATE SEQUENCE IF NOT EXISTS log_position;
-CREATE TABLE IF NOT EXISTS log (
-    position bigint PRIMARY KEY,
-    kind text NOT NULL,
-    field_id bigint NOT NULL,
-    seq bigint NOT NULL DEFAULT 0,
-    committed double precision NOT NULL,
-    nrows bigint NOT NULL DEFAULT 0
-);
-CREATE TABLE IF NOT EXISTS snapshots (
-    name text PRIMARY KEY,
-    field_id bigint NOT NULL,
-    bytes bigint NOT NULL,
-    created double precision NOT NULL
-);
-CREATE TABLE IF NOT EXISTS snapshot_chunks (
-    name text NOT NULL REFERENCES snapshots(name) ON DELETE CASCADE,
-    idx integer NOT NULL,
-    data bytea NOT NULL,
-    PRIMARY KEY (name, idx)
-);
-ALTER TABLE snapshot_chunks ALTER COLUMN data SET STORAGE EXTERNAL;
-CREATE TABLE IF NOT EXISTS leases (
-    name text PRIMARY KEY,
-    owner text NOT NULL,
-    expires timestamptz NOT NULL
-);
-"""
-
-_BATCH_COLS = ("SELECT b.seq, b.position, b.idem_key, b.content_hash, b.form, b.nrows, r.result"
-               " FROM batches b LEFT JOIN batch_results r ON r.field_id=b.field_id AND r.seq=b.seq ")
-_FIELD_COLS = ("SELECT id, name, spec, basis, created, position, snapshot_file, snapshot_seq,"
-               " snapshot_position FROM fields ")
 
 #: SQLSTATE classes of a server that is going away or cannot be reached
 _UNAVAILABLE = ("08", "57P01", "57P02", "57P03", "53300")
@@ -178,41 +104,33 @@ def redact(url: str) -> str:
     return urlunsplit(parts._replace(netloc=f"{parts.username}:***@{host}"))
 
 
+#: PostgreSQL's spelling of the rulebook (:mod:`.sqlrules`): the arrays travel
+#: before the position lock is taken; a result whose batch was deleted is a no-op
+DIALECT = Dialect("postgresql", param="%s", blob_param="%b", for_update=" FOR UPDATE",
+                  for_share=" FOR SHARE", arrays_before_position=True,
+                  taken=(pgerr.UniqueViolation,), gone=(pgerr.ForeignKeyViolation,))
+
+
 def storage_error(exc: Exception, where: str) -> StorageError:
     """The :class:`StorageError` for a psycopg error: out of space
     (:class:`StorageFullError`, 507), unreachable (:class:`StorageUnavailableError`,
     503 with ``Retry-After``), else :class:`StorageError` (503)."""
     state = getattr(exc, "sqlstate", None) or ""
     if isinstance(exc, pgerr.DiskFull) or state == "53100":
-        return StorageFullError(f"storage failed: the database is out of space ({exc})")
-    if (isinstance(exc, (psycopg.OperationalError, psycopg.InterfaceError))
+        kind = Failure.FULL
+    elif (isinstance(exc, (psycopg.OperationalError, psycopg.InterfaceError))
             or state.startswith(_UNAVAILABLE)):
-        msg = " ".join(str(exc).split()) or type(exc).__name__
-        return StorageUnavailableError(f"the database {where} cannot be reached ({msg}); "
-                                       "retry (a write in flight may be stored: retry it with "
-                                       "its Idempotency-Key)")
-    return StorageError(f"storage failed ({where}): {exc}")
-
-
-def _lease_key(name: str) -> int:
-    """The advisory lock key of a lease (a signed 64-bit integer)."""
-    h = hashlib.sha256(f"flatserve-lease:{name}".encode()).digest()
-    return int.from_bytes(h[:8], "big", signed=True)
+        kind = Failure.UNREACHABLE
+    else:
+        kind = Failure.FAILED
+    return storage_failure(kind, exc, where)
 
 
 class _Retry(Exception):
     """A pooled connection was found broken before anything was sent: retry once."""
 
 
-#: Prefix of the snapshot staging directories (``<prefix><pid>-<random>``).
-_STAGE_PREFIX = "flatserve-snap-"
-#: The file of a staging directory that its writer holds locked (``flock``).
-_STAGE_LOCK = ".lock"
-#: Seconds after which a staging directory without a lock is an orphan.
-STAGE_ORPHAN_AGE = 3600.0
-
-
-class PostgresBackend(LogBackend):
+class PostgresBackend(AdvisoryLeases, LogListener, SQLBackend):
     """The replica log in PostgreSQL (see the module doc).
 
     Parameters
@@ -233,6 +151,7 @@ class PostgresBackend(LogBackend):
     """
 
     kind = "postgresql"
+    dialect = DIALECT
 
     def __init__(self, url: str, *, tmp_dir=None, connect_timeout: float = 5.0,
                  start_timeout: float = 30.0, pool_size: int = 8):
@@ -252,12 +171,12 @@ class PostgresBackend(LogBackend):
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         self._schema_ready = False
+        self._schema_lock = threading.Lock()
         #: leases held: name -> (owner, the connection holding its advisory lock)
         self._leases: dict[str, tuple[str, psycopg.Connection]] = {}
         self._lease_lock = threading.Lock()
-        self._stage_fds: dict[Path, int] = {}  # staging directory -> its held lock
-        self._stage_guard = threading.Lock()
-        self._sweep_stages()
+        self._stages = Stages(self.tmp_dir)
+        self._stages.sweep()
 
     @classmethod
     def from_settings(cls, settings) -> "PostgresBackend":
@@ -274,7 +193,13 @@ class PostgresBackend(LogBackend):
                                connect_timeout=max(1, int(self.connect_timeout)),
                                application_name="flatserve", keepalives=1, keepalives_idle=10,
                                keepalives_interval=5, keepalives_count=3)
-        conn.execute(f"SET search_path TO {SCHEMA}")
+        try:
+            conn.execute(f"SET search_path TO {SCHEMA}")
+            if not self._schema_ready:
+                self._open_schema(conn)
+        except BaseException:
+            conn.close()
+            raise
         return conn
 
     def _take(self) -> "psycopg.Connection":
@@ -364,31 +289,60 @@ class PostgresBackend(LogBackend):
             self.wake()
         return out
 
+    def _error(self, exc: Exception) -> StorageError:
+        return storage_error(exc, self.where)
+
+    # -- the rulebook's hooks ---------------------------------------------------------
+    def _write(self, fn: Callable[["psycopg.Connection"], T], *, appends: bool = True,
+               durable: bool = True) -> T:
+        """``fn(conn)`` in a transaction (not ``durable``: ``synchronous_commit``
+        off for it); ``appends``: never retried (its commit may have landed), and
+        this process's follower is woken after the commit."""
+        def run(conn):
+            if not durable:
+                conn.execute("SET LOCAL synchronous_commit = off")
+            return fn(conn)
+
+        return self._run(run, write=appends)
+
+    def _read(self, fn: Callable[["psycopg.Connection"], T], *, consistent: bool = False) -> T:
+        if consistent:
+            return self._run(fn, isolation="REPEATABLE READ")
+        return self._run(fn, tx=False)
+
+    def _rows(self, conn, sql: str, args: tuple = (), *, binary: bool = False) -> list:
+        if not binary:
+            return conn.execute(self.dialect.sql(sql), args).fetchall()
+        with conn.cursor(binary=True) as cur:
+            return cur.execute(self.dialect.sql(sql), args).fetchall()
+
     # -- life cycle -----------------------------------------------------------------
-    def _ensure_schema(self) -> None:
-        if self._schema_ready:
-            return
-
-        def fn(conn):
-            conn.execute("SELECT pg_advisory_xact_lock(%s)", (SCHEMA_LOCK,))
-            have = conn.execute(
-                "SELECT 1 FROM information_schema.tables WHERE table_schema=%s AND table_name='meta'",
-                (SCHEMA,)).fetchone()
-            if have:
-                row = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
-                ver = int(row[0]) if row else 0
-                if ver != SCHEMA_VERSION:
-                    raise StorageError(f"the database {self.where} has flatserve schema version "
-                                       f"{ver}; this server knows {SCHEMA_VERSION}")
+    def _open_schema(self, conn: "psycopg.Connection") -> None:
+        """Create the schema if it is new, refuse another version: once per
+        backend, on its first connection (:meth:`_connect`)."""
+        with self._schema_lock:
+            if self._schema_ready:
                 return
-            for stmt in _DDL.split(";"):
-                if stmt.strip():
-                    conn.execute(stmt)
-            conn.execute("INSERT INTO meta(key, value) VALUES ('schema_version', %s)",
-                         (str(SCHEMA_VERSION),))
-
-        self._run(fn)
-        self._schema_ready = True
+            with conn.transaction():
+                conn.execute("SELECT pg_advisory_xact_lock(%s)", (SCHEMA_LOCK,))
+                have = conn.execute(
+                    "SELECT 1 FROM information_schema.tables WHERE table_schema=%s"
+                    " AND table_name='meta'", (SCHEMA,)).fetchone()
+                if have:
+                    row = conn.execute(
+                        "SELECT value FROM meta WHERE key='schema_version'").fetchone()
+                    ver = int(row[0]) if row else 0
+                    if ver != SCHEMA_VERSION:
+                        raise StorageError(f"the database {self.where} has flatserve schema "
+                                           f"version {ver}; this server knows {SCHEMA_VERSION}")
+                else:
+                    conn.execute(f"CREATE SCHEMA IF NOT EXISTS {SCHEMA}")
+                    conn.execute(f"SET search_path TO {SCHEMA}")
+                    for stmt in sqlschema.ddl("postgresql"):
+                        conn.execute(stmt)
+                    conn.execute("INSERT INTO meta(key, value) VALUES ('schema_version', %s)",
+                                 (str(SCHEMA_VERSION),))
+            self._schema_ready = True
 
     def check(self) -> None:
         """Reach the database (trying for ``start_timeout`` seconds: a replica and
@@ -404,7 +358,7 @@ class PostgresBackend(LogBackend):
         end = time.monotonic() + self.start_timeout
         while True:
             try:
-                self._ensure_schema()
+                self._give(self._take())  # a first connection checks the schema
                 return
             except StorageUnavailableError as exc:
                 if time.monotonic() >= end:
@@ -429,8 +383,7 @@ class PostgresBackend(LogBackend):
                 self._listen = None
 
     # -- the log ----------------------------------------------------------------------
-    @staticmethod
-    def _append(conn, kind: str, field_id: int, seq: int = 0, nrows: int = 0) -> int:
+    def _append(self, conn, kind: str, field_id: int, seq: int = 0, nrows: int = 0) -> int:
         """Draw the next position and append an entry (the position lock is held to
         the commit: see the module doc)."""
         conn.execute("SELECT pg_advisory_xact_lock(%s)", (POSITION_LOCK,))
@@ -442,310 +395,17 @@ class PostgresBackend(LogBackend):
         conn.execute("SELECT pg_notify(%s, %s)", (CHANNEL, str(pos)))
         return pos
 
-    def head(self) -> int:
-        self._ensure_schema()
-        return self._run(lambda c: c.execute("SELECT COALESCE(max(position), 0) FROM log")
-                         .fetchone()[0], tx=False)
-
-    def read_log(self, after: int, limit: int = 256) -> list[LogEntry]:
-        self._ensure_schema()
-        rows = self._run(lambda c: c.execute(
-            "SELECT position, kind, field_id, seq, committed, nrows FROM log WHERE position > %s"
-            " ORDER BY position LIMIT %s", (after, limit)).fetchall(), tx=False)
-        return [LogEntry(int(r[0]), r[1], int(r[2]), int(r[3]), float(r[4]), int(r[5]))
-                for r in rows]
-
-    def wake(self) -> None:
-        try:
-            os.write(self._wake_w, b"x")
-        except (BlockingIOError, OSError):
-            pass  # a byte is already waiting (or closed)
-
-    def wait_for_change(self, timeout: float) -> None:
-        """LISTEN on a connection of its own; after (re)connecting it returns at once
-        (changes may have happened meanwhile)."""
-        if self._closed:
-            return
-        if self._listen is None or self._listen.closed or self._listen.broken:
-            if self._listen is not None:
-                self._listen.close()
-                self._listen = None
-            try:
-                conn = self._connect()
-                conn.execute(f"LISTEN {CHANNEL}")
-                self._listen = conn
-            except psycopg.Error as exc:
-                log.debug("LISTEN on %s failed: %s", self.where, exc)
-                self._wait_pipe(min(timeout, 0.5))
-            return
-        conn = self._listen
-        with self._listen_lock:
-            if self._closed:
-                return
-            self._waiting = True
-        try:
-            fd = conn.fileno()
-            r, _, _ = select.select([fd, self._wake_r], [], [], timeout)
-        except (OSError, ValueError, psycopg.Error):
-            r = []
-        finally:
-            with self._listen_lock:
-                self._waiting = False
-                if self._closed:
-                    conn.close()
-                    self._listen = None
-        if self._closed:
-            return
-        if self._wake_r in r:
-            self._drain_pipe()
-        if fd in r:
-            try:
-                conn.pgconn.consume_input()
-                while conn.pgconn.notifies() is not None:
-                    pass
-            except psycopg.Error:
-                conn.close()  # reconnected on the next call
-            if conn.pgconn.status != psycopg.pq.ConnStatus.OK:
-                conn.close()
-
-    def _wait_pipe(self, timeout: float) -> None:
-        try:
-            r, _, _ = select.select([self._wake_r], [], [], timeout)
-        except (OSError, ValueError):
-            return
-        if r:
-            self._drain_pipe()
-
-    def _drain_pipe(self) -> None:
-        try:
-            while os.read(self._wake_r, 4096):
-                pass
-        except (BlockingIOError, OSError):
-            pass
-
-    # -- fields ---------------------------------------------------------------------
-    def create_field(self, name: str, spec: dict, basis: dict[str, np.ndarray]) -> tuple[int, int]:
-        self._ensure_schema()
-        blob = pack_arrays(basis)
-
-        def fn(conn):
-            try:
-                fid = conn.execute(
-                    "INSERT INTO fields(name, spec, basis, created) VALUES (%s, %s, %b, %s)"
-                    " RETURNING id", (name, json.dumps(spec), blob, time.time())).fetchone()[0]
-            except pgerr.UniqueViolation:
-                raise FieldExistsError(f"field {name!r} already exists") from None
-            pos = self._append(conn, "create", fid)
-            conn.execute("UPDATE fields SET position=%s WHERE id=%s", (pos, fid))
-            return int(fid), pos
-
-        return self._run(fn, write=True)
-
-    def delete_field(self, field_id: int) -> int:
-        self._ensure_schema()
-
-        def fn(conn):
-            if conn.execute("SELECT 1 FROM fields WHERE id=%s FOR UPDATE", (field_id,)).fetchone() is None:
-                raise FieldNotFoundError(f"field id {field_id} not stored")
-            conn.execute("DELETE FROM batches WHERE field_id=%s", (field_id,))  # results cascade
-            conn.execute("DELETE FROM snapshots WHERE field_id=%s", (field_id,))  # chunks cascade
-            conn.execute("DELETE FROM fields WHERE id=%s", (field_id,))
-            return self._append(conn, "delete", field_id)
-
-        return self._run(fn, write=True)
-
-    @staticmethod
-    def _field_row(r) -> FieldRow:
-        return FieldRow(int(r[0]), r[1], json.loads(r[2]), unpack_arrays(bytes(r[3])), float(r[4]),
-                        int(r[5]), r[6], int(r[7]), int(r[8]))
-
-    def state(self) -> tuple[int, list[FieldRow]]:
-        self._ensure_schema()
-
-        def fn(conn):
-            head = conn.execute("SELECT COALESCE(max(position), 0) FROM log").fetchone()[0]
-            with conn.cursor(binary=True) as cur:
-                rows = cur.execute(_FIELD_COLS + "ORDER BY id").fetchall()
-            return int(head), [self._field_row(r) for r in rows]
-
-        return self._run(fn, isolation="REPEATABLE READ")
-
-    def field(self, field_id: int) -> FieldRow:
-        self._ensure_schema()
-
-        def fn(conn):
-            with conn.cursor(binary=True) as cur:
-                return cur.execute(_FIELD_COLS + "WHERE id=%s", (field_id,)).fetchone()
-
-        r = self._run(fn, tx=False)
-        if r is None:
-            raise FieldNotFoundError(f"field id {field_id} not stored")
-        return self._field_row(r)
-
-    # -- batches --------------------------------------------------------------------
-    @staticmethod
-    def _batch_row(r) -> BatchRow:
-        return BatchRow(int(r[0]), int(r[1]), r[2], r[3], r[4], int(r[5]),
-                        None if r[6] is None else json.loads(r[6]))
-
-    def find_batch(self, field_id: int, idem_key: str) -> BatchRow | None:
-        self._ensure_schema()
-        r = self._run(lambda c: c.execute(_BATCH_COLS + "WHERE b.field_id=%s AND b.idem_key=%s",
-                                          (field_id, idem_key)).fetchone(), tx=False)
-        return None if r is None else self._batch_row(r)
-
-    def add_batch(self, field_id: int, *, idem_key: str | None, chash: str, form: str,
-                  nrows: int, blob: bytes,
-                  result_fn: Callable[[int, int], dict] | None = None) -> tuple[int, int]:
-        self._ensure_schema()
-
-        def fn(conn):
-            row = conn.execute("SELECT snapshot_seq FROM fields WHERE id=%s FOR UPDATE",
-                               (field_id,)).fetchone()
-            if row is None:
-                raise FieldNotFoundError(f"field id {field_id} was deleted")
-            if idem_key is not None:
-                r = conn.execute(_BATCH_COLS + "WHERE b.field_id=%s AND b.idem_key=%s",
-                                 (field_id, idem_key)).fetchone()
-                if r is not None:
-                    raise KeyTakenError(self._batch_row(r))
-            seq = conn.execute("SELECT COALESCE(max(seq), 0) + 1 FROM batches WHERE field_id=%s",
-                               (field_id,)).fetchone()[0]
-            seq = max(int(seq), int(row[0]) + 1)
-            # the arrays travel before the position lock is taken
-            conn.execute(
-                "INSERT INTO batches(field_id, seq, idem_key, content_hash, form, nrows, arrays,"
-                " created) VALUES (%s, %s, %s, %s, %s, %s, %b, %s)",
-                (field_id, seq, idem_key, chash, form, nrows, blob, time.time()))
-            pos = self._append(conn, "batch", field_id, seq, nrows)
-            conn.execute("UPDATE batches SET position=%s WHERE field_id=%s AND seq=%s",
-                         (pos, field_id, seq))
-            if result_fn is not None:
-                conn.execute("INSERT INTO batch_results(field_id, seq, result) VALUES (%s, %s, %s)",
-                             (field_id, seq, json.dumps(result_fn(seq, pos))))
-            return seq, pos
-
-        return self._run(fn, write=True)
-
-    def set_result(self, field_id: int, seq: int, result: dict, *, replace: bool = True,
-                   durable: bool = False) -> None:
-        self._ensure_schema()
-        action = "UPDATE SET result=EXCLUDED.result" if replace else "NOTHING"
-
-        def fn(conn):
-            if not durable:
-                conn.execute("SET LOCAL synchronous_commit = off")
-            conn.execute(
-                "INSERT INTO batch_results(field_id, seq, result)"
-                " SELECT %s, %s, %s WHERE EXISTS (SELECT 1 FROM batches WHERE field_id=%s AND seq=%s)"
-                f" ON CONFLICT (field_id, seq) DO {action}",
-                (field_id, seq, json.dumps(result), field_id, seq))
-
-        try:
-            self._run(fn)
-        except StorageError as exc:
-            if isinstance(exc.__cause__, pgerr.ForeignKeyViolation):
-                return  # the batch was deleted meanwhile
-            raise
-
-    def batches(self, field_id: int, after_seq: int = 0,
-                upto_position: int | None = None) -> list[BatchRow]:
-        self._ensure_schema()
-        upto = (1 << 62) if upto_position is None else upto_position
-        rows = self._run(lambda c: c.execute(
-            _BATCH_COLS + "WHERE b.field_id=%s AND b.seq>%s AND b.position<=%s ORDER BY b.seq",
-            (field_id, after_seq, upto)).fetchall(), tx=False)
-        return [self._batch_row(r) for r in rows]
-
-    def batch_arrays(self, field_id: int, seq: int) -> dict[str, np.ndarray]:
-        self._ensure_schema()
-
-        def fn(conn):
-            with conn.cursor(binary=True) as cur:
-                return cur.execute("SELECT arrays FROM batches WHERE field_id=%s AND seq=%s",
-                                   (field_id, seq)).fetchone()
-
-        r = self._run(fn, tx=False)
-        if r is None:
-            raise FieldNotFoundError(f"field id {field_id} has no batch {seq}")
-        return unpack_arrays(r[0])
-
-    def batch_stats(self, field_id: int) -> tuple[int, int, int, int]:
-        self._ensure_schema()
-        r = self._run(lambda c: c.execute(
-            "SELECT count(*), COALESCE(sum(nrows), 0), COALESCE(sum(octet_length(arrays)), 0),"
-            " COALESCE(max(seq), 0) FROM batches WHERE field_id=%s", (field_id,)).fetchone(),
-            tx=False)
-        return int(r[0]), int(r[1]), int(r[2]), int(r[3])
-
     # -- snapshots ------------------------------------------------------------------
     def _stage(self) -> Path:
-        """A private temporary directory for one snapshot on its way, locked
-        (``flock`` on its :data:`_STAGE_LOCK` file, held until :meth:`_unstage`):
-        :meth:`_sweep_stages` of any process removes it only once nobody holds it."""
-        d = Path(tempfile.mkdtemp(prefix=f"{_STAGE_PREFIX}{os.getpid()}-", dir=self.tmp_dir))
-        try:
-            fd = os.open(d / ".lock-new", os.O_CREAT | os.O_RDWR, 0o600)
-        except OSError:
-            shutil.rmtree(d, ignore_errors=True)
-            raise
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        os.rename(d / ".lock-new", d / _STAGE_LOCK)  # visible to a sweep only once held
-        with self._stage_guard:
-            self._stage_fds[d] = fd
-        return d
+        """A locked private staging directory for one snapshot (:mod:`.pgstage`)."""
+        return self._stages.make()
 
     def _unstage(self, d: Path) -> None:
-        shutil.rmtree(d, ignore_errors=True)
-        with self._stage_guard:
-            fd = self._stage_fds.pop(d, None)
-        if fd is not None:
-            os.close(fd)
-
-    def _sweep_stages(self) -> None:
-        """Remove the staging directories left by processes that died with a
-        snapshot on its way (kill -9 skips their cleanup): those whose lock
-        nobody holds. Replicas and other servers may share the directory (a
-        shared volume, the system's temporary directory), whatever their process
-        ids; a directory without a lock (being made, or from before there was
-        one) is removed once it is :data:`STAGE_ORPHAN_AGE` seconds old."""
-        root = Path(self.tmp_dir) if self.tmp_dir else Path(tempfile.gettempdir())
-        try:
-            found = [p for p in root.iterdir() if p.name.startswith(_STAGE_PREFIX)
-                     and p.is_dir() and not p.is_symlink()]
-        except OSError:
-            return
-        now = time.time()
-        for p in found:
-            try:
-                fd = os.open(p / _STAGE_LOCK, os.O_RDWR)
-            except FileNotFoundError:
-                try:
-                    if now - p.stat().st_mtime < STAGE_ORPHAN_AGE:
-                        continue
-                except OSError:
-                    continue
-                fd = None
-            except OSError:  # not ours to open
-                continue
-            try:
-                if fd is not None:
-                    try:
-                        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    except OSError:  # held: a live writer's
-                        continue
-                shutil.rmtree(p, ignore_errors=True)
-            finally:
-                if fd is not None:
-                    os.close(fd)
-            if not p.exists():
-                log.info("removed the snapshot staging directory %s left by a process that "
-                         "is gone", p)
+        self._stages.drop(d)
 
     def write_snapshot(self, field_id: int, seq: int, position: int,
                        save: Callable[[Path], None],
                        check: Callable[[], None] | None = None) -> SnapshotInfo:
-        self._ensure_schema()
         stage = None
         name = f"f{field_id}-s{seq}-{uuid.uuid4().hex[:12]}.snap"
         try:
@@ -753,7 +413,7 @@ class PostgresBackend(LogBackend):
             path = stage / name
             save(path)
             if not path.exists():  # a writer that appended an extension
-                cands = [p for p in stage.iterdir() if p.name != _STAGE_LOCK]
+                cands = [p for p in stage.iterdir() if p.name != STAGE_LOCK]
                 if len(cands) != 1:
                     raise StorageError(f"snapshot writer did not create {path}")
                 path = cands[0]
@@ -777,51 +437,22 @@ class PostgresBackend(LogBackend):
 
             self._run(store)
         except OSError as exc:  # staging: out of space is a 507, as with SQLite
-            full = exc.errno in (errno.ENOSPC, errno.EDQUOT)
-            raise (StorageFullError if full else StorageError)(
-                f"snapshot failed: {exc}") from exc
+            raise snapshot_failure(exc) from exc
         finally:
             if stage is not None:
                 self._unstage(stage)
 
-        old: list[str] = []
+        return SnapshotInfo(name, size, self._point(field_id, name, seq, position, check))
 
-        def point(conn):  # then the field points at it, and the log says so
-            row = conn.execute("SELECT snapshot_file FROM fields WHERE id=%s FOR UPDATE",
-                               (field_id,)).fetchone()
-            if row is None:
-                raise FieldNotFoundError(f"field id {field_id} was deleted")
-            if conn.execute("SELECT 1 FROM snapshots WHERE name=%s FOR SHARE",
-                            (name,)).fetchone() is None:  # removed by a clean-up meanwhile
-                raise StorageError(f"snapshot {name} was removed before the field pointed at it")
-            if row[0] and row[0] != name:
-                old.append(row[0])
-            conn.execute("UPDATE fields SET snapshot_file=%s, snapshot_seq=%s, snapshot_position=%s"
-                         " WHERE id=%s", (name, seq, position, field_id))
-            return self._append(conn, "snapshot", field_id, seq)
+    def _forget_snapshot(self, conn, field_id: int, name: str | None) -> list[str]:
+        conn.execute("DELETE FROM snapshots WHERE field_id=%s", (field_id,))  # chunks cascade
+        return []
 
-        try:
-            if check is not None:
-                check()
-            pos = self._run(point, write=True)
-        except BaseException:
-            if not self._points_at(field_id, name):  # (a commit whose reply was lost: keep)
-                self._remove_snapshots([name])
-            raise
-        self._remove_snapshots(old)
-        return SnapshotInfo(name, size, pos)
+    def _snapshot_stored(self, conn, name: str) -> bool:
+        return conn.execute("SELECT 1 FROM snapshots WHERE name=%s FOR SHARE",
+                            (name,)).fetchone() is not None
 
-    def _points_at(self, field_id: int, name: str) -> bool:
-        """Whether the field points at snapshot ``name`` (True when it cannot be told:
-        what no field points at is removed by clean_orphans later)."""
-        try:
-            r = self._run(lambda c: c.execute("SELECT snapshot_file FROM fields WHERE id=%s",
-                                              (field_id,)).fetchone(), tx=False)
-        except (StorageError, OSError):
-            return True
-        return r is not None and r[0] == name
-
-    def _remove_snapshots(self, names: list[str]) -> None:
+    def _discard_snapshots(self, names: list[str]) -> None:
         if not names:
             return
         try:
@@ -832,7 +463,6 @@ class PostgresBackend(LogBackend):
     def load_snapshot(self, row: FieldRow, load: Callable[[Path], T]) -> T:
         if not row.snapshot_file:
             raise SnapshotGoneError(f"field id {row.id} has no snapshot")
-        self._ensure_schema()
         stage = self._stage()
         path = stage / row.snapshot_file
         try:
@@ -861,89 +491,15 @@ class PostgresBackend(LogBackend):
 
     def snapshot_bytes(self, row) -> int:
         """Size of the row's snapshot (a :class:`FieldRow`, or its ``snapshot_file``)."""
-        file = row if isinstance(row, (str, type(None))) else row.snapshot_file
+        file = snapshot_name(row)
         if not file:
             return 0
-        self._ensure_schema()
         r = self._run(lambda c: c.execute("SELECT bytes FROM snapshots WHERE name=%s",
                                           (file,)).fetchone(), tx=False)
         return 0 if r is None else int(r[0])
 
     def clean_orphans(self) -> int:
-        self._ensure_schema()
         return self._run(lambda c: c.execute(
             "DELETE FROM snapshots s WHERE NOT EXISTS"
             " (SELECT 1 FROM fields f WHERE f.snapshot_file = s.name)").rowcount)
 
-    # -- leases ---------------------------------------------------------------------
-    def acquire_lease(self, name: str, owner: str, ttl: float) -> bool:
-        """The lease is a session-level advisory lock held on a connection of its own
-        for as long as ``owner`` holds it: a holder killed with kill -9 loses it as
-        soon as PostgreSQL sees its connection close (at once; a vanished host
-        within the keepalive time), not after ``ttl``. The ``leases`` row says who
-        holds it and until when it renews (``ttl``), for people looking."""
-        self._ensure_schema()
-        with self._lease_lock:
-            held = self._leases.get(name)
-            if held is not None and held[0] != owner:
-                return False  # another owner in this process
-            if held is not None:
-                try:  # a renewal on the session that holds the lock
-                    self._lease_row(held[1], name, owner, ttl)
-                    return True
-                except psycopg.OperationalError:
-                    # that session ended (PostgreSQL restarted, the backend was
-                    # terminated) and the lock with it: take it again below
-                    del self._leases[name]
-                    held[1].close()
-                except psycopg.Error as exc:
-                    raise storage_error(exc, self.where) from exc
-            conn = None
-            try:
-                conn = self._connect()
-                if not conn.execute("SELECT pg_try_advisory_lock(%s)",
-                                    (_lease_key(name),)).fetchone()[0]:
-                    conn.close()
-                    return False
-                self._lease_row(conn, name, owner, ttl)
-            except psycopg.Error as exc:
-                if conn is not None:
-                    conn.close()
-                raise storage_error(exc, self.where) from exc
-            self._leases[name] = (owner, conn)
-            return True
-
-    def renew_lease(self, name: str, owner: str, ttl: float) -> bool:
-        """True only while the session that took the lock for ``owner`` lives: a
-        session that ended released the lock (another replica may have held it
-        since), so it is not taken again here."""
-        self._ensure_schema()
-        with self._lease_lock:
-            held = self._leases.get(name)
-            if held is None or held[0] != owner:
-                return False
-            try:
-                self._lease_row(held[1], name, owner, ttl)
-                return True
-            except psycopg.Error:
-                del self._leases[name]
-                held[1].close()
-                return False
-
-    @staticmethod
-    def _lease_row(conn, name: str, owner: str, ttl: float) -> None:
-        conn.execute(
-            "INSERT INTO leases(name, owner, expires)"
-            " VALUES (%s, %s, clock_timestamp() + make_interval(secs => %s))"
-            " ON CONFLICT (name) DO UPDATE SET owner=EXCLUDED.owner, expires=EXCLUDED.expires",
-            (name, owner, float(ttl)))
-
-    def release_lease(self, name: str, owner: str) -> None:
-        self._ensure_schema()
-        with self._lease_lock:
-            held = self._leases.get(name)
-            if held is not None and held[0] == owner:
-                del self._leases[name]
-                held[1].close()  # ends the session: its advisory lock goes with it
-        self._run(lambda c: c.execute("DELETE FROM leases WHERE name=%s AND owner=%s",
-                                      (name, owner)))

@@ -1,5 +1,5 @@
 """The throwaway PostgreSQL cluster the backend's tests and benchmarks run on
-(flatserve/service/pgcluster.py): started on a free port, survives restarts and
+(tests/harness/pgcluster.py): started on a free port, survives restarts and
 crashes with committed data intact, and leaves nothing behind."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import subprocess
 import psycopg
 import pytest
 
-from flatserve.service.pgcluster import PgCluster, PgClusterError, process_alive
+from tests.harness.pgcluster import PgCluster, PgClusterError, process_alive
 
 
 def test_cluster_commits_survive_restart_and_crash_and_close_removes_all():

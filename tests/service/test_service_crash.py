@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from flatserve.client import Client
-from flatserve.service.process import ServerProcess, free_port  # noqa: F401
+from tests.harness.process import ServerProcess, free_port  # noqa: F401
 
 from .conftest import KINDS, add_rays, paper_rays, query_rays
 

@@ -22,7 +22,7 @@ import pytest
 from flatserve.client import Client, ServiceError
 from flatserve.field import Field
 from flatserve.service import specs
-from flatserve.service.process import ServerProcess
+from tests.harness.process import ServerProcess
 
 from .conftest import ONE_CHART, paper_rays
 

@@ -21,7 +21,7 @@ from flatserve.service.status import FieldNotFoundError, NotReadyError
 from flatserve.field import Field
 from flatserve.service import specs
 from flatserve.service.blobs import content_hash, pack_arrays
-from flatserve.service.process import ServerProcess
+from tests.harness.process import ServerProcess
 from flatserve.service.storage import DB_NAME, lock_data_dir
 
 from .conftest import DEFAULT, KINDS, ONE_CHART, add_rays, paper_rays, query_rays, started

@@ -8,7 +8,7 @@ PostgreSQL refuses to run as root: under root every command runs as the
 
 Example
 -------
->>> from flatserve.service.pgcluster import PgCluster          # doctest: +SKIP
+>>> from tests.harness.pgcluster import PgCluster          # doctest: +SKIP
 >>> with PgCluster() as pg:
 ...     url = pg.create_database("t1")      # postgresql://postgres@127.0.0.1:PORT/t1
 ...     pg.restart()                        # e.g. a fault-injection test

@@ -3,7 +3,7 @@ need a real server (its own interpreter, its own port, ``kill -9``).
 
 Example
 -------
->>> from flatserve.service.process import ServerProcess        # doctest: +SKIP
+>>> from tests.harness.process import ServerProcess        # doctest: +SKIP
 >>> with ServerProcess("data", "server.log", snapshot_every=0) as srv:
 ...     srv.wait_ready()
 ...     print(srv.url)
@@ -60,7 +60,7 @@ class ServerProcess:
     def wait_ready(self, timeout: float = 90.0, interval: float = 0.05) -> None:
         """Wait until ``/readyz`` says ready; RuntimeError if the process exits,
         TimeoutError after ``timeout`` seconds."""
-        from ..client import Client
+        from flatserve.client import Client
 
         with Client(self.url, retries=0, timeout=5) as c:
             end = time.monotonic() + timeout

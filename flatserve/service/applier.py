@@ -115,6 +115,11 @@ class LogApplier:
         with self._lock:
             self._built.pop(field_id, None)
 
+    def built_count(self) -> int:
+        """Fields offered by creates and not yet taken or withdrawn (0 at rest)."""
+        with self._lock:
+            return len(self._built)
+
     # -- entries ----------------------------------------------------------------------------
     def note_pending(self, entries: list[LogEntry]) -> None:
         """The follower read these entries: count their batches as pending."""

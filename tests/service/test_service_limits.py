@@ -304,6 +304,6 @@ def test_a_create_the_follower_applies_first_keeps_nothing_behind(make_app, monk
         for i in range(3):
             c.create_field(f"g{i}", channels=1)
             c.delete_field(f"g{i}")
-        assert reg._built == {}
+        assert reg.applier.built_count() == 0
     finally:
         tc.__exit__(None, None, None)

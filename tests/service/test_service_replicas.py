@@ -427,7 +427,7 @@ def test_a_snapshot_whose_lease_is_taken_meanwhile_is_abandoned(make_app, rng, r
         def stolen_write(field_id, seq, position, save, check=None):
             def save_then_lose(path):
                 save(path)
-                storage.release_lease("snapshot", reg.owner)  # as if it had expired ...
+                storage.release_lease("snapshot", reg.snapshots.owner)  # as if it had expired ...
                 assert storage.acquire_lease("snapshot", other, 60)  # ... and been taken
             return write(field_id, seq, position, save_then_lose, check)
 
@@ -473,7 +473,8 @@ def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng, re
 
         storage.write_snapshot = held_write
         out = {}
-        snap = threading.Thread(target=lambda: out.update(reg.snapshot(reg.catalogue.get("f"))))
+        snap = threading.Thread(target=lambda: out.update(
+            reg.snapshots.snapshot(reg.catalogue.get("f")).model_dump()))
         snap.start()
         assert stored.wait(30)
         rep_f = c.upload_rays("f", o[200:300], v[200:300], np.ones(100), wait=False)

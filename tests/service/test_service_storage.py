@@ -239,7 +239,7 @@ def _restore_to_its_position(app, rng, kind):
         assert c.snapshot("f")["batch"] == 3
         # the starting replica restores the row it read, to the head it read
         e = applier_mod.entry_of(row)
-        reg._restore(e, row, upto=head)
+        reg.applier._restore(e, row, upto=head)
         assert e.state == "ready", e.error
         assert e.indexed_seq == 2 and e.indexed_position <= head
         res = e.field.query(Flats.from_rays(*probe), threads=1)

@@ -395,12 +395,12 @@ def test_a_field_failed_between_commit_and_insert_is_503_not_404(make_app, rng, 
         th.start()
         while reg.storage.head() < 3 and th.is_alive():  # create, batch 1, batch 2
             threading.Event().wait(0.01)
-        reg.fail_field(e.id, "marked failed by the test")
+        reg.applier.fail_field(e.id, "marked failed by the test")
         gate.open()
         th.join(60)
         assert isinstance(out.get("exc"), NotReadyError), out
         assert "batch 2 is stored" in str(out["exc"])
-        assert reg.entry_by_id(e.id) is e and not e.deleted
+        assert reg.catalogue.by_id(e.id) is e and not e.deleted
     finally:
         gate.open()
         tc.__exit__(None, None, None)

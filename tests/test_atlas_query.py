@@ -18,15 +18,9 @@ import numpy as np
 import pytest
 
 from flatserve import Flats
-from flatserve.atlas import (
-    Atlas,
-    AtlasField,
-    AtlasQueryResult,
-    _cos2_max,
-    bump,
-    haar_frames,
-    orientation_frames,
-)
+from flatserve.atlas import Atlas
+from flatserve.atlas_field import AtlasField, AtlasQueryResult
+from flatserve.grassmann import bump, cos2_max_angle, haar_frames, orientation_frames
 from flatserve.coordinates import NOT_REPRESENTABLE, OK
 
 
@@ -51,7 +45,7 @@ def reference_route(atlas: Atlas, flats: Flats, radius: float):
             angles.append(np.arccos(np.minimum(col[sel], 1.0)))
         return rows, angles
     for i in range(atlas.ncharts):
-        c2 = _cos2_max(atlas.frames[i], F)
+        c2 = cos2_max_angle(atlas.frames[i], F)
         sel = np.flatnonzero(c2 > cr * cr)
         rows.append(sel)
         angles.append(np.arccos(np.sqrt(c2[sel])))

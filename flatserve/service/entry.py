@@ -20,7 +20,8 @@ from typing import Optional
 
 import numpy as np
 
-from ..atlas import Atlas, AtlasField
+from ..atlas import Atlas
+from ..atlas_field import AtlasField
 from ..basis import Basis
 from .status import FieldNotFoundError, StorageError
 from ..field import AddResult, Field, PreparedBatch

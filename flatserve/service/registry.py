@@ -23,7 +23,7 @@ import time
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 
-from ..atlas import AtlasField
+from ..atlas_field import AtlasField
 from ..basis import Basis
 from ..errors import InvalidInputError
 from .status import FieldExistsError, FieldNotFoundError, NotReadyError, ReplicaBehindError, StorageError, StorageUnavailableError, TooManyFieldsError

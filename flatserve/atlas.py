@@ -634,13 +634,7 @@ class Atlas:
             without orientation (``parametric``, ``flats``) given to an
             oriented atlas.
         """
-        if not isinstance(flats, Flats):
-            raise InvalidInputError(
-                f"flats: expected a flatserve.Flats batch, got {type(flats).__name__}", "flats")
-        if flats.k != self.k or flats.d != self.d:
-            arg = next(iter(flats.arrays))
-            raise InvalidInputError(f"{arg}: this atlas charts {self.k}-flats in R^{self.d}, "
-                                    f"got {flats.k}-flats in R^{flats.d}", arg)
+        _flats.check_batch(flats, self.k, self.d, "this atlas charts")
         _require_rays(flats, self.oriented)
         return flats
 

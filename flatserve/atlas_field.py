@@ -53,22 +53,16 @@ _NO_ROWS.setflags(write=False)
 
 @dataclass(frozen=True)
 class AtlasPrepared:
-    """A batch routed and charted by :meth:`AtlasField.prepare`, not yet inserted.
+    """A batch routed and charted by :meth:`AtlasField.prepare`, not yet inserted:
+    each chart's :class:`~flatserve.field.PreparedBatch` parts.
 
-    Attributes
-    ----------
-    nrows : int
-        Rows of the input batch.
-    parts : tuple
-        Per chart (shard), None when it holds no accepted row, else the pair
-        of :class:`~flatserve.field.PreparedBatch` made by that chart's
-        ``prepare``: ``own``, the rows whose nearest centre is this chart's,
-        and ``shared``, the rows nearer to another centre (the overlap:
-        inserted so that the chart covers its blending domain).
-    accepted_rows : (a,) int64
-        Rows accepted by at least one chart.
-    rejected, reasons
-        The rows no chart accepted, one reason each (the first chart's).
+    ``parts[i]`` is None when chart ``i`` holds no accepted row of the
+    ``nrows``, else the pair ``(own, shared)`` its Field's ``prepare`` made:
+    the rows whose nearest centre is this chart's, and those nearer to
+    another centre (the overlap: inserted so that the chart covers its
+    blending domain). ``accepted_rows`` (int64) were accepted by at least one
+    chart; ``rejected`` (int64) by none, one of ``reasons`` each (the first
+    chart's).
     """
 
     nrows: int

@@ -59,27 +59,16 @@ __all__ = ["Prepared", "SampledField", "describe_definition", "load_field", "new
 
 @runtime_checkable
 class Prepared(Protocol):
-    """A batch charted by ``prepare`` and not yet inserted (opaque but for its decisions)."""
+    """A batch charted by ``prepare`` and not yet inserted: opaque but for its
+    decisions (``accepted`` rows to be inserted, the ``rejected`` row indices
+    (j,) int64 with one of ``reasons`` each)."""
 
     @property
-    def nrows(self) -> int:
-        """Rows of the input batch."""
-        ...
-
+    def accepted(self) -> int: ...
     @property
-    def accepted(self) -> int:
-        """Rows that will be inserted (into at least one shard)."""
-        ...
-
+    def rejected(self) -> np.ndarray: ...
     @property
-    def rejected(self) -> np.ndarray:
-        """(j,) int64: the rows that will not be inserted."""
-        ...
-
-    @property
-    def reasons(self) -> list:
-        """One reason (str) per rejected row."""
-        ...
+    def reasons(self) -> list: ...
 
 
 @runtime_checkable
@@ -92,66 +81,56 @@ class SampledField(Protocol):
     Thread safety: readers (``prepare``, ``query``, ``copies``, ``route*``,
     ``describe``, ``save``) together, a writer (``insert_prepared``, ``add``)
     alone.
+
+    Attributes
+    ----------
+    k, d : int
+        k-flats in R^d.
+    channels : int
+        Values per sample.
+    ndim : int
+        Dimension D of each shard's triangulation: ``m - 1`` (Sec. 5).
+    roundtrip_tol : float
+        Largest round-trip residual of trusted coordinates (Sec. 4, Eq. 9/12).
+    blends : bool
+        Answers blend several shards: ``query(return_weights=True)`` gives
+        ids and weights of shape (q, P, D+1), not (q, D+1).
+    nsamples : int
+        Distinct samples.
+    nstored : int
+        Vertices over all shards (a sample counts once per shard holding
+        it; ``nsamples`` for one shard).
+    nsimplex : int
+        Cells over all shards' triangulations.
+    nrejected : int
+        Rows rejected by ``insert_prepared`` so far.
+    shards : sequence of Field
+        The field's shards, in order.
     """
 
-    # ----------------------------------------------------------------- sizes
-    @property
-    def k(self) -> int:
-        """Dimension of the flats."""
-        ...
+    k: int
+    d: int
+    channels: int
+    ndim: int
 
     @property
-    def d(self) -> int:
-        """Dimension of their space."""
-        ...
+    def nsamples(self) -> int: ...
+    @property
+    def nstored(self) -> int: ...
+
+    roundtrip_tol: float
 
     @property
-    def channels(self) -> int:
-        """Values per sample."""
-        ...
+    def nsimplex(self) -> int: ...
+    @property
+    def nrejected(self) -> int: ...
+
+    blends: bool
 
     @property
-    def ndim(self) -> int:
-        """Dimension D of each shard's triangulation: ``m - 1`` (Sec. 5)."""
-        ...
-
-    @property
-    def roundtrip_tol(self) -> float:
-        """Largest round-trip residual of trusted coordinates (Sec. 4, Eq. 9/12)."""
-        ...
-
-    @property
-    def nsamples(self) -> int:
-        """Distinct samples."""
-        ...
-
-    @property
-    def nstored(self) -> int:
-        """Vertices over all shards (a sample counts once per shard holding it)."""
-        ...
-
-    @property
-    def nsimplex(self) -> int:
-        """Cells over all shards' triangulations."""
-        ...
-
-    @property
-    def nrejected(self) -> int:
-        """Rows rejected by ``insert_prepared`` so far."""
-        ...
-
-    @property
-    def blends(self) -> bool:
-        """Answers blend several shards: ``query(return_weights=True)`` gives ids and
-        weights of shape (q, P, D+1), not (q, D+1)."""
-        ...
+    def shards(self) -> Sequence[Field]: ...
 
     # --------------------------------------------------------------- shards
-    @property
-    def shards(self) -> Sequence[Field]:
-        """The field's shards, in order: one Field each."""
-        ...
-
     def route(self, flats: Flats) -> list[np.ndarray]:
         """Per shard, the rows (increasing int64 indices) it stores."""
         ...

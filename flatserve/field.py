@@ -24,17 +24,11 @@ from .coordinates import OK, ROUNDTRIP_TOL, reason
 from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
 from .options import Order, Outside, choice
-from .flats import Flats
+from .flats import Flats, check_batch
 from .triangulation import Triangulation
 from .warp import LineWarp
 
 __all__ = ["FIELD_MAGIC", "Field", "AddResult", "Chart", "PreparedBatch", "QueryResult", "QueryRoute"]
-
-FIELD_MAGIC = b"FSFIELD\x00"
-_VERSION = 1
-#: The version of a field file with a warp (its points are warped: a reader of
-#: version 1 would chart its queries without it). Both are read.
-_VERSION_WARP = 2
 
 
 @dataclass(frozen=True)
@@ -122,22 +116,18 @@ class QueryResult:
 
 
 class QueryRoute(NamedTuple):
-    """Which shards answer which queries, and with what weight (``route_query``).
+    """Which shards answer which of ``n`` queries, and with what weight (``route_query``).
 
-    Attributes
-    ----------
-    n : int
-        Queries in the batch.
-    rows : list of ndarray (int64)
-        Per shard, the queries (row indices, increasing) it answers.
-    weights : list of ndarray (float64)
-        Per shard, the blending weight of each of those rows (before the
-        rows the shard cannot answer are dropped); all 1 for a one-chart
-        field.
+    ``rows[i]`` (int64, increasing) are the queries shard ``i`` answers and
+    ``weights[i]`` (float64, the same length) their blending weights, before
+    the rows the shard cannot answer are dropped (all 1 for a one-chart field).
     """
 
+    #: queries in the batch
     n: int
+    #: per shard, row indices
     rows: list
+    #: per shard, one weight per row
     weights: list
 
 
@@ -179,6 +169,14 @@ class Chart:
         keep = ok[rows]
         return Chart(self.status[rows], self.points[rank[rows[keep]]], self.residual[rows],
                      self.seconds)
+
+
+#: The first 8 bytes of a field file (:meth:`Field.write_to`).
+FIELD_MAGIC = b"FSFIELD\x00"
+_VERSION = 1
+#: The version of a field file with a warp (its points are warped: a reader of
+#: version 1 would chart its queries without it). Both are read.
+_VERSION_WARP = 2
 
 
 class Field(FieldBase):
@@ -286,14 +284,7 @@ class Field(FieldBase):
 
     # ------------------------------------------------------------ charting
     def _flats(self, flats) -> Flats:
-        if not isinstance(flats, Flats):
-            raise InvalidInputError(
-                f"flats: expected a flatserve.Flats batch, got {type(flats).__name__}", "flats")
-        if flats.k != self.k or flats.d != self.d:
-            arg = next(iter(flats.arrays))
-            raise InvalidInputError(f"{arg}: this field holds {self.k}-flats in R^{self.d}, got "
-                                    f"{flats.k}-flats in R^{flats.d}", arg)
-        return flats
+        return check_batch(flats, self.k, self.d, "this field holds")
 
     def chart(self, flats: Flats, *, threads: int | None = None) -> Chart:
         """Express flats in the field's chart: coordinates (Sec. 4) and embedding (Sec. 5).

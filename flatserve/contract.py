@@ -245,7 +245,7 @@ def load_field(path: str | os.PathLike) -> AnyField:
 
 
 def describe_definition(atlas: dict | None) -> dict:
-    """The ``atlas`` and ``charts`` parts of ``describe`` for a field not yet loaded.
+    """``describe`` of a field not loaded yet: its definition, its sizes None.
 
     Parameters
     ----------
@@ -256,7 +256,12 @@ def describe_definition(atlas: dict | None) -> dict:
     Returns
     -------
     dict
-        ``{"atlas": ..., "charts": ...}`` as ``describe`` gives them, the
-        charts' ``samples`` None; both None for a one-chart field.
+        The keys of ``describe``: ``atlas`` and ``charts`` as a loaded field's
+        (both None for a one-chart field; the charts' ``samples`` None),
+        ``shards`` one ``{"samples": None}`` per shard, ``nsamples``,
+        ``nstored``, ``nsimplex``, ``nrejected`` and ``duplication`` None.
     """
-    return {"atlas": None, "charts": None} if atlas is None else Atlas.describe_spec(atlas)
+    part = {"atlas": None, "charts": None} if atlas is None else Atlas.describe_spec(atlas)
+    nshards = 1 if atlas is None else len(part["charts"])
+    return {"nsamples": None, "nstored": None, "nsimplex": None, "nrejected": None,
+            "duplication": None, "shards": [{"samples": None} for _ in range(nshards)], **part}

@@ -122,9 +122,15 @@ def test_describe_definition_is_describe_without_samples(atlas):
     filled(field, seed=3, n=400)
     d = field.describe()
     static = describe_definition(atlas.to_dict())
+    assert set(static) == set(d)
     assert static["atlas"] == d["atlas"]
     assert [{**c, "samples": None} for c in d["charts"]] == static["charts"]
-    assert describe_definition(None) == {"atlas": None, "charts": None}
+    assert static["shards"] == [{"samples": None}] * atlas.ncharts
+    assert all(static[k] is None for k in ("nsamples", "nstored", "nsimplex", "nrejected",
+                                           "duplication"))
+    one = describe_definition(None)
+    assert set(one) == set(d) and one["atlas"] is None and one["charts"] is None
+    assert one["shards"] == [{"samples": None}] and one["nstored"] is None
     assert Field(Basis.around_axis()).describe()["charts"] is None
 
 

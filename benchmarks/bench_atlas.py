@@ -32,7 +32,8 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from flatserve import Basis, Field, Flats  # noqa: E402
-from flatserve.atlas import Atlas, AtlasField  # noqa: E402
+from flatserve.atlas import Atlas  # noqa: E402
+from flatserve.atlas_field import AtlasField  # noqa: E402
 from timing import median_time
 
 COORD_TARGET = 1_000_000

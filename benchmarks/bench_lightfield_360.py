@@ -122,7 +122,7 @@ def profile(args, scene, keep: Path, samples360, samples1) -> None:
     from PIL import Image
 
     from flatserve import Field
-    from flatserve.atlas import AtlasField
+    from flatserve.atlas_field import AtlasField
     from flatserve.flats import Flats
     from flatserve.lightfield import Camera
     from flatserve.lightfield.figure import to_uint8

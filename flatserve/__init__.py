@@ -9,15 +9,20 @@ coordinates   coordinates of flats in a basis (paper Sec. 4), status codes
 embedding     the regular-simplex embedding of affine coordinates (Sec. 5)
 Triangulation CGAL dD Delaunay triangulation with scipy's vocabulary
 Field         a function sampled on flats: basis + triangulation + values
+grassmann     principal angles, frames, coverings of the Grassmannian, the blending bump
 Atlas         charts covering every orientation (covering or data-driven)
 AtlasField    a function sampled on flats over an atlas: a Field per chart, blended
+SampledField  the contract both kinds of field offer; new_field, load_field,
+              describe_definition make, read and describe either kind
 errors        the one error hierarchy
 """
 from __future__ import annotations
 
-from . import coordinates, embedding, errors, flats
-from .atlas import Atlas, AtlasField
+from . import coordinates, embedding, errors, flats, grassmann
+from .atlas import Atlas
+from .atlas_field import AtlasField
 from .basis import Basis, select_scale
+from .contract import SampledField, describe_definition, load_field, new_field
 from .field import AddResult, Chart, Field, QueryResult
 from .flats import Flats
 from .triangulation import Triangulation
@@ -33,10 +38,15 @@ __all__ = [
     "Field",
     "Flats",
     "QueryResult",
+    "SampledField",
     "Triangulation",
     "coordinates",
+    "describe_definition",
     "embedding",
     "errors",
     "flats",
+    "grassmann",
+    "load_field",
+    "new_field",
     "select_scale",
 ]

@@ -25,56 +25,38 @@ is equivariant under translations), so a *covering* atlas
 k-subspace is closer than ``trusted`` to some centre; a *data-driven* atlas
 (:meth:`Atlas.for_samples`) places charts where given samples are.
 
-:class:`AtlasField` holds one :class:`~flatserve.field.Field` per chart and
-blends their answers with a partition of unity that varies smoothly with the
-query flat, so the interpolant has no seam where one chart hands over.
-
-Angles
-------
-The principal angles between the direction spaces ``span(A_C)`` and
-``span(A_F)`` (orthonormal ``A``, (d, k)) are the arccosines of the singular
-values of ``A_C^T A_F``; the largest one is ``arccos(sigma_min)``.  The
-non-zero principal angles of two k-subspaces equal those of their orthogonal
-complements, so the smaller of ``A`` (k columns) and ``N`` (d-k columns) is
-used.  Oriented lines (rays, k = 1) use the angle between the unit directions
-(``arccos(a_C . a_F)``, in [0, 180] degrees): a centre and its negative are
-different charts.
+:class:`~flatserve.atlas_field.AtlasField` holds one
+:class:`~flatserve.field.Field` per chart and blends their answers; the
+angles, frames and coverings underneath are :mod:`flatserve.grassmann`'s.
 
 Example
 -------
 >>> import numpy as np, flatserve
->>> from flatserve.atlas import Atlas, AtlasField
+>>> from flatserve.atlas import Atlas
 >>> atlas = Atlas.covering(1, 3)                 # 16 icosahedral axes
->>> field = AtlasField(atlas, channels=1)
->>> rng = np.random.default_rng(0)
->>> o, v = rng.normal(size=(3000, 3)), rng.normal(size=(3000, 3))
->>> res = field.add(flatserve.Flats.from_rays(o, v), o[:, 0] ** 2)
->>> res.accepted
-3000
+>>> atlas.ncharts
+16
+>>> o, v = np.random.default_rng(0).normal(size=(2, 100, 3))
+>>> ro = atlas.route(flatserve.Flats.from_rays(o, v), atlas.reach)
+>>> sum(r.size for r in ro.rows) >= 100          # every line in some chart
+True
 """
 from __future__ import annotations
 
-import functools
-import json
 import math
-import os
-import struct
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from . import flats as _flats
-from ._validate import as_array
 from .basis import Basis, select_scale
-from .coordinates import NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
+from .coordinates import OK, ROUNDTRIP_TOL
 from .embedding import row_product
-from .errors import InvalidInputError, SnapshotError
-from .options import Order, Outside, choice
-from .field import AddResult, Field, PreparedBatch, QueryResult
+from .errors import InvalidInputError
+from .field import Field
 from .flats import Flats
-from .triangulation import RWLock
+from .grassmann import (complement, cos2_max_angle, cover_frames, cover_radius, covering_radius,
+                        max_principal_angle, orientation_frames, use_normals)
 from .warp import LineWarp
 
 __all__ = [
@@ -86,18 +68,9 @@ __all__ = [
     "COVER_RADII_3D",
     "DEFAULT_UNIT",
     "object_unit",
-    "GEODESIC_AXES",
     "DEFAULT_SCALE",
-    "ICOSAHEDRON_AXES",
     "Atlas",
-    "AtlasField",
-    "AtlasPrepared",
-    "AtlasQueryResult",
     "Routing",
-    "bump",
-    "haar_frames",
-    "max_principal_angle",
-    "orientation_frames",
 ]
 
 #: A tangent-simplex chart (Sec. 5.1) round-trips every flat whose largest
@@ -106,9 +79,9 @@ CHART_LIMIT_DEG = 45.0
 #: Blending weight 1 up to this angle to a chart's centre.
 INNER_DEG = 20.0
 #: Blending weight 0 from this angle on: a chart answers queries only below it.
-#: Measured accuracy falls steeply toward the 45 degree limit (DESIGN.md:
-#: median error 0.018 at 35-40 degrees, 0.063 at 40-45), so queries are kept
-#: inside 40.
+#: Measured accuracy falls steeply toward the 45 degree limit (median error
+#: 0.018 at 35-40 degrees from the centre, 0.063 at 40-45: docs/design.md,
+#: "Atlas fields"), so queries are kept inside 40.
 TRUSTED_DEG = 40.0
 #: Samples are inserted into every chart whose centre is closer than this
 #: (at least ``trusted``: a chart must hold the samples around every query it
@@ -146,206 +119,6 @@ COVER_MARGIN_DEG = 1.0
 #: Training sample of the greedy cover, and the fresh sample that measures it.
 COVER_TRAIN_N = 20_000
 COVER_CHECK_N = 200_000
-
-_GOLDEN = (1.0 + 5.0 ** 0.5) / 2.0
-_ico = np.array([[0.0, 1.0, _GOLDEN], [0.0, 1.0, -_GOLDEN], [1.0, _GOLDEN, 0.0],
-                 [1.0, -_GOLDEN, 0.0], [_GOLDEN, 0.0, 1.0], [-_GOLDEN, 0.0, 1.0]])
-#: The 6 axes through opposite vertices of a regular icosahedron (unit rows).
-#: Every direction is within 37.38 degrees of one of them (the angle from a
-#: vertex to the centre of an adjacent face); neighbouring axes are 63.43
-#: degrees apart.
-ICOSAHEDRON_AXES = _ico / np.linalg.norm(_ico, axis=1, keepdims=True)
-ICOSAHEDRON_AXES.setflags(write=False)
-
-
-def _geodesic_axes() -> np.ndarray:
-    V = np.concatenate([ICOSAHEDRON_AXES, -ICOSAHEDRON_AXES])  # the 12 vertices
-    near = V @ V.T > 0.4  # neighbours: 63.43 degrees apart (cos 0.447)
-    faces = [(a, b, c) for a in range(12) for b in range(a + 1, 12) for c in range(b + 1, 12)
-             if near[a, b] and near[a, c] and near[b, c]]
-    F = np.array([V[list(f)].sum(axis=0) for f in faces])  # 20 face centres
-    F = F / np.linalg.norm(F, axis=1, keepdims=True)
-    F = F[(F @ np.array([1.0, 2.0, 3.0])) > 0]  # one of each opposite pair: 10 axes
-    return np.concatenate([ICOSAHEDRON_AXES, F])
-
-
-#: 16 axes: the icosahedron's 6 vertex axes and its 10 face axes (the 32
-#: vertices of the pentakis dodecahedron, as oriented directions).  Every
-#: direction is within 22.69 degrees of one of them (measured on 200,000
-#: directions; :meth:`Atlas.covering` stores its measurement); neighbouring
-#: axes are 37.38 degrees apart.
-GEODESIC_AXES = _geodesic_axes()
-GEODESIC_AXES.setflags(write=False)
-
-
-# ------------------------------------------------------------------------ geometry
-
-
-def bump(angle, inner: float, trusted: float) -> np.ndarray:
-    """Blending weight of a chart at ``angle`` (radians) from its centre.
-
-    ``1`` up to ``inner``, ``0`` from ``trusted`` on, in between
-    ``1 - S(t)`` with ``t = (angle - inner) / (trusted - inner)`` and
-    ``S(t) = t^3 (6 t^2 - 15 t + 10)`` (twice continuously differentiable).
-
-    Parameters
-    ----------
-    angle : ndarray, shape (n,)
-    inner, trusted : float
-        Radians, ``0 <= inner < trusted``.
-
-    Returns
-    -------
-    ndarray, shape (n,)
-    """
-    t = np.clip((np.asarray(angle, dtype=np.float64) - inner) / (trusted - inner), 0.0, 1.0)
-    return 1.0 - t * t * t * (t * (6.0 * t - 15.0) + 10.0)
-
-
-def _use_normals(k: int, d: int) -> bool:
-    """Compare normal spaces (d-k columns) instead of direction spaces (k columns)."""
-    return d - k < k
-
-
-def orientation_frames(flats: Flats, *, normals: bool | None = None) -> np.ndarray:
-    """Orthonormal frames of the flats' direction (or normal) spaces.
-
-    Parameters
-    ----------
-    flats : Flats
-        ``n`` k-flats in R^d.
-    normals : bool, optional
-        Return normal frames (d-k columns) instead of spanning frames (k
-        columns); default: whichever has fewer columns (the principal angles
-        agree).
-
-    Returns
-    -------
-    ndarray, shape (n, d, j)
-        ``j = k`` (spans) or ``d - k`` (normals).  For rays the unit
-        directions, sign kept (the orientation of oriented atlases).
-    """
-    k, d = flats.k, flats.d
-    if normals is None:
-        normals = _use_normals(k, d)
-    if not normals:
-        if k == 0:
-            return np.zeros((flats.n, d, 0))
-        if flats.form == "rays":
-            v = flats.arrays["directions"]
-            return (v / np.sqrt(np.einsum("ni,ni->n", v, v))[:, None])[:, :, None]
-        if flats.form == "parametric":
-            return np.linalg.qr(flats.arrays["A"])[0]
-    A, N = _flats.frames(flats.quadrics()[0], k)
-    return N if normals else A
-
-
-def haar_frames(n: int, d: int, j: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` Haar-random j-subspaces of R^d as orthonormal frames (n, d, j).
-
-    The span of a Gaussian (d, j) matrix is Haar-distributed on the
-    Grassmannian; its QR factor is an orthonormal frame of it.
-    """
-    if j == 0:
-        return np.zeros((n, d, 0))
-    return np.linalg.qr(rng.standard_normal((n, d, j)))[0]
-
-
-def _cos2_max(C: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """``cos^2`` of the largest principal angle between one frame and many.
-
-    ``C`` (d, j), ``F`` (n, d, j): the smallest eigenvalue of ``M^T M`` with
-    ``M = C^T F`` (the squared smallest singular value), closed form for
-    ``j <= 2``.  Returns (n,) in [0, 1].
-    """
-    j = C.shape[1]
-    if j == 0:
-        return np.ones(F.shape[0])
-    if j == 1:
-        c = row_product(F[:, :, 0], C[:, :1])[:, 0]  # batch-independent bits (route)
-        return np.minimum(c * c, 1.0)
-    M = np.einsum("di,ndj->nij", C, F)
-    if j == 2:
-        g11 = M[:, 0, 0] ** 2 + M[:, 1, 0] ** 2
-        g22 = M[:, 0, 1] ** 2 + M[:, 1, 1] ** 2
-        g12 = M[:, 0, 0] * M[:, 0, 1] + M[:, 1, 0] * M[:, 1, 1]
-        h = 0.5 * (g11 - g22)
-        lam = 0.5 * (g11 + g22) - np.sqrt(h * h + g12 * g12)
-    else:
-        lam = np.linalg.eigvalsh(np.swapaxes(M, 1, 2) @ M)[:, 0]
-    return np.clip(lam, 0.0, 1.0)
-
-
-def max_principal_angle(C, F, *, oriented: bool = False) -> np.ndarray:
-    """Largest principal angle between centre frames and flat frames, radians.
-
-    Parameters
-    ----------
-    C : array_like, shape (c, d, j)
-        Orthonormal frames of the centres (e.g. ``A`` of :func:`flatserve.flats.frames`).
-    F : array_like, shape (n, d, j)
-        Orthonormal frames of the flats (:func:`orientation_frames`).
-    oriented : bool
-        ``j = 1`` only: the angle between the signed directions (0 to pi)
-        instead of between the lines (0 to pi/2).
-
-    Returns
-    -------
-    ndarray, shape (n, c)
-        ``arccos(sigma_min(C_c^T F_n))``.
-    """
-    C = np.asarray(C, dtype=np.float64)
-    F = np.asarray(F, dtype=np.float64)
-    if oriented:
-        return np.arccos(np.clip(F[:, :, 0] @ C[:, :, 0].T, -1.0, 1.0))
-    out = np.empty((F.shape[0], C.shape[0]))
-    for c in range(C.shape[0]):  # a loop over charts, not flats
-        out[:, c] = np.arccos(np.sqrt(_cos2_max(C[c], F)))
-    return out
-
-
-def _complement(C: np.ndarray) -> np.ndarray:
-    """Orthonormal frame (d, d-j) of the orthogonal complement of span(C) (d, j)."""
-    d, j = C.shape
-    _, V = np.linalg.eigh(C @ C.T)
-    return V[:, : d - j]
-
-
-def _greedy_cover(T: np.ndarray, radius: float, first: np.ndarray) -> list[np.ndarray]:
-    """Farthest-point centres among frames ``T`` (n, d, j), starting at ``first``.
-
-    Adds the frame farthest (largest principal angle) from every centre so
-    far until all of ``T`` is closer than ``radius`` (radians) to a centre.
-    """
-    centres = [first]
-    best = _cos2_max(first, T)
-    cos2r = math.cos(radius) ** 2
-    while best.min() < cos2r:
-        i = int(np.argmin(best))
-        centres.append(T[i])
-        np.maximum(best, _cos2_max(T[i], T), out=best)
-    return centres
-
-
-@functools.lru_cache(maxsize=32)
-def _cover_frames(k: int, d: int, train_deg: float, seed: int, n_train: int) -> np.ndarray:
-    """Centre frames (c, d, j) of a covering atlas of k-subspaces of R^d (cached)."""
-    j = d - k if _use_normals(k, d) else k
-    if j == 0:
-        return np.zeros((1, d, 0))
-    if (k, d) in ((1, 3), (2, 3)):
-        return GEODESIC_AXES[:, :, None].copy()
-    rng = np.random.default_rng(seed)
-    T = haar_frames(n_train, d, j, rng)
-    first = np.eye(d)[:, d - j:]
-    return np.stack(_greedy_cover(T, math.radians(train_deg), first))
-
-
-#: Covering radii measured by :meth:`Atlas.covering`, by (k, d, oriented, train_deg,
-#: seed, n_train, check_n): the centres and the measurement are seeded, so a field
-#: created again does not measure again (lines in R^3: 0.05 s; 3-flats in R^5,
-#: 329 charts: about 17 s).
-_COVER_RADIUS: dict[tuple, float] = {}
 
 
 def _in_units(deg, name):
@@ -466,7 +239,7 @@ class Atlas:
         self.k, self.d, self.oriented = k, d, bool(oriented)
         self.inner, self.trusted, self.reach, self.unit = inner, trusted, reach, unit
         self.center_A, self.center_N, self.center_r, self.scales = A, N, r, s
-        self.frames = N if _use_normals(k, d) else A
+        self.frames = N if use_normals(k, d) else A
         if isometric is None:
             isometric = (k, d) == (1, 3)
         if not isinstance(isometric, (bool, np.bool_)) or (isometric and (k, d) != (1, 3)):
@@ -556,9 +329,9 @@ class Atlas:
         radii = COVER_RADII_3D if d == 3 else (INNER_DEG, TRUSTED_DEG, REACH_DEG)
         inner, trusted, reach = (radii[i] if v is None else v
                                  for i, v in enumerate((inner, trusted, reach)))
-        C = _cover_frames(k, d, float(train_deg), int(seed), int(n_train))
-        normals = _use_normals(k, d)
-        comp = np.stack([_complement(f) for f in C]) if k and C.shape[2] else None
+        C = cover_frames(k, d, float(train_deg), int(seed), int(n_train))
+        normals = use_normals(k, d)
+        comp = np.stack([complement(f) for f in C]) if k and C.shape[2] else None
         if k == 0:
             A, N = np.zeros((1, d, 0)), np.eye(d)[None]
         elif normals:
@@ -570,10 +343,9 @@ class Atlas:
         atlas = cls(k, d, A, N, np.zeros((A.shape[0], d)), np.full(A.shape[0], float(scale)),
                     oriented=oriented, inner=inner, trusted=trusted, reach=reach, unit=unit,
                     isometric=isometric)
-        key = (k, d, bool(oriented), float(train_deg), int(seed), int(n_train), int(check_n))
-        radius = _COVER_RADIUS.get(key)  # the same centres, the same seeded measurement
-        if radius is None:
-            radius = _COVER_RADIUS[key] = atlas.covering_radius(check_n, seed=seed + 1)
+        # the same centres, the same seeded measurement: measured once
+        radius = cover_radius(k, d, bool(oriented), float(train_deg), int(seed), int(n_train),
+                              int(check_n))
         atlas.info = {"method": "covering", "centres": int(A.shape[0]),
                       "covering_radius_deg": radius, "train_deg": float(train_deg),
                       "check_n": int(check_n), "seed": int(seed)}
@@ -730,7 +502,7 @@ class Atlas:
                 return (v / nv)[:, None] if nv > 0 else F[rows[0]]
         else:
             def dist(C):
-                return np.arccos(np.sqrt(_cos2_max(C, F)))
+                return np.arccos(np.sqrt(cos2_max_angle(C, F)))
 
             def mean(rows):
                 P = np.einsum("ndj,nej->de", F[rows], F[rows]) / len(rows)
@@ -766,7 +538,7 @@ class Atlas:
         D = np.stack([dist(c) for c in C], axis=1)
         near = D.argmin(axis=1)
         Q, r = flats.quadrics()
-        normals = _use_normals(k, d) and not oriented
+        normals = use_normals(k, d) and not oriented
         As, Ns, rs, ss, counts, cover = [], [], [], [], [], []
         for i, c in enumerate(C):
             rows = np.flatnonzero(near == i)
@@ -775,9 +547,9 @@ class Atlas:
             if k == 0:
                 a, n = np.zeros((d, 0)), np.eye(d)
             elif normals:
-                a, n = _complement(c), c
+                a, n = complement(c), c
             else:
-                a, n = c, _complement(c)
+                a, n = c, complement(c)
             Qc = n @ n.T
             x = np.linalg.pinv(Q[rows].sum(axis=0)) @ r[rows].sum(axis=0)
             rc = Qc @ x
@@ -862,13 +634,7 @@ class Atlas:
             without orientation (``parametric``, ``flats``) given to an
             oriented atlas.
         """
-        if not isinstance(flats, Flats):
-            raise InvalidInputError(
-                f"flats: expected a flatserve.Flats batch, got {type(flats).__name__}", "flats")
-        if flats.k != self.k or flats.d != self.d:
-            arg = next(iter(flats.arrays))
-            raise InvalidInputError(f"{arg}: this atlas charts {self.k}-flats in R^{self.d}, "
-                                    f"got {flats.k}-flats in R^{flats.d}", arg)
+        _flats.check_batch(flats, self.k, self.d, "this atlas charts")
         _require_rays(flats, self.oriented)
         return flats
 
@@ -930,7 +696,7 @@ class Atlas:
             best = np.full(n, -1.0)
             near = np.zeros(n, dtype=np.int64)
         for i in range(c):
-            c2 = _cos2_max(self.frames[i], F)
+            c2 = cos2_max_angle(self.frames[i], F)
             sel = np.flatnonzero(c2 > cr2)
             rows.append(sel)
             angles.append(np.arccos(np.sqrt(c2[sel])))
@@ -961,7 +727,7 @@ class Atlas:
             if not self.oriented:
                 np.abs(dots, out=dots)
             return np.count_nonzero(dots > cr, axis=0).astype(np.int64)
-        return np.array([np.count_nonzero(_cos2_max(C, F) > cr * cr) for C in self.frames],
+        return np.array([np.count_nonzero(cos2_max_angle(C, F) > cr * cr) for C in self.frames],
                         dtype=np.int64)
 
     def covering_radius(self, n: int = COVER_CHECK_N, *, seed: int = 1,
@@ -974,23 +740,8 @@ class Atlas:
         -------
         float, or (float, ndarray (d, j)) with the worst orientation's frame
         """
-        rng = np.random.default_rng(seed)
-        j = self.frames.shape[2]
-        worst_c, worst_f = 2.0, None
-        for start in range(0, n, batch):
-            m = min(batch, n - start)
-            if self.oriented:
-                v = rng.standard_normal((m, self.d))
-                F = (v / np.linalg.norm(v, axis=1, keepdims=True))[:, :, None]
-                best = (F[:, :, 0] @ self.frames[:, :, 0].T).max(axis=1)
-            else:
-                F = haar_frames(m, self.d, j, rng)
-                best = np.max([np.sqrt(_cos2_max(C, F)) for C in self.frames], axis=0)
-            i = int(np.argmin(best))
-            if best[i] < worst_c:
-                worst_c, worst_f = float(best[i]), F[i]
-        deg = float(np.degrees(np.arccos(np.clip(worst_c, -1.0, 1.0))))
-        return (deg, worst_f) if return_worst else deg
+        return covering_radius(self.frames, oriented=self.oriented, n=n, seed=seed,
+                               return_worst=return_worst, batch=batch)
 
     # ------------------------------------------------------------- persistence
     @property
@@ -1019,6 +770,34 @@ class Atlas:
         """Whether the atlas stored as ``spec`` (:meth:`to_dict`) has isometric charts:
         a spec written before there was a choice has the paper's charts."""
         return bool(spec.get("isometric", False))
+
+    @staticmethod
+    def describe_spec(spec: dict) -> dict:
+        """The description of the atlas stored as ``spec`` (:meth:`to_dict`), without samples.
+
+        What a field's ``describe`` says of its atlas, available before the
+        field is loaded (:func:`flatserve.contract.describe_definition`).
+
+        Returns
+        -------
+        dict
+            ``{"atlas": {"method", "oriented", "inner", "trusted", "reach",
+            "unit", "isometric", "covering_radius", "max_sample_angle",
+            "info"}, "charts": [{"center": {"A", "r"}, "scale", "samples":
+            None}, ...]}`` (``method``, ``covering_radius`` and
+            ``max_sample_angle`` from ``info``, None where it has none).
+        """
+        info = dict(spec.get("info", {}))
+        return {
+            "atlas": {"method": info.get("method"), "oriented": bool(spec["oriented"]),
+                      "inner": spec["inner"], "trusted": spec["trusted"],
+                      "reach": spec["reach"], "unit": spec.get("unit", DEFAULT_UNIT),
+                      "isometric": Atlas.spec_isometric(spec),
+                      "covering_radius": info.get("covering_radius_deg"),
+                      "max_sample_angle": info.get("max_sample_angle_deg"), "info": info},
+            "charts": [{"center": {"A": A, "r": r}, "scale": s, "samples": None}
+                       for A, r, s in zip(spec["center_A"], spec["center_r"], spec["scales"])],
+        }
 
     def chart_field(self, i: int, channels: int = 1, *,
                     roundtrip_tol: float = ROUNDTRIP_TOL) -> Field:
@@ -1119,476 +898,3 @@ def _require_rays(flats: Flats, oriented: bool) -> None:
 
 
 # ---------------------------------------------------------------------- atlas field
-
-
-@dataclass(frozen=True)
-class AtlasPrepared:
-    """A batch routed and charted by :meth:`AtlasField.prepare`, not yet inserted.
-
-    Attributes
-    ----------
-    nrows : int
-        Rows of the input batch.
-    own : list of PreparedBatch or None
-        Per chart, the accepted rows whose nearest centre is this chart's.
-    shared : list of PreparedBatch or None
-        Per chart, the accepted rows that are nearer to another centre (the
-        overlap: inserted so that the chart covers its blending domain).
-    accepted_rows : ndarray (int64)
-        Rows accepted by at least one chart.
-    rejected : ndarray (int64)
-        Rows no chart accepted.
-    reasons : list of str
-        One per rejected row.
-    """
-
-    nrows: int
-    own: list
-    shared: list
-    accepted_rows: np.ndarray
-    rejected: np.ndarray
-    reasons: list
-
-    @property
-    def accepted(self) -> int:
-        return int(self.accepted_rows.size)
-
-
-@dataclass(frozen=True)
-class AtlasQueryResult(QueryResult):
-    """:class:`~flatserve.field.QueryResult` of an :class:`AtlasField`.
-
-    ``values`` is the blend ``sum_i w_i v_i`` over the charts whose domain
-    holds the query (partition-of-unity weights ``w_i``).  With
-    ``return_weights``, ``ids``/``weights`` have shape (q, P, D+1): per
-    contributing chart (``charts`` (q, P), -1 for none) the chart's sample
-    ids and its barycentric weights times ``w_i``, so that
-    ``values[q] = sum_{p, v} weights[q, p, v] * chart_values[charts[q, p]][ids[q, p, v]]``.
-    """
-
-    charts: np.ndarray | None = None
-
-
-def _slices(parts, step: int) -> list[list]:
-    """``(field, PreparedBatch, own)`` parts cut into groups of at most ``step``
-    samples over all charts, in order (a part larger than ``step`` is cut)."""
-    groups, cur, n = [], [], 0
-    for f, p, own in parts:
-        for lo in range(0, p.accepted, step):
-            size = min(step, p.accepted - lo)
-            piece = p if size == p.accepted else PreparedBatch(
-                size, p.x[lo:lo + step], p.values[lo:lo + step], _NO_ROWS, [])
-            if cur and n + size > step:
-                groups.append(cur)
-                cur, n = [], 0
-            cur.append((f, piece, own))
-            n += size
-    if cur:
-        groups.append(cur)
-    return groups
-
-
-class AtlasField:
-    """Values sampled on k-flats, over an :class:`Atlas`: one Field per chart, blended.
-
-    Every sample is inserted into each chart whose centre is closer than
-    ``atlas.reach``; a query is answered by every chart whose centre is
-    closer than ``atlas.trusted``, and the answers are blended with the
-    partition of unity ``w_i = bump(angle_i) / sum_j bump(angle_j)``
-    (:func:`bump`), which varies continuously (C^2) with the query flat: the
-    interpolant has no seam where one chart hands over to the next.  Charts
-    whose answer is missing (outside their samples' hull) are left out of the
-    sum.  Deep inside a chart (no other centre closer than ``trusted``) the
-    answer is that chart's :class:`~flatserve.field.Field`'s.
-
-    Thread safety as :class:`~flatserve.field.Field`: readers together, a
-    writer alone.  The field's own readers/writer lock makes a batch atomic
-    across charts: :meth:`query` and :meth:`save` see a whole
-    :meth:`insert_prepared` batch in every chart, or in none.
-
-    Parameters
-    ----------
-    atlas : Atlas
-    channels : int
-    roundtrip_tol : float
-        Of every chart's Field.
-    """
-
-    def __init__(self, atlas: Atlas, channels: int = 1, *,
-                 roundtrip_tol: float = ROUNDTRIP_TOL):
-        if not isinstance(atlas, Atlas):
-            raise InvalidInputError(f"atlas: expected a flatserve.atlas.Atlas, got "
-                                    f"{type(atlas).__name__}", "atlas")
-        self.atlas = atlas
-        self.fields = [atlas.chart_field(i, channels, roundtrip_tol=roundtrip_tol)
-                       for i in range(atlas.ncharts)]
-        self.k, self.d, self.ndim = atlas.k, atlas.d, self.fields[0].ndim
-        self.channels = self.fields[0].channels
-        self.roundtrip_tol = self.fields[0].roundtrip_tol
-        self._nsamples = 0
-        self._nrejected = 0
-        self._lock = RWLock()
-
-    # ------------------------------------------------------------------ sizes
-    @property
-    def nsamples(self) -> int:
-        """Distinct samples (each counted in its nearest chart)."""
-        return self._nsamples
-
-    @property
-    def nstored(self) -> int:
-        """Vertices over all charts (a sample counts once per chart holding it)."""
-        return int(sum(f.nsamples for f in self.fields))
-
-    @property
-    def duplication(self) -> float:
-        """``nstored / nsamples``: how many charts hold a sample on average."""
-        return self.nstored / self._nsamples if self._nsamples else float("nan")
-
-    @property
-    def nsimplex(self) -> int:
-        """Cells over all charts' triangulations."""
-        return int(sum(f.nsimplex for f in self.fields))
-
-    @property
-    def samples_per_chart(self) -> list[int]:
-        return [f.nsamples for f in self.fields]
-
-    @property
-    def nrejected(self) -> int:
-        return self._nrejected
-
-    # --------------------------------------------------------------- writers
-    def _values(self, values, n: int) -> np.ndarray:
-        v = np.asarray(values)
-        if v.ndim == 1 and self.channels == 1:
-            v = v[:, None]
-        return as_array(v, "values", (n, self.channels))
-
-    def prepare(self, flats: Flats, values, *, defer: bool = False
-                ) -> "AtlasPrepared | Callable[[], AtlasPrepared]":
-        """Route a batch to the charts whose domain (``reach``) holds each row, and chart it.
-
-        Reads only the atlas; :meth:`insert_prepared` completes it.
-
-        Parameters
-        ----------
-        flats : Flats
-            ``n`` k-flats in R^d (rays for oriented atlases).
-        values : (n, C) float, or (n,) when C == 1
-        defer : bool
-            Validate now (raising for bad input) but return a zero-argument
-            callable that routes and charts when called (as
-            :meth:`Field.prepare`): once validated, every row gets a decision.
-
-        Returns
-        -------
-        AtlasPrepared, or a callable returning one when ``defer``
-
-        Raises
-        ------
-        InvalidInputError
-            Wrong (k, d), orientation-free forms for an oriented atlas
-            (naming the form's first array), bad ``values``.
-        """
-        self.atlas.check_flats(flats)
-        values = self._values(values, flats.n)
-        if defer:
-            return functools.partial(self._prepare, flats, values)
-        return self._prepare(flats, values)
-
-    def _prepare(self, flats: Flats, values: np.ndarray) -> AtlasPrepared:
-        n = flats.n
-        ro = self.atlas.route(flats, self.atlas.reach)
-        taken = np.zeros(n, dtype=bool)
-        first_reason: dict[int, str] = {}
-        own, shared = [], []
-        for c, rows in enumerate(ro.rows):
-            if rows.size == 0:
-                own.append(None)
-                shared.append(None)
-                continue
-            pb = self.fields[c].prepare(flats.take(rows), values[rows])
-            okm = np.ones(rows.size, dtype=bool)
-            okm[pb.rejected] = False
-            for i, why in zip(pb.rejected.tolist(), pb.reasons):
-                first_reason.setdefault(int(rows[i]), f"chart {c}: {why}")
-            acc = rows[okm]
-            taken[acc] = True
-            mine = ro.nearest[acc] == c
-            own.append(PreparedBatch(int(mine.sum()), pb.x[mine], pb.values[mine],
-                                     np.empty(0, np.int64), []))
-            shared.append(PreparedBatch(int((~mine).sum()), pb.x[~mine], pb.values[~mine],
-                                        np.empty(0, np.int64), []))
-        rejected = np.flatnonzero(~taken).astype(np.int64)
-        reach = self.atlas.reach
-        reasons = [first_reason.get(int(i), (
-            f"outside every chart's domain: {math.degrees(ro.nearest_angle[i]):.2f} degrees "
-            f"from the nearest centre (chart {int(ro.nearest[i])}), charts reach {reach:g}"))
-            for i in rejected.tolist()]
-        return AtlasPrepared(n, own, shared, np.flatnonzero(taken).astype(np.int64), rejected,
-                             reasons)
-
-    def insert_prepared(self, batch: AtlasPrepared, *,
-                        slice_rows: int | None = None) -> AddResult:
-        """Insert a :meth:`prepare`-d batch into its charts (a writer).
-
-        Parameters
-        ----------
-        batch : AtlasPrepared
-        slice_rows : int, optional
-            As :meth:`Field.insert_prepared`: insert at most this many samples
-            (counted over the charts) at a time, so that concurrent queries get in
-            between slices. Each slice is atomic: a batch holding at most
-            ``slice_rows`` samples over all its charts is seen in every chart or in
-            none; a larger one is seen in part (some charts, or part of a chart)
-            until its last slice is in. Default: the whole batch at once.
-        """
-        if not isinstance(batch, AtlasPrepared) or len(batch.own) != len(self.fields):
-            raise InvalidInputError("batch: expected an AtlasPrepared made by this field",
-                                    "batch")
-        if slice_rows is not None and not (isinstance(slice_rows, (int, np.integer))
-                                           and slice_rows >= 1):
-            raise InvalidInputError(f"slice_rows: expected a positive integer or None, got "
-                                    f"{slice_rows!r}", "slice_rows")
-        parts = [(f, p, own) for f, o, s in zip(self.fields, batch.own, batch.shared)
-                 for p, own in ((o, True), (s, False)) if p is not None and p.accepted]
-        if slice_rows is None or not parts:
-            groups = [parts]
-        else:
-            groups = _slices(parts, int(slice_rows))
-        duplicates = 0
-        for i, group in enumerate(groups):
-            with self._lock.write():  # a whole batch, or one slice
-                for f, p, own in group:
-                    res = f.insert_prepared(p)
-                    if own:  # a sample counts once, in its nearest chart
-                        duplicates += res.duplicates
-                        self._nsamples += res.accepted - res.duplicates
-                if i == len(groups) - 1:
-                    self._nrejected += int(batch.rejected.size)
-        return AddResult(accepted=batch.accepted, rejected=batch.rejected,
-                         reasons=batch.reasons, duplicates=duplicates,
-                         nsamples=self._nsamples)
-
-    def add(self, flats: Flats, values) -> AddResult:
-        """Add samples: ``insert_prepared(prepare(flats, values))`` (a writer).
-
-        Returns
-        -------
-        AddResult
-            ``duplicates`` counts rows that coincided with a sample already in
-            their nearest chart; ``nsamples`` the distinct samples afterwards.
-        """
-        return self.insert_prepared(self.prepare(flats, values))
-
-    # --------------------------------------------------------------- readers
-    def query(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
-              order: Order | str = Order.HILBERT,
-              threads: int | None = None, return_weights: bool = False,
-              blocking: bool = True) -> "AtlasQueryResult | None":
-        """Interpolate at flats: every chart holding the query, blended.
-
-        Parameters
-        ----------
-        flats : Flats
-            ``q`` k-flats in R^d.
-        outside, order, threads
-            Passed to each chart's :meth:`Field.query`.
-        return_weights : bool
-            Also return per contributing chart the sample ids and weights
-            (:class:`AtlasQueryResult`).
-        blocking : bool
-            False: return None at once instead of waiting for an insert in progress.
-
-        Returns
-        -------
-        AtlasQueryResult
-            ``status`` is OK when some chart's coordinates round-trip;
-            ``NOT_REPRESENTABLE`` when no chart's domain holds the query.
-            ``inside`` when some chart with positive weight answered from
-            inside its samples' hull.
-        """
-        outside, order = choice(outside, Outside, "outside"), choice(order, Order, "order")
-        at = self.atlas
-        ro = at.route(flats, at.trusted, nearest=False)
-        if blocking:
-            self._lock.acquire_read()
-        elif not self._lock.try_acquire_read():
-            return None
-        try:  # charts change only under this lock's write side: they never make us wait
-            return self._query(flats, ro, outside, order, threads, return_weights)
-        finally:
-            self._lock.release_read()
-
-    def _query(self, flats, ro, outside, order, threads, return_weights) -> AtlasQueryResult:
-        # Per chart holding rows: its Field's answer on those rows only, blended
-        # into num / den in chart order (the sums of a row are always added in
-        # increasing chart order, from 0.0).
-        at = self.atlas
-        n, C = flats.n, self.channels
-        num = np.zeros((n, C))
-        den = np.zeros(n)
-        inside = np.zeros(n, dtype=bool)
-        status = np.full(n, NOT_REPRESENTABLE, dtype=np.int8)
-        inner, trusted = math.radians(at.inner), math.radians(at.trusted)
-        if return_weights:
-            counts = np.bincount(np.concatenate(ro.rows), minlength=n) if n else np.zeros(0, int)
-            P = int(counts.max(initial=0))
-            D1 = self.ndim + 1
-            ids = np.full((n, P, D1), -1, dtype=np.int64)
-            wts = np.zeros((n, P, D1))
-            charts = np.full((n, P), -1, dtype=np.int64)
-            blend = np.zeros((n, P))
-            slot = np.zeros(n, dtype=np.int64)
-        for c, rows in enumerate(ro.rows):
-            if rows.size == 0 or self.fields[c].nsamples == 0:
-                continue
-            b = bump(ro.angles[c], inner, trusted)
-            res = self.fields[c].query(flats.take(rows), outside=outside, order=order,
-                                       threads=threads, return_weights=return_weights)
-            v = res.values
-            fin = np.isfinite(v)
-            good = fin[:, 0] if C == 1 else fin.all(axis=1)
-            w = b if good.all() else np.where(good, b, 0.0)  # the common case: no masking
-            if C == 1:  # 1-D scatters (much faster than (m, 1) ones)
-                num[:, 0][rows] += w * (v[:, 0] if w is b else np.where(good, v[:, 0], 0.0))
-            else:
-                num[rows] += w[:, None] * (v if w is b else np.where(good[:, None], v, 0.0))
-            den[rows] += w
-            inside[rows] |= res.inside & (w > 0)
-            status[rows[res.status == OK]] = OK
-            if return_weights:
-                s = slot[rows]
-                ids[rows, s] = res.ids
-                wts[rows, s] = np.where(good[:, None], res.weights, 0.0)
-                charts[rows, s] = c
-                blend[rows, s] = w
-                slot[rows] += 1
-        has = den > 0
-        values = np.full((n, C), np.nan)
-        np.divide(num, den[:, None], out=values, where=has[:, None])
-        if return_weights:
-            with np.errstate(invalid="ignore", divide="ignore"):
-                wts *= (blend / np.where(has, den, np.nan)[:, None])[:, :, None]
-            wts[~has] = np.nan
-            return AtlasQueryResult(values, inside, status, ids, wts, charts)
-        return AtlasQueryResult(values, inside, status)
-
-    def describe(self) -> dict:
-        """JSON-able summary: the atlas's radii and, per chart, centre, scale, samples.
-
-        Returns
-        -------
-        dict
-            ``{"k", "d", "oriented", "inner", "trusted", "reach", "unit", "isometric", "info",
-            "nsamples", "nstored", "duplication", "charts": [{"center": {"A",
-            "r"}, "scale", "samples"}, ...]}``.
-        """
-        at = self.atlas
-        return {
-            "k": at.k, "d": at.d, "oriented": at.oriented, "inner": at.inner,
-            "trusted": at.trusted, "reach": at.reach, "unit": at.unit,
-            "isometric": at.isometric, "info": at.info,
-            "nsamples": self.nsamples, "nstored": self.nstored,
-            "duplication": None if not self._nsamples else self.duplication,
-            "charts": [{"center": {"A": at.center_A[i].tolist(), "r": at.center_r[i].tolist()},
-                        "scale": float(at.scales[i]), "samples": f.nsamples}
-                       for i, f in enumerate(self.fields)],
-        }
-
-    # ----------------------------------------------------------- persistence
-    def save(self, path: str | os.PathLike) -> None:
-        """Write the field to one file ``path``.
-
-        Layout: 8-byte magic ``FSATLAS\\0``, uint32 version, uint64 metadata
-        length, the metadata JSON (``{"atlas": Atlas.to_dict(), "channels",
-        "roundtrip_tol", "nsamples", "nrejected", "charts": c}``), then per
-        chart a uint64 length and that chart's field file
-        (:meth:`Field.save`, ``flatserve/field.py``).  Written, flushed and
-        fsync'd; not atomic by itself (the service writes to a temporary
-        file and renames it).  A reader: may run beside queries; a batch
-        inserted meanwhile waits (the snapshot holds whole batches).
-        """
-        meta = json.dumps({"atlas": self.atlas.to_dict(), "channels": self.channels,
-                           "roundtrip_tol": self.roundtrip_tol, "nsamples": self._nsamples,
-                           "nrejected": self._nrejected,
-                           "charts": len(self.fields)}).encode()
-        with self._lock.read(), open(path, "wb") as fh:
-            fh.write(_ATLAS_HEADER.pack(_ATLAS_MAGIC, _ATLAS_VERSION, len(meta)))
-            fh.write(meta)
-            for f in self.fields:
-                at = fh.tell()
-                fh.write(_LENGTH.pack(0))
-                size = f.write_to(fh)
-                fh.seek(at)
-                fh.write(_LENGTH.pack(size))
-                fh.seek(0, os.SEEK_END)
-            fh.flush()
-            os.fsync(fh.fileno())
-
-    @classmethod
-    def load(cls, path: str | os.PathLike) -> "AtlasField":
-        """Read a field written by :meth:`save`.
-
-        Raises
-        ------
-        SnapshotError
-            The file is truncated, damaged or of another format.
-        """
-        data = memoryview(Path(path).read_bytes())
-        if len(data) < _ATLAS_HEADER.size:
-            raise SnapshotError(f"{path}: truncated atlas field file ({len(data)} bytes)")
-        magic, version, mlen = _ATLAS_HEADER.unpack_from(data)
-        if magic != _ATLAS_MAGIC:
-            raise SnapshotError(f"{path}: not a flatserve atlas field file (bad magic)")
-        if version != _ATLAS_VERSION:
-            raise SnapshotError(f"{path}: atlas field file version {version}, expected "
-                                f"{_ATLAS_VERSION}")
-        off = _ATLAS_HEADER.size
-        if off + mlen > len(data):
-            raise SnapshotError(f"{path}: truncated atlas field metadata")
-        try:
-            meta = json.loads(bytes(data[off:off + mlen]))
-            atlas = Atlas.from_dict(meta["atlas"])
-            ncharts = int(meta["charts"])
-            obj = cls(atlas, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]))
-            nsamples, nrejected = int(meta["nsamples"]), int(meta["nrejected"])
-        except (KeyError, TypeError, ValueError, InvalidInputError) as exc:
-            raise SnapshotError(f"{path}: corrupted atlas metadata: {exc}") from None
-        if ncharts != atlas.ncharts:
-            raise SnapshotError(f"{path}: {ncharts} chart files for {atlas.ncharts} charts")
-        off += mlen
-        for i in range(ncharts):
-            if off + _LENGTH.size > len(data):
-                raise SnapshotError(f"{path}: truncated at chart {i}")
-            (size,) = _LENGTH.unpack_from(data, off)
-            off += _LENGTH.size
-            if off + size > len(data):
-                raise SnapshotError(f"{path}: truncated at chart {i}")
-            f = Field.from_bytes(data[off:off + size], source=f"{path}: chart {i}")
-            off += size
-            if f.ndim != obj.ndim or f.channels != obj.channels:
-                raise SnapshotError(f"{path}: chart {i} does not match the atlas")
-            want = atlas.warps[i]
-            if (f.warp is None) != (want is None) or (
-                    want is not None and f.warp.to_dict() != want.to_dict()):
-                raise SnapshotError(f"{path}: chart {i}'s warp does not match the atlas's")
-            obj.fields[i] = f
-        if off != len(data):
-            raise SnapshotError(f"{path}: {len(data) - off} bytes after the last chart")
-        obj._nsamples, obj._nrejected = nsamples, nrejected
-        return obj
-
-    def __repr__(self) -> str:
-        return (f"AtlasField(k={self.k}, d={self.d}, charts={self.atlas.ncharts}, "
-                f"oriented={self.atlas.oriented}, channels={self.channels}, "
-                f"nsamples={self.nsamples}, nstored={self.nstored})")
-
-
-_NO_ROWS = np.empty(0, np.int64)
-_NO_ROWS.setflags(write=False)
-_ATLAS_MAGIC = b"FSATLAS\x00"
-_ATLAS_VERSION = 1
-_ATLAS_HEADER = struct.Struct("<8sIQ")  # magic, version, metadata length
-_LENGTH = struct.Struct("<Q")

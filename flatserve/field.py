@@ -12,35 +12,23 @@ values at the vertices of its simplex.
 """
 from __future__ import annotations
 
-import functools
-import json
 import math
-import os
-import struct
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Callable
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from ._validate import as_array
+from ._fieldbase import FieldBase, corrupted, pack_header, read_header
 from .basis import Basis
 from .coordinates import OK, ROUNDTRIP_TOL, reason
 from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
 from .options import Order, Outside, choice
-from .flats import Flats
+from .flats import Flats, check_batch
 from .triangulation import Triangulation
 from .warp import LineWarp
 
-__all__ = ["Field", "AddResult", "Chart", "PreparedBatch", "QueryResult"]
-
-_MAGIC = b"FSFIELD\x00"
-_VERSION = 1
-#: The version of a field file with a warp (its points are warped: a reader of
-#: version 1 would chart its queries without it). Both are read.
-_VERSION_WARP = 2
-_HEADER = struct.Struct("<8sIQ")  # magic, version, metadata length
+__all__ = ["FIELD_MAGIC", "Field", "AddResult", "Chart", "PreparedBatch", "QueryResult", "QueryRoute"]
 
 
 @dataclass(frozen=True)
@@ -127,6 +115,22 @@ class QueryResult:
     weights: np.ndarray | None = None
 
 
+class QueryRoute(NamedTuple):
+    """Which shards answer which of ``n`` queries, and with what weight (``route_query``).
+
+    ``rows[i]`` (int64, increasing) are the queries shard ``i`` answers and
+    ``weights[i]`` (float64, the same length) their blending weights, before
+    the rows the shard cannot answer are dropped (all 1 for a one-chart field).
+    """
+
+    #: queries in the batch
+    n: int
+    #: per shard, row indices
+    rows: list
+    #: per shard, one weight per row
+    weights: list
+
+
 @dataclass(frozen=True)
 class Chart:
     """Flats expressed in a field's chart: :meth:`Field.chart`.
@@ -167,7 +171,15 @@ class Chart:
                      self.seconds)
 
 
-class Field:
+#: The first 8 bytes of a field file (:meth:`Field.write_to`).
+FIELD_MAGIC = b"FSFIELD\x00"
+_VERSION = 1
+#: The version of a field file with a warp (its points are warped: a reader of
+#: version 1 would chart its queries without it). Both are read.
+_VERSION_WARP = 2
+
+
+class Field(FieldBase):
     """Values sampled on k-flats in R^d, interpolated piecewise linearly.
 
     The one place where flats become interpolated values: :meth:`chart`
@@ -182,6 +194,10 @@ class Field:
     once, but a writer (:meth:`insert_prepared`, :meth:`add`) must not run
     beside any other call. The service guards each field with one
     readers/writer lock.
+
+    A Field is one *shard* of the field contract
+    (:class:`flatserve.contract.SampledField`): ``shards == (self,)``, its
+    routing sends every row to itself and its blend is its own answer.
 
     Parameters
     ----------
@@ -237,6 +253,11 @@ class Field:
         return self._tri.npoints
 
     @property
+    def nstored(self) -> int:
+        """Vertices stored: :attr:`nsamples` (one shard holds each sample once)."""
+        return self._tri.npoints
+
+    @property
     def nsimplex(self) -> int:
         return self._tri.nsimplex
 
@@ -263,14 +284,7 @@ class Field:
 
     # ------------------------------------------------------------ charting
     def _flats(self, flats) -> Flats:
-        if not isinstance(flats, Flats):
-            raise InvalidInputError(
-                f"flats: expected a flatserve.Flats batch, got {type(flats).__name__}", "flats")
-        if flats.k != self.k or flats.d != self.d:
-            arg = next(iter(flats.arrays))
-            raise InvalidInputError(f"{arg}: this field holds {self.k}-flats in R^{self.d}, got "
-                                    f"{flats.k}-flats in R^{flats.d}", arg)
-        return flats
+        return check_batch(flats, self.k, self.d, "this field holds")
 
     def chart(self, flats: Flats, *, threads: int | None = None) -> Chart:
         """Express flats in the field's chart: coordinates (Sec. 4) and embedding (Sec. 5).
@@ -311,43 +325,6 @@ class Field:
                      time.perf_counter() - t0)
 
     # --------------------------------------------------------------- writers
-    def _values(self, values, n: int) -> np.ndarray:
-        v = np.asarray(values)
-        if v.ndim == 1 and self.channels == 1:
-            v = v[:, None]
-        return as_array(v, "values", (n, self.channels))
-
-    def prepare(self, flats: Flats, values, *, defer: bool = False
-                ) -> "PreparedBatch | Callable[[], PreparedBatch]":
-        """First half of :meth:`add`: chart a batch and decide its rows, without inserting.
-
-        Computes the coordinates (paper Sec. 4) and their embedding, and decides
-        which rows are accepted and why the others are not. Reads only the
-        basis, so it may run while the field is queried or written.
-        :meth:`insert_prepared` completes it. (The service uses the split to
-        acknowledge an upload before the slower Delaunay insert.)
-
-        Parameters
-        ----------
-        flats : Flats
-            ``n`` k-flats in R^d (validated when built).
-        values : (n, C) float, or (n,) when C == 1
-        defer : bool
-            Validate now (raising :class:`~flatserve.errors.InvalidInputError`
-            for bad input) but return a zero-argument callable that charts
-            when called. Once validation has passed, charting cannot reject
-            the batch as a whole: every row gets a status.
-
-        Returns
-        -------
-        PreparedBatch, or a callable returning one when ``defer``
-        """
-        flats = self._flats(flats)
-        values = self._values(values, flats.n)
-        if defer:
-            return functools.partial(self._prepare, flats, values)
-        return self._prepare(flats, values)
-
     def _prepare(self, flats: Flats, values: np.ndarray) -> "PreparedBatch":
         ch = self.chart(flats)
         ok = ch.ok
@@ -380,11 +357,8 @@ class Field:
             batch.values.shape[1:] != (self.channels,)
         ):
             raise InvalidInputError("batch: expected a PreparedBatch made by this field", "batch")
-        if slice_rows is not None and not (isinstance(slice_rows, (int, np.integer))
-                                           and slice_rows >= 1):
-            raise InvalidInputError(f"slice_rows: expected a positive integer or None, got "
-                                    f"{slice_rows!r}", "slice_rows")
-        step = batch.accepted if slice_rows is None else int(slice_rows)
+        slice_rows = self._slice_rows(slice_rows)
+        step = batch.accepted if slice_rows is None else slice_rows
         duplicates = 0
         for lo in range(0, batch.accepted, max(step, 1)):
             duplicates += int(self._tri.insert(batch.x[lo:lo + step],
@@ -397,25 +371,6 @@ class Field:
             duplicates=duplicates,
             nsamples=self.nsamples,
         )
-
-    def add(self, flats: Flats, values) -> AddResult:
-        """Add samples: flats with their values (a writer).
-
-        Rows whose coordinates do not round-trip are rejected with a reason
-        (they lie outside the chart the basis spans); the others are embedded
-        and inserted. Equivalent to ``insert_prepared(prepare(flats, values))``.
-
-        Parameters
-        ----------
-        flats : Flats
-            ``n`` k-flats in R^d, any form.
-        values : (n, C) float, or (n,) when C == 1
-
-        Returns
-        -------
-        AddResult
-        """
-        return self.insert_prepared(self.prepare(flats, values))
 
     def add_rays(self, origins, directions, values) -> AddResult:
         """``add(Flats.from_rays(origins, directions), values)``: lines, (n, d) each."""
@@ -502,6 +457,43 @@ class Field:
         """``query(Flats.from_rays(origins, directions), **kwargs)``: lines, (q, d) each."""
         return self.query(Flats.from_rays(origins, directions), **kwargs)
 
+    # ---------------------------------------------------- the field as shards
+    @property
+    def shards(self) -> "tuple[Field]":
+        """The field's shards: itself (a one-chart field is one shard)."""
+        return (self,)
+
+    def route(self, flats: Flats) -> list[np.ndarray]:
+        """Per shard, the rows it stores: every row, in the one shard.
+
+        Returns
+        -------
+        list of one ndarray, shape (n,), int64
+        """
+        return [np.arange(self._flats(flats).n, dtype=np.int64)]
+
+    def route_query(self, flats: Flats) -> QueryRoute:
+        """Per shard, the queries it answers and their weights: all, weight 1."""
+        n = self._flats(flats).n
+        return QueryRoute(n, [np.arange(n, dtype=np.int64)], [np.ones(n)])
+
+    def blend(self, route: QueryRoute, results: "Sequence[QueryResult | None]", *,
+              return_weights: bool = False) -> QueryResult:
+        """The field's answer from its shards' answers: the one shard's, as it is."""
+        (res,) = results
+        if res is None:
+            raise InvalidInputError("results: a one-chart field's answer is its shard's",
+                                    "results")
+        return res
+
+    def copies(self, flats: Flats) -> float:
+        """How many shards would store each of these rows on average: 1.0."""
+        self._flats(flats)
+        return 1.0
+
+    def _definition(self) -> dict:
+        return {"atlas": None, "charts": None}
+
     # ----------------------------------------------------------- persistence
     def _metadata(self) -> dict:
         return {
@@ -521,7 +513,13 @@ class Field:
         return _VERSION if self.warp is None else _VERSION_WARP
 
     def write_to(self, fh) -> int:
-        """Write the field file (layout of :meth:`save`) to an open binary file.
+        """Write the field file to an open binary file (the shard's snapshot).
+
+        Layout: 8-byte magic ``FSFIELD\\0``, uint32 version (1; 2 with a
+        warp), uint64 metadata length, the metadata as JSON (basis, channels,
+        counters, warp), then the native triangulation snapshot (see
+        :meth:`flatserve.Triangulation.save`). :meth:`save` writes it to a
+        file, :meth:`to_bytes` to bytes, :meth:`from_bytes` reads it.
 
         Parameters
         ----------
@@ -533,35 +531,15 @@ class Field:
         int
             Bytes written.
         """
-        meta = json.dumps(self._metadata()).encode()
+        head = pack_header(FIELD_MAGIC, self._version, self._metadata())
         payload = self._tri.to_bytes()
-        fh.write(_HEADER.pack(_MAGIC, self._version, len(meta)))
-        fh.write(meta)
+        fh.write(head)
         fh.write(payload)
-        return _HEADER.size + len(meta) + len(payload)
-
-    def save(self, path: str | os.PathLike) -> None:
-        """Write the field (basis, values, triangulation) to one file.
-
-        Layout: 8-byte magic, uint32 version, uint64 metadata length, the
-        metadata as JSON (basis, channels, counters), then the native
-        triangulation snapshot (see :meth:`flatserve.Triangulation.save`).
-        Not atomic by itself: the service writes to a temporary file and
-        renames it. A reader: may run beside queries, not beside a writer.
-        """
-        with open(path, "wb") as fh:
-            self.write_to(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-
-    @classmethod
-    def load(cls, path: str | os.PathLike) -> "Field":
-        """Read a field written by :meth:`save`; raises SnapshotError if damaged."""
-        return cls.from_bytes(Path(path).read_bytes(), source=str(path))
+        return len(head) + len(payload)
 
     @classmethod
     def from_bytes(cls, data, *, source: str = "field") -> "Field":
-        """A field from the bytes of a file written by :meth:`save` (or :meth:`write_to`).
+        """A field from the bytes of a field file (:meth:`write_to`): a shard's restore.
 
         Parameters
         ----------
@@ -575,19 +553,9 @@ class Field:
         SnapshotError
             Truncated or damaged data.
         """
-        if len(data) < _HEADER.size:
-            raise SnapshotError(f"{source}: truncated field file ({len(data)} bytes)")
-        magic, version, mlen = _HEADER.unpack_from(data)
-        if magic != _MAGIC:
-            raise SnapshotError(f"{source}: not a flatserve field file (bad magic)")
-        if version not in (_VERSION, _VERSION_WARP):
-            raise SnapshotError(f"{source}: field file version {version}, expected {_VERSION} "
-                                f"or {_VERSION_WARP}")
-        start = _HEADER.size
-        if start + mlen > len(data):
-            raise SnapshotError(f"{source}: truncated field metadata")
+        version, meta, start = read_header(data, magic=FIELD_MAGIC, versions=(_VERSION, _VERSION_WARP),
+                                           kind="field", source=source)
         try:
-            meta = json.loads(bytes(data[start : start + mlen]))
             basis = Basis(np.array(meta["basis_Q"]), np.array(meta["basis_r"]), int(meta["k"]))
             warp = LineWarp.from_dict(meta["warp"]) if "warp" in meta else None
             if (warp is not None) != (version == _VERSION_WARP):
@@ -595,8 +563,8 @@ class Field:
             obj = cls(basis, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]),
                       warp=warp)
         except (ValueError, KeyError, TypeError, InvalidInputError) as exc:
-            raise SnapshotError(f"{source}: corrupted field metadata: {exc}") from None
-        obj._tri = Triangulation.from_bytes(data[start + mlen :])
+            raise corrupted("field", source, exc) from None
+        obj._tri = Triangulation.from_bytes(data[start:])
         if obj._tri.ndim != obj.ndim:
             raise SnapshotError(f"{source}: triangulation dimension {obj._tri.ndim} does not match basis")
         obj._nrejected = int(meta.get("nrejected", 0))

@@ -43,6 +43,7 @@ __all__ = [
     "PINV_RCOND",
     "WEIGHT_TOL",
     "Projection",
+    "check_batch",
     "check_k",
     "from_parametric",
     "from_points",
@@ -882,3 +883,30 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 
 def _join(prefix: str, text: str, sep: str = ".") -> str:
     return f"{prefix}{sep}{text}" if prefix else text
+
+
+def check_batch(flats, k: int, d: int, holder: str) -> "Flats":
+    """``flats`` if it is a :class:`Flats` batch of k-flats in R^d.
+
+    Parameters
+    ----------
+    flats : object
+    k, d : int
+        What the holder takes.
+    holder : str
+        How the message names it: ``"this field holds"``, ``"this atlas charts"``.
+
+    Raises
+    ------
+    InvalidInputError
+        Not a batch (naming ``flats``), or of another (k, d) (naming the
+        batch's first array).
+    """
+    if not isinstance(flats, Flats):
+        raise InvalidInputError(
+            f"flats: expected a flatserve.Flats batch, got {type(flats).__name__}", "flats")
+    if flats.k != k or flats.d != d:
+        arg = next(iter(flats.arrays))
+        raise InvalidInputError(f"{arg}: {holder} {k}-flats in R^{d}, got "
+                                f"{flats.k}-flats in R^{flats.d}", arg)
+    return flats

@@ -1,4 +1,4 @@
-"""Atlases and atlas fields (flatserve/atlas.py).
+"""Atlases and atlas fields (flatserve/atlas.py, flatserve/atlas_field.py, flatserve/grassmann.py).
 
 Oracles: principal angles against an SVD, the coordinates' own round trip,
 a single-chart Field on the same samples, the blended weights recombining the
@@ -12,17 +12,14 @@ import numpy as np
 import pytest
 
 from flatserve import Field, Flats
-from flatserve.atlas import (
-    COVER_MARGIN_DEG,
-    COVER_RADII_3D,
+from flatserve.atlas import COVER_MARGIN_DEG, COVER_RADII_3D, Atlas, object_unit
+from flatserve.atlas_field import AtlasField
+from flatserve.grassmann import (
     GEODESIC_AXES,
     ICOSAHEDRON_AXES,
-    Atlas,
-    AtlasField,
     bump,
     haar_frames,
     max_principal_angle,
-    object_unit,
     orientation_frames,
 )
 from flatserve.coordinates import OK

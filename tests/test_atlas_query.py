@@ -18,15 +18,9 @@ import numpy as np
 import pytest
 
 from flatserve import Flats
-from flatserve.atlas import (
-    Atlas,
-    AtlasField,
-    AtlasQueryResult,
-    _cos2_max,
-    bump,
-    haar_frames,
-    orientation_frames,
-)
+from flatserve.atlas import Atlas
+from flatserve.atlas_field import AtlasField, AtlasQueryResult
+from flatserve.grassmann import bump, cos2_max_angle, haar_frames, orientation_frames
 from flatserve.coordinates import NOT_REPRESENTABLE, OK
 
 
@@ -51,7 +45,7 @@ def reference_route(atlas: Atlas, flats: Flats, radius: float):
             angles.append(np.arccos(np.minimum(col[sel], 1.0)))
         return rows, angles
     for i in range(atlas.ncharts):
-        c2 = _cos2_max(atlas.frames[i], F)
+        c2 = cos2_max_angle(atlas.frames[i], F)
         sel = np.flatnonzero(c2 > cr * cr)
         rows.append(sel)
         angles.append(np.arccos(np.sqrt(c2[sel])))
@@ -60,51 +54,60 @@ def reference_route(atlas: Atlas, flats: Flats, radius: float):
 
 def reference_query(field: AtlasField, flats: Flats, *, outside="nan", order="hilbert",
                     threads=None, return_weights=False) -> AtlasQueryResult:
+    """The blend written densely: (q, c) weights and (q, c, C) values, one chart
+    column added at a time in chart order (rows a chart does not hold add
+    +0.0, which leaves every sum's bits as they are)."""
     at = field.atlas
     rows_all, angles = reference_route(at, flats, at.trusted)
-    n, C = flats.n, field.channels
-    num = np.zeros((n, C))
-    den = np.zeros(n)
-    inside = np.zeros(n, dtype=bool)
-    status = np.full(n, NOT_REPRESENTABLE, dtype=np.int8)
+    n, C, c = flats.n, field.channels, at.ncharts
     inner, trusted = math.radians(at.inner), math.radians(at.trusted)
-    if return_weights:
-        counts = np.bincount(np.concatenate(rows_all), minlength=n)
-        P = int(counts.max(initial=0))
-        D1 = field.ndim + 1
-        ids = np.full((n, P, D1), -1, dtype=np.int64)
-        wts = np.zeros((n, P, D1))
-        charts = np.full((n, P), -1, dtype=np.int64)
-        blend = np.zeros((n, P))
-        slot = np.zeros(n, dtype=np.int64)
-    for c, rows in enumerate(rows_all):
-        if rows.size == 0 or field.fields[c].nsamples == 0:
+    asked = np.zeros((n, c), dtype=bool)  # the chart answered the row
+    good = np.zeros((n, c), dtype=bool)  # ... with a finite value
+    W = np.zeros((n, c))  # its blending weight where good, 0 elsewhere
+    V = np.zeros((n, c, C))
+    ins = np.zeros((n, c), dtype=bool)
+    ok = np.zeros((n, c), dtype=bool)
+    answers = {}
+    for i, rows in enumerate(rows_all):
+        if rows.size == 0 or field.fields[i].nsamples == 0:
             continue
-        b = bump(angles[c], inner, trusted)
-        res = field.fields[c].query(flats.take(rows), outside=outside, order=order,
+        res = field.fields[i].query(flats.take(rows), outside=outside, order=order,
                                     threads=threads, return_weights=return_weights)
-        good = np.isfinite(res.values).all(axis=1)
-        w = np.where(good, b, 0.0)
-        num[rows] += w[:, None] * np.where(good[:, None], res.values, 0.0)
-        den[rows] += w
-        inside[rows] |= res.inside & (w > 0)
-        status[rows[res.status == OK]] = OK
-        if return_weights:
-            s = slot[rows]
-            ids[rows, s] = res.ids
-            wts[rows, s] = np.where(good[:, None], res.weights, 0.0)
-            charts[rows, s] = c
-            blend[rows, s] = w
-            slot[rows] += 1
+        answers[i] = res
+        fin = np.isfinite(res.values).all(axis=1)
+        asked[rows, i] = True
+        good[rows, i] = fin
+        W[rows[fin], i] = bump(angles[i], inner, trusted)[fin]
+        V[rows[fin], i] = res.values[fin]
+        ins[rows, i] = res.inside
+        ok[rows, i] = res.status == OK
+    num, den = np.zeros((n, C)), np.zeros(n)
+    for i in range(c):
+        num += W[:, i, None] * V[:, i]
+        den += W[:, i]
     has = den > 0
     values = np.full((n, C), np.nan)
     values[has] = num[has] / den[has, None]
-    if return_weights:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            wts *= (blend / np.where(has, den, np.nan)[:, None])[:, :, None]
-        wts[~has] = np.nan
-        return AtlasQueryResult(values, inside, status, ids, wts, charts)
-    return AtlasQueryResult(values, inside, status)
+    inside = (ins & (W > 0)).any(axis=1)
+    status = np.where(ok.any(axis=1), OK, NOT_REPRESENTABLE).astype(np.int8)
+    if not return_weights:
+        return AtlasQueryResult(values, inside, status)
+    # slot of chart i in row q: how many charts before it answered q
+    P = int(np.bincount(np.concatenate(rows_all), minlength=n).max(initial=0)) if n else 0
+    slot = np.cumsum(asked, axis=1) - 1
+    ids = np.full((n, P, field.ndim + 1), -1, dtype=np.int64)
+    wts = np.zeros(ids.shape)
+    charts = np.full((n, P), -1, dtype=np.int64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = W / np.where(has, den, np.nan)[:, None]  # (q, c)
+    for i, res in answers.items():
+        rows = rows_all[i]
+        s = slot[rows, i]
+        charts[rows, s] = i
+        ids[rows, s] = res.ids
+        wts[rows, s] = np.where(good[rows, i, None], res.weights, 0.0) * share[rows, i, None]
+    wts[~has] = np.nan
+    return AtlasQueryResult(values, inside, status, ids, wts, charts)
 
 
 def assert_same_bits(a: np.ndarray, b: np.ndarray):

@@ -18,7 +18,8 @@ import pytest
 
 import flatserve
 from flatserve.errors import InvalidInputError
-from flatserve.atlas import Atlas, AtlasField
+from flatserve.atlas import Atlas
+from flatserve.atlas_field import AtlasField
 from flatserve.lightfield import render_field
 from flatserve.lightfield.baselines import IDW_POWER, TWO_SPHERE_K, TwoSphere, two_sphere_coordinates
 from flatserve.lightfield.camera import ORBIT_EYE_RADIUS, ORBIT_RADIUS, fibonacci_sphere, sphere_samples

@@ -198,7 +198,7 @@ def test_charts_far_from_the_origin_calibrate():
     o = rng.normal(size=(n, 3)) + [1000, 500, 0]
     v = np.array([1.0, 0.2, 0.1]) + 0.3 * rng.normal(size=(n, 3))
     f = Flats.from_rays(o, v)
-    from flatserve.atlas import AtlasField
+    from flatserve.atlas_field import AtlasField
     field = AtlasField(Atlas.for_samples(f, unit=1.0))
     assert field.add(f, np.ones(n)).accepted == n
 
@@ -219,7 +219,7 @@ def test_a_stored_atlas_keeps_its_warps(monkeypatch):
 
 
 def test_damaged_or_mismatched_warps_are_snapshot_errors(tmp_path):
-    from flatserve.atlas import AtlasField
+    from flatserve.atlas_field import AtlasField
 
     # a warp on a field of planes in R^4, a frame that is not orthonormal
     f4 = Field(Basis.around_axis(axis=3, d=4, scale=1.0))

@@ -37,7 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atlas import ICOSAHEDRON_AXES, Atlas, AtlasField, object_unit
+from ..atlas import Atlas, object_unit
+from ..atlas_field import AtlasField
+from ..grassmann import ICOSAHEDRON_AXES
 from ..errors import InvalidInputError
 from ..flats import Flats
 from .baselines import TWO_SPHERE_K, TwoSphere

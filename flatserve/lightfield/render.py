@@ -22,7 +22,7 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
-from ..atlas import AtlasField
+from ..atlas_field import AtlasField
 from ..field import Chart
 from ..flats import Flats
 from .camera import Camera
@@ -104,7 +104,7 @@ def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None)
 
     Parameters
     ----------
-    field : flatserve.Field or flatserve.atlas.AtlasField
+    field : flatserve.Field or flatserve.atlas_field.AtlasField
         Lines in R^3 (k = 1, d = 3) with C channels.  An atlas field charts
         the rays inside its query (per chart): ``coordinates`` is then 0 and
         the frame has no ``chart``.

@@ -180,11 +180,12 @@ def build_atlas_field(origins, directions, values, *, atlas=None, chunk: int = B
 
     Returns
     -------
-    field : flatserve.atlas.AtlasField
+    field : flatserve.atlas_field.AtlasField
     stats : BuildStats
         Rejected samples are those no chart holds (none with a covering atlas).
     """
-    from ..atlas import Atlas, AtlasField
+    from ..atlas import Atlas
+    from ..atlas_field import AtlasField
 
     values = np.asarray(values, dtype=np.float64)
     if values.ndim == 1:

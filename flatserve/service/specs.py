@@ -8,7 +8,8 @@ from contextlib import contextmanager
 import numpy as np
 
 from .._validate import as_array
-from ..atlas import Atlas, AtlasField
+from ..atlas import Atlas
+from ..atlas_field import AtlasField
 from ..basis import Basis
 from ..errors import InvalidInputError
 from .status import BatchTooLargeError

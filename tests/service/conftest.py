@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from flatserve.atlas import Atlas, AtlasField
+from flatserve.atlas import Atlas
+from flatserve.atlas_field import AtlasField
 from flatserve.client import Client
 from flatserve.field import Field
 from flatserve.flats import Flats

@@ -1,6 +1,6 @@
 """Atlas fields over HTTP (the default without ``basis``, or ``basis: {"kind": "atlas"}``):
 every orientation accepted,
-answers equal the library's :class:`flatserve.atlas.AtlasField`, restore from batches
+answers equal the library's :class:`flatserve.atlas_field.AtlasField`, restore from batches
 and from a snapshot, ``wait=false``, oriented fields take rays only, describe lists
 the charts."""
 from __future__ import annotations
@@ -10,7 +10,9 @@ import io
 import numpy as np
 import pytest
 
-from flatserve.atlas import ICOSAHEDRON_AXES, Atlas, AtlasField
+from flatserve.atlas import Atlas
+from flatserve.atlas_field import AtlasField
+from flatserve.grassmann import ICOSAHEDRON_AXES
 from flatserve.errors import InvalidInputError
 from flatserve.service.status import LimitExceededError
 from flatserve.flats import Flats

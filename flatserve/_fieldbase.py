@@ -1,0 +1,225 @@
+"""What the two kinds of field share, written once.
+
+:class:`~flatserve.field.Field` (one chart) and
+:class:`~flatserve.atlas_field.AtlasField` (a Field per chart, blended) both
+derive from :class:`FieldBase`: the check of the values, ``prepare`` with its
+``defer``, ``add``, ``save`` / ``load`` / ``to_bytes``, ``describe``, and the
+one loop over a field's shards (:meth:`FieldBase._over_shards`). Their file
+header (magic, version, metadata length, then the metadata as JSON) is read
+and written here too, with its error messages. The contract the two kinds
+offer is :class:`flatserve.contract.SampledField`.
+"""
+from __future__ import annotations
+
+import functools
+import io
+import json
+import os
+import struct
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Sequence
+
+import numpy as np
+
+from ._validate import as_array
+from .errors import InvalidInputError, SnapshotError
+
+__all__ = ["FieldBase", "HEADER", "pack_header", "read_header", "corrupted"]
+
+#: Magic (8 bytes), version (uint32), metadata length (uint64): the start of a
+#: field file of either kind.
+HEADER = struct.Struct("<8sIQ")
+
+
+def pack_header(magic: bytes, version: int, meta: dict) -> bytes:
+    """The header and JSON metadata of a field file."""
+    body = json.dumps(meta).encode()
+    return HEADER.pack(magic, version, len(body)) + body
+
+
+def read_header(data, *, magic: bytes, versions: Sequence[int], kind: str,
+                source: str) -> tuple[int, dict, int]:
+    """Check and parse the header of a field file.
+
+    Parameters
+    ----------
+    data : bytes-like
+        The whole file.
+    magic : bytes
+        The 8 bytes the file must start with.
+    versions : sequence of int
+        The versions this reader knows.
+    kind : str
+        Named in the messages (``"field"``, ``"atlas field"``).
+    source : str
+        Named first in the messages (a path).
+
+    Returns
+    -------
+    version : int
+    meta : dict
+        The metadata JSON.
+    offset : int
+        Where the payload starts.
+
+    Raises
+    ------
+    SnapshotError
+        Truncated, another format (bad magic), an unknown version, damaged JSON.
+    """
+    if len(data) < HEADER.size:
+        raise SnapshotError(f"{source}: truncated {kind} file ({len(data)} bytes)")
+    got, version, mlen = HEADER.unpack_from(data)
+    if got != magic:
+        raise SnapshotError(f"{source}: not a flatserve {kind} file (bad magic)")
+    if version not in versions:
+        raise SnapshotError(f"{source}: {kind} file version {version}, expected "
+                            + " or ".join(str(v) for v in versions))
+    end = HEADER.size + mlen
+    if end > len(data):
+        raise SnapshotError(f"{source}: truncated {kind} metadata")
+    try:
+        meta = json.loads(bytes(data[HEADER.size:end]))
+        if not isinstance(meta, dict):
+            raise ValueError("not an object")
+    except ValueError as exc:
+        raise corrupted(kind, source, exc) from None
+    return version, meta, end
+
+
+def corrupted(kind: str, source: str, exc: Exception) -> SnapshotError:
+    """The error for metadata that parses but does not describe a field."""
+    return SnapshotError(f"{source}: corrupted {kind} metadata: {exc}")
+
+
+class FieldBase:
+    """The code both kinds of field share (see :class:`flatserve.contract.SampledField`).
+
+    A subclass provides ``channels``, ``shards``, ``_flats(flats)`` (check a
+    batch, return it), ``_prepare(flats, values)``, ``insert_prepared``,
+    ``write_to(fh)``, ``from_bytes(data, source=...)``, the sizes and
+    ``_definition()`` (the ``atlas`` and ``charts`` parts of :meth:`describe`).
+    """
+
+    channels: int
+    #: the answers blend several shards (ids / weights of shape (q, P, D+1))
+    blends: bool = False
+
+    # ------------------------------------------------------------------ writers
+    def _values(self, values, n: int) -> np.ndarray:
+        """``values`` as (n, C) float64 ((n,) accepted when C == 1)."""
+        v = np.asarray(values)
+        if v.ndim == 1 and self.channels == 1:
+            v = v[:, None]
+        return as_array(v, "values", (n, self.channels))
+
+    def prepare(self, flats, values, *, defer: bool = False) -> Any:
+        """First half of :meth:`add`: chart a batch and decide its rows, without inserting.
+
+        Reads only the field's definition (bases, atlas), so it may run while
+        the field is queried or written; ``insert_prepared`` completes it.
+
+        Parameters
+        ----------
+        flats : Flats
+            ``n`` k-flats in R^d (validated when built).
+        values : (n, C) float, or (n,) when C == 1
+        defer : bool
+            Validate now (raising :class:`~flatserve.errors.InvalidInputError`
+            for bad input) but return a zero-argument callable that charts
+            when called. Once validation has passed, charting cannot reject
+            the batch as a whole: every row gets a decision.
+
+        Returns
+        -------
+        The field's prepared batch, or a callable returning one when ``defer``
+        """
+        flats = self._flats(flats)
+        values = self._values(values, flats.n)
+        if defer:
+            return functools.partial(self._prepare, flats, values)
+        return self._prepare(flats, values)
+
+    def add(self, flats, values):
+        """Add samples (a writer): ``insert_prepared(prepare(flats, values))``.
+
+        Parameters
+        ----------
+        flats : Flats
+            ``n`` k-flats in R^d, any form.
+        values : (n, C) float, or (n,) when C == 1
+
+        Returns
+        -------
+        AddResult
+        """
+        return self.insert_prepared(self.prepare(flats, values))
+
+    @staticmethod
+    def _slice_rows(slice_rows) -> int | None:
+        if slice_rows is not None and not (isinstance(slice_rows, (int, np.integer))
+                                           and slice_rows >= 1):
+            raise InvalidInputError(f"slice_rows: expected a positive integer or None, got "
+                                    f"{slice_rows!r}", "slice_rows")
+        return None if slice_rows is None else int(slice_rows)
+
+    # ------------------------------------------------------------------ shards
+    def _over_shards(self, fn: Callable[[Any, Any], Any],
+                     work: Iterable[tuple[int, Any]]) -> Iterator[Any]:
+        """``fn(shard, item)`` for each ``(shard index, item)`` of ``work``, in order.
+
+        The one loop over a field's shards (prepare, insert, query, snapshot,
+        restore): run here one after the other, each shard at most once per
+        call; a thread pool or remote shards replace this loop only. Lazy:
+        results come as they are needed (a snapshot writes one shard's bytes
+        before making the next's).
+        """
+        shards = self.shards
+        return (fn(shards[i], item) for i, item in work)
+
+    # ----------------------------------------------------------- description
+    def describe(self) -> dict:
+        """JSON-able summary, the same keys for both kinds of field.
+
+        Returns
+        -------
+        dict
+            ``nsamples`` (distinct samples), ``nstored`` (vertices over all
+            shards), ``nsimplex``, ``nrejected``, ``duplication``
+            (``nstored / nsamples``: 1.0 for a one-chart field, None while
+            empty), ``shards`` (``[{"samples": int}, ...]``), ``atlas`` and
+            ``charts`` (:func:`flatserve.contract.describe_definition`, with
+            the charts' samples; None for a one-chart field).
+        """
+        n, stored = self.nsamples, self.nstored
+        return {
+            "nsamples": n, "nstored": stored, "nsimplex": self.nsimplex,
+            "nrejected": self.nrejected,
+            "duplication": stored / n if n else None,
+            "shards": [{"samples": s.nsamples} for s in self.shards],
+            **self._definition(),
+        }
+
+    # ----------------------------------------------------------- persistence
+    def to_bytes(self) -> bytes:
+        """The field file (layout of ``save``) as bytes: a snapshot."""
+        buf = io.BytesIO()
+        self.write_to(buf)
+        return buf.getvalue()
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the field to one file: written, flushed and fsync'd.
+
+        Not atomic by itself: the service writes to a temporary file and
+        renames it. A reader: may run beside queries, not beside a writer
+        (an atlas field's batch waits for it).
+        """
+        with open(path, "wb") as fh:
+            self.write_to(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike):
+        """Read a field written by ``save``; raises SnapshotError if damaged."""
+        return cls.from_bytes(Path(path).read_bytes(), source=str(path))

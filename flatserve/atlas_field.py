@@ -1,0 +1,531 @@
+"""A function sampled on flats over an atlas: one Field per chart, blended.
+
+:class:`AtlasField` is the second kind of field of the contract
+:class:`flatserve.contract.SampledField`: a set of *shards*, one
+:class:`~flatserve.field.Field` per chart of an :class:`~flatserve.atlas.Atlas`.
+Above the shards sit the routing (which charts hold each row: a pure function
+of the atlas, :meth:`AtlasField.route`, :meth:`AtlasField.route_query`) and the
+blend (the partition of unity that combines the charts' answers,
+:meth:`AtlasField.blend`); each chart's insert, query, snapshot and restore are
+its Field's own. Every operation over the charts goes through one loop
+(``FieldBase._over_shards``), so that running the charts elsewhere (threads,
+actors) changes that loop only.
+
+Example
+-------
+>>> import numpy as np, flatserve
+>>> from flatserve.atlas import Atlas
+>>> from flatserve.atlas_field import AtlasField
+>>> field = AtlasField(Atlas.covering(1, 3), channels=1)   # 16 charts
+>>> rng = np.random.default_rng(0)
+>>> o, v = rng.normal(size=(3000, 3)), rng.normal(size=(3000, 3))
+>>> res = field.add(flatserve.Flats.from_rays(o, v), o[:, 0] ** 2)
+>>> res.accepted, len(field.shards)
+(3000, 16)
+"""
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from ._fieldbase import FieldBase, corrupted, pack_header, read_header
+from .atlas import Atlas
+from .coordinates import NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
+from .errors import InvalidInputError, SnapshotError
+from .field import AddResult, Field, PreparedBatch, QueryResult, QueryRoute
+from .flats import Flats
+from .grassmann import bump
+from .options import Order, Outside, choice
+from .triangulation import RWLock
+
+__all__ = ["ATLAS_MAGIC", "AtlasField", "AtlasPrepared", "AtlasQueryResult"]
+
+ATLAS_MAGIC = b"FSATLAS\x00"
+_VERSION = 1
+_LENGTH = struct.Struct("<Q")  # the length of each chart's field file
+_NO_ROWS = np.empty(0, np.int64)
+_NO_ROWS.setflags(write=False)
+
+
+@dataclass(frozen=True)
+class AtlasPrepared:
+    """A batch routed and charted by :meth:`AtlasField.prepare`, not yet inserted:
+    each chart's :class:`~flatserve.field.PreparedBatch` parts.
+
+    ``parts[i]`` is None when chart ``i`` holds no accepted row of the
+    ``nrows``, else the pair ``(own, shared)`` its Field's ``prepare`` made:
+    the rows whose nearest centre is this chart's, and those nearer to
+    another centre (the overlap: inserted so that the chart covers its
+    blending domain). ``accepted_rows`` (int64) were accepted by at least one
+    chart; ``rejected`` (int64) by none, one of ``reasons`` each (the first
+    chart's).
+    """
+
+    nrows: int
+    parts: tuple
+    accepted_rows: np.ndarray
+    rejected: np.ndarray
+    reasons: list
+
+    @property
+    def accepted(self) -> int:
+        return int(self.accepted_rows.size)
+
+
+@dataclass(frozen=True)
+class AtlasQueryResult(QueryResult):
+    """:class:`~flatserve.field.QueryResult` of an :class:`AtlasField`.
+
+    ``values`` is the blend ``sum_i w_i v_i`` over the charts whose domain
+    holds the query (partition-of-unity weights ``w_i``).  With
+    ``return_weights``, ``ids``/``weights`` have shape (q, P, D+1): per
+    contributing chart (``charts`` (q, P), -1 for none) the chart's sample
+    ids and its barycentric weights times ``w_i``, so that
+    ``values[q] = sum_{p, v} weights[q, p, v] * chart_values[charts[q, p]][ids[q, p, v]]``.
+    """
+
+    charts: np.ndarray | None = None
+
+
+def _slices(parts, step: int) -> list[list]:
+    """``(chart, PreparedBatch, own)`` parts cut into groups of at most ``step``
+    samples over all charts, in order (a part larger than ``step`` is cut)."""
+    groups: list[list] = []
+    cur: list = []
+    n = 0
+    for c, p, own in parts:
+        for lo in range(0, p.accepted, step):
+            size = min(step, p.accepted - lo)
+            piece = p if size == p.accepted else PreparedBatch(
+                size, p.x[lo:lo + step], p.values[lo:lo + step], _NO_ROWS, [])
+            if cur and n + size > step:
+                groups.append(cur)
+                cur, n = [], 0
+            cur.append((c, piece, own))
+            n += size
+    if cur:
+        groups.append(cur)
+    return groups
+
+
+def _by_shard(group) -> list[tuple[int, list]]:
+    """``(chart, part, own)`` triples (in chart order) as ``(chart, [(part, own), ...])``:
+    each chart once, its parts in their order."""
+    out: list[tuple[int, list]] = []
+    for c, p, own in group:
+        if not out or out[-1][0] != c:
+            out.append((c, []))
+        out[-1][1].append((p, own))
+    return out
+
+
+class AtlasField(FieldBase):
+    """Values sampled on k-flats, over an :class:`~flatserve.atlas.Atlas`: one Field per chart, blended.
+
+    Every sample is inserted into each chart whose centre is closer than
+    ``atlas.reach``; a query is answered by every chart whose centre is
+    closer than ``atlas.trusted``, and the answers are blended with the
+    partition of unity ``w_i = bump(angle_i) / sum_j bump(angle_j)``
+    (:func:`flatserve.grassmann.bump`), which varies continuously (C^2) with
+    the query flat: the interpolant has no seam where one chart hands over to
+    the next.  Charts whose answer is missing (outside their samples' hull)
+    are left out of the sum.  Deep inside a chart (no other centre closer
+    than ``trusted``) the answer is that chart's :class:`~flatserve.field.Field`'s.
+
+    Thread safety as :class:`~flatserve.field.Field`: readers together, a
+    writer alone.  The field's own readers/writer lock makes a batch atomic
+    across charts: :meth:`query` and :meth:`save` see a whole
+    :meth:`insert_prepared` batch in every chart, or in none.
+
+    Parameters
+    ----------
+    atlas : Atlas
+    channels : int
+    roundtrip_tol : float
+        Of every chart's Field.
+
+    Attributes
+    ----------
+    atlas : Atlas
+    fields : list of Field
+        One per chart, in chart order (:attr:`shards` is the same as a tuple).
+    """
+
+    #: answers blend several charts: ids / weights are (q, P, D+1)
+    blends = True
+
+    def __init__(self, atlas: Atlas, channels: int = 1, *,
+                 roundtrip_tol: float = ROUNDTRIP_TOL):
+        if not isinstance(atlas, Atlas):
+            raise InvalidInputError(f"atlas: expected a flatserve.atlas.Atlas, got "
+                                    f"{type(atlas).__name__}", "atlas")
+        self.atlas = atlas
+        self.fields = [atlas.chart_field(i, channels, roundtrip_tol=roundtrip_tol)
+                       for i in range(atlas.ncharts)]
+        self.k, self.d, self.ndim = atlas.k, atlas.d, self.fields[0].ndim
+        self.channels = self.fields[0].channels
+        self.roundtrip_tol = self.fields[0].roundtrip_tol
+        self._nsamples = 0
+        self._nrejected = 0
+        self._lock = RWLock()
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def nsamples(self) -> int:
+        """Distinct samples (each counted in its nearest chart)."""
+        return self._nsamples
+
+    @property
+    def nstored(self) -> int:
+        """Vertices over all charts (a sample counts once per chart holding it)."""
+        return int(sum(f.nsamples for f in self.fields))
+
+    @property
+    def duplication(self) -> float:
+        """``nstored / nsamples``: how many charts hold a sample on average."""
+        return self.nstored / self._nsamples if self._nsamples else float("nan")
+
+    @property
+    def nsimplex(self) -> int:
+        """Cells over all charts' triangulations."""
+        return int(sum(f.nsimplex for f in self.fields))
+
+    @property
+    def samples_per_chart(self) -> list[int]:
+        return [f.nsamples for f in self.fields]
+
+    @property
+    def nrejected(self) -> int:
+        return self._nrejected
+
+    # ---------------------------------------------------- the field as shards
+    @property
+    def shards(self) -> tuple[Field, ...]:
+        """The charts' fields, in chart order."""
+        return tuple(self.fields)
+
+    def route(self, flats: Flats) -> list[np.ndarray]:
+        """Per chart, the rows it stores: those closer than ``atlas.reach`` to its centre.
+
+        A pure function of the atlas (a row's charts do not depend on its
+        batch).
+
+        Returns
+        -------
+        list of ndarray (int64)
+            One per chart, increasing row indices.
+        """
+        return self.atlas.route(flats, self.atlas.reach, nearest=False).rows
+
+    def copies(self, flats: Flats) -> float:
+        """How many charts would store each of these rows on average.
+
+        ``sum(len(r) for r in route(flats)) / n`` (before round-trip
+        rejections; 0.0 for no rows), counted without the angles
+        (:meth:`flatserve.atlas.Atlas.held`).
+        """
+        n = self.atlas.check_flats(flats).n
+        return float(self.atlas.held(flats, self.atlas.reach).sum()) / n if n else 0.0
+
+    def route_query(self, flats: Flats) -> QueryRoute:
+        """Per chart, the queries closer than ``atlas.trusted`` to its centre, and
+        their blending weights ``bump(angle)`` (:func:`flatserve.grassmann.bump`)."""
+        at = self.atlas
+        ro = at.route(flats, at.trusted, nearest=False)
+        inner, trusted = math.radians(at.inner), math.radians(at.trusted)
+        return QueryRoute(flats.n, ro.rows, [bump(a, inner, trusted) for a in ro.angles])
+
+    def blend(self, route: QueryRoute, results: Sequence[QueryResult | None], *,
+              return_weights: bool = False) -> AtlasQueryResult:
+        """The field's answer from its charts' answers: the partition of unity.
+
+        ``values[q] = sum_i w_i v_i / sum_i w_i`` over the charts ``i`` whose
+        answer at ``q`` is finite, ``w_i`` the route's weights; the sums of a
+        row are added in increasing chart order, from 0.0 (the same bits
+        whatever the batch).
+
+        Parameters
+        ----------
+        route : QueryRoute
+            Of :meth:`route_query`.
+        results : sequence of QueryResult or None
+            Per chart its Field's answer on ``route.rows[i]`` (None: not asked).
+        return_weights : bool
+            The results carry ids and weights: return them per chart
+            (:class:`AtlasQueryResult`).
+
+        Returns
+        -------
+        AtlasQueryResult
+        """
+        n, C = route.n, self.channels
+        num = np.zeros((n, C))
+        den = np.zeros(n)
+        inside = np.zeros(n, dtype=bool)
+        status = np.full(n, NOT_REPRESENTABLE, dtype=np.int8)
+        if return_weights:
+            counts = np.bincount(np.concatenate(route.rows), minlength=n) if n else np.zeros(0, int)
+            P = int(counts.max(initial=0))
+            D1 = self.ndim + 1
+            ids = np.full((n, P, D1), -1, dtype=np.int64)
+            wts = np.zeros((n, P, D1))
+            charts = np.full((n, P), -1, dtype=np.int64)
+            blend = np.zeros((n, P))
+            slot = np.zeros(n, dtype=np.int64)
+        for c, res in enumerate(results):
+            if res is None:
+                continue
+            rows, b = route.rows[c], route.weights[c]
+            v = res.values
+            fin = np.isfinite(v)
+            good = fin[:, 0] if C == 1 else fin.all(axis=1)
+            w = b if good.all() else np.where(good, b, 0.0)  # the common case: no masking
+            if C == 1:  # 1-D scatters (much faster than (m, 1) ones)
+                num[:, 0][rows] += w * (v[:, 0] if w is b else np.where(good, v[:, 0], 0.0))
+            else:
+                num[rows] += w[:, None] * (v if w is b else np.where(good[:, None], v, 0.0))
+            den[rows] += w
+            inside[rows] |= res.inside & (w > 0)
+            status[rows[res.status == OK]] = OK
+            if return_weights:
+                s = slot[rows]
+                ids[rows, s] = res.ids
+                wts[rows, s] = np.where(good[:, None], res.weights, 0.0)
+                charts[rows, s] = c
+                blend[rows, s] = w
+                slot[rows] += 1
+        has = den > 0
+        values = np.full((n, C), np.nan)
+        np.divide(num, den[:, None], out=values, where=has[:, None])
+        if return_weights:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                wts *= (blend / np.where(has, den, np.nan)[:, None])[:, :, None]
+            wts[~has] = np.nan
+            return AtlasQueryResult(values, inside, status, ids, wts, charts)
+        return AtlasQueryResult(values, inside, status)
+
+    # --------------------------------------------------------------- writers
+    def _flats(self, flats: Flats) -> Flats:
+        return self.atlas.check_flats(flats)
+
+    def _prepare(self, flats: Flats, values: np.ndarray) -> AtlasPrepared:
+        # route to the charts whose domain (reach) holds each row; each chart
+        # charts its rows (its Field's prepare), split into its own and shared
+        n = flats.n
+        ro = self.atlas.route(flats, self.atlas.reach)
+        work = [(c, rows) for c, rows in enumerate(ro.rows) if rows.size]
+        prepared = self._over_shards(lambda f, rows: f.prepare(flats.take(rows), values[rows]),
+                                     work)
+        taken = np.zeros(n, dtype=bool)
+        first_reason: dict[int, str] = {}
+        parts: list = [None] * len(self.fields)
+        for (c, rows), pb in zip(work, prepared):
+            okm = np.ones(rows.size, dtype=bool)
+            okm[pb.rejected] = False
+            for i, why in zip(pb.rejected.tolist(), pb.reasons):
+                first_reason.setdefault(int(rows[i]), f"chart {c}: {why}")
+            acc = rows[okm]
+            taken[acc] = True
+            mine = ro.nearest[acc] == c
+            parts[c] = (PreparedBatch(int(mine.sum()), pb.x[mine], pb.values[mine], _NO_ROWS, []),
+                        PreparedBatch(int((~mine).sum()), pb.x[~mine], pb.values[~mine],
+                                      _NO_ROWS, []))
+        rejected = np.flatnonzero(~taken).astype(np.int64)
+        reach = self.atlas.reach
+        reasons = [first_reason.get(int(i), (
+            f"outside every chart's domain: {math.degrees(ro.nearest_angle[i]):.2f} degrees "
+            f"from the nearest centre (chart {int(ro.nearest[i])}), charts reach {reach:g}"))
+            for i in rejected.tolist()]
+        return AtlasPrepared(n, tuple(parts), np.flatnonzero(taken).astype(np.int64), rejected,
+                             reasons)
+
+    def insert_prepared(self, batch: AtlasPrepared, *,
+                        slice_rows: int | None = None) -> AddResult:
+        """Insert a :meth:`prepare`-d batch into its charts (a writer).
+
+        Each chart's parts go to that chart's :meth:`Field.insert_prepared`.
+
+        Parameters
+        ----------
+        batch : AtlasPrepared
+        slice_rows : int, optional
+            As :meth:`Field.insert_prepared`: insert at most this many samples
+            (counted over the charts) at a time, so that concurrent queries get in
+            between slices. Each slice is atomic: a batch holding at most
+            ``slice_rows`` samples over all its charts is seen in every chart or in
+            none; a larger one is seen in part (some charts, or part of a chart)
+            until its last slice is in. Default: the whole batch at once.
+
+        Returns
+        -------
+        AddResult
+            ``duplicates`` counts rows that coincided with a sample already in
+            their nearest chart; ``nsamples`` the distinct samples afterwards.
+        """
+        if not isinstance(batch, AtlasPrepared) or len(batch.parts) != len(self.fields):
+            raise InvalidInputError("batch: expected an AtlasPrepared made by this field",
+                                    "batch")
+        slice_rows = self._slice_rows(slice_rows)
+        parts = [(c, p, own) for c, pair in enumerate(batch.parts) if pair is not None
+                 for p, own in zip(pair, (True, False)) if p.accepted]
+        groups = [parts] if slice_rows is None or not parts else _slices(parts, slice_rows)
+        duplicates = 0
+        for i, group in enumerate(groups):
+            with self._lock.write():  # a whole batch, or one slice
+                work = _by_shard(group)
+                done = self._over_shards(
+                    lambda f, ps: [(f.insert_prepared(p), own) for p, own in ps], work)
+                for res, own in (r for rs in list(done) for r in rs):
+                    if own:  # a sample counts once, in its nearest chart
+                        duplicates += res.duplicates
+                        self._nsamples += res.accepted - res.duplicates
+                if i == len(groups) - 1:
+                    self._nrejected += int(batch.rejected.size)
+        return AddResult(accepted=batch.accepted, rejected=batch.rejected,
+                         reasons=batch.reasons, duplicates=duplicates,
+                         nsamples=self._nsamples)
+
+    # --------------------------------------------------------------- readers
+    def query(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
+              order: Order | str = Order.HILBERT,
+              threads: int | None = None, return_weights: bool = False,
+              blocking: bool = True) -> "AtlasQueryResult | None":
+        """Interpolate at flats: every chart holding the query, blended.
+
+        :meth:`route_query`, each chart's :meth:`Field.query` on its rows,
+        :meth:`blend`.
+
+        Parameters
+        ----------
+        flats : Flats
+            ``q`` k-flats in R^d.
+        outside, order, threads
+            Passed to each chart's :meth:`Field.query`.
+        return_weights : bool
+            Also return per contributing chart the sample ids and weights
+            (:class:`AtlasQueryResult`).
+        blocking : bool
+            False: return None at once instead of waiting for an insert in progress.
+
+        Returns
+        -------
+        AtlasQueryResult
+            ``status`` is OK when some chart's coordinates round-trip;
+            ``NOT_REPRESENTABLE`` when no chart's domain holds the query.
+            ``inside`` when some chart with positive weight answered from
+            inside its samples' hull.
+        """
+        outside, order = choice(outside, Outside, "outside"), choice(order, Order, "order")
+        route = self.route_query(flats)
+        if blocking:
+            self._lock.acquire_read()
+        elif not self._lock.try_acquire_read():
+            return None
+        try:  # charts change only under this lock's write side: they never make us wait
+            work = [(c, rows) for c, rows in enumerate(route.rows)
+                    if rows.size and self.fields[c].nsamples]
+            results: list = [None] * len(self.fields)
+            got = self._over_shards(
+                lambda f, rows: f.query(flats.take(rows), outside=outside, order=order,
+                                        threads=threads, return_weights=return_weights), work)
+            for (c, _), res in zip(work, got):
+                results[c] = res
+            return self.blend(route, results, return_weights=return_weights)
+        finally:
+            self._lock.release_read()
+
+    def _definition(self) -> dict:
+        out = self.atlas.describe_spec(self.atlas.to_dict())
+        for chart, f in zip(out["charts"], self.fields):
+            chart["samples"] = f.nsamples
+        return out
+
+    # ----------------------------------------------------------- persistence
+    def write_to(self, fh) -> int:
+        """Write the field file to an open binary file (a snapshot of every chart).
+
+        Layout: 8-byte magic ``FSATLAS\\0``, uint32 version, uint64 metadata
+        length, the metadata JSON (``{"atlas": Atlas.to_dict(), "channels",
+        "roundtrip_tol", "nsamples", "nrejected", "charts": c}``), then per
+        chart a uint64 length and that chart's field file
+        (:meth:`Field.write_to`, its own snapshot).  A reader: may run beside
+        queries; a batch inserted meanwhile waits (the snapshot holds whole
+        batches).
+
+        Returns
+        -------
+        int
+            Bytes written.
+        """
+        meta = {"atlas": self.atlas.to_dict(), "channels": self.channels,
+                "roundtrip_tol": self.roundtrip_tol, "nsamples": self._nsamples,
+                "nrejected": self._nrejected, "charts": len(self.fields)}
+        with self._lock.read():
+            head = pack_header(ATLAS_MAGIC, _VERSION, meta)
+            fh.write(head)
+            size = len(head)
+            for blob in self._over_shards(lambda f, _: f.to_bytes(),
+                                          [(c, None) for c in range(len(self.fields))]):
+                fh.write(_LENGTH.pack(len(blob)))
+                fh.write(blob)
+                size += _LENGTH.size + len(blob)
+        return size
+
+    @classmethod
+    def from_bytes(cls, data, *, source: str = "atlas field") -> "AtlasField":
+        """An atlas field from the bytes of its file (:meth:`write_to`).
+
+        Each chart is restored by :meth:`Field.from_bytes` and checked
+        against the atlas (dimension, channels, warp).
+
+        Raises
+        ------
+        SnapshotError
+            The data are truncated, damaged or of another format.
+        """
+        data = memoryview(data)
+        _, meta, off = read_header(data, magic=ATLAS_MAGIC, versions=(_VERSION,),
+                                   kind="atlas field", source=source)
+        try:
+            atlas = Atlas.from_dict(meta["atlas"])
+            ncharts = int(meta["charts"])
+            obj = cls(atlas, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]))
+            nsamples, nrejected = int(meta["nsamples"]), int(meta["nrejected"])
+        except (KeyError, TypeError, ValueError, InvalidInputError) as exc:
+            raise corrupted("atlas field", source, exc) from None
+        if ncharts != atlas.ncharts:
+            raise SnapshotError(f"{source}: {ncharts} chart files for {atlas.ncharts} charts")
+        blobs = []
+        for i in range(ncharts):
+            if off + _LENGTH.size > len(data):
+                raise SnapshotError(f"{source}: truncated at chart {i}")
+            (size,) = _LENGTH.unpack_from(data, off)
+            off += _LENGTH.size
+            if off + size > len(data):
+                raise SnapshotError(f"{source}: truncated at chart {i}")
+            blobs.append((i, data[off:off + size]))
+            off += size
+        if off != len(data):
+            raise SnapshotError(f"{source}: {len(data) - off} bytes after the last chart")
+        restored = obj._over_shards(
+            lambda _, ib: Field.from_bytes(ib[1], source=f"{source}: chart {ib[0]}"),
+            [(i, (i, blob)) for i, blob in blobs])
+        for i, f in enumerate(restored):
+            if f.ndim != obj.ndim or f.channels != obj.channels:
+                raise SnapshotError(f"{source}: chart {i} does not match the atlas")
+            want = atlas.warps[i]
+            if (f.warp is None) != (want is None) or (
+                    want is not None and f.warp.to_dict() != want.to_dict()):
+                raise SnapshotError(f"{source}: chart {i}'s warp does not match the atlas's")
+            obj.fields[i] = f
+        obj._nsamples, obj._nrejected = nsamples, nrejected
+        return obj
+
+    def __repr__(self) -> str:
+        return (f"AtlasField(k={self.k}, d={self.d}, charts={self.atlas.ncharts}, "
+                f"oriented={self.atlas.oriented}, channels={self.channels}, "
+                f"nsamples={self.nsamples}, nstored={self.nstored})")

@@ -1,0 +1,267 @@
+"""The contract of a field: what every kind of field offers, and how to make one.
+
+Two kinds of field implement :class:`SampledField`:
+:class:`~flatserve.field.Field` (one chart: a basis and one triangulation,
+paper Sec. 5) and :class:`~flatserve.atlas_field.AtlasField` (one Field per
+chart of an atlas, blended by a partition of unity). A caller (the service)
+uses only these members, never the class: :func:`new_field` makes an empty
+field of either kind, :func:`load_field` reads either kind's file by its magic,
+and :func:`describe_definition` describes a field not yet loaded. The
+protocol is checked by ``mypy`` (``tests/test_contract.py``).
+
+Shards
+------
+A field is a set of *shards*, each a :class:`~flatserve.field.Field`: an
+atlas field's charts; a one-chart field is one shard (``shards == (self,)``).
+Above the shards sit
+
+- routing, a pure function of the field's definition: :meth:`~SampledField.route`
+  (per shard the rows it stores) and :meth:`~SampledField.route_query` (per
+  shard the queries it answers, with their blending weights);
+- blending: :meth:`~SampledField.blend` combines the shards' answers
+  (:class:`~flatserve.field.QueryResult` each) into the field's, in shard order.
+
+Each shard's operations are callable on their own: ``shard.prepare`` /
+``shard.insert_prepared(part)``, ``shard.query``, ``shard.to_bytes()`` /
+``shard.write_to(fh)`` (snapshot) and ``Field.from_bytes`` (restore).
+
+Example
+-------
+>>> import numpy as np, flatserve
+>>> from flatserve.contract import SampledField, new_field
+>>> field: SampledField = new_field(1, atlas=flatserve.Atlas.covering(1, 3))
+>>> o, v = np.random.default_rng(0).normal(size=(2, 500, 3))
+>>> rays = flatserve.Flats.from_rays(o, v)
+>>> field.add(rays, o[:, 0]).accepted
+500
+>>> sorted(field.describe()) == sorted(new_field(1, basis=flatserve.Basis.around_axis()).describe())
+True
+"""
+from __future__ import annotations
+
+import os
+from typing import Callable, Protocol, Sequence, Union, runtime_checkable
+
+import numpy as np
+
+from pathlib import Path
+
+from .atlas import Atlas
+from .atlas_field import ATLAS_MAGIC, AtlasField
+from .basis import Basis
+from .errors import InvalidInputError, SnapshotError
+from .field import FIELD_MAGIC, AddResult, Field, QueryResult, QueryRoute
+from .flats import Flats
+from .options import Order, Outside
+
+__all__ = ["Prepared", "SampledField", "describe_definition", "load_field", "new_field"]
+
+
+@runtime_checkable
+class Prepared(Protocol):
+    """A batch charted by ``prepare`` and not yet inserted: opaque but for its
+    decisions (``accepted`` rows to be inserted, the ``rejected`` row indices
+    (j,) int64 with one of ``reasons`` each)."""
+
+    @property
+    def accepted(self) -> int: ...
+    @property
+    def rejected(self) -> np.ndarray: ...
+    @property
+    def reasons(self) -> list: ...
+
+
+@runtime_checkable
+class SampledField(Protocol):
+    """A function sampled on k-flats in R^d: the members both kinds of field offer.
+
+    The same meaning on both kinds; where the kinds differ the member says
+    how (``blends``, ``describe``'s ``atlas`` / ``charts``).
+
+    Thread safety: readers (``prepare``, ``query``, ``copies``, ``route*``,
+    ``describe``, ``save``) together, a writer (``insert_prepared``, ``add``)
+    alone.
+
+    Attributes
+    ----------
+    k, d : int
+        k-flats in R^d.
+    channels : int
+        Values per sample.
+    ndim : int
+        Dimension D of each shard's triangulation: ``m - 1`` (Sec. 5).
+    roundtrip_tol : float
+        Largest round-trip residual of trusted coordinates (Sec. 4, Eq. 9/12).
+    blends : bool
+        Answers blend several shards: ``query(return_weights=True)`` gives
+        ids and weights of shape (q, P, D+1), not (q, D+1).
+    nsamples : int
+        Distinct samples.
+    nstored : int
+        Vertices over all shards (a sample counts once per shard holding
+        it; ``nsamples`` for one shard).
+    nsimplex : int
+        Cells over all shards' triangulations.
+    nrejected : int
+        Rows rejected by ``insert_prepared`` so far.
+    shards : sequence of Field
+        The field's shards, in order.
+    """
+
+    k: int
+    d: int
+    channels: int
+    ndim: int
+
+    @property
+    def nsamples(self) -> int: ...
+    @property
+    def nstored(self) -> int: ...
+
+    roundtrip_tol: float
+
+    @property
+    def nsimplex(self) -> int: ...
+    @property
+    def nrejected(self) -> int: ...
+
+    blends: bool
+
+    @property
+    def shards(self) -> Sequence[Field]: ...
+
+    # --------------------------------------------------------------- shards
+    def route(self, flats: Flats) -> list[np.ndarray]:
+        """Per shard, the rows (increasing int64 indices) it stores."""
+        ...
+
+    def route_query(self, flats: Flats) -> QueryRoute:
+        """Per shard, the queries it answers and their blending weights."""
+        ...
+
+    def blend(self, route: QueryRoute, results: Sequence[QueryResult | None], *,
+              return_weights: bool = False) -> QueryResult:
+        """The field's answer from each shard's answer on its ``route.rows``
+        (None: not asked), combined in shard order."""
+        ...
+
+    def copies(self, flats: Flats) -> float:
+        """How many shards would store each of these rows on average (1.0 for one shard)."""
+        ...
+
+    # -------------------------------------------------------------- writers
+    def prepare(self, flats: Flats, values, *, defer: bool = False
+                ) -> Prepared | Callable[[], Prepared]:
+        """Chart and decide a batch without inserting (a callable doing it when ``defer``)."""
+        ...
+
+    def insert_prepared(self, batch, *, slice_rows: int | None = None) -> AddResult:
+        """Insert a batch made by this field's ``prepare`` (a writer)."""
+        ...
+
+    def add(self, flats: Flats, values) -> AddResult:
+        """``insert_prepared(prepare(flats, values))``."""
+        ...
+
+    # -------------------------------------------------------------- readers
+    def query(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
+              order: Order | str = Order.HILBERT, threads: int | None = None,
+              return_weights: bool = False, blocking: bool = True) -> QueryResult | None:
+        """Interpolate at ``q`` flats: values (q, C), inside (q,), status (q,);
+        None when not ``blocking`` and a writer is in."""
+        ...
+
+    def describe(self) -> dict:
+        """``nsamples``, ``nstored``, ``nsimplex``, ``nrejected``, ``duplication``,
+        ``shards``, ``atlas``, ``charts`` (see ``FieldBase.describe``)."""
+        ...
+
+    # ---------------------------------------------------------- persistence
+    def write_to(self, fh) -> int:
+        """Write the field file to an open binary file; bytes written."""
+        ...
+
+    def to_bytes(self) -> bytes:
+        """The field file as bytes."""
+        ...
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the field file, fsync'd."""
+        ...
+
+
+#: What :func:`new_field` and :func:`load_field` return.
+AnyField = Union[Field, AtlasField]
+
+
+def new_field(channels: int, *, basis: Basis | None = None, atlas: Atlas | dict | None = None,
+              roundtrip_tol: float | None = None) -> AnyField:
+    """An empty field: one chart over ``basis``, or one Field per chart of ``atlas``.
+
+    Parameters
+    ----------
+    channels : int
+        Values per sample.
+    basis : Basis, optional
+        A one-chart :class:`~flatserve.field.Field`.
+    atlas : Atlas or dict, optional
+        An :class:`~flatserve.atlas_field.AtlasField`; a dict is a stored atlas
+        (:meth:`flatserve.atlas.Atlas.to_dict`). Exactly one of ``basis``
+        and ``atlas``.
+    roundtrip_tol : float, optional
+        None: the library's default (:data:`flatserve.coordinates.ROUNDTRIP_TOL`).
+
+    Returns
+    -------
+    Field or AtlasField
+        Both are :class:`SampledField`.
+    """
+    if (basis is None) == (atlas is None):
+        raise InvalidInputError("basis: give exactly one of basis and atlas", "basis")
+    kw = {} if roundtrip_tol is None else {"roundtrip_tol": roundtrip_tol}
+    if atlas is not None:
+        return AtlasField(Atlas.from_dict(atlas) if isinstance(atlas, dict) else atlas,
+                          channels, **kw)
+    return Field(basis, channels, **kw)
+
+
+def load_field(path: str | os.PathLike) -> AnyField:
+    """Read a field file of either kind, told apart by its magic.
+
+    ``FSFIELD\\0``: :meth:`Field.load`; ``FSATLAS\\0``: :meth:`AtlasField.load`.
+
+    Raises
+    ------
+    SnapshotError
+        Neither magic, or a damaged file.
+    """
+    data = Path(path).read_bytes()
+    kind = {FIELD_MAGIC: Field, ATLAS_MAGIC: AtlasField}.get(bytes(data[:8]))
+    if kind is None:
+        raise SnapshotError(f"{path}: not a flatserve field file (bad magic)"
+                            if len(data) >= 8 else
+                            f"{path}: truncated field file ({len(data)} bytes)")
+    return kind.from_bytes(data, source=str(path))
+
+
+def describe_definition(atlas: dict | None) -> dict:
+    """``describe`` of a field not loaded yet: its definition, its sizes None.
+
+    Parameters
+    ----------
+    atlas : dict or None
+        The stored atlas (:meth:`flatserve.atlas.Atlas.to_dict`), None for a
+        one-chart field.
+
+    Returns
+    -------
+    dict
+        The keys of ``describe``: ``atlas`` and ``charts`` as a loaded field's
+        (both None for a one-chart field; the charts' ``samples`` None),
+        ``shards`` one ``{"samples": None}`` per shard, ``nsamples``,
+        ``nstored``, ``nsimplex``, ``nrejected`` and ``duplication`` None.
+    """
+    part = {"atlas": None, "charts": None} if atlas is None else Atlas.describe_spec(atlas)
+    nshards = 1 if atlas is None else len(part["charts"])
+    return {"nsamples": None, "nstored": None, "nsimplex": None, "nrejected": None,
+            "duplication": None, "shards": [{"samples": None} for _ in range(nshards)], **part}

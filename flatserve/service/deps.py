@@ -38,37 +38,22 @@ async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-async def get_catalogue(request: Request) -> FieldCatalogue:
-    return request.app.state.rooms.catalogue
+def _room(name: str):
+    """The dependency that gives the room ``name`` of this app's rooms."""
+    async def get(request: Request):
+        return getattr(request.app.state.rooms, name)
 
-
-async def get_fields(request: Request) -> FieldService:
-    return request.app.state.rooms.fields
-
-
-async def get_uploads(request: Request) -> UploadService:
-    return request.app.state.rooms.uploads
-
-
-async def get_queries(request: Request) -> QueryService:
-    return request.app.state.rooms.queries
-
-
-async def get_snapshots(request: Request) -> SnapshotWriter:
-    return request.app.state.rooms.snapshots
-
-
-async def get_follower(request: Request) -> Follower:
-    return request.app.state.rooms.follower
+    get.__name__ = get.__qualname__ = f"get_{name}"
+    return Depends(get)
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-CatalogueDep = Annotated[FieldCatalogue, Depends(get_catalogue)]
-FieldsDep = Annotated[FieldService, Depends(get_fields)]
-UploadsDep = Annotated[UploadService, Depends(get_uploads)]
-QueriesDep = Annotated[QueryService, Depends(get_queries)]
-SnapshotsDep = Annotated[SnapshotWriter, Depends(get_snapshots)]
-FollowerDep = Annotated[Follower, Depends(get_follower)]
+CatalogueDep = Annotated[FieldCatalogue, _room("catalogue")]
+FieldsDep = Annotated[FieldService, _room("fields")]
+UploadsDep = Annotated[UploadService, _room("uploads")]
+QueriesDep = Annotated[QueryService, _room("queries")]
+SnapshotsDep = Annotated[SnapshotWriter, _room("snapshots")]
+FollowerDep = Annotated[Follower, _room("follower")]
 FieldNamePath = Annotated[str, Path(pattern=FIELD_NAME_PATTERN, description="Field name.")]
 
 

@@ -9,6 +9,7 @@ storage figures. Every answer is a model of :mod:`.schemas`.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 from ..basis import Basis
 from .applier import LogApplier
@@ -24,6 +25,7 @@ from .status import FieldNotFoundError, StorageError
 log = logging.getLogger("flatserve.service")
 
 
+@dataclass
 class FieldService:
     """Create, delete and describe fields (see the module doc).
 
@@ -39,13 +41,11 @@ class FieldService:
         Takes the field a create built (so that it is not built twice).
     """
 
-    def __init__(self, settings: Settings, storage: LogBackend, catalogue: FieldCatalogue,
-                 follower: Follower, applier: LogApplier) -> None:
-        self.settings = settings
-        self.storage = storage
-        self.catalogue = catalogue
-        self.follower = follower
-        self.applier = applier
+    settings: Settings
+    storage: LogBackend
+    catalogue: FieldCatalogue
+    follower: Follower
+    applier: LogApplier
 
     def create(self, name: str, spec: FieldSpec, basis: Basis) -> FieldEntry:
         """Create field ``name``; its entry once applied here.

@@ -17,6 +17,7 @@ the loop), everything else in the thread pool (the C++ releases the GIL).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import Optional
 
 import anyio.to_thread
@@ -65,6 +66,7 @@ class QueryParams(BaseModel):
                     "answers it; one behind waits).")
 
 
+@dataclass
 class QueryService:
     """Interpolation of this replica's fields.
 
@@ -78,12 +80,10 @@ class QueryService:
     metrics : Metrics, optional
     """
 
-    def __init__(self, settings: Settings, catalogue: FieldCatalogue, follower: Follower,
-                 metrics=None) -> None:
-        self.settings = settings
-        self.catalogue = catalogue
-        self.follower = follower
-        self.metrics = metrics
+    settings: Settings
+    catalogue: FieldCatalogue
+    follower: Follower
+    metrics: object = None
 
     def query(self, e: FieldEntry, flats: Flats, *, weights: bool = False, wait: bool = False,
               **kw) -> QueryResult | None:

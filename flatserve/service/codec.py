@@ -40,7 +40,7 @@ from .status import BatchTooLargeError, BodyTooLargeError
 from ..flats import FORMS, Flats, form_shapes, infer_form
 from .binary import load_npy, load_npz
 from .errors import ApiError
-from .responses import JSONBytes, model_body
+from .responses import model_body
 from .schemas import QueryResponse
 
 NPY = "application/x-npy"

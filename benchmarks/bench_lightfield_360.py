@@ -52,7 +52,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 import timing  # noqa: F401  (first: the repository root on sys.path, for tests.harness)
 

@@ -396,9 +396,11 @@ def to_normal(Q, r, k):
 
     Parameters
     ----------
-    Q : array_like, shape (n, d, d)
-    r : array_like, shape (n, d)
+    Q, r : array_like, shapes (n, d, d) and (n, d)
+        The flats' distance fields (Eq. 2): ``Q`` projects onto each flat's
+        normal space, of dimension ``d - k``.
     k : int
+        The flats' dimension.
 
     Returns
     -------
@@ -406,6 +408,13 @@ def to_normal(Q, r, k):
         Orthonormal, ``N N^T = Q`` (Eq. 3).
     c : ndarray, shape (n, d-k)
         ``N^T r`` (so ``r = N c``).
+
+    Examples
+    --------
+    >>> Q, r = from_rays([[0.0, 0.0, 2.0]], [[0.0, 0.0, 1.0]])
+    >>> N, c = to_normal(Q, r, 1)
+    >>> N.shape, float(np.abs(c).max())
+    ((1, 3, 2), 0.0)
     """
     Q, r = _as_flats(Q, r)
     k = check_k(k, Q.shape[1])

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from flatserve import Field, Flats
+from flatserve import Flats
 from flatserve.atlas import COVER_MARGIN_DEG, COVER_RADII_3D, Atlas, object_unit
 from flatserve.atlas_field import AtlasField
 from flatserve.grassmann import (

@@ -10,6 +10,15 @@ import argparse
 import sys
 
 
+def _view_options(p: argparse.ArgumentParser, *, width: int, seed_of: str) -> None:
+    """The options both figures share: where they go and how the views are rendered."""
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--seed", type=int, default=0, help=f"seed of the {seed_of} (default 0)")
+    p.add_argument("--width", type=int, default=width, help=f"view resolution (default {width})")
+    p.add_argument("--supersample", type=int, default=4, help="rays per pixel (square number; default 4)")
+    p.add_argument("--rgb", action="store_true", help="RGB instead of grey")
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Sub-subcommands of ``flatserve lightfield``."""
     from .figure import DEFAULT_N, FULL_N
@@ -18,13 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     fig = sub.add_parser("paper-figure", help="reproduce Fig. 11 (bunny light field, views, baselines)",
                          description="Build the bunny light field and write Fig. 11's views beside "
                                      "ground truth, a contact sheet and a table against baselines.")
-    fig.add_argument("--out", required=True, help="output directory")
+    _view_options(fig, width=250, seed_of="eye positions")
     fig.add_argument("--full", action="store_true", help=f"the paper's {FULL_N}^2 samples (slow: minutes)")
     fig.add_argument("--n", type=int, default=None, help=f"screen side n (n^2 samples; default {DEFAULT_N})")
-    fig.add_argument("--seed", type=int, default=0, help="seed of the eye positions (default 0)")
-    fig.add_argument("--width", type=int, default=250, help="view resolution (default 250)")
-    fig.add_argument("--supersample", type=int, default=4, help="rays per pixel (square number; default 4)")
-    fig.add_argument("--rgb", action="store_true", help="RGB instead of grey")
     fig.add_argument("--no-baselines", action="store_true", help="skip the two-plane and nearest baselines")
 
     from .orbit import ATLASES, DEFAULT_SAMPLES, SCENES, VIEW_WIDTH
@@ -35,65 +40,61 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                      "atlas field, render 8 azimuths x 3 elevations, and write a contact "
                                      "sheet and a table (PSNR, SSIM, coverage, time) against the k "
                                      "nearest rays in the two-sphere parameterisation.")
-    orb.add_argument("--out", required=True, help="output directory")
+    _view_options(orb, width=VIEW_WIDTH, seed_of="ray directions")
     orb.add_argument("--samples", type=int, default=DEFAULT_SAMPLES,
                      help=f"sample rays (default {DEFAULT_SAMPLES:,})")
     orb.add_argument("--eyes", type=int, default=None, help="eyes on the sphere (default ceil(sqrt(samples)))")
-    orb.add_argument("--seed", type=int, default=0, help="seed of the ray directions (default 0)")
-    orb.add_argument("--width", type=int, default=VIEW_WIDTH, help=f"view resolution (default {VIEW_WIDTH})")
-    orb.add_argument("--supersample", type=int, default=4, help="rays per pixel (square number; default 4)")
-    orb.add_argument("--rgb", action="store_true", help="RGB instead of grey")
     orb.add_argument("--scene", choices=sorted(SCENES), default="bunny", help="scene (default bunny)")
-    orb.add_argument("--atlas", choices=sorted(ATLASES), default="covering",
-                     help="covering: Atlas.covering (32 charts, the service's default); fine: 42 charts "
-                          "within 20.8 degrees of every direction; icosahedral: the former 12-chart "
-                          "default (default covering)")
-    orb.add_argument("--unit", type=float, default=None,
-                     help="the atlas's unit of length in world units: the shift of a ray that counts "
-                          "as much as a turn of one radian (default 1/3: 2/3 of the scenes' radius 0.5, "
-                          "flatserve.atlas.object_unit; 1: world units); the baseline is unchanged")
-    orb.add_argument("--paper-charts", action="store_true",
-                     help="the paper's tangent-simplex charts instead of the isometric ones "
-                          "(flatserve.warp) in the atlas and the one-chart comparison")
-    orb.add_argument("--reach", type=float, default=None,
-                     help="degrees: store samples in every chart whose centre is closer (default "
-                          "the atlas's: 27 for the covering); wider helps sparse eyes, at the cost "
-                          "of storing each sample in more charts")
     orb.add_argument("--no-one-chart", action="store_true",
                      help="skip rendering each view from a one-chart atlas centred on its axis")
+    atlas = orb.add_argument_group("the field's atlas")
+    atlas.add_argument("--atlas", choices=sorted(ATLASES), default="covering",
+                       help="covering: Atlas.covering (32 charts, the service's default); fine: 42 charts "
+                            "within 20.8 degrees of every direction; icosahedral: the former 12-chart "
+                            "default (default covering)")
+    atlas.add_argument("--unit", type=float, default=None,
+                       help="the atlas's unit of length in world units: the shift of a ray that counts "
+                            "as much as a turn of one radian (default 1/3: 2/3 of the scenes' radius 0.5, "
+                            "flatserve.atlas.object_unit; 1: world units); the baseline is unchanged")
+    atlas.add_argument("--reach", type=float, default=None,
+                       help="degrees: store samples in every chart whose centre is closer (default "
+                            "the atlas's: 27 for the covering); wider helps sparse eyes, at the cost "
+                            "of storing each sample in more charts")
+    atlas.add_argument("--paper-charts", action="store_true",
+                       help="the paper's tangent-simplex charts instead of the isometric ones "
+                            "(flatserve.warp) in the atlas and the one-chart comparison")
 
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import InvalidInputError
     from .figure import DEFAULT_N, FULL_N, paper_figure
 
+    command = f"flatserve lightfield {args.lightfield_command}"
     if args.lightfield_command == "paper-figure":
         n = args.n if args.n is not None else (FULL_N if args.full else DEFAULT_N)
         if n < 2:
-            print("flatserve lightfield paper-figure: --n must be >= 2", file=sys.stderr)
+            print(f"{command}: --n must be >= 2", file=sys.stderr)
             return 2
-        try:
+
+        def make():
             paper_figure(args.out, n=n, seed=args.seed, width=args.width, supersample=args.supersample,
                          channels=3 if args.rgb else 1, baselines=not args.no_baselines)
-        except (InvalidInputError, FileNotFoundError) as exc:
-            print(f"flatserve lightfield paper-figure: {exc}", file=sys.stderr)
-            return 2
-        return 0
-    if args.lightfield_command == "orbit":
+    else:
         from .orbit import orbit_figure
 
         if args.samples < 1 or (args.eyes is not None and not 1 <= args.eyes <= args.samples):
-            print("flatserve lightfield orbit: need --samples >= 1 and 1 <= --eyes <= --samples",
-                  file=sys.stderr)
+            print(f"{command}: need --samples >= 1 and 1 <= --eyes <= --samples", file=sys.stderr)
             return 2
-        try:
+
+        def make():
             orbit_figure(args.out, n=args.samples, eyes=args.eyes, seed=args.seed, width=args.width,
                          supersample=args.supersample, channels=3 if args.rgb else 1,
                          scene=args.scene, atlas=args.atlas, unit=args.unit,
                          isometric=not args.paper_charts, reach=args.reach,
                          one_chart=not args.no_one_chart)
-        except (InvalidInputError, FileNotFoundError) as exc:
-            print(f"flatserve lightfield orbit: {exc}", file=sys.stderr)
-            return 2
-        return 0
-    return 2  # pragma: no cover - argparse requires a subcommand
+    try:
+        make()
+    except (InvalidInputError, FileNotFoundError) as exc:
+        print(f"{command}: {exc}", file=sys.stderr)
+        return 2
+    return 0

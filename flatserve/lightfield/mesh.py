@@ -98,6 +98,7 @@ def read_off(path: str | os.PathLike) -> Mesh:
     Parameters
     ----------
     path : path-like
+        An ASCII OFF file (``#`` starts a comment).
 
     Returns
     -------
@@ -137,6 +138,7 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     Parameters
     ----------
     path : path-like
+        Its ending (``.off``, ``.ply``, ``.obj``, any case) names the format.
 
     Returns
     -------

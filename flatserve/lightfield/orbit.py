@@ -232,14 +232,14 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     one_chart : bool
         Also render every view from a one-chart atlas centred on its axis
         (:func:`one_chart_atlas`, the same samples).
-    log : callable(str)
-    progress : bool
-        Show a progress bar while the field builds.
+    log, progress : callable(str), bool
+        Where each step's line of text goes; whether a bar shows the field's
+        build.
 
     Returns
     -------
     dict
-        The JSON table (also written to ``out/results.json``).
+        The JSON table of every view (also written to ``out/results.json``).
     """
     if scene not in SCENES:
         raise InvalidInputError(f"scene: expected one of {sorted(SCENES)}, got {scene!r}", "scene")

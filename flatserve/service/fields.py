@@ -27,24 +27,17 @@ log = logging.getLogger("flatserve.service")
 
 @dataclass
 class FieldService:
-    """Create, delete and describe fields (see the module doc).
+    """Create, delete and describe fields (see the module doc)."""
 
-    Parameters
-    ----------
-    settings : Settings
-        ``max_fields``, ``apply_wait_timeout``.
-    storage : LogBackend
-    catalogue : FieldCatalogue
-    follower : Follower
-        Tells when a create or delete is applied here.
-    applier : LogApplier
-        Takes the field a create built (so that it is not built twice).
-    """
-
+    #: ``max_fields``, ``apply_wait_timeout``
     settings: Settings
+    #: commits creates and deletes to the log
     storage: LogBackend
+    #: reserves a new name; lists and finds the fields
     catalogue: FieldCatalogue
+    #: tells when a create or delete is applied here
     follower: Follower
+    #: takes the field a create built (so that it is not built twice)
     applier: LogApplier
 
     def create(self, name: str, spec: FieldSpec, basis: Basis) -> FieldEntry:

@@ -5,8 +5,7 @@ The domain rules (batch numbers, idempotency, pointing a field at a snapshot,
 row mapping, error wording) are :mod:`.sqlrules`'s, the tables
 :mod:`.sqlschema`'s; this module owns what is PostgreSQL's own: the connection
 pool and its faults, the schema check (once, on the backend's first
-connection), positions under an advisory lock, snapshots as chunk rows (staged
-through :mod:`.pgstage`), leases as session advisory locks and LISTEN/NOTIFY.
+connection), positions under an advisory lock, snapshots as chunk rows (:mod:`.pgsnapshots`), leases as session advisory locks and LISTEN/NOTIFY.
 
 Everything lives in the schema ``flatserve`` of the database the URL names
 (created on first use, by whichever replica comes first)::
@@ -54,17 +53,15 @@ import logging
 import os
 import threading
 import time
-import uuid
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator, TypeVar
 from urllib.parse import urlsplit, urlunsplit
 
 from . import sqlschema
-from .backend import FieldRow, SnapshotGoneError, SnapshotInfo
 from .pgsession import CHANNEL, AdvisoryLeases, LogListener
-from .pgstage import STAGE_LOCK, STAGE_ORPHAN_AGE, Stages  # noqa: F401  (STAGE_ORPHAN_AGE: re-exported)
-from .sqlrules import Dialect, Failure, SQLBackend, snapshot_failure, snapshot_name, storage_failure
+from .pgsnapshots import ChunkedSnapshots, Stages
+from .sqlrules import Dialect, Failure, SQLBackend, storage_failure
 from .status import StorageError, StorageUnavailableError
 
 try:
@@ -84,7 +81,6 @@ SCHEMA_VERSION = 1
 POSITION_LOCK = 0x666C6174_6C6F6701  # "flatlog" + 1
 SCHEMA_LOCK = 0x666C6174_6C6F6702
 #: bytes per snapshot chunk row
-CHUNK_BYTES = 8 << 20
 
 #: SQLSTATE classes of a server that is going away or cannot be reached
 _UNAVAILABLE = ("08", "57P01", "57P02", "57P03", "53300")
@@ -130,7 +126,7 @@ class _Retry(Exception):
     """A pooled connection was found broken before anything was sent: retry once."""
 
 
-class PostgresBackend(AdvisoryLeases, LogListener, SQLBackend):
+class PostgresBackend(ChunkedSnapshots, AdvisoryLeases, LogListener, SQLBackend):
     """The replica log in PostgreSQL (see the module doc).
 
     Parameters
@@ -394,112 +390,4 @@ class PostgresBackend(AdvisoryLeases, LogListener, SQLBackend):
             (pos, kind, field_id, seq, nrows))
         conn.execute("SELECT pg_notify(%s, %s)", (CHANNEL, str(pos)))
         return pos
-
-    # -- snapshots ------------------------------------------------------------------
-    def _stage(self) -> Path:
-        """A locked private staging directory for one snapshot (:mod:`.pgstage`)."""
-        return self._stages.make()
-
-    def _unstage(self, d: Path) -> None:
-        self._stages.drop(d)
-
-    def write_snapshot(self, field_id: int, seq: int, position: int,
-                       save: Callable[[Path], None],
-                       check: Callable[[], None] | None = None) -> SnapshotInfo:
-        stage = None
-        name = f"f{field_id}-s{seq}-{uuid.uuid4().hex[:12]}.snap"
-        try:
-            stage = self._stage()
-            path = stage / name
-            save(path)
-            if not path.exists():  # a writer that appended an extension
-                cands = [p for p in stage.iterdir() if p.name != STAGE_LOCK]
-                if len(cands) != 1:
-                    raise StorageError(f"snapshot writer did not create {path}")
-                path = cands[0]
-            size = path.stat().st_size
-
-            def store(conn):  # the data first, in a transaction of its own
-                conn.execute("INSERT INTO snapshots(name, field_id, bytes, created)"
-                             " VALUES (%s, %s, %s, %s)", (name, field_id, size, time.time()))
-                with open(path, "rb") as fh, conn.cursor() as cur, cur.copy(
-                        "COPY snapshot_chunks(name, idx, data) FROM STDIN (FORMAT BINARY)") as cp:
-                    cp.set_types(["text", "int4", "bytea"])
-                    idx = 0
-                    while True:
-                        chunk = fh.read(CHUNK_BYTES)
-                        if not chunk and idx:
-                            break
-                        cp.write_row((name, idx, chunk))
-                        idx += 1
-                        if len(chunk) < CHUNK_BYTES:
-                            break
-
-            self._run(store)
-        except OSError as exc:  # staging: out of space is a 507, as with SQLite
-            raise snapshot_failure(exc) from exc
-        finally:
-            if stage is not None:
-                self._unstage(stage)
-
-        return SnapshotInfo(name, size, self._point(field_id, name, seq, position, check))
-
-    def _forget_snapshot(self, conn, field_id: int, name: str | None) -> list[str]:
-        conn.execute("DELETE FROM snapshots WHERE field_id=%s", (field_id,))  # chunks cascade
-        return []
-
-    def _snapshot_stored(self, conn, name: str) -> bool:
-        return conn.execute("SELECT 1 FROM snapshots WHERE name=%s FOR SHARE",
-                            (name,)).fetchone() is not None
-
-    def _discard_snapshots(self, names: list[str]) -> None:
-        if not names:
-            return
-        try:
-            self._run(lambda c: c.execute("DELETE FROM snapshots WHERE name = ANY(%s)", (names,)))
-        except StorageError as exc:  # best effort: clean_orphans removes it later
-            log.warning("could not remove snapshots %s: %s", names, exc)
-
-    def load_snapshot(self, row: FieldRow, load: Callable[[Path], T]) -> T:
-        if not row.snapshot_file:
-            raise SnapshotGoneError(f"field id {row.id} has no snapshot")
-        stage = self._stage()
-        path = stage / row.snapshot_file
-        try:
-            def fetch(conn):  # one view: a snapshot replaced meanwhile is still read whole
-                if conn.execute("SELECT 1 FROM snapshots WHERE name=%s",
-                                (row.snapshot_file,)).fetchone() is None:
-                    return False
-                with open(path, "wb") as fh, conn.cursor(binary=True) as cur, cur.copy(
-                        "COPY (SELECT data FROM snapshot_chunks WHERE name=%s ORDER BY idx)"
-                        " TO STDOUT (FORMAT BINARY)", (row.snapshot_file,)) as cp:
-                    cp.set_types(["bytea"])
-                    for (data,) in cp.rows():
-                        fh.write(data)
-                return True
-
-            try:
-                found = self._run(fetch, isolation="REPEATABLE READ")
-            except OSError as exc:
-                raise StorageError(f"snapshot staging failed: {exc}") from exc
-            if not found:
-                raise SnapshotGoneError(f"snapshot {row.snapshot_file} of field id {row.id} "
-                                        "was replaced")
-            return load(path)
-        finally:
-            self._unstage(stage)
-
-    def snapshot_bytes(self, row) -> int:
-        """Size of the row's snapshot (a :class:`FieldRow`, or its ``snapshot_file``)."""
-        file = snapshot_name(row)
-        if not file:
-            return 0
-        r = self._run(lambda c: c.execute("SELECT bytes FROM snapshots WHERE name=%s",
-                                          (file,)).fetchone(), tx=False)
-        return 0 if r is None else int(r[0])
-
-    def clean_orphans(self) -> int:
-        return self._run(lambda c: c.execute(
-            "DELETE FROM snapshots s WHERE NOT EXISTS"
-            " (SELECT 1 FROM fields f WHERE f.snapshot_file = s.name)").rowcount)
 

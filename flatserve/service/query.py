@@ -68,21 +68,15 @@ class QueryParams(BaseModel):
 
 @dataclass
 class QueryService:
-    """Interpolation of this replica's fields.
+    """Interpolation of this replica's fields."""
 
-    Parameters
-    ----------
-    settings : Settings
-        ``read_wait_timeout``, ``apply_wait_timeout``.
-    catalogue : FieldCatalogue
-    follower : Follower
-        For reads that wait for a log position.
-    metrics : Metrics, optional
-    """
-
+    #: ``read_wait_timeout``, ``apply_wait_timeout``
     settings: Settings
+    #: finds the field a query names
     catalogue: FieldCatalogue
+    #: for reads that wait for a log position
     follower: Follower
+    #: counts the queries and their rows per field (a ``Metrics``; None: not counted)
     metrics: object = None
 
     def query(self, e: FieldEntry, flats: Flats, *, weights: bool = False, wait: bool = False,

@@ -21,124 +21,94 @@ MiB = 1 << 20
 class Settings(BaseSettings):
     """Configuration of one flatserve server process."""
 
-    model_config = SettingsConfigDict(env_prefix="FLATSERVE_", extra="ignore")
+    model_config = SettingsConfigDict(
+        env_prefix="FLATSERVE_", extra="ignore", use_attribute_docstrings=True)
 
-    host: str = Field("127.0.0.1", description="Interface to bind.")
+    host: str = Field("127.0.0.1")
+    """Interface to bind."""
     port: int = Field(8000, ge=0, le=65535)
-    data_dir: Path = Field(Path("data"), description="SQLite database and snapshots live here.")
-    workers: int = Field(
-        8,
-        ge=1,
-        le=256,
-        description=(
-            "Threads of each replica process running CPU-heavy handlers (upload, query, "
-            "math) in parallel (see processes for more processes)."
-        ),
-    )
-    blas_threads: int = Field(
-        1,
-        ge=0,
-        le=256,
-        description=(
-            "Threads of NumPy's BLAS in the server process (0: leave as is). The service's "
-            "NumPy products are thin; a threaded BLAS only spins on them."
-        ),
-    )
-    api_key: SecretStr | None = Field(None, description="Read-write API key.")
-    read_only_key: SecretStr | None = Field(None, description="Read-only API key (queries, GETs).")
-    max_body_bytes: int = Field(512 * MiB, ge=1, description="Largest accepted request body (413).")
-    max_json_bytes: int = Field(
-        16 * MiB, ge=1,
-        description="Largest JSON body (413): parsing JSON holds the interpreter for its whole "
-                    "length, so bulk arrays travel as .npy / .npz (up to max_body_bytes).")
-    max_batch_rows: int = Field(1_000_000, ge=1, description="Most rows in one upload or query (413).")
-    max_fields: int = Field(256, ge=1, description="Most fields on this server (409).")
-    max_pending_samples: int = Field(
-        2_000_000, ge=1,
-        description="Most accepted samples of one field waiting for their insert (uploads with "
-                    "wait=false); beyond it uploads get 429 with Retry-After.")
-    max_simplices: int = Field(
-        50_000_000, ge=1,
-        description="Most cells of one field's triangulation: an upload expected to pass it is "
-                    "refused (413) with the estimate (high-dimensional fields grow fast).")
-    max_atlas_samples: int = Field(
-        100_000, ge=1,
-        description="Most flats given to build a data-driven atlas (`basis: {\"kind\": "
-                    "\"atlas\", \"atlas\": \"samples\"}`) when a field is created (413).")
-    insert_slice_rows: int = Field(
-        20_000, ge=1,
-        description="Batches acknowledged before indexing (wait=false) are inserted this "
-                    "many samples at a time, so queries get in between (they see such a batch "
-                    "in part until indexed_batch reaches it); wait=true batches are inserted "
-                    "whole before their acknowledgement.")
-    restore_threads: int = Field(
-        4, ge=1, le=64, description="Fields restored at once on start (each is ready as soon "
-                                    "as it is loaded).")
-    snapshot_every: int = Field(
-        100_000,
-        ge=0,
-        description="Write a snapshot in the background after this many new samples (0: never).",
-    )
-    header_timeout: float = Field(
-        10.0, gt=0,
-        description="Seconds to receive a request's header block, from the connection's "
-                    "opening or the request's first byte; then the connection is closed "
-                    "(408 if part of a request had arrived).")
-    body_timeout: float = Field(
-        60.0, gt=0,
-        description="Seconds to receive a request's body after its headers, plus one second "
-                    "per body_min_rate bytes received; then 408 and the connection is closed.")
-    body_min_rate: int = Field(
-        64 * 1024, ge=1,
-        description="Bytes per second that always get a body through (see body_timeout): "
-                    "a body dripping slower is cut off after about body_timeout seconds.")
-    keepalive_timeout: float = Field(
-        5.0, gt=0, description="Seconds an idle keep-alive connection stays open.")
-    max_connections: int = Field(
-        1000, ge=0,
-        description="Open connections admitted; beyond it a new connection's requests get "
-                    "503 (and one that sends nothing is closed after a second) while admitted "
-                    "ones keep working. Each holds a file descriptor: on start the open-files "
-                    "limit (ulimit -n) is raised toward its hard limit if needed, else the cap "
-                    "is lowered to fit, with a warning (0: as many as the limit allows).")
-    database_url: str | None = Field(
-        None,
-        description="Where the shared batch log lives: unset for SQLite in data_dir (one "
-                    "machine), or postgresql://user:pass@host/db for replicas on several "
-                    "machines.")
-    processes: int = Field(
-        1, ge=1, le=256,
-        description="Replica processes serving one port (SQLite backend: they share the data "
-                    "directory; each holds its own copy of every field's triangulation).")
-    read_wait_timeout: float = Field(
-        10.0, ge=0,
-        description="Seconds a read with min_position waits for this replica to apply that "
-                    "log position; then 503 with Retry-After.")
-    apply_wait_timeout: float = Field(
-        60.0, gt=0,
-        description="Seconds a committed write (a wait=true upload, a create, a delete, a "
-                    "query with wait=true) waits for this replica to apply it; then 503 with "
-                    "Retry-After: the write is stored (an upload retried with the same "
-                    "Idempotency-Key gets its response).")
-    log_poll_interval: float = Field(
-        0.005, gt=0, le=1.0,
-        description="Seconds between two checks for entries other processes appended to the "
-                    "log (SQLite: PRAGMA data_version; this process's own commits wake the "
-                    "follower at once).")
-    snapshot_lease_seconds: float = Field(
-        300.0, gt=0,
-        description="A replica writing a snapshot holds a lease this long (renewed while it "
-                    "writes); a replica killed while writing blocks other writers until then.")
-    lock_fd: int | None = Field(
-        None, ge=0,
-        description="Internal (set by --processes for its children): an inherited open file "
-                    "that holds the data directory's lock for the whole replica group.")
+    """Port to bind (0: a free port chosen by the system)."""
+    data_dir: Path = Field(Path("data"))
+    """SQLite database and snapshots live here."""
+    workers: int = Field(8, ge=1, le=256)
+    """Threads of each replica process running CPU-heavy handlers (upload, query, math) in parallel
+    (see processes for more processes)."""
+    blas_threads: int = Field(1, ge=0, le=256)
+    """Threads of NumPy's BLAS in the server process (0: leave as is). The service's NumPy products
+    are thin; a threaded BLAS only spins on them."""
+    api_key: SecretStr | None = Field(None)
+    """Read-write API key."""
+    read_only_key: SecretStr | None = Field(None)
+    """Read-only API key (queries, GETs)."""
+    max_body_bytes: int = Field(512 * MiB, ge=1)
+    """Largest accepted request body (413)."""
+    max_json_bytes: int = Field(16 * MiB, ge=1)
+    """Largest JSON body (413): parsing JSON holds the interpreter for its whole length, so bulk
+    arrays travel as .npy / .npz (up to max_body_bytes)."""
+    max_batch_rows: int = Field(1_000_000, ge=1)
+    """Most rows in one upload or query (413)."""
+    max_fields: int = Field(256, ge=1)
+    """Most fields on this server (409)."""
+    max_pending_samples: int = Field(2_000_000, ge=1)
+    """Most accepted samples of one field waiting for their insert (uploads with wait=false);
+    beyond it uploads get 429 with Retry-After."""
+    max_simplices: int = Field(50_000_000, ge=1)
+    """Most cells of one field's triangulation: an upload expected to pass it is refused (413) with
+    the estimate (high-dimensional fields grow fast)."""
+    max_atlas_samples: int = Field(100_000, ge=1)
+    """Most flats given to build a data-driven atlas (`basis: {"kind": "atlas", "atlas":
+    "samples"}`) when a field is created (413)."""
+    insert_slice_rows: int = Field(20_000, ge=1)
+    """Batches acknowledged before indexing (wait=false) are inserted this many samples at a time,
+    so queries get in between (they see such a batch in part until indexed_batch reaches it);
+    wait=true batches are inserted whole before their acknowledgement."""
+    restore_threads: int = Field(4, ge=1, le=64)
+    """Fields restored at once on start (each is ready as soon as it is loaded)."""
+    snapshot_every: int = Field(100_000, ge=0)
+    """Write a snapshot in the background after this many new samples (0: never)."""
+    header_timeout: float = Field(10.0, gt=0)
+    """Seconds to receive a request's header block, from the connection's opening or the request's
+    first byte; then the connection is closed (408 if part of a request had arrived)."""
+    body_timeout: float = Field(60.0, gt=0)
+    """Seconds to receive a request's body after its headers, plus one second per body_min_rate
+    bytes received; then 408 and the connection is closed."""
+    body_min_rate: int = Field(64 * 1024, ge=1)
+    """Bytes per second that always get a body through (see body_timeout): a body dripping slower
+    is cut off after about body_timeout seconds."""
+    keepalive_timeout: float = Field(5.0, gt=0)
+    """Seconds an idle keep-alive connection stays open."""
+    max_connections: int = Field(1000, ge=0)
+    """Open connections admitted; beyond it a new connection's requests get 503 (and one that sends
+    nothing is closed after a second) while admitted ones keep working. Each holds a file
+    descriptor: on start the open-files limit (ulimit -n) is raised toward its hard limit if
+    needed, else the cap is lowered to fit, with a warning (0: as many as the limit allows)."""
+    database_url: str | None = Field(None)
+    """Where the shared batch log lives: unset for SQLite in data_dir (one machine), or
+    postgresql://user:pass@host/db for replicas on several machines."""
+    processes: int = Field(1, ge=1, le=256)
+    """Replica processes serving one port (SQLite backend: they share the data directory; each
+    holds its own copy of every field's triangulation)."""
+    read_wait_timeout: float = Field(10.0, ge=0)
+    """Seconds a read with min_position waits for this replica to apply that log position; then 503
+    with Retry-After."""
+    apply_wait_timeout: float = Field(60.0, gt=0)
+    """Seconds a committed write (a wait=true upload, a create, a delete, a query with wait=true)
+    waits for this replica to apply it; then 503 with Retry-After: the write is stored (an
+    upload retried with the same Idempotency-Key gets its response)."""
+    log_poll_interval: float = Field(0.005, gt=0, le=1.0)
+    """Seconds between two checks for entries other processes appended to the log (SQLite: PRAGMA
+    data_version; this process's own commits wake the follower at once)."""
+    snapshot_lease_seconds: float = Field(300.0, gt=0)
+    """A replica writing a snapshot holds a lease this long (renewed while it writes); a replica
+    killed while writing blocks other writers until then."""
+    lock_fd: int | None = Field(None, ge=0)
+    """Internal (set by --processes for its children): an inherited open file that holds the data
+    directory's lock for the whole replica group."""
     log_level: str = Field("info")
-    demo: bool = Field(
-        False,
-        description="On start, create the bunny light-field demo field unless stored "
-        "(background, with progress) and print the viewer URL (`make run` sets it).",
-    )
+    """Level of the server's log (debug, info, warning, error)."""
+    demo: bool = Field(False)
+    """On start, create the bunny light-field demo field unless stored (background, with progress)
+    and print the viewer URL (`make run` sets it)."""
 
     @field_validator("api_key", "read_only_key", mode="before")
     @classmethod

@@ -41,7 +41,9 @@ class SnapshotWriter:
     settings : Settings
         ``snapshot_every``, ``snapshot_lease_seconds``.
     storage : LogBackend
+        Holds the snapshot lease, takes the file and points the field at it.
     metrics : Metrics, optional
+        Counts the snapshots written per field.
     """
 
     def __init__(self, settings: Settings, storage: LogBackend, metrics=None) -> None:

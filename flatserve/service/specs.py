@@ -15,7 +15,7 @@ from ..errors import InvalidInputError
 from .status import BatchTooLargeError
 from ..flats import FORMS, Flats, form_shapes, infer_form
 from .entry import FieldSpec
-from .schemas import (ATLAS_SPECS, CenterFlat, CentersAtlas, CoveringAtlas, FlatsBasis,
+from .schemas import (ATLAS_SPECS, CenterFlat, CoveringAtlas, FlatsBasis,
                       SamplesAtlas, TangentSimplexBasis)
 
 _NAMES = tuple(n for names in FORMS.values() for n in names)

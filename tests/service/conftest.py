@@ -3,6 +3,9 @@ kinds of field (the default covering atlas, the paper's single chart) with the
 library field that must answer the same."""
 from __future__ import annotations
 
+import subprocess
+import sys
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,6 +75,47 @@ def paper_rays(rng: np.random.Generator, n: int):
     eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (n, 3))
     screen = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
     return eyes, screen - eyes
+
+
+def upload_until_stopped(url, field, tag, rng, sent, acked, stop, *, max_rows, binary_every,
+                         survive=False):
+    """Upload random batches of paper rays to ``field`` until ``stop`` is set.
+
+    Each batch's rays go into ``sent[key]`` before it is sent and its answer into
+    ``acked[key]`` once acknowledged (``key`` is ``f"{tag}-b{i}"``, also the
+    Idempotency-Key); every other batch is acknowledged before it is indexed
+    (wait=false), one in ``binary_every`` goes as JSON. When the server dies under
+    it, the uploader returns, or with ``survive`` pauses and goes on (a sibling
+    replica behind the same URL).
+    """
+    c = Client(url, retries=0, timeout=30)
+    i = 0
+    try:
+        while not stop.is_set():
+            n = int(rng.integers(20, max_rows))
+            o, v = paper_rays(rng, n)
+            val = rng.uniform(size=(n, 1))
+            key = f"{tag}-b{i}"
+            sent[key] = (o, v, val)
+            try:
+                acked[key] = c.upload_rays(field, o, v, val, idempotency_key=key,
+                                           binary=bool(i % binary_every), wait=bool(i % 2))
+            except Exception:
+                if stop.is_set() or not survive:
+                    return
+                time.sleep(0.05)
+            i += 1
+    finally:
+        c.close()
+
+
+def assert_data_dir_refused(data, holder_pid):
+    """A second server started on ``data`` exits with 2, naming the holder's pid."""
+    out = subprocess.run([sys.executable, "-m", "flatserve.service", "--port", "1",
+                          "--data-dir", str(data)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2
+    assert "in use by another flatserve server" in out.stderr, out.stderr
+    assert f"pid {holder_pid}" in out.stderr
 
 
 def started(app):

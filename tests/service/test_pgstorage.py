@@ -15,7 +15,8 @@ import pytest
 from flatserve.service import status as fe
 from flatserve.service.backend import KeyTakenError, SnapshotGoneError, open_backend
 from flatserve.service.blobs import pack_arrays, unpack_arrays
-from flatserve.service.pgstorage import CHUNK_BYTES, PostgresBackend, redact
+from flatserve.service.pgsnapshots import CHUNK_BYTES
+from flatserve.service.pgstorage import PostgresBackend, redact
 from flatserve.service.settings import Settings
 
 BASIS = {"Q": np.eye(3)[None].repeat(5, 0), "r": np.zeros((5, 3))}
@@ -317,7 +318,8 @@ def test_staging_directories_of_dead_processes_are_removed_at_start(tmp_path):
     import sys
     import time
 
-    from flatserve.service.pgstorage import STAGE_ORPHAN_AGE, PostgresBackend
+    from flatserve.service.pgsnapshots import STAGE_ORPHAN_AGE
+    from flatserve.service.pgstorage import PostgresBackend
 
     holder = ("import fcntl, os, sys, time\n"
               "fd = os.open(sys.argv[1], os.O_RDWR)\n"

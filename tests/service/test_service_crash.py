@@ -15,34 +15,13 @@ import numpy as np
 from flatserve.client import Client
 from tests.harness.process import ServerProcess, free_port  # noqa: F401
 
-from .conftest import KINDS, add_rays, paper_rays, query_rays
+from .conftest import KINDS, add_rays, paper_rays, query_rays, upload_until_stopped
 
 ROUNDS = 5
 TIME_BUDGET_S = 150
 
 
 Server = ServerProcess  # a real server process (kill -9 in the with block's exit)
-
-
-def _uploader(url, name, rnd, rng, sent, acked, stop):
-    c = Client(url, retries=0, timeout=30)
-    i = 0
-    try:
-        while not stop.is_set():
-            n = int(rng.integers(20, 2500))
-            o, v = paper_rays(rng, n)
-            val = rng.uniform(size=(n, 1))
-            key = f"r{rnd}-b{i}"
-            sent[key] = (o, v, val)
-            try:
-                # every other batch acknowledged before it is indexed (wait=false)
-                acked[key] = c.upload_rays(name, o, v, val, idempotency_key=key,
-                                           binary=bool(i % 4), wait=bool(i % 2))
-            except Exception:
-                return  # the server died under us
-            i += 1
-    finally:
-        c.close()
 
 
 def _verify(url, kind, sent, acked, probe):
@@ -104,10 +83,11 @@ def test_kill9_loses_nothing_acknowledged(tmp_path):
                     else:
                         _verify(srv.url, kind, sent[str(kind)], acked[str(kind)], probe)
                 stop = threading.Event()
-                ts = [threading.Thread(target=_uploader,
-                                       args=(srv.url, str(kind), rnd,
+                ts = [threading.Thread(target=upload_until_stopped,
+                                       args=(srv.url, str(kind), f"r{rnd}",
                                              np.random.default_rng([rnd, i]), sent[str(kind)],
-                                             acked[str(kind)], stop))
+                                             acked[str(kind)], stop),
+                                       kwargs={"max_rows": 2500, "binary_every": 4})
                       for i, kind in enumerate(KINDS)]
                 for t in ts:
                     t.start()

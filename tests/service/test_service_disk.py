@@ -7,7 +7,6 @@ from __future__ import annotations
 import errno
 import os
 import subprocess
-import sys
 from contextlib import contextmanager
 
 import numpy as np
@@ -16,7 +15,7 @@ import pytest
 from flatserve.service.status import DataDirInUseError
 from flatserve.service.storage import Storage
 
-from .conftest import paper_rays, started
+from .conftest import assert_data_dir_refused, paper_rays, started
 from .test_service_crash import Server
 
 
@@ -33,12 +32,7 @@ def test_second_server_on_a_data_dir_in_use_refuses_to_start(tmp_path):
     data = tmp_path / "data"
     with Server(data, tmp_path / "a.log") as srv:
         srv.wait_ready()
-        out = subprocess.run([sys.executable, "-m", "flatserve.service", "--port", "1",
-                              "--data-dir", str(data)], capture_output=True, text=True,
-                             timeout=60)
-        assert out.returncode == 2
-        assert "in use by another flatserve server" in out.stderr, out.stderr
-        assert f"pid {srv.proc.pid}" in out.stderr
+        assert_data_dir_refused(data, srv.proc.pid)
     # killed (the Server context kills -9): the directory is free again
     with Server(data, tmp_path / "b.log") as srv:
         srv.wait_ready()

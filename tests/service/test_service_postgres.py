@@ -46,6 +46,13 @@ class Replicas:
         srv.wait_ready(120)
         return srv
 
+    def pair_with_field(self) -> tuple[ServerProcess, ServerProcess]:
+        """Two replicas, with the test's (empty, ONE_CHART) field created through the first."""
+        a, b = self.start(), self.start()
+        with Client(a.url, retries=0) as c:
+            c.create_field(FIELD, channels=2, basis=ONE_CHART)
+        return a, b
+
     def logs(self) -> str:
         return "\n".join(f"--- replica{i} ---\n" + (self.tmp / f"replica{i}.log").read_text()[-3000:]
                          for i in range(1, self.n + 1))
@@ -76,6 +83,17 @@ class Book:
     def ack(self, key: str, report: dict) -> None:
         with self.lock:
             self.acked[key] = report
+
+    def upload(self, client, rng, key: str, n: int | None = None) -> dict:
+        """Send a new batch under ``key`` (its Idempotency-Key) and book its answer."""
+        report = client.upload_rays(FIELD, *self.batch(rng, key, n), idempotency_key=key)
+        self.ack(key, report)
+        return report
+
+    def uploads(self, client, rng, prefix: str, count: int, n: int) -> None:
+        """``count`` new batches of ``n`` rows, keys ``prefix0``, ``prefix1``, ..."""
+        for i in range(count):
+            self.upload(client, rng, f"{prefix}{i}", n)
 
 
 def reference(book: Book, stored: list[dict]) -> Field:
@@ -119,11 +137,10 @@ def check_replicas(book: Book, urls: list[str], probe, min_position: int | None 
 
 def test_write_through_one_read_through_the_other(replicas, rng):
     group = replicas()
-    a, b = group.start(), group.start()
+    a, b = group.pair_with_field()
     book = Book()
     probe = paper_rays(rng, 500)
     with Client(a.url, retries=0) as ca, Client(b.url, retries=0) as cb:
-        ca.create_field(FIELD, channels=2, basis=ONE_CHART)
         for i in range(6):
             writer, reader = (ca, cb) if i % 2 == 0 else (cb, ca)  # any replica takes writes
             o, d, v = book.batch(rng, f"k{i}", 1500)
@@ -176,11 +193,9 @@ def _retry_unacked(url, book):
 @pytest.mark.parametrize("victim", ["a", "b"])  # either replica (both take writes)
 def test_kill9_of_either_replica_during_uploads_loses_nothing(replicas, rng, victim):
     group = replicas()
-    a, b = group.start(), group.start()
+    a, b = group.pair_with_field()
     book = Book()
     probe = paper_rays(rng, 400)
-    with Client(a.url, retries=0) as c:
-        c.create_field(FIELD, channels=2, basis=ONE_CHART)
     for rnd in range(2):
         stop = threading.Event()
         errors: list = []
@@ -197,8 +212,7 @@ def test_kill9_of_either_replica_during_uploads_loses_nothing(replicas, rng, vic
         survivor = b if dead is a else a
         # the survivor keeps taking writes and answering reads meanwhile
         with Client(survivor.url, retries=0) as c:
-            key = f"during{rnd}"
-            book.ack(key, c.upload_rays(FIELD, *book.batch(rng, key), idempotency_key=key))
+            book.upload(c, rng, f"during{rnd}")
             assert c.query_rays(FIELD, *probe).inside.any()
         stop.set()
         for t in ts:
@@ -217,11 +231,10 @@ def test_postgresql_restart_while_replicas_run(tmp_path, own_pg_cluster, rng):
     url = own_pg_cluster.create_database("restart")
     with contextlib.ExitStack() as stack:
         group = Replicas(tmp_path, url, stack, snapshot_every=0)
-        a, b = group.start(), group.start()
+        a, b = group.pair_with_field()
         book = Book()
         probe = paper_rays(rng, 400)
         with Client(a.url, retries=0) as ca, Client(b.url, retries=0) as cb:
-            ca.create_field(FIELD, channels=2, basis=ONE_CHART)
             for i in range(4):
                 key = f"before{i}"
                 book.ack(key, (ca if i % 2 else cb).upload_rays(FIELD, *book.batch(rng, key),
@@ -284,13 +297,9 @@ def test_a_replica_on_an_empty_machine_needs_only_the_database_url(replicas, rng
     probe = paper_rays(rng, 400)
     with Client(a.url, retries=0) as c:
         c.create_field(FIELD, channels=2, basis=ONE_CHART)
-        for i in range(5):
-            key = f"s{i}"
-            book.ack(key, c.upload_rays(FIELD, *book.batch(rng, key, 2000), idempotency_key=key))
+        book.uploads(c, rng, "s", 5, 2000)
         snap = c.snapshot(FIELD)  # into the database: chunked rows
-        for i in range(3):
-            key = f"t{i}"
-            book.ack(key, c.upload_rays(FIELD, *book.batch(rng, key, 1000), idempotency_key=key))
+        book.uploads(c, rng, "t", 3, 1000)
         before = c.query_rays(FIELD, *probe, weights=True)
     a.kill9()
     with psycopg.connect(pg_url) as db:
@@ -313,14 +322,11 @@ def test_kill9_of_the_replica_writing_a_snapshot(replicas, rng, pg_url):
     (the lease died with the writer's connection: no 300 s lease to wait out),
     and no unreferenced snapshot data stays behind."""
     group = replicas(snapshot_lease_seconds=300)
-    a, b = group.start(), group.start()
+    a, b = group.pair_with_field()
     book = Book()
     probe = paper_rays(rng, 400)
     with Client(a.url, retries=0) as c:
-        c.create_field(FIELD, channels=2, basis=ONE_CHART)
-        for i in range(6):
-            key = f"s{i}"
-            book.ack(key, c.upload_rays(FIELD, *book.batch(rng, key, 4000), idempotency_key=key))
+        book.uploads(c, rng, "s", 6, 4000)
     for rnd in range(3):
         with Client(a.url, retries=0, timeout=60) as c:
             t = threading.Thread(target=_quiet, args=(c.snapshot, FIELD))
@@ -329,8 +335,7 @@ def test_kill9_of_the_replica_writing_a_snapshot(replicas, rng, pg_url):
             a.kill9()
             t.join(60)
         with Client(b.url, retries=0) as c:
-            key = f"after{rnd}"
-            book.ack(key, c.upload_rays(FIELD, *book.batch(rng, key, 500), idempotency_key=key))
+            book.upload(c, rng, f"after{rnd}", 500)
         with Client(b.url, retries=0) as c:
             snapshot_soon(c)  # another replica writes the next one
         a = group.start()  # cleans up what the dead writer left (under the lease)

@@ -24,7 +24,8 @@ from flatserve.service.blobs import content_hash, pack_arrays
 from tests.harness.process import ServerProcess
 from flatserve.service.storage import DB_NAME, lock_data_dir
 
-from .conftest import DEFAULT, KINDS, ONE_CHART, add_rays, paper_rays, query_rays, started
+from .conftest import (DEFAULT, KINDS, ONE_CHART, add_rays, assert_data_dir_refused, paper_rays,
+                       query_rays, started, upload_until_stopped)
 from .test_service_crash import _verify
 
 C = 2
@@ -175,30 +176,6 @@ def test_a_read_waits_a_bounded_time_for_a_position_then_503(make_app, rng, monk
         tc.__exit__(None, None, None)
 
 
-def _uploader(url, tag, rng, sent, acked, stop):
-    c = Client(url, retries=0, timeout=30)
-    i = 0
-    try:
-        while not stop.is_set():
-            n = int(rng.integers(20, 1500))
-            o, v = paper_rays(rng, n)
-            val = rng.uniform(size=(n, 1))
-            key = f"{tag}-b{i}"
-            sent[key] = (o, v, val)
-            try:
-                acked[key] = c.upload_rays(str(DEFAULT), o, v, val, idempotency_key=key,
-                                           binary=bool(i % 3), wait=bool(i % 2))
-            except Exception:
-                if stop.is_set():
-                    return
-                time.sleep(0.05)  # the replica died under us: the others go on
-                if tag.startswith("a"):
-                    return
-            i += 1
-    finally:
-        c.close()
-
-
 def test_kill9_of_a_replica_during_uploads_loses_nothing(group):
     rng = np.random.default_rng(11)
     a, b = group("a"), group("b")
@@ -210,9 +187,11 @@ def test_kill9_of_a_replica_during_uploads_loses_nothing(group):
         c.create_field(str(DEFAULT), channels=1)  # the default field: a covering atlas
     for rnd in range(3):
         stop = threading.Event()
-        ts = [threading.Thread(target=_uploader, args=(srv.url, f"{tag}{rnd}",
-                                                       np.random.default_rng(10 * rnd + k),
-                                                       sent, acked, stop))
+        ts = [threading.Thread(target=upload_until_stopped,
+                               args=(srv.url, str(DEFAULT), f"{tag}{rnd}",
+                                     np.random.default_rng(10 * rnd + k), sent, acked, stop),
+                               kwargs={"max_rows": 1500, "binary_every": 3,
+                                       "survive": tag == "b"})
               for k, (tag, srv) in enumerate((("a", a), ("b", b)))]
         for t in ts:
             t.start()
@@ -300,12 +279,7 @@ def test_processes_2_share_one_port_and_one_data_dir(tmp_path, rng):
         kids = _children(srv.proc.pid)
         assert len(kids) == 2
         # an unrelated server on the directory is refused, naming the holder
-        out = subprocess.run([sys.executable, "-m", "flatserve.service", "--port", "1",
-                              "--data-dir", str(data)], capture_output=True, text=True,
-                             timeout=60)
-        assert out.returncode == 2
-        assert "in use by another flatserve server" in out.stderr, out.stderr
-        assert f"pid {srv.proc.pid}" in out.stderr
+        assert_data_dir_refused(data, srv.proc.pid)
         ref = DEFAULT.reference(1)
         with Client(srv.url) as c:
             c.create_field("f", channels=1)

@@ -23,6 +23,7 @@ import numpy as np
 
 from ._validate import as_array
 from .errors import InvalidInputError, SnapshotError
+from .parallel import shard_pool
 
 __all__ = ["FieldBase", "HEADER", "pack_header", "read_header", "corrupted"]
 
@@ -169,13 +170,14 @@ class FieldBase:
         """``fn(shard, item)`` for each ``(shard index, item)`` of ``work``, in order.
 
         The one loop over a field's shards (prepare, insert, query, snapshot,
-        restore): run here one after the other, each shard at most once per
-        call; a thread pool or remote shards replace this loop only. Lazy:
-        results come as they are needed (a snapshot writes one shard's bytes
-        before making the next's).
+        restore), each shard at most once per call: on the process's shard
+        pool (:func:`flatserve.parallel.shard_pool`, every core), the results
+        in the order of ``work`` whatever the number of threads; remote shards
+        would replace this loop only. Lazy, with a bounded window: a snapshot
+        holds a few shards' bytes at a time, not the field's.
         """
         shards = self.shards
-        return (fn(shards[i], item) for i, item in work)
+        return shard_pool().map(lambda w: fn(shards[w[0]], w[1]), work)
 
     # ----------------------------------------------------------- description
     def describe(self) -> dict:

@@ -25,6 +25,7 @@ Example
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import struct
 from dataclasses import dataclass
@@ -468,11 +469,13 @@ class AtlasField(FieldBase):
             head = pack_header(ATLAS_MAGIC, _VERSION, meta)
             fh.write(head)
             size = len(head)
-            for blob in self._over_shards(lambda f, _: f.to_bytes(),
-                                          [(c, None) for c in range(len(self.fields))]):
-                fh.write(_LENGTH.pack(len(blob)))
-                fh.write(blob)
-                size += _LENGTH.size + len(blob)
+            blobs = self._over_shards(lambda f, _: f.to_bytes(),
+                                      [(c, None) for c in range(len(self.fields))])
+            with contextlib.closing(blobs):  # a failed write: no chart serialised on after it
+                for blob in blobs:
+                    fh.write(_LENGTH.pack(len(blob)))
+                    fh.write(blob)
+                    size += _LENGTH.size + len(blob)
         return size
 
     @classmethod

@@ -6,6 +6,7 @@ import logging
 import os
 import sys
 
+from ..parallel import set_shard_threads
 from .settings import Settings
 
 log = logging.getLogger("flatserve.service")
@@ -78,6 +79,8 @@ def serve(settings: Settings | None = None, listen_fd: int | None = None) -> Non
     if settings.blas_threads:
         how = limit_blas_threads(settings.blas_threads)
         log.debug("BLAS threads capped at %d (%s)", settings.blas_threads, how)
+    pool = set_shard_threads(settings.shard_threads)
+    log.debug("a field's shards on %d threads", pool.threads)
     from .connections import connection_cap, guarded_protocol
 
     try:  # refuse at once, with a clear message, rather than in the middle of start-up

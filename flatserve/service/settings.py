@@ -62,6 +62,10 @@ class Settings(BaseSettings):
     """Batches acknowledged before indexing (wait=false) are inserted this many samples at a time,
     so queries get in between (they see such a batch in part until indexed_batch reaches it);
     wait=true batches are inserted whole before their acknowledgement."""
+    shard_threads: int | None = Field(None, ge=1, le=256)
+    """Threads of each replica process that run one field's shards (an atlas field's charts)
+    at once: inserts, queries, snapshots and restores (unset: the cores it may run on). Answers
+    do not depend on it."""
     restore_threads: int = Field(4, ge=1, le=64)
     """Fields restored at once on start (each is ready as soon as it is loaded)."""
     snapshot_every: int = Field(100_000, ge=0)

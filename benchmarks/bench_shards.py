@@ -84,14 +84,14 @@ def main() -> int:
             times["ingest"][n].append(t)
             t, blob = timed(field.to_bytes)
             times["snapshot"][n].append(t)
-            del field
+            field = None  # freed before the next build
             t, field = timed(lambda: AtlasField.from_bytes(blob))
             times["restore"][n].append(t)
             t, res = timed(lambda: field.query(qf, threads=1))  # each chart on one core
             times["query"][n].append(t)
             if n not in ref:
                 ref[n] = (blob, res.values)
-            del field
+            field = None  # freed before the next build
     (b1, v1), (bn, vn) = ref[1], ref[args.threads]
     assert b1 == bn, "the snapshots differ"
     assert np.array_equal(v1, vn, equal_nan=True), "the answers differ"

@@ -12,12 +12,13 @@ offer is :class:`flatserve.contract.SampledField`.
 from __future__ import annotations
 
 import functools
+import hashlib
 import io
 import json
 import os
 import struct
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any, Callable, Collection, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -25,7 +26,7 @@ from ._validate import as_array
 from .errors import InvalidInputError, SnapshotError
 from .parallel import shard_pool
 
-__all__ = ["FieldBase", "HEADER", "pack_header", "read_header", "corrupted"]
+__all__ = ["FieldBase", "HEADER", "pack_header", "part_key", "read_header", "corrupted"]
 
 #: Magic (8 bytes), version (uint32), metadata length (uint64): the start of a
 #: field file of either kind.
@@ -86,6 +87,13 @@ def read_header(data, *, magic: bytes, versions: Sequence[int], kind: str,
     except ValueError as exc:
         raise corrupted(kind, source, exc) from None
     return version, meta, end
+
+
+def part_key(data) -> str:
+    """The key of a snapshot part: the SHA-256 of its bytes (hex, 32 digits): the
+    same bytes, the same key, so an unchanged shard's part is stored once and a
+    damaged one is caught on reading."""
+    return hashlib.sha256(data).hexdigest()[:32]
 
 
 def corrupted(kind: str, source: str, exc: Exception) -> SnapshotError:
@@ -220,6 +228,44 @@ class FieldBase:
             self.write_to(fh)
             fh.flush()
             os.fsync(fh.fileno())
+
+    def write_parts(self, fh, stage: str | os.PathLike, known: Collection[str] = ()) -> list[str]:
+        """Write a snapshot as a small field file plus its shards' *parts*.
+
+        A part is one shard's field file, named by its key (:func:`part_key`, a
+        digest of its bytes), written to the directory ``stage`` unless its
+        key is in ``known`` (the parts stored already); the field file
+        written to ``fh`` names the parts in shard order. A field whose shards
+        do not change between snapshots writes only the changed ones. This
+        kind holds its one shard in the field file itself: it writes
+        :meth:`write_to` and no parts.
+
+        Parameters
+        ----------
+        fh : binary file
+            Where the field file goes.
+        stage : path-like
+            An existing directory for the new parts (``<stage>/<key>``).
+        known : collection of str
+            Keys of the parts already stored (not written again).
+
+        Returns
+        -------
+        list of str
+            The keys the field file names (all of them: new and known).
+        """
+        self.write_to(fh)
+        return []
+
+    def save_parts(self, path: str | os.PathLike, stage: str | os.PathLike,
+                   known: Collection[str] = ()) -> list[str]:
+        """:meth:`write_parts` to the file ``path``, flushed and fsync'd (as are
+        the new parts)."""
+        with open(path, "wb") as fh:
+            keys = self.write_parts(fh, stage, known)
+            fh.flush()
+            os.fsync(fh.fileno())
+        return keys
 
     @classmethod
     def load(cls, path: str | os.PathLike):

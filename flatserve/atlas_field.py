@@ -27,13 +27,15 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import struct
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from ._fieldbase import FieldBase, corrupted, pack_header, read_header
+from ._fieldbase import FieldBase, corrupted, pack_header, part_key, read_header
 from .atlas import Atlas
 from .coordinates import NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
 from .errors import InvalidInputError, SnapshotError
@@ -47,6 +49,9 @@ __all__ = ["ATLAS_MAGIC", "AtlasField", "AtlasPrepared", "AtlasQueryResult"]
 
 ATLAS_MAGIC = b"FSATLAS\x00"
 _VERSION = 1
+#: The version of an atlas field file whose charts are parts, named by key
+#: (:meth:`AtlasField.write_parts`); both are read.
+_VERSION_PARTS = 2
 _LENGTH = struct.Struct("<Q")  # the length of each chart's field file
 _NO_ROWS = np.empty(0, np.int64)
 _NO_ROWS.setflags(write=False)
@@ -173,6 +178,9 @@ class AtlasField(FieldBase):
         self._nsamples = 0
         self._nrejected = 0
         self._lock = RWLock()
+        #: per chart, (its generation, the key of its part) when a part was last
+        #: written or read: unchanged since, it need not be made again
+        self._parts: list[tuple[int, str] | None] = [None] * len(self.fields)
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -462,11 +470,8 @@ class AtlasField(FieldBase):
         int
             Bytes written.
         """
-        meta = {"atlas": self.atlas.to_dict(), "channels": self.channels,
-                "roundtrip_tol": self.roundtrip_tol, "nsamples": self._nsamples,
-                "nrejected": self._nrejected, "charts": len(self.fields)}
         with self._lock.read():
-            head = pack_header(ATLAS_MAGIC, _VERSION, meta)
+            head = pack_header(ATLAS_MAGIC, _VERSION, self._meta())
             fh.write(head)
             size = len(head)
             blobs = self._over_shards(lambda f, _: f.to_bytes(),
@@ -478,21 +483,97 @@ class AtlasField(FieldBase):
                     size += _LENGTH.size + len(blob)
         return size
 
-    @classmethod
-    def from_bytes(cls, data, *, source: str = "atlas field") -> "AtlasField":
-        """An atlas field from the bytes of its file (:meth:`write_to`).
+    def _meta(self) -> dict:
+        return {"atlas": self.atlas.to_dict(), "channels": self.channels,
+                "roundtrip_tol": self.roundtrip_tol, "nsamples": self._nsamples,
+                "nrejected": self._nrejected, "charts": len(self.fields)}
 
-        Each chart is restored by :meth:`Field.from_bytes` and checked
-        against the atlas (dimension, channels, warp).
+    def write_parts(self, fh, stage, known=()) -> list[str]:
+        """Write a snapshot as a small field file plus one part per chart,
+        writing only the parts of the charts that changed.
+
+        A chart's part is its field file (:meth:`Field.write_to`), named by
+        its key (:func:`~flatserve._fieldbase.part_key`). A chart unchanged
+        since its part was last written or read (its
+        :attr:`Field.generation`), whose key is in ``known``, is not even
+        serialised; a changed one is written to ``<stage>/<key>`` (fsync'd)
+        unless its key is known. The field file written to ``fh`` is the
+        header of :meth:`write_to` (version 2) with ``"parts"``: the keys, in
+        chart order. The charts run on the shard pool. A reader, like
+        :meth:`write_to`.
+
+        Parameters
+        ----------
+        fh : binary file
+        stage : path-like
+            An existing directory for the new parts.
+        known : collection of str
+            Keys of the parts stored already.
+
+        Returns
+        -------
+        list of str
+            The keys of every chart's part, in chart order.
+
+        Examples
+        --------
+        >>> import tempfile, io
+        >>> f = AtlasField(Atlas.covering(1, 3), channels=1)
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     keys = f.write_parts(io.BytesIO(), d)
+        ...     len(keys) == f.atlas.ncharts
+        True
+        """
+        known = frozenset(known)
+        stage = Path(stage)
+
+        def part(f: Field, c: int) -> str:
+            gen, last = f.generation, self._parts[c]
+            if last is not None and last[0] == gen and last[1] in known:
+                return last[1]
+            blob = f.to_bytes()
+            key = part_key(blob)
+            if key not in known:
+                with open(stage / key, "wb") as out:
+                    out.write(blob)
+                    out.flush()
+                    os.fsync(out.fileno())
+            self._parts[c] = (gen, key)  # each chart is one thread's in this call
+            return key
+
+        with self._lock.read():
+            keys = list(self._over_shards(part, [(c, c) for c in range(len(self.fields))]))
+            fh.write(pack_header(ATLAS_MAGIC, _VERSION_PARTS, {**self._meta(), "parts": keys}))
+        return keys
+
+    @classmethod
+    def from_bytes(cls, data, *, source: str = "atlas field", parts=None) -> "AtlasField":
+        """An atlas field from the bytes of its file (:meth:`write_to`, or
+        :meth:`write_parts` with its parts).
+
+        Each chart is restored by :meth:`Field.from_bytes` (on the shard
+        pool) and checked against the atlas (dimension, channels, warp).
+
+        Parameters
+        ----------
+        data : bytes-like
+        source : str
+            Named in error messages.
+        parts : callable, optional
+            ``parts(key) -> bytes-like``: a part of a file written by
+            :meth:`write_parts` (needed for those files only). A part whose
+            bytes do not match its key is damaged.
 
         Raises
         ------
         SnapshotError
-            The data are truncated, damaged or of another format.
+            The data or a part are truncated, damaged or of another format,
+            or the file names parts and ``parts`` is not given.
         """
         data = memoryview(data)
-        _, meta, off = read_header(data, magic=ATLAS_MAGIC, versions=(_VERSION,),
-                                   kind="atlas field", source=source)
+        version, meta, off = read_header(data, magic=ATLAS_MAGIC,
+                                         versions=(_VERSION, _VERSION_PARTS),
+                                         kind="atlas field", source=source)
         try:
             atlas = Atlas.from_dict(meta["atlas"])
             ncharts = int(meta["charts"])
@@ -502,6 +583,8 @@ class AtlasField(FieldBase):
             raise corrupted("atlas field", source, exc) from None
         if ncharts != atlas.ncharts:
             raise SnapshotError(f"{source}: {ncharts} chart files for {atlas.ncharts} charts")
+        if version == _VERSION_PARTS:
+            return obj._restore_parts(meta, nsamples, nrejected, len(data) - off, parts, source)
         blobs = []
         for i in range(ncharts):
             if off + _LENGTH.size > len(data):
@@ -517,16 +600,46 @@ class AtlasField(FieldBase):
         restored = obj._over_shards(
             lambda _, ib: Field.from_bytes(ib[1], source=f"{source}: chart {ib[0]}"),
             [(i, (i, blob)) for i, blob in blobs])
+        obj._adopt(restored, nsamples, nrejected, source)
+        return obj
+
+    def _restore_parts(self, meta: dict, nsamples: int, nrejected: int, extra: int, parts,
+                       source: str) -> "AtlasField":
+        keys = meta.get("parts")
+        if not (isinstance(keys, list) and len(keys) == len(self.fields)
+                and all(isinstance(k, str) and len(k) == 32 for k in keys)):
+            raise SnapshotError(f"{source}: damaged list of parts")
+        if extra:
+            raise SnapshotError(f"{source}: {extra} bytes after the list of parts")
+        if parts is None:
+            raise SnapshotError(f"{source}: the charts are parts kept apart; pass parts= "
+                                "to read them")
+
+        def load(c: int, key: str) -> Field:
+            blob = parts(key)
+            if part_key(blob) != key:
+                raise SnapshotError(f"{source}: chart {c}: part {key} is damaged (its bytes "
+                                    "do not match its key)")
+            return Field.from_bytes(blob, source=f"{source}: chart {c} (part {key})")
+
+        restored = self._over_shards(lambda _, ck: load(*ck),
+                                     [(c, (c, k)) for c, k in enumerate(keys)])
+        self._adopt(restored, nsamples, nrejected, source)
+        self._parts = [(0, k) for k in keys]  # the restored charts are those parts
+        return self
+
+    def _adopt(self, restored, nsamples: int, nrejected: int, source: str) -> None:
+        """Take the restored charts (checked against the atlas) and the counts."""
+        atlas = self.atlas
         for i, f in enumerate(restored):
-            if f.ndim != obj.ndim or f.channels != obj.channels:
+            if f.ndim != self.ndim or f.channels != self.channels:
                 raise SnapshotError(f"{source}: chart {i} does not match the atlas")
             want = atlas.warps[i]
             if (f.warp is None) != (want is None) or (
                     want is not None and f.warp.to_dict() != want.to_dict()):
                 raise SnapshotError(f"{source}: chart {i}'s warp does not match the atlas's")
-            obj.fields[i] = f
-        obj._nsamples, obj._nrejected = nsamples, nrejected
-        return obj
+            self.fields[i] = f
+        self._nsamples, self._nrejected = nsamples, nrejected
 
     def __repr__(self) -> str:
         return (f"AtlasField(k={self.k}, d={self.d}, charts={self.atlas.ncharts}, "

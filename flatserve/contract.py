@@ -40,7 +40,7 @@ True
 from __future__ import annotations
 
 import os
-from typing import Callable, Protocol, Sequence, Union, runtime_checkable
+from typing import Callable, Collection, Protocol, Sequence, Union, runtime_checkable
 
 import numpy as np
 
@@ -189,6 +189,16 @@ class SampledField(Protocol):
         """Write the field file, fsync'd."""
         ...
 
+    def write_parts(self, fh, stage: str | os.PathLike, known: Collection[str] = ()) -> list[str]:
+        """A snapshot as a field file plus the parts of the shards that changed
+        (written to ``stage``); the keys of every part it names."""
+        ...
+
+    def save_parts(self, path: str | os.PathLike, stage: str | os.PathLike,
+                   known: Collection[str] = ()) -> list[str]:
+        """:meth:`write_parts` to a file, fsync'd."""
+        ...
+
 
 #: What :func:`new_field` and :func:`load_field` return.
 AnyField = Union[Field, AtlasField]
@@ -225,10 +235,12 @@ def new_field(channels: int, *, basis: Basis | None = None, atlas: Atlas | dict 
     return Field(basis, channels, **kw)
 
 
-def load_field(path: str | os.PathLike) -> AnyField:
+def load_field(path: str | os.PathLike, parts=None) -> AnyField:
     """Read a field file of either kind, told apart by its magic.
 
-    ``FSFIELD\\0``: :meth:`Field.load`; ``FSATLAS\\0``: :meth:`AtlasField.load`.
+    ``FSFIELD\\0``: :meth:`Field.from_bytes`; ``FSATLAS\\0``:
+    :meth:`AtlasField.from_bytes`, with ``parts(key) -> bytes-like`` for a
+    file whose charts are parts (:meth:`SampledField.write_parts`).
 
     Raises
     ------
@@ -241,7 +253,7 @@ def load_field(path: str | os.PathLike) -> AnyField:
         raise SnapshotError(f"{path}: not a flatserve field file (bad magic)"
                             if len(data) >= 8 else
                             f"{path}: truncated field file ({len(data)} bytes)")
-    return kind.from_bytes(data, source=str(path))
+    return kind.from_bytes(data, source=str(path), parts=parts)
 
 
 def describe_definition(atlas: dict | None) -> dict:

@@ -245,6 +245,14 @@ class Field(FieldBase):
         self.warp = warp
         self._tri = Triangulation(basis.m - 1)
         self._nrejected = 0
+        self._generation = 0
+
+    @property
+    def generation(self) -> int:
+        """Inserts since this object was made (a restored field starts at 0): a
+        field whose generation is unchanged holds what it held (its snapshot part
+        need not be written again)."""
+        return self._generation
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -363,6 +371,7 @@ class Field(FieldBase):
         for lo in range(0, batch.accepted, max(step, 1)):
             duplicates += int(self._tri.insert(batch.x[lo:lo + step],
                                                batch.values[lo:lo + step]).n_duplicates)
+            self._generation += 1
         self._nrejected += int(batch.rejected.size)
         return AddResult(
             accepted=batch.accepted,
@@ -538,7 +547,7 @@ class Field(FieldBase):
         return len(head) + len(payload)
 
     @classmethod
-    def from_bytes(cls, data, *, source: str = "field") -> "Field":
+    def from_bytes(cls, data, *, source: str = "field", parts=None) -> "Field":
         """A field from the bytes of a field file (:meth:`write_to`): a shard's restore.
 
         Parameters
@@ -547,6 +556,9 @@ class Field(FieldBase):
             Exactly one field file.
         source : str
             Named in error messages.
+        parts : callable, optional
+            Unused: a one-chart field's file holds its one shard (the same
+            signature as :meth:`AtlasField.from_bytes`).
 
         Raises
         ------

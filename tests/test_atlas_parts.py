@@ -1,0 +1,150 @@
+"""AtlasField.write_parts / from_bytes(parts=): snapshots that write only the
+charts that changed, and read back to the same field."""
+from __future__ import annotations
+
+import io
+import os
+
+import numpy as np
+import pytest
+
+from flatserve import Flats
+from flatserve.atlas import Atlas
+from flatserve.atlas_field import AtlasField
+from flatserve.contract import load_field
+from flatserve.errors import SnapshotError
+from flatserve.field import Field
+
+
+def _rays(rng, n):
+    return Flats.from_rays(rng.uniform(-1, 1, (n, 3)), rng.standard_normal((n, 3)))
+
+
+@pytest.fixture
+def field():
+    rng = np.random.default_rng(3)
+    f = AtlasField(Atlas.covering(1, 3, oriented=True), channels=2)
+    rays = _rays(rng, 6000)
+    f.add(rays, rng.uniform(size=(rays.n, 2)))
+    return f
+
+
+def _store(stage):
+    """The parts written to ``stage`` so far, by key."""
+    return {p.name: p.read_bytes() for p in stage.iterdir()}
+
+
+def _one_chart_rays(field, rng, chart, n):
+    """Rays stored by ``chart`` alone (every other chart's domain misses them)."""
+    out = []
+    while sum(r.n for r in out) < n:
+        r = _rays(rng, 20 * n)
+        rows = field.route(r)
+        alone = np.ones(r.n, bool)
+        for c, rs in enumerate(rows):
+            m = np.zeros(r.n, bool)
+            m[rs] = True
+            alone &= m if c == chart else ~m
+        out.append(r.take(np.flatnonzero(alone)))
+    got = out[0] if len(out) == 1 else Flats.from_rays(
+        np.concatenate([r.arrays["origins"] for r in out]),
+        np.concatenate([r.arrays["directions"] for r in out]))
+    return got.take(np.arange(n))
+
+
+def test_parts_round_trip_to_the_same_field(field, tmp_path):
+    buf = io.BytesIO()
+    keys = field.write_parts(buf, tmp_path)
+    assert len(keys) == field.atlas.ncharts and sorted(set(keys)) == sorted(_store(tmp_path))
+    head = buf.getvalue()
+    assert len(head) < len(field.to_bytes()) / 20  # it names the parts; the charts are apart
+    store = _store(tmp_path)
+    back = AtlasField.from_bytes(head, parts=store.__getitem__)
+    assert back.to_bytes() == field.to_bytes()
+    q = _rays(np.random.default_rng(4), 2000)
+    a, b = back.query(q, return_weights=True), field.query(q, return_weights=True)
+    np.testing.assert_array_equal(a.values, b.values)
+    np.testing.assert_array_equal(a.weights, b.weights)
+    # through the contract's reader, by magic
+    path = tmp_path.parent / "field.fs"
+    path.write_bytes(head)
+    assert load_field(path, parts=store.__getitem__).to_bytes() == field.to_bytes()
+
+
+def test_a_batch_in_one_chart_writes_one_part(field, tmp_path):
+    first = tmp_path / "1"
+    first.mkdir()
+    keys1 = field.write_parts(io.BytesIO(), first)
+    chart = 5
+    rng = np.random.default_rng(8)
+    rays = _one_chart_rays(field, rng, chart, 300)
+    field.add(rays, rng.uniform(size=(rays.n, 2)))
+    second = tmp_path / "2"
+    second.mkdir()
+    calls = []
+    real = Field.to_bytes
+
+    def counting(self):
+        calls.append(self)
+        return real(self)
+
+    Field.to_bytes = counting
+    try:
+        keys2 = field.write_parts(io.BytesIO(), second, known=set(keys1))
+    finally:
+        Field.to_bytes = real
+    changed = [c for c, (a, b) in enumerate(zip(keys1, keys2)) if a != b]
+    assert changed == [chart]
+    assert sorted(_store(second)) == [keys2[chart]]  # one part written
+    assert calls == [field.fields[chart]]  # and only that chart serialised
+    # the new snapshot reads back whole from the old parts plus the new one
+    store = {**_store(first), **_store(second)}
+    buf = io.BytesIO()
+    field.write_parts(buf, second, known=set(store))
+    assert AtlasField.from_bytes(buf.getvalue(), parts=store.__getitem__).to_bytes() \
+        == field.to_bytes()
+
+
+def test_a_restored_field_writes_no_part_until_it_changes(field, tmp_path):
+    buf = io.BytesIO()
+    keys = field.write_parts(buf, tmp_path)
+    store = _store(tmp_path)
+    back = AtlasField.from_bytes(buf.getvalue(), parts=store.__getitem__)
+    again = tmp_path / "again"
+    again.mkdir()
+    assert back.write_parts(io.BytesIO(), again, known=set(keys)) == keys
+    assert not os.listdir(again)
+
+
+def test_a_part_the_store_lost_is_written_again(field, tmp_path):
+    keys = field.write_parts(io.BytesIO(), tmp_path)
+    again = tmp_path / "again"
+    again.mkdir()
+    lost = keys[2]
+    field.write_parts(io.BytesIO(), again, known=set(keys) - {lost})
+    assert sorted(_store(again)) == [lost]
+
+
+def test_damaged_or_missing_parts_are_snapshot_errors(field, tmp_path):
+    buf = io.BytesIO()
+    keys = field.write_parts(buf, tmp_path)
+    store = _store(tmp_path)
+    store[keys[0]] = store[keys[0]][:-1] + bytes([store[keys[0]][-1] ^ 1])
+    with pytest.raises(SnapshotError, match="chart 0: part .* is damaged"):
+        AtlasField.from_bytes(buf.getvalue(), parts=store.__getitem__)
+    with pytest.raises(SnapshotError, match="pass parts= to read them"):
+        AtlasField.from_bytes(buf.getvalue())
+    with pytest.raises(SnapshotError, match="bytes after the list of parts"):
+        AtlasField.from_bytes(buf.getvalue() + b"x", parts=store.__getitem__)
+
+
+def test_a_one_chart_field_writes_its_whole_file_and_no_parts(tmp_path):
+    from flatserve.service import specs
+
+    f = Field(specs.build_basis(None, 1, 3), channels=1)
+    rng = np.random.default_rng(2)
+    rays = _rays(rng, 500)
+    f.add(rays, rng.uniform(size=(rays.n, 1)))
+    buf = io.BytesIO()
+    assert f.write_parts(buf, tmp_path) == []
+    assert buf.getvalue() == f.to_bytes() and not os.listdir(tmp_path)

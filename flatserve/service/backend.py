@@ -158,7 +158,9 @@ class LogEntry:
 
 @dataclass(frozen=True)
 class SnapshotInfo:
-    """A snapshot just written: its name (:attr:`FieldRow.snapshot_file`) and size."""
+    """A snapshot just written: its name (:attr:`FieldRow.snapshot_file`) and the
+    bytes it wrote (its file and its new parts: parts stored already are not
+    written again)."""
 
     file: str
     bytes: int
@@ -378,8 +380,15 @@ class LogBackend(abc.ABC):
         ----------
         field_id, seq, position : int
         save : callable
-            ``save(path)`` writes the snapshot to a local file ``path`` (it may
-            append an extension: the one file it creates is taken).
+            ``save(path, stage)`` writes the snapshot to a local file ``path``
+            (it may append an extension: the one file it creates is taken) and
+            the parts it names that are not stored yet to the local directory
+            ``stage`` (``<stage>/<key>``; see
+            :meth:`flatserve.contract.SampledField.write_parts`); it returns
+            the keys of every part the snapshot names (None or []: none). The
+            parts are the field's: stored with the snapshot, each once
+            whatever the number of snapshots naming it, removed once no
+            snapshot of the field names them.
         check : callable, optional
             Called once the data is stored, just before the field is pointed at
             it; an exception it raises abandons the snapshot (its data is
@@ -399,8 +408,9 @@ class LogBackend(abc.ABC):
         """
 
     @abc.abstractmethod
-    def load_snapshot(self, row: FieldRow, load: Callable[[Path], T]) -> T:
-        """``load(path)`` of a local file holding the row's snapshot; its result.
+    def load_snapshot(self, row: FieldRow, load: Callable[[Path, Callable[[str], bytes]], T]) -> T:
+        """``load(path, parts)`` of a local file holding the row's snapshot; its
+        result. ``parts(key)`` gives the bytes of a part the snapshot names.
 
         Raises
         ------
@@ -419,6 +429,12 @@ class LogBackend(abc.ABC):
     def snapshot_bytes(self, row: "FieldRow | str | None") -> int:
         """Size of the row's snapshot, given the row or its ``snapshot_file``
         (0: none or gone)."""
+
+    @abc.abstractmethod
+    def snapshot_parts(self, field_id: int) -> set[str]:
+        """Keys of the snapshot parts stored for field ``field_id`` (a snapshot
+        writer passes them to ``write_parts`` as known: not written again).
+        Stable while the caller holds :data:`SNAPSHOT_LEASE`."""
 
     @abc.abstractmethod
     def acquire_lease(self, name: str, owner: str, ttl: float) -> bool:

@@ -139,7 +139,7 @@ class SQLBackend(LogBackend):
     A subclass sets :attr:`dialect` and implements the hooks: :meth:`_write`,
     :meth:`_read`, :meth:`_append` and the snapshot hooks
     (:meth:`_forget_snapshot`, :meth:`_snapshot_stored`,
-    :meth:`_discard_snapshots`).
+    :meth:`_discard_snapshots`, :meth:`_parts_stored`, :meth:`_discard_parts`).
     """
 
     dialect: Dialect
@@ -184,6 +184,17 @@ class SQLBackend(LogBackend):
     @abc.abstractmethod
     def _discard_snapshots(self, names: list[str]) -> None:
         """Remove snapshots' data, best effort (clean_orphans removes the rest)."""
+
+    @abc.abstractmethod
+    def _parts_stored(self, conn, field_id: int, keys: list[str]) -> bool:
+        """In the pointing transaction: whether every part ``keys`` of field
+        ``field_id`` is still stored (and kept so until the commit)."""
+
+    @abc.abstractmethod
+    def _discard_parts(self, field_id: int, keep: list[str]) -> None:
+        """Remove the parts of field ``field_id`` that are not in ``keep`` (the
+        snapshot it now points at names those), best effort: the next snapshot
+        of the field removes what is left."""
 
     # -- rows -----------------------------------------------------------------------
     _FIELD_COLS = ("SELECT id, name, spec, basis, created, position, snapshot_file, snapshot_seq,"
@@ -373,15 +384,21 @@ class SQLBackend(LogBackend):
 
     # -- snapshots ----------------------------------------------------------------------
     def _point(self, field_id: int, name: str, seq: int, position: int,
-               check: Callable[[], None] | None) -> int:
-        """Point the field at snapshot ``name`` (stored and durable) and announce
-        it: the rule of the module doc. The ``snapshot`` entry's position."""
+               check: Callable[[], None] | None, parts: list[str] = ()) -> int:
+        """Point the field at snapshot ``name`` (stored and durable, with the
+        ``parts`` it names) and announce it: the rule of the module doc. The
+        ``snapshot`` entry's position. Then the former snapshot and the parts no
+        longer named are removed."""
         old: list[str] = []
+        parts = list(parts)
 
         def fn(conn):
             now = self._lock_field(conn, field_id, "snapshot_file")
             if not self._snapshot_stored(conn, name):  # a clean-up under a lease we lost
                 raise StorageError(f"snapshot {name} was removed before the field pointed at it")
+            if parts and not self._parts_stored(conn, field_id, parts):
+                raise StorageError(f"a part of snapshot {name} was removed before the field "
+                                   "pointed at it")
             old[:] = [now] if now and now != name else []
             self._run_sql(conn, "UPDATE fields SET snapshot_file=?, snapshot_seq=?,"
                                 " snapshot_position=? WHERE id=?",
@@ -396,7 +413,8 @@ class SQLBackend(LogBackend):
             if not self._points_at(field_id, name):  # (a commit whose reply was lost: keep)
                 self._discard_snapshots([name])
             raise
-        self._discard_snapshots(old)
+        self._discard_snapshots(old)  # first: a reader of the former one is told it is gone
+        self._discard_parts(field_id, parts)
         return pos
 
     def _points_at(self, field_id: int, name: str) -> bool:

@@ -15,6 +15,9 @@ sequential loop over the charts) and ``--threads`` threads
    locate on one native thread (so that the threads are the charts')
                                                          -> target >= 1.5x
 4. snapshot: :meth:`AtlasField.to_bytes` (no target)
+5. the bytes a snapshot in parts (:meth:`AtlasField.write_parts`, as the
+   service writes them) writes after a batch of 1,000 rays in one chart,
+   against the whole field's file
 
 Every timed answer is checked equal (bits) between the two.
 
@@ -23,9 +26,12 @@ Every timed answer is checked equal (bits) between the two.
 from __future__ import annotations
 
 import argparse
+import io
 import os
 import statistics
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -48,6 +54,22 @@ def build(origins, directions, values) -> AtlasField:
         f = Flats.from_rays(origins[i:i + BATCH], directions[i:i + BATCH])
         field.insert_prepared(field.prepare(f, values[i:i + BATCH]))
     return field
+
+
+def one_chart_rays(field: AtlasField, rng, chart: int, n: int):
+    """``n`` rays (origins, directions) that ``field`` stores in ``chart`` alone."""
+    os_, ds = [], []
+    while sum(len(o) for o in os_) < n:
+        o, d = rng.uniform(-1, 1, (50 * n, 3)), rng.standard_normal((50 * n, 3))
+        rows = field.route(Flats.from_rays(o, d))
+        alone = np.zeros(len(o), bool)
+        alone[rows[chart]] = True
+        for c, r in enumerate(rows):
+            if c != chart:
+                alone[r] = False
+        os_.append(o[alone])
+        ds.append(d[alone])
+    return np.concatenate(os_)[:n], np.concatenate(ds)[:n]
 
 
 def timed(fn):
@@ -91,12 +113,30 @@ def main() -> int:
             times["query"][n].append(t)
             if n not in ref:
                 ref[n] = (blob, res.values)
-            field = None  # freed before the next build
+            last, field = field, None  # (the last one kept for 5.)
     (b1, v1), (bn, vn) = ref[1], ref[args.threads]
     assert b1 == bn, "the snapshots differ"
     assert np.array_equal(v1, vn, equal_nan=True), "the answers differ"
     print(f"answers and snapshots bit for bit equal; duplication "
           f"{AtlasField.from_bytes(b1).duplication:.2f}, snapshot {len(b1) / 2**20:.0f} MiB")
+
+    # 5. the bytes a snapshot writes after a batch that touches one chart
+    with tempfile.TemporaryDirectory() as tmp:
+        first, second = Path(tmp, "1"), Path(tmp, "2")
+        first.mkdir()
+        second.mkdir()
+        keys = last.write_parts(io.BytesIO(), first)
+        rng = np.random.default_rng(2)
+        o1, d1 = one_chart_rays(last, rng, 0, 1000)
+        last.insert_prepared(last.prepare(Flats.from_rays(o1, d1), rng.uniform(size=(1000, 1))))
+        head = io.BytesIO()
+        t, keys2 = timed(lambda: last.write_parts(head, second, known=set(keys)))
+        written = len(head.getvalue()) + sum(p.stat().st_size for p in second.iterdir())
+        changed = sum(a != b for a, b in zip(keys, keys2))
+    whole = len(last.to_bytes())
+    print(f"snapshot after a batch of 1,000 rays in one chart of {last.atlas.ncharts}: whole field "
+          f"{whole / 2**20:8.1f} MiB | in parts {written / 2**20:8.1f} MiB written ({changed} part "
+          f"changed, {t:.3f} s) | {whole / written:5.1f}x fewer bytes")
 
     targets = {"ingest": 1.7, "restore": 1.7, "query": 1.5, "snapshot": None}
     for what, by in times.items():

@@ -14,6 +14,7 @@ import argparse
 import gc
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -101,14 +102,14 @@ def through_postgres(url: str, snap: Path, batches, n: int) -> dict:
                                     form="rays", nrows=len(o), blob=pack_arrays(arrays))
         t_log = time.perf_counter() - t0
         t0 = time.perf_counter()
-        be.write_snapshot(fid, seq, pos, lambda p: p.write_bytes(snap.read_bytes()))
+        be.write_snapshot(fid, seq, pos, lambda p, _: shutil.copyfile(snap, p) and None)
         t_put = time.perf_counter() - t0
         row = be.field(fid)
         t0 = time.perf_counter()
-        be.load_snapshot(row, lambda p: p.stat().st_size)
+        be.load_snapshot(row, lambda p, _: p.stat().st_size)
         t_get = time.perf_counter() - t0
         t0 = time.perf_counter()
-        be.load_snapshot(row, Field.load)
+        be.load_snapshot(row, lambda p, _: Field.load(p))
         t_restore = time.perf_counter() - t0
         with psycopg.connect(url) as c:
             log_bytes = c.execute("SELECT pg_total_relation_size('flatserve.batches')").fetchone()[0]

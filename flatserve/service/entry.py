@@ -70,9 +70,10 @@ class FieldSpec:
                          roundtrip_tol=self.roundtrip_tol)
 
     @staticmethod
-    def load_field(path) -> SampledField:
-        """The field of a snapshot file written by its ``save`` (either kind)."""
-        return load_field(path)
+    def load_field(path, parts=None) -> SampledField:
+        """The field of a snapshot file written by its ``save`` or ``save_parts``
+        (either kind; ``parts(key)``: the bytes of a part it names)."""
+        return load_field(path, parts)
 
     def describe_unloaded(self) -> dict:
         """:meth:`~flatserve.contract.SampledField.describe` of a field of this spec

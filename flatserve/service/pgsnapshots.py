@@ -113,11 +113,44 @@ class Stages:
                          "is gone", p)
 
 
+def part_name(field_id: int, key: str) -> str:
+    """The ``snapshots`` row name of field ``field_id``'s part ``key``."""
+    return f"p{field_id}-{key}"
+
+
+def _copy_in(conn, name: str, path: Path) -> None:
+    """``path``'s bytes as the chunk rows of snapshot row ``name``."""
+    with open(path, "rb") as fh, conn.cursor() as cur, cur.copy(
+            "COPY snapshot_chunks(name, idx, data) FROM STDIN (FORMAT BINARY)") as cp:
+        cp.set_types(["text", "int4", "bytea"])
+        idx = 0
+        while True:
+            chunk = fh.read(CHUNK_BYTES)
+            if not chunk and idx:
+                break
+            cp.write_row((name, idx, chunk))
+            idx += 1
+            if len(chunk) < CHUNK_BYTES:
+                break
+
+
+def _copy_out(conn, name: str, path: Path) -> None:
+    """Snapshot row ``name``'s chunks, in order, into the file ``path``."""
+    with open(path, "wb") as fh, conn.cursor(binary=True) as cur, cur.copy(
+            "COPY (SELECT data FROM snapshot_chunks WHERE name=%s ORDER BY idx)"
+            " TO STDOUT (FORMAT BINARY)", (name,)) as cp:
+        cp.set_types(["bytea"])
+        for (data,) in cp.rows():
+            fh.write(data)
+
+
 class ChunkedSnapshots:
-    """:meth:`LogBackend.write_snapshot`, ``load_snapshot``, ``snapshot_bytes`` and
-    ``clean_orphans`` of :class:`~.pgstorage.PostgresBackend`, with the rulebook's
-    hooks ``_forget_snapshot``, ``_snapshot_stored`` and ``_discard_snapshots``
-    (state: ``_stages``, a :class:`Stages`; statements through ``_run``)."""
+    """:meth:`LogBackend.write_snapshot`, ``load_snapshot``, ``snapshot_parts``,
+    ``snapshot_bytes`` and ``clean_orphans`` of :class:`~.pgstorage.PostgresBackend`,
+    with the rulebook's snapshot hooks (state: ``_stages``, a :class:`Stages`;
+    statements through ``_run``). A snapshot's parts are ``snapshots`` rows of
+    their own (``p<field id>-<key>``, each stored once), removed with their field
+    or once no snapshot of the field names them."""
 
     def _stage(self) -> Path:
         """A locked private staging directory for one snapshot (:class:`Stages`)."""
@@ -126,37 +159,44 @@ class ChunkedSnapshots:
     def _unstage(self, d: Path) -> None:
         self._stages.drop(d)
 
+    def snapshot_parts(self, field_id: int) -> set[str]:
+        prefix = part_name(field_id, "")
+        rows = self._run(lambda c: c.execute(
+            "SELECT name FROM snapshots WHERE field_id=%s AND name LIKE %s",
+            (field_id, prefix + "%")).fetchall(), tx=False)
+        return {r[0][len(prefix):] for r in rows}
+
     def write_snapshot(self, field_id: int, seq: int, position: int,
-                       save: Callable[[Path], None],
+                       save: Callable[[Path, Path], list[str] | None],
                        check: Callable[[], None] | None = None) -> SnapshotInfo:
         stage = None
         name = f"f{field_id}-s{seq}-{uuid.uuid4().hex[:12]}.snap"
         try:
             stage = self._stage()
+            parts_dir = stage / "parts"
+            parts_dir.mkdir()
             path = stage / name
-            save(path)
+            keys = list(save(path, parts_dir) or [])
             if not path.exists():  # a writer that appended an extension
-                cands = [p for p in stage.iterdir() if p.name != STAGE_LOCK]
+                cands = [p for p in stage.iterdir() if p.name not in (STAGE_LOCK, "parts")]
                 if len(cands) != 1:
                     raise StorageError(f"snapshot writer did not create {path}")
                 path = cands[0]
             size = path.stat().st_size
+            new = sorted(parts_dir.iterdir())
+            written = size + sum(p.stat().st_size for p in new)
 
             def store(conn):  # the data first, in a transaction of its own
+                now = time.time()
                 conn.execute("INSERT INTO snapshots(name, field_id, bytes, created)"
-                             " VALUES (%s, %s, %s, %s)", (name, field_id, size, time.time()))
-                with open(path, "rb") as fh, conn.cursor() as cur, cur.copy(
-                        "COPY snapshot_chunks(name, idx, data) FROM STDIN (FORMAT BINARY)") as cp:
-                    cp.set_types(["text", "int4", "bytea"])
-                    idx = 0
-                    while True:
-                        chunk = fh.read(CHUNK_BYTES)
-                        if not chunk and idx:
-                            break
-                        cp.write_row((name, idx, chunk))
-                        idx += 1
-                        if len(chunk) < CHUNK_BYTES:
-                            break
+                             " VALUES (%s, %s, %s, %s)", (name, field_id, size, now))
+                _copy_in(conn, name, path)
+                for p in new:  # a part stored meanwhile (the same bytes) is kept as it is
+                    pname = part_name(field_id, p.name)
+                    if conn.execute("INSERT INTO snapshots(name, field_id, bytes, created)"
+                                    " VALUES (%s, %s, %s, %s) ON CONFLICT (name) DO NOTHING",
+                                    (pname, field_id, p.stat().st_size, now)).rowcount:
+                        _copy_in(conn, pname, p)
 
             self._run(store)
         except OSError as exc:  # staging: out of space is a 507, as with SQLite
@@ -165,15 +205,23 @@ class ChunkedSnapshots:
             if stage is not None:
                 self._unstage(stage)
 
-        return SnapshotInfo(name, size, self._point(field_id, name, seq, position, check))
+        return SnapshotInfo(name, written, self._point(field_id, name, seq, position, check,
+                                                        keys))
 
     def _forget_snapshot(self, conn, field_id: int, name: str | None) -> list[str]:
-        conn.execute("DELETE FROM snapshots WHERE field_id=%s", (field_id,))  # chunks cascade
+        # the snapshot and its parts (chunks cascade)
+        conn.execute("DELETE FROM snapshots WHERE field_id=%s", (field_id,))
         return []
 
     def _snapshot_stored(self, conn, name: str) -> bool:
         return conn.execute("SELECT 1 FROM snapshots WHERE name=%s FOR SHARE",
                             (name,)).fetchone() is not None
+
+    def _parts_stored(self, conn, field_id: int, keys: list[str]) -> bool:
+        names = sorted({part_name(field_id, k) for k in keys})
+        got = conn.execute("SELECT name FROM snapshots WHERE name = ANY(%s) FOR SHARE",
+                           (names,)).fetchall()
+        return len(got) == len(names)
 
     def _discard_snapshots(self, names: list[str]) -> None:
         if not names:
@@ -183,22 +231,34 @@ class ChunkedSnapshots:
         except StorageError as exc:  # best effort: clean_orphans removes it later
             log.warning("could not remove snapshots %s: %s", names, exc)
 
-    def load_snapshot(self, row: FieldRow, load: Callable[[Path], T]) -> T:
+    def _discard_parts(self, field_id: int, keep: list[str]) -> None:
+        keep_names = [part_name(field_id, k) for k in keep]
+        try:
+            self._run(lambda c: c.execute(
+                "DELETE FROM snapshots WHERE field_id=%s AND name LIKE %s"
+                " AND NOT (name = ANY(%s))",
+                (field_id, part_name(field_id, "") + "%", keep_names)))
+        except StorageError as exc:  # best effort: the next snapshot removes them
+            log.warning("could not remove the stale parts of field id %d: %s", field_id, exc)
+
+    def load_snapshot(self, row: FieldRow, load: Callable[[Path, Callable[[str], bytes]], T]) -> T:
         if not row.snapshot_file:
             raise SnapshotGoneError(f"field id {row.id} has no snapshot")
         stage = self._stage()
         path = stage / row.snapshot_file
+        parts_dir = stage / "parts"
+        prefix = part_name(row.id, "")
         try:
             def fetch(conn):  # one view: a snapshot replaced meanwhile is still read whole
                 if conn.execute("SELECT 1 FROM snapshots WHERE name=%s",
                                 (row.snapshot_file,)).fetchone() is None:
                     return False
-                with open(path, "wb") as fh, conn.cursor(binary=True) as cur, cur.copy(
-                        "COPY (SELECT data FROM snapshot_chunks WHERE name=%s ORDER BY idx)"
-                        " TO STDOUT (FORMAT BINARY)", (row.snapshot_file,)) as cp:
-                    cp.set_types(["bytea"])
-                    for (data,) in cp.rows():
-                        fh.write(data)
+                _copy_out(conn, row.snapshot_file, path)
+                parts_dir.mkdir(exist_ok=True)
+                for (pname,) in conn.execute(  # the field's parts, in the same view
+                        "SELECT name FROM snapshots WHERE field_id=%s AND name LIKE %s",
+                        (row.id, prefix + "%")).fetchall():
+                    _copy_out(conn, pname, parts_dir / pname[len(prefix):])
                 return True
 
             try:
@@ -208,20 +268,27 @@ class ChunkedSnapshots:
             if not found:
                 raise SnapshotGoneError(f"snapshot {row.snapshot_file} of field id {row.id} "
                                         "was replaced")
-            return load(path)
+            return load(path, lambda key: (parts_dir / key).read_bytes())
         finally:
             self._unstage(stage)
 
     def snapshot_bytes(self, row) -> int:
-        """Size of the row's snapshot (a :class:`FieldRow`, or its ``snapshot_file``)."""
+        """Size of the row's snapshot (a :class:`FieldRow`, or its
+        ``snapshot_file``) plus its field's parts."""
         file = snapshot_name(row)
         if not file:
             return 0
-        r = self._run(lambda c: c.execute("SELECT bytes FROM snapshots WHERE name=%s",
-                                          (file,)).fetchone(), tx=False)
+        r = self._run(lambda c: c.execute(
+            "SELECT s.bytes + COALESCE((SELECT sum(p.bytes) FROM snapshots p"
+            " WHERE p.field_id = s.field_id AND p.name LIKE 'p%%'), 0)"
+            " FROM snapshots s WHERE s.name=%s", (file,)).fetchone(), tx=False)
         return 0 if r is None else int(r[0])
 
     def clean_orphans(self) -> int:
+        """Remove the snapshots no field points at and the parts of fields that
+        are gone (left by a writer that died)."""
         return self._run(lambda c: c.execute(
             "DELETE FROM snapshots s WHERE NOT EXISTS"
-            " (SELECT 1 FROM fields f WHERE f.snapshot_file = s.name)").rowcount)
+            " (SELECT 1 FROM fields f WHERE f.snapshot_file = s.name)"
+            " AND NOT (s.name LIKE 'p%%' AND EXISTS"
+            " (SELECT 1 FROM fields f WHERE f.id = s.field_id))").rowcount)

@@ -368,7 +368,11 @@ class BatchList(BaseModel):
 
 class SnapshotResult(BaseModel):
     batch: int = Field(description="Last batch included in the snapshot.")
-    bytes: int
+    bytes: int = Field(description="The snapshot's size: its file and the parts it names "
+                                   "(an atlas field's charts).")
+    written: int = Field(0, description="Bytes this snapshot wrote: its file and the parts of "
+                                        "the charts that changed since the last one (0: the "
+                                        "stored snapshot was up to date).")
     seconds: float
 
 

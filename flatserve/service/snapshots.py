@@ -150,8 +150,10 @@ class SnapshotWriter:
                     self.storage.snapshot_bytes(row):
                 self.adopt(e, row)
                 return SnapshotResult(batch=row.snapshot_seq,
-                                      bytes=self.storage.snapshot_bytes(row), seconds=0.0)
-            frozen = _Frozen(e, lease)
+                                      bytes=self.storage.snapshot_bytes(row), written=0,
+                                      seconds=0.0)
+            known = self.storage.snapshot_parts(e.id)  # (a read: outside the field's lock)
+            frozen = _Frozen(e, lease, known)
             try:
                 info = self.storage.write_snapshot(e.id, frozen.seq, frozen.pos, frozen.save,
                                                    check=lease.check)
@@ -167,7 +169,8 @@ class SnapshotWriter:
                  frozen.seq, info.bytes, dt)
         if self.metrics is not None:
             self.metrics.snapshots.labels(e.name).inc()
-        return SnapshotResult(batch=frozen.seq, bytes=info.bytes, seconds=dt)
+        return SnapshotResult(batch=frozen.seq, bytes=self.storage.snapshot_bytes(info.file),
+                              written=info.bytes, seconds=dt)
 
     def clean_orphans(self) -> None:
         """Remove snapshot data left by a writer that died (under the snapshot lease:
@@ -216,12 +219,12 @@ class _Held:
 class _Frozen:
     """A field held still for its snapshot: ``index_lock`` is taken here, with the
     log position it is at, and released once the field is serialised to the
-    backend's local file (:meth:`save`, called by the backend) or by
+    backend's local file and parts (:meth:`save`, called by the backend) or by
     :meth:`release`, whichever comes first: the follower (every field's entries)
     waits only that long, never during the database part."""
 
-    def __init__(self, e: FieldEntry, lease: _Held) -> None:
-        self.e, self.lease = e, lease
+    def __init__(self, e: FieldEntry, lease: _Held, known: set[str]) -> None:
+        self.e, self.lease, self.known = e, lease, known
         e.index_lock.acquire()
         self._held = True
         try:
@@ -235,10 +238,13 @@ class _Frozen:
             self.release()
             raise
 
-    def save(self, path) -> None:
+    def save(self, path, stage) -> list[str]:
+        """The field's snapshot file at ``path`` and its changed parts in ``stage``
+        (:meth:`~flatserve.contract.SampledField.save_parts`: the parts stored
+        already are not written again); the keys of the parts it names."""
         try:
             self.lease.check(renew=False)  # (no database round trip under the field's lock)
-            self.e.field.save(path)
+            return self.e.field.save_parts(path, stage, self.known)
         finally:
             self.release()
 

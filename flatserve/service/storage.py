@@ -12,7 +12,8 @@ Layout of ``data_dir``::
 
     flatserve.sqlite3            fields, batches, batch_results, log, leases
     flatserve.lock               held (flock) by the server or replica group using it
-    snapshots/f<id>-s<seq>.snap  Field.save() (AtlasField.save()) of field <id> after batch <seq>
+    snapshots/f<id>-s<seq>.snap  the field file of field <id> after batch <seq> (save_parts)
+    snapshots/parts/p<id>-<key>  the parts it names (an atlas field's charts; sqlitesnapshots.py)
 
 Every change appends one row to ``log`` in its own transaction: SQLite has one
 writer at a time, so the ``AUTOINCREMENT`` position drawn inside the write
@@ -34,7 +35,6 @@ fields, batches and snapshots, and the leases).
 from __future__ import annotations
 
 import logging
-import os
 import sqlite3
 import threading
 import time
@@ -42,11 +42,11 @@ from pathlib import Path
 from typing import Callable, TypeVar
 
 from . import sqlschema
-from .backend import FieldRow, SnapshotGoneError, SnapshotInfo
 from .datadir import LOCK_NAME, fsync_dir, hold_data_dir, lock_data_dir, owner_dead  # noqa: F401
 from .sqlitemigrate import SCHEMA_V2 as _SCHEMA_V2, migrate_v2, run_script  # noqa: F401
-from .sqlrules import Dialect, Failure, SQLBackend, snapshot_failure, snapshot_name, storage_failure
-from .status import FieldNotFoundError, StorageError
+from .sqlitesnapshots import SnapshotFiles
+from .sqlrules import Dialect, Failure, SQLBackend, storage_failure
+from .status import StorageError
 
 log = logging.getLogger("flatserve.service.storage")
 
@@ -76,7 +76,7 @@ def storage_error(exc: sqlite3.Error, db_path: Path) -> StorageError:
     return storage_failure(kind, exc, str(db_path))
 
 
-class SQLiteBackend(SQLBackend):
+class SQLiteBackend(SnapshotFiles, SQLBackend):
     """All durable state of a data directory (see the module doc). Thread-safe:
     writes go through one connection under a lock; reads use a connection per
     thread (WAL: readers never wait for the writer)."""
@@ -89,9 +89,10 @@ class SQLiteBackend(SQLBackend):
         self.data_dir = Path(data_dir)
         self.where = str(self.data_dir)
         self.snapshot_dir = self.data_dir / "snapshots"
+        self.parts_dir = self.snapshot_dir / "parts"
         self.poll_interval = float(poll_interval)
         try:
-            self.snapshot_dir.mkdir(parents=True, exist_ok=True)
+            self.parts_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise StorageError(f"cannot create the data directory {self.data_dir}: {exc}") from exc
         self._dir_lock = hold_data_dir(self.data_dir, lock_fd)
@@ -305,82 +306,6 @@ class SQLiteBackend(SQLBackend):
     def wake(self) -> None:
         self._changed.set()
 
-    # -- snapshots --------------------------------------------------------
-    def snapshot_path(self, file: str) -> Path:
-        return self.snapshot_dir / file
-
-    def write_snapshot(self, field_id: int, seq: int, position: int,
-                       save: Callable[[Path], None],
-                       check: Callable[[], None] | None = None) -> SnapshotInfo:
-        """Write a snapshot file atomically (temporary file, fsync, rename, fsync of
-        the directory), then point the field at it (:mod:`.sqlrules`)."""
-        name = f"f{field_id}-s{seq}.snap"
-        final = self.snapshot_dir / name
-        tmp = self.snapshot_dir / f".tmp-{name}-{os.getpid()}-{threading.get_ident()}"
-        try:
-            save(tmp)
-            if not tmp.exists():  # a writer that appended an extension
-                cands = list(self.snapshot_dir.glob(tmp.name + ".*"))
-                if len(cands) != 1:
-                    raise StorageError(f"snapshot writer did not create {tmp}")
-                tmp = cands[0]
-            fd = os.open(tmp, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-            size = tmp.stat().st_size
-            if check is not None:  # before the rename: a lost lease leaves the old file be
-                check()
-            os.replace(tmp, final)
-            fsync_dir(self.snapshot_dir)
-        except OSError as exc:
-            tmp.unlink(missing_ok=True)
-            raise snapshot_failure(exc) from exc
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        return SnapshotInfo(name, size, self._point(field_id, name, seq, position, None))
-
-    def _forget_snapshot(self, db, field_id: int, name: str | None) -> list[str]:
-        return [name] if name else []  # the file goes after the commit
-
-    def _snapshot_stored(self, db, name: str) -> bool:
-        return self.snapshot_path(name).is_file()
-
-    def _discard_snapshots(self, names: list[str]) -> None:
-        for file in names:
-            try:
-                self.snapshot_path(file).unlink(missing_ok=True)
-            except OSError as exc:  # pragma: no cover - best effort
-                log.warning("could not remove snapshot %s: %s", file, exc)
-
-    def load_snapshot(self, row: FieldRow, load: Callable[[Path], T]) -> T:
-        path = self.snapshot_path(row.snapshot_file)
-        try:
-            return load(path)
-        except OSError:
-            if not path.exists():
-                try:
-                    now = self.field(row.id).snapshot_file
-                except FieldNotFoundError:
-                    now = None
-                if now != row.snapshot_file:
-                    raise SnapshotGoneError(f"snapshot {row.snapshot_file} was replaced") from None
-            raise
-
-    def snapshot_location(self, row: FieldRow) -> str:
-        return str(self.snapshot_path(row.snapshot_file))
-
-    def snapshot_bytes(self, row) -> int:
-        file = snapshot_name(row)
-        if not file:
-            return 0
-        try:
-            return self.snapshot_path(file).stat().st_size
-        except OSError:
-            return 0
-
     def acquire_lease(self, name: str, owner: str, ttl: float) -> bool:
         def fn(db):
             now = time.time()
@@ -405,16 +330,6 @@ class SQLiteBackend(SQLBackend):
     def release_lease(self, name: str, owner: str) -> None:
         self._write(lambda db: db.execute("DELETE FROM leases WHERE name=? AND owner=?",
                                           (name, owner)), appends=False)
-
-    def clean_orphans(self) -> int:
-        """Remove snapshot files no field points at (left by a writer that died)."""
-        keep = {f.snapshot_file for f in self.fields() if f.snapshot_file}
-        n = 0
-        for p in self.snapshot_dir.iterdir():
-            if p.name not in keep and p.is_file():  # (never a directory mounted there)
-                p.unlink(missing_ok=True)
-                n += 1
-        return n
 
 
 #: the name the service used before it had several backends

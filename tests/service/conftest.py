@@ -109,6 +109,15 @@ def upload_until_stopped(url, field, tag, rng, sent, acked, stop, *, max_rows, b
         c.close()
 
 
+def save_bytes(data: bytes):
+    """A snapshot writer for ``LogBackend.write_snapshot`` (``save(path, stage)``)
+    that writes ``data`` and names no parts."""
+    def save(path, stage):
+        with open(path, "wb") as fh:
+            fh.write(data)
+    return save
+
+
 def assert_data_dir_refused(data, holder_pid):
     """A second server started on ``data`` exits with 2, naming the holder's pid."""
     out = subprocess.run([sys.executable, "-m", "flatserve.service", "--port", "1",

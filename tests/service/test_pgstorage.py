@@ -18,6 +18,7 @@ from flatserve.service.blobs import pack_arrays, unpack_arrays
 from flatserve.service.pgsnapshots import CHUNK_BYTES
 from flatserve.service.pgstorage import PostgresBackend, redact
 from flatserve.service.settings import Settings
+from .conftest import save_bytes
 
 BASIS = {"Q": np.eye(3)[None].repeat(5, 0), "r": np.zeros((5, 3))}
 
@@ -183,7 +184,7 @@ def test_snapshots_are_chunked_rows_replaced_whole_and_removed_with_their_field(
     payloads = [rng.bytes(int(CHUNK_BYTES * 2.5)), rng.bytes(1000), b""]
 
     def saver(data, ext=""):
-        def save(path):
+        def save(path, _stage):
             with open(str(path) + ext, "wb") as fh:
                 fh.write(data)
         return save
@@ -196,12 +197,12 @@ def test_snapshots_are_chunked_rows_replaced_whole_and_removed_with_their_field(
         row = b.field(fid)
         assert (row.snapshot_file, row.snapshot_seq, row.snapshot_position) == (infos[-1].file, seq, pos)
         assert b.snapshot_bytes(row) == infos[-1].bytes == len(data)
-        assert b.load_snapshot(row, lambda p: p.read_bytes()) == data
+        assert b.load_snapshot(row, lambda p, _: p.read_bytes()) == data
         entry = b.read_log(infos[-1].position - 1)[0]
         assert (entry.kind, entry.seq, entry.position) == ("snapshot", seq, infos[-1].position)
         if before.snapshot_file:  # the one replaced is gone
             with pytest.raises(SnapshotGoneError):
-                b.load_snapshot(before, lambda p: p.read_bytes())
+                b.load_snapshot(before, lambda p, _: p.read_bytes())
             assert b.snapshot_bytes(before) == 0
     with psycopg.connect(pg_url) as c:
         assert c.execute("SELECT count(*) FROM flatserve.snapshots").fetchone()[0] == 1
@@ -209,9 +210,9 @@ def test_snapshots_are_chunked_rows_replaced_whole_and_removed_with_their_field(
         c.execute("INSERT INTO flatserve.snapshots VALUES ('orphan', %s, 3, 0)", (fid,))
         c.execute("INSERT INTO flatserve.snapshot_chunks VALUES ('orphan', 0, 'abc')")
     assert a.clean_orphans() == 1
-    assert b.load_snapshot(b.field(fid), lambda p: p.read_bytes()) == b""
+    assert b.load_snapshot(b.field(fid), lambda p, _: p.read_bytes()) == b""
     # a field deleted while its snapshot is written: nothing is kept
-    def slow_delete(path):
+    def slow_delete(path, _stage):
         b.delete_field(fid)
         path.write_bytes(b"late")
     with pytest.raises(fe.FieldNotFoundError):
@@ -390,11 +391,11 @@ def test_a_lapsed_lease_is_not_renewed_even_when_free_again(two, pg_url):
             raise RuntimeError("lease lapsed")
 
     with pytest.raises(RuntimeError, match="lapsed"):
-        a.write_snapshot(fid, 0, 0, lambda p: p.write_bytes(b"snap" * 100), check)
+        a.write_snapshot(fid, 0, 0, save_bytes(b"snap" * 100), check)
     assert a.field(fid).snapshot_file is None
     # without the check: the removed data is noticed in the pointing transaction
     assert a.acquire_lease("snapshot", "A", 300)
 
     with pytest.raises(fe.StorageError, match="removed before the field pointed"):
-        a.write_snapshot(fid, 0, 0, lambda p: p.write_bytes(b"snap" * 100), lose_it)
+        a.write_snapshot(fid, 0, 0, save_bytes(b"snap" * 100), lose_it)
     assert a.field(fid).snapshot_file is None

@@ -255,7 +255,10 @@ def test_kill9_of_the_replica_writing_a_snapshot(group, rng):
         a.wait_ready()
     with Client(a.url) as ca:
         _identical(_answers(ca, "f", probe, rep["position"], weights=False), want)
-    assert [p.name for p in snaps.iterdir()] == ["f1-s5.snap"]  # the dead writer's file: gone
+    # the dead writer's file and its parts' staging directory: gone
+    assert [p.name for p in snaps.iterdir() if p.is_file()] == ["f1-s5.snap"]
+    parts = list((snaps / "parts").iterdir())
+    assert parts and all(p.is_file() and p.name.startswith("p1-") for p in parts), parts
     assert "snapshot after batch 5 loaded" in (group.tmp / "a2.log").read_text()
 
 
@@ -399,10 +402,11 @@ def test_a_snapshot_whose_lease_is_taken_meanwhile_is_abandoned(make_app, rng, r
         other = f"{socket.gethostname()}:{os.getpid()}:another-replica"  # alive: this pid
 
         def stolen_write(field_id, seq, position, save, check=None):
-            def save_then_lose(path):
-                save(path)
+            def save_then_lose(path, stage):
+                keys = save(path, stage)
                 storage.release_lease("snapshot", reg.snapshots.owner)  # as if it had expired ...
                 assert storage.acquire_lease("snapshot", other, 60)  # ... and been taken
+                return keys
             return write(field_id, seq, position, save_then_lose, check)
 
         storage.write_snapshot = stolen_write
@@ -439,10 +443,11 @@ def test_a_snapshot_being_stored_does_not_hold_up_the_follower(make_app, rng, re
         stored, gate = threading.Event(), threading.Event()
 
         def held_write(field_id, seq, position, save, check=None):
-            def save_then_hold(path):
-                save(path)
+            def save_then_hold(path, stage):
+                keys = save(path, stage)
                 stored.set()
                 gate.wait(60)  # the database part of the write, held
+                return keys
             return write(field_id, seq, position, save_then_hold, check)
 
         storage.write_snapshot = held_write

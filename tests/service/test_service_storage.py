@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 from flatserve.client import Client
 from flatserve.flats import Flats
 
-from .conftest import KINDS, paper_rays, started as _started
+from .conftest import KINDS, paper_rays, save_bytes, started as _started
 
 with_kinds = pytest.mark.parametrize("kind", KINDS, ids=str)
 
@@ -121,8 +121,10 @@ def test_delete_removes_batches_and_snapshot(make_app, rng, tmp_path):
     try:
         _upload_some(c, rng)
         c.snapshot("f")
+        snaps = tmp_path / "data" / "snapshots"
+        assert len(list((snaps / "parts").iterdir())) > 1  # an atlas field: its charts' parts
         c.delete_field("f")
-        assert not list((tmp_path / "data" / "snapshots").iterdir())
+        assert not [p for p in snaps.rglob("*") if not p.is_dir()]  # nor its parts
         _upload_some(c, rng, batches=1)  # same name again: a new, empty field
         assert len(c.batches("f")) == 1
     finally:
@@ -375,7 +377,7 @@ def test_sqlite_lease_renewal_and_a_snapshot_removed_before_it_is_pointed_at(tmp
             be.clean_orphans()
 
         with pytest.raises(StorageError):  # (no file to publish)
-            be.write_snapshot(fid, 0, 0, lambda p: p.write_bytes(b"snap"), removed_meanwhile)
+            be.write_snapshot(fid, 0, 0, save_bytes(b"snap"), removed_meanwhile)
         assert be.field(fid).snapshot_file is None
     finally:
         be.close()

@@ -10,6 +10,7 @@ from flatserve.service import sqlschema
 from flatserve.service import status as fe
 from flatserve.service.backend import KeyTakenError
 from flatserve.service.blobs import pack_arrays
+from .conftest import save_bytes
 
 BASIS = {"Q": np.eye(3)[None].repeat(5, 0), "r": np.zeros((5, 3))}
 
@@ -41,7 +42,7 @@ def test_batches_are_numbered_after_the_last_one_and_the_snapshot(backend):
     assert (s1, s2) == (1, 2) and p0 < p1 < p2
     assert add(backend, other)[0] == 1  # numbered per field
     # a snapshot said to hold batches 1..5: the next batch is 6, never a number again
-    backend.write_snapshot(fid, 5, p2, lambda p: p.write_bytes(b"snap"))
+    backend.write_snapshot(fid, 5, p2, save_bytes(b"snap"))
     assert add(backend, fid)[0] == 6
     assert [b.seq for b in backend.batches(fid)] == [1, 2, 6]
     assert [b.seq for b in backend.batches(fid, after_seq=1, upto_position=p2)] == [2]
@@ -89,7 +90,7 @@ def test_names_fields_and_deletes(backend):
     seq, _ = backend.add_batch(fid, idem_key=None, chash="h", form="rays", nrows=2,
                                blob=pack_arrays({"values": np.arange(2.0)}))
     np.testing.assert_array_equal(backend.batch_arrays(fid, seq)["values"], [0.0, 1.0])
-    backend.write_snapshot(fid, seq, 0, lambda p: p.write_bytes(b"snap"))
+    backend.write_snapshot(fid, seq, 0, save_bytes(b"snap"))
     pos = backend.delete_field(fid)
     assert backend.head() == pos and backend.read_log(pos - 1)[-1].kind == "delete"
     for call in (lambda: backend.field(fid), lambda: backend.delete_field(fid),
@@ -104,31 +105,31 @@ def test_names_fields_and_deletes(backend):
 def test_a_field_points_at_its_newest_snapshot_and_only_at_stored_data(backend):
     fid, _ = backend.create_field("f", {"k": 1}, BASIS)
     _, pos = add(backend, fid)
-    first = backend.write_snapshot(fid, 1, pos, lambda p: p.write_bytes(b"one"))
+    first = backend.write_snapshot(fid, 1, pos, save_bytes(b"one"))
     row = backend.field(fid)
     assert (row.snapshot_file, row.snapshot_seq, row.snapshot_position) == (first.file, 1, pos)
     assert backend.snapshot_bytes(row) == first.bytes == 3
-    assert backend.load_snapshot(row, lambda p: p.read_bytes()) == b"one"
+    assert backend.load_snapshot(row, lambda p, _: p.read_bytes()) == b"one"
     _, pos2 = add(backend, fid)
-    second = backend.write_snapshot(fid, 2, pos2, lambda p: p.write_bytes(b"second"))
+    second = backend.write_snapshot(fid, 2, pos2, save_bytes(b"second"))
     row = backend.field(fid)
     assert (row.snapshot_file, row.snapshot_seq, row.snapshot_position) == (second.file, 2, pos2)
     assert backend.snapshot_bytes(first.file) == 0  # the replaced one is removed
     assert backend.read_log(0)[-1].kind == "snapshot" and backend.head() == second.position
     # a check that fails abandons the snapshot: nothing kept, the field unchanged
     with pytest.raises(RuntimeError, match="lost"):
-        backend.write_snapshot(fid, 3, pos2, lambda p: p.write_bytes(b"third"),
+        backend.write_snapshot(fid, 3, pos2, save_bytes(b"third"),
                                lambda: (_ for _ in ()).throw(RuntimeError("lease lost")))
     assert backend.field(fid).snapshot_file == second.file and backend.clean_orphans() == 0
     # data removed meanwhile (a clean-up under a lost lease) is never pointed at
     with pytest.raises(fe.StorageError):
-        backend.write_snapshot(fid, 3, pos2, lambda p: p.write_bytes(b"fourth"),
+        backend.write_snapshot(fid, 3, pos2, save_bytes(b"fourth"),
                                lambda: backend.clean_orphans())
     assert backend.field(fid).snapshot_file == second.file
-    assert backend.load_snapshot(backend.field(fid), lambda p: p.read_bytes()) == b"second"
+    assert backend.load_snapshot(backend.field(fid), lambda p, _: p.read_bytes()) == b"second"
     backend.delete_field(fid)
     with pytest.raises(fe.FieldNotFoundError):
-        backend.write_snapshot(fid, 1, pos, lambda p: p.write_bytes(b"gone"))
+        backend.write_snapshot(fid, 1, pos, save_bytes(b"gone"))
     assert backend.clean_orphans() == 0
 
 

@@ -1,0 +1,210 @@
+"""How snapshots travel on SQLite (:mod:`.storage`): files in the data directory.
+
+``snapshots/f<id>-s<seq>.snap`` is a field's snapshot file; the parts it names
+(an atlas field's charts, :meth:`flatserve.contract.SampledField.write_parts`)
+are ``snapshots/parts/p<id>-<key>``, each stored once whatever the number of
+snapshots naming it: a snapshot after a batch that touched one chart writes
+that chart's part and a small file. Every file is written under a temporary
+name, fsync'd, renamed into place and its directory fsync'd before the
+database points the field at the snapshot (:mod:`.sqlrules`); then the former
+snapshot file goes, then the field's parts the new one does not name.
+
+A reader of a snapshot replaced meanwhile finds its file gone and is told so
+(:class:`~.backend.SnapshotGoneError`: it reads the new one). The writers hold
+the snapshot lease (one at a time); their new parts wait in
+``snapshots/parts/.stage-<pid>-<thread>-<random>`` until moved into place, and
+:meth:`SnapshotFiles.clean_orphans` (under the lease) removes what a writer
+that died left there, the parts of fields that are gone and the snapshot files
+no field points at.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import threading
+import uuid
+from pathlib import Path
+from typing import Callable, TypeVar
+
+from .backend import FieldRow, SnapshotGoneError, SnapshotInfo
+from .datadir import fsync_dir
+from .sqlrules import snapshot_failure, snapshot_name
+from .status import FieldNotFoundError, StorageError
+
+log = logging.getLogger("flatserve.service")
+
+T = TypeVar("T")
+
+#: Prefix of a writer's directory of new parts under ``snapshots/parts``.
+STAGE_PREFIX = ".stage-"
+
+
+def part_name(field_id: int, key: str) -> str:
+    """The file name of field ``field_id``'s part ``key``."""
+    return f"p{field_id}-{key}"
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class SnapshotFiles:
+    """:meth:`LogBackend.write_snapshot`, ``load_snapshot``, ``snapshot_parts``,
+    ``snapshot_bytes`` and ``clean_orphans`` of
+    :class:`~.storage.SQLiteBackend`, with the rulebook's snapshot hooks
+    (state: ``snapshot_dir``, ``parts_dir``)."""
+
+    snapshot_dir: Path
+    parts_dir: Path
+
+    def snapshot_path(self, file: str) -> Path:
+        return self.snapshot_dir / file
+
+    def part_path(self, field_id: int, key: str) -> Path:
+        return self.parts_dir / part_name(field_id, key)
+
+    def snapshot_parts(self, field_id: int) -> set[str]:
+        prefix = part_name(field_id, "")
+        try:
+            return {p.name[len(prefix):] for p in self.parts_dir.iterdir()
+                    if p.name.startswith(prefix)}
+        except OSError as exc:
+            raise StorageError(f"cannot list the snapshot parts in {self.parts_dir}: "
+                               f"{exc}") from exc
+
+    def write_snapshot(self, field_id: int, seq: int, position: int,
+                       save: Callable[[Path, Path], list[str] | None],
+                       check: Callable[[], None] | None = None) -> SnapshotInfo:
+        """Write a snapshot file and its new parts atomically (temporary names,
+        fsync, rename, fsync of the directories), then point the field at it
+        (:mod:`.sqlrules`)."""
+        name = f"f{field_id}-s{seq}.snap"
+        final = self.snapshot_dir / name
+        tag = f"{os.getpid()}-{threading.get_ident()}"
+        tmp = self.snapshot_dir / f".tmp-{name}-{tag}"
+        stage = self.parts_dir / f"{STAGE_PREFIX}{tag}-{uuid.uuid4().hex[:8]}"
+        try:
+            stage.mkdir()
+            keys = list(save(tmp, stage) or [])
+            if not tmp.exists():  # a writer that appended an extension
+                cands = list(self.snapshot_dir.glob(tmp.name + ".*"))
+                if len(cands) != 1:
+                    raise StorageError(f"snapshot writer did not create {tmp}")
+                tmp = cands[0]
+            _fsync(tmp)
+            size = tmp.stat().st_size
+            new = [p for p in stage.iterdir()]
+            for p in new:  # (each fsync'd by its writer)
+                size += p.stat().st_size
+                os.replace(p, self.part_path(field_id, p.name))
+            if new:
+                fsync_dir(self.parts_dir)
+            if check is not None:  # before the rename: a lost lease leaves the old file be
+                check()
+            os.replace(tmp, final)
+            fsync_dir(self.snapshot_dir)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise snapshot_failure(exc) from exc
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+        return SnapshotInfo(name, size, self._point(field_id, name, seq, position, None, keys))
+
+    def _forget_snapshot(self, db, field_id: int, name: str | None) -> list[str]:
+        # the files go after the commit: the snapshot file, then every part
+        parts = [f"parts/{part_name(field_id, k)}" for k in sorted(self.snapshot_parts(field_id))]
+        return ([name] if name else []) + parts
+
+    def _snapshot_stored(self, db, name: str) -> bool:
+        return self.snapshot_path(name).is_file()
+
+    def _parts_stored(self, db, field_id: int, keys: list[str]) -> bool:
+        return all(self.part_path(field_id, k).is_file() for k in keys)
+
+    def _discard_snapshots(self, names: list[str]) -> None:
+        for file in names:
+            try:
+                self.snapshot_path(file).unlink(missing_ok=True)
+            except OSError as exc:  # pragma: no cover - best effort
+                log.warning("could not remove snapshot %s: %s", file, exc)
+
+    def _discard_parts(self, field_id: int, keep: list[str]) -> None:
+        try:
+            stale = self.snapshot_parts(field_id) - set(keep)
+        except StorageError as exc:  # pragma: no cover - best effort
+            log.warning("%s", exc)
+            return
+        self._discard_snapshots([f"parts/{part_name(field_id, k)}" for k in sorted(stale)])
+
+    def load_snapshot(self, row: FieldRow, load: Callable[[Path, Callable[[str], bytes]], T]) -> T:
+        path = self.snapshot_path(row.snapshot_file)
+        try:
+            return load(path, lambda key: self.part_path(row.id, key).read_bytes())
+        except OSError:
+            if not path.exists():
+                try:
+                    now = self.field(row.id).snapshot_file
+                except FieldNotFoundError:
+                    now = None
+                if now != row.snapshot_file:
+                    raise SnapshotGoneError(f"snapshot {row.snapshot_file} was replaced") from None
+            raise
+
+    def snapshot_location(self, row: FieldRow) -> str:
+        return str(self.snapshot_path(row.snapshot_file))
+
+    def snapshot_bytes(self, row) -> int:
+        """The snapshot file's size plus its field's parts' (those a snapshot
+        names, and a former one's until they are removed)."""
+        file = snapshot_name(row)
+        if not file:
+            return 0
+        try:
+            size = self.snapshot_path(file).stat().st_size
+        except OSError:
+            return 0
+        field_id = row.id if isinstance(row, FieldRow) else _field_id(file)
+        if field_id is None:
+            return size
+        for key in self.snapshot_parts(field_id):
+            try:
+                size += self.part_path(field_id, key).stat().st_size
+            except OSError:
+                pass
+        return size
+
+    def clean_orphans(self) -> int:
+        """Remove what no field points at (left by a writer that died): snapshot
+        files, staging directories, the parts of fields that are gone."""
+        fields = self.fields()
+        keep = {f.snapshot_file for f in fields if f.snapshot_file}
+        ids = {f.id for f in fields}
+        n = 0
+        for p in self.snapshot_dir.iterdir():
+            if p.name not in keep and p.is_file():  # (never a directory mounted there)
+                p.unlink(missing_ok=True)
+                n += 1
+        for p in self.parts_dir.iterdir():
+            if p.name.startswith(STAGE_PREFIX) and p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+                n += 1
+            elif p.is_file() and _field_id(p.name, prefix="p") not in ids:
+                p.unlink(missing_ok=True)
+                n += 1
+        return n
+
+
+def _field_id(name: str, prefix: str = "f") -> int | None:
+    """The field id in ``f<id>-s<seq>.snap`` (or ``p<id>-<key>``); None if not one."""
+    head = name.split("-", 1)[0]
+    if head[:1] != prefix or not head[1:].isdigit():
+        return None
+    return int(head[1:])

@@ -1,0 +1,139 @@
+"""Snapshots in parts through the service, on both backends: a snapshot after a
+batch that touched one chart writes that chart's part only; restarts restore
+from the parts, from an old whole-field snapshot, or (a part damaged) from the
+batches, answering as before."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from flatserve import Flats
+
+from .conftest import paper_rays, started
+
+BACKENDS = ["sqlite", "postgresql"]
+
+
+def _opts(request, backend):
+    return {} if backend == "sqlite" else {"database_url": request.getfixturevalue("pg_url")}
+
+
+def _rays_in_one_chart(field, rng, chart, n):
+    """Rays (paper set-up, turned) that ``field`` stores in ``chart`` alone."""
+    got_o, got_v = [], []
+    while sum(len(o) for o in got_o) < n:
+        o = rng.uniform(-1, 1, (20 * n, 3))
+        v = rng.standard_normal((20 * n, 3))
+        rows = field.route(Flats.from_rays(o, v))
+        alone = np.zeros(len(o), bool)
+        alone[rows[chart]] = True
+        for c, rs in enumerate(rows):
+            if c != chart:
+                alone[rs] = False
+        got_o.append(o[alone])
+        got_v.append(v[alone])
+    return np.concatenate(got_o)[:n], np.concatenate(got_v)[:n]
+
+
+def _answers(c, probe):
+    res = c.query_rays("f", *probe)
+    return res.values, res.inside
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_batch_in_one_chart_writes_one_part(make_app, rng, request, backend):
+    opts = _opts(request, backend)
+    tc, c = started(make_app(**opts))
+    try:
+        c.create_field("f")  # the default: a covering atlas, one part per chart
+        o, v = paper_rays(rng, 3000)
+        c.upload_rays("f", o, v, rng.uniform(size=3000))
+        first = c.snapshot("f")
+        assert first["written"] == first["bytes"] > 0  # nothing stored before: every part
+        e = tc.app.state.rooms.catalogue.get("f")
+        ncharts = len(e.field.shards)
+        o1, v1 = _rays_in_one_chart(e.field, rng, 3, 200)
+        c.upload_rays("f", o1, v1, rng.uniform(size=200))
+        second = c.snapshot("f")
+        chart_bytes = len(e.field.shards[3].to_bytes())
+        # the changed chart's part and the small field file; not the other charts
+        assert second["written"] < chart_bytes + first["bytes"] / ncharts, (second, chart_bytes)
+        assert second["bytes"] > first["bytes"]
+        again = c.snapshot("f")  # nothing changed since: the stored one
+        assert again["written"] == 0 and again["batch"] == second["batch"]
+        probe = paper_rays(rng, 300)
+        before = _answers(c, probe)
+    finally:
+        tc.__exit__(None, None, None)
+    tc, c = started(make_app(**opts))  # restored from the parts
+    try:
+        info = c.describe("f")
+        assert info["storage"]["snapshot_batch"] == 2
+        after = _answers(c, probe)
+        np.testing.assert_array_equal(after[0], before[0])
+        np.testing.assert_array_equal(after[1], before[1])
+    finally:
+        tc.__exit__(None, None, None)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_an_old_whole_field_snapshot_still_loads(make_app, rng, request, backend, caplog):
+    opts = _opts(request, backend)
+    tc, c = started(make_app(**opts))
+    try:
+        c.create_field("f")
+        o, v = paper_rays(rng, 2000)
+        c.upload_rays("f", o, v, rng.uniform(size=2000))
+        rooms = tc.app.state.rooms
+        e = rooms.catalogue.get("f")
+        # as written before snapshots had parts: the whole field in one file
+        rooms.storage.write_snapshot(e.id, e.indexed_seq, e.indexed_position,
+                                     lambda path, _stage: e.field.save(path))
+        assert rooms.storage.snapshot_parts(e.id) == set()
+        probe = paper_rays(rng, 300)
+        before = _answers(c, probe)
+    finally:
+        tc.__exit__(None, None, None)
+    with caplog.at_level("INFO", logger="flatserve"):
+        tc, c = started(make_app(**opts))
+    try:
+        assert "snapshot after batch 1 loaded" in caplog.text
+        after = _answers(c, probe)
+        np.testing.assert_array_equal(after[0], before[0])
+        # its next snapshot is in parts
+        o, v = paper_rays(rng, 100)
+        c.upload_rays("f", o, v, rng.uniform(size=100))
+        snap = c.snapshot("f")
+        e = tc.app.state.rooms.catalogue.get("f")
+        assert snap["written"] == snap["bytes"]
+        assert len(tc.app.state.rooms.storage.snapshot_parts(e.id)) == len(e.field.shards)
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_a_damaged_part_rebuilds_from_the_batches(make_app, rng, tmp_path, caplog):
+    tc, c = started(make_app())
+    try:
+        c.create_field("f")
+        o, v = paper_rays(rng, 2000)
+        c.upload_rays("f", o, v, rng.uniform(size=2000))
+        c.snapshot("f")
+        probe = paper_rays(rng, 300)
+        before = _answers(c, probe)
+    finally:
+        tc.__exit__(None, None, None)
+    parts = sorted((tmp_path / "data" / "snapshots" / "parts").iterdir(),
+                   key=lambda p: p.stat().st_size)
+    victim = parts[-1]
+    data = bytearray(victim.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    victim.write_bytes(bytes(data))
+    with caplog.at_level("INFO", logger="flatserve"):
+        tc, c = started(make_app())
+    try:
+        assert "is damaged" in caplog.text and "rebuilding from batches" in caplog.text
+        after = _answers(c, probe)
+        np.testing.assert_array_equal(after[0], before[0])
+        np.testing.assert_array_equal(after[1], before[1])
+    finally:
+        tc.__exit__(None, None, None)

@@ -43,6 +43,7 @@ from flatserve.lightfield.camera import sphere_samples
 from flatserve.lightfield.sampling import bunny_scene, orbit_samples
 from flatserve.parallel import set_shard_threads
 from flatserve.service.server import limit_blas_threads
+from tests.harness.charts import rays_in_one_chart
 
 BATCH = 50_000
 
@@ -54,22 +55,6 @@ def build(origins, directions, values) -> AtlasField:
         f = Flats.from_rays(origins[i:i + BATCH], directions[i:i + BATCH])
         field.insert_prepared(field.prepare(f, values[i:i + BATCH]))
     return field
-
-
-def one_chart_rays(field: AtlasField, rng, chart: int, n: int):
-    """``n`` rays (origins, directions) that ``field`` stores in ``chart`` alone."""
-    os_, ds = [], []
-    while sum(len(o) for o in os_) < n:
-        o, d = rng.uniform(-1, 1, (50 * n, 3)), rng.standard_normal((50 * n, 3))
-        rows = field.route(Flats.from_rays(o, d))
-        alone = np.zeros(len(o), bool)
-        alone[rows[chart]] = True
-        for c, r in enumerate(rows):
-            if c != chart:
-                alone[r] = False
-        os_.append(o[alone])
-        ds.append(d[alone])
-    return np.concatenate(os_)[:n], np.concatenate(ds)[:n]
 
 
 def timed(fn):
@@ -127,7 +112,7 @@ def main() -> int:
         second.mkdir()
         keys = last.write_parts(io.BytesIO(), first)
         rng = np.random.default_rng(2)
-        o1, d1 = one_chart_rays(last, rng, 0, 1000)
+        o1, d1 = rays_in_one_chart(last, rng, 0, 1000)
         last.insert_prepared(last.prepare(Flats.from_rays(o1, d1), rng.uniform(size=(1000, 1))))
         head = io.BytesIO()
         t, keys2 = timed(lambda: last.write_parts(head, second, known=set(keys)))

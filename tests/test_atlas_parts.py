@@ -14,6 +14,7 @@ from flatserve.atlas_field import AtlasField
 from flatserve.contract import load_field
 from flatserve.errors import SnapshotError
 from flatserve.field import Field
+from tests.harness.charts import rays_in_one_chart
 
 
 def _rays(rng, n):
@@ -32,24 +33,6 @@ def field():
 def _store(stage):
     """The parts written to ``stage`` so far, by key."""
     return {p.name: p.read_bytes() for p in stage.iterdir()}
-
-
-def _one_chart_rays(field, rng, chart, n):
-    """Rays stored by ``chart`` alone (every other chart's domain misses them)."""
-    out = []
-    while sum(r.n for r in out) < n:
-        r = _rays(rng, 20 * n)
-        rows = field.route(r)
-        alone = np.ones(r.n, bool)
-        for c, rs in enumerate(rows):
-            m = np.zeros(r.n, bool)
-            m[rs] = True
-            alone &= m if c == chart else ~m
-        out.append(r.take(np.flatnonzero(alone)))
-    got = out[0] if len(out) == 1 else Flats.from_rays(
-        np.concatenate([r.arrays["origins"] for r in out]),
-        np.concatenate([r.arrays["directions"] for r in out]))
-    return got.take(np.arange(n))
 
 
 def test_parts_round_trip_to_the_same_field(field, tmp_path):
@@ -77,7 +60,7 @@ def test_a_batch_in_one_chart_writes_one_part(field, tmp_path):
     keys1 = field.write_parts(io.BytesIO(), first)
     chart = 5
     rng = np.random.default_rng(8)
-    rays = _one_chart_rays(field, rng, chart, 300)
+    rays = Flats.from_rays(*rays_in_one_chart(field, rng, chart, 300))
     field.add(rays, rng.uniform(size=(rays.n, 2)))
     second = tmp_path / "2"
     second.mkdir()

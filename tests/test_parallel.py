@@ -182,13 +182,11 @@ def test_concurrent_queries_and_inserts_on_threads_match_the_sequential_field(th
     stop, errors = threading.Event(), []
 
     def reader():
-        while not stop.is_set():
-            try:
-                res = field.query(q)
-                assert res.values.shape == (500, 2)
-            except Exception as exc:  # pragma: no cover - reported below
-                errors.append(exc)
-                return
+        try:
+            while not stop.is_set():
+                assert field.query(q).values.shape == (500, 2)
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
 
     readers = [threading.Thread(target=reader) for _ in range(3)]
     for t in readers:

@@ -85,7 +85,8 @@ def owner_dead(owner: str) -> bool:
     return False
 
 
-def fsync_dir(path: Path) -> None:
+def fsync_path(path: Path) -> None:
+    """fsync a file, or a directory (after a rename into it), by its path."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Callable, TypeVar
 
 from .backend import FieldRow, SnapshotGoneError, SnapshotInfo
-from .datadir import fsync_dir
+from .datadir import fsync_path
 from .sqlrules import snapshot_failure, snapshot_name
 from .status import FieldNotFoundError, StorageError
 
@@ -43,14 +43,6 @@ STAGE_PREFIX = ".stage-"
 def part_name(field_id: int, key: str) -> str:
     """The file name of field ``field_id``'s part ``key``."""
     return f"p{field_id}-{key}"
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 class SnapshotFiles:
@@ -96,18 +88,18 @@ class SnapshotFiles:
                 if len(cands) != 1:
                     raise StorageError(f"snapshot writer did not create {tmp}")
                 tmp = cands[0]
-            _fsync(tmp)
+            fsync_path(tmp)
             size = tmp.stat().st_size
             new = [p for p in stage.iterdir()]
             for p in new:  # (each fsync'd by its writer)
                 size += p.stat().st_size
                 os.replace(p, self.part_path(field_id, p.name))
             if new:
-                fsync_dir(self.parts_dir)
+                fsync_path(self.parts_dir)
             if check is not None:  # before the rename: a lost lease leaves the old file be
                 check()
             os.replace(tmp, final)
-            fsync_dir(self.snapshot_dir)
+            fsync_path(self.snapshot_dir)
         except OSError as exc:
             tmp.unlink(missing_ok=True)
             raise snapshot_failure(exc) from exc

@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Callable, TypeVar
 
 from . import sqlschema
-from .datadir import LOCK_NAME, fsync_dir, hold_data_dir, lock_data_dir, owner_dead  # noqa: F401
+from .datadir import LOCK_NAME, fsync_path, hold_data_dir, lock_data_dir, owner_dead  # noqa: F401
 from .sqlitemigrate import SCHEMA_V2 as _SCHEMA_V2, migrate_v2, run_script  # noqa: F401
 from .sqlitesnapshots import SnapshotFiles
 from .sqlrules import Dialect, Failure, SQLBackend, storage_failure

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flatserve import Flats
+from tests.harness.charts import rays_in_one_chart
 
 from .conftest import paper_rays, started
 
@@ -16,23 +16,6 @@ BACKENDS = ["sqlite", "postgresql"]
 
 def _opts(request, backend):
     return {} if backend == "sqlite" else {"database_url": request.getfixturevalue("pg_url")}
-
-
-def _rays_in_one_chart(field, rng, chart, n):
-    """Rays (paper set-up, turned) that ``field`` stores in ``chart`` alone."""
-    got_o, got_v = [], []
-    while sum(len(o) for o in got_o) < n:
-        o = rng.uniform(-1, 1, (20 * n, 3))
-        v = rng.standard_normal((20 * n, 3))
-        rows = field.route(Flats.from_rays(o, v))
-        alone = np.zeros(len(o), bool)
-        alone[rows[chart]] = True
-        for c, rs in enumerate(rows):
-            if c != chart:
-                alone[rs] = False
-        got_o.append(o[alone])
-        got_v.append(v[alone])
-    return np.concatenate(got_o)[:n], np.concatenate(got_v)[:n]
 
 
 def _answers(c, probe):
@@ -52,7 +35,7 @@ def test_a_batch_in_one_chart_writes_one_part(make_app, rng, request, backend):
         assert first["written"] == first["bytes"] > 0  # nothing stored before: every part
         e = tc.app.state.rooms.catalogue.get("f")
         ncharts = len(e.field.shards)
-        o1, v1 = _rays_in_one_chart(e.field, rng, 3, 200)
+        o1, v1 = rays_in_one_chart(e.field, rng, 3, 200)
         c.upload_rays("f", o1, v1, rng.uniform(size=200))
         second = c.snapshot("f")
         chart_bytes = len(e.field.shards[3].to_bytes())

@@ -168,14 +168,21 @@ def split_columns(arr: np.ndarray, form: str, k: int, d: int, channels: int | No
     return out
 
 
+def kind_of(k: int, d: int) -> str:
+    """What a field of ``k``-flats in R^d holds, in words: ``lines in R^3 (k=1, d=3)``."""
+    name = {0: "points", 1: "lines", 2: "planes"}.get(k, f"{k}-flats")
+    return f"{name} in R^{d} (k={k}, d={d})"
+
+
 def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d: int,
-           channels: int | None, max_rows: int, max_json_bytes: int | None = None
-           ) -> tuple[Flats, np.ndarray | None, dict]:
+           channels: int | None, max_rows: int, max_json_bytes: int | None = None,
+           field: str | None = None) -> tuple[Flats, np.ndarray | None, dict]:
     """Parse a batch body into ``(flats, values or None, the JSON object or {})``.
 
     ``channels=None``: a query (no values); else an upload of ``(n, channels)``
     values. Shapes, finite values, equal row counts, at least one row and at
-    most ``max_rows`` are checked here, once.
+    most ``max_rows`` are checked here, once. A flat of the wrong shape is
+    refused naming the ``field`` and what it holds (:func:`kind_of`).
     """
     kind = body_kind(content_type)
     extra: dict = {}
@@ -208,7 +215,13 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
     nrows = _rows(raw, form)
     if nrows > max_rows:
         raise BatchTooLargeError(f"{nrows} rows in one request; the limit is {max_rows}")
-    flats = Flats.from_arrays(raw, k=k, d=d, form=form, min_rows=1)
+    try:
+        flats = Flats.from_arrays(raw, k=k, d=d, form=form, min_rows=1)
+    except InvalidInputError as exc:
+        if "expected shape" not in str(exc):
+            raise
+        whose = f"field {field!r} holds " if field is not None else "expected "
+        raise type(exc)(f"{exc} ({whose}{kind_of(k, d)})", exc.argument) from None
     values = None
     if channels is not None:
         if raw.get("values") is None:

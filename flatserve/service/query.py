@@ -141,7 +141,7 @@ async def answer(queries: QueryService, name: str, params: QueryParams, body: by
 
     def decode():
         return codec.decode(body, content_type, params.form, k=e.spec.k, d=e.spec.d,
-                            channels=None, max_rows=settings.max_batch_rows,
+                            field=e.name, channels=None, max_rows=settings.max_batch_rows,
                             max_json_bytes=settings.max_json_bytes)[0]
 
     if len(body) <= INLINE_BODY_BYTES:

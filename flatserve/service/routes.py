@@ -146,7 +146,8 @@ def upload_samples(
 ) -> UploadResult:
     t0 = time.perf_counter()
     flats, values, _ = codec.decode(body, content_type, form, k=e.spec.k, d=e.spec.d,
-                                    channels=e.spec.channels, max_rows=settings.max_batch_rows,
+                                    field=e.name, channels=e.spec.channels,
+                                    max_rows=settings.max_batch_rows,
                                     max_json_bytes=settings.max_json_bytes)
     timings = {"decode": time.perf_counter() - t0}
     # an empty Idempotency-Key header means "no key", not the key ""

@@ -232,6 +232,23 @@ def test_bad_uploads_are_4xx_naming_the_argument(api, body, ctype, status, where
     assert c.describe("f")["nsamples"] == 0
 
 
+@pytest.mark.parametrize("path", ["samples", "query"])
+def test_flats_of_another_kind_are_refused_naming_the_field_and_its_kind(api, path):
+    """Planes in R^4 sent to a field of lines in R^3: the 422 names the array,
+    its shapes, the field and what it holds."""
+    tc, c = api
+    c.create_field("f", channels=1)
+    body = {"A": np.zeros((1, 4, 2)).tolist(), "b": np.zeros((1, 4)).tolist()}
+    if path == "samples":
+        body["values"] = [[1.0]]
+    r = tc.post(f"/v1/fields/f/{path}", json=body)
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"][0]
+    assert detail["loc"][-1] == "A"
+    assert "expected shape (n, 3, 1), got (1, 4, 2)" in detail["msg"]
+    assert "field 'f' holds lines in R^3 (k=1, d=3)" in detail["msg"]
+
+
 def test_non_finite_npy_and_wrong_width(api):
     tc, c = api
     c.create_field("f", channels=1)

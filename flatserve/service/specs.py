@@ -9,7 +9,7 @@ import numpy as np
 
 from .._validate import as_array
 from ..atlas import Atlas
-from ..atlas_field import AtlasField
+from ..contract import new_field
 from ..basis import Basis
 from ..errors import InvalidInputError
 from .status import BatchTooLargeError
@@ -224,7 +224,7 @@ def _check_rows(model, where: str, limit: int | None, setting: str | None) -> No
 def _require_charted(atlas: Atlas, flats: Flats) -> None:
     """Refuse (422, ``basis.samples``) a data-driven atlas that does not chart every
     flat it was built for: which rows, and why the first is not."""
-    prepared = AtlasField(atlas).prepare(flats, np.zeros(flats.n))
+    prepared = new_field(1, atlas=atlas).prepare(flats, np.zeros(flats.n))
     bad = prepared.rejected
     if bad.size:
         rows = ", ".join(str(i) for i in bad[:5].tolist()) + (", ..." if bad.size > 5 else "")

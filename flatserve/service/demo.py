@@ -89,7 +89,7 @@ def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES
         if (e.spec.k, e.spec.d, e.spec.channels) != (1, 3, 1):
             log.warning("field %r exists but is not a grey light field; leaving it alone", name)
             return e
-        if not (e.spec.atlas or {}).get("oriented"):
+        if not e.spec.oriented:
             log.warning("field %r exists but is not a 360 degree (oriented atlas) field, as built "
                         "by earlier versions; leaving it alone (delete it to build the 360 "
                         "degree demo)", name)

@@ -77,6 +77,17 @@ def accept_kind(accept: str | None) -> str:
 
 
 # -- decoding ----------------------------------------------------------------
+_EXPECTED = {"json": "a JSON object", "npy": "an .npy array", "npz": "an .npz archive"}
+
+
+def check_not_empty(body: bytes, kind: str) -> None:
+    """A 422 that says so for a body of 0 bytes (``kind``: ``json``, ``npy`` or
+    ``npz``), rather than a parser's message about a truncated header or document
+    (``curl --data-binary @FILE`` sends an empty body when FILE cannot be read)."""
+    if not body:
+        raise InvalidInputError(f"body: empty body (0 bytes); expected {_EXPECTED[kind]}", "body")
+
+
 def load_json(body: bytes) -> dict:
     try:
         obj = orjson.loads(body)
@@ -178,6 +189,7 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
     most ``max_rows`` are checked here, once.
     """
     kind = body_kind(content_type)
+    check_not_empty(body, kind)
     extra: dict = {}
     # what a legitimate body can need once read as float64: max_rows rows of the
     # widest form (Q, r) plus the values; larger declared arrays are refused unread

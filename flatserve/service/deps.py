@@ -18,7 +18,7 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from .codec import check_json_size
+from .codec import check_json_size, check_not_empty
 from .errors import ApiError
 from .catalogue import FieldCatalogue
 from .entry import FieldEntry
@@ -103,6 +103,7 @@ def json_body(model: type[BaseModel]):
     FastAPI's 422 format; pair it with :func:`json_body_doc` on the route."""
     def parse(body: BodyDep, settings: SettingsDep) -> BaseModel:
         check_json_size(body, settings.max_json_bytes)
+        check_not_empty(body, "json")
         try:
             return model.model_validate_json(body)
         except ValidationError as exc:

@@ -23,7 +23,7 @@ from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES
 from .query import QueryParams, answer, server_timing
 from .responses import model_body
 from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
-                      FieldInfo, FieldList, Health, ProjectRequest, ProjectResult,
+                      FieldInfo, FieldList, Health, Limits, ProjectRequest, ProjectResult,
                       QueryBody, QueryResponse, SnapshotResult, UploadBody, UploadResult)
 
 #: header carrying the log position of a write (uploads carry it in the body too)
@@ -175,6 +175,16 @@ async def query_field(
     # Usually answered by flatserve.service.fastpath (the same answer() and parameter
     # model, without FastAPI's per-request costs); this route is the documented reference.
     return await answer(queries, name, params, body, content_type, accept)
+
+
+@api.get("/limits", response_model=Limits, tags=["service"], dependencies=[ReadAccess],
+         responses=COMMON_RESPONSES, summary="This server's request limits",
+         description="What a client splits its batches by (`max_batch_rows`, `max_body_bytes`, "
+                     "`max_json_bytes`): the server's settings of those names.")
+def limits(settings: SettingsDep) -> Limits:
+    return Limits(max_batch_rows=settings.max_batch_rows, max_body_bytes=settings.max_body_bytes,
+                  max_json_bytes=settings.max_json_bytes,
+                  max_pending_samples=settings.max_pending_samples)
 
 
 # -- stateless math ---------------------------------------------------------------

@@ -420,6 +420,17 @@ class ProjectResult(BaseModel):
     ambiguous: list[bool]
 
 
+class Limits(BaseModel):
+    """The request limits of this server (its settings), for clients that split
+    their batches to fit (:class:`flatserve.client.Client` reads them once)."""
+
+    max_batch_rows: int = Field(description="Most rows in one upload or query (413 past it).")
+    max_body_bytes: int = Field(description="Largest request body (413).")
+    max_json_bytes: int = Field(description="Largest JSON body (413).")
+    max_pending_samples: int = Field(description="Accepted samples of one field waiting for "
+                                                 "their insert before `wait=false` uploads get 429.")
+
+
 class Health(BaseModel):
     status: str
     fields: Optional[int] = None

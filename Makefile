@@ -1,6 +1,9 @@
 # The README's two commands: `make run` and `make test`. Each installs what is
 # missing (Debian packages, a venv, the native build) and then acts.
 PYTHON ?= python3
+# bash with pipefail: a filtered pip (the native build below) still fails the recipe
+SHELL := /bin/bash
+.SHELLFLAGS := -o pipefail -c
 VENV   := .venv
 BIN    := $(VENV)/bin
 NATIVE := $(wildcard native/*.cpp native/*.hpp native/CMakeLists.txt)
@@ -13,17 +16,23 @@ DATA   ?= data
 system-deps:
 	bash scripts/install-system-deps.sh
 
+# Not -q: each step says what it is doing (the native build is minutes of compiling).
 $(BIN)/.deps: pyproject.toml scripts/install-system-deps.sh
+	@echo "==> Debian packages (scripts/install-system-deps.sh)"
 	bash scripts/install-system-deps.sh
+	@echo "==> the venv $(VENV) and the build tools"
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q "scikit-build-core>=0.10" "nanobind==3.1.0"
+	$(BIN)/python -m pip install --progress-bar off --upgrade pip
+	$(BIN)/python -m pip install --progress-bar off "scikit-build-core>=0.10" "nanobind==3.1.0"
 	touch $@
 
 # The package with the extras `make run` needs (pyproject.toml: the library
 # itself needs NumPy only).
+# -v: CMake's and ninja's lines ([3/12] Building CXX ...) while the extension compiles.
 $(BIN)/.built: $(BIN)/.deps $(NATIVE) pyproject.toml
-	$(BIN)/python -m pip install -q --no-build-isolation -e ".[service,lightfield]"
+	@echo "==> flatserve, its C++ extension (CGAL: about 4 minutes on 2 cores) and the extras service, lightfield"
+	$(BIN)/python -m pip install -v --progress-bar off --no-build-isolation -e ".[service,lightfield]" \
+	    | grep --line-buffered -E '^\s*(\[[0-9]+/[0-9]+\]|-- (Build files|Configuring done)|Successfully|Collecting|Installing|ERROR|\*\*\*)'
 	touch $@
 
 build: $(BIN)/.built
@@ -37,7 +46,8 @@ stub: build
 # The test extra and the PostgreSQL driver, installed beside the package (no rebuild of the extension).
 $(BIN)/.test-deps: $(BIN)/.built pyproject.toml scripts/requirements.py
 	$(BIN)/python scripts/requirements.py --no-core test postgres > $(BIN)/test-requirements.txt
-	$(BIN)/python -m pip install -q -r $(BIN)/test-requirements.txt
+	@echo "==> the test extra and the PostgreSQL driver"
+	$(BIN)/python -m pip install --progress-bar off -r $(BIN)/test-requirements.txt
 	touch $@
 
 # Debian's chromium + chromedriver, for the viewer test only.

@@ -11,6 +11,7 @@ from .. import __version__
 from .status import BodyTooLargeError
 from . import errors
 from .fastpath import FastQueryMiddleware
+from .logs import AccessLogMiddleware
 from .metrics import Metrics, MetricsMiddleware
 from .rooms import Rooms
 from .routes import api, health
@@ -107,6 +108,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(FastQueryMiddleware, fastapi_app=app)  # innermost: metrics see it
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    if settings.access_log:
+        app.add_middleware(AccessLogMiddleware)  # outermost: it times and sees every answer
     return app
 
 

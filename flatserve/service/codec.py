@@ -39,6 +39,7 @@ from ..errors import InvalidInputError
 from .status import BatchTooLargeError, BodyTooLargeError
 from ..flats import FORMS, Flats, form_shapes, infer_form
 from .binary import load_npy, load_npz
+from .logs import note
 from .errors import ApiError
 from .responses import model_body
 from .schemas import QueryResponse
@@ -218,6 +219,7 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
         raise InvalidInputError(
             "body: give origins+directions (rays), A+b (parametric) or Q+r (flats)", "body")
     nrows = _rows(raw, form)
+    note(rows=nrows)
     if nrows > max_rows:
         raise BatchTooLargeError(f"{nrows} rows in one request; the limit is {max_rows}")
     flats = Flats.from_arrays(raw, k=k, d=d, form=form, min_rows=1)

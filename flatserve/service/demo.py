@@ -15,6 +15,7 @@ The viewer can then orbit the whole way round.
 from __future__ import annotations
 
 import logging
+import sys
 import time
 
 import numpy as np
@@ -22,7 +23,7 @@ import numpy as np
 from ..atlas import object_unit
 from .status import FieldExistsError, FieldNotFoundError
 from ..flats import Flats
-from ..lightfield.sampling import ProgressBar, bunny_scene, orbit_samples
+from ..lightfield.sampling import bunny_scene, orbit_samples
 from . import specs
 from .schemas import FieldCreate
 
@@ -71,7 +72,9 @@ def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES
     seed : int
         Seed of the ray directions.
     progress : bool or callable(done, total)
-        True: a text progress bar on stderr.
+        True: a progress bar on stderr when it is a terminal and the log is text
+        (log lines go above it: :mod:`flatserve.service.logs`), else a log line at
+        every tenth of the samples.
     batch : int
         Rays per upload batch.
 
@@ -109,7 +112,8 @@ def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES
         log.info("demo field %r: building the 360 degree bunny light field from %d samples "
                  "(eyes all around it, %d charts)", name, n, len(spec.atlas["scales"]))
     t0 = time.perf_counter()
-    bar = progress if callable(progress) else (ProgressBar(f"building demo field {name!r}", n) if progress else None)
+    bar = progress if callable(progress) else (
+        _Progress(f"demo field {name!r}", n, rooms.settings.log_format) if progress else None)
     if bar is not None:
         bar(0, n)
     samples, values = orbit_samples(bunny_scene(1), n, seed)
@@ -120,13 +124,39 @@ def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES
                        idem_key=f"demo360-{name}-n{n}-s{seed}-b{batch}-{i}")
         if bar is not None:
             bar(hi, n)
+    if isinstance(bar, _Progress):
+        bar.close()
     log.info("demo field %r: %d samples in %.1f s", name, e.field.nsamples, time.perf_counter() - t0)
     return e
 
 
+class _Progress:
+    """``progress(done, total)`` of the demo's build: a tqdm bar on a terminal with text
+    logs (the log handler writes above it), else an info line every tenth."""
+
+    def __init__(self, label: str, total: int, log_format: str = "text"):
+        self.label, self.total, self.next = label, max(int(total), 1), 0
+        self.bar = None
+        if log_format == "text" and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.total, desc=label, unit="rays", unit_scale=True)
+
+    def __call__(self, done: int, total: int | None = None) -> None:
+        if self.bar is not None:
+            self.bar.update(done - self.bar.n)
+        elif done >= self.next:
+            log.info("%s: %d of %d samples uploaded", self.label, done, self.total)
+            self.next = done + max(self.total // 10, 1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
 
 def start_demo_field(rooms, host: str, port: int, *, name: str = DEMO_FIELD,
-                     samples: int = DEMO_SAMPLES, announce=print):
+                     samples: int = DEMO_SAMPLES, announce=None):
     """Run :func:`ensure_demo_field` in a daemon thread and announce the viewer URL.
 
     For the service's start-up (``make run``): the server answers at once
@@ -138,7 +168,7 @@ def start_demo_field(rooms, host: str, port: int, *, name: str = DEMO_FIELD,
     host, port : the address the server listens on (for the URL)
     name, samples : see :func:`ensure_demo_field`
     announce : callable(str)
-        Receives the "open the viewer at ..." line (default print).
+        Receives the "open the viewer at ..." line (default: logged, level info).
 
     Returns
     -------
@@ -147,6 +177,7 @@ def start_demo_field(rooms, host: str, port: int, *, name: str = DEMO_FIELD,
     import threading
 
     url = viewer_url(host, port, name)
+    announce = announce or log.info
 
     def run():
         try:

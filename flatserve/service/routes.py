@@ -20,6 +20,7 @@ from .deps import (AnyField, BodyDep, CatalogueDep, FieldNamePath, FieldsDep, Fo
                    QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, UploadsDep,
                    WriteAccess, json_body, json_body_doc)
 from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES
+from .logs import note
 from .query import QueryParams, answer, server_timing
 from .responses import model_body
 from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
@@ -76,6 +77,7 @@ health = APIRouter()
                       "cover every orientation).")
 def create_field(spec: json_body(FieldCreate), fields: FieldsDep, follower: FollowerDep,
                  settings: SettingsDep, response: Response) -> FieldInfo:
+    note(field=spec.name)
     stored, basis = specs.field_spec(spec, max_atlas_samples=settings.max_atlas_samples)
     e = fields.create(spec.name, stored, basis)
     response.headers[POSITION_HEADER] = str(follower.applied)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ipaddress
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -133,7 +134,12 @@ class Settings(BaseSettings):
         None, ge=0,
         description="Internal (set by --processes for its children): an inherited open file "
                     "that holds the data directory's lock for the whole replica group.")
-    log_level: str = Field("info")
+    log_level: str = Field("info", description="Least level logged: debug, info, warning, error.")
+    log_format: Literal["text", "json"] = Field(
+        "text", description="Log lines as text or as one JSON object a line (stderr).")
+    access_log: bool = Field(
+        True, description="One log line per request (flatserve.access): method, route, field, "
+                          "rows, status, ms, request id.")
     demo: bool = Field(
         False,
         description="On start, create the bunny light-field demo field unless stored "

@@ -9,7 +9,7 @@ from fastapi import FastAPI
 
 from .. import __version__
 from .status import BodyTooLargeError
-from . import errors
+from . import docs, errors
 from .fastpath import FastQueryMiddleware
 from .logs import AccessLogMiddleware
 from .metrics import Metrics, MetricsMiddleware
@@ -94,7 +94,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 _stop(app)
 
     app = FastAPI(title="flatserve", version=__version__, description=DESCRIPTION,
-                  lifespan=lifespan)
+                  lifespan=lifespan, docs_url=None, redoc_url=None)
+    docs.install(app)  # /docs and /redoc with their assets served here (no CDN)
     app.openapi = _openapi(app)
     app.state.settings = settings
     app.state.metrics = Metrics()

@@ -115,10 +115,18 @@ def json_body(model: type[BaseModel]):
     return Annotated[model, Depends(parse)]
 
 
+def request_example(model: type[BaseModel]) -> dict:
+    """The OpenAPI media-type members of ``model``'s request example (``example``:
+    the first of its schema's ``examples``), or ``{}``."""
+    examples = (model.model_config.get("json_schema_extra") or {}).get("examples")
+    return {"example": examples[0]} if examples else {}
+
+
 def json_body_doc(model: type[BaseModel]) -> dict:
     """``openapi_extra`` of a route whose body is read by :func:`json_body`."""
     return {"requestBody": {"required": True, "content": {"application/json": {
-        "schema": {"$ref": f"#/components/schemas/{model.__name__}"}}}},
+        "schema": {"$ref": f"#/components/schemas/{model.__name__}"},
+        **request_example(model)}}},
         "responses": {"422": {"description": "Validation Error", "content": {"application/json": {
             "schema": {"$ref": "#/components/schemas/HTTPValidationError"}}}}}}
 

@@ -18,8 +18,9 @@ from . import codec, specs
 from .catalogue import FieldState
 from .deps import (AnyField, BodyDep, CatalogueDep, FieldNamePath, FieldsDep, FollowerDep,
                    QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, UploadsDep,
-                   WriteAccess, json_body, json_body_doc)
-from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES
+                   WriteAccess, json_body, json_body_doc, request_example)
+from .errors import (BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, FIELD_WRITE_RESPONSES,
+                     UPLOAD_RESPONSES, WRITE_RESPONSES)
 from .logs import note
 from .query import QueryParams, answer, server_timing
 from .responses import model_body
@@ -55,7 +56,7 @@ def _body_doc(model) -> dict:
     schema = model.model_json_schema()
     schema.pop("title", None)
     return {"requestBody": {"required": True, "content": {
-        "application/json": {"schema": schema},
+        "application/json": {"schema": schema, **request_example(model)},
         codec.NPY: _BINARY,
         codec.NPZ: _BINARY,
     }}}
@@ -67,7 +68,7 @@ health = APIRouter()
 
 # -- fields -------------------------------------------------------------------
 @api.post("/fields", status_code=201, response_model=FieldInfo, response_model_exclude_unset=True, tags=["fields"],
-          dependencies=[WriteAccess], responses=BODY_RESPONSES,
+          dependencies=[WriteAccess], responses=WRITE_RESPONSES,
           openapi_extra=json_body_doc(FieldCreate),
           summary="Create a field (basis + empty triangulation)",
           description="Without `basis`: a covering atlas (every orientation accepted; "
@@ -101,7 +102,7 @@ async def describe_field(name: FieldNamePath, fields: FieldsDep, queries: Querie
 
 
 @api.delete("/fields/{name}", status_code=204, tags=["fields"], dependencies=[WriteAccess],
-            responses=FIELD_RESPONSES, summary="Delete a field and its stored batches")
+            responses=FIELD_WRITE_RESPONSES, summary="Delete a field and its stored batches")
 def delete_field(name: FieldNamePath, fields: FieldsDep) -> Response:
     pos = fields.delete(name)
     return Response(status_code=204, headers={POSITION_HEADER: str(pos)})
@@ -114,7 +115,7 @@ def list_batches(e: AnyField, uploads: UploadsDep) -> BatchList:
 
 
 @api.post("/fields/{name}/snapshot", response_model=SnapshotResult, response_model_exclude_unset=True, tags=["fields"],
-          dependencies=[WriteAccess], responses=FIELD_RESPONSES, summary="Write a snapshot now")
+          dependencies=[WriteAccess], responses=FIELD_WRITE_RESPONSES, summary="Write a snapshot now")
 def snapshot_field(e: ReadyField, snapshots: SnapshotsDep) -> SnapshotResult:
     return snapshots.snapshot(e)
 
@@ -122,7 +123,7 @@ def snapshot_field(e: ReadyField, snapshots: SnapshotsDep) -> SnapshotResult:
 # -- samples and queries --------------------------------------------------------
 @api.post(
     "/fields/{name}/samples", response_model=UploadResult, response_model_exclude_unset=True, tags=["samples"],
-    dependencies=[WriteAccess], responses=BODY_RESPONSES, openapi_extra=_body_doc(UploadBody),
+    dependencies=[WriteAccess], responses=UPLOAD_RESPONSES, openapi_extra=_body_doc(UploadBody),
     summary="Upload a batch of samples",
     description="Stores the batch durably (acknowledged only after its commit to the "
                 "shared log; the response's `position` is its log position, for reads with "

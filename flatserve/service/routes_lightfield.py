@@ -62,7 +62,8 @@ class CameraSpec(BaseModel):
     nothing: the default camera at (0, 0, -3) looking along +z.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"orbit": {"yaw": 30.0, "pitch": 10.0, "distance": 3.0}, "width": 64, "height": 64}]})
     orbit: Optional[OrbitSpec] = None
     eye: Optional[Vec3] = None
     target: Optional[Vec3] = Field(None, description="Point looked at (default the origin).")

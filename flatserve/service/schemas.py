@@ -210,7 +210,20 @@ class _KD(_Strict):
         return self
 
 
+def _example(example: dict) -> ConfigDict:
+    """The request example of a body model, shown in the OpenAPI document (``/docs``);
+    the examples of the request models are valid requests that follow one another
+    (create ``demo``, upload to it, query it; tests/service/test_service_docs.py)."""
+    return ConfigDict(json_schema_extra={"examples": [example]})
+
+
+#: Two rays of the examples: eyes behind the screen z = 0, looking through it
+_EXAMPLE_RAYS = {"origins": [[0.1, 0.2, -3.0], [-0.2, 0.1, -3.0]],
+                 "directions": [[0.0, 0.0, 1.0], [0.05, -0.02, 1.0]]}
+
+
 class FieldCreate(_KD):
+    model_config = _example({"name": "demo", "channels": 1})
     name: FieldName
     channels: int = Field(1, ge=1, le=64, description="Values per sample (3 for RGB).")
     oriented: Optional[bool] = Field(
@@ -375,11 +388,15 @@ class SnapshotResult(BaseModel):
 class QueryBody(FlatsModel):
     """JSON query (small batches): one flat form."""
 
+    model_config = _example(_EXAMPLE_RAYS)
+
     form: Optional[Form] = None
 
 
 class UploadBody(QueryBody):
     """JSON upload (small batches): one flat form plus values (n, C)."""
+
+    model_config = _example({**_EXAMPLE_RAYS, "values": [[0.5], [0.25]]})
 
     values: Mat
 
@@ -394,6 +411,8 @@ class QueryResponse(BaseModel):
 
 
 class CoordinatesRequest(_KD):
+    model_config = _example({"basis": {"kind": "tangent_simplex", "scale": 0.01},
+                             "flats": _EXAMPLE_RAYS})
     basis: Optional[ChartBasisSpec] = None
     flats: FlatsModel
     embed: bool = Field(False, description="Also return the embedded coordinates (n, m-1).")
@@ -407,6 +426,7 @@ class CoordinatesResult(BaseModel):
 
 
 class ProjectRequest(_KD):
+    model_config = _example({"flats": _EXAMPLE_RAYS, "weights": [[0.5, 0.5], [1.5, -0.5]]})
     flats: FlatsModel = Field(description="The m flats combined.")
     weights: Mat = Field(description="(n, m) affine weights, each row summing to 1.")
 

@@ -28,7 +28,7 @@ from . import specs
 from .schemas import FieldCreate
 
 __all__ = ["DEMO_FIELD", "DEMO_SAMPLES", "DEMO_BATCH", "DEMO_REQUEST", "ensure_demo_field",
-           "start_demo_field", "viewer_url"]
+           "start_demo_field", "viewer_url", "viewer_key_hint"]
 
 log = logging.getLogger("flatserve.service")
 
@@ -54,6 +54,19 @@ def viewer_url(host: str, port: int, name: str = DEMO_FIELD) -> str:
     if host in ("0.0.0.0", "[::]"):
         host = "127.0.0.1"
     return f"http://{host}:{port}/viewer/{name}"
+
+
+def viewer_key_hint(settings, url: str) -> str:
+    """What to add to a viewer URL when the server needs a key ('' when it does not):
+    the read-only key in the URL's fragment or typed into the page, never the
+    read-write key (a URL is kept in histories and shared)."""
+    if not settings.auth_enabled:
+        return ""
+    if settings.read_only_key is None:
+        return (" (this server needs a key and has no read-only one: set "
+                "FLATSERVE_READ_ONLY_KEY and open the viewer with it; the page asks for it)")
+    return (f" (this server needs a key: open {url}#key=READ_ONLY_KEY with the read-only "
+            "key, FLATSERVE_READ_ONLY_KEY, or type it into the page)")
 
 
 def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES,
@@ -178,12 +191,13 @@ def start_demo_field(rooms, host: str, port: int, *, name: str = DEMO_FIELD,
 
     url = viewer_url(host, port, name)
     announce = announce or log.info
+    how = viewer_key_hint(rooms.settings, url)
 
     def run():
         try:
-            announce(f"flatserve: preparing the demo light field {name!r}; viewer: {url}")
+            announce(f"flatserve: preparing the demo light field {name!r}; viewer: {url}{how}")
             ensure_demo_field(rooms, name, samples)
-            announce(f"flatserve: demo field {name!r} ready - open {url}")
+            announce(f"flatserve: demo field {name!r} ready - open {url}{how}")
         except Exception:  # the server keeps serving; the log says why
             log.exception("demo field %r could not be built", name)
 

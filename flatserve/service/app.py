@@ -98,7 +98,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     docs.install(app)  # /docs and /redoc with their assets served here (no CDN)
     app.openapi = _openapi(app)
     app.state.settings = settings
-    app.state.metrics = Metrics()
+    app.state.metrics = Metrics(replica=settings.replica)
     app.state.metrics.watch(_EntriesOf(app))
     errors.install(app)
     app.include_router(api)

@@ -134,6 +134,10 @@ class Settings(BaseSettings):
         None, ge=0,
         description="Internal (set by --processes for its children): an inherited open file "
                     "that holds the data directory's lock for the whole replica group.")
+    replica: int = Field(
+        0, ge=0,
+        description="Internal (set by --processes for its children): this replica's index, "
+                    "the `replica` label of its metrics.")
     log_level: str = Field("info", description="Least level logged: debug, info, warning, error.")
     log_format: Literal["text", "json"] = Field(
         "text", description="Log lines as text or as one JSON object a line (stderr).")

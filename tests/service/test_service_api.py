@@ -338,12 +338,16 @@ def test_metrics_and_health(api, rng):
     rep = c.upload_rays("f", o, v, np.ones(100))
     c.query_rays("f", o, v)
     text = c.metrics()
-    assert f'flatserve_samples_accepted_total{{field="f"}} {float(rep["accepted"])}' in text
+    assert f'flatserve_samples_accepted_total{{field="f",replica="0"}} {float(rep["accepted"])}' \
+        in text
     assert 'flatserve_query_rows_total{field="f"} 100.0' in text
     assert 'flatserve_requests_total{method="POST",route="/v1/fields/{name}/query",status="200"}' \
         in text
     assert "flatserve_request_seconds_bucket" in text
-    assert f'flatserve_field_samples{{field="f"}} {float(rep["nsamples"])}' in text
+    assert f'flatserve_field_samples{{field="f",replica="0"}} {float(rep["nsamples"])}' in text
+    assert "_created" not in text  # no creation-time series
+    assert 'flatserve_replica_resident_bytes{replica="0"}' in text
+    assert "process_cpu_seconds_total" in text  # one process: the standard process series
 
 
 def test_math_endpoints_match_library(api, rng):

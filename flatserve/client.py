@@ -273,8 +273,9 @@ class Client:
     def create_field(self, name: str, *, k: int = 1, d: int = 3, channels: int = 1,
                      basis: dict | None = None, oriented: bool | None = None,
                      roundtrip_tol: float | None = None, unit: float | None = None,
-                     exist_ok: bool = False) -> dict:
-        """Create a field; returns its description.
+                     exist_ok: bool = False, verbose: bool = False) -> dict:
+        """Create a field; returns its description (``verbose``: with the basis flats
+        and every chart of an atlas, see :meth:`describe`).
 
         ``exist_ok=True``: a field of that name already there is not an error if it
         has the same ``k``, ``d``, ``channels`` (and ``oriented``, when given): its
@@ -298,12 +299,13 @@ class Client:
         if unit is not None:
             body["unit"] = unit
         try:
-            return self._request("POST", "/v1/fields", json=body, retry=False).json()
+            return self._request("POST", "/v1/fields", json=body, retry=False,
+                                 params={"verbose": "true"} if verbose else {}).json()
         except FieldExistsError as exc:
             if not exist_ok:
                 raise
             try:
-                info = self.describe(name)
+                info = self.describe(name, verbose=verbose)
             except FieldNotFoundError:  # the 409 was another (max_fields), or it went away
                 raise exc from None
             want = {"k": k, "d": d, "channels": channels}
@@ -318,10 +320,15 @@ class Client:
     def list_fields(self) -> list[dict]:
         return self._request("GET", "/v1/fields").json()["fields"]
 
-    def describe(self, name: str, *, min_position: int | None = None) -> dict:
+    def describe(self, name: str, *, min_position: int | None = None,
+                 verbose: bool = False) -> dict:
         """The field's description; ``min_position``: as this replica sees it once it
-        has applied that log position (read-your-writes, see :meth:`query`)."""
+        has applied that log position (read-your-writes, see :meth:`query`).
+        ``verbose``: also the basis flats (``basis.Q``, ``basis.r``) and, of an atlas,
+        every chart (``charts``); by default a summary (``ncharts``, ``atlas``)."""
         params = {} if min_position is None else {"min_position": str(int(min_position))}
+        if verbose:
+            params["verbose"] = "true"
         return self._request("GET", f"/v1/fields/{name}", params=params).json()
 
     def delete_field(self, name: str) -> None:

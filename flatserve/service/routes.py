@@ -37,6 +37,11 @@ MinPositionQuery = Annotated[Optional[int], Query(
                       "`read_wait_timeout` seconds; then 503 with `Retry-After` (any replica "
                       "answers it; one behind waits).")]
 
+VerboseQuery = Annotated[bool, Query(
+    description="Also the basis flats (`basis.Q`, `basis.r`) and, for an atlas, every chart "
+                "(`charts`: centre, scale, samples): several KB. Default: a summary "
+                "(`ncharts`, `atlas`).")]
+
 FormQuery = Annotated[Optional[Form], Query(
     description="Flat form of the body. JSON/.npz: inferred from the array names. "
                 "`.npy`: required unless the field holds lines (k = 1; default `rays`).")]
@@ -77,12 +82,13 @@ health = APIRouter()
                       "charts where given flats are; `centers`: explicit centres, checked to "
                       "cover every orientation).")
 def create_field(spec: json_body(FieldCreate), fields: FieldsDep, follower: FollowerDep,
-                 settings: SettingsDep, response: Response) -> FieldInfo:
+                 settings: SettingsDep, response: Response,
+                 verbose: VerboseQuery = False) -> FieldInfo:
     note(field=spec.name)
     stored, basis = specs.field_spec(spec, max_atlas_samples=settings.max_atlas_samples)
     e = fields.create(spec.name, stored, basis)
     response.headers[POSITION_HEADER] = str(follower.applied)
-    return fields.describe(e)
+    return fields.describe(e, verbose)
 
 
 @api.get("/fields", response_model=FieldList, response_model_exclude_unset=True, tags=["fields"], dependencies=[ReadAccess],
@@ -95,10 +101,11 @@ def list_fields(fields: FieldsDep) -> FieldList:
          responses=FIELD_RESPONSES, summary="Describe a field")
 async def describe_field(name: FieldNamePath, fields: FieldsDep, queries: QueriesDep,
                          catalogue: CatalogueDep,
-                         min_position: MinPositionQuery = None) -> FieldInfo:
+                         min_position: MinPositionQuery = None,
+                         verbose: VerboseQuery = False) -> FieldInfo:
     await queries.wait_position(min_position)
     e = catalogue.get(name, need_ready=False)
-    return await anyio.to_thread.run_sync(fields.describe, e)
+    return await anyio.to_thread.run_sync(fields.describe, e, verbose)
 
 
 @api.delete("/fields/{name}", status_code=204, tags=["fields"], dependencies=[WriteAccess],

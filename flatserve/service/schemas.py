@@ -248,8 +248,9 @@ class BasisInfo(BaseModel):
     m: int
     dim: int = Field(description="(k+1)(d-k): dimension of the coordinate space.")
     spec: dict
-    Q: Mats = Field(description="The basis flats (m, d, d); of an atlas field, chart 0's.")
-    r: Mat
+    Q: Optional[Mats] = Field(None, description="The basis flats (m, d, d); of an atlas field, "
+                                                "chart 0's (`verbose=true` only).")
+    r: Optional[Mat] = Field(None, description="(m, d) (`verbose=true` only).")
 
 
 class ChartCenter(BaseModel):
@@ -337,9 +338,10 @@ class FieldInfo(FieldSummary):
     storage: StorageInfo
     atlas: Optional[AtlasInfo] = Field(None, description="Atlas fields: the atlas's radii and "
                                                          "sizes (null: one chart).")
+    ncharts: int = Field(1, description="Charts of the field (1: one chart).")
     charts: Optional[list[ChartInfo]] = Field(
-        None, description="Atlas fields: per chart its centre, scale and samples (null: one "
-                          "chart, described by `basis`).")
+        None, description="Atlas fields with `verbose=true`: per chart its centre, scale and "
+                          "samples (absent by default, and for one chart, described by `basis`).")
 
 
 class UploadResult(BaseModel):

@@ -340,6 +340,25 @@ class Client:
     def snapshot(self, name: str) -> dict:
         return self._request("POST", f"/v1/fields/{name}/snapshot").json()
 
+    def export_field(self, name: str, path=None) -> bytes:
+        """The field as one file (``GET /v1/fields/{name}/export``: its definition and
+        every stored batch, an ``.npz``); written to ``path`` too when given."""
+        data = self._request("GET", f"/v1/fields/{name}/export").content
+        if path is not None:
+            with open(path, "wb") as f:
+                f.write(data)
+        return data
+
+    def import_field(self, name: str, export) -> dict:
+        """Create field ``name`` from an export (bytes, or the path of the file) of this or
+        another server; it answers bit for bit as the exported field. Safe to repeat
+        after a failure: batches already stored are replayed, not stored twice."""
+        if not isinstance(export, (bytes, bytearray, memoryview)):
+            with open(export, "rb") as f:
+                export = f.read()
+        return self._request("POST", f"/v1/fields/{name}/import", content=bytes(export),
+                             headers={"Content-Type": NPZ}).json()
+
     # -- samples ------------------------------------------------------------
     def upload(self, name: str, values, flats: Flats | None = None, *, origins=None,
                directions=None, A=None, b=None, Q=None, r=None,

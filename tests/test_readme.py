@@ -83,7 +83,8 @@ def test_every_code_block_is_shell_or_python_and_run_unless_it_says_why():
     # what a newcomer does first is run, not only shown
     ran = "".join(b.text for b in RUN)
     for what in ("/v1/fields -H", "/samples", "application/x-npy", "/query", "/render",
-                 "/snapshot", "from flatserve.client import Client", "import flatserve"):
+                 "/snapshot", "/export", "/import", "from flatserve.client import Client",
+                 "import flatserve"):
         assert what in ran, f"no block that runs shows {what!r}"
 
 

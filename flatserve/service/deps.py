@@ -27,6 +27,7 @@ from .query import QueryService
 from .replica import Follower
 from .settings import FIELD_NAME_PATTERN, Settings
 from .snapshots import SnapshotWriter
+from .transfer import TransferService
 from .uploads import UploadService
 
 _api_key_header = APIKeyHeader(name="api-key", auto_error=False,
@@ -54,6 +55,7 @@ UploadsDep = Annotated[UploadService, _room("uploads")]
 QueriesDep = Annotated[QueryService, _room("queries")]
 SnapshotsDep = Annotated[SnapshotWriter, _room("snapshots")]
 FollowerDep = Annotated[Follower, _room("follower")]
+TransferDep = Annotated[TransferService, _room("transfer")]
 FieldNamePath = Annotated[str, Path(pattern=FIELD_NAME_PATTERN, description="Field name.")]
 
 

@@ -17,15 +17,17 @@ from ..options import Form
 from . import codec, specs
 from .catalogue import FieldState
 from .deps import (AnyField, BodyDep, CatalogueDep, FieldNamePath, FieldsDep, FollowerDep,
-                   QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, UploadsDep,
+                   QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, TransferDep,
+                   UploadsDep,
                    WriteAccess, json_body, json_body_doc, request_example)
 from .errors import (BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, FIELD_WRITE_RESPONSES,
                      UPLOAD_RESPONSES, WRITE_RESPONSES)
+from .errors import ApiError
 from .logs import note
 from .query import QueryParams, answer, server_timing
 from .responses import model_body
 from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
-                      FieldInfo, FieldList, Health, Limits, ProjectRequest, ProjectResult,
+                      FieldInfo, FieldList, Health, ImportResult, Limits, ProjectRequest, ProjectResult,
                       QueryBody, QueryResponse, SnapshotResult, UploadBody, UploadResult)
 
 #: header carrying the log position of a write (uploads carry it in the body too)
@@ -125,6 +127,41 @@ def list_batches(e: AnyField, uploads: UploadsDep) -> BatchList:
           dependencies=[WriteAccess], responses=FIELD_WRITE_RESPONSES, summary="Write a snapshot now")
 def snapshot_field(e: ReadyField, snapshots: SnapshotsDep) -> SnapshotResult:
     return snapshots.snapshot(e)
+
+
+@api.get("/fields/{name}/export", tags=["fields"], dependencies=[ReadAccess],
+         response_class=Response, responses={
+             **FIELD_RESPONSES, 200: {"content": {codec.NPZ: _BINARY}, "description":
+                                      "The field as one `.npz`: its definition and every "
+                                      "stored batch (`flatserve/service/transfer.py`)."}},
+         summary="Export a field as one file (for POST /v1/fields/{name}/import)")
+def export_field(e: ReadyField, transfer: TransferDep) -> Response:
+    body = transfer.export(e)
+    return Response(body, media_type=codec.NPZ, headers={
+        "Content-Disposition": f'attachment; filename="{e.name}.flatserve.npz"'})
+
+
+@api.post("/fields/{name}/import", response_model=ImportResult, tags=["fields"],
+          dependencies=[WriteAccess], responses=UPLOAD_RESPONSES,
+          openapi_extra={"requestBody": {"required": True, "content": {codec.NPZ: _BINARY}}},
+          summary="Create a field from an export file (of this or another deployment)",
+          description="The field `name` is created with the file's definition (as exported: "
+                      "an atlas is not built again) and the file's batches are stored in their "
+                      "order, each under the Idempotency-Key `import-<export id>.<seq>`: the "
+                      "field then answers bit for bit as the exported one. Repeating an import "
+                      "that failed half-way stores only the missing batches (an existing field "
+                      "of the file's definition is taken; another is a 409). The body is the "
+                      "file as `application/x-npz` (up to `max_body_bytes`).")
+def import_field(name: FieldNamePath, transfer: TransferDep, body: BodyDep, response: Response,
+                 content_type: Annotated[Optional[str], Header()] = None) -> ImportResult:
+    if codec.media_type(content_type) != codec.NPZ:
+        raise ApiError(415, f"an import body is the export file as {codec.NPZ}, not "
+                            f"{codec.media_type(content_type) or 'no Content-Type'}")
+    codec.check_not_empty(body, "npz")
+    note(field=name)
+    out = transfer.import_field(name, body)
+    response.headers[POSITION_HEADER] = str(out.position)
+    return out
 
 
 # -- samples and queries --------------------------------------------------------

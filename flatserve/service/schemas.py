@@ -366,6 +366,18 @@ class UploadResult(BaseModel):
                                          "to read this write.")
 
 
+class ImportResult(BaseModel):
+    name: str = Field(description="The field created (or completed) from the file.")
+    source: str = Field(description="The name of the field the file was exported from.")
+    batches: int = Field(description="Batches in the file, stored in their order.")
+    replayed_batches: int = Field(description="Of them, stored already by an earlier import "
+                                              "of the same file (nothing stored twice).")
+    accepted: int = Field(description="Samples accepted by the batches stored now.")
+    nsamples: int = Field(description="Samples in the field after the import.")
+    position: int = Field(description="Log position of the last batch (`min_position` for "
+                                      "reads on other replicas).")
+
+
 class BatchInfo(BaseModel):
     batch: int
     idempotency_key: Optional[str]

@@ -18,17 +18,16 @@ from . import codec, specs
 from .catalogue import FieldState
 from .deps import (AnyField, BodyDep, CatalogueDep, FieldNamePath, FieldsDep, FollowerDep,
                    QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, TransferDep,
-                   UploadsDep,
-                   WriteAccess, json_body, json_body_doc, request_example)
+                   UploadsDep, WriteAccess, json_body, json_body_doc, request_example)
 from .errors import (BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, FIELD_WRITE_RESPONSES,
-                     UPLOAD_RESPONSES, WRITE_RESPONSES)
-from .errors import ApiError
+                     UPLOAD_RESPONSES, WRITE_RESPONSES, ApiError)
 from .logs import note
 from .query import QueryParams, answer, server_timing
 from .responses import model_body
 from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
-                      FieldInfo, FieldList, Health, ImportResult, Limits, ProjectRequest, ProjectResult,
-                      QueryBody, QueryResponse, SnapshotResult, UploadBody, UploadResult)
+                      FieldInfo, FieldList, Health, ImportResult, Limits, ProjectRequest,
+                      ProjectResult, QueryBody, QueryResponse, SnapshotResult, UploadBody,
+                      UploadResult)
 
 #: header carrying the log position of a write (uploads carry it in the body too)
 POSITION_HEADER = "Flatserve-Position"

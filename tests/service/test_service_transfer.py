@@ -15,7 +15,6 @@ from flatserve.client import Client
 from flatserve.errors import InvalidInputError
 from flatserve.flats import Flats, to_parametric
 from flatserve.service.status import FieldExistsError
-from flatserve.service.transfer import TransferService
 
 from .conftest import ONE_CHART, paper_rays
 

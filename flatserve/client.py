@@ -376,8 +376,10 @@ class Client:
         ``replayed`` is true when every batch was. Each batch has its own
         Idempotency-Key (``KEY.0``, ``KEY.1``, ...; one batch: ``KEY``): a fresh
         ``KEY`` is generated when none is given, so retries are safe; repeat a
-        failed call with the same ``idempotency_key`` (and ``batch_rows``) to
-        store what it had not stored.
+        failed call with the same ``idempotency_key`` (and the same ``batch_rows``
+        and ``progress``, which decide the split) to store what it had not stored;
+        a call that splits otherwise under the same key is refused (422), never
+        stored twice.
 
         ``progress``: True shows a progress bar (tqdm, on stderr); a callable is
         called as ``progress(rows_done, rows_total)`` after each batch. Without

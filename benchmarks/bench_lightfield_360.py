@@ -93,7 +93,7 @@ def ensure_field(c, name: str, basis: dict, make, n: int, oriented: bool = False
     info = c.describe(name)
     print(f"{name}: {info['nsamples']:,} samples built through the API in "
           f"{time.perf_counter() - t0:.1f} s" + (
-              f" ({len(info['charts'])} charts, {info['atlas']['nstored']:,} vertices, duplication "
+              f" ({info['ncharts']} charts, {info['atlas']['nstored']:,} vertices, duplication "
               f"{info['atlas']['duplication']:.2f})" if info.get("atlas") else ""))
     c.snapshot(name)
 

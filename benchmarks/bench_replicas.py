@@ -196,7 +196,7 @@ def _apply_stats(c):
     """(sum, count) of ``flatserve_log_apply_seconds`` of a replica."""
     text = c.metrics()
     get = lambda k: float(next(ln.split()[-1] for ln in text.splitlines()  # noqa: E731
-                               if ln.startswith(f"flatserve_log_apply_seconds_{k} ")))
+                               if ln.split("{")[0].split()[0:1] == [f"flatserve_log_apply_seconds_{k}"]))
     return get("sum"), get("count")
 
 

@@ -7,18 +7,26 @@ Example
 -------
 >>> from flatserve.client import Client                      # doctest: +SKIP
 >>> with Client("http://127.0.0.1:8000") as c:               # doctest: +SKIP
-...     c.create_field("scene", channels=3)
-...     c.upload_rays("scene", origins, directions, colours)
+...     c.create_field("scene", channels=3, exist_ok=True)
+...     c.upload_rays("scene", origins, directions, colours, progress=True)
 ...     res = c.query_rays("scene", origins2, directions2)
 ...     res.values, res.inside
+
+Uploads and queries larger than the server's limits (``GET /v1/limits``:
+``max_batch_rows``, ``max_body_bytes``, ``max_json_bytes``) are sent as several
+requests; each batch of an upload carries its own ``Idempotency-Key``
+(``KEY.0``, ``KEY.1``, ... of the call's key), so a call repeated with the same
+``idempotency_key`` after a failure stores the batches it had not stored and
+replays the others: nothing lost, nothing twice.
 """
 from __future__ import annotations
 
 import functools
 import io
+import math
 import time
 import uuid
-from typing import Any
+from typing import Any, Callable, Union
 
 import httpx
 import numpy as np
@@ -26,12 +34,28 @@ import orjson
 
 from . import _npy as _npy_mod
 from .errors import FlatserveError, InvalidInputError
-from .service.status import error_class
+from .service.status import FieldExistsError, FieldNotFoundError, error_class
 from .field import QueryResult
 from .flats import FORMS, Flats, infer_form
 
 NPY = "application/x-npy"
 NPZ = "application/x-npz"
+
+#: Statuses after which an idempotent request is retried, waiting ``Retry-After``:
+#: 429 (a field's insert backlog is full), 503 (not ready, replica behind, database away)
+RETRY_STATUSES = (429, 503)
+#: Bytes of a binary body besides its rows (the ``.npy`` header, the ``.npz`` directory)
+BODY_OVERHEAD = 4096
+#: Bytes one number may take in a JSON body (orjson's longest float and a separator)
+JSON_NUMBER_BYTES = 26
+#: A progress bar's batches: uploads split into about this many when no
+#: ``batch_rows`` is given (but never below :data:`PROGRESS_MIN_ROWS` rows each)
+PROGRESS_BATCHES = 20
+PROGRESS_MIN_ROWS = 10_000
+
+#: ``progress`` of an upload: True (a tqdm bar on stderr), or a callable
+#: ``progress(rows_done, rows_total)`` called after each batch
+Progress = Union[bool, Callable[[int, int], Any], None]
 
 
 class ServiceError(FlatserveError):
@@ -126,14 +150,19 @@ class Client:
     timeout : float
         Seconds per request.
     retries : int
-        Uploads and reads retried this many times on connection errors
-        (uploads carry an ``Idempotency-Key``, so a retry never stores twice).
+        Uploads and reads retried this many times on connection errors and on
+        429 / 503 answers (after the answer's ``Retry-After``, at most
+        ``max_retry_after`` seconds); uploads carry an ``Idempotency-Key``, so a
+        retry never stores twice. Creates and deletes are never retried.
+    max_retry_after : float
+        Longest wait before a retry, whatever ``Retry-After`` says.
     http : httpx.Client, optional
         Use this client instead (e.g. a ``fastapi.testclient.TestClient``).
     """
 
     def __init__(self, base_url: str = "http://127.0.0.1:8000", *, api_key: str | None = None,
-                 timeout: float = 120.0, retries: int = 2, http: httpx.Client | None = None):
+                 timeout: float = 120.0, retries: int = 2, max_retry_after: float = 30.0,
+                 http: httpx.Client | None = None):
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
         if http is None:
             self._http = httpx.Client(base_url=base_url, timeout=timeout, headers=headers)
@@ -143,6 +172,8 @@ class Client:
             self._http.headers.update(headers)
             self._own = False
         self.retries = retries
+        self.max_retry_after = max_retry_after
+        self._limits: dict | None = None
         #: the last httpx.Response (headers such as ``Server-Timing``)
         self.last_response: httpx.Response | None = None
 
@@ -168,6 +199,9 @@ class Client:
                 time.sleep(0.2 * (i + 1))
                 continue
             self.last_response = resp
+            if resp.status_code in RETRY_STATUSES and i + 1 < attempts:
+                time.sleep(self._retry_after(resp, i))
+                continue
             if resp.status_code >= 400:
                 try:
                     detail = resp.json().get("detail")
@@ -176,6 +210,42 @@ class Client:
                 raise _error_type(resp.status_code)(resp.status_code, detail)
             return resp
         raise AssertionError("unreachable")
+
+    def _retry_after(self, resp: httpx.Response, attempt: int) -> float:
+        """Seconds to wait before retrying ``resp``: its ``Retry-After`` (seconds),
+        else a short back-off; at most :attr:`max_retry_after`."""
+        try:
+            wait = float(resp.headers.get("retry-after", ""))
+        except ValueError:
+            wait = 0.2 * (attempt + 1)
+        return min(max(wait, 0.0), self.max_retry_after)
+
+    def limits(self) -> dict:
+        """The server's request limits (``GET /v1/limits``, read once): ``max_batch_rows``,
+        ``max_body_bytes``, ``max_json_bytes``, ``max_pending_samples``. A server of a
+        version without the endpoint: ``{}`` (nothing is split)."""
+        if self._limits is None:
+            try:
+                self._limits = self._request("GET", "/v1/limits").json()
+            except FieldNotFoundError:  # an older server: 404
+                self._limits = {}
+        return self._limits
+
+    def _rows_per_request(self, row_numbers: int, binary: bool, nrows: int,
+                          batch_rows: int | None) -> int:
+        """Most rows of one request: ``batch_rows`` if given, within the server's limits
+        (rows, and body bytes at ``row_numbers`` float64 numbers per row)."""
+        lim = self.limits()
+        cap = lim.get("max_batch_rows", nrows)
+        if binary and "max_body_bytes" in lim:
+            cap = min(cap, (lim["max_body_bytes"] - BODY_OVERHEAD) // (8 * row_numbers))
+        if not binary and "max_json_bytes" in lim:
+            cap = min(cap, (lim["max_json_bytes"] - 1024) // (JSON_NUMBER_BYTES * row_numbers))
+        if batch_rows is not None:
+            if batch_rows < 1:
+                raise InvalidInputError(f"batch_rows: at least 1, got {batch_rows}", "batch_rows")
+            cap = min(cap, batch_rows)
+        return max(int(cap), 1)
 
     # -- service ------------------------------------------------------------
     def health(self) -> dict:
@@ -202,8 +272,15 @@ class Client:
     # -- fields -------------------------------------------------------------
     def create_field(self, name: str, *, k: int = 1, d: int = 3, channels: int = 1,
                      basis: dict | None = None, oriented: bool | None = None,
-                     roundtrip_tol: float | None = None, unit: float | None = None) -> dict:
-        """Create a field; returns its description.
+                     roundtrip_tol: float | None = None, unit: float | None = None,
+                     exist_ok: bool = False, verbose: bool = False) -> dict:
+        """Create a field; returns its description (``verbose``: with the basis flats
+        and every chart of an atlas, see :meth:`describe`).
+
+        ``exist_ok=True``: a field of that name already there is not an error if it
+        has the same ``k``, ``d``, ``channels`` (and ``oriented``, when given): its
+        description is returned (its basis is not compared); one that differs
+        raises :class:`~flatserve.service.status.FieldExistsError` naming what differs.
 
         ``basis`` left out: a covering atlas (every orientation accepted), of rays
         when ``oriented`` (k = 1; uploads and queries must then be rays). One chart:
@@ -221,15 +298,37 @@ class Client:
             body["roundtrip_tol"] = roundtrip_tol
         if unit is not None:
             body["unit"] = unit
-        return self._request("POST", "/v1/fields", json=body, retry=False).json()
+        try:
+            return self._request("POST", "/v1/fields", json=body, retry=False,
+                                 params={"verbose": "true"} if verbose else {}).json()
+        except FieldExistsError as exc:
+            if not exist_ok:
+                raise
+            try:
+                info = self.describe(name, verbose=verbose)
+            except FieldNotFoundError:  # the 409 was another (max_fields), or it went away
+                raise exc from None
+            want = {"k": k, "d": d, "channels": channels}
+            if oriented is not None:
+                want["oriented"] = oriented
+            differ = {key: (info.get(key), v) for key, v in want.items() if info.get(key) != v}
+            if differ:
+                raise _error_type(409)(409, f"field {name!r} exists with " + ", ".join(
+                    f"{key}={have!r} (asked {v!r})" for key, (have, v) in differ.items())) from None
+            return info
 
     def list_fields(self) -> list[dict]:
         return self._request("GET", "/v1/fields").json()["fields"]
 
-    def describe(self, name: str, *, min_position: int | None = None) -> dict:
+    def describe(self, name: str, *, min_position: int | None = None,
+                 verbose: bool = False) -> dict:
         """The field's description; ``min_position``: as this replica sees it once it
-        has applied that log position (read-your-writes, see :meth:`query`)."""
+        has applied that log position (read-your-writes, see :meth:`query`).
+        ``verbose``: also the basis flats (``basis.Q``, ``basis.r``) and, of an atlas,
+        every chart (``charts``); by default a summary (``ncharts``, ``atlas``)."""
         params = {} if min_position is None else {"min_position": str(int(min_position))}
+        if verbose:
+            params["verbose"] = "true"
         return self._request("GET", f"/v1/fields/{name}", params=params).json()
 
     def delete_field(self, name: str) -> None:
@@ -241,16 +340,53 @@ class Client:
     def snapshot(self, name: str) -> dict:
         return self._request("POST", f"/v1/fields/{name}/snapshot").json()
 
+    def export_field(self, name: str, path=None) -> bytes:
+        """The field as one file (``GET /v1/fields/{name}/export``: its definition and
+        every stored batch, an ``.npz``); written to ``path`` too when given."""
+        data = self._request("GET", f"/v1/fields/{name}/export").content
+        if path is not None:
+            with open(path, "wb") as f:
+                f.write(data)
+        return data
+
+    def import_field(self, name: str, export) -> dict:
+        """Create field ``name`` from an export (bytes, or the path of the file) of this or
+        another server; it answers bit for bit as the exported field. Safe to repeat
+        after a failure: batches already stored are replayed, not stored twice."""
+        if not isinstance(export, (bytes, bytearray, memoryview)):
+            with open(export, "rb") as f:
+                export = f.read()
+        return self._request("POST", f"/v1/fields/{name}/import", content=bytes(export),
+                             headers={"Content-Type": NPZ}).json()
+
     # -- samples ------------------------------------------------------------
     def upload(self, name: str, values, flats: Flats | None = None, *, origins=None,
                directions=None, A=None, b=None, Q=None, r=None,
                idempotency_key: str | None = None, binary: bool = True,
-               wait: bool = True) -> dict:
-        """Upload one batch of samples; returns the service's report (accepted,
-        rejected indices and reasons, nsamples, batch, indexed). A fresh
-        Idempotency-Key is generated when none is given, so retries are safe.
+               wait: bool = True, batch_rows: int | None = None,
+               progress: Progress = None) -> dict:
+        """Upload samples; returns the service's report (accepted, rejected indices and
+        reasons, nsamples, batch, indexed, position).
 
-        ``wait=False``: the service acknowledges once the batch is durably stored
+        More rows than one request may carry (the server's ``max_batch_rows``, or its
+        body limits) are sent as several batches of at most ``batch_rows`` rows, in
+        order; the report then sums them: ``accepted`` and ``duplicates`` added up,
+        ``rejected`` as row indices of the whole upload, ``batch``, ``nsamples``
+        and ``position`` of the last batch, ``batches`` lists every batch number,
+        ``replayed`` is true when every batch was. Each batch has its own
+        Idempotency-Key (``KEY.0``, ``KEY.1``, ...; one batch: ``KEY``): a fresh
+        ``KEY`` is generated when none is given, so retries are safe; repeat a
+        failed call with the same ``idempotency_key`` (and the same ``batch_rows``
+        and ``progress``, which decide the split) to store what it had not stored;
+        a call that splits otherwise under the same key is refused (422), never
+        stored twice.
+
+        ``progress``: True shows a progress bar (tqdm, on stderr); a callable is
+        called as ``progress(rows_done, rows_total)`` after each batch. Without
+        ``batch_rows`` a progress bar splits the upload into about 20 batches (of
+        at least 10,000 rows).
+
+        ``wait=False``: the service acknowledges once a batch is durably stored
         and its coordinates known, and triangulates it in the background
         (``report["indexed"]`` is False); see :meth:`wait_indexed`.
         """
@@ -260,6 +396,28 @@ class Client:
         if values.ndim == 1:
             values = values[:, None]
         key = idempotency_key or uuid.uuid4().hex
+        n = values.shape[0]
+        rows = n
+        if n:
+            width = values.shape[1] + sum(math.prod(a.shape[1:]) for a in arrays.values())
+            if progress and batch_rows is None:
+                batch_rows = max(PROGRESS_MIN_ROWS, -(-n // PROGRESS_BATCHES))
+            rows = self._rows_per_request(max(width, 1), binary, n, batch_rows)
+        starts = list(range(0, n, rows)) or [0]
+        report = _Reports(len(starts) > 1)
+        with _progress_of(progress, n, name) as tick:
+            for i, s0 in enumerate(starts):
+                part = slice(s0, s0 + rows)
+                one = self._upload_batch(
+                    name, form, {k: v[part] for k, v in arrays.items()}, values[part],
+                    key if len(starts) == 1 else f"{key}.{i}", binary, wait)
+                report.add(one, s0)
+                tick(min(s0 + rows, n))
+        return report.result()
+
+    def _upload_batch(self, name: str, form: str, arrays: dict, values: np.ndarray, key: str,
+                      binary: bool, wait: bool) -> dict:
+        """One ``POST .../samples`` of one batch under Idempotency-Key ``key``."""
         headers = {"Idempotency-Key": key}
         params = {"form": form}
         if not wait:
@@ -317,8 +475,11 @@ class Client:
     def query(self, name: str, flats: Flats | None = None, *, origins=None, directions=None,
               A=None, b=None, Q=None, r=None, weights: bool = False, outside: str = "nan",
               order: str = "hilbert", binary: bool = True,
-              min_position: int | None = None) -> QueryResult:
+              min_position: int | None = None, batch_rows: int | None = None) -> QueryResult:
         """Interpolate the field at a batch of flats (a :class:`Flats`, or arrays by name).
+
+        More flats than one request may carry (the server's ``max_batch_rows`` or body
+        limits; or ``batch_rows``) are sent as several requests, answered in order.
 
         ``min_position``: read-your-writes across replicas: the ``position`` of an
         upload's report (on any replica); the server answers once it has applied
@@ -332,6 +493,21 @@ class Client:
                   "weights": "true" if weights else "false"}
         if min_position is not None:
             params["min_position"] = str(int(min_position))
+        n = len(next(iter(arrays.values())))
+        width = sum(math.prod(a.shape[1:]) for a in arrays.values())
+        rows = self._rows_per_request(max(width, 1), binary, n, batch_rows) if n else n
+        if n > rows:
+            parts = [self._query_batch(name, form, {k: v[s0:s0 + rows] for k, v in arrays.items()},
+                                       params, weights, binary) for s0 in range(0, n, rows)]
+            return QueryResult(**{
+                f: None if getattr(parts[0], f) is None else
+                np.concatenate([getattr(p, f) for p in parts])
+                for f in ("values", "inside", "status", "ids", "weights")})
+        return self._query_batch(name, form, arrays, params, weights, binary)
+
+    def _query_batch(self, name: str, form: str, arrays: dict, params: dict, weights: bool,
+                     binary: bool) -> QueryResult:
+        """One ``POST .../query``."""
         url = f"/v1/fields/{name}/query"
         if not binary:
             body = {"form": form, **{k: v.tolist() for k, v in arrays.items()}}
@@ -379,3 +555,58 @@ class Client:
         j = self._request("POST", "/v1/math/project", json=body).json()
         return {kk: np.array(v, dtype=bool if kk == "ambiguous" else np.float64)
                 for kk, v in j.items()}
+
+
+class _Reports:
+    """The report of an upload sent as several batches (see :meth:`Client.upload`)."""
+
+    def __init__(self, several: bool):
+        self.several = several
+        self.parts: list[tuple[dict, int]] = []
+
+    def add(self, report: dict, first_row: int) -> None:
+        self.parts.append((report, first_row))
+
+    def result(self) -> dict:
+        if not self.several:
+            return self.parts[0][0]
+        last = dict(self.parts[-1][0])
+        reps = [p for p, _ in self.parts]
+        dups = [p.get("duplicates") for p in reps]
+        last.update(
+            batches=[p["batch"] for p in reps],
+            accepted=sum(p["accepted"] for p in reps),
+            rejected=[i + s0 for p, s0 in self.parts for i in p["rejected"]],
+            reasons=[t for p in reps for t in p["reasons"]],
+            duplicates=None if any(d is None for d in dups) else sum(dups),
+            indexed=all(p.get("indexed", True) for p in reps),
+            replayed=all(p.get("replayed", False) for p in reps),
+            position=max(p.get("position", 0) for p in reps))
+        return last
+
+
+class _progress_of:
+    """``with _progress_of(progress, total, name) as tick``: ``tick(rows_done)`` after
+    each batch updates a tqdm bar (``progress=True``) or calls ``progress``."""
+
+    def __init__(self, progress: Progress, total: int, name: str):
+        self.progress, self.total, self.name = progress, total, name
+        self.bar = None
+
+    def __enter__(self) -> Callable[[int], None]:
+        if self.progress is True:
+            try:
+                from tqdm.auto import tqdm
+            except ImportError:
+                raise ImportError("progress=True needs tqdm: pip install tqdm (the client "
+                                  "extra has it), or pass a callable") from None
+            self.bar = tqdm(total=self.total, unit="rows", unit_scale=True,
+                            desc=f"upload {self.name}")
+            return lambda done: self.bar.update(done - self.bar.n)
+        if callable(self.progress):
+            return lambda done: self.progress(done, self.total)
+        return lambda done: None
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.close()

@@ -27,8 +27,9 @@ for arg in "$@"; do
   esac
 done
 if [ "$mode" = build ]; then
-  # libcgal-demo ships data.tar.gz with the Stanford bunny used by the light-field demo.
-  pkgs=(build-essential cmake ninja-build libcgal-dev libeigen3-dev libgmp-dev libmpfr-dev libcgal-demo python3-venv python3-dev)
+  # libcgal-demo ships data.tar.gz with the Stanford bunny used by the light-field demo;
+  # curl: the README's examples (tests/test_readme.py runs them).
+  pkgs=(build-essential cmake ninja-build libcgal-dev libeigen3-dev libgmp-dev libmpfr-dev libcgal-demo python3-venv python3-dev curl)
 else
   pkgs=(python3 libgmp10 libmpfr6 libgomp1 libstdc++6)
 fi

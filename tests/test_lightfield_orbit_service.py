@@ -54,7 +54,7 @@ def served(tmp_path_factory):
     with ServerProcess(tmp / "data", tmp / "server.log", snapshot_every=0) as srv:
         srv.wait_ready()
         with Client(srv.url) as c:
-            info = c.create_field("blocks", k=1, d=3, oriented=True,
+            info = c.create_field("blocks", k=1, d=3, oriented=True, verbose=True,
                                   unit=UNIT)  # no basis
             reports = [c.upload_rays("blocks", samples.origins[i:i + BATCH],
                                      samples.directions[i:i + BATCH], values[i:i + BATCH])

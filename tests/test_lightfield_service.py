@@ -66,7 +66,7 @@ def test_render_png_matches_ground_truth(client):
 
 
 def test_demo_field_is_a_360_degree_atlas(client):
-    info = client.get("/v1/fields/bunny").json()
+    info = client.get("/v1/fields/bunny?verbose=true").json()
     assert info["atlas"]["oriented"] is True
     charts = info["charts"]
     assert len(charts) == 32  # 16 icosahedral vertex and face axes, both orientations

@@ -9,8 +9,9 @@ from fastapi import FastAPI
 
 from .. import __version__
 from .status import BodyTooLargeError
-from . import errors
+from . import docs, errors
 from .fastpath import FastQueryMiddleware
+from .logs import AccessLogMiddleware
 from .metrics import Metrics, MetricsMiddleware
 from .rooms import Rooms
 from .routes import api, health
@@ -93,10 +94,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 _stop(app)
 
     app = FastAPI(title="flatserve", version=__version__, description=DESCRIPTION,
-                  lifespan=lifespan)
+                  lifespan=lifespan, docs_url=None, redoc_url=None)
+    docs.install(app)  # /docs and /redoc with their assets served here (no CDN)
     app.openapi = _openapi(app)
     app.state.settings = settings
-    app.state.metrics = Metrics()
+    app.state.metrics = Metrics(replica=settings.replica)
     app.state.metrics.watch(_EntriesOf(app))
     errors.install(app)
     app.include_router(api)
@@ -107,6 +109,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(FastQueryMiddleware, fastapi_app=app)  # innermost: metrics see it
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    if settings.access_log:
+        app.add_middleware(AccessLogMiddleware)  # outermost: it times and sees every answer
     return app
 
 

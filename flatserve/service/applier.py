@@ -204,7 +204,7 @@ class LogApplier:
             if self.metrics is not None:
                 self.metrics.apply_seconds.observe(time.perf_counter() - t0)
                 if res.accepted:
-                    self.metrics.samples_accepted.labels(e.name).inc(res.accepted)
+                    self.metrics.accepted(e.name, res.accepted)
         finally:
             if e is not None:
                 e.drop_pending(entry.position)

@@ -39,6 +39,7 @@ from ..errors import InvalidInputError
 from .status import BatchTooLargeError, BodyTooLargeError
 from ..flats import FORMS, Flats, form_shapes, infer_form
 from .binary import load_npy, load_npz
+from .logs import note
 from .errors import ApiError
 from .responses import model_body
 from .schemas import QueryResponse
@@ -77,6 +78,17 @@ def accept_kind(accept: str | None) -> str:
 
 
 # -- decoding ----------------------------------------------------------------
+_EXPECTED = {"json": "a JSON object", "npy": "an .npy array", "npz": "an .npz archive"}
+
+
+def check_not_empty(body: bytes, kind: str) -> None:
+    """A 422 that says so for a body of 0 bytes (``kind``: ``json``, ``npy`` or
+    ``npz``), rather than a parser's message about a truncated header or document
+    (``curl --data-binary @FILE`` sends an empty body when FILE cannot be read)."""
+    if not body:
+        raise InvalidInputError(f"body: empty body (0 bytes); expected {_EXPECTED[kind]}", "body")
+
+
 def load_json(body: bytes) -> dict:
     try:
         obj = orjson.loads(body)
@@ -185,6 +197,7 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
     refused naming the ``field`` and what it holds (:func:`kind_of`).
     """
     kind = body_kind(content_type)
+    check_not_empty(body, kind)
     extra: dict = {}
     # what a legitimate body can need once read as float64: max_rows rows of the
     # widest form (Q, r) plus the values; larger declared arrays are refused unread
@@ -213,6 +226,7 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
         raise InvalidInputError(
             "body: give origins+directions (rays), A+b (parametric) or Q+r (flats)", "body")
     nrows = _rows(raw, form)
+    note(rows=nrows)
     if nrows > max_rows:
         raise BatchTooLargeError(f"{nrows} rows in one request; the limit is {max_rows}")
     try:

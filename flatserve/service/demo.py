@@ -15,6 +15,7 @@ The viewer can then orbit the whole way round.
 from __future__ import annotations
 
 import logging
+import sys
 import time
 
 import numpy as np
@@ -22,12 +23,12 @@ import numpy as np
 from ..atlas import object_unit
 from .status import FieldExistsError, FieldNotFoundError
 from ..flats import Flats
-from ..lightfield.sampling import ProgressBar, bunny_scene, orbit_samples
+from ..lightfield.sampling import bunny_scene, orbit_samples
 from . import specs
 from .schemas import FieldCreate
 
 __all__ = ["DEMO_FIELD", "DEMO_SAMPLES", "DEMO_BATCH", "DEMO_REQUEST", "ensure_demo_field",
-           "start_demo_field", "viewer_url"]
+           "start_demo_field", "viewer_url", "viewer_key_hint"]
 
 log = logging.getLogger("flatserve.service")
 
@@ -55,6 +56,19 @@ def viewer_url(host: str, port: int, name: str = DEMO_FIELD) -> str:
     return f"http://{host}:{port}/viewer/{name}"
 
 
+def viewer_key_hint(settings, url: str) -> str:
+    """What to add to a viewer URL when the server needs a key ('' when it does not):
+    the read-only key in the URL's fragment or typed into the page, never the
+    read-write key (a URL is kept in histories and shared)."""
+    if not settings.auth_enabled:
+        return ""
+    if settings.read_only_key is None:
+        return (" (this server needs a key and has no read-only one: set "
+                "FLATSERVE_READ_ONLY_KEY and open the viewer with it; the page asks for it)")
+    return (f" (this server needs a key: open {url}#key=READ_ONLY_KEY with the read-only "
+            "key, FLATSERVE_READ_ONLY_KEY, or type it into the page)")
+
+
 def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES,
                       seed: int = 0, *, progress=True, batch: int = DEMO_BATCH):
     """Create the 360 degree bunny light field in a running service unless it is there.
@@ -71,7 +85,9 @@ def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES
     seed : int
         Seed of the ray directions.
     progress : bool or callable(done, total)
-        True: a text progress bar on stderr.
+        True: a progress bar on stderr when it is a terminal and the log is text
+        (log lines go above it: :mod:`flatserve.service.logs`), else a log line at
+        every tenth of the samples.
     batch : int
         Rays per upload batch.
 
@@ -109,7 +125,8 @@ def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES
         log.info("demo field %r: building the 360 degree bunny light field from %d samples "
                  "(eyes all around it, %d charts)", name, n, len(spec.atlas["scales"]))
     t0 = time.perf_counter()
-    bar = progress if callable(progress) else (ProgressBar(f"building demo field {name!r}", n) if progress else None)
+    bar = progress if callable(progress) else (
+        _Progress(f"demo field {name!r}", n, rooms.settings.log_format) if progress else None)
     if bar is not None:
         bar(0, n)
     samples, values = orbit_samples(bunny_scene(1), n, seed)
@@ -120,13 +137,39 @@ def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES
                        idem_key=f"demo360-{name}-n{n}-s{seed}-b{batch}-{i}")
         if bar is not None:
             bar(hi, n)
+    if isinstance(bar, _Progress):
+        bar.close()
     log.info("demo field %r: %d samples in %.1f s", name, e.field.nsamples, time.perf_counter() - t0)
     return e
 
 
+class _Progress:
+    """``progress(done, total)`` of the demo's build: a tqdm bar on a terminal with text
+    logs (the log handler writes above it), else an info line every tenth."""
+
+    def __init__(self, label: str, total: int, log_format: str = "text"):
+        self.label, self.total, self.next = label, max(int(total), 1), 0
+        self.bar = None
+        if log_format == "text" and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.total, desc=label, unit="rays", unit_scale=True)
+
+    def __call__(self, done: int, total: int | None = None) -> None:
+        if self.bar is not None:
+            self.bar.update(done - self.bar.n)
+        elif done >= self.next:
+            log.info("%s: %d of %d samples uploaded", self.label, done, self.total)
+            self.next = done + max(self.total // 10, 1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
 
 def start_demo_field(rooms, host: str, port: int, *, name: str = DEMO_FIELD,
-                     samples: int = DEMO_SAMPLES, announce=print):
+                     samples: int = DEMO_SAMPLES, announce=None):
     """Run :func:`ensure_demo_field` in a daemon thread and announce the viewer URL.
 
     For the service's start-up (``make run``): the server answers at once
@@ -138,7 +181,7 @@ def start_demo_field(rooms, host: str, port: int, *, name: str = DEMO_FIELD,
     host, port : the address the server listens on (for the URL)
     name, samples : see :func:`ensure_demo_field`
     announce : callable(str)
-        Receives the "open the viewer at ..." line (default print).
+        Receives the "open the viewer at ..." line (default: logged, level info).
 
     Returns
     -------
@@ -147,12 +190,14 @@ def start_demo_field(rooms, host: str, port: int, *, name: str = DEMO_FIELD,
     import threading
 
     url = viewer_url(host, port, name)
+    announce = announce or log.info
+    how = viewer_key_hint(rooms.settings, url)
 
     def run():
         try:
-            announce(f"flatserve: preparing the demo light field {name!r}; viewer: {url}")
+            announce(f"flatserve: preparing the demo light field {name!r}; viewer: {url}{how}")
             ensure_demo_field(rooms, name, samples)
-            announce(f"flatserve: demo field {name!r} ready - open {url}")
+            announce(f"flatserve: demo field {name!r} ready - open {url}{how}")
         except Exception:  # the server keeps serving; the log says why
             log.exception("demo field %r could not be built", name)
 

@@ -18,7 +18,7 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from .codec import check_json_size
+from .codec import check_json_size, check_not_empty
 from .errors import ApiError
 from .catalogue import FieldCatalogue
 from .entry import FieldEntry
@@ -27,6 +27,7 @@ from .query import QueryService
 from .replica import Follower
 from .settings import FIELD_NAME_PATTERN, Settings
 from .snapshots import SnapshotWriter
+from .transfer import TransferService
 from .uploads import UploadService
 
 _api_key_header = APIKeyHeader(name="api-key", auto_error=False,
@@ -54,6 +55,7 @@ UploadsDep = Annotated[UploadService, _room("uploads")]
 QueriesDep = Annotated[QueryService, _room("queries")]
 SnapshotsDep = Annotated[SnapshotWriter, _room("snapshots")]
 FollowerDep = Annotated[Follower, _room("follower")]
+TransferDep = Annotated[TransferService, _room("transfer")]
 FieldNamePath = Annotated[str, Path(pattern=FIELD_NAME_PATTERN, description="Field name.")]
 
 
@@ -103,6 +105,7 @@ def json_body(model: type[BaseModel]):
     FastAPI's 422 format; pair it with :func:`json_body_doc` on the route."""
     def parse(body: BodyDep, settings: SettingsDep) -> BaseModel:
         check_json_size(body, settings.max_json_bytes)
+        check_not_empty(body, "json")
         try:
             return model.model_validate_json(body)
         except ValidationError as exc:
@@ -114,10 +117,18 @@ def json_body(model: type[BaseModel]):
     return Annotated[model, Depends(parse)]
 
 
+def request_example(model: type[BaseModel]) -> dict:
+    """The OpenAPI media-type members of ``model``'s request example (``example``:
+    the first of its schema's ``examples``), or ``{}``."""
+    examples = (model.model_config.get("json_schema_extra") or {}).get("examples")
+    return {"example": examples[0]} if examples else {}
+
+
 def json_body_doc(model: type[BaseModel]) -> dict:
     """``openapi_extra`` of a route whose body is read by :func:`json_body`."""
     return {"requestBody": {"required": True, "content": {"application/json": {
-        "schema": {"$ref": f"#/components/schemas/{model.__name__}"}}}},
+        "schema": {"$ref": f"#/components/schemas/{model.__name__}"},
+        **request_example(model)}}},
         "responses": {"422": {"description": "Validation Error", "content": {"application/json": {
             "schema": {"$ref": "#/components/schemas/HTTPValidationError"}}}}}}
 

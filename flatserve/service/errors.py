@@ -42,6 +42,8 @@ class ErrorBody(BaseModel):
 # Documented on every route (OpenAPI); 422 is FastAPI's HTTPValidationError.
 COMMON_RESPONSES: dict[int | str, dict] = {
     401: {"model": ErrorBody, "description": "Missing or wrong API key."},
+    408: {"description": "The request's headers or body arrived too slowly (`header_timeout`, "
+                         "`body_timeout`, `body_min_rate`); the connection is closed."},
     403: {"model": ErrorBody, "description": "The read-only key cannot write."},
     413: {"model": ErrorBody, "description": "Body or batch too large."},
     503: {"model": ErrorBody, "description": "Stored fields are still loading, or storage failed."},
@@ -54,6 +56,18 @@ BODY_RESPONSES: dict[int | str, dict] = {
     **FIELD_RESPONSES,
     409: {"model": ErrorBody, "description": "Conflict (existing name, field limit)."},
     415: {"model": ErrorBody, "description": "Unsupported Content-Type."},
+}
+#: A write (create, delete, upload, snapshot) on a full disk
+_DISK_FULL = {507: {"model": ErrorBody, "description": "The disk is full: nothing was stored; "
+                                                      "retry after `Retry-After` seconds "
+                                                      "(reads go on)."}}
+WRITE_RESPONSES: dict[int | str, dict] = {**BODY_RESPONSES, **_DISK_FULL}
+FIELD_WRITE_RESPONSES: dict[int | str, dict] = {**FIELD_RESPONSES, **_DISK_FULL}
+UPLOAD_RESPONSES: dict[int | str, dict] = {
+    **WRITE_RESPONSES,
+    429: {"model": ErrorBody, "description": "`wait=false`: `max_pending_samples` acknowledged "
+                                             "samples of the field wait for their insert; "
+                                             "retry after `Retry-After` seconds."},
 }
 
 

@@ -73,6 +73,7 @@ class FastQueryMiddleware:
             return await self.app(scope, receive, send)
         headers = scope["headers"]
         scope["route"] = self._route_obj()  # the metrics label: the route template
+        scope["path_params"] = {"name": m.group(1)}  # the access log's field
         try:
             authorize(state.settings, presented_key(headers), write=False)
             body = await read_body(receive)

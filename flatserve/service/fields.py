@@ -89,8 +89,9 @@ class FieldService:
     def summaries(self) -> list[FieldSummary]:
         return [self.summary(e) for e in self.catalogue.entries()]
 
-    def describe(self, e: FieldEntry) -> FieldInfo:
-        """Everything about field ``e`` (sizes null while it loads).
+    def describe(self, e: FieldEntry, verbose: bool = False) -> FieldInfo:
+        """Field ``e``: its sizes (null while it loads), storage, atlas summary; with
+        ``verbose`` also the basis flats and every chart (several KB for an atlas).
 
         Raises
         ------
@@ -105,16 +106,19 @@ class FieldService:
         d = f.describe() if f is not None else e.spec.describe_unloaded()
         m = e.basis.m
         pending_batches, pending_samples = e.pending_counts()
-        kind = {k: v for k, v in (("atlas", _atlas_info(d)), ("charts", _charts(d)))
+        charts = _charts(d)
+        kind = {k: v for k, v in (("atlas", _atlas_info(d)),
+                                  ("charts", charts if verbose else None))
                 if v is not None}  # (one chart: described by ``basis`` alone)
+        flats = dict(Q=e.basis.Q.tolist(), r=e.basis.r.tolist()) if verbose else {}
         return FieldInfo(
             **self.summary(e).model_dump(),
             ndim=m - 1, position=self.follower.applied, indexed_batch=e.indexed_seq,
             pending_batches=pending_batches, pending_samples=pending_samples,
             nrejected=d["nrejected"], nvertices=d["nstored"], nsimplex=d["nsimplex"],
             created=e.created, error=e.error,
-            basis=BasisInfo(m=m, dim=m - 1, spec=e.spec.basis, Q=e.basis.Q.tolist(),
-                            r=e.basis.r.tolist()),
+            basis=BasisInfo(m=m, dim=m - 1, spec=e.spec.basis, **flats),
+            ncharts=len(charts) if charts is not None else 1,
             storage=StorageInfo(batches=nb, batch_rows=nrows, batch_bytes=nbytes,
                                 last_batch=last,
                                 snapshot_batch=e.snapshot_seq if e.snapshot_file else 0,

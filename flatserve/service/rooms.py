@@ -11,7 +11,8 @@ restore and stops them in the reverse order:
   log positions and the waits for them;
 * :class:`~.fields.FieldService`: create, delete, describe;
 * :class:`~.uploads.UploadService`: durable, idempotent uploads;
-* :class:`~.query.QueryService`: interpolation.
+* :class:`~.query.QueryService`: interpolation;
+* :class:`~.transfer.TransferService`: a field exported as one file, and imported.
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ from .query import QueryService
 from .replica import Follower
 from .settings import Settings
 from .snapshots import SnapshotWriter
+from .transfer import TransferService
 from .uploads import UploadService
 
 log = logging.getLogger("flatserve.service")
@@ -49,6 +51,7 @@ class Rooms:
     fields: FieldService
     uploads: UploadService
     queries: QueryService
+    transfer: TransferService
     metrics: object = None
     _loader: threading.Thread | None = None
 
@@ -61,10 +64,11 @@ class Rooms:
         snapshots = SnapshotWriter(settings, storage, metrics)
         applier = LogApplier(settings, storage, catalogue, snapshots, metrics)
         follower = Follower(storage, applier)
-        return cls(settings, storage, catalogue, snapshots, applier, follower,
-                   FieldService(settings, storage, catalogue, follower, applier),
-                   UploadService(settings, storage, follower, metrics),
-                   QueryService(settings, catalogue, follower, metrics), metrics)
+        fields = FieldService(settings, storage, catalogue, follower, applier)
+        uploads = UploadService(settings, storage, follower, metrics)
+        return cls(settings, storage, catalogue, snapshots, applier, follower, fields, uploads,
+                   QueryService(settings, catalogue, follower, metrics),
+                   TransferService(settings, storage, catalogue, fields, uploads), metrics)
 
     def start(self) -> None:
         """Restore the stored fields and follow the log, in a thread (requests are

@@ -17,14 +17,17 @@ from ..options import Form
 from . import codec, specs
 from .catalogue import FieldState
 from .deps import (AnyField, BodyDep, CatalogueDep, FieldNamePath, FieldsDep, FollowerDep,
-                   QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, UploadsDep,
-                   WriteAccess, json_body, json_body_doc)
-from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES
+                   QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, TransferDep,
+                   UploadsDep, WriteAccess, json_body, json_body_doc, request_example)
+from .errors import (BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, FIELD_WRITE_RESPONSES,
+                     UPLOAD_RESPONSES, WRITE_RESPONSES, ApiError)
+from .logs import note
 from .query import QueryParams, answer, server_timing
 from .responses import model_body
 from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
-                      FieldInfo, FieldList, Health, ProjectRequest, ProjectResult,
-                      QueryBody, QueryResponse, SnapshotResult, UploadBody, UploadResult)
+                      FieldInfo, FieldList, Health, ImportResult, Limits, ProjectRequest,
+                      ProjectResult, QueryBody, QueryResponse, SnapshotResult, UploadBody,
+                      UploadResult)
 
 #: header carrying the log position of a write (uploads carry it in the body too)
 POSITION_HEADER = "Flatserve-Position"
@@ -34,6 +37,11 @@ MinPositionQuery = Annotated[Optional[int], Query(
                       "`Flatserve-Position` header of any write), waiting up to "
                       "`read_wait_timeout` seconds; then 503 with `Retry-After` (any replica "
                       "answers it; one behind waits).")]
+
+VerboseQuery = Annotated[bool, Query(
+    description="Also the basis flats (`basis.Q`, `basis.r`) and, for an atlas, every chart "
+                "(`charts`: centre, scale, samples): several KB. Default: a summary "
+                "(`ncharts`, `atlas`).")]
 
 FormQuery = Annotated[Optional[Form], Query(
     description="Flat form of the body. JSON/.npz: inferred from the array names. "
@@ -54,7 +62,7 @@ def _body_doc(model) -> dict:
     schema = model.model_json_schema()
     schema.pop("title", None)
     return {"requestBody": {"required": True, "content": {
-        "application/json": {"schema": schema},
+        "application/json": {"schema": schema, **request_example(model)},
         codec.NPY: _BINARY,
         codec.NPZ: _BINARY,
     }}}
@@ -66,7 +74,7 @@ health = APIRouter()
 
 # -- fields -------------------------------------------------------------------
 @api.post("/fields", status_code=201, response_model=FieldInfo, response_model_exclude_unset=True, tags=["fields"],
-          dependencies=[WriteAccess], responses=BODY_RESPONSES,
+          dependencies=[WriteAccess], responses=WRITE_RESPONSES,
           openapi_extra=json_body_doc(FieldCreate),
           summary="Create a field (basis + empty triangulation)",
           description="Without `basis`: a covering atlas (every orientation accepted; "
@@ -75,11 +83,13 @@ health = APIRouter()
                       "charts where given flats are; `centers`: explicit centres, checked to "
                       "cover every orientation).")
 def create_field(spec: json_body(FieldCreate), fields: FieldsDep, follower: FollowerDep,
-                 settings: SettingsDep, response: Response) -> FieldInfo:
+                 settings: SettingsDep, response: Response,
+                 verbose: VerboseQuery = False) -> FieldInfo:
+    note(field=spec.name)
     stored, basis = specs.field_spec(spec, max_atlas_samples=settings.max_atlas_samples)
     e = fields.create(spec.name, stored, basis)
     response.headers[POSITION_HEADER] = str(follower.applied)
-    return fields.describe(e)
+    return fields.describe(e, verbose)
 
 
 @api.get("/fields", response_model=FieldList, response_model_exclude_unset=True, tags=["fields"], dependencies=[ReadAccess],
@@ -92,14 +102,15 @@ def list_fields(fields: FieldsDep) -> FieldList:
          responses=FIELD_RESPONSES, summary="Describe a field")
 async def describe_field(name: FieldNamePath, fields: FieldsDep, queries: QueriesDep,
                          catalogue: CatalogueDep,
-                         min_position: MinPositionQuery = None) -> FieldInfo:
+                         min_position: MinPositionQuery = None,
+                         verbose: VerboseQuery = False) -> FieldInfo:
     await queries.wait_position(min_position)
     e = catalogue.get(name, need_ready=False)
-    return await anyio.to_thread.run_sync(fields.describe, e)
+    return await anyio.to_thread.run_sync(fields.describe, e, verbose)
 
 
 @api.delete("/fields/{name}", status_code=204, tags=["fields"], dependencies=[WriteAccess],
-            responses=FIELD_RESPONSES, summary="Delete a field and its stored batches")
+            responses=FIELD_WRITE_RESPONSES, summary="Delete a field and its stored batches")
 def delete_field(name: FieldNamePath, fields: FieldsDep) -> Response:
     pos = fields.delete(name)
     return Response(status_code=204, headers={POSITION_HEADER: str(pos)})
@@ -112,15 +123,50 @@ def list_batches(e: AnyField, uploads: UploadsDep) -> BatchList:
 
 
 @api.post("/fields/{name}/snapshot", response_model=SnapshotResult, response_model_exclude_unset=True, tags=["fields"],
-          dependencies=[WriteAccess], responses=FIELD_RESPONSES, summary="Write a snapshot now")
+          dependencies=[WriteAccess], responses=FIELD_WRITE_RESPONSES, summary="Write a snapshot now")
 def snapshot_field(e: ReadyField, snapshots: SnapshotsDep) -> SnapshotResult:
     return snapshots.snapshot(e)
+
+
+@api.get("/fields/{name}/export", tags=["fields"], dependencies=[ReadAccess],
+         response_class=Response, responses={
+             **FIELD_RESPONSES, 200: {"content": {codec.NPZ: _BINARY}, "description":
+                                      "The field as one `.npz`: its definition and every "
+                                      "stored batch (`flatserve/service/transfer.py`)."}},
+         summary="Export a field as one file (for POST /v1/fields/{name}/import)")
+def export_field(e: ReadyField, transfer: TransferDep) -> Response:
+    body = transfer.export(e)
+    return Response(body, media_type=codec.NPZ, headers={
+        "Content-Disposition": f'attachment; filename="{e.name}.flatserve.npz"'})
+
+
+@api.post("/fields/{name}/import", response_model=ImportResult, tags=["fields"],
+          dependencies=[WriteAccess], responses=UPLOAD_RESPONSES,
+          openapi_extra={"requestBody": {"required": True, "content": {codec.NPZ: _BINARY}}},
+          summary="Create a field from an export file (of this or another deployment)",
+          description="The field `name` is created with the file's definition (as exported: "
+                      "an atlas is not built again) and the file's batches are stored in their "
+                      "order, each under the Idempotency-Key `import-<export id>.<seq>`: the "
+                      "field then answers bit for bit as the exported one. Repeating an import "
+                      "that failed half-way stores only the missing batches (an existing field "
+                      "of the file's definition is taken; another is a 409). The body is the "
+                      "file as `application/x-npz` (up to `max_body_bytes`).")
+def import_field(name: FieldNamePath, transfer: TransferDep, body: BodyDep, response: Response,
+                 content_type: Annotated[Optional[str], Header()] = None) -> ImportResult:
+    if codec.media_type(content_type) != codec.NPZ:
+        raise ApiError(415, f"an import body is the export file as {codec.NPZ}, not "
+                            f"{codec.media_type(content_type) or 'no Content-Type'}")
+    codec.check_not_empty(body, "npz")
+    note(field=name)
+    out = transfer.import_field(name, body)
+    response.headers[POSITION_HEADER] = str(out.position)
+    return out
 
 
 # -- samples and queries --------------------------------------------------------
 @api.post(
     "/fields/{name}/samples", response_model=UploadResult, response_model_exclude_unset=True, tags=["samples"],
-    dependencies=[WriteAccess], responses=BODY_RESPONSES, openapi_extra=_body_doc(UploadBody),
+    dependencies=[WriteAccess], responses=UPLOAD_RESPONSES, openapi_extra=_body_doc(UploadBody),
     summary="Upload a batch of samples",
     description="Stores the batch durably (acknowledged only after its commit to the "
                 "shared log; the response's `position` is its log position, for reads with "
@@ -176,6 +222,16 @@ async def query_field(
     # Usually answered by flatserve.service.fastpath (the same answer() and parameter
     # model, without FastAPI's per-request costs); this route is the documented reference.
     return await answer(queries, name, params, body, content_type, accept)
+
+
+@api.get("/limits", response_model=Limits, tags=["service"], dependencies=[ReadAccess],
+         responses=COMMON_RESPONSES, summary="This server's request limits",
+         description="What a client splits its batches by (`max_batch_rows`, `max_body_bytes`, "
+                     "`max_json_bytes`): the server's settings of those names.")
+def limits(settings: SettingsDep) -> Limits:
+    return Limits(max_batch_rows=settings.max_batch_rows, max_body_bytes=settings.max_body_bytes,
+                  max_json_bytes=settings.max_json_bytes,
+                  max_pending_samples=settings.max_pending_samples)
 
 
 # -- stateless math ---------------------------------------------------------------

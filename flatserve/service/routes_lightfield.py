@@ -31,6 +31,7 @@ from .status import BatchTooLargeError
 from . import codec
 from .deps import FieldNamePath, ReadAccess, ReadyField, SettingsDep, json_body, json_body_doc
 from .errors import COMMON_RESPONSES, FIELD_RESPONSES
+from .logs import note
 from .query import server_timing
 
 __all__ = ["lightfield_api", "viewer", "CameraSpec", "render_frame"]
@@ -61,7 +62,8 @@ class CameraSpec(BaseModel):
     nothing: the default camera at (0, 0, -3) looking along +z.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"orbit": {"yaw": 30.0, "pitch": 10.0, "distance": 3.0}, "width": 64, "height": 64}]})
     orbit: Optional[OrbitSpec] = None
     eye: Optional[Vec3] = None
     target: Optional[Vec3] = Field(None, description="Point looked at (default the origin).")
@@ -144,6 +146,7 @@ def render(e: ReadyField, camera: json_body(CameraSpec), settings: SettingsDep,
            accept: Annotated[Optional[str], Header()] = None) -> Response:
     t0 = time.perf_counter()
     cam = camera.camera()
+    note(rows=cam.nrays)
     if cam.nrays > settings.max_batch_rows:
         raise BatchTooLargeError(f"{cam.nrays} rays in one frame; the limit is {settings.max_batch_rows}")
     fmt = camera.format or ("npy" if accept and codec.NPY in accept else "png")

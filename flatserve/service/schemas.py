@@ -210,7 +210,20 @@ class _KD(_Strict):
         return self
 
 
+def _example(example: dict) -> ConfigDict:
+    """The request example of a body model, shown in the OpenAPI document (``/docs``);
+    the examples of the request models are valid requests that follow one another
+    (create ``demo``, upload to it, query it; tests/service/test_service_docs.py)."""
+    return ConfigDict(json_schema_extra={"examples": [example]})
+
+
+#: Two rays of the examples: eyes behind the screen z = 0, looking through it
+_EXAMPLE_RAYS = {"origins": [[0.1, 0.2, -3.0], [-0.2, 0.1, -3.0]],
+                 "directions": [[0.0, 0.0, 1.0], [0.05, -0.02, 1.0]]}
+
+
 class FieldCreate(_KD):
+    model_config = _example({"name": "demo", "channels": 1})
     name: FieldName
     channels: int = Field(1, ge=1, le=64, description="Values per sample (3 for RGB).")
     oriented: Optional[bool] = Field(
@@ -235,8 +248,9 @@ class BasisInfo(BaseModel):
     m: int
     dim: int = Field(description="(k+1)(d-k): dimension of the coordinate space.")
     spec: dict
-    Q: Mats = Field(description="The basis flats (m, d, d); of an atlas field, chart 0's.")
-    r: Mat
+    Q: Optional[Mats] = Field(None, description="The basis flats (m, d, d); of an atlas field, "
+                                                "chart 0's (`verbose=true` only).")
+    r: Optional[Mat] = Field(None, description="(m, d) (`verbose=true` only).")
 
 
 class ChartCenter(BaseModel):
@@ -324,9 +338,10 @@ class FieldInfo(FieldSummary):
     storage: StorageInfo
     atlas: Optional[AtlasInfo] = Field(None, description="Atlas fields: the atlas's radii and "
                                                          "sizes (null: one chart).")
+    ncharts: int = Field(1, description="Charts of the field (1: one chart).")
     charts: Optional[list[ChartInfo]] = Field(
-        None, description="Atlas fields: per chart its centre, scale and samples (null: one "
-                          "chart, described by `basis`).")
+        None, description="Atlas fields with `verbose=true`: per chart its centre, scale and "
+                          "samples (absent by default, and for one chart, described by `basis`).")
 
 
 class UploadResult(BaseModel):
@@ -349,6 +364,18 @@ class UploadResult(BaseModel):
     position: int = Field(0, description="The batch's position in the shared log: pass it as "
                                          "`min_position` to a query or describe on any replica "
                                          "to read this write.")
+
+
+class ImportResult(BaseModel):
+    name: str = Field(description="The field created (or completed) from the file.")
+    source: str = Field(description="The name of the field the file was exported from.")
+    batches: int = Field(description="Batches in the file, stored in their order.")
+    replayed_batches: int = Field(description="Of them, stored already by an earlier import "
+                                              "of the same file (nothing stored twice).")
+    accepted: int = Field(description="Samples accepted by the batches stored now.")
+    nsamples: int = Field(description="Samples in the field after the import.")
+    position: int = Field(description="Log position of the last batch (`min_position` for "
+                                      "reads on other replicas).")
 
 
 class BatchInfo(BaseModel):
@@ -379,11 +406,15 @@ class SnapshotResult(BaseModel):
 class QueryBody(FlatsModel):
     """JSON query (small batches): one flat form."""
 
+    model_config = _example(_EXAMPLE_RAYS)
+
     form: Optional[Form] = None
 
 
 class UploadBody(QueryBody):
     """JSON upload (small batches): one flat form plus values (n, C)."""
+
+    model_config = _example({**_EXAMPLE_RAYS, "values": [[0.5], [0.25]]})
 
     values: Mat
 
@@ -398,6 +429,8 @@ class QueryResponse(BaseModel):
 
 
 class CoordinatesRequest(_KD):
+    model_config = _example({"basis": {"kind": "tangent_simplex", "scale": 0.01},
+                             "flats": _EXAMPLE_RAYS})
     basis: Optional[ChartBasisSpec] = None
     flats: FlatsModel
     embed: bool = Field(False, description="Also return the embedded coordinates (n, m-1).")
@@ -411,6 +444,7 @@ class CoordinatesResult(BaseModel):
 
 
 class ProjectRequest(_KD):
+    model_config = _example({"flats": _EXAMPLE_RAYS, "weights": [[0.5, 0.5], [1.5, -0.5]]})
     flats: FlatsModel = Field(description="The m flats combined.")
     weights: Mat = Field(description="(n, m) affine weights, each row summing to 1.")
 
@@ -422,6 +456,17 @@ class ProjectResult(BaseModel):
     b: list[list[Optional[float]]]
     gap: list[Optional[float]]
     ambiguous: list[bool]
+
+
+class Limits(BaseModel):
+    """The request limits of this server (its settings), for clients that split
+    their batches to fit (:class:`flatserve.client.Client` reads them once)."""
+
+    max_batch_rows: int = Field(description="Most rows in one upload or query (413 past it).")
+    max_body_bytes: int = Field(description="Largest request body (413).")
+    max_json_bytes: int = Field(description="Largest JSON body (413).")
+    max_pending_samples: int = Field(description="Accepted samples of one field waiting for "
+                                                 "their insert before `wait=false` uploads get 429.")
 
 
 class Health(BaseModel):

@@ -59,9 +59,9 @@ def serve(settings: Settings | None = None, listen_fd: int | None = None) -> Non
     from .app import create_app
 
     settings = settings or Settings()
-    level = settings.log_level.upper()
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    logging.getLogger("flatserve").setLevel(level)
+    from . import logs
+
+    logs.configure(settings.log_level, settings.log_format)
     host = settings.bind_host()
     if host != settings.host and listen_fd is None:
         log.warning("no API key set: binding to %s instead of %s", host, settings.host)
@@ -102,7 +102,9 @@ def serve(settings: Settings | None = None, listen_fd: int | None = None) -> Non
     protocol = guarded_protocol(header_timeout=settings.header_timeout,
                                 body_timeout=settings.body_timeout,
                                 body_min_rate=settings.body_min_rate, max_connections=cap)
-    kw = dict(log_level=settings.log_level.lower(), access_log=False,
+    # log_config=None: the logging configured above is uvicorn's too; its own access
+    # log is off (flatserve's access log, logs.AccessLogMiddleware, has route and field)
+    kw = dict(log_level=settings.log_level.lower(), access_log=False, log_config=None,
               timeout_graceful_shutdown=10, http=protocol,
               timeout_keep_alive=settings.keepalive_timeout)
     if listen_fd is None:
@@ -126,7 +128,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
             else f.default
         doc = (f.description or name.replace("_", " ")).rstrip(".")
         if f.annotation is bool:
-            p.add_argument(flag, action="store_true", default=None, help=f"{doc} ({env})")
+            if f.default is True:  # --access-log / --no-access-log
+                p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None,
+                               help=f"{doc} (default on; {env})")
+            else:
+                p.add_argument(flag, action="store_true", default=None, help=f"{doc} ({env})")
             continue
         kind = {int: int, float: float}.get(f.annotation, str)
         p.add_argument(flag, type=kind, help=f"{doc} (default {default}; {env})")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ipaddress
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -108,8 +109,16 @@ class Settings(BaseSettings):
     lock_fd: int | None = Field(None, ge=0)
     """Internal (set by --processes for its children): an inherited open file that holds the data
     directory's lock for the whole replica group."""
+    replica: int = Field(0, ge=0)
+    """Internal (set by --processes for its children): this replica's index, the `replica`
+    label of its metrics."""
     log_level: str = Field("info")
-    """Level of the server's log (debug, info, warning, error)."""
+    """Least level logged: debug, info, warning, error."""
+    log_format: Literal["text", "json"] = Field("text")
+    """Log lines as text or as one JSON object a line (stderr)."""
+    access_log: bool = Field(True)
+    """One log line per request (flatserve.access): method, route, field, rows, status, ms,
+    request id."""
     demo: bool = Field(False)
     """On start, create the bunny light-field demo field unless stored (background, with progress)
     and print the viewer URL (`make run` sets it)."""

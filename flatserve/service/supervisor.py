@@ -17,14 +17,18 @@ import ctypes
 import functools
 import logging
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 
+from prometheus_client import multiprocess
 from pydantic import SecretStr
 
+from .metrics import MULTIPROC_ENV
 from .settings import Settings
 
 log = logging.getLogger("flatserve.service")
@@ -105,6 +109,9 @@ class Supervisor:
         sock = bind_socket(self.host, s.port)
         env = dict(os.environ, **settings_env(s))
         env.update(FLATSERVE_PROCESSES="1", FLATSERVE_HOST=self.host)
+        # the replicas' metrics, summed by whichever answers a scrape (metrics.py)
+        self.metrics_dir = tempfile.mkdtemp(prefix="flatserve-metrics-")
+        env[MULTIPROC_ENV] = self.metrics_dir
         pass_fds = [sock.fileno()]
         if lock_fd is not None:
             env["FLATSERVE_LOCK_FD"] = str(lock_fd)
@@ -127,6 +134,8 @@ class Supervisor:
                     self.quick_exits = self.quick_exits + 1 if quick else 0
                     log.warning("replica %d (pid %d) exited with status %s; restarting it", i,
                                 p.pid, p.returncode)
+                    # its counters stay in the sum; its live gauges go
+                    multiprocess.mark_process_dead(p.pid, self.metrics_dir)
                     if self.quick_exits >= MAX_QUICK_EXITS:
                         log.error("replicas keep failing at start; stopping")
                         self.stopping = True
@@ -136,13 +145,15 @@ class Supervisor:
                     self._start(i)
         finally:
             self._stop_all()
+            shutil.rmtree(self.metrics_dir, ignore_errors=True)
             sock.close()
             if lock_fd is not None:
                 os.close(lock_fd)
         return 1 if self.quick_exits >= MAX_QUICK_EXITS else 0
 
     def _start(self, i: int) -> None:
-        self.children[i] = subprocess.Popen(self.cmd, env=self.env, pass_fds=self.pass_fds,
+        env = dict(self.env, FLATSERVE_REPLICA=str(i))  # the `replica` label of its metrics
+        self.children[i] = subprocess.Popen(self.cmd, env=env, pass_fds=self.pass_fds,
                                             preexec_fn=functools.partial(_die_with_parent, os.getpid()))
         self.started_at[i] = time.monotonic()
         log.info("replica %d started (pid %d)", i, self.children[i].pid)

@@ -33,7 +33,7 @@ def npz(**arrays) -> bytes:
 
 def test_field_lifecycle(api):
     tc, c = api
-    info = c.create_field("scene", channels=C)
+    info = c.create_field("scene", channels=C, verbose=True)
     assert (info["k"], info["d"], info["channels"], info["nsamples"]) == (1, 3, C, 0)
     assert info["basis"]["m"] == 5 and np.asarray(info["basis"]["Q"]).shape == (5, 3, 3)
     # without basis: a covering atlas of lines (16 charts; `basis` describes chart 0)
@@ -50,10 +50,28 @@ def test_field_lifecycle(api):
         c.delete_field("scene")
 
 
+def test_create_and_describe_answer_a_summary_unless_verbose(api):
+    # a one-line create gets a few hundred bytes, not kilobytes of matrices and centres
+    tc, c = api
+    r = tc.post("/v1/fields", json={"name": "f"})
+    assert r.status_code == 201 and len(r.content) < 1200, len(r.content)
+    short = r.json()
+    assert short["ncharts"] == 16 and "charts" not in short and "Q" not in short["basis"]
+    assert short["atlas"]["oriented"] is False and short["basis"]["spec"]["kind"] == "atlas"
+    full = tc.get("/v1/fields/f?verbose=true").json()
+    assert len(full["charts"]) == 16 and np.asarray(full["basis"]["Q"]).shape == (5, 3, 3)
+    assert {k: v for k, v in full.items() if k != "charts"} == {
+        **short, "basis": full["basis"], "position": full["position"]}
+    assert tc.get("/v1/fields/f").json() == {**short, "position": tc.get("/v1/fields/f").json()["position"]}
+    one = c.create_field("one", basis={"kind": "tangent_simplex"})
+    assert one["ncharts"] == 1 and "charts" not in one and "atlas" not in one
+
+
 def test_explicit_bases(api):
     tc, c = api
     ref = specs.build_basis(None, 1, 3)
-    info = c.create_field("qr", basis={"kind": "flats", "Q": ref.Q.tolist(), "r": ref.r.tolist()})
+    info = c.create_field("qr", basis={"kind": "flats", "Q": ref.Q.tolist(), "r": ref.r.tolist()},
+                          verbose=True)
     assert np.allclose(info["basis"]["Q"], ref.Q)
     ts = c.create_field("ts", basis={"kind": "tangent_simplex", "scale": 0.02,
                                      "center": {"origin": [0, 0, 0], "direction": [0, 0, 1]}})
@@ -355,12 +373,16 @@ def test_metrics_and_health(api, rng):
     rep = c.upload_rays("f", o, v, np.ones(100))
     c.query_rays("f", o, v)
     text = c.metrics()
-    assert f'flatserve_samples_accepted_total{{field="f"}} {float(rep["accepted"])}' in text
+    assert f'flatserve_samples_accepted_total{{field="f",replica="0"}} {float(rep["accepted"])}' \
+        in text
     assert 'flatserve_query_rows_total{field="f"} 100.0' in text
     assert 'flatserve_requests_total{method="POST",route="/v1/fields/{name}/query",status="200"}' \
         in text
     assert "flatserve_request_seconds_bucket" in text
-    assert f'flatserve_field_samples{{field="f"}} {float(rep["nsamples"])}' in text
+    assert f'flatserve_field_samples{{field="f",replica="0"}} {float(rep["nsamples"])}' in text
+    assert "_created" not in text  # no creation-time series
+    assert 'flatserve_replica_resident_bytes{replica="0"}' in text
+    assert "process_cpu_seconds_total" in text  # one process: the standard process series
 
 
 def test_math_endpoints_match_library(api, rng):

@@ -5,10 +5,13 @@ and from a snapshot, ``wait=false``, oriented fields take rays only, describe li
 the charts."""
 from __future__ import annotations
 
+import functools
 import io
 
 import numpy as np
 import pytest
+
+from flatserve.client import Client
 
 from flatserve.atlas import Atlas
 from flatserve.atlas_field import AtlasField
@@ -24,6 +27,15 @@ C = 2
 ATLAS = {"kind": "atlas", "atlas": "covering", "oriented": False}
 #: How an atlas spec is stored and described (``oriented`` is the field's).
 COVERING = {"kind": "atlas", "atlas": "covering"}
+
+
+@pytest.fixture(autouse=True)
+def verbose_descriptions(monkeypatch):
+    """These tests read every chart: the client's creates and describes ask for them
+    (``verbose=true``; the default answer is a summary)."""
+    for name in ("create_field", "describe"):
+        monkeypatch.setattr(Client, name,
+                            functools.partialmethod(getattr(Client, name), verbose=True))
 
 
 def sphere_rays(rng, n, spread=1.0):

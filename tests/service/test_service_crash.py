@@ -41,7 +41,7 @@ def _verify(url, kind, sent, acked, probe):
             assert b["accepted"] == res.accepted
             if b["idempotency_key"] in acked:
                 assert acked[b["idempotency_key"]]["accepted"] == res.accepted
-        info = c.describe(name)
+        info = c.describe(name, verbose=True)
         assert info["nsamples"] == ref.nsamples
         if kind.atlas:  # every chart restored: the same samples per chart
             assert [ch["samples"] for ch in info["charts"]] == ref.samples_per_chart

@@ -133,3 +133,22 @@ def test_real_server_keeps_the_connection_after_hostile_bodies(tmp_path, rng):
         status, text, _ = post("/v1/fields/f/query", npy(np.c_[paper_rays(rng, 3)]), NPY)
         assert status == 200 and conn.sock is sock, text
         conn.close()
+
+
+#: (target, content type) of every body a route reads: the batch routes take the three
+#: kinds, create and render take JSON only
+EMPTY = [(t, c) for t in TARGETS for c in ("application/json", NPY, NPZ)] + [
+    ("/v1/fields", "application/json"), ("/v1/fields/f/render", "application/json")]
+
+
+@pytest.mark.parametrize("target,ctype", EMPTY)
+def test_empty_body_is_a_422_that_says_the_body_was_empty(field, target, ctype):
+    # curl --data-binary @FILE sends 0 bytes when FILE is missing: the answer says so
+    tc, c, query = field
+    before = c.describe("f")["nsamples"]
+    r = tc.post(target, content=b"", headers={"Content-Type": ctype})
+    assert r.status_code == 422, (target, ctype, r.status_code, r.text)
+    assert r.json()["detail"][0]["loc"][0] == "body"
+    assert "empty body (0 bytes)" in r.json()["detail"][0]["msg"], r.text
+    assert c.describe("f")["nsamples"] == before
+    _still_serves(tc, query)

@@ -6,8 +6,18 @@
   "use strict";
   const parts = location.pathname.split("/").filter(Boolean);
   const name = decodeURIComponent(parts[parts.length - 1] || "");
+  // A server with API keys: the read-only key (FLATSERVE_READ_ONLY_KEY) as #key=... in the
+  // URL, or typed into the form shown on a 401. The key is then kept for this tab only
+  // (sessionStorage) and taken out of the address bar; the fragment never reaches a server.
   const hash = new URLSearchParams(location.hash.slice(1));
-  const apiKey = hash.get("key");                       // #key=... when the server needs one
+  const KEY_STORE = "flatserve-viewer-key";
+  let apiKey = hash.get("key") || sessionStorage.getItem(KEY_STORE);
+  if (hash.has("key")) {
+    sessionStorage.setItem(KEY_STORE, apiKey);
+    hash.delete("key");
+    const rest = hash.toString();
+    history.replaceState(null, "", location.pathname + location.search + (rest ? "#" + rest : ""));
+  }
   const DEFAULT = { yaw: 0, pitch: 0, distance: 3, focal: 4 };
   // yaw turns all the way round (wrapped to (-180, 180]); pitch stops short of the poles
   // (the server takes |pitch| <= 89). A 360 degree field (an oriented atlas, the demo) has
@@ -26,14 +36,25 @@
   $("field-name").textContent = name;
   document.title = "flatserve viewer: " + name;
 
-  let inFlight = false, pending = null, renders = 0, lastUrl = null;
+  let inFlight = false, pending = null, renders = 0, lastUrl = null, waitingForKey = false;
+
+  $("key-form").addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    apiKey = $("key").value.trim();
+    sessionStorage.setItem(KEY_STORE, apiKey);
+    $("key").value = "";
+    $("key-form").hidden = true;
+    $("status").textContent = "";
+    waitingForKey = false;
+    if (!inFlight) pump();
+  });
 
   const wrapYaw = (y) => { y = ((y + 180) % 360 + 360) % 360 - 180; return y === -180 ? 180 : y; };
   const clampPitch = (p) => Math.max(-LIMITS.pitch, Math.min(LIMITS.pitch, p));
 
   function request(supersample) {
     pending = { supersample: supersample, cam: Object.assign({}, cam) };
-    if (!inFlight) pump();
+    if (!inFlight && !waitingForKey) pump();
   }
 
   async function pump() {
@@ -55,6 +76,16 @@
         $("status").textContent = "waiting for field " + name + " (" + resp.status + ") ...";
         if (!pending) pending = job;
         await new Promise((r) => setTimeout(r, RETRY_MS));
+        return;
+      }
+      if (resp.status === 401 || resp.status === 403) {
+        // no key, or a wrong one: ask for the read-only key, then render this frame again
+        $("status").textContent = (apiKey ? "the key was refused (" + resp.status + ")"
+          : "this server needs an API key") + ": enter the read-only key (FLATSERVE_READ_ONLY_KEY)";
+        $("key-form").hidden = false;
+        $("key").focus();
+        if (!pending) pending = job;
+        waitingForKey = true;
         return;
       }
       if (!resp.ok) {
@@ -87,7 +118,7 @@
     } finally {
       inFlight = false;
       $("busy").hidden = true;
-      if (pending) pump();
+      if (pending && !waitingForKey) pump();
     }
   }
 

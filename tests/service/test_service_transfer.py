@@ -1,0 +1,200 @@
+"""Export a field as one file and import it on another deployment: the imported field
+answers bit for bit as the exported one (every kind of field, batches of every form,
+rejected rows), survives a restart, a repeated import stores nothing twice and
+completes one that failed half-way, and a file that is not an export is a 4xx."""
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from flatserve.client import Client
+from flatserve.errors import InvalidInputError
+from flatserve.flats import Flats, to_parametric
+from flatserve.service.status import FieldExistsError
+
+from .conftest import ONE_CHART, paper_rays
+
+NPZ = "application/x-npz"
+
+
+def _started(app):
+    tc = TestClient(app)
+    tc.__enter__()
+    c = Client(http=tc)
+    c.wait_ready(30)
+    return tc, c
+
+
+@pytest.fixture
+def deployments(make_app, tmp_path):
+    """Two servers on their own data directories: ``(source, target)`` as (tc, client)."""
+    made = [_started(make_app(data_dir=tmp_path / n)) for n in ("source", "target")]
+    yield made
+    for tc, _ in made:
+        tc.__exit__(None, None, None)
+
+
+def _fill(c, name, rng, *, oriented=False):
+    """Batches of every form (rays, (A, b), (Q, r)), one with rejected rows, one
+    acknowledged before its insert (wait=false)."""
+    o, v = paper_rays(rng, 400)
+    c.upload_rays(name, o, v, rng.uniform(size=(400, 2)))
+    o, v = paper_rays(rng, 300)
+    v[::5] = [1.0, 0.2, 0.01]  # outside a one chart's domain
+    c.upload_rays(name, o, v, rng.uniform(size=(300, 2)), wait=False)
+    if not oriented:
+        A, b = to_parametric(*Flats.from_rays(*paper_rays(rng, 200)).quadrics(), 1)
+        c.upload(name, rng.uniform(size=(200, 2)), A=A, b=b)
+        Q, r = Flats.from_rays(*paper_rays(rng, 150)).quadrics()
+        c.upload(name, rng.uniform(size=(150, 2)), Q=Q, r=r)
+    c.wait_indexed(name)
+
+
+KINDS = {
+    "covering-atlas": {},
+    "oriented-atlas": {"oriented": True},
+    "one-chart": {"basis": ONE_CHART},
+    "samples-atlas": {"basis": {"kind": "atlas", "atlas": "samples", "samples": {
+        "origins": [[0, 0, -3], [0.3, 0, -3], [0, 0.3, -3]],
+        "directions": [[0, 0, 1], [0.2, 0, 1], [0, 0.2, 1]]}}},
+}
+
+
+@pytest.mark.parametrize("kind", sorted(KINDS))
+def test_an_imported_field_answers_bit_for_bit(deployments, rng, kind):
+    (ta, a), (tb, b) = deployments
+    a.create_field("src", channels=2, **KINDS[kind])
+    _fill(a, "src", rng, oriented=KINDS[kind].get("oriented", False))
+    data = a.export_field("src")
+    rep = b.import_field("copy", data)
+    src = a.describe("src", verbose=True)
+    assert rep["source"] == "src" and rep["batches"] == len(a.batches("src"))
+    assert rep["replayed_batches"] == 0 and rep["nsamples"] == src["nsamples"]
+    dst = b.describe("copy", verbose=True)
+    for key in ("k", "d", "channels", "oriented", "nsamples", "nrejected", "nvertices",
+                "nsimplex", "basis", "atlas", "charts", "ncharts"):
+        assert dst.get(key) == src.get(key), key
+    assert [(x["rows"], x["accepted"]) for x in b.batches("copy")] == \
+        [(x["rows"], x["accepted"]) for x in a.batches("src")]
+    qo, qv = paper_rays(rng, 3000)
+    want = a.query_rays("src", qo, qv, weights=kind == "one-chart")
+    got = b.query_rays("copy", qo, qv, weights=kind == "one-chart")
+    assert want.inside.sum() > 1000
+    np.testing.assert_array_equal(got.values, want.values)
+    np.testing.assert_array_equal(got.inside, want.inside)
+    if kind == "one-chart":
+        np.testing.assert_array_equal(got.ids, want.ids)
+        np.testing.assert_array_equal(got.weights, want.weights)
+
+
+def test_the_export_is_a_plain_npz_and_the_import_survives_a_restart(make_app, tmp_path, rng):
+    tc, a = _started(make_app(data_dir=tmp_path / "a"))
+    a.create_field("f", channels=2, basis=ONE_CHART)
+    _fill(a, "f", rng)
+    r = tc.get("/v1/fields/f/export")
+    assert r.headers["content-type"] == NPZ and "f.flatserve.npz" in r.headers["content-disposition"]
+    with np.load(io.BytesIO(r.content), allow_pickle=False) as z:
+        manifest = json.loads(bytes(z["manifest"]))
+        assert manifest["field"] == "f" and manifest["format"] == 1
+        assert [bt["rows"] for bt in manifest["batches"]] == [400, 300, 200, 150]
+        assert z["values"].shape == (1050, 2) and z["rays_origins"].shape == (700, 3)
+    qo, qv = paper_rays(rng, 500)
+    want = a.query_rays("f", qo, qv)
+    tc.__exit__(None, None, None)
+    tb, b = _started(make_app(data_dir=tmp_path / "b"))
+    b.import_field("f", r.content)
+    tb.__exit__(None, None, None)
+    tb, b = _started(make_app(data_dir=tmp_path / "b"))  # restored from its log
+    try:
+        np.testing.assert_array_equal(b.query_rays("f", qo, qv).values, want.values)
+    finally:
+        tb.__exit__(None, None, None)
+
+
+def test_a_repeated_import_completes_a_failed_one_and_stores_nothing_twice(deployments, rng,
+                                                                           monkeypatch):
+    (_, a), (tb, b) = deployments
+    a.create_field("f", channels=2, basis=ONE_CHART)
+    _fill(a, "f", rng)
+    data = a.export_field("f")
+    uploads = tb.app.state.rooms.uploads
+    real, calls = uploads.upload, []
+
+    def dies_at_the_third(*args, **kw):
+        calls.append(1)
+        if len(calls) == 3:
+            raise OSError("the disk went away")
+        return real(*args, **kw)
+
+    monkeypatch.setattr(uploads, "upload", dies_at_the_third)
+    with pytest.raises(Exception):
+        b.import_field("g", data)
+    assert len(b.batches("g")) == 2
+    monkeypatch.setattr(uploads, "upload", real)
+    rep = b.import_field("g", data)
+    assert rep["replayed_batches"] == 2 and rep["batches"] == 4
+    again = b.import_field("g", data)
+    assert again["replayed_batches"] == 4 and again["accepted"] == 0
+    assert [x["rows"] for x in b.batches("g")] == [400, 300, 200, 150]
+    assert b.describe("g")["nsamples"] == a.describe("f")["nsamples"]
+    # a field of that name with another definition is not overwritten
+    b.create_field("other", channels=2)
+    with pytest.raises(FieldExistsError, match="another definition"):
+        b.import_field("other", data)
+    assert b.batches("other") == []
+
+
+def _npz(**arrays) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def _with_manifest(data: bytes, edit) -> bytes:
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    m = json.loads(bytes(arrays["manifest"]))
+    edit(m, arrays)
+    arrays["manifest"] = np.frombuffer(json.dumps(m).encode(), np.uint8)
+    return _npz(**arrays)
+
+
+def test_a_body_that_is_not_an_export_is_a_4xx_naming_what(deployments, rng):
+    (_, a), (tb, b) = deployments
+    a.create_field("f", channels=2, basis=ONE_CHART)
+    _fill(a, "f", rng)
+    good = a.export_field("f")
+
+    def rows(m, arrays):
+        m["batches"][0]["rows"] += 1
+
+    def spec(m, arrays):
+        m["spec"]["channels"] = 1000
+
+    def fmt(m, arrays):
+        m["format"] = 99
+
+    def values(m, arrays):
+        arrays["values"] = arrays["values"][:, :1]
+
+    cases = {
+        "no manifest": (_npz(values=np.zeros((2, 2))), 422, "not a flatserve export"),
+        "rows": (_with_manifest(good, rows), 422, "rays_origins"),
+        "spec": (_with_manifest(good, spec), 422, "definition cannot be read"),
+        "format": (_with_manifest(good, fmt), 422, "format 99"),
+        "values": (_with_manifest(good, values), 422, "values: expected"),
+        "not a zip": (b"hello, world", 422, "not a valid .npz"),
+        "empty": (b"", 422, "empty body"),
+    }
+    for case, (body, status, words) in cases.items():
+        r = tb.post("/v1/fields/x/import", content=body, headers={"Content-Type": NPZ})
+        assert r.status_code == status and words in r.text, (case, r.status_code, r.text)
+    r = tb.post("/v1/fields/x/import", content=good, headers={"Content-Type": "application/json"})
+    assert r.status_code == 415
+    assert [f["name"] for f in b.list_fields()] == []  # nothing was created
+    with pytest.raises(InvalidInputError):
+        b.import_field("-bad", good)  # not a field name

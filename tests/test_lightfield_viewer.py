@@ -11,19 +11,16 @@ missing (``scripts/install-system-deps.sh --browser`` installs them).
 """
 from __future__ import annotations
 
-import shutil
-import socket
-import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from flatserve.lightfield.mesh import CGAL_DATA_TARBALL
+from tests.harness.browser import CHROMEDRIVER, CHROMIUM, chromium, serving
+from tests.harness.browser import wait_for as _wait_for
+from tests.harness.process import free_port
 
-CHROMEDRIVER = Path("/usr/bin/chromedriver")
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 webdriver = pytest.importorskip("selenium.webdriver")
 
 pytestmark = [
@@ -56,9 +53,7 @@ VIEW_DISTANCE, VIEW_FOCAL, VIEW_SIZE = 3.0, 4.0, 250
 MIN_CHANGE = 0.01
 WAIT_S = 120.0
 
-CHROME_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                "--window-size=900,900"]
+CHROME_FLAGS = ["--disable-quic", "--window-size=900,900"]
 
 # the displayed frame's pixels (grey), read through a canvas in the page
 READ_FRAME_JS = """
@@ -74,58 +69,26 @@ return [c.width, c.height, out];
 """
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    import uvicorn
-
     from flatserve.service.demo import ensure_demo_field
     from flatserve.service import Settings, create_app
 
     port = free_port()
     app = create_app(Settings(data_dir=tmp_path_factory.mktemp("viewer") / "data", snapshot_every=0, port=port))
-    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    th = threading.Thread(target=srv.run, daemon=True)
-    th.start()
-    t0 = time.monotonic()
-    while not srv.started:
-        if time.monotonic() - t0 > WAIT_S or not th.is_alive():
-            raise RuntimeError("uvicorn did not start")
-        time.sleep(0.05)
-    ensure_demo_field(app.state.rooms, samples=DEMO_SAMPLES, batch=5000, progress=False)
-    yield f"http://127.0.0.1:{port}"
-    srv.should_exit = True
-    th.join(timeout=30)
+    with serving(app, port, WAIT_S) as url:
+        ensure_demo_field(app.state.rooms, samples=DEMO_SAMPLES, batch=5000, progress=False)
+        yield url
 
 
 @pytest.fixture
 def browser(tmp_path):
-    from selenium.webdriver.chrome.options import Options
-    from selenium.webdriver.chrome.service import Service
-
-    opts = Options()
-    opts.binary_location = CHROMIUM
-    for flag in CHROME_FLAGS + [f"--user-data-dir={tmp_path / 'chromium-profile'}"]:
-        opts.add_argument(flag)
-    drv = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
-    drv.set_page_load_timeout(WAIT_S)
-    yield drv
-    drv.quit()
+    with chromium(tmp_path / "chromium-profile", CHROME_FLAGS, WAIT_S) as drv:
+        yield drv
 
 
 def wait_for(fn, timeout=WAIT_S, what="condition"):
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        v = fn()
-        if v:
-            return v
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
+    return _wait_for(fn, what, timeout)
 
 
 def frame_pixels(drv) -> np.ndarray:

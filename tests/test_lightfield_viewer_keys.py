@@ -4,10 +4,6 @@ without a key the page asks for one and renders once it is typed; the start-up l
 says how, without a key in it."""
 from __future__ import annotations
 
-import shutil
-import threading
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,72 +11,38 @@ import pytest
 from flatserve.client import Client
 from flatserve.service import Settings, create_app
 from flatserve.service.demo import viewer_key_hint, viewer_url
+from tests.harness.browser import chromium, serving, wait_for
 from tests.harness.process import free_port
 
-CHROMEDRIVER = Path("/usr/bin/chromedriver")
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--window-size=900,900"]
 WRITE_KEY, READ_KEY = "write-key-0123456789", "read-key-0123456789"
 WAIT_S = 60.0
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    import uvicorn
-
     port = free_port()
     app = create_app(Settings(data_dir=tmp_path_factory.mktemp("keys") / "data", port=port,
                               snapshot_every=0, api_key=WRITE_KEY, read_only_key=READ_KEY,
                               host="127.0.0.1"))
-    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    th = threading.Thread(target=srv.run, daemon=True)
-    th.start()
-    t0 = time.monotonic()
-    while not srv.started:
-        if time.monotonic() - t0 > WAIT_S or not th.is_alive():
-            raise RuntimeError("uvicorn did not start")
-        time.sleep(0.05)
-    url = f"http://127.0.0.1:{port}"
-    rng = np.random.default_rng(7)
-    n = 3000
-    eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (n, 3))
-    screen = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
-    with Client(url, api_key=WRITE_KEY) as c:
-        c.create_field("lf", channels=1)
-        c.upload_rays("lf", eyes, screen - eyes, 0.5 + 0.5 * np.sin(3 * screen[:, :1]))
-    yield url
-    srv.should_exit = True
-    th.join(timeout=30)
+    with serving(app, port, WAIT_S) as url:
+        rng = np.random.default_rng(7)
+        n = 3000
+        eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (n, 3))
+        screen = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
+        with Client(url, api_key=WRITE_KEY) as c:
+            c.create_field("lf", channels=1)
+            c.upload_rays("lf", eyes, screen - eyes, 0.5 + 0.5 * np.sin(3 * screen[:, :1]))
+        yield url
 
 
 @pytest.fixture
 def browser(tmp_path):
-    from selenium import webdriver
-    from selenium.webdriver.chrome.options import Options
-    from selenium.webdriver.chrome.service import Service
-
-    assert CHROMEDRIVER.is_file() and CHROMIUM is not None, \
-        "Debian chromium + chromium-driver: bash scripts/install-system-deps.sh --browser"
-    opts = Options()
-    opts.binary_location = CHROMIUM
-    for flag in FLAGS + [f"--user-data-dir={tmp_path / 'profile'}"]:
-        opts.add_argument(flag)
-    drv = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
-    drv.set_page_load_timeout(WAIT_S)
-    yield drv
-    drv.quit()
+    with chromium(tmp_path / "profile", ["--window-size=900,900"], WAIT_S) as drv:
+        yield drv
 
 
 def _wait(fn, what: str):
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < WAIT_S:
-        v = fn()
-        if v:
-            return v
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
+    return wait_for(fn, what, WAIT_S)
 
 
 def _renders(drv) -> int:

@@ -5,9 +5,6 @@ promises documented."""
 from __future__ import annotations
 
 import re
-import shutil
-import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -15,15 +12,12 @@ from fastapi.testclient import TestClient
 
 from flatserve.service import Settings, create_app
 from flatserve.service.docs import ASSETS_URL
+from tests.harness.browser import chromium, serving, wait_for
 from tests.harness.process import free_port
 
 README = Path(__file__).resolve().parents[2] / "README.md"
-CHROMEDRIVER = Path("/usr/bin/chromedriver")
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 #: No network but the server: every other host name fails to resolve.
-OFFLINE_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--window-size=1200,900",
+OFFLINE_FLAGS = ["--window-size=1200,900",
                  "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1"]
 WAIT_S = 60.0
 
@@ -101,50 +95,21 @@ def test_every_status_the_readme_promises_is_documented(make_app):
 
 @pytest.fixture(scope="module")
 def live_server(tmp_path_factory):
-    import uvicorn
-
     port = free_port()
     app = create_app(Settings(data_dir=tmp_path_factory.mktemp("docs") / "data", port=port,
                               snapshot_every=0, access_log=False))
-    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    th = threading.Thread(target=srv.run, daemon=True)
-    th.start()
-    t0 = time.monotonic()
-    while not srv.started:
-        if time.monotonic() - t0 > WAIT_S or not th.is_alive():
-            raise RuntimeError("uvicorn did not start")
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}", app.openapi()
-    srv.should_exit = True
-    th.join(timeout=30)
+    with serving(app, port, WAIT_S) as url:
+        yield url, app.openapi()
 
 
 @pytest.fixture
 def offline_browser(tmp_path):
-    from selenium import webdriver
-    from selenium.webdriver.chrome.options import Options
-    from selenium.webdriver.chrome.service import Service
-
-    assert CHROMEDRIVER.is_file() and CHROMIUM is not None, \
-        "Debian chromium + chromium-driver: bash scripts/install-system-deps.sh --browser"
-    opts = Options()
-    opts.binary_location = CHROMIUM
-    for flag in OFFLINE_FLAGS + [f"--user-data-dir={tmp_path / 'profile'}"]:
-        opts.add_argument(flag)
-    drv = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
-    drv.set_page_load_timeout(WAIT_S)
-    yield drv
-    drv.quit()
+    with chromium(tmp_path / "profile", OFFLINE_FLAGS, WAIT_S) as drv:
+        yield drv
 
 
 def _wait(fn, what: str):
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < WAIT_S:
-        v = fn()
-        if v:
-            return v
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}")
+    return wait_for(fn, what, WAIT_S, 0.2)
 
 
 def test_docs_render_every_operation_without_a_network(live_server, offline_browser):

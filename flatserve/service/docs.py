@@ -4,6 +4,7 @@ are served by this server from the assets the ``fastapi-offline`` package ships
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import fastapi_offline
 from fastapi import APIRouter, FastAPI, Request
@@ -24,22 +25,23 @@ def install(app: FastAPI) -> None:
     app.mount(ASSETS_URL, StaticFiles(directory=ASSETS), name="docs-assets")
     pages = APIRouter(include_in_schema=False)
 
+    def urls(request: Request) -> tuple[str, Callable[[str], str]]:
+        root = request.scope.get("root_path", "")
+        return f"{root}{app.openapi_url}", lambda name: f"{root}{ASSETS_URL}/{name}"
+
     @pages.get("/docs", response_class=HTMLResponse)
     def swagger(request: Request) -> HTMLResponse:
-        root = request.scope.get("root_path", "")
+        spec, asset = urls(request)
         return get_swagger_ui_html(
-            openapi_url=f"{root}{app.openapi_url}", title=f"{app.title} - Swagger UI",
-            swagger_js_url=f"{root}{ASSETS_URL}/swagger-ui-bundle.js",
-            swagger_css_url=f"{root}{ASSETS_URL}/swagger-ui.css",
-            swagger_favicon_url=f"{root}{ASSETS_URL}/favicon.png",
-            swagger_ui_parameters=app.swagger_ui_parameters)
+            openapi_url=spec, title=f"{app.title} - Swagger UI",
+            swagger_js_url=asset("swagger-ui-bundle.js"), swagger_css_url=asset("swagger-ui.css"),
+            swagger_favicon_url=asset("favicon.png"), swagger_ui_parameters=app.swagger_ui_parameters)
 
     @pages.get("/redoc", response_class=HTMLResponse)
     def redoc(request: Request) -> HTMLResponse:
-        root = request.scope.get("root_path", "")
-        return get_redoc_html(
-            openapi_url=f"{root}{app.openapi_url}", title=f"{app.title} - ReDoc",
-            redoc_js_url=f"{root}{ASSETS_URL}/redoc.standalone.js",
-            redoc_favicon_url=f"{root}{ASSETS_URL}/favicon.png", with_google_fonts=False)
+        spec, asset = urls(request)
+        return get_redoc_html(openapi_url=spec, title=f"{app.title} - ReDoc",
+                              redoc_js_url=asset("redoc.standalone.js"),
+                              redoc_favicon_url=asset("favicon.png"), with_google_fonts=False)
 
     app.include_router(pages)

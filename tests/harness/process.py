@@ -95,3 +95,32 @@ class ServerProcess:
 
     def __exit__(self, *exc) -> None:
         self.kill9()
+
+
+def children(pid: int) -> list[int]:
+    """Process ids whose parent is ``pid`` (from ``/proc``)."""
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as fh:
+                    if int(fh.read().rsplit(")", 1)[1].split()[1]) == pid:
+                        out.append(int(d))
+            except (OSError, IndexError, ValueError):
+                pass
+    return out
+
+
+def kill9_and_await_restart(parent: int, child: int, n: int, timeout: float = 30.0) -> list[int]:
+    """kill -9 ``child`` of ``parent`` (a supervisor) and wait until ``parent`` has
+    ``n`` children again, ``child`` not among them; those children."""
+    os.kill(child, signal.SIGKILL)
+    end = time.monotonic() + timeout
+    now = children(parent)
+    while time.monotonic() < end:
+        now = children(parent)
+        if len(now) == n and child not in now:
+            return now
+        time.sleep(0.05)
+    raise AssertionError(f"pid {parent} did not restart its child {child}: children {now}")
+

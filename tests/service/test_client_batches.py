@@ -15,15 +15,11 @@ from flatserve.client import Client
 from flatserve.errors import InvalidInputError
 from flatserve.service.status import FieldExistsError, NotReadyError
 
-from .conftest import ONE_CHART, paper_rays
+from .conftest import ONE_CHART, paper_rays, started
 
 
 def _server(make_app, tmp_path, name, **settings):
-    tc = TestClient(make_app(data_dir=tmp_path / name, **settings))
-    tc.__enter__()
-    c = Client(http=tc)
-    c.wait_ready(30)
-    return tc, c
+    return started(make_app(data_dir=tmp_path / name, **settings))
 
 
 @pytest.fixture

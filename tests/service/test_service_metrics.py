@@ -4,18 +4,14 @@ replica's own work and process carry its ``replica`` label, and there is no
 ``_created`` noise."""
 from __future__ import annotations
 
-import os
-import time
-
 import httpx
 import numpy as np
 from prometheus_client.parser import text_string_to_metric_families
 
 from flatserve.client import Client
-from tests.harness.process import ServerProcess
+from tests.harness.process import ServerProcess, children, kill9_and_await_restart
 
 from .conftest import ONE_CHART, paper_rays
-from .test_service_replicas import _children
 
 
 def _samples(text: str) -> dict[tuple, float]:
@@ -43,7 +39,7 @@ def test_counters_summed_over_replicas_equal_the_requests_sent(tmp_path):
     with ServerProcess(tmp_path / "data", tmp_path / "s.log", processes=2,
                        snapshot_every=0) as srv:
         srv.wait_ready()
-        kids = _children(srv.proc.pid)
+        kids = children(srv.proc.pid)
         assert len(kids) == 2
         with Client(srv.url) as c:
             c.create_field("small", basis=ONE_CHART)
@@ -78,12 +74,7 @@ def test_counters_summed_over_replicas_equal_the_requests_sent(tmp_path):
             assert procs == {str(k) for k in kids}
             answered |= {dict(lbl)["replica"] for (name, lbl) in s if name == "flatserve_fields"}
         # a replica killed and restarted: its counts stay in the sums, its process goes
-        os.kill(kids[0], 9)
-        for _ in range(600):
-            now = _children(srv.proc.pid)
-            if len(now) == 2 and kids[0] not in now:
-                break
-            time.sleep(0.05)
+        kill9_and_await_restart(srv.proc.pid, kids[0], 2)
         with Client(srv.url) as c:
             c.wait_ready(60)
         for _ in range(6):

@@ -21,7 +21,7 @@ from flatserve.service.status import FieldNotFoundError, NotReadyError
 from flatserve.field import Field
 from flatserve.service import specs
 from flatserve.service.blobs import content_hash, pack_arrays
-from tests.harness.process import ServerProcess
+from tests.harness.process import ServerProcess, children, kill9_and_await_restart
 from flatserve.service.storage import DB_NAME, lock_data_dir
 
 from .conftest import (DEFAULT, KINDS, ONE_CHART, add_rays, assert_data_dir_refused, paper_rays,
@@ -262,24 +262,11 @@ def test_kill9_of_the_replica_writing_a_snapshot(group, rng):
     assert "snapshot after batch 5 loaded" in (group.tmp / "a2.log").read_text()
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                with open(f"/proc/{d}/stat") as fh:
-                    if int(fh.read().rsplit(")", 1)[1].split()[1]) == pid:
-                        out.append(int(d))
-            except (OSError, IndexError, ValueError):
-                pass
-    return out
-
-
 def test_processes_2_share_one_port_and_one_data_dir(tmp_path, rng):
     data = tmp_path / "data"
     with ServerProcess(data, tmp_path / "s.log", processes=2, snapshot_every=0) as srv:
         srv.wait_ready()
-        kids = _children(srv.proc.pid)
+        kids = children(srv.proc.pid)
         assert len(kids) == 2
         # an unrelated server on the directory is refused, naming the holder
         assert_data_dir_refused(data, srv.proc.pid)
@@ -300,13 +287,7 @@ def test_processes_2_share_one_port_and_one_data_dir(tmp_path, rng):
             np.testing.assert_array_equal(got.values, query_rays(ref, *probe).values)
         assert seen <= set(kids)
         # a replica killed is restarted by the supervisor and catches up
-        os.kill(kids[0], 9)
-        for _ in range(600):
-            now = _children(srv.proc.pid)
-            if len(now) == 2 and kids[0] not in now:
-                break
-            time.sleep(0.05)
-        assert len(now) == 2 and kids[0] not in now
+        kill9_and_await_restart(srv.proc.pid, kids[0], 2)
         for _ in range(20):
             with Client(srv.url) as c:
                 c.wait_ready(60)

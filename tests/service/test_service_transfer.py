@@ -9,30 +9,20 @@ import json
 
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
 
-from flatserve.client import Client
 from flatserve.errors import InvalidInputError
 from flatserve.flats import Flats, to_parametric
 from flatserve.service.status import FieldExistsError
 
-from .conftest import ONE_CHART, paper_rays
+from .conftest import ONE_CHART, paper_rays, started
 
 NPZ = "application/x-npz"
-
-
-def _started(app):
-    tc = TestClient(app)
-    tc.__enter__()
-    c = Client(http=tc)
-    c.wait_ready(30)
-    return tc, c
 
 
 @pytest.fixture
 def deployments(make_app, tmp_path):
     """Two servers on their own data directories: ``(source, target)`` as (tc, client)."""
-    made = [_started(make_app(data_dir=tmp_path / n)) for n in ("source", "target")]
+    made = [started(make_app(data_dir=tmp_path / n)) for n in ("source", "target")]
     yield made
     for tc, _ in made:
         tc.__exit__(None, None, None)
@@ -92,7 +82,7 @@ def test_an_imported_field_answers_bit_for_bit(deployments, rng, kind):
 
 
 def test_the_export_is_a_plain_npz_and_the_import_survives_a_restart(make_app, tmp_path, rng):
-    tc, a = _started(make_app(data_dir=tmp_path / "a"))
+    tc, a = started(make_app(data_dir=tmp_path / "a"))
     a.create_field("f", channels=2, basis=ONE_CHART)
     _fill(a, "f", rng)
     r = tc.get("/v1/fields/f/export")
@@ -105,10 +95,10 @@ def test_the_export_is_a_plain_npz_and_the_import_survives_a_restart(make_app, t
     qo, qv = paper_rays(rng, 500)
     want = a.query_rays("f", qo, qv)
     tc.__exit__(None, None, None)
-    tb, b = _started(make_app(data_dir=tmp_path / "b"))
+    tb, b = started(make_app(data_dir=tmp_path / "b"))
     b.import_field("f", r.content)
     tb.__exit__(None, None, None)
-    tb, b = _started(make_app(data_dir=tmp_path / "b"))  # restored from its log
+    tb, b = started(make_app(data_dir=tmp_path / "b"))  # restored from its log
     try:
         np.testing.assert_array_equal(b.query_rays("f", qo, qv).values, want.values)
     finally:

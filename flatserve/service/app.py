@@ -11,6 +11,7 @@ from .. import __version__
 from .status import BodyTooLargeError
 from . import errors
 from .fastpath import FastQueryMiddleware
+from .guard import RequestGuardMiddleware
 from .metrics import Metrics, MetricsMiddleware
 from .rooms import Rooms
 from .routes import api, health
@@ -107,6 +108,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(FastQueryMiddleware, fastapi_app=app)  # innermost: metrics see it
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    app.add_middleware(RequestGuardMiddleware, settings=settings)  # outermost
     return app
 
 

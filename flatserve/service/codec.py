@@ -56,9 +56,19 @@ def media_type(content_type: str | None) -> str:
     return (content_type or "").split(";", 1)[0].strip().lower()
 
 
-def body_kind(content_type: str | None) -> str:
+def is_json(content_type: str | None) -> bool:
+    """The Content-Type is JSON (``application/json`` or a ``+json`` type)."""
     mt = media_type(content_type)
-    if mt in (JSON, "") or mt.endswith("+json"):
+    return mt == JSON or (mt.startswith("application/") and mt.endswith("+json"))
+
+
+def body_kind(content_type: str | None) -> str:
+    """``json``, ``npy`` or ``npz`` for a batch body's Content-Type; 415 for any other
+    type and for none (a page of another site can post a body without one)."""
+    mt = media_type(content_type)
+    if not mt:
+        raise ApiError(415, f"a body needs a Content-Type: {JSON}, {NPY} or {NPZ}")
+    if is_json(content_type):
         return "json"
     if mt in (NPY, "application/octet-stream"):
         return "npy"

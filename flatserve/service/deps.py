@@ -18,7 +18,7 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from .codec import check_json_size
+from .codec import JSON, check_json_size, is_json, media_type
 from .errors import ApiError
 from .catalogue import FieldCatalogue
 from .entry import FieldEntry
@@ -101,7 +101,12 @@ def json_body(model: type[BaseModel]):
     """``Annotated[model, ...]``: the request body validated as ``model`` in the
     thread pool (a plain ``def`` dependency), never on the event loop, with
     FastAPI's 422 format; pair it with :func:`json_body_doc` on the route."""
-    def parse(body: BodyDep, settings: SettingsDep) -> BaseModel:
+    def parse(request: Request, body: BodyDep, settings: SettingsDep) -> BaseModel:
+        ctype = request.headers.get("content-type")
+        if not is_json(ctype):
+            raise ApiError(415, f"unsupported Content-Type {media_type(ctype)!r}: this route "
+                                f"takes {JSON}" if ctype else f"a body needs a Content-Type: "
+                                f"this route takes {JSON}")
         check_json_size(body, settings.max_json_bytes)
         try:
             return model.model_validate_json(body)
@@ -120,6 +125,19 @@ def json_body_doc(model: type[BaseModel]) -> dict:
         "schema": {"$ref": f"#/components/schemas/{model.__name__}"}}}},
         "responses": {"422": {"description": "Validation Error", "content": {"application/json": {
             "schema": {"$ref": "#/components/schemas/HTTPValidationError"}}}}}}
+
+
+async def no_body(request: Request) -> None:
+    """A route that takes no body refuses one (415), and any Content-Type: a form
+    another site's page posts here is refused whatever its fields."""
+    h = request.headers
+    if "content-type" in h or h.get("content-length", "0") not in ("", "0") \
+            or "transfer-encoding" in h:
+        raise ApiError(415, "this route takes no body (and no Content-Type)")
+
+
+#: the dependency of every route without a request body
+NoBody = Depends(no_body)
 
 
 def presented_key(headers) -> Optional[str]:

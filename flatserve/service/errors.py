@@ -40,9 +40,17 @@ class ErrorBody(BaseModel):
 
 
 # Documented on every route (OpenAPI); 422 is FastAPI's HTTPValidationError.
+#: what flatserve.service.guard refuses on every route (forged cross-site requests)
+GUARD_RESPONSES: dict[int | str, dict] = {
+    400: {"model": ErrorBody, "description": "A header that must be sent once is repeated."},
+    403: {"model": ErrorBody, "description": "A cross-origin request from an origin not "
+                                             "allowed (or the read-only key for a write)."},
+    415: {"model": ErrorBody, "description": "A Content-Type this route does not take."},
+    421: {"model": ErrorBody, "description": "A Host this server does not serve."},
+}
 COMMON_RESPONSES: dict[int | str, dict] = {
+    **GUARD_RESPONSES,
     401: {"model": ErrorBody, "description": "Missing or wrong API key."},
-    403: {"model": ErrorBody, "description": "The read-only key cannot write."},
     413: {"model": ErrorBody, "description": "Body or batch too large."},
     503: {"model": ErrorBody, "description": "Stored fields are still loading, or storage failed."},
 }
@@ -53,7 +61,6 @@ FIELD_RESPONSES: dict[int | str, dict] = {
 BODY_RESPONSES: dict[int | str, dict] = {
     **FIELD_RESPONSES,
     409: {"model": ErrorBody, "description": "Conflict (existing name, field limit)."},
-    415: {"model": ErrorBody, "description": "Unsupported Content-Type."},
 }
 
 

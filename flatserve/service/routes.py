@@ -17,9 +17,9 @@ from ..options import Form
 from . import codec, specs
 from .catalogue import FieldState
 from .deps import (AnyField, BodyDep, CatalogueDep, FieldNamePath, FieldsDep, FollowerDep,
-                   QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, UploadsDep,
+                   NoBody, QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, UploadsDep,
                    WriteAccess, json_body, json_body_doc)
-from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES
+from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, GUARD_RESPONSES
 from .query import QueryParams, answer, server_timing
 from .responses import model_body
 from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
@@ -82,13 +82,13 @@ def create_field(spec: json_body(FieldCreate), fields: FieldsDep, follower: Foll
     return fields.describe(e)
 
 
-@api.get("/fields", response_model=FieldList, response_model_exclude_unset=True, tags=["fields"], dependencies=[ReadAccess],
+@api.get("/fields", response_model=FieldList, response_model_exclude_unset=True, tags=["fields"], dependencies=[ReadAccess, NoBody],
          responses=COMMON_RESPONSES, summary="List fields")
 def list_fields(fields: FieldsDep) -> FieldList:
     return FieldList(fields=fields.summaries())
 
 
-@api.get("/fields/{name}", response_model=FieldInfo, response_model_exclude_unset=True, tags=["fields"], dependencies=[ReadAccess],
+@api.get("/fields/{name}", response_model=FieldInfo, response_model_exclude_unset=True, tags=["fields"], dependencies=[ReadAccess, NoBody],
          responses=FIELD_RESPONSES, summary="Describe a field")
 async def describe_field(name: FieldNamePath, fields: FieldsDep, queries: QueriesDep,
                          catalogue: CatalogueDep,
@@ -98,7 +98,7 @@ async def describe_field(name: FieldNamePath, fields: FieldsDep, queries: Querie
     return await anyio.to_thread.run_sync(fields.describe, e)
 
 
-@api.delete("/fields/{name}", status_code=204, tags=["fields"], dependencies=[WriteAccess],
+@api.delete("/fields/{name}", status_code=204, tags=["fields"], dependencies=[WriteAccess, NoBody],
             responses=FIELD_RESPONSES, summary="Delete a field and its stored batches")
 def delete_field(name: FieldNamePath, fields: FieldsDep) -> Response:
     pos = fields.delete(name)
@@ -106,13 +106,13 @@ def delete_field(name: FieldNamePath, fields: FieldsDep) -> Response:
 
 
 @api.get("/fields/{name}/batches", response_model=BatchList, response_model_exclude_unset=True, tags=["fields"],
-         dependencies=[ReadAccess], responses=FIELD_RESPONSES, summary="List stored batches")
+         dependencies=[ReadAccess, NoBody], responses=FIELD_RESPONSES, summary="List stored batches")
 def list_batches(e: AnyField, uploads: UploadsDep) -> BatchList:
     return BatchList(batches=uploads.batches(e))
 
 
 @api.post("/fields/{name}/snapshot", response_model=SnapshotResult, response_model_exclude_unset=True, tags=["fields"],
-          dependencies=[WriteAccess], responses=FIELD_RESPONSES, summary="Write a snapshot now")
+          dependencies=[WriteAccess, NoBody], responses=FIELD_RESPONSES, summary="Write a snapshot now")
 def snapshot_field(e: ReadyField, snapshots: SnapshotsDep) -> SnapshotResult:
     return snapshots.snapshot(e)
 
@@ -214,7 +214,8 @@ def math_project(req: json_body(ProjectRequest), settings: SettingsDep) -> Respo
 
 
 # -- health and metrics -------------------------------------------------------------
-@health.get("/healthz", response_model=Health, response_model_exclude_unset=True, tags=["health"], summary="Liveness")
+@health.get("/healthz", response_model=Health, response_model_exclude_unset=True, tags=["health"],
+            dependencies=[NoBody], responses=GUARD_RESPONSES, summary="Liveness")
 def healthz() -> Health:
     return Health(status="ok")
 
@@ -226,7 +227,9 @@ def healthz() -> Health:
                         "does not make the replica unready (every replica would fail it "
                         "alike): it is listed in `failed_fields` (its requests get 503 "
                         "naming the error).",
-            responses={503: {"model": Health, "description": "Stored fields still loading."}})
+            dependencies=[NoBody],
+            responses={**GUARD_RESPONSES,
+                       503: {"model": Health, "description": "Stored fields still loading."}})
 def readyz(catalogue: CatalogueDep, follower: FollowerDep) -> Response:
     states = catalogue.counts()
     loading, failed = states[FieldState.LOADING], states[FieldState.FAILED]
@@ -243,8 +246,8 @@ def readyz(catalogue: CatalogueDep, follower: FollowerDep) -> Response:
 
 
 @health.get("/metrics", tags=["health"], summary="Prometheus metrics",
-            response_class=Response, dependencies=[ReadAccess],
-            responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}},
+            response_class=Response, dependencies=[ReadAccess, NoBody],
+            responses={**COMMON_RESPONSES, 200: {"content": {"text/plain": {"schema": {"type": "string"}}},
                              "description": "Prometheus text format."}})
 def metrics(request: Request) -> Response:
     from .metrics import CONTENT_TYPE

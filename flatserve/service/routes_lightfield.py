@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from ..errors import InvalidInputError
 from .status import BatchTooLargeError
 from . import codec
-from .deps import FieldNamePath, ReadAccess, ReadyField, SettingsDep, json_body, json_body_doc
+from .deps import FieldNamePath, NoBody, ReadAccess, ReadyField, SettingsDep, json_body, json_body_doc
 from .errors import COMMON_RESPONSES, FIELD_RESPONSES
 from .query import server_timing
 
@@ -156,13 +156,13 @@ def render(e: ReadyField, camera: json_body(CameraSpec), settings: SettingsDep,
         "X-Render-Seconds": f"{total:.6f}", "Cache-Control": "no-store"})
 
 
-@viewer.get("/viewer/assets/{file}")
+@viewer.get("/viewer/assets/{file}", dependencies=[NoBody])
 def viewer_asset(file: Literal["viewer.js", "viewer.css"]) -> FileResponse:
     media = "text/javascript" if file.endswith(".js") else "text/css"
     return FileResponse(STATIC / file, media_type=media, headers={"Cache-Control": "no-cache"})
 
 
-@viewer.get("/viewer/{name}", response_class=HTMLResponse)
+@viewer.get("/viewer/{name}", response_class=HTMLResponse, dependencies=[NoBody])
 def viewer_page(name: FieldNamePath) -> HTMLResponse:
     # static page: the field name is read from the URL by viewer.js
     return HTMLResponse((STATIC / "viewer.html").read_text(encoding="utf-8"),

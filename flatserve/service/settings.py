@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import ipaddress
 from pathlib import Path
+from typing import Annotated
 
 from pydantic import Field, SecretStr, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 #: Field names: a letter or digit, then up to 63 letters, digits, ``_ . -``.
 #: No ``/``, no leading dot: a name can never become a path.
@@ -46,6 +47,19 @@ class Settings(BaseSettings):
     )
     api_key: SecretStr | None = Field(None, description="Read-write API key.")
     read_only_key: SecretStr | None = Field(None, description="Read-only API key (queries, GETs).")
+    allowed_hosts: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="Host header values accepted (names or addresses, without the port; "
+                    "comma-separated; '*' any), others get 421: a page of another site that "
+                    "makes its name resolve to this server (DNS rebinding) is refused. Empty "
+                    "(the default): the bound address and the localhost names (localhost, "
+                    "127.0.0.1, ::1); any when bound to a wildcard address (0.0.0.0, ::), "
+                    "which needs api_key. Set it to the names clients use behind a proxy.")
+    cors_origins: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="Origins (scheme://host[:port], comma-separated; '*' any) whose web pages "
+                    "may call this server from a browser (CORS). Empty (the default): no CORS, "
+                    "and requests whose Origin header names another origin are refused (403).")
     max_body_bytes: int = Field(512 * MiB, ge=1, description="Largest accepted request body (413).")
     max_json_bytes: int = Field(
         16 * MiB, ge=1,
@@ -144,6 +158,22 @@ class Settings(BaseSettings):
     @classmethod
     def _empty_is_unset(cls, v):
         return None if v is None or (isinstance(v, str) and not v.strip()) else v
+
+    @field_validator("allowed_hosts", "cors_origins", mode="before")
+    @classmethod
+    def _comma_list(cls, v):
+        if isinstance(v, str):
+            v = v.split(",")
+        return [x.strip() for x in v if x and x.strip()] if v is not None else []
+
+    @field_validator("cors_origins")
+    @classmethod
+    def _origins(cls, v: list[str]) -> list[str]:
+        for o in v:
+            if o != "*" and (not o.startswith(("http://", "https://")) or o.count("/") != 2):
+                raise ValueError(f"cors_origins: {o!r} is not an origin: "
+                                 "scheme://host[:port], no path (or '*')")
+        return [o.lower() for o in v]
 
     @model_validator(mode="after")
     def _keys(self) -> "Settings":

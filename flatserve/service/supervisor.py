@@ -48,6 +48,8 @@ def settings_env(settings: Settings) -> dict[str, str]:
             v = v.get_secret_value()
         elif isinstance(v, bool):
             v = "true" if v else "false"
+        elif isinstance(v, list):  # allowed_hosts, cors_origins: comma-separated
+            v = ",".join(v)
         env[f"FLATSERVE_{name.upper()}"] = str(v)
     return env
 

@@ -29,8 +29,9 @@ CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,
 schemathesis.serializer.alias(["application/x-npy", "application/x-npz"], "application/octet-stream")
 
 _DATA = tempfile.mkdtemp(prefix="flatserve-schema-")
+# schemathesis' ASGI client sends Host: testserver
 app = create_app(Settings(data_dir=_DATA, snapshot_every=0, max_batch_rows=2000,
-                          max_body_bytes=1 << 20, max_fields=8))
+                          max_body_bytes=1 << 20, max_fields=8, allowed_hosts="testserver"))
 schema = schemathesis.openapi.from_asgi("/openapi.json", app)
 
 

@@ -104,6 +104,10 @@ class FieldEntry:
     #: last batch inserted into the triangulation, and its log position
     indexed_seq: int = 0
     indexed_position: int = 0
+    #: ``(nstored, nsimplex)`` of the field when it last held every batch up to
+    #: ``indexed_seq`` whole (:meth:`mark_indexed`): the cost guard's measure, never
+    #: taken from a triangulation with a batch half inserted
+    complete_size: tuple[int, int] = (0, 0)
     snapshot_position: int = 0
     #: samples inserted since the last snapshot
     new_samples: int = 0
@@ -128,6 +132,13 @@ class FieldEntry:
 
     def mark_failed(self, why: str) -> None:
         self.state, self.error = FieldState.FAILED, why
+
+    def mark_indexed(self, seq: int, position: int) -> None:
+        """The field holds every batch up to ``seq`` (at log ``position``) whole: record
+        them and the field's size then (``complete_size``). Called by the field's one
+        writer, under ``index_lock`` (or before the field is published)."""
+        self.indexed_seq, self.indexed_position = seq, position
+        self.complete_size = (int(self.field.nstored), int(self.field.nsimplex))
 
     # -- batches committed, not yet applied here -----------------------------------------
     def add_pending(self, position: int, samples: int, *, keep: bool = False) -> None:

@@ -18,6 +18,7 @@ __all__ = [
     "StorageError", "FieldNotFoundError", "FieldExistsError", "LimitExceededError",
     "StorageFullError", "StorageUnavailableError", "DataDirInUseError", "TooManyFieldsError",
     "BatchTooLargeError", "BodyTooLargeError", "BacklogFullError", "CostLimitError",
+    "CostPendingError",
     "NotReadyError", "ReplicaBehindError", "IdempotencyConflictError", "HTTP_STATUS",
     "status_of", "error_class",
 ]
@@ -71,6 +72,11 @@ class BacklogFullError(LimitExceededError):
 
 class CostLimitError(LimitExceededError):
     """An upload would make a field's triangulation larger than allowed."""
+
+
+class CostPendingError(BacklogFullError):
+    """An upload would pass the cell limit only counting the samples acknowledged and
+    not yet indexed: it may pass once they are (429, ``Retry-After``)."""
 
 
 class NotReadyError(FlatserveError):

@@ -527,3 +527,27 @@ def test_a_child_whose_supervisor_died_before_its_death_signal_was_set_exits():
     out = subprocess.run([sys.executable, "-c", code, str(os.getpid() + 10**6)],
                          capture_output=True, text=True, timeout=60)
     assert out.stdout.split() == ["alive"] and out.returncode == 1, out
+
+
+def test_children_import_the_supervisors_installation_from_any_directory(tmp_path, rng):
+    """``flatserve serve --processes 2`` started in a directory holding another
+    ``flatserve`` package (a source checkout without the built extension): the
+    children import the installation the supervisor runs, not that directory's
+    (which ``python -m`` would put first on ``sys.path``), and serve."""
+    checkout = tmp_path / "checkout"
+    (checkout / "flatserve" / "service").mkdir(parents=True)
+    for init in (checkout / "flatserve" / "__init__.py",
+                 checkout / "flatserve" / "service" / "__init__.py"):
+        init.write_text("raise ImportError('a source tree without its built extension')\n")
+    script = os.path.join(os.path.dirname(sys.executable), "flatserve")
+    assert os.path.exists(script)  # the installed console script (sys.path[0]: its bin/)
+    with ServerProcess(tmp_path / "data", tmp_path / "s.log", command=[script, "serve"],
+                       cwd=checkout, processes=2, snapshot_every=0) as srv:
+        srv.wait_ready(timeout=120)
+        assert len(_children(srv.proc.pid)) == 2
+        with Client(srv.url) as c:
+            c.create_field("f", channels=1)
+            o, v = paper_rays(rng, 200)
+            rep = c.upload_rays("f", o, v, rng.uniform(size=200))
+            assert rep["accepted"] == 200
+    assert "source tree without" not in (tmp_path / "s.log").read_text()

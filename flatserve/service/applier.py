@@ -193,7 +193,6 @@ class LogApplier:
                     res = e.field.insert_prepared(prepared,
                                                   slice_rows=self.settings.insert_slice_rows)
                     e.mark_indexed(entry.seq, entry.position)
-                    e.drop_pending(entry.position)  # with the size it is counted in
                     e.new_samples += res.accepted
             except Exception as exc:
                 # memory may hold part of the batch: rebuild the field from storage up

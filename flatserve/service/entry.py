@@ -135,10 +135,20 @@ class FieldEntry:
 
     def mark_indexed(self, seq: int, position: int) -> None:
         """The field holds every batch up to ``seq`` (at log ``position``) whole: record
-        them and the field's size then (``complete_size``). Called by the field's one
-        writer, under ``index_lock`` (or before the field is published)."""
-        self.indexed_seq, self.indexed_position = seq, position
-        self.complete_size = (int(self.field.nstored), int(self.field.nsimplex))
+        them, the field's size then (``complete_size``), and that the batch at
+        ``position`` is no longer pending, at once (:meth:`indexed_counts` sees all or
+        none of it). Called by the field's one writer, under ``index_lock`` (or
+        before the field is published)."""
+        size = (int(self.field.nstored), int(self.field.nsimplex))
+        with self.pending_lock:
+            self.indexed_seq, self.indexed_position = seq, position
+            self.complete_size = size
+            self.pending.pop(position, None)
+
+    def indexed_counts(self) -> tuple[int, int, int]:
+        """``(indexed_seq, pending batches, their samples)``, read together."""
+        with self.pending_lock:
+            return self.indexed_seq, len(self.pending), sum(self.pending.values())
 
     # -- batches committed, not yet applied here -----------------------------------------
     def add_pending(self, position: int, samples: int, *, keep: bool = False) -> None:

@@ -75,6 +75,11 @@ def status_of(exc: BaseException) -> int:
 
 
 def _message(exc: BaseException) -> str:
+    """What a client is told: an error's ``public`` text if it has one (storage
+    failures: their full text, for the log, names the database's host and files)."""
+    public = getattr(exc, "public", None)
+    if public:
+        return public
     if isinstance(exc, KeyError) and exc.args:
         return str(exc.args[0])
     return str(exc) or type(exc).__name__

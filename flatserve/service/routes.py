@@ -18,8 +18,8 @@ from . import codec, specs
 from .catalogue import FieldState
 from .deps import (AnyField, BodyDep, CatalogueDep, FieldNamePath, FieldsDep, FollowerDep,
                    NoBody, QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, UploadsDep,
-                   WriteAccess, json_body, json_body_doc)
-from .errors import BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, GUARD_RESPONSES
+                   WriteAccess, authorize, json_body, json_body_doc, presented_key)
+from .errors import ApiError, BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, GUARD_RESPONSES
 from .query import QueryParams, answer, server_timing
 from .responses import model_body
 from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
@@ -226,11 +226,20 @@ def healthz() -> Health:
                         "field that failed (its restore, or a log entry it cannot apply) "
                         "does not make the replica unready (every replica would fail it "
                         "alike): it is listed in `failed_fields` (its requests get 503 "
-                        "naming the error).",
+                        "naming the error). Without a key (when keys are on) the answer is "
+                        "the status alone; the details (fields loading and failed, the log "
+                        "position, the pid, the backend, the storage error) need the read "
+                        "key.",
             dependencies=[NoBody],
             responses={**GUARD_RESPONSES,
                        503: {"model": Health, "description": "Stored fields still loading."}})
-def readyz(catalogue: CatalogueDep, follower: FollowerDep) -> Response:
+def readyz(request: Request, catalogue: CatalogueDep, follower: FollowerDep,
+           settings: SettingsDep) -> Response:
+    try:
+        authorize(settings, presented_key(request.scope["headers"]), write=False)
+        details = True
+    except ApiError:  # a missing or wrong key: the status only
+        details = False
     states = catalogue.counts()
     loading, failed = states[FieldState.LOADING], states[FieldState.FAILED]
     body = {"fields": sum(map(len, states.values())), "loading": len(loading),
@@ -239,10 +248,11 @@ def readyz(catalogue: CatalogueDep, follower: FollowerDep) -> Response:
     try:
         body.update(follower.progress())
     except Exception as exc:  # the database is unreachable: not ready
-        return model_body(Health, 503, status="storage unavailable", error=str(exc), **body)
-    if not catalogue.ready.is_set():
-        return model_body(Health, 503, status="loading", **body)
-    return model_body(Health, status="ready", **body)
+        body["error"] = str(exc)
+        status, code = "storage unavailable", 503
+    else:
+        status, code = ("ready", 200) if catalogue.ready.is_set() else ("loading", 503)
+    return model_body(Health, code, status=status, **(body if details else {}))
 
 
 @health.get("/metrics", tags=["health"], summary="Prometheus metrics",

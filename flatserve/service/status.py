@@ -25,7 +25,12 @@ __all__ = [
 
 
 class StorageError(FlatserveError):
-    """Durable storage failed (disk, database)."""
+    """Durable storage failed (disk, database).
+
+    ``public``, when set, is what a client is told instead of the text (which may
+    name the database's host, user, files)."""
+
+    public: str | None = None
 
 
 class FieldNotFoundError(FlatserveError, KeyError):

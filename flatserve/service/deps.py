@@ -140,16 +140,33 @@ async def no_body(request: Request) -> None:
 NoBody = Depends(no_body)
 
 
-def presented_key(headers) -> Optional[str]:
-    """The API key of a request (raw ASGI headers): header ``api-key``, else
-    ``Authorization: Bearer``; None when neither. Repeated headers are refused
-    (400): they would be judged differently by different proxies."""
+def single_headers(headers, names: tuple[bytes, ...]) -> dict[bytes, bytes]:
+    """The headers ``names`` (lower case) of raw ASGI ``headers``, each at most once:
+    a repeated one is refused (400), since proxies and frameworks disagree on which
+    copy counts (the first, the last, both joined)."""
     found: dict[bytes, bytes] = {}
     for k, v in headers:
-        if k in (b"api-key", b"authorization"):
+        if k in names:
             if k in found:
                 raise ApiError(400, f"the {k.decode()} header is repeated; send it once")
             found[k] = v
+    return found
+
+
+async def once_idempotency_key(request: Request) -> None:
+    """400 for a repeated ``Idempotency-Key`` header (see :func:`single_headers`)."""
+    single_headers(request.scope["headers"], (b"idempotency-key",))
+
+
+#: the dependency of a route that takes an ``Idempotency-Key``
+OnceIdempotencyKey = Depends(once_idempotency_key)
+
+
+def presented_key(headers) -> Optional[str]:
+    """The API key of a request (raw ASGI headers): header ``api-key``, else
+    ``Authorization: Bearer``; None when neither. Repeated headers are refused
+    (400, :func:`single_headers`)."""
+    found = single_headers(headers, (b"api-key", b"authorization"))
     key = found.get(b"api-key")
     if key:
         return key.decode("latin-1")

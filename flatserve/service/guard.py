@@ -12,7 +12,10 @@ stop them. :class:`RequestGuardMiddleware`, outermost, refuses:
   ``cors_origins``: 403 (browsers send ``Origin`` on every cross-origin request
   but simple GETs, and on every POST);
 * the three body types a page can send without a CORS preflight
-  (:data:`SIMPLE_BODY_TYPES`, which no route takes): 415.
+  (:data:`SIMPLE_BODY_TYPES`, which no route takes): 415;
+* a path with a control character (``%0A``...): 404, for every route alike
+  (Python's ``$``, in Starlette's route patterns too, matches before a final
+  newline: ``/v1/fields/f/query%0A`` would be the query route).
 
 With ``cors_origins`` set, Starlette's ``CORSMiddleware`` (inside the guard)
 answers preflights and adds the CORS headers for those origins; without it the
@@ -22,6 +25,8 @@ Each route's own Content-Type check (415 for any type it does not take) is in
 :func:`.deps.json_body`, :func:`.codec.body_kind` and :data:`.deps.NoBody`.
 """
 from __future__ import annotations
+
+import re
 
 from . import errors
 from .codec import media_type
@@ -35,6 +40,8 @@ SIMPLE_BODY_TYPES = frozenset({"text/plain", "multipart/form-data",
 LOCAL_HOSTS = ("localhost", "127.0.0.1", "::1")
 #: addresses that bind every interface: no Host can be known in advance
 WILDCARD_HOSTS = ("0.0.0.0", "::", "")
+#: control characters, which no path of the service has
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 #: headers of the service a browser page may read with CORS on
 EXPOSED_HEADERS = ["Flatserve-Position", "Server-Timing", "Retry-After", "X-Coverage",
                    "X-Render-Seconds"]
@@ -103,6 +110,8 @@ class RequestGuardMiddleware:
     async def __call__(self, scope, receive, send):
         if scope["type"] == "http":
             exc = self.refusal(scope["headers"])
+            if exc is None and _CONTROL.search(scope["path"]):
+                exc = ApiError(404, "Not Found")
             if exc is not None:
                 return await errors.error_response(exc)(scope, receive, send)
         return await self.app(scope, receive, send)

@@ -17,7 +17,7 @@ from ..options import Form
 from . import codec, specs
 from .catalogue import FieldState
 from .deps import (AnyField, BodyDep, CatalogueDep, FieldNamePath, FieldsDep, FollowerDep,
-                   NoBody, QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, UploadsDep,
+                   NoBody, OnceIdempotencyKey, QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, UploadsDep,
                    WriteAccess, authorize, json_body, json_body_doc, presented_key)
 from .errors import ApiError, BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, GUARD_RESPONSES
 from .query import QueryParams, answer, server_timing
@@ -120,7 +120,8 @@ def snapshot_field(e: ReadyField, snapshots: SnapshotsDep) -> SnapshotResult:
 # -- samples and queries --------------------------------------------------------
 @api.post(
     "/fields/{name}/samples", response_model=UploadResult, response_model_exclude_unset=True, tags=["samples"],
-    dependencies=[WriteAccess], responses=BODY_RESPONSES, openapi_extra=_body_doc(UploadBody),
+    dependencies=[WriteAccess, OnceIdempotencyKey], responses=BODY_RESPONSES,
+    openapi_extra=_body_doc(UploadBody),
     summary="Upload a batch of samples",
     description="Stores the batch durably (acknowledged only after its commit to the "
                 "shared log; the response's `position` is its log position, for reads with "
@@ -134,7 +135,7 @@ def snapshot_field(e: ReadyField, snapshots: SnapshotsDep) -> SnapshotResult:
                 "`pending_samples` tell when it is wholly visible; a later "
                 "`wait=true` upload or a query with `wait=true` waits for it). "
                 + _LAYOUT + " With `Idempotency-Key`, a retried batch is stored once; the same "
-                "key with different content is a 422.",
+                "key with different content is a 422, the header sent twice a 400.",
 )
 def upload_samples(
     e: ReadyField, uploads: UploadsDep, settings: SettingsDep, body: BodyDep,

@@ -55,3 +55,132 @@ def test_storage_failures_tell_clients_neither_where_nor_the_database_message():
         text = resp.body.decode()
         for secret in ("db.internal", "flatserve_owner", "16384", "16402", "5432"):
             assert secret not in text, (kind, text)
+
+
+@pytest.mark.parametrize("suffix", ["%0A", "%0D", "%00", "%0A%0A"])
+def test_paths_with_control_characters_are_404(api, rng, suffix):
+    """``/v1/fields/f/query%0A`` is no route (Python's ``$`` matches before a final
+    newline, in the lean path's pattern and in Starlette's): 404, like
+    ``/v1/fields/f/samples%0A``."""
+    tc, c = api
+    c.create_field("f", channels=1)
+    o, v = paper_rays(rng, 3)
+    body = {"origins": o.tolist(), "directions": v.tolist()}
+    assert tc.post("/v1/fields/f/query", json=body).status_code == 200
+    for path in ("/v1/fields/f/query", "/v1/fields/f/samples", "/v1/fields/f", "/healthz"):
+        r = tc.post(path + suffix, json=body)
+        assert r.status_code == 404, (path, r.status_code, r.text)
+
+
+def test_lean_path_pattern_matches_whole_paths():
+    from flatserve.service.fastpath import _PATH
+
+    assert _PATH.fullmatch("/v1/fields/abc/query")
+    assert not _PATH.fullmatch("/v1/fields/abc/query\n")
+
+
+def test_repeated_idempotency_key_is_400(api, rng):
+    """A repeated ``Idempotency-Key`` is refused as a repeated ``api-key`` is: proxies
+    disagree on which copy counts. Nothing is stored."""
+    tc, c = api
+    c.create_field("f", channels=1)
+    o, v = paper_rays(rng, 5)
+    body = {"origins": o.tolist(), "directions": v.tolist(), "values": np.ones((5, 1)).tolist()}
+    r = tc.post("/v1/fields/f/samples", json=body,
+                headers=[("idempotency-key", "a"), ("idempotency-key", "b")])
+    assert r.status_code == 400 and "idempotency-key header is repeated" in r.text, r.text
+    assert c.describe("f")["storage"]["batches"] == 0
+    r = tc.post("/v1/fields/f/samples", json=body, headers={"idempotency-key": "a"})
+    assert r.status_code == 200
+
+
+def test_a_killed_unreaped_lease_owner_is_dead():
+    """kill -9 of the replica writing a snapshot leaves a zombie until its supervisor
+    reaps it; ``kill(pid, 0)`` succeeds on a zombie, yet its lease is taken over."""
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    from flatserve.service.datadir import owner_dead
+
+    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    owner = f"{socket.gethostname()}:{p.pid}:abcd1234"
+    try:
+        assert not owner_dead(owner)
+        os.kill(p.pid, signal.SIGKILL)
+        end = time.monotonic() + 10
+        while time.monotonic() < end:  # until the kernel has made it a zombie
+            with open(f"/proc/{p.pid}/stat", "rb") as fh:
+                if fh.read().rpartition(b")")[2].split()[0] == b"Z":
+                    break
+            time.sleep(0.01)
+        os.kill(p.pid, 0)  # still "exists": a zombie, not reaped
+        assert owner_dead(owner)
+    finally:
+        p.kill()
+        p.wait()
+    assert owner_dead(owner)
+    assert not owner_dead(f"{socket.gethostname()}:{os.getpid()}:x")
+
+
+def test_entries_near_the_float64_limit_are_refused_at_the_boundary(api):
+    """Flats with entries near the float64 limit overflow in their products (LAPACK
+    then fails on the whole batch: "Eigenvalues did not converge", "SVD did not
+    converge"); they are refused when the flats are validated, naming the array."""
+    tc, c = api
+    big = 1.7e308
+    body = {"k": 0, "d": 2, "flats": {"Q": [[[big, big], [big, big]], [[-big, -big], [-big, -big]]],
+                                      "r": [[0, 0], [0, 0]]},
+            "weights": [[2.0, -1.0], [0.5, 0.5]]}
+    r = tc.post("/v1/math/project", json=body)
+    assert r.status_code == 422, r.text
+    d = r.json()["detail"][0]
+    assert d["loc"][-1] == "Q" and d["type"] == "InvalidInputError", d
+    assert "entries beyond" in d["msg"] and "rows [0, 1]" in d["msg"]
+    c.create_field("f", channels=1)
+    o = [[1.7e308, -1.7e308, 1.7e308], [0.0, 0.0, -3.0]]
+    for path, extra in (("/v1/fields/f/samples", {"values": [[1.0], [2.0]]}),
+                        ("/v1/fields/f/query", {})):
+        r = tc.post(path, json={"origins": o, "directions": [[0, 0, 1], [0, 0, 1]], **extra})
+        assert r.status_code == 422, r.text
+        assert r.json()["detail"][0]["loc"][-1] == "origins", r.text
+    assert c.describe("f")["storage"]["batches"] == 0
+
+
+def test_eigendecomposition_not_converging_is_a_validation_error(api, monkeypatch):
+    """LAPACK's "Eigenvalues did not converge" (LinAlgError, a ValueError) is turned
+    into the library's InvalidInputError naming the argument, not left to the
+    service's catch-all for ValueError."""
+    tc, _ = api
+
+    def fails(a, *args, **kw):
+        raise np.linalg.LinAlgError("Eigenvalues did not converge")
+
+    monkeypatch.setattr(np.linalg, "eigh", fails)
+    body = {"k": 0, "d": 2, "flats": {"Q": [np.eye(2).tolist()] * 2, "r": [[0, 0], [1, 0]]},
+            "weights": [[0.5, 0.5]]}
+    r = tc.post("/v1/math/project", json=body)
+    assert r.status_code == 422, r.text
+    d = r.json()["detail"][0]
+    assert d["loc"] == ["body", "weights"] and d["type"] == "InvalidInputError", d
+
+
+def test_large_entries_within_the_bound_are_charted_row_by_row(rng):
+    """Entries up to the bound (flatserve.flats.MAX_ENTRY) are charted: a far row fails
+    its round trip alone (a status), the batch's other rows are unaffected."""
+    import flatserve
+    from flatserve.flats import MAX_ENTRY, Flats
+
+    basis = flatserve.Basis.around_axis(axis=3, d=4, scale=0.01)
+    o, v = rng.normal(size=(4, 4)), rng.normal(size=(4, 4))
+    v[:, 3] = 5.0
+    alone = basis.coordinates_of(Flats.from_rays(o, v))
+    o[1] = [MAX_ENTRY, -MAX_ENTRY, MAX_ENTRY, MAX_ENTRY]
+    c = basis.coordinates_of(Flats.from_rays(o, v))
+    keep = [0, 2, 3]
+    np.testing.assert_array_equal(np.asarray(c.status)[keep], np.asarray(alone.status)[keep])
+    np.testing.assert_array_equal(c.weights[keep], alone.weights[keep])
+    assert np.asarray(c.status)[1] != 0

@@ -99,12 +99,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = Metrics()
     app.state.metrics.watch(_EntriesOf(app))
-    errors.install(app)
-    app.include_router(api)
-    app.include_router(health)
     from .routes_lightfield import lightfield_api, viewer  # light-field render + viewer page
-    app.include_router(lightfield_api)
-    app.include_router(viewer)
+    routers = (api, health, lightfield_api, viewer)
+    errors.install(app, routers)
+    for router in routers:
+        app.include_router(router)
     app.add_middleware(FastQueryMiddleware, fastapi_app=app)  # innermost: metrics see it
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)

@@ -94,7 +94,8 @@ def error_response(exc: BaseException) -> ORJSONResponse:
         headers = {**(headers or {}), "Retry-After": "1"}
     if status == 422:
         arg = getattr(exc, "argument", None)
-        loc = ["body", *arg.split(".")] if arg else ["body"]  # "basis.center.A" -> path
+        where = getattr(exc, "location", "body")  # "query" for query parameters
+        loc = [where, *arg.split(".")] if arg else [where]  # "basis.center.A" -> path
         body = {"detail": [{"loc": loc, "msg": msg, "type": type(exc).__name__}]}
     else:
         body = {"detail": msg}
@@ -110,8 +111,20 @@ def log_failure(method: str, path: str, exc: BaseException, status: int) -> None
         log.warning("%s %s: %d %s", method, path, status, exc)
 
 
-def install(app: FastAPI) -> None:
-    """Register the handlers on ``app``."""
+def allowed_methods(request: Request) -> list[str]:
+    """The methods of every route whose path matches the request's (Starlette's 405
+    names only the first such route's); the routes are those :func:`install` was
+    given."""
+    path = request.scope["path"]
+    return sorted({m for regex, methods in request.app.state.route_methods
+                   if regex.match(path) for m in methods})
+
+
+def install(app: FastAPI, routers=()) -> None:
+    """Register the handlers on ``app``; ``routers``: the routers it includes, whose
+    routes' methods a 405 lists in ``Allow``."""
+    app.state.route_methods = [(r.path_regex, frozenset(r.methods)) for router in routers
+                               for r in router.routes if getattr(r, "methods", None)]
 
     async def _handle(request: Request, exc: Exception):
         status = status_of(exc)
@@ -140,7 +153,10 @@ def install(app: FastAPI) -> None:
         if exc.status_code == 400:  # FastAPI could not decode the body: same shape as a 422
             return ORJSONResponse({"detail": [{"loc": ["body"], "msg": str(exc.detail),
                                                "type": "body_decode_error"}]}, status_code=422)
+        headers = getattr(exc, "headers", None)
+        if exc.status_code == 405:  # every method of the path, not one route's
+            headers = {**(headers or {}), "Allow": ", ".join(allowed_methods(request))}
         return ORJSONResponse({"detail": str(exc.detail)}, status_code=exc.status_code,
-                              headers=getattr(exc, "headers", None))
+                              headers=headers)
 
     app.add_exception_handler(StarletteHTTPException, _http)

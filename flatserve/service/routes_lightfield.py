@@ -48,7 +48,8 @@ Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 class OrbitSpec(BaseModel):
     """Eye on a sphere around the origin, looking at it (the viewer's camera)."""
 
-    model_config = ConfigDict(extra="forbid")
+    # strict: a boolean for a number ("fill": false) is a 422, as in the other bodies
+    model_config = ConfigDict(extra="forbid", strict=True)
     yaw: float = Field(0.0, ge=-360, le=360, allow_inf_nan=False, description="Degrees about +y.")
     pitch: float = Field(0.0, ge=-89, le=89, allow_inf_nan=False, description="Degrees up/down.")
     distance: float = Field(3.0, gt=0, le=1e3, allow_inf_nan=False, description="Eye distance from the origin.")
@@ -61,7 +62,8 @@ class CameraSpec(BaseModel):
     nothing: the default camera at (0, 0, -3) looking along +z.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    # strict: a boolean for a number ("fill": false) is a 422, as in the other bodies
+    model_config = ConfigDict(extra="forbid", strict=True)
     orbit: Optional[OrbitSpec] = None
     eye: Optional[Vec3] = None
     target: Optional[Vec3] = Field(None, description="Point looked at (default the origin).")

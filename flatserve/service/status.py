@@ -19,7 +19,8 @@ __all__ = [
     "StorageFullError", "StorageUnavailableError", "DataDirInUseError", "TooManyFieldsError",
     "BatchTooLargeError", "BodyTooLargeError", "BacklogFullError", "CostLimitError",
     "CostPendingError",
-    "NotReadyError", "ReplicaBehindError", "IdempotencyConflictError", "HTTP_STATUS",
+    "NotReadyError", "ReplicaBehindError", "IdempotencyConflictError", "InvalidParameterError",
+    "HTTP_STATUS",
     "status_of", "error_class",
 ]
 
@@ -92,6 +93,13 @@ class ReplicaBehindError(NotReadyError):
     """This replica has not yet applied the log position a read asked for
     (``min_position``) within the configured wait; another replica, or a retry,
     will have."""
+
+
+class InvalidParameterError(InvalidInputError):
+    """Bad input in a query parameter (422 located at ``["query", name]``, not in the
+    body)."""
+
+    location = "query"
 
 
 class IdempotencyConflictError(FlatserveError):

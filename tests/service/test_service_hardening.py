@@ -184,3 +184,61 @@ def test_large_entries_within_the_bound_are_charted_row_by_row(rng):
     np.testing.assert_array_equal(np.asarray(c.status)[keep], np.asarray(alone.status)[keep])
     np.testing.assert_array_equal(c.weights[keep], alone.weights[keep])
     assert np.asarray(c.status)[1] != 0
+
+
+@pytest.mark.parametrize("flats", [{}, {"origins": None, "directions": None, "Q": None, "r": None,
+                                        "A": None, "b": None}, {"Q": None, "r": None}])
+def test_flats_without_arrays_are_outside_the_schema_and_refused(api, flats):
+    """The documented schema of a batch of flats requires one pair of arrays (both
+    given, not null), as the server does: a body the schema allows is not refused
+    for want of arrays, and one it refuses gets a 422 naming ``flats``."""
+    import jsonschema_rs  # schemathesis' own validator
+
+    tc, _ = api
+    doc = tc.get("/openapi.json").json()
+    schema = {**doc["components"]["schemas"]["FlatsModel"], "components": doc["components"]}
+    valid = jsonschema_rs.Draft202012Validator(schema).is_valid
+    assert not valid(flats)
+    body = {"k": 1, "d": 3, "basis": {"kind": "tangent_simplex"}, "flats": flats}
+    r = tc.post("/v1/math/coordinates", json=body)
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"][0]["loc"][:2] == ["body", "flats"], r.text
+    ok = {"origins": [[0, 0, -3]], "directions": [[0, 0, 1]]}
+    assert valid(ok)
+    assert tc.post("/v1/math/coordinates", json={**body, "flats": ok}).status_code == 200
+
+
+def test_min_position_beyond_the_head_is_located_in_the_query(api, rng):
+    tc, c = api
+    c.create_field("f", channels=1)
+    o, v = paper_rays(rng, 2)
+    for r in (tc.post("/v1/fields/f/query", params={"min_position": 10**9},
+                      json={"origins": o.tolist(), "directions": v.tolist()}),
+              tc.get("/v1/fields/f", params={"min_position": 10**9})):
+        assert r.status_code == 422, r.text
+        assert r.json()["detail"][0]["loc"] == ["query", "min_position"], r.text
+
+
+@pytest.mark.parametrize("method, path, allow", [
+    ("PUT", "/v1/fields/f", "DELETE, GET"),
+    ("PATCH", "/v1/fields", "GET, POST"),
+    ("GET", "/v1/fields/f/samples", "POST"),
+])
+def test_405_allow_lists_every_method_of_the_path(api, method, path, allow):
+    tc, c = api
+    c.create_field("f", channels=1)
+    r = tc.request(method, path)
+    assert r.status_code == 405
+    assert r.headers["allow"] == allow
+
+
+@pytest.mark.parametrize("member", [{"fill": False}, {"focal": True}, {"width": True},
+                                    {"orbit": {"yaw": False}}, {"fill": "0"}])
+def test_render_takes_numbers_only(api, member):
+    tc, c = api
+    c.create_field("f", channels=1)
+    r = tc.post("/v1/fields/f/render", json={"width": 4, "height": 4, "supersample": 1, **member})
+    assert r.status_code == 422, r.text
+    r = tc.post("/v1/fields/f/render", json={"width": 4, "height": 4, "supersample": 1,
+                                             "fill": 0, "focal": 2})
+    assert r.status_code == 200, r.text

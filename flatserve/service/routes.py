@@ -186,6 +186,8 @@ async def query_field(
 def math_coordinates(req: json_body(CoordinatesRequest), settings: SettingsDep) -> Response:
     basis = specs.build_basis(req.basis, req.k, req.d)
     flats = specs.flats_of(req.flats, req.k, req.d, "flats", settings.max_batch_rows)
+    m = basis.m  # weights (m), status, residual (+ embedded (m - 1))
+    _check_math_answer(len(flats), m + 2 + (m - 1 if req.embed else 0), settings)
     c = basis.coordinates_of(flats)
     extra = {}
     if req.embed:
@@ -209,9 +211,21 @@ def math_project(req: json_body(ProjectRequest), settings: SettingsDep) -> Respo
     if w.shape[0] > settings.max_batch_rows:
         from .status import BatchTooLargeError
         raise BatchTooLargeError(f"{w.shape[0]} weight rows; the limit is {settings.max_batch_rows}")
+    d, k = req.d, req.k  # per row: Q (d x d), r (d), A (d x k), b (d), gap, ambiguous
+    _check_math_answer(w.shape[0], d * d + 2 * d + d * k + 2, settings)
     p = flats.affine_combination(w, Q, r, req.k)
     A, b = flats.to_parametric(p.Q, p.r, req.k)
     return model_body(ProjectResult, Q=p.Q, r=p.r, A=A, b=b, gap=p.gap, ambiguous=p.ambiguous)
+
+
+def _check_math_answer(rows: int, per_row: int, settings) -> None:
+    """413 for a math answer over ``max_json_answer_bytes``, before it is computed (its
+    work grows as its size: rows x d^2)."""
+    codec.check_answer(rows, per_row, "json", max_json=settings.max_json_answer_bytes,
+                       max_binary=settings.max_answer_bytes,
+                       bulk="compute large batches in-process with the library "
+                            "(flatserve.Basis.coordinates_of, flatserve.flats."
+                            "affine_combination)")
 
 
 # -- health and metrics -------------------------------------------------------------

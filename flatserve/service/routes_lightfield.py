@@ -149,6 +149,10 @@ def render(e: ReadyField, camera: json_body(CameraSpec), settings: SettingsDep,
     if cam.nrays > settings.max_batch_rows:
         raise BatchTooLargeError(f"{cam.nrays} rays in one frame; the limit is {settings.max_batch_rows}")
     fmt = camera.format or ("npy" if accept and codec.NPY in accept else "png")
+    if fmt == "npy":  # float32 (H, W, C): bounded before it is rendered
+        codec.check_answer(cam.height * cam.width, e.spec.channels, "npy",
+                           max_json=settings.max_json_answer_bytes,
+                           max_binary=settings.max_answer_bytes, bytes_per_number=4)
     body, media, timings, coverage = render_frame(
         e.field, cam, fill=0.0 if camera.fill is None else camera.fill, fmt=fmt)
     total = time.perf_counter() - t0

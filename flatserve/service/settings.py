@@ -66,6 +66,15 @@ class Settings(BaseSettings):
         description="Largest JSON body (413): parsing JSON holds the interpreter for its whole "
                     "length, so bulk arrays travel as .npy / .npz (up to max_body_bytes).")
     max_batch_rows: int = Field(1_000_000, ge=1, description="Most rows in one upload or query (413).")
+    max_json_answer_bytes: int = Field(
+        64 * MiB, ge=1,
+        description="Largest JSON answer, estimated before any work is done (413 naming the "
+                    "estimate): writing JSON holds the interpreter for its whole length, so "
+                    "bulk answers travel as .npy (a query with Accept: application/x-npy).")
+    max_answer_bytes: int = Field(
+        512 * MiB, ge=1,
+        description="Largest binary answer (.npy / .npz of a query, a rendered .npy frame), "
+                    "estimated before any work is done (413): split the batch.")
     max_fields: int = Field(256, ge=1, description="Most fields on this server (409).")
     max_pending_samples: int = Field(
         2_000_000, ge=1,

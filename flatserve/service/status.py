@@ -17,7 +17,8 @@ from ..errors import BasisError, FlatserveError, InvalidInputError, SnapshotErro
 __all__ = [
     "StorageError", "FieldNotFoundError", "FieldExistsError", "LimitExceededError",
     "StorageFullError", "StorageUnavailableError", "DataDirInUseError", "TooManyFieldsError",
-    "BatchTooLargeError", "BodyTooLargeError", "BacklogFullError", "CostLimitError",
+    "BatchTooLargeError", "BodyTooLargeError", "AnswerTooLargeError", "BacklogFullError",
+    "CostLimitError",
     "CostPendingError",
     "NotReadyError", "ReplicaBehindError", "IdempotencyConflictError", "InvalidParameterError",
     "HTTP_STATUS",
@@ -70,6 +71,11 @@ class BatchTooLargeError(LimitExceededError):
 
 class BodyTooLargeError(LimitExceededError):
     """A request body is larger than the configured limit."""
+
+
+class AnswerTooLargeError(LimitExceededError):
+    """The answer to a request would be larger than the configured limit (judged
+    before the work is done)."""
 
 
 class BacklogFullError(LimitExceededError):

@@ -111,6 +111,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     return app
 
 
+def app_ready(app: FastAPI) -> bool:
+    """The app's stored fields are restored and it follows the log (``/readyz`` 200;
+    a field that failed does not count against it)."""
+    rooms = getattr(app.state, "rooms", None)
+    return rooms is not None and rooms.catalogue.ready.is_set() and \
+        rooms.follower.started.is_set()
+
+
 def _openapi(app: FastAPI):
     """FastAPI's OpenAPI document plus the models of the JSON bodies parsed off the
     event loop (:func:`.deps.json_body`), under ``components/schemas`` as FastAPI

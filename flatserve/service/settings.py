@@ -133,6 +133,13 @@ class Settings(BaseSettings):
         1, ge=1, le=256,
         description="Replica processes serving one port (SQLite backend: they share the data "
                     "directory; each holds its own copy of every field's triangulation).")
+    accept_when_ready: bool = Field(
+        False,
+        description="Take connections only once the stored fields are restored (the replicas "
+                    "of processes > 1 always do, so a restarted one leaves its connections to "
+                    "a ready sibling). Behind a load balancer a restarting replica is then "
+                    "refused connections, which the balancer passes on, instead of answering "
+                    "503 while it loads; a lone server's clients wait for it instead.")
     read_wait_timeout: float = Field(
         10.0, ge=0,
         description="Seconds a read with min_position waits for this replica to apply that "

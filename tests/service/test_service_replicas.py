@@ -551,3 +551,40 @@ def test_children_import_the_supervisors_installation_from_any_directory(tmp_pat
             rep = c.upload_rays("f", o, v, rng.uniform(size=200))
             assert rep["accepted"] == 200
     assert "source tree without" not in (tmp_path / "s.log").read_text()
+
+
+def test_a_restarted_replica_takes_connections_only_once_ready(tmp_path, rng):
+    """``--processes 2``: after kill -9 of one replica, its successor restores the
+    field (seconds) before it accepts a connection on the shared socket, so every
+    request on a new connection meanwhile is answered by the ready sibling: no
+    ``503 field is still loading``."""
+    with ServerProcess(tmp_path / "data", tmp_path / "s.log", processes=2,
+                       snapshot_every=0) as srv:
+        srv.wait_ready()
+        with Client(srv.url) as c:
+            c.create_field("f", channels=1, basis=ONE_CHART)
+            for _ in range(2):
+                o, v = paper_rays(rng, 25_000)
+                rep = c.upload_rays("f", o, v, rng.uniform(size=25_000))
+        kids = _children(srv.proc.pid)
+        assert len(kids) == 2
+        for _ in range(20):  # both replicas have applied every batch
+            with Client(srv.url) as c:
+                info = c.describe("f", min_position=rep["position"])
+                assert info["pending_samples"] == 0
+        os.kill(kids[0], 9)
+        probe = paper_rays(rng, 20)
+        body = {"origins": probe[0].tolist(), "directions": probe[1].tolist()}
+        statuses, end, restored = [], time.monotonic() + 120, False
+        log = tmp_path / "s.log"
+        while time.monotonic() < end and not restored:
+            # a new connection each time: the kernel hands it to a replica accepting
+            r = httpx.post(srv.url + "/v1/fields/f/query", json=body, timeout=30,
+                           headers={"connection": "close"})
+            statuses.append(r.status_code)
+            now = [k for k in _children(srv.proc.pid) if k not in kids]
+            restored = bool(now) and "': restored, " in \
+                log.read_text().partition(f"started (pid {now[0]})")[2]
+        assert restored, "the restarted replica never became ready"
+        assert len(statuses) >= 5  # requests were made while it restored
+        assert set(statuses) == {200}, statuses

@@ -17,9 +17,11 @@ from ..options import Form
 from . import codec, specs
 from .catalogue import FieldState
 from .deps import (AnyField, BodyDep, CatalogueDep, FieldNamePath, FieldsDep, FollowerDep,
-                   NoBody, OnceIdempotencyKey, QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, UploadsDep,
-                   WriteAccess, authorize, json_body, json_body_doc, presented_key)
-from .errors import ApiError, BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, GUARD_RESPONSES
+                   NoBody, OnceIdempotencyKey, QueriesDep, ReadAccess, ReadyField, SettingsDep,
+                   SnapshotsDep, UploadsDep, WriteAccess, authorize, json_body, json_body_doc,
+                   presented_key)
+from .errors import (BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, GUARD_RESPONSES,
+                     ApiError)
 from .query import QueryParams, answer, server_timing
 from .responses import model_body
 from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,

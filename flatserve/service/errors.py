@@ -122,9 +122,11 @@ def allowed_methods(request: Request) -> list[str]:
 
 def install(app: FastAPI, routers=()) -> None:
     """Register the handlers on ``app``; ``routers``: the routers it includes, whose
-    routes' methods a 405 lists in ``Allow``."""
-    app.state.route_methods = [(r.path_regex, frozenset(r.methods)) for router in routers
-                               for r in router.routes if getattr(r, "methods", None)]
+    routes' methods (and those of the app's own routes: the docs) a 405 lists in
+    ``Allow``."""
+    routes = [r for router in (app.router, *routers) for r in router.routes]
+    app.state.route_methods = [(r.path_regex, frozenset(r.methods)) for r in routes
+                               if getattr(r, "methods", None) and hasattr(r, "path_regex")]
 
     async def _handle(request: Request, exc: Exception):
         status = status_of(exc)

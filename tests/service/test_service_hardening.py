@@ -223,6 +223,7 @@ def test_min_position_beyond_the_head_is_located_in_the_query(api, rng):
     ("PUT", "/v1/fields/f", "DELETE, GET"),
     ("PATCH", "/v1/fields", "GET, POST"),
     ("GET", "/v1/fields/f/samples", "POST"),
+    ("POST", "/openapi.json", "GET, HEAD"),
 ])
 def test_405_allow_lists_every_method_of_the_path(api, method, path, allow):
     tc, c = api

@@ -35,9 +35,11 @@ QUICK_EXIT_S = 5.0
 MAX_QUICK_EXITS = 5
 #: seconds children get to stop on SIGTERM before SIGKILL
 STOP_TIMEOUT_S = 30.0
-#: what a child runs (``python -c``): the supervisor's own installation first on
-#: ``sys.path`` (its first argument), then the server's entry point with the rest
-CHILD_BOOT = ("import sys; sys.path.insert(0, sys.argv.pop(1)); "
+#: what a child runs (``python -c``): the supervisor's own installation (its first
+#: argument) first on ``sys.path`` in place of the working directory, then the
+#: server's entry point with the rest
+CHILD_BOOT = ("import os, sys; root = sys.argv.pop(1); "
+              "sys.path[:] = [root] + [p for p in sys.path if p not in ('', os.getcwd(), root)]; "
               "from flatserve.service.server import main; sys.exit(main(sys.argv[1:]))")
 
 
@@ -49,7 +51,7 @@ def child_command(*args: str) -> list[str]:
     ``sys.path``: started in a source checkout, a child would import the source
     tree (without the built extension) instead of the installed package. The
     child puts the directory this process imported ``flatserve`` from first
-    instead (``-c`` adds the working directory too, after it).
+    instead, and leaves the working directory off.
     """
     import flatserve
 

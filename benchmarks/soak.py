@@ -23,7 +23,16 @@ After every restart, for every field:
 
 Any violation stops the run with a message and exit status 1.
 
+With ``--postgres`` the log lives in a throwaway PostgreSQL cluster
+(``tests/harness/pgcluster.py``) and ``--replicas N`` (default 2 there) servers,
+each with a data directory of its own, follow it: in each cycle every field's
+writes go to one replica chosen at random (the replicas append to the log at
+once), every replica is killed with ``kill -9`` at the kill, and after the
+restart the checks (and the retries of batches in flight) run on one replica,
+in turn, while every other replica must hold the same indexed samples.
+
     python benchmarks/soak.py [--cycles 100] [--seconds 900] [--seed 0]
+    python benchmarks/soak.py --postgres [--replicas 2] [--cycles 100]
 """
 from __future__ import annotations
 
@@ -119,8 +128,11 @@ def rays(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
 class Server(ServerProcess):
     """A server whose failures to start are soak failures."""
 
-    def __init__(self, data_dir: str, log_path: str, snapshot_every: int):
-        super().__init__(data_dir, log_path, log_level="warning", snapshot_every=snapshot_every)
+    def __init__(self, data_dir: str, log_path: str, snapshot_every: int,
+                 database_url: str | None = None):
+        extra = {"database_url": database_url} if database_url else {}
+        super().__init__(data_dir, log_path, log_level="warning", snapshot_every=snapshot_every,
+                         **extra)
 
     def wait_ready(self, timeout: float = 120.0, interval: float = 0.02) -> None:
         try:
@@ -130,10 +142,13 @@ class Server(ServerProcess):
 
 
 class Soak:
-    def __init__(self, args: argparse.Namespace, data_dir: str, log_path: str):
+    def __init__(self, args: argparse.Namespace, data_dir: str, log_path: str,
+                 database_url: str | None = None):
         self.args = args
         self.data_dir = data_dir
         self.log_path = log_path
+        self.database_url = database_url
+        self.replicas = max(1, getattr(args, "replicas", None) or 1)
         self.rng = np.random.default_rng(args.seed)
         self.models = {name: FieldModel() for name in FIELDS}
         self.fig = Figures()
@@ -210,19 +225,25 @@ class Soak:
             del m.inflight[key]
 
     # -- the workload between two kills ------------------------------------------
-    def workload(self, url: str, rng: np.random.Generator, stop: threading.Event) -> None:
-        c = Client(url, retries=0, timeout=30)
+    def workload(self, urls: list[str], rng: np.random.Generator, stop: threading.Event) -> None:
+        clients = [Client(u, retries=0, timeout=30) for u in urls]
+        # each field's writes go to one replica this cycle (a replica answers a field
+        # only once it has applied the field's create: no waits needed), so the
+        # replicas append to the one log at once; its retries after the kill reach
+        # whichever replica runs the checks
+        via = {name: clients[int(rng.integers(len(clients)))] for name in FIELDS}
         try:
             for name, m in self.models.items():
                 if not m.exists:
                     m.exists = None
-                    c.create_field(name, channels=1)
+                    via[name].create_field(name, channels=1)
                     m.exists = True
                     self.fig.creates += 1
             while not stop.is_set():
                 op = rng.uniform()
                 name = FIELDS[int(rng.integers(len(FIELDS)))]
                 m = self.models[name]
+                c = via[name]
                 if op < 0.80:
                     self.upload(c, rng, name, m)
                 elif op < 0.88 and m.acked:
@@ -252,7 +273,8 @@ class Soak:
         except Exception:
             return  # the server was killed under us
         finally:
-            c.close()
+            for one in clients:
+                one.close()
 
     def upload(self, c: Client, rng: np.random.Generator, name: str, m: FieldModel) -> None:
         n = int(rng.integers(20, self.args.max_rows))
@@ -275,26 +297,52 @@ class Soak:
         self.fig.acked_json += not b.binary
 
     # -- the run -------------------------------------------------------------------
+    def _start(self) -> list[Server]:
+        """Start the replicas (one without PostgreSQL), each on its own data dir."""
+        if self.database_url is None:
+            return [Server(self.data_dir, self.log_path, self.args.snapshot_every)]
+        return [Server(os.path.join(self.data_dir, f"r{i}"), self.log_path,
+                       self.args.snapshot_every, self.database_url)
+                for i in range(self.replicas)]
+
+    def _check_all(self, servers: list[Server]) -> None:
+        """The checks on one replica (chosen in turn); every other one must hold the
+        same indexed samples of every field."""
+        first = servers[self.fig.cycles % len(servers)]
+        with Client(first.url, retries=0, timeout=60) as c:
+            self.check(c)
+            want = {name: c.describe(name)["nsamples"] for name, m in self.models.items()
+                    if m.exists}
+        for srv in servers:
+            if srv is first:
+                continue
+            with Client(srv.url, retries=0, timeout=60) as c:
+                for name, n in want.items():
+                    got = c.wait_indexed(name, timeout=120)["nsamples"]
+                    if got != n:
+                        raise SoakFailure(f"field {name!r}: replica {srv.url} holds {got} "
+                                          f"samples, replica {first.url} {n}")
+
     def run(self) -> Figures:
         t0 = time.monotonic()
         while self.fig.cycles < self.args.cycles:
             if time.monotonic() - t0 > self.args.seconds:
                 print(f"time budget of {self.args.seconds} s reached", flush=True)
                 break
-            srv = Server(self.data_dir, self.log_path, self.args.snapshot_every)
+            servers = self._start()
             try:
                 ts = time.monotonic()
-                srv.wait_ready()
+                for srv in servers:
+                    srv.wait_ready()
                 self.fig.restart_s.append(time.monotonic() - ts)
-                with Client(srv.url, retries=0, timeout=60) as c:
-                    self.check(c)
+                self._check_all(servers)
                 stop = threading.Event()
                 failure: list[BaseException] = []
 
                 def work():
                     try:
-                        self.workload(srv.url, np.random.default_rng(self.rng.integers(2**63)),
-                                      stop)
+                        self.workload([srv.url for srv in servers],
+                                      np.random.default_rng(self.rng.integers(2**63)), stop)
                     except BaseException as exc:  # a failed check: report it after the kill
                         failure.append(exc)
 
@@ -302,7 +350,8 @@ class Soak:
                 t.start()
                 time.sleep(float(self.rng.uniform(0.05, self.args.max_work)))
             finally:
-                srv.kill9()
+                for i in self.rng.permutation(len(servers)):
+                    servers[i].kill9()
             stop.set()
             t.join(timeout=120)
             if failure:
@@ -313,13 +362,14 @@ class Soak:
                 print(f"cycle {self.fig.cycles}: {self.fig.acked} batches acknowledged, "
                       f"{time.monotonic() - t0:.0f} s", flush=True)
         # a last restart: everything checked once more, nothing left in flight
-        srv = Server(self.data_dir, self.log_path, self.args.snapshot_every)
+        servers = self._start()
         try:
-            srv.wait_ready()
-            with Client(srv.url, retries=0, timeout=60) as c:
-                self.check(c)
+            for srv in servers:
+                srv.wait_ready()
+            self._check_all(servers)
         finally:
-            srv.kill9()
+            for srv in servers:
+                srv.kill9()
         self.fig.elapsed = time.monotonic() - t0
         return self.fig
 
@@ -336,12 +386,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--snapshot-every", type=int, default=1500,
                    help="the server's background snapshot interval (samples)")
     p.add_argument("--data-dir", help="data directory (default: a temporary one, removed)")
+    p.add_argument("--postgres", action="store_true",
+                   help="the log in a throwaway PostgreSQL cluster (Debian's postgresql)")
+    p.add_argument("--replicas", type=int, default=None,
+                   help="servers following the log (with --postgres; default 2)")
     args = p.parse_args(argv)
+    if args.replicas is not None and not args.postgres:
+        p.error("--replicas needs --postgres")
+    if args.postgres and args.replicas is None:
+        args.replicas = 2
     tmp = None if args.data_dir else tempfile.mkdtemp(prefix="flatserve-soak-")
     data_dir = args.data_dir or os.path.join(tmp, "data")
     log_path = os.path.join(tmp or data_dir, "server.log")
     os.makedirs(data_dir, exist_ok=True)
-    soak = Soak(args, data_dir, log_path)
+    pg = None
+    if args.postgres:
+        from tests.harness.pgcluster import PgCluster
+
+        pg = PgCluster().start()
+    soak = Soak(args, data_dir, log_path, pg.create_database("soak") if pg else None)
     try:
         fig = soak.run()
     except SoakFailure as exc:
@@ -350,10 +413,13 @@ def main(argv: list[str] | None = None) -> int:
             sys.stderr.write(fh.read()[-4000:])
         return 1
     finally:
+        if pg is not None:
+            pg.close()
         if tmp:
             shutil.rmtree(tmp, ignore_errors=True)
     rs = fig.restart_s
-    print(f"cycles (kill -9 / restart): {fig.cycles}")
+    where = (f"PostgreSQL, {args.replicas} replicas" if args.postgres else "SQLite, 1 server")
+    print(f"cycles (kill -9 / restart): {fig.cycles} ({where})")
     print(f"batches sent: {fig.sent}; acknowledged: {fig.acked} ({fig.acked_deferred} with "
           f"wait=false, {fig.acked_json} as JSON); in flight at a kill: {fig.inflight_at_kill} "
           f"({fig.inflight_stored} of them stored, retried as replays: {fig.retries_replayed}; "

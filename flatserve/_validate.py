@@ -20,6 +20,7 @@ def as_array(
     dtype=np.float64,
     finite: bool = True,
     min_rows: int = 0,
+    max_abs: float | None = None,
 ) -> np.ndarray:
     """Convert ``x`` to a C-contiguous array of ``dtype`` and check its shape.
 
@@ -36,6 +37,10 @@ def as_array(
         Reject NaN and infinities (floating dtypes only).
     min_rows : int
         Smallest accepted length of axis 0.
+    max_abs : float, optional
+        Reject entries larger than this in magnitude (floating dtypes only): the
+        arrays of flats, whose products (quadrics, projections) would overflow
+        float64 near its limit and make LAPACK fail on the whole batch.
 
     Raises
     ------
@@ -69,4 +74,13 @@ def as_array(
                 + (" ..." if rows.size > 10 else ""),
                 name,
             )
+        if max_abs is not None:
+            bad = ~(np.abs(arr) <= max_abs)
+            if bad.any():
+                rows = np.unique(np.nonzero(bad)[0])
+                raise InvalidInputError(
+                    f"{name}: entries beyond +-{max_abs:g} in rows {rows[:10].tolist()}"
+                    + (" ..." if rows.size > 10 else "") + ": scale the coordinates down",
+                    name,
+                )
     return arr

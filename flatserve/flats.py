@@ -129,12 +129,18 @@ def check_k(k, d: int, name: str = "k") -> int:
     return k
 
 
+#: largest magnitude of an entry of a flat's arrays (origins, directions, A, b, Q, r):
+#: their products stay far from float64's limit (1.8e308), so no eigendecomposition
+#: or SVD of a batch fails on one row's overflow
+MAX_ENTRY = 1e100
+
+
 def _as_flats(Q, r, name_Q: str = "Q", name_r: str = "r"):
-    Q = as_array(Q, name_Q, ("n", None, None))
+    Q = as_array(Q, name_Q, ("n", None, None), max_abs=MAX_ENTRY)
     d = Q.shape[1]
     if d < 1 or Q.shape[2] != d:
         raise InvalidInputError(f"{name_Q}: expected shape (n, d, d), got {Q.shape}", name_Q)
-    r = as_array(r, name_r, (Q.shape[0], d))
+    r = as_array(r, name_r, (Q.shape[0], d), max_abs=MAX_ENTRY)
     return Q, r
 
 
@@ -186,12 +192,12 @@ def from_parametric(A, b):
     >>> r
     array([[-1.,  1.]])
     """
-    A = as_array(A, "A", ("n", None, None))
+    A = as_array(A, "A", ("n", None, None), max_abs=MAX_ENTRY)
     n, d, k = A.shape
     if d < 1:
         raise InvalidInputError(f"A: expected shape (n, d, k) with d >= 1, got {A.shape}", "A")
     check_k(k, d, "A")
-    b = as_array(b, "b", (n, d))
+    b = as_array(b, "b", (n, d), max_abs=MAX_ENTRY)
     I = np.eye(d)
     if k == 0:
         return np.broadcast_to(I, (n, d, d)).copy(), b.copy()
@@ -286,11 +292,11 @@ def from_normal(N, c):
 
 def check_rays(origins, directions):
     """Validate rays; returns (origins (n,d), directions (n,d), |directions| (n,))."""
-    o = as_array(origins, "origins", ("n", None))
+    o = as_array(origins, "origins", ("n", None), max_abs=MAX_ENTRY)
     d = o.shape[1]
     if d < 2:
         raise InvalidInputError(f"origins: lines need d >= 2, got d = {d}", "origins")
-    v = as_array(directions, "directions", (o.shape[0], d))
+    v = as_array(directions, "directions", (o.shape[0], d), max_abs=MAX_ENTRY)
     norm = np.sqrt(np.einsum("ni,ni->n", v, v))
     bad = ~(norm > 0) | ~np.isfinite(norm)
     if bad.any():
@@ -575,7 +581,32 @@ def project(Qs, rs, k, gap_tol: float = GAP_TOL) -> Projection:
     """
     Qs, rs = _as_flats(Qs, rs, "Qs", "rs")
     k = check_k(k, Qs.shape[1])
-    return project_unchecked(Qs, rs, k, gap_tol)
+    return _project_checked(Qs, rs, k, gap_tol, "Qs")
+
+
+def _project_checked(Qs, rs, k, gap_tol: float, arg: str) -> Projection:
+    """:func:`project_unchecked` of finite input with a finite answer, else
+    :class:`InvalidInputError` naming ``arg`` (never NaN out, nor LAPACK's "did not
+    converge" in: entries near the float64 limit overflow inside the
+    eigendecomposition)."""
+    def too_large(rows) -> InvalidInputError:
+        rows = np.flatnonzero(rows)
+        return InvalidInputError(
+            f"{arg}: rows {rows[:10].tolist()}{' ...' if rows.size > 10 else ''} overflow "
+            "float64 when combined and projected (entries or weights too large); scale "
+            "them down", arg)
+
+    bad = ~(np.isfinite(Qs).all(axis=(1, 2)) & np.isfinite(rs).all(axis=1))
+    if bad.any():
+        raise too_large(bad)
+    try:
+        p = project_unchecked(Qs, rs, k, gap_tol)
+    except np.linalg.LinAlgError:
+        raise too_large(np.ones(len(Qs), bool)) from None
+    bad = ~(np.isfinite(p.Q).all(axis=(1, 2)) & np.isfinite(p.r).all(axis=1))
+    if bad.any():
+        raise too_large(bad)
+    return p
 
 
 def _check_weights(weights, m):
@@ -630,7 +661,7 @@ def affine_combination(weights, Q, r, k, gap_tol: float = GAP_TOL) -> Projection
     w = _check_weights(weights, Q.shape[0])
     Qs = np.einsum("nl,lij->nij", w, Q)
     rs = w @ r
-    return project_unchecked(Qs, rs, k, gap_tol)
+    return _project_checked(Qs, rs, k, gap_tol, "weights")
 
 
 # ------------------------------------------------------------------- sizes and batches
@@ -813,7 +844,7 @@ class Flats:
             if isinstance(x, list) and not x and min_rows:  # [] has no shape to check
                 raise InvalidInputError(_join(prefix, f"{name}: expected at least one row, got 0"),
                                         _join(prefix, name))
-            got[name] = as_array(x, _join(prefix, name), shape)
+            got[name] = as_array(x, _join(prefix, name), shape, max_abs=MAX_ENTRY)
         first, second = shapes
         if got[first].shape[0] != got[second].shape[0]:
             rows = {nm: a.shape[0] for nm, a in got.items()}

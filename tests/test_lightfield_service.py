@@ -24,7 +24,7 @@ CONSTANT_MARGIN_DB = 2.0
 @pytest.fixture(scope="module")
 def client(tmp_path_factory):
     settings = Settings(data_dir=tmp_path_factory.mktemp("lf") / "data", snapshot_every=0, max_batch_rows=200_000)
-    with TestClient(create_app(settings)) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=create_app(settings)) as tc:
         reg = tc.app.state.rooms
         e = ensure_demo_field(reg, samples=DEMO_SAMPLES, batch=2500, progress=False)
         assert e.field.nsamples == DEMO_SAMPLES  # an oriented covering atlas takes every ray
@@ -94,7 +94,7 @@ def test_render_views_all_around_match_ground_truth(client, yaw, pitch):
 
 def test_an_older_one_chart_demo_field_is_left_alone(tmp_path):
     settings = Settings(data_dir=tmp_path / "data", snapshot_every=0)
-    with TestClient(create_app(settings)) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=create_app(settings)) as tc:
         r = tc.post("/v1/fields", json={"name": "bunny", "k": 1, "d": 3,
                                          "basis": {"kind": "tangent_simplex"}})
         assert r.status_code == 201, r.text

@@ -12,6 +12,7 @@ from .status import BodyTooLargeError
 from . import docs, errors
 from .fastpath import FastQueryMiddleware
 from .logs import AccessLogMiddleware
+from .guard import RequestGuardMiddleware
 from .metrics import Metrics, MetricsMiddleware
 from .rooms import Rooms
 from .routes import api, health
@@ -100,18 +101,26 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = Metrics(replica=settings.replica)
     app.state.metrics.watch(_EntriesOf(app))
-    errors.install(app)
-    app.include_router(api)
-    app.include_router(health)
     from .routes_lightfield import lightfield_api, viewer  # light-field render + viewer page
-    app.include_router(lightfield_api)
-    app.include_router(viewer)
+    routers = (api, health, lightfield_api, viewer)
+    errors.install(app, routers)
+    for router in routers:
+        app.include_router(router)
     app.add_middleware(FastQueryMiddleware, fastapi_app=app)  # innermost: metrics see it
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
-    if settings.access_log:
-        app.add_middleware(AccessLogMiddleware)  # outermost: it times and sees every answer
+    app.add_middleware(RequestGuardMiddleware, settings=settings)
+    if settings.access_log:  # outermost: it times and sees every answer (the guard's too)
+        app.add_middleware(AccessLogMiddleware)
     return app
+
+
+def app_ready(app: FastAPI) -> bool:
+    """The app's stored fields are restored and it follows the log (``/readyz`` 200;
+    a field that failed does not count against it)."""
+    rooms = getattr(app.state, "rooms", None)
+    return rooms is not None and rooms.catalogue.ready.is_set() and \
+        rooms.follower.started.is_set()
 
 
 def _openapi(app: FastAPI):

@@ -192,7 +192,7 @@ class LogApplier:
                         return None, None
                     res = e.field.insert_prepared(prepared,
                                                   slice_rows=self.settings.insert_slice_rows)
-                    e.indexed_seq, e.indexed_position = entry.seq, entry.position
+                    e.mark_indexed(entry.seq, entry.position)
                     e.new_samples += res.accepted
             except Exception as exc:
                 # memory may hold part of the batch: rebuild the field from storage up
@@ -325,7 +325,7 @@ class LogApplier:
                              len(todo), fld.nsamples)
                     tlast = time.perf_counter()
             e.field = fld
-            e.indexed_seq, e.indexed_position = seq, pos
+            e.mark_indexed(seq, pos)
             e.snapshot_file = row.snapshot_file if start else None
             e.snapshot_seq, e.snapshot_position = start, start_pos
             e.new_samples = replayed

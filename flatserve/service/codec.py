@@ -36,7 +36,7 @@ from fastapi import Response
 from .. import _npy
 from .._validate import as_array
 from ..errors import InvalidInputError
-from .status import BatchTooLargeError, BodyTooLargeError
+from .status import AnswerTooLargeError, BatchTooLargeError, BodyTooLargeError
 from ..flats import FORMS, Flats, form_shapes, infer_form
 from .binary import load_npy, load_npz
 from .logs import note
@@ -57,9 +57,19 @@ def media_type(content_type: str | None) -> str:
     return (content_type or "").split(";", 1)[0].strip().lower()
 
 
-def body_kind(content_type: str | None) -> str:
+def is_json(content_type: str | None) -> bool:
+    """The Content-Type is JSON (``application/json`` or a ``+json`` type)."""
     mt = media_type(content_type)
-    if mt in (JSON, "") or mt.endswith("+json"):
+    return mt == JSON or (mt.startswith("application/") and mt.endswith("+json"))
+
+
+def body_kind(content_type: str | None) -> str:
+    """``json``, ``npy`` or ``npz`` for a batch body's Content-Type; 415 for any other
+    type and for none (a page of another site can post a body without one)."""
+    mt = media_type(content_type)
+    if not mt:
+        raise ApiError(415, f"a body needs a Content-Type: {JSON}, {NPY} or {NPZ}")
+    if is_json(content_type):
         return "json"
     if mt in (NPY, "application/octet-stream"):
         return "npy"
@@ -249,6 +259,38 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
 
 # -- encoding ----------------------------------------------------------------
 npy_bytes = _npy.to_bytes
+
+#: the most bytes orjson writes for one number of an answer, with its separator
+#: (``-1.2345678901234567e-300,``): the estimate of a JSON answer's size
+JSON_BYTES_PER_NUMBER = 25
+
+
+def check_answer(rows: int, per_row: int, kind: str, *, max_json: int, max_binary: int,
+                 bytes_per_number: int = 8, bulk: str = "") -> None:
+    """Refuse (413) an answer of ``rows`` rows of ``per_row`` numbers before it is
+    computed: as JSON (``kind`` ``"json"``) over ``max_json`` bytes (the
+    ``max_json_answer_bytes`` setting), as binary over ``max_binary``
+    (``max_answer_bytes``), at ``bytes_per_number`` bytes a number. The message
+    names the estimate, the limit, the rows that fit and ``bulk``: where to go
+    instead."""
+    json = kind == "json"
+    each = per_row * (JSON_BYTES_PER_NUMBER if json else bytes_per_number)
+    limit = max_json if json else max_binary
+    size = rows * each
+    if size <= limit:
+        return
+    setting = "FLATSERVE_MAX_JSON_ANSWER_BYTES" if json else "FLATSERVE_MAX_ANSWER_BYTES"
+    fits = max(limit // max(each, 1), 0)
+    raise AnswerTooLargeError(
+        f"the answer would be up to {size:,} bytes{' of JSON' if json else ''} ({rows:,} rows "
+        f"of {per_row} numbers); the limit is {limit:,} ({setting}): "
+        + (f"{bulk}, or send" if bulk else "send") + f" at most {fits:,} rows a request")
+
+
+def query_numbers(kind: str, channels: int, ndim: int, weights: bool) -> int:
+    """Numbers per row of a query's answer (see :func:`query_response`)."""
+    per = channels + 1 + (kind != "npy")  # values, inside (+ status but in .npy)
+    return per + (2 * (ndim + 1) if weights else 0)
 
 
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:

@@ -82,7 +82,22 @@ def owner_dead(owner: str) -> bool:
         return True
     except OSError:  # alive (another user's)
         return False
-    return False
+    return _exited(int(pid))
+
+
+def _exited(pid: int) -> bool:
+    """The process ``pid``, which ``kill(pid, 0)`` finds, has exited and waits to be
+    reaped by its parent (a zombie, state Z or X in ``/proc/PID/stat``): a replica
+    killed with ``kill -9`` stays one until its supervisor notices."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            stat = fh.read()
+    except FileNotFoundError:
+        return True  # gone meanwhile
+    except OSError:  # no /proc here: trust kill(pid, 0)
+        return False
+    state = stat.rpartition(b")")[2].split()[:1]  # after "(comm)", which may hold spaces
+    return state in ([b"Z"], [b"X"])
 
 
 def fsync_path(path: Path) -> None:

@@ -18,7 +18,7 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from .codec import check_json_size, check_not_empty
+from .codec import JSON, check_json_size, check_not_empty, is_json, media_type
 from .errors import ApiError
 from .catalogue import FieldCatalogue
 from .entry import FieldEntry
@@ -103,7 +103,12 @@ def json_body(model: type[BaseModel]):
     """``Annotated[model, ...]``: the request body validated as ``model`` in the
     thread pool (a plain ``def`` dependency), never on the event loop, with
     FastAPI's 422 format; pair it with :func:`json_body_doc` on the route."""
-    def parse(body: BodyDep, settings: SettingsDep) -> BaseModel:
+    def parse(request: Request, body: BodyDep, settings: SettingsDep) -> BaseModel:
+        ctype = request.headers.get("content-type")
+        if not is_json(ctype):
+            raise ApiError(415, f"unsupported Content-Type {media_type(ctype)!r}: this route "
+                                f"takes {JSON}" if ctype else f"a body needs a Content-Type: "
+                                f"this route takes {JSON}")
         check_json_size(body, settings.max_json_bytes)
         check_not_empty(body, "json")
         try:
@@ -133,16 +138,46 @@ def json_body_doc(model: type[BaseModel]) -> dict:
             "schema": {"$ref": "#/components/schemas/HTTPValidationError"}}}}}}
 
 
-def presented_key(headers) -> Optional[str]:
-    """The API key of a request (raw ASGI headers): header ``api-key``, else
-    ``Authorization: Bearer``; None when neither. Repeated headers are refused
-    (400): they would be judged differently by different proxies."""
+async def no_body(request: Request) -> None:
+    """A route that takes no body refuses one (415), and any Content-Type: a form
+    another site's page posts here is refused whatever its fields."""
+    h = request.headers
+    if "content-type" in h or h.get("content-length", "0") not in ("", "0") \
+            or "transfer-encoding" in h:
+        raise ApiError(415, "this route takes no body (and no Content-Type)")
+
+
+#: the dependency of every route without a request body
+NoBody = Depends(no_body)
+
+
+def single_headers(headers, names: tuple[bytes, ...]) -> dict[bytes, bytes]:
+    """The headers ``names`` (lower case) of raw ASGI ``headers``, each at most once:
+    a repeated one is refused (400), since proxies and frameworks disagree on which
+    copy counts (the first, the last, both joined)."""
     found: dict[bytes, bytes] = {}
     for k, v in headers:
-        if k in (b"api-key", b"authorization"):
+        if k in names:
             if k in found:
                 raise ApiError(400, f"the {k.decode()} header is repeated; send it once")
             found[k] = v
+    return found
+
+
+async def once_idempotency_key(request: Request) -> None:
+    """400 for a repeated ``Idempotency-Key`` header (see :func:`single_headers`)."""
+    single_headers(request.scope["headers"], (b"idempotency-key",))
+
+
+#: the dependency of a route that takes an ``Idempotency-Key``
+OnceIdempotencyKey = Depends(once_idempotency_key)
+
+
+def presented_key(headers) -> Optional[str]:
+    """The API key of a request (raw ASGI headers): header ``api-key``, else
+    ``Authorization: Bearer``; None when neither. Repeated headers are refused
+    (400, :func:`single_headers`)."""
+    found = single_headers(headers, (b"api-key", b"authorization"))
     key = found.get(b"api-key")
     if key:
         return key.decode("latin-1")

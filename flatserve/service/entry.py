@@ -105,6 +105,10 @@ class FieldEntry:
     #: last batch inserted into the triangulation, and its log position
     indexed_seq: int = 0
     indexed_position: int = 0
+    #: ``(nstored, nsimplex)`` of the field when it last held every batch up to
+    #: ``indexed_seq`` whole (:meth:`mark_indexed`): the cost guard's measure, never
+    #: taken from a triangulation with a batch half inserted
+    complete_size: tuple[int, int] = (0, 0)
     snapshot_position: int = 0
     #: samples inserted since the last snapshot
     new_samples: int = 0
@@ -129,6 +133,23 @@ class FieldEntry:
 
     def mark_failed(self, why: str) -> None:
         self.state, self.error = FieldState.FAILED, why
+
+    def mark_indexed(self, seq: int, position: int) -> None:
+        """The field holds every batch up to ``seq`` (at log ``position``) whole: record
+        them, the field's size then (``complete_size``), and that the batch at
+        ``position`` is no longer pending, at once (:meth:`indexed_counts` sees all or
+        none of it). Called by the field's one writer, under ``index_lock`` (or
+        before the field is published)."""
+        size = (int(self.field.nstored), int(self.field.nsimplex))
+        with self.pending_lock:
+            self.indexed_seq, self.indexed_position = seq, position
+            self.complete_size = size
+            self.pending.pop(position, None)
+
+    def indexed_counts(self) -> tuple[int, int, int]:
+        """``(indexed_seq, pending batches, their samples)``, read together."""
+        with self.pending_lock:
+            return self.indexed_seq, len(self.pending), sum(self.pending.values())
 
     # -- batches committed, not yet applied here -----------------------------------------
     def add_pending(self, position: int, samples: int, *, keep: bool = False) -> None:

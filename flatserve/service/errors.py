@@ -40,11 +40,19 @@ class ErrorBody(BaseModel):
 
 
 # Documented on every route (OpenAPI); 422 is FastAPI's HTTPValidationError.
+#: what flatserve.service.guard refuses on every route (forged cross-site requests)
+GUARD_RESPONSES: dict[int | str, dict] = {
+    400: {"model": ErrorBody, "description": "A header that must be sent once is repeated."},
+    403: {"model": ErrorBody, "description": "A cross-origin request from an origin not "
+                                             "allowed (or the read-only key for a write)."},
+    415: {"model": ErrorBody, "description": "A Content-Type this route does not take."},
+    421: {"model": ErrorBody, "description": "A Host this server does not serve."},
+}
 COMMON_RESPONSES: dict[int | str, dict] = {
+    **GUARD_RESPONSES,
     401: {"model": ErrorBody, "description": "Missing or wrong API key."},
     408: {"description": "The request's headers or body arrived too slowly (`header_timeout`, "
                          "`body_timeout`, `body_min_rate`); the connection is closed."},
-    403: {"model": ErrorBody, "description": "The read-only key cannot write."},
     413: {"model": ErrorBody, "description": "Body or batch too large."},
     503: {"model": ErrorBody, "description": "Stored fields are still loading, or storage failed."},
 }
@@ -55,7 +63,6 @@ FIELD_RESPONSES: dict[int | str, dict] = {
 BODY_RESPONSES: dict[int | str, dict] = {
     **FIELD_RESPONSES,
     409: {"model": ErrorBody, "description": "Conflict (existing name, field limit)."},
-    415: {"model": ErrorBody, "description": "Unsupported Content-Type."},
 }
 #: A write (create, delete, upload, snapshot) on a full disk
 _DISK_FULL = {507: {"model": ErrorBody, "description": "The disk is full: nothing was stored; "
@@ -82,6 +89,11 @@ def status_of(exc: BaseException) -> int:
 
 
 def _message(exc: BaseException) -> str:
+    """What a client is told: an error's ``public`` text if it has one (storage
+    failures: their full text, for the log, names the database's host and files)."""
+    public = getattr(exc, "public", None)
+    if public:
+        return public
     if isinstance(exc, KeyError) and exc.args:
         return str(exc.args[0])
     return str(exc) or type(exc).__name__
@@ -96,7 +108,8 @@ def error_response(exc: BaseException) -> ORJSONResponse:
         headers = {**(headers or {}), "Retry-After": "1"}
     if status == 422:
         arg = getattr(exc, "argument", None)
-        loc = ["body", *arg.split(".")] if arg else ["body"]  # "basis.center.A" -> path
+        where = getattr(exc, "location", "body")  # "query" for query parameters
+        loc = [where, *arg.split(".")] if arg else [where]  # "basis.center.A" -> path
         body = {"detail": [{"loc": loc, "msg": msg, "type": type(exc).__name__}]}
     else:
         body = {"detail": msg}
@@ -112,8 +125,22 @@ def log_failure(method: str, path: str, exc: BaseException, status: int) -> None
         log.warning("%s %s: %d %s", method, path, status, exc)
 
 
-def install(app: FastAPI) -> None:
-    """Register the handlers on ``app``."""
+def allowed_methods(request: Request) -> list[str]:
+    """The methods of every route whose path matches the request's (Starlette's 405
+    names only the first such route's); the routes are those :func:`install` was
+    given."""
+    path = request.scope["path"]
+    return sorted({m for regex, methods in request.app.state.route_methods
+                   if regex.match(path) for m in methods})
+
+
+def install(app: FastAPI, routers=()) -> None:
+    """Register the handlers on ``app``; ``routers``: the routers it includes, whose
+    routes' methods (and those of the app's own routes: the docs) a 405 lists in
+    ``Allow``."""
+    routes = [r for router in (app.router, *routers) for r in router.routes]
+    app.state.route_methods = [(r.path_regex, frozenset(r.methods)) for r in routes
+                               if getattr(r, "methods", None) and hasattr(r, "path_regex")]
 
     async def _handle(request: Request, exc: Exception):
         status = status_of(exc)
@@ -142,7 +169,10 @@ def install(app: FastAPI) -> None:
         if exc.status_code == 400:  # FastAPI could not decode the body: same shape as a 422
             return ORJSONResponse({"detail": [{"loc": ["body"], "msg": str(exc.detail),
                                                "type": "body_decode_error"}]}, status_code=422)
+        headers = getattr(exc, "headers", None)
+        if exc.status_code == 405:  # every method of the path, not one route's
+            headers = {**(headers or {}), "Allow": ", ".join(allowed_methods(request))}
         return ORJSONResponse({"detail": str(exc.detail)}, status_code=exc.status_code,
-                              headers=getattr(exc, "headers", None))
+                              headers=headers)
 
     app.add_exception_handler(StarletteHTTPException, _http)

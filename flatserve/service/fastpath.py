@@ -25,7 +25,8 @@ from .settings import FIELD_NAME_PATTERN
 log = logging.getLogger("flatserve.service")
 
 QUERY_ROUTE = "/v1/fields/{name}/query"
-_PATH = re.compile(r"^/v1/fields/(" + FIELD_NAME_PATTERN.strip("^$") + r")/query$")
+#: the route's path, matched whole (fullmatch: "$" alone would let a trailing newline in)
+_PATH = re.compile(r"/v1/fields/(" + FIELD_NAME_PATTERN.strip("^$") + r")/query")
 _NO_PARAMS = QueryParams()
 
 
@@ -63,7 +64,7 @@ class FastQueryMiddleware:
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http" or scope["method"] != "POST":
             return await self.app(scope, receive, send)
-        m = _PATH.match(scope["path"])
+        m = _PATH.fullmatch(scope["path"])
         if m is None:
             return await self.app(scope, receive, send)
         params = parse_params(scope.get("query_string", b""))

@@ -105,7 +105,7 @@ class FieldService:
         f = e.field
         d = f.describe() if f is not None else e.spec.describe_unloaded()
         m = e.basis.m
-        pending_batches, pending_samples = e.pending_counts()
+        indexed, pending_batches, pending_samples = e.indexed_counts()
         charts = _charts(d)
         kind = {k: v for k, v in (("atlas", _atlas_info(d)),
                                   ("charts", charts if verbose else None))
@@ -113,7 +113,7 @@ class FieldService:
         flats = dict(Q=e.basis.Q.tolist(), r=e.basis.r.tolist()) if verbose else {}
         return FieldInfo(
             **self.summary(e).model_dump(),
-            ndim=m - 1, position=self.follower.applied, indexed_batch=e.indexed_seq,
+            ndim=m - 1, position=self.follower.applied, indexed_batch=indexed,
             pending_batches=pending_batches, pending_samples=pending_samples,
             nrejected=d["nrejected"], nvertices=d["nstored"], nsimplex=d["nsimplex"],
             created=e.created, error=e.error,

@@ -10,9 +10,12 @@ machinery on the hot endpoint) both call it with a :class:`QueryParams`
 validated by the same model.
 
 Where the work runs: small bodies are decoded on the event loop, larger ones
-in the thread pool; queries of fewer than :data:`INLINE_ROWS` rows run inline
-on one native thread unless an insert may hold the field (they would wait on
-the loop), everything else in the thread pool (the C++ releases the GIL).
+in the thread pool; queries of fewer than :data:`INLINE_ROWS` rows run (and are
+encoded) inline on one native thread unless an insert may hold the field (they
+would wait on the loop), everything else in the thread pool (the C++ releases
+the GIL), its answer encoded there too. An answer larger than
+``max_json_answer_bytes`` (JSON) or ``max_answer_bytes`` is refused (413) before
+the query runs (:func:`.codec.check_answer`).
 """
 from __future__ import annotations
 
@@ -148,18 +151,32 @@ async def answer(queries: QueryService, name: str, params: QueryParams, body: by
         flats = decode()
     else:
         flats = await anyio.to_thread.run_sync(decode)
-    kw = {"outside": params.outside, "order": params.order, "weights": params.weights}
+    kind = codec.accept_kind(accept)
+    w = params.weights
+    codec.check_answer(len(flats), codec.query_numbers(kind, e.spec.channels, e.field.ndim, w),
+                       kind, max_json=settings.max_json_answer_bytes,
+                       max_binary=settings.max_answer_bytes,
+                       bulk=f"ask for {codec.NPY} (Accept header), the bulk answer"
+                       if kind == "json" else "")
+    kw = {"outside": params.outside, "order": params.order, "weights": w}
     t1 = time.perf_counter()
-    res = None
+    times: dict = {}
+
+    def encode(res: QueryResult) -> Response:
+        t = time.perf_counter()
+        times["query"] = t - t1
+        out = codec.query_response(accept, res.values, res.inside, res.status,
+                                   res.ids if w else None, res.weights if w else None)
+        times["encode"] = time.perf_counter() - t
+        return out
+
+    resp = None
     if len(flats) < INLINE_ROWS and not params.wait:  # inline, unless an insert holds the field
         res = queries.query(e, flats, threads=1, blocking=False, **kw)
-    if res is None:
-        res = await anyio.to_thread.run_sync(
-            lambda: queries.query(e, flats, wait=params.wait, **kw))
-    t2 = time.perf_counter()
-    w = params.weights
-    resp = codec.query_response(accept, res.values, res.inside, res.status,
-                                res.ids if w else None, res.weights if w else None)
-    resp.headers["Server-Timing"] = server_timing(
-        {"decode": t1 - t0, "query": t2 - t1, "encode": time.perf_counter() - t2})
+        if res is not None:
+            resp = encode(res)
+    if resp is None:  # the query and its encoding off the event loop
+        resp = await anyio.to_thread.run_sync(
+            lambda: encode(queries.query(e, flats, wait=params.wait, **kw)))
+    resp.headers["Server-Timing"] = server_timing({"decode": t1 - t0, **times})
     return resp

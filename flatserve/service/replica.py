@@ -29,11 +29,10 @@ import threading
 import time
 from dataclasses import dataclass
 
-from ..errors import InvalidInputError
 from ..field import AddResult, PreparedBatch
 from .applier import LogApplier, Stopped
 from .backend import LogBackend, LogEntry
-from .status import NotReadyError, ReplicaBehindError, StorageError
+from .status import InvalidParameterError, NotReadyError, ReplicaBehindError, StorageError
 
 log = logging.getLogger("flatserve.service")
 
@@ -165,7 +164,7 @@ class Follower:
 
         Raises
         ------
-        InvalidInputError
+        InvalidParameterError
             ``position`` is beyond the log's head: no write returned it (422).
         ReplicaBehindError
             Not applied within ``timeout`` seconds (or the replica is stopping).
@@ -174,7 +173,7 @@ class Follower:
             return
         head = self.backend.head()
         if position > head:  # a write's position is committed, so never beyond the head
-            raise InvalidInputError(
+            raise InvalidParameterError(
                 f"min_position: {position} is beyond the log's last position {head}: no "
                 "write returned it (pass the position of an upload's response or of a "
                 "Flatserve-Position header)", "min_position")

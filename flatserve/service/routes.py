@@ -17,10 +17,11 @@ from ..options import Form
 from . import codec, specs
 from .catalogue import FieldState
 from .deps import (AnyField, BodyDep, CatalogueDep, FieldNamePath, FieldsDep, FollowerDep,
-                   QueriesDep, ReadAccess, ReadyField, SettingsDep, SnapshotsDep, TransferDep,
-                   UploadsDep, WriteAccess, json_body, json_body_doc, request_example)
+                   NoBody, OnceIdempotencyKey, QueriesDep, ReadAccess, ReadyField, SettingsDep,
+                   SnapshotsDep, TransferDep, UploadsDep, WriteAccess, authorize, json_body,
+                   json_body_doc, presented_key, request_example)
 from .errors import (BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, FIELD_WRITE_RESPONSES,
-                     UPLOAD_RESPONSES, WRITE_RESPONSES, ApiError)
+                     GUARD_RESPONSES, UPLOAD_RESPONSES, WRITE_RESPONSES, ApiError)
 from .logs import note
 from .query import QueryParams, answer, server_timing
 from .responses import model_body
@@ -92,13 +93,13 @@ def create_field(spec: json_body(FieldCreate), fields: FieldsDep, follower: Foll
     return fields.describe(e, verbose)
 
 
-@api.get("/fields", response_model=FieldList, response_model_exclude_unset=True, tags=["fields"], dependencies=[ReadAccess],
+@api.get("/fields", response_model=FieldList, response_model_exclude_unset=True, tags=["fields"], dependencies=[ReadAccess, NoBody],
          responses=COMMON_RESPONSES, summary="List fields")
 def list_fields(fields: FieldsDep) -> FieldList:
     return FieldList(fields=fields.summaries())
 
 
-@api.get("/fields/{name}", response_model=FieldInfo, response_model_exclude_unset=True, tags=["fields"], dependencies=[ReadAccess],
+@api.get("/fields/{name}", response_model=FieldInfo, response_model_exclude_unset=True, tags=["fields"], dependencies=[ReadAccess, NoBody],
          responses=FIELD_RESPONSES, summary="Describe a field")
 async def describe_field(name: FieldNamePath, fields: FieldsDep, queries: QueriesDep,
                          catalogue: CatalogueDep,
@@ -109,7 +110,7 @@ async def describe_field(name: FieldNamePath, fields: FieldsDep, queries: Querie
     return await anyio.to_thread.run_sync(fields.describe, e, verbose)
 
 
-@api.delete("/fields/{name}", status_code=204, tags=["fields"], dependencies=[WriteAccess],
+@api.delete("/fields/{name}", status_code=204, tags=["fields"], dependencies=[WriteAccess, NoBody],
             responses=FIELD_WRITE_RESPONSES, summary="Delete a field and its stored batches")
 def delete_field(name: FieldNamePath, fields: FieldsDep) -> Response:
     pos = fields.delete(name)
@@ -117,13 +118,14 @@ def delete_field(name: FieldNamePath, fields: FieldsDep) -> Response:
 
 
 @api.get("/fields/{name}/batches", response_model=BatchList, response_model_exclude_unset=True, tags=["fields"],
-         dependencies=[ReadAccess], responses=FIELD_RESPONSES, summary="List stored batches")
+         dependencies=[ReadAccess, NoBody], responses=FIELD_RESPONSES, summary="List stored batches")
 def list_batches(e: AnyField, uploads: UploadsDep) -> BatchList:
     return BatchList(batches=uploads.batches(e))
 
 
 @api.post("/fields/{name}/snapshot", response_model=SnapshotResult, response_model_exclude_unset=True, tags=["fields"],
-          dependencies=[WriteAccess], responses=FIELD_WRITE_RESPONSES, summary="Write a snapshot now")
+          dependencies=[WriteAccess, NoBody], responses=FIELD_WRITE_RESPONSES,
+          summary="Write a snapshot now")
 def snapshot_field(e: ReadyField, snapshots: SnapshotsDep) -> SnapshotResult:
     return snapshots.snapshot(e)
 
@@ -166,7 +168,8 @@ def import_field(name: FieldNamePath, transfer: TransferDep, body: BodyDep, resp
 # -- samples and queries --------------------------------------------------------
 @api.post(
     "/fields/{name}/samples", response_model=UploadResult, response_model_exclude_unset=True, tags=["samples"],
-    dependencies=[WriteAccess], responses=UPLOAD_RESPONSES, openapi_extra=_body_doc(UploadBody),
+    dependencies=[WriteAccess, OnceIdempotencyKey], responses=UPLOAD_RESPONSES,
+    openapi_extra=_body_doc(UploadBody),
     summary="Upload a batch of samples",
     description="Stores the batch durably (acknowledged only after its commit to the "
                 "shared log; the response's `position` is its log position, for reads with "
@@ -180,7 +183,7 @@ def import_field(name: FieldNamePath, transfer: TransferDep, body: BodyDep, resp
                 "`pending_samples` tell when it is wholly visible; a later "
                 "`wait=true` upload or a query with `wait=true` waits for it). "
                 + _LAYOUT + " With `Idempotency-Key`, a retried batch is stored once; the same "
-                "key with different content is a 422.",
+                "key with different content is a 422, the header sent twice a 400.",
 )
 def upload_samples(
     e: ReadyField, uploads: UploadsDep, settings: SettingsDep, body: BodyDep,
@@ -242,6 +245,8 @@ def limits(settings: SettingsDep) -> Limits:
 def math_coordinates(req: json_body(CoordinatesRequest), settings: SettingsDep) -> Response:
     basis = specs.build_basis(req.basis, req.k, req.d)
     flats = specs.flats_of(req.flats, req.k, req.d, "flats", settings.max_batch_rows)
+    m = basis.m  # weights (m), status, residual (+ embedded (m - 1))
+    _check_math_answer(len(flats), m + 2 + (m - 1 if req.embed else 0), settings)
     c = basis.coordinates_of(flats)
     extra = {}
     if req.embed:
@@ -265,13 +270,26 @@ def math_project(req: json_body(ProjectRequest), settings: SettingsDep) -> Respo
     if w.shape[0] > settings.max_batch_rows:
         from .status import BatchTooLargeError
         raise BatchTooLargeError(f"{w.shape[0]} weight rows; the limit is {settings.max_batch_rows}")
+    d, k = req.d, req.k  # per row: Q (d x d), r (d), A (d x k), b (d), gap, ambiguous
+    _check_math_answer(w.shape[0], d * d + 2 * d + d * k + 2, settings)
     p = flats.affine_combination(w, Q, r, req.k)
     A, b = flats.to_parametric(p.Q, p.r, req.k)
     return model_body(ProjectResult, Q=p.Q, r=p.r, A=A, b=b, gap=p.gap, ambiguous=p.ambiguous)
 
 
+def _check_math_answer(rows: int, per_row: int, settings) -> None:
+    """413 for a math answer over ``max_json_answer_bytes``, before it is computed (its
+    work grows as its size: rows x d^2)."""
+    codec.check_answer(rows, per_row, "json", max_json=settings.max_json_answer_bytes,
+                       max_binary=settings.max_answer_bytes,
+                       bulk="compute large batches in-process with the library "
+                            "(flatserve.Basis.coordinates_of, flatserve.flats."
+                            "affine_combination)")
+
+
 # -- health and metrics -------------------------------------------------------------
-@health.get("/healthz", response_model=Health, response_model_exclude_unset=True, tags=["health"], summary="Liveness")
+@health.get("/healthz", response_model=Health, response_model_exclude_unset=True, tags=["health"],
+            dependencies=[NoBody], responses=GUARD_RESPONSES, summary="Liveness")
 def healthz() -> Health:
     return Health(status="ok")
 
@@ -282,9 +300,20 @@ def healthz() -> Health:
                         "field that failed (its restore, or a log entry it cannot apply) "
                         "does not make the replica unready (every replica would fail it "
                         "alike): it is listed in `failed_fields` (its requests get 503 "
-                        "naming the error).",
-            responses={503: {"model": Health, "description": "Stored fields still loading."}})
-def readyz(catalogue: CatalogueDep, follower: FollowerDep) -> Response:
+                        "naming the error). Without a key (when keys are on) the answer is "
+                        "the status alone; the details (fields loading and failed, the log "
+                        "position, the pid, the backend, the storage error) need the read "
+                        "key.",
+            dependencies=[NoBody],
+            responses={**GUARD_RESPONSES,
+                       503: {"model": Health, "description": "Stored fields still loading."}})
+def readyz(request: Request, catalogue: CatalogueDep, follower: FollowerDep,
+           settings: SettingsDep) -> Response:
+    try:
+        authorize(settings, presented_key(request.scope["headers"]), write=False)
+        details = True
+    except ApiError:  # a missing or wrong key: the status only
+        details = False
     states = catalogue.counts()
     loading, failed = states[FieldState.LOADING], states[FieldState.FAILED]
     body = {"fields": sum(map(len, states.values())), "loading": len(loading),
@@ -293,15 +322,16 @@ def readyz(catalogue: CatalogueDep, follower: FollowerDep) -> Response:
     try:
         body.update(follower.progress())
     except Exception as exc:  # the database is unreachable: not ready
-        return model_body(Health, 503, status="storage unavailable", error=str(exc), **body)
-    if not catalogue.ready.is_set():
-        return model_body(Health, 503, status="loading", **body)
-    return model_body(Health, status="ready", **body)
+        body["error"] = str(exc)
+        status, code = "storage unavailable", 503
+    else:
+        status, code = ("ready", 200) if catalogue.ready.is_set() else ("loading", 503)
+    return model_body(Health, code, status=status, **(body if details else {}))
 
 
 @health.get("/metrics", tags=["health"], summary="Prometheus metrics",
-            response_class=Response, dependencies=[ReadAccess],
-            responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}},
+            response_class=Response, dependencies=[ReadAccess, NoBody],
+            responses={**COMMON_RESPONSES, 200: {"content": {"text/plain": {"schema": {"type": "string"}}},
                              "description": "Prometheus text format."}})
 def metrics(request: Request) -> Response:
     from .metrics import CONTENT_TYPE

@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from ..errors import InvalidInputError
 from .status import BatchTooLargeError
 from . import codec
-from .deps import FieldNamePath, ReadAccess, ReadyField, SettingsDep, json_body, json_body_doc
+from .deps import FieldNamePath, NoBody, ReadAccess, ReadyField, SettingsDep, json_body, json_body_doc
 from .errors import COMMON_RESPONSES, FIELD_RESPONSES
 from .logs import note
 from .query import server_timing
@@ -49,7 +49,8 @@ Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 class OrbitSpec(BaseModel):
     """Eye on a sphere around the origin, looking at it (the viewer's camera)."""
 
-    model_config = ConfigDict(extra="forbid")
+    # strict: a boolean for a number ("fill": false) is a 422, as in the other bodies
+    model_config = ConfigDict(extra="forbid", strict=True)
     yaw: float = Field(0.0, ge=-360, le=360, allow_inf_nan=False, description="Degrees about +y.")
     pitch: float = Field(0.0, ge=-89, le=89, allow_inf_nan=False, description="Degrees up/down.")
     distance: float = Field(3.0, gt=0, le=1e3, allow_inf_nan=False, description="Eye distance from the origin.")
@@ -62,7 +63,8 @@ class CameraSpec(BaseModel):
     nothing: the default camera at (0, 0, -3) looking along +z.
     """
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+    # strict: a boolean for a number ("fill": false) is a 422, as in the other bodies
+    model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra={"examples": [
         {"orbit": {"yaw": 30.0, "pitch": 10.0, "distance": 3.0}, "width": 64, "height": 64}]})
     orbit: Optional[OrbitSpec] = None
     eye: Optional[Vec3] = None
@@ -150,6 +152,10 @@ def render(e: ReadyField, camera: json_body(CameraSpec), settings: SettingsDep,
     if cam.nrays > settings.max_batch_rows:
         raise BatchTooLargeError(f"{cam.nrays} rays in one frame; the limit is {settings.max_batch_rows}")
     fmt = camera.format or ("npy" if accept and codec.NPY in accept else "png")
+    if fmt == "npy":  # float32 (H, W, C): bounded before it is rendered
+        codec.check_answer(cam.height * cam.width, e.spec.channels, "npy",
+                           max_json=settings.max_json_answer_bytes,
+                           max_binary=settings.max_answer_bytes, bytes_per_number=4)
     body, media, timings, coverage = render_frame(
         e.field, cam, fill=0.0 if camera.fill is None else camera.fill, fmt=fmt)
     total = time.perf_counter() - t0
@@ -159,13 +165,13 @@ def render(e: ReadyField, camera: json_body(CameraSpec), settings: SettingsDep,
         "X-Render-Seconds": f"{total:.6f}", "Cache-Control": "no-store"})
 
 
-@viewer.get("/viewer/assets/{file}")
+@viewer.get("/viewer/assets/{file}", dependencies=[NoBody])
 def viewer_asset(file: Literal["viewer.js", "viewer.css"]) -> FileResponse:
     media = "text/javascript" if file.endswith(".js") else "text/css"
     return FileResponse(STATIC / file, media_type=media, headers={"Cache-Control": "no-cache"})
 
 
-@viewer.get("/viewer/{name}", response_class=HTMLResponse)
+@viewer.get("/viewer/{name}", response_class=HTMLResponse, dependencies=[NoBody])
 def viewer_page(name: FieldNamePath) -> HTMLResponse:
     # static page: the field name is read from the URL by viewer.js
     return HTMLResponse((STATIC / "viewer.html").read_text(encoding="utf-8"),

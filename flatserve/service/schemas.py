@@ -37,12 +37,23 @@ class _OneForm(_Strict):
 
     @model_validator(mode="after")
     def _one(self):
-        """At most one of the alternative array pairs may be given."""
+        """Exactly one of the alternative array pairs is given (as the schema says)."""
         given = [name for name, keys in self._forms.items()
                  if any(getattr(self, key) is not None for key in keys)]
         if len(given) > 1:
             raise ValueError(f"give one of {' / '.join(self._forms)}, not {' and '.join(given)}")
+        if not given:
+            raise ValueError(f"give one of {' / '.join(self._forms)} (no arrays given)")
         return self
+
+    @classmethod
+    def __get_pydantic_json_schema__(cls, core_schema, handler):
+        """The schema says what the validator takes: one pair of arrays, both given."""
+        js = handler.resolve_ref_schema(handler(core_schema))
+        js["anyOf"] = [{"required": list(keys),
+                        "properties": {key: {"not": {"type": "null"}} for key in keys}}
+                       for keys in cls._forms.values()]
+        return js
 
 
 class CenterFlat(_OneForm):

@@ -56,7 +56,7 @@ def serve(settings: Settings | None = None, listen_fd: int | None = None) -> Non
     inherited listening socket to serve (a supervisor's child)."""
     import uvicorn
 
-    from .app import create_app
+    from .app import app_ready, create_app
 
     settings = settings or Settings()
     from . import logs
@@ -107,14 +107,46 @@ def serve(settings: Settings | None = None, listen_fd: int | None = None) -> Non
     kw = dict(log_level=settings.log_level.lower(), access_log=False, log_config=None,
               timeout_graceful_shutdown=10, http=protocol,
               timeout_keep_alive=settings.keepalive_timeout)
+    app = create_app(settings)
+    sockets = None
     if listen_fd is None:
-        uvicorn.run(create_app(settings), host=host, port=settings.port, workers=1, **kw)
-        return
-    import socket
+        config = uvicorn.Config(app, host=host, port=settings.port, workers=1, **kw)
+    else:
+        import socket
 
-    sock = socket.socket(fileno=listen_fd)  # family and type from the descriptor
-    config = uvicorn.Config(create_app(settings), **kw)
-    uvicorn.Server(config).run(sockets=[sock])
+        sockets = [socket.socket(fileno=listen_fd)]  # family and type from the descriptor
+        config = uvicorn.Config(app, **kw)
+    if settings.accept_when_ready or listen_fd is not None:
+        server = ready_first_server(config, lambda: app_ready(app))
+    else:
+        server = uvicorn.Server(config)
+    server.run(sockets=sockets)
+
+
+def ready_first_server(config, ready):
+    """A uvicorn server that takes connections only once ``ready()`` is true: its
+    lifespan (which starts the restore) runs first, then it waits (a SIGTERM
+    meanwhile stops it), then it listens (its own port) or serves the inherited
+    socket, whose connections until then go to the replicas that serve it."""
+    import asyncio
+
+    import uvicorn
+
+    class ReadyFirstServer(uvicorn.Server):
+        async def startup(self, sockets=None) -> None:
+            lifespan_startup = self.lifespan.startup
+
+            async def start_then_wait() -> None:
+                await lifespan_startup()
+                while not (self.should_exit or self.lifespan.should_exit or ready()):
+                    await asyncio.sleep(0.05)
+                if not self.should_exit and not self.lifespan.should_exit:
+                    log.info("ready: taking connections")
+
+            self.lifespan.startup = start_then_wait
+            await super().startup(sockets=sockets)
+
+    return ReadyFirstServer(config)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

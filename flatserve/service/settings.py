@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import ipaddress
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 #: Field names: a letter or digit, then up to 63 letters, digits, ``_ . -``.
 #: No ``/``, no leading dot: a name can never become a path.
@@ -41,6 +41,16 @@ class Settings(BaseSettings):
     """Read-write API key."""
     read_only_key: SecretStr | None = Field(None)
     """Read-only API key (queries, GETs)."""
+    allowed_hosts: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    """Host header values accepted (names or addresses, without the port; comma-separated; '*'
+    any), others get 421: a page of another site that makes its name resolve to this server
+    (DNS rebinding) is refused. Empty (the default): the bound address and the localhost names
+    (localhost, 127.0.0.1, ::1); any when bound to a wildcard address (0.0.0.0, ::), which
+    needs api_key. Set it to the names clients use behind a proxy."""
+    cors_origins: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    """Origins (scheme://host[:port], comma-separated; '*' any) whose web pages may call this
+    server from a browser (CORS). Empty (the default): no CORS, and requests whose Origin header
+    names another origin are refused (403)."""
     max_body_bytes: int = Field(512 * MiB, ge=1)
     """Largest accepted request body (413)."""
     max_json_bytes: int = Field(16 * MiB, ge=1)
@@ -48,6 +58,13 @@ class Settings(BaseSettings):
     arrays travel as .npy / .npz (up to max_body_bytes)."""
     max_batch_rows: int = Field(1_000_000, ge=1)
     """Most rows in one upload or query (413)."""
+    max_json_answer_bytes: int = Field(64 * MiB, ge=1)
+    """Largest JSON answer, estimated before any work is done (413 naming the estimate): writing
+    JSON holds the interpreter for its whole length, so bulk answers travel as .npy (a query
+    with Accept: application/x-npy)."""
+    max_answer_bytes: int = Field(512 * MiB, ge=1)
+    """Largest binary answer (.npy / .npz of a query, a rendered .npy frame), estimated before
+    any work is done (413): split the batch."""
     max_fields: int = Field(256, ge=1)
     """Most fields on this server (409)."""
     max_pending_samples: int = Field(2_000_000, ge=1)
@@ -93,6 +110,11 @@ class Settings(BaseSettings):
     processes: int = Field(1, ge=1, le=256)
     """Replica processes serving one port (SQLite backend: they share the data directory; each
     holds its own copy of every field's triangulation)."""
+    accept_when_ready: bool = Field(False)
+    """Take connections only once the stored fields are restored (the replicas of processes > 1
+    always do, so a restarted one leaves its connections to a ready sibling). Behind a load
+    balancer a restarting replica is then refused connections, which the balancer passes on,
+    instead of answering 503 while it loads; a lone server's clients wait for it instead."""
     read_wait_timeout: float = Field(10.0, ge=0)
     """Seconds a read with min_position waits for this replica to apply that log position; then 503
     with Retry-After."""
@@ -127,6 +149,22 @@ class Settings(BaseSettings):
     @classmethod
     def _empty_is_unset(cls, v):
         return None if v is None or (isinstance(v, str) and not v.strip()) else v
+
+    @field_validator("allowed_hosts", "cors_origins", mode="before")
+    @classmethod
+    def _comma_list(cls, v):
+        if isinstance(v, str):
+            v = v.split(",")
+        return [x.strip() for x in v if x and x.strip()] if v is not None else []
+
+    @field_validator("cors_origins")
+    @classmethod
+    def _origins(cls, v: list[str]) -> list[str]:
+        for o in v:
+            if o != "*" and (not o.startswith(("http://", "https://")) or o.count("/") != 2):
+                raise ValueError(f"cors_origins: {o!r} is not an origin: "
+                                 "scheme://host[:port], no path (or '*')")
+        return [o.lower() for o in v]
 
     @model_validator(mode="after")
     def _keys(self) -> "Settings":

@@ -59,20 +59,37 @@ class Failure(enum.Enum):
     FAILED = "failed"            # anything else
 
 
+#: what a client is told of each failure (:attr:`StorageError.public`): the database's
+#: own message and where it is (a path, a host, a user, relation files) go to the log
+PUBLIC_FAILURE = {
+    Failure.FULL: "storage is out of space: nothing was stored; retry once space is freed "
+                  "(the server's log says where)",
+    Failure.DAMAGED: "storage failed: the database is damaged (the server's log says where)",
+    Failure.UNREACHABLE: "the database cannot be reached; retry (a write in flight may be "
+                         "stored: retry it with its Idempotency-Key)",
+    Failure.FAILED: "storage failed (the server's log has the database's message)",
+}
+
+
 def storage_failure(kind: Failure, exc: BaseException, where: str) -> StorageError:
     """The service's error for a database failure of ``kind`` at ``where`` (a path,
-    or a URL without its password)."""
+    or a URL without its password). Its text names ``where`` and the database's
+    message (for the log and the start-up line); its ``public`` text, which a client
+    gets, names neither."""
     msg = " ".join(str(exc).split()) or type(exc).__name__
     if kind is Failure.FULL:
-        return StorageFullError(f"storage failed: {where} is out of space ({msg})")
-    if kind is Failure.DAMAGED:
-        return StorageError(f"storage failed: the database {where} is damaged ({msg}); "
-                            "restore it from a backup or move it away")
-    if kind is Failure.UNREACHABLE:
-        return StorageUnavailableError(f"the database {where} cannot be reached ({msg}); "
-                                       "retry (a write in flight may be stored: retry it with "
-                                       "its Idempotency-Key)")
-    return StorageError(f"storage failed ({where}): {msg}")
+        err = StorageFullError(f"storage failed: {where} is out of space ({msg})")
+    elif kind is Failure.DAMAGED:
+        err = StorageError(f"storage failed: the database {where} is damaged ({msg}); "
+                           "restore it from a backup or move it away")
+    elif kind is Failure.UNREACHABLE:
+        err = StorageUnavailableError(f"the database {where} cannot be reached ({msg}); "
+                                      "retry (a write in flight may be stored: retry it "
+                                      "with its Idempotency-Key)")
+    else:
+        err = StorageError(f"storage failed ({where}): {msg}")
+    err.public = PUBLIC_FAILURE[kind]
+    return err
 
 
 def snapshot_failure(exc: OSError) -> StorageError:

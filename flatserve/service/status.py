@@ -17,14 +17,22 @@ from ..errors import BasisError, FlatserveError, InvalidInputError, SnapshotErro
 __all__ = [
     "StorageError", "FieldNotFoundError", "FieldExistsError", "LimitExceededError",
     "StorageFullError", "StorageUnavailableError", "DataDirInUseError", "TooManyFieldsError",
-    "BatchTooLargeError", "BodyTooLargeError", "BacklogFullError", "CostLimitError",
-    "NotReadyError", "ReplicaBehindError", "IdempotencyConflictError", "HTTP_STATUS",
+    "BatchTooLargeError", "BodyTooLargeError", "AnswerTooLargeError", "BacklogFullError",
+    "CostLimitError",
+    "CostPendingError",
+    "NotReadyError", "ReplicaBehindError", "IdempotencyConflictError", "InvalidParameterError",
+    "HTTP_STATUS",
     "status_of", "error_class",
 ]
 
 
 class StorageError(FlatserveError):
-    """Durable storage failed (disk, database)."""
+    """Durable storage failed (disk, database).
+
+    ``public``, when set, is what a client is told instead of the text (which may
+    name the database's host, user, files)."""
+
+    public: str | None = None
 
 
 class FieldNotFoundError(FlatserveError, KeyError):
@@ -65,12 +73,22 @@ class BodyTooLargeError(LimitExceededError):
     """A request body is larger than the configured limit."""
 
 
+class AnswerTooLargeError(LimitExceededError):
+    """The answer to a request would be larger than the configured limit (judged
+    before the work is done)."""
+
+
 class BacklogFullError(LimitExceededError):
     """Too many acknowledged samples of a field wait for their insert."""
 
 
 class CostLimitError(LimitExceededError):
     """An upload would make a field's triangulation larger than allowed."""
+
+
+class CostPendingError(BacklogFullError):
+    """An upload would pass the cell limit only counting the samples acknowledged and
+    not yet indexed: it may pass once they are (429, ``Retry-After``)."""
 
 
 class NotReadyError(FlatserveError):
@@ -81,6 +99,13 @@ class ReplicaBehindError(NotReadyError):
     """This replica has not yet applied the log position a read asked for
     (``min_position``) within the configured wait; another replica, or a retry,
     will have."""
+
+
+class InvalidParameterError(InvalidInputError):
+    """Bad input in a query parameter (422 located at ``["query", name]``, not in the
+    body)."""
+
+    location = "query"
 
 
 class IdempotencyConflictError(FlatserveError):

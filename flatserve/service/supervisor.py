@@ -39,6 +39,28 @@ QUICK_EXIT_S = 5.0
 MAX_QUICK_EXITS = 5
 #: seconds children get to stop on SIGTERM before SIGKILL
 STOP_TIMEOUT_S = 30.0
+#: what a child runs (``python -c``): the supervisor's own installation (its first
+#: argument) first on ``sys.path`` in place of the working directory, then the
+#: server's entry point with the rest
+CHILD_BOOT = ("import os, sys; root = sys.argv.pop(1); "
+              "sys.path[:] = [root] + [p for p in sys.path if p not in ('', os.getcwd(), root)]; "
+              "from flatserve.service.server import main; sys.exit(main(sys.argv[1:]))")
+
+
+def child_command(*args: str) -> list[str]:
+    """The command of a replica process: this interpreter, importing the same
+    ``flatserve`` as this process whatever the working directory.
+
+    ``python -m flatserve.service`` would put the working directory first on
+    ``sys.path``: started in a source checkout, a child would import the source
+    tree (without the built extension) instead of the installed package. The
+    child puts the directory this process imported ``flatserve`` from first
+    instead, and leaves the working directory off.
+    """
+    import flatserve
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(flatserve.__file__)))
+    return [sys.executable, "-c", CHILD_BOOT, root, *args]
 
 
 def settings_env(settings: Settings) -> dict[str, str]:
@@ -52,6 +74,8 @@ def settings_env(settings: Settings) -> dict[str, str]:
             v = v.get_secret_value()
         elif isinstance(v, bool):
             v = "true" if v else "false"
+        elif isinstance(v, list):  # allowed_hosts, cors_origins: comma-separated
+            v = ",".join(v)
         env[f"FLATSERVE_{name.upper()}"] = str(v)
     return env
 
@@ -116,7 +140,7 @@ class Supervisor:
         if lock_fd is not None:
             env["FLATSERVE_LOCK_FD"] = str(lock_fd)
             pass_fds.append(lock_fd)
-        self.cmd = [sys.executable, "-m", "flatserve.service", "--listen-fd", str(sock.fileno())]
+        self.cmd = child_command("--listen-fd", str(sock.fileno()))
         self.env, self.pass_fds = env, pass_fds
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self._on_signal)

@@ -40,7 +40,7 @@ from .entry import FieldEntry
 from .replica import Follower
 from .schemas import BatchInfo, UploadResult
 from .settings import Settings
-from .status import (BacklogFullError, CostLimitError, FieldNotFoundError,
+from .status import (BacklogFullError, CostLimitError, CostPendingError, FieldNotFoundError,
                      IdempotencyConflictError, NotReadyError, StorageError)
 
 log = logging.getLogger("flatserve.service")
@@ -146,27 +146,48 @@ class UploadService:
                     "position": prev.position})
 
     def _check_cost(self, e: FieldEntry, flats: Flats, pending: int) -> None:
-        """Refuse (413) an upload expected to make the field's triangulations larger than
-        ``max_simplices`` cells in all: the field's own cells per stored sample once it
-        has some, else :data:`CELLS_PER_SAMPLE` (high-dimensional fields grow very fast:
-        200 samples in D = 8 make a million cells). A field of several shards stores a
-        sample once in every shard that holds it: the batch's rows are counted with
-        their copies (``copies``), and the ``pending`` samples with the batch's."""
+        """Refuse an upload expected to make the field's triangulations larger than
+        ``max_simplices`` cells in all.
+
+        The estimate is the field's size when it last held its batches whole
+        (``complete_size``, :meth:`.FieldEntry.mark_indexed`: never a triangulation
+        with a batch half inserted, whose cells per sample are far from the final
+        ones) plus the ``pending`` samples and the batch, times the cells per sample
+        measured then (:data:`CELLS_PER_SAMPLE` below :data:`COST_MIN_SAMPLES`
+        samples; high-dimensional fields grow very fast: 200 samples in D = 8 make a
+        million cells). A field of several shards stores a sample once in every shard
+        that holds it: the new rows are counted with their copies (``copies``).
+
+        Raises
+        ------
+        CostLimitError
+            413: the upload cannot pass, now or later (the field holds too much already
+            with this batch, or the batch alone is too large).
+        CostPendingError
+            429 with ``Retry-After``: it would pass but for the ``pending`` samples
+            (acknowledged, not yet indexed): once they are in, the field is measured
+            again and duplicates among them drop out.
+        """
         f = e.field
         D, n = f.ndim, len(flats)
-        stored, copies = f.nstored, f.copies(flats)
-        per = f.nsimplex / stored if stored >= COST_MIN_SAMPLES else CELLS_PER_SAMPLE.get(
+        stored, cells = e.complete_size
+        copies = f.copies(flats)
+        per = cells / stored if stored >= COST_MIN_SAMPLES else CELLS_PER_SAMPLE.get(
             D, CELLS_PER_SAMPLE[8] * 3.0 ** (D - 8))
         total = stored + (pending + n) * copies
         expected = total * per
         limit = self.settings.max_simplices
-        if expected > limit:
-            held = f" (x {copies:.2f} charts holding each)" if len(f.shards) > 1 else ""
-            raise CostLimitError(
-                f"field {e.name!r}: about {expected:,.0f} cells expected after this upload "
+        if expected <= limit:
+            return
+        held = f" (x {copies:.2f} charts holding each)" if len(f.shards) > 1 else ""
+        what = (f"field {e.name!r}: about {expected:,.0f} cells expected after this upload "
                 f"({total:,.0f} stored samples: {stored} + {pending + n} new{held}; x "
                 f"{per:,.0f} cells per sample in dimension {D}); the limit is {limit:,} "
                 "(FLATSERVE_MAX_SIMPLICES)")
+        if pending and (stored + n * copies) * per <= limit:
+            raise CostPendingError(f"{what}, counting {pending} acknowledged samples not yet "
+                                   "indexed: retry once they are (the field is measured again)")
+        raise CostLimitError(what)
 
     def _commit_and_chart(self, e, flats, values, idem_key, chash, stored, timings, *,
                           wait: bool) -> tuple[int, int, UploadResult]:

@@ -34,6 +34,11 @@ class ServerProcess:
     log_path : str or path
         Its output is appended there.
     log_level : str
+    command : list of str, optional
+        The program and its first arguments (default ``python -m flatserve.service``;
+        e.g. ``[".../bin/flatserve", "serve"]``, the installed script).
+    cwd : path, optional
+        Its working directory (default this process's).
     **options
         More settings as ``flatserve serve`` options (``snapshot_every=3000`` gives
         ``--snapshot-every 3000``). ``lock_fd`` (from
@@ -45,17 +50,18 @@ class ServerProcess:
     its process group): none is ever left behind, whatever failed.
     """
 
-    def __init__(self, data_dir, log_path, *, log_level: str = "info", **options):
+    def __init__(self, data_dir, log_path, *, log_level: str = "info",
+                 command: list[str] | None = None, cwd=None, **options):
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        cmd = [sys.executable, "-m", "flatserve.service", "--port", str(self.port),
+        cmd = [*(command or [sys.executable, "-m", "flatserve.service"]), "--port", str(self.port),
                "--data-dir", str(data_dir), "--log-level", log_level]
         for k, v in options.items():
             cmd += [f"--{k.replace('_', '-')}", str(v)]
         self.log = open(log_path, "ab")
         fds = (options["lock_fd"],) if options.get("lock_fd") is not None else ()
         self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=subprocess.STDOUT,
-                                     start_new_session=True, pass_fds=fds)
+                                     start_new_session=True, pass_fds=fds, cwd=cwd)
 
     def wait_ready(self, timeout: float = 90.0, interval: float = 0.05) -> None:
         """Wait until ``/readyz`` says ready; RuntimeError if the process exits,

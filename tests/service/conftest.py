@@ -129,7 +129,7 @@ def assert_data_dir_refused(data, holder_pid):
 
 def started(app):
     """Enter ``app``'s lifespan (the caller exits it) and wait until it is ready."""
-    tc = TestClient(app)
+    tc = TestClient(base_url="http://127.0.0.1", app=app)
     tc.__enter__()
     c = Client(http=tc)
     c.wait_ready(60)
@@ -156,7 +156,7 @@ def make_app(tmp_path):
 @pytest.fixture
 def api(make_app):
     """A started app: ``(TestClient, flatserve Client)``."""
-    with TestClient(make_app()) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=make_app()) as tc:
         tc.get("/readyz")
         c = Client(http=tc)
         c.wait_ready(30)

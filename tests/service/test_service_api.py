@@ -296,7 +296,7 @@ def test_names_and_unknown_fields(api):
 
 def test_limits(make_app, rng):
     app = make_app(max_body_bytes=20_000, max_batch_rows=100, max_fields=2)
-    with TestClient(app) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=app) as tc:
         c = Client(http=tc)
         c.wait_ready()
         c.create_field("a")
@@ -324,7 +324,7 @@ def test_limits(make_app, rng):
 
 def test_api_keys(make_app):
     app = make_app(api_key="rw-secret", read_only_key="ro-secret")
-    with TestClient(app) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=app) as tc:
         assert tc.get("/healthz").status_code == 200
         assert tc.get("/v1/fields").status_code == 401
         assert tc.get("/v1/fields", headers={"api-key": "wrong"}).status_code == 401

@@ -26,7 +26,7 @@ def _npy(a):
 @pytest.fixture(params=KINDS, ids=str)
 def served(make_app, rng, request):
     """A field of each kind (the default atlas, one chart) with samples: ``(tc, kind)``."""
-    with TestClient(make_app()) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=make_app()) as tc:
         c = Client(http=tc)
         c.wait_ready(30)
         c.create_field("f", channels=2, basis=request.param.basis)
@@ -64,7 +64,7 @@ def test_same_answers_as_the_route(served, rng, n, params):
 @pytest.mark.parametrize("case", ["unknown field", "bad name", "content type", "bad json",
                                   "shape", "non-finite", "bad param", "too many rows"])
 def test_same_errors_as_the_route(make_app, case):
-    with TestClient(make_app(max_batch_rows=3)) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=make_app(max_batch_rows=3)) as tc:
         Client(http=tc).wait_ready(30)
         tc.post("/v1/fields", json={"name": "f"})
         url, params, kw = "/v1/fields/f/query", {}, {}
@@ -93,7 +93,7 @@ def test_same_errors_as_the_route(make_app, case):
 
 
 def test_api_keys_and_metrics_on_the_fast_path(make_app, rng):
-    with TestClient(make_app(api_key="rw-key", read_only_key="ro-key")) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=make_app(api_key="rw-key", read_only_key="ro-key")) as tc:
         Client(http=tc).wait_ready(30)
         c = Client(http=tc, api_key="rw-key")
         c.create_field("f")

@@ -136,7 +136,7 @@ def test_fields_restore_independently(make_app, rng, monkeypatch):
     from fastapi.testclient import TestClient
     from flatserve.client import Client
 
-    with TestClient(make_app()) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=make_app()) as tc:
         c = Client(http=tc)
         from flatserve.service.status import NotReadyError
 

@@ -395,7 +395,7 @@ def test_a_database_outage_during_the_restore_is_waited_out(tmp_path, own_pg_clu
         return t
 
     probe = paper_rays(rng, 300)
-    with TestClient(app()) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=app()) as tc:
         c = Client(http=tc)
         c.wait_ready(60)
         c.create_field(FIELD, channels=1, basis=ONE_CHART)
@@ -411,7 +411,7 @@ def test_a_database_outage_during_the_restore_is_waited_out(tmp_path, own_pg_clu
 
     own_pg_cluster.stop("immediate")  # down when the replica starts
     t = restart_later(1.0)
-    with TestClient(app()) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=app()) as tc:
         check_serves(tc)
     t.join()
 
@@ -425,6 +425,6 @@ def test_a_database_outage_during_the_restore_is_waited_out(tmp_path, own_pg_clu
         return real(self, e, row, upto)
 
     monkeypatch.setattr(applier_mod.LogApplier, "_restore", restore)
-    with TestClient(app()) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=app()) as tc:
         check_serves(tc)
     calls[0].join()

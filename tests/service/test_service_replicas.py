@@ -487,3 +487,64 @@ def test_a_child_whose_supervisor_died_before_its_death_signal_was_set_exits():
     out = subprocess.run([sys.executable, "-c", code, str(os.getpid() + 10**6)],
                          capture_output=True, text=True, timeout=60)
     assert out.stdout.split() == ["alive"] and out.returncode == 1, out
+
+
+def test_children_import_the_supervisors_installation_from_any_directory(tmp_path, rng):
+    """``flatserve serve --processes 2`` started in a directory holding another
+    ``flatserve`` package (a source checkout without the built extension): the
+    children import the installation the supervisor runs, not that directory's
+    (which ``python -m`` would put first on ``sys.path``), and serve."""
+    checkout = tmp_path / "checkout"
+    (checkout / "flatserve" / "service").mkdir(parents=True)
+    for init in (checkout / "flatserve" / "__init__.py",
+                 checkout / "flatserve" / "service" / "__init__.py"):
+        init.write_text("raise ImportError('a source tree without its built extension')\n")
+    script = os.path.join(os.path.dirname(sys.executable), "flatserve")
+    assert os.path.exists(script)  # the installed console script (sys.path[0]: its bin/)
+    with ServerProcess(tmp_path / "data", tmp_path / "s.log", command=[script, "serve"],
+                       cwd=checkout, processes=2, snapshot_every=0) as srv:
+        srv.wait_ready(timeout=120)
+        assert len(children(srv.proc.pid)) == 2
+        with Client(srv.url) as c:
+            c.create_field("f", channels=1)
+            o, v = paper_rays(rng, 200)
+            rep = c.upload_rays("f", o, v, rng.uniform(size=200))
+            assert rep["accepted"] == 200
+    assert "source tree without" not in (tmp_path / "s.log").read_text()
+
+
+def test_a_restarted_replica_takes_connections_only_once_ready(tmp_path, rng):
+    """``--processes 2``: after kill -9 of one replica, its successor restores the
+    field (seconds) before it accepts a connection on the shared socket, so every
+    request on a new connection meanwhile is answered by the ready sibling: no
+    ``503 field is still loading``."""
+    with ServerProcess(tmp_path / "data", tmp_path / "s.log", processes=2,
+                       snapshot_every=0) as srv:
+        srv.wait_ready()
+        with Client(srv.url) as c:
+            c.create_field("f", channels=1, basis=ONE_CHART)
+            for _ in range(2):
+                o, v = paper_rays(rng, 25_000)
+                rep = c.upload_rays("f", o, v, rng.uniform(size=25_000))
+        kids = children(srv.proc.pid)
+        assert len(kids) == 2
+        for _ in range(20):  # both replicas have applied every batch
+            with Client(srv.url) as c:
+                info = c.describe("f", min_position=rep["position"])
+                assert info["pending_samples"] == 0
+        os.kill(kids[0], 9)
+        probe = paper_rays(rng, 20)
+        body = {"origins": probe[0].tolist(), "directions": probe[1].tolist()}
+        statuses, end, restored = [], time.monotonic() + 120, False
+        log = tmp_path / "s.log"
+        while time.monotonic() < end and not restored:
+            # a new connection each time: the kernel hands it to a replica accepting
+            r = httpx.post(srv.url + "/v1/fields/f/query", json=body, timeout=30,
+                           headers={"connection": "close"})
+            statuses.append(r.status_code)
+            now = [k for k in children(srv.proc.pid) if k not in kids]
+            restored = bool(now) and "': restored, " in \
+                log.read_text().partition(f"started (pid {now[0]})")[2]
+        assert restored, "the restarted replica never became ready"
+        assert len(statuses) >= 5  # requests were made while it restored
+        assert set(statuses) == {200}, statuses

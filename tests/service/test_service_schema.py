@@ -1,6 +1,8 @@
 """schemathesis against the live OpenAPI of an in-process app (ASGI), bounded in
 examples and time: no 5xx, and every response matches the documented schema
-(status code, content type, body)."""
+(status code, content type, body): once with keys off, once with keys on (the
+read-write, the read-only, a wrong and no key, in turn), so schema drift fails
+the suite."""
 from __future__ import annotations
 
 import shutil
@@ -29,24 +31,50 @@ CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,
 schemathesis.serializer.alias(["application/x-npy", "application/x-npz"], "application/octet-stream")
 
 _DATA = tempfile.mkdtemp(prefix="flatserve-schema-")
+# schemathesis' ASGI client sends Host: testserver
 app = create_app(Settings(data_dir=_DATA, snapshot_every=0, max_batch_rows=2000,
-                          max_body_bytes=1 << 20, max_fields=8))
+                          max_body_bytes=1 << 20, max_fields=8, allowed_hosts="testserver"))
 schema = schemathesis.openapi.from_asgi("/openapi.json", app)
+
+RW, RO = "rw-key-for-the-fuzzer", "ro-key-for-the-fuzzer"
+_DATA_KEYS = tempfile.mkdtemp(prefix="flatserve-schema-keys-")
+app_keys = create_app(Settings(data_dir=_DATA_KEYS, snapshot_every=0, max_batch_rows=2000,
+                               max_body_bytes=1 << 20, max_fields=8, allowed_hosts="testserver",
+                               api_key=RW, read_only_key=RO))
+schema_keys = schemathesis.openapi.from_asgi("/openapi.json", app_keys)
+#: the keys a case is sent with, in turn (None: no key)
+KEYS = [RW, RW, RO, "wrong-key", None]
+
+
+def _demo(tc) -> None:
+    c = Client(http=tc)
+    c.wait_ready(60)
+    if not any(f["name"] == "demo" for f in c.list_fields()):
+        c.create_field("demo", channels=1)
+        rng = np.random.default_rng(3)
+        o, v = paper_rays(rng, 300)
+        c.upload_rays("demo", o, v, rng.uniform(size=(300, 1)))
 
 
 @pytest.fixture(scope="module", autouse=True)
 def live_app():
-    """Keep the app's state alive for the module, with a field that has samples."""
-    with TestClient(app) as tc:
-        c = Client(http=tc)
-        c.wait_ready(60)
-        if not any(f["name"] == "demo" for f in c.list_fields()):
-            c.create_field("demo", channels=1)
-            rng = np.random.default_rng(3)
-            o, v = paper_rays(rng, 300)
-            c.upload_rays("demo", o, v, rng.uniform(size=(300, 1)))
+    """Keep the apps' state alive for the module, each with a field that has samples."""
+    with TestClient(app) as tc, TestClient(app_keys, headers={"api-key": RW}) as tck:
+        _demo(tc)
+        _demo(tck)
         yield
     shutil.rmtree(_DATA, ignore_errors=True)
+    shutil.rmtree(_DATA_KEYS, ignore_errors=True)
+
+
+def _keep_demo(case) -> None:
+    """Keep the demo field: route half the field requests to it, never delete it."""
+    if case.path_parameters and "name" in case.path_parameters:
+        if case.method == "DELETE":
+            if case.path_parameters["name"] == "demo":
+                case.path_parameters["name"] = "not-demo"
+        elif hash(repr(case.query)) % 2:
+            case.path_parameters["name"] = "demo"
 
 
 @schema.parametrize()
@@ -54,11 +82,24 @@ def live_app():
           phases=[Phase.explicit, Phase.generate],
           suppress_health_check=list(HealthCheck))
 def test_openapi_conformance(case):
-    # keep the demo field: route half the field requests to it, never delete it
-    if case.path_parameters and "name" in case.path_parameters:
-        if case.method == "DELETE":
-            if case.path_parameters["name"] == "demo":
-                case.path_parameters["name"] = "not-demo"
-        elif hash(repr(case.query)) % 2:
-            case.path_parameters["name"] = "demo"
+    _keep_demo(case)
+    case.call_and_validate(checks=CHECKS)
+
+
+_sent = [0]
+
+
+@schema_keys.parametrize()
+@settings(max_examples=MAX_EXAMPLES, deadline=None, derandomize=True,
+          phases=[Phase.explicit, Phase.generate],
+          suppress_health_check=list(HealthCheck))
+def test_openapi_conformance_with_keys(case):
+    _keep_demo(case)
+    headers = {k: v for k, v in (case.headers or {}).items()
+               if k.lower() not in ("api-key", "authorization")}
+    key = KEYS[_sent[0] % len(KEYS)]
+    _sent[0] += 1
+    if key is not None:
+        headers["api-key"] = key
+    case.headers = headers
     case.call_and_validate(checks=CHECKS)

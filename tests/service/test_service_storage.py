@@ -293,7 +293,7 @@ def test_a_stored_field_this_version_cannot_read_fails_alone(make_app, rng, tmp_
     with db:
         db.execute("""UPDATE fields SET spec='{"k": "one", "d": 3}' WHERE name='g'""")
     db.close()
-    tc = TestClient(make_app())
+    tc = TestClient(base_url="http://127.0.0.1", app=make_app())
     tc.__enter__()
     try:
         c = Client(http=tc)

@@ -234,7 +234,7 @@ def test_readyz_is_503_while_stored_fields_restore(make_app, rng, monkeypatch):
         return real(self, e, row)
 
     monkeypatch.setattr(applier_mod.LogApplier, "_restore", slow_restore)
-    with TestClient(make_app()) as tc:
+    with TestClient(base_url="http://127.0.0.1", app=make_app()) as tc:
         try:
             assert entered.wait(30)
             r = tc.get("/readyz")
@@ -321,7 +321,7 @@ def test_wait_false_failure_after_the_commit_leaves_nothing_stored(make_app, rng
             raise MemoryError("simulated")
 
         monkeypatch.setattr(Field, "chart", boom)
-        tc_raise = TestClient(tc.app, raise_server_exceptions=False)
+        tc_raise = TestClient(base_url="http://127.0.0.1", app=tc.app, raise_server_exceptions=False)
         r = tc_raise.post("/v1/fields/f/samples", params={"wait": "false"},
                           headers={"Idempotency-Key": "k1"},
                           json={"origins": o.tolist(), "directions": v.tolist(),

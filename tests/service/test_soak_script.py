@@ -99,3 +99,12 @@ def test_checks_pass_on_an_untampered_model(soak, tmp_path):
             s.upload(c, rng, "soak-a", m)
         s.check(c)
         assert s.fig.checked_batches == 3
+
+
+def test_short_soak_on_postgresql_with_two_replicas(soak, capsys):
+    """The soak on PostgreSQL: two replicas, each killed with kill -9 every cycle."""
+    assert soak.main(["--postgres", "--cycles", "3", "--seed", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "cycles (kill -9 / restart): 3 (PostgreSQL, 2 replicas)" in out
+    assert int(re.search(r"acknowledged: (\d+)", out).group(1)) > 0
+    assert "lost: 0" in out

@@ -44,6 +44,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -100,21 +101,12 @@ class FieldModel:
 
 @dataclass
 class Figures:
-    cycles: int = 0
-    sent: int = 0
-    acked: int = 0
-    acked_deferred: int = 0
-    acked_json: int = 0
-    inflight_at_kill: int = 0
-    inflight_stored: int = 0
-    retries_replayed: int = 0
-    retries_stored: int = 0
-    replays_of_acked: int = 0
-    snapshots: int = 0
-    deletes: int = 0
-    creates: int = 0
+    """What a soak did: ``n`` counts cycles, batches sent, acknowledged (deferred,
+    as JSON), in flight at a kill (stored), retries (replayed, stored), replays
+    of acknowledged batches, snapshots, deletes, creates and batches checked."""
+
+    n: Counter = field(default_factory=Counter)
     restart_s: list = field(default_factory=list)
-    checked_batches: int = 0
     elapsed: float = 0.0
 
 
@@ -191,7 +183,7 @@ class Soak:
                 if b["rows"] != sent.rows:
                     raise SoakFailure(f"field {name!r}: batch {key} half-stored: {b['rows']} "
                                       f"of {sent.rows} rows")
-            self.fig.checked_batches += len(stored)
+            self.fig.n['checked_batches'] += len(stored)
             self.retry_inflight(c, name, m, by_key)
             stored = c.batches(name)  # every response known now (a retry recomputes a lost one)
             if {b["idempotency_key"]: (b["rows"], b["accepted"]) for b in stored} != m.acked:
@@ -210,17 +202,17 @@ class Soak:
             res = c.upload_rays(name, b.origins, b.directions, b.values, idempotency_key=key,
                                 wait=b.wait, binary=b.binary)
             if key in by_key:
-                self.fig.inflight_stored += 1
+                self.fig.n['inflight_stored'] += 1
                 known = by_key[key]["accepted"]  # None: the response was not stored yet
                 if not res["replayed"] or known not in (None, res["accepted"]):
                     raise SoakFailure(f"field {name!r}: retry of stored batch {key} answered "
                                       f"{res}, stored {by_key[key]}")
-                self.fig.retries_replayed += 1
+                self.fig.n['retries_replayed'] += 1
             else:
                 if res["replayed"]:
                     raise SoakFailure(f"field {name!r}: retry of unstored batch {key} "
                                       "answered as a replay")
-                self.fig.retries_stored += 1
+                self.fig.n['retries_stored'] += 1
             m.acked[key] = (b.rows, res["accepted"])
             del m.inflight[key]
 
@@ -238,7 +230,7 @@ class Soak:
                     m.exists = None
                     via[name].create_field(name, channels=1)
                     m.exists = True
-                    self.fig.creates += 1
+                    self.fig.n['creates'] += 1
             while not stop.is_set():
                 op = rng.uniform()
                 name = FIELDS[int(rng.integers(len(FIELDS)))]
@@ -253,21 +245,21 @@ class Soak:
                                         idempotency_key=key, wait=b.wait, binary=b.binary)
                     if not res["replayed"] or res["accepted"] != m.acked[key][1]:
                         raise SoakFailure(f"retry of acknowledged {key}: {res}")
-                    self.fig.replays_of_acked += 1
+                    self.fig.n['replays_of_acked'] += 1
                 elif op < 0.95:
                     c.snapshot(name)
-                    self.fig.snapshots += 1
+                    self.fig.n['snapshots'] += 1
                 elif m.acked or m.inflight:
                     m.exists = None  # in flight
                     c.delete_field(name)
                     m.exists = False
                     m.acked.clear()
                     m.inflight.clear()
-                    self.fig.deletes += 1
+                    self.fig.n['deletes'] += 1
                     m.exists = None
                     c.create_field(name, channels=1)
                     m.exists = True
-                    self.fig.creates += 1
+                    self.fig.n['creates'] += 1
         except SoakFailure:
             raise
         except Exception:
@@ -285,16 +277,16 @@ class Soak:
         self.nkey += 1
         m.inflight[key] = b
         m.sent[key] = b
-        self.fig.sent += 1
+        self.fig.n['sent'] += 1
         res = c.upload_rays(name, o, v, b.values, idempotency_key=key, wait=b.wait,
                             binary=b.binary)
         if res["replayed"]:
             raise SoakFailure(f"new batch {key} answered as a replay")
         del m.inflight[key]
         m.acked[key] = (n, res["accepted"])
-        self.fig.acked += 1
-        self.fig.acked_deferred += not res["indexed"]
-        self.fig.acked_json += not b.binary
+        self.fig.n['acked'] += 1
+        self.fig.n['acked_deferred'] += not res["indexed"]
+        self.fig.n['acked_json'] += not b.binary
 
     # -- the run -------------------------------------------------------------------
     def _start(self) -> list[Server]:
@@ -308,7 +300,7 @@ class Soak:
     def _check_all(self, servers: list[Server]) -> None:
         """The checks on one replica (chosen in turn); every other one must hold the
         same indexed samples of every field."""
-        first = servers[self.fig.cycles % len(servers)]
+        first = servers[self.fig.n['cycles'] % len(servers)]
         with Client(first.url, retries=0, timeout=60) as c:
             self.check(c)
             want = {name: c.describe(name)["nsamples"] for name, m in self.models.items()
@@ -325,7 +317,7 @@ class Soak:
 
     def run(self) -> Figures:
         t0 = time.monotonic()
-        while self.fig.cycles < self.args.cycles:
+        while self.fig.n['cycles'] < self.args.cycles:
             if time.monotonic() - t0 > self.args.seconds:
                 print(f"time budget of {self.args.seconds} s reached", flush=True)
                 break
@@ -356,10 +348,10 @@ class Soak:
             t.join(timeout=120)
             if failure:
                 raise failure[0]
-            self.fig.inflight_at_kill += sum(len(m.inflight) for m in self.models.values())
-            self.fig.cycles += 1
-            if self.fig.cycles % 10 == 0:
-                print(f"cycle {self.fig.cycles}: {self.fig.acked} batches acknowledged, "
+            self.fig.n['inflight_at_kill'] += sum(len(m.inflight) for m in self.models.values())
+            self.fig.n['cycles'] += 1
+            if self.fig.n['cycles'] % 10 == 0:
+                print(f"cycle {self.fig.n['cycles']}: {self.fig.n['acked']} batches acknowledged, "
                       f"{time.monotonic() - t0:.0f} s", flush=True)
         # a last restart: everything checked once more, nothing left in flight
         servers = self._start()
@@ -408,7 +400,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         fig = soak.run()
     except SoakFailure as exc:
-        print(f"FAILED after {soak.fig.cycles} cycles: {exc}", file=sys.stderr)
+        print(f"FAILED after {soak.fig.n['cycles']} cycles: {exc}", file=sys.stderr)
         with open(log_path, errors="replace") as fh:
             sys.stderr.write(fh.read()[-4000:])
         return 1
@@ -419,14 +411,14 @@ def main(argv: list[str] | None = None) -> int:
             shutil.rmtree(tmp, ignore_errors=True)
     rs = fig.restart_s
     where = (f"PostgreSQL, {args.replicas} replicas" if args.postgres else "SQLite, 1 server")
-    print(f"cycles (kill -9 / restart): {fig.cycles} ({where})")
-    print(f"batches sent: {fig.sent}; acknowledged: {fig.acked} ({fig.acked_deferred} with "
-          f"wait=false, {fig.acked_json} as JSON); in flight at a kill: {fig.inflight_at_kill} "
-          f"({fig.inflight_stored} of them stored, retried as replays: {fig.retries_replayed}; "
-          f"stored by their retry: {fig.retries_stored})")
-    print(f"retries of acknowledged batches (replayed): {fig.replays_of_acked}; snapshots: "
-          f"{fig.snapshots}; deletes: {fig.deletes}; creates: {fig.creates}")
-    print(f"batches checked after restarts: {fig.checked_batches}; lost: 0; half-stored: 0; "
+    print(f"cycles (kill -9 / restart): {fig.n['cycles']} ({where})")
+    print(f"batches sent: {fig.n['sent']}; acknowledged: {fig.n['acked']} ({fig.n['acked_deferred']} with "
+          f"wait=false, {fig.n['acked_json']} as JSON); in flight at a kill: {fig.n['inflight_at_kill']} "
+          f"({fig.n['inflight_stored']} of them stored, retried as replays: {fig.n['retries_replayed']}; "
+          f"stored by their retry: {fig.n['retries_stored']})")
+    print(f"retries of acknowledged batches (replayed): {fig.n['replays_of_acked']}; snapshots: "
+          f"{fig.n['snapshots']}; deletes: {fig.n['deletes']}; creates: {fig.n['creates']}")
+    print(f"batches checked after restarts: {fig.n['checked_batches']}; lost: 0; half-stored: 0; "
           f"stored twice: 0")
     print(f"restart to ready: median {statistics.median(rs):.2f} s, max {max(rs):.2f} s; "
           f"total {fig.elapsed:.0f} s")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -125,6 +126,17 @@ def assert_data_dir_refused(data, holder_pid):
     assert out.returncode == 2
     assert "in use by another flatserve server" in out.stderr, out.stderr
     assert f"pid {holder_pid}" in out.stderr
+
+
+@contextmanager
+def running(app):
+    """``(TestClient, Client)`` of ``app`` started and ready (:func:`started`), its
+    lifespan exited at the end of the block."""
+    tc, c = started(app)
+    try:
+        yield tc, c
+    finally:
+        tc.__exit__(None, None, None)
 
 
 def started(app):

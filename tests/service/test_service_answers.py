@@ -15,7 +15,7 @@ from flatserve import flats as flats_mod
 from flatserve.service import codec
 from tests.harness.process import ServerProcess
 
-from .conftest import SINGLE, paper_rays, started
+from .conftest import SINGLE, paper_rays, running, started
 
 
 def _never(*a, **kw):  # pragma: no cover - the point is that it is not called
@@ -47,8 +47,7 @@ def test_math_project_answer_is_refused_before_it_is_computed(make_app, monkeypa
 
 
 def test_math_coordinates_answer_is_bounded(make_app, rng):
-    tc, _ = started(make_app(max_json_answer_bytes=200_000))
-    try:
+    with running(make_app(max_json_answer_bytes=200_000)) as (tc, _):
         o, v = paper_rays(rng, 2000)
         body = {"k": 1, "d": 3, "basis": {"kind": "tangent_simplex"}, "embed": True,
                 "flats": {"origins": o.tolist(), "directions": v.tolist()}}
@@ -59,8 +58,6 @@ def test_math_coordinates_answer_is_bounded(make_app, rng):
         r = tc.post("/v1/math/coordinates", json=body)
         assert r.status_code == 200, r.text
         assert len(r.content) <= 200_000
-    finally:
-        tc.__exit__(None, None, None)
 
 
 def test_query_answers_are_bounded_per_format(make_app, rng):

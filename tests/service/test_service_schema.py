@@ -77,10 +77,13 @@ def _keep_demo(case) -> None:
             case.path_parameters["name"] = "demo"
 
 
+#: hypothesis' settings of both runs: bounded, repeatable, every health check off
+FUZZ = settings(max_examples=MAX_EXAMPLES, deadline=None, derandomize=True,
+                phases=[Phase.explicit, Phase.generate], suppress_health_check=list(HealthCheck))
+
+
 @schema.parametrize()
-@settings(max_examples=MAX_EXAMPLES, deadline=None, derandomize=True,
-          phases=[Phase.explicit, Phase.generate],
-          suppress_health_check=list(HealthCheck))
+@FUZZ
 def test_openapi_conformance(case):
     _keep_demo(case)
     case.call_and_validate(checks=CHECKS)
@@ -90,9 +93,7 @@ _sent = [0]
 
 
 @schema_keys.parametrize()
-@settings(max_examples=MAX_EXAMPLES, deadline=None, derandomize=True,
-          phases=[Phase.explicit, Phase.generate],
-          suppress_health_check=list(HealthCheck))
+@FUZZ
 def test_openapi_conformance_with_keys(case):
     _keep_demo(case)
     headers = {k: v for k, v in (case.headers or {}).items()

@@ -98,7 +98,7 @@ def test_checks_pass_on_an_untampered_model(soak, tmp_path):
         for _ in range(3):
             s.upload(c, rng, "soak-a", m)
         s.check(c)
-        assert s.fig.checked_batches == 3
+        assert s.fig.n['checked_batches'] == 3
 
 
 def test_short_soak_on_postgresql_with_two_replicas(soak, capsys):

@@ -91,12 +91,33 @@ def accept_kind(accept: str | None) -> str:
 _EXPECTED = {"json": "a JSON object", "npy": "an .npy array", "npz": "an .npz archive"}
 
 
-def check_not_empty(body: bytes, kind: str) -> None:
-    """A 422 that says so for a body of 0 bytes (``kind``: ``json``, ``npy`` or
-    ``npz``), rather than a parser's message about a truncated header or document
-    (``curl --data-binary @FILE`` sends an empty body when FILE cannot be read)."""
+_TYPES = {"json": JSON, "npy": NPY, "npz": NPZ}
+
+
+def _sniff(body: bytes) -> str | None:
+    """What the body's first bytes say it is: ``npy``, ``npz``, ``json`` or None."""
+    if body.startswith(b"\x93NUMPY"):
+        return "npy"
+    if body.startswith(b"PK\x03\x04"):
+        return "npz"
+    if body.lstrip()[:1] in (b"{", b"["):
+        return "json"
+    return None
+
+
+def check_body(body: bytes, kind: str) -> None:
+    """A 422 that says what is wrong with a body that is empty or whose bytes are
+    another of the three kinds than its Content-Type says (``kind``: ``json``,
+    ``npy`` or ``npz``), rather than a parser's message about a truncated header or
+    document (``curl --data-binary @FILE`` sends an empty body when FILE cannot be
+    read; ``-H`` forgotten sends a .npy file as a form)."""
     if not body:
         raise InvalidInputError(f"body: empty body (0 bytes); expected {_EXPECTED[kind]}", "body")
+    seen = _sniff(body[:64])
+    if seen is not None and seen != kind:
+        raise InvalidInputError(
+            f"body: the Content-Type says {_EXPECTED[kind]} ({_TYPES[kind]}) but the body is "
+            f"{_EXPECTED[seen]}: send it with Content-Type: {_TYPES[seen]}", "body")
 
 
 def load_json(body: bytes) -> dict:
@@ -207,7 +228,7 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
     refused naming the ``field`` and what it holds (:func:`kind_of`).
     """
     kind = body_kind(content_type)
-    check_not_empty(body, kind)
+    check_body(body, kind)
     extra: dict = {}
     # what a legitimate body can need once read as float64: max_rows rows of the
     # widest form (Q, r) plus the values; larger declared arrays are refused unread

@@ -18,7 +18,7 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from .codec import JSON, check_json_size, check_not_empty, is_json, media_type
+from .codec import JSON, check_json_size, check_body, is_json, media_type
 from .errors import ApiError
 from .catalogue import FieldCatalogue
 from .entry import FieldEntry
@@ -110,7 +110,7 @@ def json_body(model: type[BaseModel]):
                                 f"takes {JSON}" if ctype else f"a body needs a Content-Type: "
                                 f"this route takes {JSON}")
         check_json_size(body, settings.max_json_bytes)
-        check_not_empty(body, "json")
+        check_body(body, "json")
         try:
             return model.model_validate_json(body)
         except ValidationError as exc:

@@ -158,7 +158,7 @@ def import_field(name: FieldNamePath, transfer: TransferDep, body: BodyDep, resp
     if codec.media_type(content_type) != codec.NPZ:
         raise ApiError(415, f"an import body is the export file as {codec.NPZ}, not "
                             f"{codec.media_type(content_type) or 'no Content-Type'}")
-    codec.check_not_empty(body, "npz")
+    codec.check_body(body, "npz")
     note(field=name)
     out = transfer.import_field(name, body)
     response.headers[POSITION_HEADER] = str(out.position)

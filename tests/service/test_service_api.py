@@ -4,6 +4,7 @@ from __future__ import annotations
 import io
 
 import numpy as np
+import orjson
 import pytest
 from fastapi.testclient import TestClient
 
@@ -265,6 +266,41 @@ def test_flats_of_another_kind_are_refused_naming_the_field_and_its_kind(api, pa
     assert detail["loc"][-1] == "A"
     assert "expected shape (n, 3, 1), got (1, 4, 2)" in detail["msg"]
     assert "field 'f' holds lines in R^3 (k=1, d=3)" in detail["msg"]
+
+
+def orjson_bytes(obj) -> bytes:
+    return orjson.dumps(obj)
+
+
+def _npz_bytes(**arrays) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("sent, ctype, says, is_", [
+    ("npy", "application/json", "application/json", "application/x-npy"),
+    ("npz", "application/json", "application/json", "application/x-npz"),
+    ("json", "application/x-npy", "application/x-npy", "application/json"),
+    ("npz", "application/x-npy", "application/x-npy", "application/x-npz"),
+    ("npy", "application/x-npz", "application/x-npz", "application/x-npy"),
+])
+@pytest.mark.parametrize("path", ["samples", "query"])
+def test_a_body_of_another_kind_than_its_content_type_says_so(api, rng, sent, ctype, says, is_,
+                                                               path):
+    tc, c = api
+    c.create_field("f", channels=1)
+    o, v = paper_rays(rng, 5)
+    body = {"npy": npy(np.c_[o, v, np.ones(5)]),
+            "npz": _npz_bytes(origins=o, directions=v, values=np.ones((5, 1))),
+            "json": orjson_bytes({"origins": o.tolist(), "directions": v.tolist(),
+                                  "values": np.ones((5, 1)).tolist()})}[sent]
+    r = tc.post(f"/v1/fields/f/{path}", content=body, headers={"Content-Type": ctype})
+    assert r.status_code == 422, r.text
+    msg = r.json()["detail"][0]["msg"]
+    assert "the Content-Type says" in msg and f"({says})" in msg, msg
+    assert f"send it with Content-Type: {is_}" in msg, msg
+    assert c.describe("f")["nsamples"] == 0
 
 
 def test_non_finite_npy_and_wrong_width(api):

@@ -45,7 +45,7 @@ HOSTILE = {  # name: (body, content type, status, words the error must hold)
     "bool-member": (raw_zip([Member("origins.npy", descr_header((True, 3)) + bytes(24))]), NPZ,
                     422, "True"),
     "bomb": (_bomb(), NPZ, 413, "origins.npy"),
-    "npz-as-npy": (npz(origins=np.zeros((2, 3))), NPY, 422, "zip"),
+    "npz-as-npy": (npz(origins=np.zeros((2, 3))), NPY, 422, "the body is an .npz archive"),
 }
 
 # the fast query path, the FastAPI query route (a repeated parameter sends it there)

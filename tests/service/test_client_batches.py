@@ -34,7 +34,7 @@ def two(make_app, tmp_path):
 
 
 def test_limits_endpoint_states_the_settings(make_app):
-    with TestClient(make_app(max_batch_rows=123, max_body_bytes=45_678)) as tc:
+    with TestClient(make_app(max_batch_rows=123, max_body_bytes=45_678), base_url="http://127.0.0.1") as tc:
         lim = tc.get("/v1/limits").json()
     assert lim["max_batch_rows"] == 123 and lim["max_body_bytes"] == 45_678
     assert {"max_json_bytes", "max_pending_samples"} <= set(lim)

@@ -51,7 +51,7 @@ def _access(caplog) -> list[dict]:
 def test_every_request_gets_an_access_line_refusals_too(make_app, rng, caplog):
     caplog.set_level(logging.INFO, logger=logs.ACCESS_LOGGER)
     o, v = paper_rays(rng, 50)
-    with TestClient(make_app(max_batch_rows=40)) as tc:
+    with TestClient(make_app(max_batch_rows=40), base_url="http://127.0.0.1") as tc:
         tc.post("/v1/fields", json={"name": "f", "basis": ONE_CHART})
         tc.post("/v1/fields", json={"name": "f"})                                    # 409
         r = tc.post("/v1/fields/f/samples", content=_npy(np.c_[o[:30], v[:30], np.ones(30)]),
@@ -84,7 +84,7 @@ def test_every_request_gets_an_access_line_refusals_too(make_app, rng, caplog):
 
 def test_access_log_off(make_app, caplog):
     caplog.set_level(logging.INFO, logger=logs.ACCESS_LOGGER)
-    with TestClient(make_app(access_log=False)) as tc:
+    with TestClient(make_app(access_log=False), base_url="http://127.0.0.1") as tc:
         assert tc.get("/healthz").status_code == 200
         assert "x-request-id" not in tc.get("/healthz").headers
     assert not _access(caplog)

@@ -247,8 +247,9 @@ class FieldCreate(_KD):
                           "explicit flats: one chart (the paper's set-up).")
     roundtrip_tol: Optional[float] = Field(None, gt=0, le=1.0, allow_inf_nan=False)
     unit: Optional[float] = Field(
-        None, gt=0, le=1e6, allow_inf_nan=False,
-        description="Atlas fields: the unit of length of the charts, in the flats' units: the "
+        None, ge=1e-6, le=1e6, allow_inf_nan=False,
+        description="Atlas fields: the unit of length of the charts, in the flats' units "
+                    "(1e-6 to 1e6): the "
                     "shift of a flat that counts as much as a turn of one radian (at a chart's "
                     "centre shifts and turns are then weighed alike). Default 1. For rays of "
                     "an object: about its half-size (rays meeting on its surface at depth z "

@@ -529,3 +529,13 @@ def test_basis_specs_kind_inferred_one_form_and_paths_in_errors(api):
     r = tc.post("/v1/fields", json={"name": "f", "basis": {"kind": "nonsense"}})
     assert r.status_code == 422
     assert [f["name"] for f in c.list_fields()] == ["a", "b"]
+
+
+@pytest.mark.parametrize("unit", [5e-324, 1e-7, 2e6])
+def test_a_unit_out_of_range_is_refused_naming_unit(api, unit):
+    """(Found by the fuzzer's positive-data check: a subnormal unit was refused
+    naming the atlas's centres.)"""
+    tc, _ = api
+    r = tc.post("/v1/fields", json={"name": "u", "k": 1, "d": 3, "unit": unit})
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"][0]["loc"][-1] == "unit", r.text

@@ -53,7 +53,7 @@ class Settings(BaseSettings):
     names another origin are refused (403)."""
     max_body_bytes: int = Field(512 * MiB, ge=1)
     """Largest accepted request body (413)."""
-    max_json_bytes: int = Field(16 * MiB, ge=1)
+    max_json_bytes: int = Field(8 * MiB, ge=1)
     """Largest JSON body (413): parsing JSON holds the interpreter for its whole length, so bulk
     arrays travel as .npy / .npz (up to max_body_bytes)."""
     max_batch_rows: int = Field(1_000_000, ge=1)

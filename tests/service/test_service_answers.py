@@ -133,7 +133,8 @@ def test_healthz_answers_within_a_second_during_worst_cases(tmp_path, rng):
     the JSON answer limit) and ones past them, /healthz answers within 1 s."""
     rows = 100_000
     with ServerProcess(tmp_path / "data", tmp_path / "s.log", snapshot_every=0,
-                       max_batch_rows=rows, max_json_answer_bytes=16 << 20) as srv:
+                       max_batch_rows=rows, max_json_answer_bytes=16 << 20,
+                       max_json_bytes=16 << 20) as srv:
         srv.wait_ready()
         from flatserve.client import Client
 

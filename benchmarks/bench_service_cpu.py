@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import io
 import os
-import socket
 import statistics
 import subprocess
 import sys
@@ -37,13 +36,10 @@ import httpx
 import numpy as np
 import orjson
 
+import timing  # noqa: F401  (the repository root on sys.path, for tests.harness)
+from tests.harness.process import free_port
+
 TICK = os.sysconf("SC_CLK_TCK")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def cpu_seconds(pid: int) -> float:

@@ -209,7 +209,7 @@ class ChunkedSnapshots:
                                                         keys))
 
     def _forget_snapshot(self, conn, field_id: int, name: str | None) -> list[str]:
-        # the snapshot and its parts (chunks cascade)
+        # the snapshot and its parts, in the deleting transaction (chunks cascade)
         conn.execute("DELETE FROM snapshots WHERE field_id=%s", (field_id,))
         return []
 

@@ -111,9 +111,7 @@ class SnapshotFiles:
         return SnapshotInfo(name, size, self._point(field_id, name, seq, position, None, keys))
 
     def _forget_snapshot(self, db, field_id: int, name: str | None) -> list[str]:
-        # the files go after the commit: the snapshot file, then every part
-        parts = [f"parts/{part_name(field_id, k)}" for k in sorted(self.snapshot_parts(field_id))]
-        return ([name] if name else []) + parts
+        return [name] if name else []  # the file goes after the commit (then the parts)
 
     def _snapshot_stored(self, db, name: str) -> bool:
         return self.snapshot_path(name).is_file()

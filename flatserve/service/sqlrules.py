@@ -210,8 +210,9 @@ class SQLBackend(LogBackend):
     @abc.abstractmethod
     def _discard_parts(self, field_id: int, keep: list[str]) -> None:
         """Remove the parts of field ``field_id`` that are not in ``keep`` (the
-        snapshot it now points at names those), best effort: the next snapshot
-        of the field removes what is left."""
+        snapshot it now points at names those; none once it is deleted), best
+        effort: the field's next snapshot, or ``clean_orphans`` for a field that
+        is gone, removes what is left."""
 
     # -- rows -----------------------------------------------------------------------
     _FIELD_COLS = ("SELECT id, name, spec, basis, created, position, snapshot_file, snapshot_seq,"
@@ -288,6 +289,7 @@ class SQLBackend(LogBackend):
 
         pos = self._write(fn)
         self._discard_snapshots(later)
+        self._discard_parts(field_id, [])  # every part of the field (none kept)
         return pos
 
     def state(self) -> tuple[int, list[FieldRow]]:

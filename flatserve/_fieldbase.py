@@ -122,7 +122,8 @@ class FieldBase:
             v = v[:, None]
         return as_array(v, "values", (n, self.channels))
 
-    def prepare(self, flats, values, *, defer: bool = False) -> Any:
+    def prepare(self, flats, values, *, defer: bool = False,
+                only: Collection[int] | None = None) -> Any:
         """First half of :meth:`add`: chart a batch and decide its rows, without inserting.
 
         Reads only the field's definition (bases, atlas), so it may run while
@@ -138,6 +139,12 @@ class FieldBase:
             for bad input) but return a zero-argument callable that charts
             when called. Once validation has passed, charting cannot reject
             the batch as a whole: every row gets a decision.
+        only : collection of int, optional
+            Chart for these shards only (a shard held elsewhere is left out: its
+            part of the batch is None). Each shard's part is what it is in the
+            whole batch, so a shard inserting it holds the same bits as the
+            whole field's; the batch's decisions then say only which rows no
+            shard's domain holds. Default: every shard.
 
         Returns
         -------
@@ -145,9 +152,14 @@ class FieldBase:
         """
         flats = self._flats(flats)
         values = self._values(values, flats.n)
+        if only is not None:
+            only = frozenset(int(c) for c in only)
+            if not only <= set(range(len(self.shards))):
+                raise InvalidInputError(f"only: expected shard indices below "
+                                        f"{len(self.shards)}, got {sorted(only)}", "only")
         if defer:
-            return functools.partial(self._prepare, flats, values)
-        return self._prepare(flats, values)
+            return functools.partial(self._prepare, flats, values, only)
+        return self._prepare(flats, values, only)
 
     def add(self, flats, values):
         """Add samples (a writer): ``insert_prepared(prepare(flats, values))``.
@@ -186,6 +198,19 @@ class FieldBase:
         """
         shards = self.shards
         return shard_pool().map(lambda w: fn(shards[w[0]], w[1]), work)
+
+    def query_shards(self, work, **kw) -> list | None:
+        """Each shard's answer on its own flats (a shard's half of ``query``:
+        ``route_query`` and ``blend`` are the other): ``work`` is
+        ``[(shard, flats), ...]``; per pair the shard's ``query(flats, **kw)``,
+        None (the whole answer) when not ``blocking`` and a writer is in."""
+        out = []
+        for c, flats in work:
+            res = self.shards[c].query(flats, **kw)
+            if res is None:
+                return None
+            out.append(res)
+        return out
 
     # ----------------------------------------------------------- description
     def describe(self) -> dict:

@@ -31,7 +31,7 @@ import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Collection, Sequence
 
 import numpy as np
 
@@ -177,6 +177,10 @@ class AtlasField(FieldBase):
         self.roundtrip_tol = self.fields[0].roundtrip_tol
         self._nsamples = 0
         self._nrejected = 0
+        #: per chart, the distinct samples it holds as their nearest chart (a sample
+        #: counts once, in its nearest chart): ``nsamples`` is their sum; None when
+        #: restored from a file that did not record them
+        self._own: list[int] | None = [0] * len(self.fields)
         self._lock = RWLock()
         #: per chart, (its generation, the key of its part) when a part was last
         #: written or read: unchanged since, it need not be made again
@@ -321,12 +325,13 @@ class AtlasField(FieldBase):
     def _flats(self, flats: Flats) -> Flats:
         return self.atlas.check_flats(flats)
 
-    def _prepare(self, flats: Flats, values: np.ndarray) -> AtlasPrepared:
+    def _prepare(self, flats: Flats, values: np.ndarray, only=None) -> AtlasPrepared:
         # route to the charts whose domain (reach) holds each row; each chart
         # charts its rows (its Field's prepare), split into its own and shared
         n = flats.n
         ro = self.atlas.route(flats, self.atlas.reach)
-        work = [(c, rows) for c, rows in enumerate(ro.rows) if rows.size]
+        work = [(c, rows) for c, rows in enumerate(ro.rows)
+                if rows.size and (only is None or c in only)]
         prepared = self._over_shards(lambda f, rows: f.prepare(flats.take(rows), values[rows]),
                                      work)
         taken = np.zeros(n, dtype=bool)
@@ -343,6 +348,12 @@ class AtlasField(FieldBase):
             parts[c] = (PreparedBatch(int(mine.sum()), pb.x[mine], pb.values[mine], _NO_ROWS, []),
                         PreparedBatch(int((~mine).sum()), pb.x[~mine], pb.values[~mine],
                                       _NO_ROWS, []))
+        if only is not None:  # the decisions of the charts not asked are unknown: only the
+            # rows no chart's domain holds are known to be rejected
+            held = np.zeros(n, dtype=bool)
+            for rows in ro.rows:
+                held[rows] = True
+            taken |= held
         rejected = np.flatnonzero(~taken).astype(np.int64)
         reach = self.atlas.reach
         reasons = [first_reason.get(int(i), (
@@ -388,10 +399,13 @@ class AtlasField(FieldBase):
                 work = _by_shard(group)
                 done = self._over_shards(
                     lambda f, ps: [(f.insert_prepared(p), own) for p, own in ps], work)
-                for res, own in (r for rs in list(done) for r in rs):
-                    if own:  # a sample counts once, in its nearest chart
-                        duplicates += res.duplicates
-                        self._nsamples += res.accepted - res.duplicates
+                for (c, _), rs in zip(work, list(done)):
+                    for res, own in rs:
+                        if own:  # a sample counts once, in its nearest chart
+                            duplicates += res.duplicates
+                            self._nsamples += res.accepted - res.duplicates
+                            if self._own is not None:
+                                self._own[c] += res.accepted - res.duplicates
                 if i == len(groups) - 1:
                     self._nrejected += int(batch.rejected.size)
         return AddResult(accepted=batch.accepted, rejected=batch.rejected,
@@ -435,17 +449,52 @@ class AtlasField(FieldBase):
         elif not self._lock.try_acquire_read():
             return None
         try:  # charts change only under this lock's write side: they never make us wait
-            work = [(c, rows) for c, rows in enumerate(route.rows)
+            work = [(c, flats.take(rows)) for c, rows in enumerate(route.rows)
                     if rows.size and self.fields[c].nsamples]
+            got = self._query_shards(work, outside=outside, order=order, threads=threads,
+                                     return_weights=return_weights)
             results: list = [None] * len(self.fields)
-            got = self._over_shards(
-                lambda f, rows: f.query(flats.take(rows), outside=outside, order=order,
-                                        threads=threads, return_weights=return_weights), work)
             for (c, _), res in zip(work, got):
                 results[c] = res
             return self.blend(route, results, return_weights=return_weights)
         finally:
             self._lock.release_read()
+
+    def query_shards(self, work, *, outside: Outside | str = Outside.NAN,
+                     order: Order | str = Order.HILBERT, threads: int | None = None,
+                     return_weights: bool = False, blocking: bool = True) -> list | None:
+        """Each chart's answer on its own flats, seen at one moment (a shard's half of
+        :meth:`query`: :meth:`route_query` and :meth:`blend` are the other).
+
+        Parameters
+        ----------
+        work : list of (int, Flats)
+            ``(chart, flats)`` pairs, each chart at most once.
+        outside, order, threads, return_weights, blocking
+            As :meth:`query`.
+
+        Returns
+        -------
+        list of QueryResult or None
+            Per pair, its chart's :meth:`Field.query`; None for a chart that holds
+            no samples. None (the whole answer) when not ``blocking`` and a writer
+            is in. Under the field's read lock: every chart holds the same batches.
+        """
+        outside, order = choice(outside, Outside, "outside"), choice(order, Order, "order")
+        if blocking:
+            self._lock.acquire_read()
+        elif not self._lock.try_acquire_read():
+            return None
+        try:
+            asked = [(c, f) for c, f in work if self.fields[c].nsamples]
+            got = iter(self._query_shards(asked, outside=outside, order=order, threads=threads,
+                                          return_weights=return_weights))
+            return [next(got) if self.fields[c].nsamples else None for c, _ in work]
+        finally:
+            self._lock.release_read()
+
+    def _query_shards(self, work, **kw) -> list:
+        return list(self._over_shards(lambda f, flats: f.query(flats, **kw), work))
 
     def _definition(self) -> dict:
         out = self.atlas.describe_spec(self.atlas.to_dict())
@@ -486,7 +535,8 @@ class AtlasField(FieldBase):
     def _meta(self) -> dict:
         return {"atlas": self.atlas.to_dict(), "channels": self.channels,
                 "roundtrip_tol": self.roundtrip_tol, "nsamples": self._nsamples,
-                "nrejected": self._nrejected, "charts": len(self.fields)}
+                "nrejected": self._nrejected, "charts": len(self.fields),
+                **({"own": list(self._own)} if self._own is not None else {})}
 
     def write_parts(self, fh, stage, known=()) -> list[str]:
         """Write a snapshot as a small field file plus one part per chart,
@@ -528,17 +578,12 @@ class AtlasField(FieldBase):
         stage = Path(stage)
 
         def part(f: Field, c: int) -> str:
-            gen, last = f.generation, self._parts[c]
-            if last is not None and last[0] == gen and last[1] in known:
-                return last[1]
-            blob = f.to_bytes()
-            key = part_key(blob)
-            if key not in known:
+            key, blob = self._chart_part(f, c, known)
+            if blob is not None:
                 with open(stage / key, "wb") as out:
                     out.write(blob)
                     out.flush()
                     os.fsync(out.fileno())
-            self._parts[c] = (gen, key)  # each chart is one thread's in this call
             return key
 
         with self._lock.read():
@@ -546,8 +591,49 @@ class AtlasField(FieldBase):
             fh.write(pack_header(ATLAS_MAGIC, _VERSION_PARTS, {**self._meta(), "parts": keys}))
         return keys
 
+    def _chart_part(self, f: Field, c: int, known: frozenset) -> tuple[str, bytes | None]:
+        """Chart ``c``'s part: its key, and its bytes unless the key is ``known``
+        (an unchanged chart whose part is known is not even serialised)."""
+        gen, last = f.generation, self._parts[c]
+        if last is not None and last[0] == gen and last[1] in known:
+            return last[1], None
+        blob = f.to_bytes()
+        key = part_key(blob)
+        self._parts[c] = (gen, key)  # each chart is one thread's in a call
+        return key, None if key in known else blob
+
+    def chart_parts(self, charts: Sequence[int], known: Collection[str] = ()) -> list:
+        """The parts of some charts, for a snapshot assembled elsewhere (a shard
+        held in another process: :meth:`write_parts` there names them).
+
+        Parameters
+        ----------
+        charts : sequence of int
+        known : collection of str
+            Keys of the parts stored already (their bytes are not returned).
+
+        Returns
+        -------
+        list of (int, str, bytes or None)
+            Per chart, its index, its part's key, and the part's bytes (None
+            when the key is known). A reader, like :meth:`write_parts`.
+        """
+        known = frozenset(known)
+        with self._lock.read():
+            got = self._over_shards(lambda f, c: (c, *self._chart_part(f, c, known)),
+                                    [(c, c) for c in charts])
+            return list(got)
+
+    @property
+    def own_samples(self) -> list[int] | None:
+        """Per chart, the distinct samples whose nearest chart it is (their sum is
+        :attr:`nsamples`); None for a field read from a file that did not
+        record them."""
+        return None if self._own is None else list(self._own)
+
     @classmethod
-    def from_bytes(cls, data, *, source: str = "atlas field", parts=None) -> "AtlasField":
+    def from_bytes(cls, data, *, source: str = "atlas field", parts=None,
+                   only: Collection[int] | None = None) -> "AtlasField":
         """An atlas field from the bytes of its file (:meth:`write_to`, or
         :meth:`write_parts` with its parts).
 
@@ -563,6 +649,11 @@ class AtlasField(FieldBase):
             ``parts(key) -> bytes-like``: a part of a file written by
             :meth:`write_parts` (needed for those files only). A part whose
             bytes do not match its key is damaged.
+        only : collection of int, optional
+            Restore these charts only (the others stay empty: a shard held in
+            another process); only their parts are read. ``nsamples`` is then
+            theirs (:attr:`own_samples`), or the whole field's when the file did
+            not record the charts' own samples (:attr:`own_samples` None).
 
         Raises
         ------
@@ -579,12 +670,23 @@ class AtlasField(FieldBase):
             ncharts = int(meta["charts"])
             obj = cls(atlas, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]))
             nsamples, nrejected = int(meta["nsamples"]), int(meta["nrejected"])
+            own = meta.get("own")
+            if own is not None:
+                own = [int(x) for x in own]
+                if len(own) != ncharts or sum(own) != nsamples:
+                    raise ValueError("its charts' own samples do not add up")
         except (KeyError, TypeError, ValueError, InvalidInputError) as exc:
             raise corrupted("atlas field", source, exc) from None
         if ncharts != atlas.ncharts:
             raise SnapshotError(f"{source}: {ncharts} chart files for {atlas.ncharts} charts")
+        if only is not None:
+            only = frozenset(int(c) for c in only)
+            if own is not None:
+                nsamples = sum(own[c] for c in only)
+        obj._own = own
         if version == _VERSION_PARTS:
-            return obj._restore_parts(meta, nsamples, nrejected, len(data) - off, parts, source)
+            return obj._restore_parts(meta, nsamples, nrejected, len(data) - off, parts, source,
+                                      only)
         blobs = []
         for i in range(ncharts):
             if off + _LENGTH.size > len(data):
@@ -593,18 +695,19 @@ class AtlasField(FieldBase):
             off += _LENGTH.size
             if off + size > len(data):
                 raise SnapshotError(f"{source}: truncated at chart {i}")
-            blobs.append((i, data[off:off + size]))
+            if only is None or i in only:
+                blobs.append((i, data[off:off + size]))
             off += size
         if off != len(data):
             raise SnapshotError(f"{source}: {len(data) - off} bytes after the last chart")
         restored = obj._over_shards(
-            lambda _, ib: Field.from_bytes(ib[1], source=f"{source}: chart {ib[0]}"),
+            lambda _, ib: (ib[0], Field.from_bytes(ib[1], source=f"{source}: chart {ib[0]}")),
             [(i, (i, blob)) for i, blob in blobs])
         obj._adopt(restored, nsamples, nrejected, source)
         return obj
 
     def _restore_parts(self, meta: dict, nsamples: int, nrejected: int, extra: int, parts,
-                       source: str) -> "AtlasField":
+                       source: str, only: frozenset | None = None) -> "AtlasField":
         keys = meta.get("parts")
         if not (isinstance(keys, list) and len(keys) == len(self.fields)
                 and all(isinstance(k, str) and len(k) == 32 for k in keys)):
@@ -622,16 +725,19 @@ class AtlasField(FieldBase):
                                     "do not match its key)")
             return Field.from_bytes(blob, source=f"{source}: chart {c} (part {key})")
 
-        restored = self._over_shards(lambda _, ck: load(*ck),
-                                     [(c, (c, k)) for c, k in enumerate(keys)])
+        work = [(c, (c, k)) for c, k in enumerate(keys) if only is None or c in only]
+        restored = self._over_shards(lambda _, ck: (ck[0], load(*ck)), work)
         self._adopt(restored, nsamples, nrejected, source)
-        self._parts = [(0, k) for k in keys]  # the restored charts are those parts
+        for c, k in enumerate(keys):  # the restored charts are those parts
+            if only is None or c in only:
+                self._parts[c] = (0, k)
         return self
 
     def _adopt(self, restored, nsamples: int, nrejected: int, source: str) -> None:
-        """Take the restored charts (checked against the atlas) and the counts."""
+        """Take the restored ``(chart, Field)`` pairs (checked against the atlas) and
+        the counts."""
         atlas = self.atlas
-        for i, f in enumerate(restored):
+        for i, f in restored:
             if f.ndim != self.ndim or f.channels != self.channels:
                 raise SnapshotError(f"{source}: chart {i} does not match the atlas")
             want = atlas.warps[i]

@@ -333,7 +333,10 @@ class Field(FieldBase):
                      time.perf_counter() - t0)
 
     # --------------------------------------------------------------- writers
-    def _prepare(self, flats: Flats, values: np.ndarray) -> "PreparedBatch":
+    def _prepare(self, flats: Flats, values: np.ndarray, only=None) -> "PreparedBatch":
+        # only: this field is its one shard, 0 (checked by prepare)
+        if only is not None and 0 not in only:
+            raise InvalidInputError("only: a one-chart field is its one shard, 0", "only")
         ch = self.chart(flats)
         ok = ch.ok
         rejected = np.flatnonzero(~ok).astype(np.int64)

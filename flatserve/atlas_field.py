@@ -624,6 +624,19 @@ class AtlasField(FieldBase):
                                     [(c, c) for c in charts])
             return list(got)
 
+    def parts_header(self, keys: Sequence[str], *, own: Sequence[int], nrejected: int) -> bytes:
+        """The field file of a snapshot in parts whose charts were serialised
+        elsewhere (:meth:`chart_parts` of the processes holding them): this
+        field's definition with those charts' ``keys``, ``own`` samples and the
+        field's ``nrejected``; read back by :meth:`from_bytes` with the parts."""
+        own = [int(x) for x in own]
+        if len(keys) != len(self.fields) or len(own) != len(self.fields):
+            raise InvalidInputError(f"keys, own: expected one per chart ({len(self.fields)})",
+                                    "keys")
+        meta = {**self._meta(), "nsamples": sum(own), "nrejected": int(nrejected), "own": own,
+                "parts": list(keys)}
+        return pack_header(ATLAS_MAGIC, _VERSION_PARTS, meta)
+
     @property
     def own_samples(self) -> list[int] | None:
         """Per chart, the distinct samples whose nearest chart it is (their sum is

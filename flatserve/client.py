@@ -273,7 +273,8 @@ class Client:
     def create_field(self, name: str, *, k: int = 1, d: int = 3, channels: int = 1,
                      basis: dict | None = None, oriented: bool | None = None,
                      roundtrip_tol: float | None = None, unit: float | None = None,
-                     exist_ok: bool = False, verbose: bool = False) -> dict:
+                     copies: int | None = None, exist_ok: bool = False,
+                     verbose: bool = False) -> dict:
         """Create a field; returns its description (``verbose``: with the basis flats
         and every chart of an atlas, see :meth:`describe`).
 
@@ -288,8 +289,12 @@ class Client:
         Q.tolist(), "r": r.tolist()}``. An atlas for given flats: ``{"kind": "atlas",
         "atlas": "samples", "samples": {"origins": ..., "directions": ...}}``.
         ``unit``: an atlas's unit of length (the shift that counts as much as a turn
-        of one radian; for rays of an object about its half-size; default 1)."""
+        of one radian; for rays of an object about its half-size; default 1).
+        ``copies``: a server in cluster mode keeps that many copies of each shard,
+        on different nodes (default 1)."""
         body: dict[str, Any] = {"name": name, "k": k, "d": d, "channels": channels}
+        if copies is not None:
+            body["copies"] = copies
         if basis is not None:
             body["basis"] = basis
         if oriented is not None:

@@ -235,12 +235,15 @@ def new_field(channels: int, *, basis: Basis | None = None, atlas: Atlas | dict 
     return Field(basis, channels, **kw)
 
 
-def load_field(path: str | os.PathLike, parts=None) -> AnyField:
+def load_field(path: str | os.PathLike, parts=None,
+               only: Collection[int] | None = None) -> AnyField:
     """Read a field file of either kind, told apart by its magic.
 
     ``FSFIELD\\0``: :meth:`Field.from_bytes`; ``FSATLAS\\0``:
     :meth:`AtlasField.from_bytes`, with ``parts(key) -> bytes-like`` for a
-    file whose charts are parts (:meth:`SampledField.write_parts`).
+    file whose charts are parts (:meth:`SampledField.write_parts`), and
+    ``only``: the shards to restore (the others left empty; a one-chart
+    field's file is its one shard).
 
     Raises
     ------
@@ -253,7 +256,7 @@ def load_field(path: str | os.PathLike, parts=None) -> AnyField:
         raise SnapshotError(f"{path}: not a flatserve field file (bad magic)"
                             if len(data) >= 8 else
                             f"{path}: truncated field file ({len(data)} bytes)")
-    return kind.from_bytes(data, source=str(path), parts=parts)
+    return kind.from_bytes(data, source=str(path), parts=parts, only=only)
 
 
 def describe_definition(atlas: dict | None) -> dict:

@@ -550,7 +550,7 @@ class Field(FieldBase):
         return len(head) + len(payload)
 
     @classmethod
-    def from_bytes(cls, data, *, source: str = "field", parts=None) -> "Field":
+    def from_bytes(cls, data, *, source: str = "field", parts=None, only=None) -> "Field":
         """A field from the bytes of a field file (:meth:`write_to`): a shard's restore.
 
         Parameters
@@ -562,6 +562,8 @@ class Field(FieldBase):
         parts : callable, optional
             Unused: a one-chart field's file holds its one shard (the same
             signature as :meth:`AtlasField.from_bytes`).
+        only : collection of int, optional
+            Unused: the one shard is read whatever is asked.
 
         Raises
         ------

@@ -28,6 +28,7 @@ from ..flats import Flats
 from .backend import FieldRow, LogBackend, LogEntry, SnapshotGoneError
 from .catalogue import FieldCatalogue, FieldState
 from .entry import FieldEntry, FieldSpec, SampledField
+from .homes import LocalHome
 from .settings import Settings
 from .snapshots import SnapshotWriter
 from .status import FieldNotFoundError, StorageError, StorageUnavailableError
@@ -82,11 +83,14 @@ class LogApplier:
     snapshots : SnapshotWriter
         Asked for a background snapshot after inserts (``snapshot_every``).
     metrics : Metrics, optional
+    home : LocalHome or ClusterHome, optional
+        Where the fields' shards live (:mod:`.homes`; default this process).
     """
 
     def __init__(self, settings: Settings, storage: LogBackend, catalogue: FieldCatalogue,
-                 snapshots: SnapshotWriter, metrics=None) -> None:
+                 snapshots: SnapshotWriter, metrics=None, home=None) -> None:
         self.settings = settings
+        self.home = home if home is not None else LocalHome()
         self.storage = storage
         self.catalogue = catalogue
         self.snapshots = snapshots
@@ -137,7 +141,7 @@ class LogApplier:
         e = entry_of(row, state=FieldState.READY)
         with self._lock:
             fld = self._built.pop(row.id, None)
-        e.field = fld if fld is not None else e.spec.new_field(e.basis)
+        e.field = self.home.field(e, fld)
         self.catalogue.put(e)
 
     def apply_delete(self, entry: LogEntry) -> None:
@@ -147,6 +151,7 @@ class LogApplier:
         with e.index_lock:
             e.deleted = True
         e.drop_pending()
+        self.home.drop(e)
 
     def apply_snapshot(self, entry: LogEntry) -> None:
         e = self.catalogue.by_id(entry.field_id)
@@ -301,6 +306,8 @@ class LogApplier:
 
     def _restore_once(self, e: FieldEntry, row: FieldRow, upto: int) -> None:
         t0 = time.perf_counter()
+        if self.home.remote:  # its shards restore themselves where they live
+            return self._restore_remote(e, upto)
         try:
             fld, row = self._load_snapshot(e, row, upto)
             start, start_pos = (row.snapshot_seq, row.snapshot_position) if fld is not None \
@@ -333,6 +340,22 @@ class LogApplier:
             log.info("field %r: restored, %d samples, %d batches replayed in %.2f s", e.name,
                      fld.nsamples, done, time.perf_counter() - t0)
             self.snapshots.maybe_snapshot(e)
+        except StorageUnavailableError:
+            raise  # retried by _restore
+        except Exception as exc:
+            log.exception("field %r: restore failed", e.name)
+            e.mark_failed(str(exc))
+
+    def _restore_remote(self, e: FieldEntry, upto: int) -> None:
+        """A field whose shards live elsewhere: its entry at the field's last batch up
+        to ``upto`` (the shards load their snapshot and replay the log themselves)."""
+        try:
+            done = self.storage.batches(e.id, upto_position=upto)
+            seq, pos = (done[-1].seq, done[-1].position) if done else (0, 0)
+            e.field = self.home.field(e)
+            e.mark_indexed(seq, pos)
+            e.mark_ready()
+            log.info("field %r: its shards live in the cluster; at batch %d", e.name, seq)
         except StorageUnavailableError:
             raise  # retried by _restore
         except Exception as exc:

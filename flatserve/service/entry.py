@@ -40,6 +40,9 @@ class FieldSpec:
     atlas : dict or None
         Atlas fields: the atlas (:meth:`flatserve.atlas.Atlas.to_dict`: centres,
         scales, radii), built once at creation; None: one chart.
+    copies : int
+        Cluster mode: copies of each shard, on different nodes (one process holds
+        its one copy otherwise).
     """
 
     k: int
@@ -48,11 +51,12 @@ class FieldSpec:
     basis: dict
     roundtrip_tol: Optional[float] = None
     atlas: Optional[dict] = None
+    copies: int = 1
 
     @classmethod
     def from_dict(cls, obj: dict) -> "FieldSpec":
         return cls(int(obj["k"]), int(obj["d"]), int(obj["channels"]), dict(obj.get("basis", {})),
-                   obj.get("roundtrip_tol"), obj.get("atlas"))
+                   obj.get("roundtrip_tol"), obj.get("atlas"), int(obj.get("copies", 1)))
 
     def to_dict(self) -> dict:
         return asdict(self)

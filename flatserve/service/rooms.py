@@ -6,6 +6,7 @@ restore and stops them in the reverse order:
 
 * :class:`~.catalogue.FieldCatalogue`: names -> fields and their states;
 * :class:`~.snapshots.SnapshotWriter`: the snapshot lease and writes;
+* the fields' home (:mod:`.homes`): this process, or a cluster's actors;
 * :class:`~.applier.LogApplier`: what each log entry does; restore and rebuild;
 * :class:`~.replica.Follower`: follows the shared log (owns the applier),
   log positions and the waits for them;
@@ -24,6 +25,7 @@ from dataclasses import dataclass
 from .applier import LogApplier
 from .backend import LogBackend, open_backend
 from .catalogue import FieldCatalogue
+from .homes import open_home
 from .fields import FieldService
 from .query import QueryService
 from .replica import Follower
@@ -60,9 +62,14 @@ class Rooms:
         """Open the storage of ``settings`` and build the rooms over it (nothing runs
         yet: :meth:`start`)."""
         storage = open_backend(settings)
+        try:
+            home = open_home(settings)
+        except BaseException:
+            storage.close()
+            raise
         catalogue = FieldCatalogue()
         snapshots = SnapshotWriter(settings, storage, metrics)
-        applier = LogApplier(settings, storage, catalogue, snapshots, metrics)
+        applier = LogApplier(settings, storage, catalogue, snapshots, metrics, home)
         follower = Follower(storage, applier)
         fields = FieldService(settings, storage, catalogue, follower, applier)
         uploads = UploadService(settings, storage, follower, metrics)
@@ -90,4 +97,5 @@ class Rooms:
         self.follower.join(max(0.0, end - time.monotonic()) + 1.0)
         if self._loader is not None:
             self._loader.join(timeout=30)
+        self.applier.home.close()
         self.storage.close()

@@ -254,6 +254,11 @@ class FieldCreate(_KD):
                     "centre shifts and turns are then weighed alike). Default 1. For rays of "
                     "an object: about its half-size (rays meeting on its surface at depth z "
                     "from its centre differ by a shift of z times their turn).")
+    copies: int = Field(
+        1, ge=1, le=3,
+        description="Cluster mode (`serve --ray`): copies of each shard, each on a different "
+                    "node, so that a node's loss costs no reads (a server holding its fields "
+                    "itself keeps one).")
 
 
 class BasisInfo(BaseModel):

@@ -92,6 +92,15 @@ def serve(settings: Settings | None = None, listen_fd: int | None = None) -> Non
     except StorageError as exc:  # in use by another server, unreadable, damaged
         log.error("%s", exc)
         sys.exit(2)
+    if settings.ray is not None:  # refuse at once when the cluster cannot be reached
+        from .cluster.ray_shards import connect
+        from .status import ShardUnavailableError
+
+        try:
+            connect(settings)
+        except ShardUnavailableError as exc:  # the address named
+            log.error("%s", exc)
+            sys.exit(2)
     where = f"log in {settings.database_url.split('@')[-1]}" if settings.database_url else \
         f"data in {settings.data_dir}"
     log.info("flatserve on http://%s:%d, %s, %d worker threads (pid %d)", host, settings.port,

@@ -107,6 +107,19 @@ class Settings(BaseSettings):
     database_url: str | None = Field(None)
     """Where the shared batch log lives: unset for SQLite in data_dir (one machine), or
     postgresql://user:pass@host/db for replicas on several machines."""
+    ray: str | None = Field(None)
+    """Cluster mode: the address of a Ray cluster (host:port of its head, or 'auto') holding the
+    fields' shards in actors on its nodes; this server is then a stateless front (routes, fans
+    out, blends). Needs database_url (PostgreSQL: the log every shard follows) and the cluster
+    extra (pip install 'flatserve[cluster]')."""
+    ray_shards: int = Field(4, ge=1, le=1024)
+    """Cluster mode: shard groups per field (an atlas field's charts divided among them; a one-chart
+    field is one group). Each group is an actor per copy."""
+    ray_shard_memory: int = Field(1 << 30, ge=1 << 20)
+    """Cluster mode: bytes of a node's Ray memory resource each shard actor reserves (a node holds
+    shards up to its budget: start a node with ray start --memory BYTES)."""
+    ray_namespace: str = Field("flatserve", min_length=1, max_length=64)
+    """Cluster mode: the Ray namespace of the shard actors (fronts of one deployment share it)."""
     processes: int = Field(1, ge=1, le=256)
     """Replica processes serving one port (SQLite backend: they share the data directory; each
     holds its own copy of every field's triangulation)."""
@@ -173,6 +186,15 @@ class Settings(BaseSettings):
         if self.api_key is not None and self.read_only_key is not None:
             if self.api_key.get_secret_value() == self.read_only_key.get_secret_value():
                 raise ValueError("api_key and read_only_key must differ")
+        return self
+
+    @model_validator(mode="after")
+    def _cluster(self) -> "Settings":
+        if self.ray is not None and not (self.database_url or "").lower().startswith(
+                ("postgresql:", "postgres:")):
+            raise ValueError("ray: cluster mode needs database_url to name a PostgreSQL "
+                             "database (the log every shard and every front follows; the "
+                             "SQLite data directory is one process's)")
         return self
 
     @property

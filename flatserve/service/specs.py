@@ -143,7 +143,8 @@ def field_spec(req, *, max_atlas_samples: int | None = None) -> tuple[FieldSpec,
     ``field_spec(FieldCreate(name="bunny", channels=1, oriented=True))``.
     """
     basis, basis_spec, atlas = build_chart_basis(req, max_atlas_samples=max_atlas_samples)
-    return FieldSpec(req.k, req.d, req.channels, basis_spec, req.roundtrip_tol, atlas), basis
+    return FieldSpec(req.k, req.d, req.channels, basis_spec, req.roundtrip_tol, atlas,
+                     req.copies), basis
 
 
 def build_chart_basis(req, *, max_atlas_samples: int | None = None

@@ -20,7 +20,8 @@ __all__ = [
     "BatchTooLargeError", "BodyTooLargeError", "AnswerTooLargeError", "BacklogFullError",
     "CostLimitError",
     "CostPendingError",
-    "NotReadyError", "ReplicaBehindError", "IdempotencyConflictError", "InvalidParameterError",
+    "NotReadyError", "ReplicaBehindError", "ShardUnavailableError", "IdempotencyConflictError",
+    "InvalidParameterError",
     "HTTP_STATUS",
     "status_of", "error_class",
 ]
@@ -101,6 +102,13 @@ class ReplicaBehindError(NotReadyError):
     will have."""
 
 
+class ShardUnavailableError(NotReadyError):
+    """Cluster mode: a shard a request needs has no live copy now (its node was lost
+    and it is being placed again and restored, or the cluster is unreachable), or
+    has not applied the log position the answer must reflect within the wait. The
+    answer is never given in part: 503 with ``Retry-After``."""
+
+
 class InvalidParameterError(InvalidInputError):
     """Bad input in a query parameter (422 located at ``["query", name]``, not in the
     body)."""
@@ -127,6 +135,7 @@ HTTP_STATUS: dict[type, int] = {
     ValueError: 422,  # bad input reported by NumPy or other libraries
     NotReadyError: 503,
     ReplicaBehindError: 503,
+    ShardUnavailableError: 503,
     StorageFullError: 507,
     StorageError: 503,
     SnapshotError: 503,

@@ -1,0 +1,355 @@
+"""Shard workers as Ray actors: placement, copies, calls with failover, status.
+
+The one module that imports Ray (the ``cluster`` extra). :class:`RayCluster`
+is a front's connection to the cluster; :meth:`RayCluster.groups` gives a
+field's :class:`RayGroups` (a :class:`~.remote.ShardGroups`):
+
+* a field's charts are dealt round-robin into ``ray_shards`` groups (a
+  one-chart field: one group); each group has ``copies`` actors (the field's
+  spec), named ``field-<id>-g<group>-c<copy>`` in ``ray_namespace``, detached
+  (they outlive the front that made them: any front finds them by name) and
+  restarted by Ray wherever there is room when their node dies
+  (``max_restarts=-1``); a restarted actor restores itself
+  (:class:`~.shard.ShardWorker`);
+* each actor reserves ``ray_shard_memory`` bytes of its node's ``memory``
+  resource, so a node holds shards up to its budget; the copies of a group are
+  placed on different nodes (a ``STRICT_SPREAD`` placement group), the groups
+  of a field spread over the nodes (``SPREAD``);
+* a call goes to one copy of each group; a copy that is dead, restarting,
+  restoring or behind is passed over for the next; a group with no copy
+  left is :class:`~flatserve.service.status.ShardUnavailableError` (503);
+* a thread asks every actor for its status each second
+  (:meth:`RayGroups.status` never waits for it).
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+from ..status import NotReadyError, ShardUnavailableError
+from .shard import ShardWorker
+
+log = logging.getLogger("flatserve.service.cluster")
+
+#: seconds between two status rounds
+STATUS_EVERY_S = 1.0
+#: concurrent calls an actor takes (queries beside its log follower and snapshots)
+ACTOR_CONCURRENCY = 16
+
+
+class ShardActor:
+    """A :class:`~.shard.ShardWorker` as a Ray actor (one process)."""
+
+    def __init__(self, settings, field_id: int, charts) -> None:
+        from .. import logs
+
+        logs.configure(settings.log_level, settings.log_format)
+        self.worker = ShardWorker(settings, field_id, charts)
+
+    def query(self, work, kw, at_position, timeout):
+        return self.worker.query(work, kw, at_position, timeout)
+
+    def parts(self, position, known, timeout):
+        return self.worker.parts(position, known, timeout)
+
+    def status(self) -> dict:
+        return self.worker.status()
+
+
+def deal(ncharts: int, ngroups: int) -> list[tuple[int, ...]]:
+    """Charts dealt round-robin into at most ``ngroups`` groups (neighbouring charts,
+    which share their overlap's samples, go to different groups: the load is even).
+
+    >>> deal(5, 2)
+    [(0, 2, 4), (1, 3)]
+    """
+    n = max(1, min(ngroups, ncharts))
+    return [tuple(range(g, ncharts, n)) for g in range(n)]
+
+
+#: seconds the head's address gets to answer a TCP connection before it is called unreachable
+PROBE_TIMEOUT_S = 10.0
+
+
+def probe_address(address: str, timeout: float = PROBE_TIMEOUT_S) -> None:
+    """Fail fast when nothing answers at the head's ``host:port`` (Ray's own client
+    retries for minutes); ``auto`` and ``ray://`` addresses are left to Ray.
+
+    Raises
+    ------
+    ShardUnavailableError
+        Naming the address and what the connection said.
+    """
+    if address == "auto" or "://" in address or ":" not in address:
+        return
+    import socket
+
+    host, _, port = address.rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):
+            return
+    except (OSError, ValueError) as exc:
+        raise ShardUnavailableError(f"ray: the Ray cluster at {address!r} cannot be reached: "
+                                    f"{exc}") from None
+
+
+def connect(settings) -> None:
+    """Connect this process to the Ray cluster at ``settings.ray`` (once).
+
+    Raises
+    ------
+    ShardUnavailableError
+        Ray is not installed, or the cluster cannot be reached (naming the address).
+    """
+    try:
+        import ray
+    except ImportError as exc:
+        raise ShardUnavailableError(
+            "ray: cluster mode needs the cluster extra: pip install 'flatserve[cluster]' "
+            f"({exc})") from None
+    if ray.is_initialized():
+        return
+    probe_address(settings.ray)
+    try:
+        ray.init(address=settings.ray, namespace=settings.ray_namespace, log_to_driver=False,
+                 logging_level=logging.WARNING)
+    except Exception as exc:
+        raise ShardUnavailableError(
+            f"ray: the Ray cluster at {settings.ray!r} cannot be reached: "
+            f"{type(exc).__name__}: {exc}") from None
+
+
+class RayCluster:
+    """A front's connection to the Ray cluster holding the shards (see the module doc).
+
+    Parameters
+    ----------
+    settings : Settings
+        ``ray`` (the address), ``ray_namespace``, ``ray_shards``,
+        ``ray_shard_memory``, and what the workers need (``database_url``...).
+
+    Raises
+    ------
+    ShardUnavailableError
+        The cluster cannot be reached (the message names the address).
+    """
+
+    def __init__(self, settings) -> None:
+        connect(settings)
+        import ray
+
+        self.ray = ray
+        self.settings = settings
+        self.address = settings.ray
+        from ray.exceptions import (ActorUnavailableError, GetTimeoutError, RayActorError,
+                                    RaySystemError, RayTaskError)
+
+        self._lost = (ActorUnavailableError, GetTimeoutError, RayActorError, RaySystemError,
+                      ConnectionError)
+        self._task_error = RayTaskError
+        self._remote = ray.remote(ShardActor)
+        self._fields: dict[int, RayGroups] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._poller = threading.Thread(target=self._poll, name="flatserve-shard-status",
+                                        daemon=True)
+        self._poller.start()
+        log.info("cluster mode: shards on the Ray cluster at %s (namespace %r)", self.address,
+                 settings.ray_namespace)
+
+    # -- a field's groups ----------------------------------------------------------------
+    def groups(self, field_id: int, ncharts: int, copies: int) -> "RayGroups":
+        """The field's groups of actors, made unless they exist (any front may ask)."""
+        with self._lock:
+            g = self._fields.get(field_id)
+            if g is None:
+                g = self._fields[field_id] = RayGroups(self, field_id, ncharts, copies)
+            return g
+
+    def drop(self, field_id: int) -> None:
+        """The field was deleted: its actors and placement groups go."""
+        with self._lock:
+            g = self._fields.pop(field_id, None)
+        if g is not None:
+            g.kill()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._poller.join(timeout=5)
+
+    # -- calls ----------------------------------------------------------------------------
+    def get(self, ref, timeout: float):
+        """``ray.get`` with a worker's own error raised as itself."""
+        try:
+            return self.ray.get(ref, timeout=timeout)
+        except self._task_error as exc:
+            cause = getattr(exc, "cause", None)
+            if isinstance(cause, Exception):
+                raise cause from None
+            raise
+
+    def _poll(self) -> None:
+        while not self._stop.wait(STATUS_EVERY_S):
+            with self._lock:
+                fields = list(self._fields.values())
+            for g in fields:
+                try:
+                    g.refresh()
+                except Exception:  # the cluster unreachable: the next round tries again
+                    log.debug("status round failed", exc_info=True)
+
+
+class RayGroups:
+    """One field's shard groups on the cluster (a :class:`~.remote.ShardGroups`)."""
+
+    def __init__(self, cluster: RayCluster, field_id: int, ncharts: int, copies: int) -> None:
+        self.cluster = cluster
+        self.field_id = field_id
+        self.copies = int(copies)
+        s = cluster.settings
+        self.charts = deal(ncharts, s.ray_shards)
+        self._status: list[dict | None] = [None] * len(self.charts)
+        #: per group, per copy: believed alive (the last call or status answered)
+        self._alive = [[True] * self.copies for _ in self.charts]
+        self._next = [0] * len(self.charts)
+        self.actors = [[self._actor(g, j) for j in range(self.copies)]
+                       for g in range(len(self.charts))]
+
+    def _name(self, g: int, j: int | None = None) -> str:
+        base = f"field-{self.field_id}-g{g}"
+        return base if j is None else f"{base}-c{j}"
+
+    def _placement(self, g: int):
+        """The group's placement group: its copies on different nodes."""
+        from ray.util import get_placement_group, placement_group
+
+        name = self._name(g)
+        try:
+            return get_placement_group(name)
+        except ValueError:
+            pass
+        mem = self.cluster.settings.ray_shard_memory
+        try:
+            return placement_group([{"memory": mem}] * self.copies, strategy="STRICT_SPREAD",
+                                   name=name, lifetime="detached")
+        except Exception:  # made by another front meanwhile
+            return get_placement_group(name)
+
+    def _actor(self, g: int, j: int):
+        s = self.cluster.settings
+        opts: dict[str, Any] = dict(
+            name=self._name(g, j), namespace=s.ray_namespace, lifetime="detached",
+            get_if_exists=True, max_restarts=-1, max_task_retries=0,
+            max_concurrency=ACTOR_CONCURRENCY, num_cpus=0, memory=s.ray_shard_memory)
+        if self.copies > 1:
+            from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
+
+            opts["scheduling_strategy"] = PlacementGroupSchedulingStrategy(
+                self._placement(g), placement_group_bundle_index=j)
+        else:
+            opts["scheduling_strategy"] = "SPREAD"
+        return self.cluster._remote.options(**opts).remote(s, self.field_id, self.charts[g])
+
+    def status(self) -> list[dict | None]:
+        return list(self._status)
+
+    def refresh(self) -> None:
+        """Ask every actor for its status (one round, at most ~2 s)."""
+        ray = self.cluster.ray
+        refs = {(g, j): a.status.remote() for g, copies in enumerate(self.actors)
+                for j, a in enumerate(copies)}
+        ready, _ = ray.wait(list(refs.values()), num_returns=len(refs), timeout=2.0)
+        ready = set(ready)
+        best: list[dict | None] = [None] * len(self.charts)
+        for (g, j), ref in refs.items():
+            st = None
+            if ref in ready:
+                try:
+                    st = self.cluster.get(ref, 0.1)
+                except Exception:
+                    st = None
+            self._alive[g][j] = st is not None and st["state"] == "ready"
+            if st is not None and (best[g] is None or st["through"] > best[g]["through"]):
+                best[g] = st
+        for g, st in enumerate(best):
+            if st is not None:
+                self._status[g] = st
+
+    def call(self, calls: dict[int, tuple[str, tuple]], timeout: float) -> dict[int, Any]:
+        """``{group: (method, args)}`` on one live copy of each group (see the module doc)."""
+        deadline = time.monotonic() + timeout
+        tried: dict[int, list[int]] = {g: [] for g in calls}
+        last: dict[int, str] = {}
+        pending: dict[int, tuple[int, Any]] = {}
+
+        def submit(g: int) -> bool:
+            order = self._order(g)
+            for j in order:
+                if j not in tried[g]:
+                    tried[g].append(j)
+                    method, args = calls[g]
+                    try:
+                        pending[g] = (j, getattr(self.actors[g][j], method).remote(*args))
+                    except Exception as exc:  # the cluster unreachable
+                        last[g] = f"{type(exc).__name__}: {exc}"
+                        self._alive[g][j] = False
+                        continue
+                    return True
+            return False
+
+        for g in calls:
+            if not submit(g):
+                raise self._unavailable(g, last)
+        out: dict[int, Any] = {}
+        while pending:
+            g, (j, ref) = next(iter(pending.items()))
+            del pending[g]
+            try:
+                out[g] = self.cluster.get(ref, max(0.05, deadline - time.monotonic()))
+                self._alive[g][j] = True
+                continue
+            except ShardUnavailableError as exc:  # restoring, behind, failed: another copy
+                last[g] = str(exc)
+            except NotReadyError:
+                raise
+            except self.cluster._lost as exc:
+                last[g] = f"{type(exc).__name__}: {exc}"
+                self._alive[g][j] = False
+            if not submit(g):
+                for _, (_, r) in pending.items():
+                    self.cluster.ray.cancel(r)
+                raise self._unavailable(g, last)
+        return out
+
+    def _order(self, g: int) -> list[int]:
+        """The copies of group ``g``, those believed alive first, in rotation."""
+        n = self.copies
+        start = self._next[g]
+        self._next[g] = (start + 1) % n
+        rot = [(start + i) % n for i in range(n)]
+        return sorted(rot, key=lambda j: not self._alive[g][j])
+
+    def _unavailable(self, g: int, last: dict[int, str]) -> ShardUnavailableError:
+        return ShardUnavailableError(
+            f"field {self.field_id}: shard group {g} (charts {list(self.charts[g])}) has no live "
+            f"copy of {self.copies} now ({last.get(g, 'no answer')}); its actors are restarted "
+            "and restore themselves: retry shortly")
+
+    def kill(self) -> None:
+        ray = self.cluster.ray
+        for copies in self.actors:
+            for a in copies:
+                try:
+                    ray.kill(a, no_restart=True)
+                except Exception:
+                    pass
+        if self.copies > 1:
+            from ray.util import get_placement_group, remove_placement_group
+
+            for g in range(len(self.charts)):
+                try:
+                    remove_placement_group(get_placement_group(self._name(g)))
+                except Exception:
+                    pass

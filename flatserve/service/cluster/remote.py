@@ -1,0 +1,285 @@
+"""The front's view of a field whose shards live elsewhere: :class:`RemoteField`.
+
+A :class:`RemoteField` implements the field contract
+(:class:`flatserve.contract.SampledField`) for a server process that holds no
+triangulation: routing, charting decisions and blending use an empty field of
+the same definition (they need only the definition), and each shard's half of
+a query or a snapshot runs where the shard lives, through a
+:class:`ShardGroups` (one live copy of each group a request touches). The
+answer is the one-process field's, bit for bit: the same rows reach the same
+charts' ``query`` and the front blends them in chart order.
+
+Writes are not sent anywhere: the shard workers follow the shared log
+themselves (:mod:`.shard`). So :meth:`RemoteField.insert_prepared` only
+reports the batch's decisions, and a query is answered once every shard it
+touches has applied the field's log position the front has seen (the entry's
+``indexed_position``): read-your-writes through any front.
+"""
+from __future__ import annotations
+
+import os
+from typing import Any, Callable, Collection, Protocol, Sequence
+
+import numpy as np
+
+from ...field import AddResult, QueryResult, QueryRoute
+from ...flats import Flats
+from ...options import Order, Outside
+from ..status import NotReadyError
+
+_NO_ROWS = np.empty(0, np.int64)
+
+
+class ShardGroups(Protocol):
+    """Where a field's shard groups live, and how a front calls them.
+
+    Attributes
+    ----------
+    charts : list of tuple of int
+        Per group, its charts (every chart in exactly one group).
+    """
+
+    charts: list[tuple[int, ...]]
+
+    def call(self, calls: dict[int, tuple[str, tuple]], timeout: float) -> dict[int, Any]:
+        """``{group: (method, args)}`` run on one live copy of each group, at once;
+        ``{group: result}``. Raises
+        :class:`~flatserve.service.status.ShardUnavailableError` when a group has
+        no live copy, or the error a worker raised."""
+        ...
+
+    def status(self) -> list[dict | None]:
+        """Per group, the last status a copy reported (never waits; None: none yet)."""
+        ...
+
+
+class _Lazy:
+    """A batch's decisions, charted on first use (an upload's response needs them;
+    the follower's hand-over of another front's batch never does)."""
+
+    def __init__(self, chart: Callable[[], Any], nrows: int) -> None:
+        self._chart, self.nrows, self._done = chart, nrows, None
+
+    @property
+    def decided(self) -> bool:
+        return self._done is not None
+
+    def _get(self):
+        if self._done is None:
+            self._done = self._chart()
+        return self._done
+
+    @property
+    def accepted(self) -> int:
+        return self._get().accepted
+
+    @property
+    def rejected(self) -> np.ndarray:
+        return self._get().rejected
+
+    @property
+    def reasons(self) -> list:
+        return self._get().reasons
+
+
+class RemoteField:
+    """A field whose shards live in other processes (see the module doc).
+
+    Parameters
+    ----------
+    shape : Field or AtlasField
+        An empty field of the definition (``FieldSpec.new_field``): routing,
+        charting decisions, blending, the snapshot's header.
+    groups : ShardGroups
+    position : callable
+        The field's log position the front has seen (its entry's
+        ``indexed_position``): what an answer must reflect.
+    timeout : float
+        Seconds a query waits for a shard (behind, or restoring) before 503.
+    """
+
+    def __init__(self, shape, groups: ShardGroups, position: Callable[[], int],
+                 timeout: float) -> None:
+        self._shape = shape
+        self.groups = groups
+        self._position = position
+        self.timeout = float(timeout)
+        self.k, self.d, self.ndim = shape.k, shape.d, shape.ndim
+        self.channels, self.roundtrip_tol, self.blends = \
+            shape.channels, shape.roundtrip_tol, shape.blends
+        n = len(shape.shards)
+        self._group_of = np.full(n, -1, dtype=np.int64)
+        for g, charts in enumerate(groups.charts):
+            self._group_of[list(charts)] = g
+        if (self._group_of < 0).any():
+            raise ValueError("groups: every chart must be in a group")
+
+    # -- sizes (the workers' last reports: never waits) -------------------------------------
+    def _statuses(self) -> list[dict]:
+        return [s for s in self.groups.status() if s is not None]
+
+    @property
+    def nsamples(self) -> int:
+        return int(sum(s["nsamples"] for s in self._statuses()))
+
+    @property
+    def nstored(self) -> int:
+        return int(sum(s["nstored"] for s in self._statuses()))
+
+    @property
+    def nsimplex(self) -> int:
+        return int(sum(s["nsimplex"] for s in self._statuses()))
+
+    @property
+    def nrejected(self) -> int:
+        st = self.groups.status()
+        return int(st[0]["nrejected"]) if st and st[0] is not None else 0
+
+    @property
+    def shards(self):
+        """The definition's shards (empty here: their sizes are :meth:`describe`'s)."""
+        return self._shape.shards
+
+    # -- routing and blending: the definition's -------------------------------------------
+    def route(self, flats: Flats) -> list[np.ndarray]:
+        return self._shape.route(flats)
+
+    def route_query(self, flats: Flats) -> QueryRoute:
+        return self._shape.route_query(flats)
+
+    def blend(self, route: QueryRoute, results: Sequence[QueryResult | None], *,
+              return_weights: bool = False) -> QueryResult:
+        return self._shape.blend(route, results, return_weights=return_weights)
+
+    def copies(self, flats: Flats) -> float:
+        return self._shape.copies(flats)
+
+    # -- writes: the workers follow the log ------------------------------------------------
+    def prepare(self, flats: Flats, values, *, defer: bool = False, only=None):
+        """Validate now; chart (for the decisions) when they are first read."""
+        chart = self._shape.prepare(flats, values, defer=True, only=only)
+        lazy = _Lazy(chart, len(flats))
+        return (lambda: lazy) if defer else lazy
+
+    def insert_prepared(self, batch, *, slice_rows: int | None = None) -> AddResult:
+        """The batch's decisions (the shard workers insert it from the log)."""
+        if batch.decided:
+            return AddResult(accepted=batch.accepted, rejected=batch.rejected,
+                             reasons=batch.reasons, duplicates=0, nsamples=self.nsamples)
+        return AddResult(accepted=batch.nrows, rejected=_NO_ROWS, reasons=[], duplicates=0,
+                         nsamples=self.nsamples)
+
+    def add(self, flats: Flats, values) -> AddResult:
+        return self.insert_prepared(self.prepare(flats, values))
+
+    # -- reads ------------------------------------------------------------------------------
+    def query(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
+              order: Order | str = Order.HILBERT, threads: int | None = None,
+              return_weights: bool = False, blocking: bool = True) -> QueryResult | None:
+        """Route, one call per shard group touched (each its charts' answers), blend.
+
+        Not ``blocking``: None at once (an answer from other processes always
+        waits for them; the caller runs it off its event loop).
+
+        Raises
+        ------
+        ShardUnavailableError
+            A shard the query needs has no live copy, or has not applied the
+            field's log position within ``timeout`` (503): never a partial answer.
+        """
+        if not blocking:
+            return None
+        route = self._shape.route_query(flats)
+        kw = {"outside": outside, "order": order, "threads": threads,
+              "return_weights": return_weights}
+        whole = len(route.rows) == 1
+        per: dict[int, list] = {}
+        for c, rows in enumerate(route.rows):
+            if rows.size:
+                per.setdefault(int(self._group_of[c]), []).append(
+                    (c, flats if whole else flats.take(rows)))
+        at = self._position()
+        got = self.groups.call({g: ("query", (w, kw, at, self.timeout))
+                                for g, w in per.items()}, self.timeout + 5.0)
+        results: list = [None] * len(route.rows)
+        for g, work in per.items():
+            for (c, _), res in zip(work, got[g]):
+                results[c] = res
+        return self._shape.blend(route, results, return_weights=return_weights)
+
+    def describe(self) -> dict:
+        out = self._shape.describe()
+        st = self._statuses()
+        n, stored = self.nsamples, self.nstored
+        per_chart = {}
+        for s in st:
+            per_chart.update(zip(s["charts"], s.get("chart_samples", [])))
+        shards = [{"samples": per_chart.get(c)} for c in range(len(self._shape.shards))]
+        if out.get("charts"):
+            for chart, sh in zip(out["charts"], shards):
+                chart["samples"] = sh["samples"]
+        out.update(nsamples=n, nstored=stored, nsimplex=self.nsimplex, nrejected=self.nrejected,
+                   duplication=stored / n if n else None, shards=shards)
+        return out
+
+    # -- snapshots: assembled from every group's parts at one log position ----------------
+    def write_parts(self, fh, stage: str | os.PathLike, known: Collection[str] = ()) -> list[str]:
+        """The field's snapshot at the front's log position for it: every group's
+        charts held at that position (:meth:`.shard.ShardWorker.parts`), the
+        changed parts written to ``stage``, the field file to ``fh``.
+
+        Raises
+        ------
+        NotReadyError
+            A group had already applied a later batch (another try will do), or
+            has no live copy (:class:`~flatserve.service.status.ShardUnavailableError`).
+        """
+        pos = self._position()
+        known = list(known)
+        got = self.groups.call({g: ("parts", (pos, known, self.timeout))
+                                for g in range(len(self.groups.charts))}, self.timeout + 60.0)
+        seqs = {r["seq"] for r in got.values()}
+        if len(seqs) != 1:
+            raise NotReadyError(f"the shards of the field are at batches {sorted(seqs)}, not "
+                                "one; retry the snapshot")
+        if got[0]["whole"] is not None:  # one chart: its file is the field's
+            fh.write(got[0]["whole"])
+            return []
+        n = len(self._shape.shards)
+        keys: list = [None] * n
+        own: list = [None] * n
+        for g, r in got.items():
+            for (c, key, blob), o in zip(r["parts"], r["own"] or [None] * len(r["parts"])):
+                keys[c], own[c] = key, o
+                if blob is not None:
+                    with open(os.path.join(stage, key), "wb") as out:
+                        out.write(blob)
+                        out.flush()
+                        os.fsync(out.fileno())
+        if any(o is None for o in own):
+            raise NotReadyError("a shard does not know its charts' own samples yet; retry")
+        fh.write(self._shape.parts_header(keys, own=own, nrejected=got[0]["nrejected"]))
+        return keys
+
+    def save_parts(self, path: str | os.PathLike, stage: str | os.PathLike,
+                   known: Collection[str] = ()) -> list[str]:
+        with open(path, "wb") as fh:
+            keys = self.write_parts(fh, stage, known)
+            fh.flush()
+            os.fsync(fh.fileno())
+        return keys
+
+    def write_to(self, fh) -> int:
+        raise NotReadyError("a field whose shards live in a cluster is written as a snapshot "
+                            "in parts (write_parts), never whole")
+
+    def to_bytes(self) -> bytes:
+        raise NotReadyError("a field whose shards live in a cluster is written as a snapshot "
+                            "in parts (write_parts), never whole")
+
+    def save(self, path) -> None:
+        self.to_bytes()
+
+    def __repr__(self) -> str:
+        return (f"RemoteField(k={self.k}, d={self.d}, groups={len(self.groups.charts)}, "
+                f"nsamples={self.nsamples})")

@@ -1,0 +1,340 @@
+"""One shard group of one field, in a process of its own: restore, follow the log, answer.
+
+A :class:`ShardWorker` holds some charts of one field (``charts``; a one-chart
+field's one shard is chart 0). It needs no front:
+
+1. **Restore**: the field's newest snapshot, its own charts' parts only
+   (:func:`flatserve.contract.load_field` with ``only``), else an empty field;
+   the snapshot's log position is where it starts.
+2. **Follow**: it reads the shared log after that position, in order, and for
+   each ``batch`` entry of its field reads the batch, routes and charts the
+   rows of its own charts (``prepare(..., only=charts)``) and inserts them in
+   slices of ``insert_slice_rows``: exactly the calls the one-process field
+   makes on those charts, so a chart here holds the same bits as the same
+   chart of a field that applied the whole log (tested). A ``delete`` of its
+   field ends it.
+3. **Answer**: :meth:`ShardWorker.query` (its charts' answers on the rows a
+   front routed to them, once it has applied the log position the front asks
+   for), :meth:`ShardWorker.parts` (its charts' snapshot parts at one log
+   position: a front assembles the field's snapshot from every group's), and
+   :meth:`ShardWorker.status`.
+
+Where a worker lives (a Ray actor, :mod:`.ray_shards`; a thread in tests) is
+not this module's business.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+
+from ...basis import Basis
+from ...contract import load_field
+from ...flats import Flats
+from ..backend import LogBackend, SnapshotGoneError, open_backend
+from ..entry import FieldSpec
+from ..status import (FieldNotFoundError, NotReadyError, ShardUnavailableError, StorageError,
+                      StorageUnavailableError)
+
+log = logging.getLogger("flatserve.service.shard")
+
+#: entries read from the log at a time
+READ_CHUNK = 256
+#: longest sleep between two looks at the log when nothing wakes the worker
+IDLE_WAIT_S = 1.0
+#: a restore that found the database unreachable tries again after this many seconds
+RETRY_S = 1.0
+
+
+class ShardAheadError(NotReadyError):
+    """A snapshot asked a shard for its charts at a log position it has passed
+    (the field's other shards are behind it): the snapshot is tried again later."""
+
+
+def rss_bytes() -> int:
+    """Resident memory of this process (``/proc/self/status``; 0 where unknown)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:  # pragma: no cover - not Linux
+        pass
+    return 0
+
+
+class ShardWorker:
+    """Some charts of one field, following the log (see the module doc).
+
+    Parameters
+    ----------
+    settings : Settings
+        ``database_url`` (the shared log), ``insert_slice_rows`` (the same as the
+        fronts': the slices of an insert decide the bits of a chart).
+    field_id : int
+    charts : sequence of int
+        The charts this worker holds.
+    storage : LogBackend, optional
+        Default: :func:`~flatserve.service.backend.open_backend` of ``settings``.
+    start : bool
+        Start restoring and following at once (default).
+    """
+
+    def __init__(self, settings, field_id: int, charts, *, storage: LogBackend | None = None,
+                 start: bool = True) -> None:
+        self.settings = settings
+        self.field_id = int(field_id)
+        self.charts = tuple(sorted(int(c) for c in charts))
+        self.only = frozenset(self.charts)
+        self._storage = storage
+        self.field = None
+        self.spec: FieldSpec | None = None
+        #: every log entry up to this position is applied
+        self.through = 0
+        #: the field's last batch applied: its seq and log position
+        self.seq = 0
+        self.position = 0
+        self.state = "restoring"
+        self.error: str | None = None
+        self.restored_from: str | None = None
+        self._cond = threading.Condition()
+        self._hold: int | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="flatserve-shard", daemon=True)
+        if start:
+            self.start()
+
+    @property
+    def storage(self) -> LogBackend:
+        if self._storage is None:
+            self._storage = open_backend(self.settings)
+        return self._storage
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop following (between two batches) and close the storage."""
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._storage is not None:
+            self._storage.wake()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+        if self._storage is not None:
+            self._storage.close()
+
+    # -- restore and follow ---------------------------------------------------------------
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self._restore()
+                break
+            except FieldNotFoundError:
+                self._set_state("deleted", "the field was deleted")
+                return
+            except StorageError as exc:
+                log.warning("shard %s of field %d: restore: %s; retrying in %g s",
+                            self.charts, self.field_id, exc, RETRY_S)
+                self._set_state("restoring", str(exc))
+                self._stop.wait(RETRY_S)
+            except Exception as exc:  # a defect: say so, never answer from a half field
+                log.exception("shard %s of field %d: restore failed", self.charts, self.field_id)
+                self._set_state("failed", f"restore failed: {exc}")
+                return
+        self._set_state("ready", None)
+        while not self._stop.is_set():
+            try:
+                if not self._follow_once():
+                    self.storage.wait_for_change(IDLE_WAIT_S)
+            except FieldNotFoundError:
+                self._set_state("deleted", "the field was deleted")
+                return
+            except StorageError as exc:  # the log unreachable: try again (queries wait)
+                log.warning("shard %s of field %d: following the log: %s", self.charts,
+                            self.field_id, exc)
+                self._stop.wait(RETRY_S)
+            except Exception as exc:
+                log.exception("shard %s of field %d: applying the log failed", self.charts,
+                              self.field_id)
+                self._set_state("failed", f"applying the log failed: {exc}")
+                return
+
+    def _set_state(self, state: str, error: str | None) -> None:
+        with self._cond:
+            self.state, self.error = state, error
+            self._cond.notify_all()
+
+    def _restore(self) -> None:
+        t0 = time.perf_counter()
+        for _ in range(5):
+            row = self.storage.field(self.field_id)
+            spec = FieldSpec.from_dict(row.spec)
+            fld = None
+            if row.snapshot_file:
+                try:
+                    fld = self.storage.load_snapshot(
+                        row, lambda path, parts: load_field(path, parts, only=self.only))
+                except SnapshotGoneError:
+                    continue  # replaced meanwhile: take the new one
+                except StorageError:
+                    raise
+                except Exception as exc:  # damaged: the log has every batch
+                    log.warning("shard %s of field %d: snapshot unusable (%s); replaying the "
+                                "log", self.charts, self.field_id, exc)
+                    fld = None
+                if fld is not None and getattr(fld, "own_samples", ()) is None:
+                    fld = None  # an older snapshot without its charts' own samples
+            break
+        else:
+            raise StorageUnavailableError("the field's snapshot kept being replaced")
+        if fld is None:
+            basis = Basis(row.basis["Q"], row.basis["r"], spec.k)
+            fld = spec.new_field(basis)
+            start, seq = row.position, 0
+            self.restored_from = "the log"
+        else:
+            start, seq = row.snapshot_position, row.snapshot_seq
+            self.restored_from = f"snapshot after batch {seq}"
+        with self._cond:
+            self.spec, self.field = spec, fld
+            self.through, self.seq, self.position = start, seq, start if seq else 0
+            self._cond.notify_all()
+        log.info("shard %s of field %d: restored from %s in %.2f s", self.charts,
+                 self.field_id, self.restored_from, time.perf_counter() - t0)
+
+    def _follow_once(self) -> bool:
+        """Apply the next entries of the log; False if there were none."""
+        entries = self.storage.read_log(self.through, READ_CHUNK)
+        for en in entries:
+            if self._stop.is_set():
+                return True
+            if en.field_id == self.field_id:
+                if en.kind == "batch" and en.seq > self.seq:
+                    self._wait_hold(en.position)
+                    self._apply(en)
+                elif en.kind == "delete":
+                    raise FieldNotFoundError(f"field {self.field_id} deleted")
+            with self._cond:
+                self.through = en.position
+                self._cond.notify_all()
+        return bool(entries)
+
+    def _wait_hold(self, position: int) -> None:
+        """A snapshot holds this worker at a position before ``position``: wait."""
+        with self._cond:
+            while self._hold is not None and position > self._hold and not self._stop.is_set():
+                self._cond.wait(0.5)
+
+    def _apply(self, en) -> None:
+        spec = self.spec
+        arrays = dict(self.storage.batch_arrays(self.field_id, en.seq))
+        values = arrays.pop("values")
+        flats = Flats.from_arrays(arrays, k=spec.k, d=spec.d)
+        prepared = self.field.prepare(flats, values, only=self.only)
+        self.field.insert_prepared(prepared, slice_rows=self.settings.insert_slice_rows)
+        with self._cond:
+            self.seq, self.position = en.seq, en.position
+            self._cond.notify_all()
+
+    # -- answers --------------------------------------------------------------------------
+    def _await(self, position: int, timeout: float, what: str) -> None:
+        """Wait until every log entry up to ``position`` is applied here."""
+        end = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                if self.state in ("failed", "deleted"):
+                    raise ShardUnavailableError(f"shard {list(self.charts)} of field "
+                                                f"{self.field_id}: {self.error}")
+                if self.state == "ready" and self.through >= position:
+                    return
+                left = end - time.monotonic()
+                if left <= 0:
+                    where = "restoring" if self.state != "ready" else \
+                        f"at log position {self.through}"
+                    raise ShardUnavailableError(
+                        f"shard {list(self.charts)} of field {self.field_id}: {what} needs log "
+                        f"position {position}; the shard is {where} (waited {timeout:g} s)")
+                self._cond.wait(min(left, 0.5))
+
+    def query(self, work, kw: dict, at_position: int, timeout: float):
+        """Its charts' answers on the rows routed to them, once the log up to
+        ``at_position`` is applied here (:meth:`flatserve.contract.SampledField.query_shards`).
+
+        Parameters
+        ----------
+        work : list of (int, Flats)
+            ``(chart, flats)`` pairs of this worker's charts.
+        kw : dict
+            ``outside``, ``order``, ``threads``, ``return_weights``.
+        at_position : int
+        timeout : float
+            Seconds to wait for ``at_position``.
+
+        Raises
+        ------
+        ShardUnavailableError
+            Not there within ``timeout`` (restoring, or behind), or failed.
+        """
+        self._await(at_position, timeout, "a query")
+        return self.field.query_shards(work, **kw)
+
+    def parts(self, position: int, known, timeout: float) -> dict:
+        """Its charts' snapshot parts with exactly the field's batches up to log
+        ``position``: the worker is held there (it applies no later batch of its
+        field) while it serialises.
+
+        Returns
+        -------
+        dict
+            ``seq`` (the field's last batch up to ``position``), ``parts``
+            (``[(chart, key, bytes or None), ...]``: bytes unless ``known``),
+            ``own`` (per chart its own samples), ``nrejected``.
+
+        Raises
+        ------
+        ShardAheadError
+            The worker has applied a later batch of its field already.
+        ShardUnavailableError
+            Not at ``position`` within ``timeout``.
+        """
+        with self._cond:
+            if self.position > position:
+                raise ShardAheadError(
+                    f"shard {list(self.charts)} of field {self.field_id} is at log position "
+                    f"{self.position}, past {position}; retry the snapshot")
+            self._hold = position
+        try:
+            self._await(position, timeout, "a snapshot")
+            fld = self.field
+            own = getattr(fld, "own_samples", None)
+            parts = fld.chart_parts(self.charts, known) if hasattr(fld, "chart_parts") else \
+                None
+            return {"seq": self.seq, "parts": parts,
+                    "whole": fld.to_bytes() if parts is None else None,
+                    "own": None if own is None else [own[c] for c in self.charts],
+                    "nrejected": fld.nrejected}
+        finally:
+            with self._cond:
+                self._hold = None
+                self._cond.notify_all()
+
+    def status(self) -> dict:
+        """What the worker holds and where it is in the log (cheap; never waits)."""
+        fld = self.field
+        own = getattr(fld, "own_samples", None) if fld is not None else None
+        return {
+            "field_id": self.field_id, "charts": list(self.charts), "state": self.state,
+            "error": self.error, "through": self.through, "seq": self.seq,
+            "position": self.position,
+            "nsamples": (sum(own[c] for c in self.charts) if own is not None
+                         else (fld.nsamples if fld is not None else 0)),
+            "nstored": int(fld.nstored) if fld is not None else 0,
+            "nsimplex": int(fld.nsimplex) if fld is not None else 0,
+            "nrejected": int(fld.nrejected) if fld is not None else 0,
+            "chart_samples": [int(fld.shards[c].nsamples) for c in self.charts]
+            if fld is not None else [0] * len(self.charts),
+            "restored_from": self.restored_from, "rss": rss_bytes(), "pid": os.getpid(),
+        }

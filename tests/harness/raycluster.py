@@ -1,0 +1,65 @@
+"""A real multi-node Ray cluster on this machine, every node on loopback.
+
+``ray.cluster_utils.Cluster`` starts a head (GCS and a raylet) and worker
+raylets as processes of their own: several nodes on one machine, each with its
+CPU and memory resources. Ray listens on all interfaces and advertises the
+machine's outside address unless ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` is in
+the environment of every Ray process (the design notes): set here, before
+anything starts, and inherited by the servers the tests start (their drivers).
+Node death is detected within a few seconds (health checks each second).
+"""
+from __future__ import annotations
+
+import os
+import time
+
+os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+
+GiB = 1 << 30
+
+#: the head's settings: a node that stops answering is dead after ~3 s
+SYSTEM_CONFIG = {"health_check_initial_delay_ms": 1000, "health_check_period_ms": 1000,
+                 "health_check_failure_threshold": 3}
+
+
+class RayNodes:
+    """A head and ``workers`` worker nodes (``cpus`` and ``memory`` bytes each),
+    all on 127.0.0.1; :meth:`shutdown` (or leaving the ``with`` block) stops them.
+
+    Attributes
+    ----------
+    address : str
+        The head's GCS address (``serve --ray``).
+    """
+
+    def __init__(self, workers: int = 2, *, cpus: int = 1, memory: int = 4 * GiB,
+                 head_memory: int | None = None) -> None:
+        from ray.cluster_utils import Cluster
+
+        self.cpus, self.memory = cpus, memory
+        self.cluster = Cluster(initialize_head=True, connect=False, head_node_args={
+            "num_cpus": cpus, "memory": memory if head_memory is None else head_memory,
+            "node_ip_address": "127.0.0.1", "_system_config": SYSTEM_CONFIG})
+        self.workers = [self.add_worker() for _ in range(workers)]
+        self.cluster.wait_for_nodes()
+        self.address = self.cluster.address
+
+    def add_worker(self):
+        return self.cluster.add_node(num_cpus=self.cpus, memory=self.memory,
+                                     node_ip_address="127.0.0.1")
+
+    def kill(self, node) -> None:
+        """The node dies (its raylet and its workers: the actors on it)."""
+        self.cluster.remove_node(node, allow_graceful=False)
+        if node in self.workers:
+            self.workers.remove(node)
+
+    def shutdown(self) -> None:
+        self.cluster.shutdown()
+        time.sleep(0.5)
+
+    def __enter__(self) -> "RayNodes":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.shutdown()

@@ -1,0 +1,277 @@
+"""Cluster mode (``serve --ray``): a field's shards in actors on a REAL multi-node Ray
+cluster (raylets on loopback, tests/harness/raycluster.py), fronts that are REAL server
+processes, a REAL PostgreSQL log.
+
+The oracle is the one-process field: the field's definition and its stored batches
+read back from PostgreSQL and folded, in log order, through the code a lone server
+runs (``prepare`` + ``insert_prepared`` in slices). Every answer of the cluster must
+equal it bit for bit at the same log position (values, inside; sample ids and
+weights for one chart); every acknowledged batch must be stored once.
+"""
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from flatserve.client import Client, ServiceError
+from flatserve.flats import Flats
+from flatserve.service.backend import open_backend
+from flatserve.service.entry import FieldSpec
+from flatserve.service.settings import Settings
+from tests.harness.process import ServerProcess
+from tests.harness.raycluster import RayNodes
+
+from .conftest import ONE_CHART, paper_rays
+
+
+
+def sphere_rays(rng, n):
+    """Rays in every direction (they land in every chart of a covering atlas)."""
+    return rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+
+
+class Fronts:
+    """Front processes on one database and one Ray cluster (killed when the test ends)."""
+
+    def __init__(self, tmp, url: str, address: str, stack: contextlib.ExitStack, **options):
+        self.tmp, self.url, self.address, self.stack = tmp, url, address, stack
+        self.options = {"snapshot_every": 0, "ray_shards": 4, "ray_shard_memory": 1 << 30,
+                        **options}
+        self.n = 0
+
+    def start(self, address: str | None = None) -> ServerProcess:
+        self.n += 1
+        srv = self.stack.enter_context(ServerProcess(
+            self.tmp / f"front{self.n}", self.tmp / f"front{self.n}.log", database_url=self.url,
+            ray=address or self.address, **self.options))
+        srv.wait_ready(180)
+        return srv
+
+    def logs(self) -> str:
+        return "\n".join(f"--- front{i} ---\n" + (self.tmp / f"front{i}.log").read_text()[-4000:]
+                         for i in range(1, self.n + 1))
+
+
+def oracle(url: str, name: str, upto: int | None = None):
+    """The field built in this process from its stored definition and batches, in log
+    order, as a lone server builds it; and the log position of its last batch."""
+    st = open_backend(Settings(database_url=url))
+    try:
+        row = next(r for r in st.state()[1] if r.name == name)
+        spec = FieldSpec.from_dict(row.spec)
+        from flatserve.basis import Basis
+
+        fld = spec.new_field(Basis(row.basis["Q"], row.basis["r"], spec.k))
+        pos = 0
+        for b in st.batches(row.id, upto_position=upto):
+            arrays = dict(st.batch_arrays(row.id, b.seq))
+            values = arrays.pop("values")
+            fld.insert_prepared(fld.prepare(Flats.from_arrays(arrays, k=spec.k, d=spec.d), values),
+                                slice_rows=Settings().insert_slice_rows)
+            pos = b.position
+        return fld, pos
+    finally:
+        st.close()
+
+
+def assert_same(url: str, front: ServerProcess, name: str, probe, *, weights=False,
+                timeout: float = 120.0) -> None:
+    """The front's answer at the log's head equals the one-process field's, bit for bit."""
+    ref, head = oracle(url, name)
+    want = ref.query(Flats.from_rays(*probe), return_weights=weights)
+    end = time.monotonic() + timeout
+    with Client(front.url, retries=0, timeout=120) as c:
+        while True:
+            try:
+                got = c.query_rays(name, *probe, weights=weights, min_position=head)
+                break
+            except ServiceError as exc:  # shards still restoring: 503, never a partial answer
+                assert exc.status == 503, exc
+                if time.monotonic() > end:
+                    raise
+                time.sleep(1.0)
+        while c.describe(name)["nsamples"] != ref.nsamples and time.monotonic() < end:
+            time.sleep(0.5)  # the shards report their sizes each second
+        assert c.describe(name)["nsamples"] == ref.nsamples
+    np.testing.assert_array_equal(got.inside, want.inside)
+    np.testing.assert_array_equal(got.values, want.values)  # bit-identical
+    if weights:
+        np.testing.assert_array_equal(got.ids, want.ids)
+        np.testing.assert_array_equal(got.weights, want.weights)
+
+
+@pytest.fixture
+def nodes():
+    with RayNodes(workers=2) as n:  # a head and two workers: 3 nodes
+        yield n
+
+
+@pytest.fixture
+def fronts(tmp_path, pg_url, nodes):
+    with contextlib.ExitStack() as stack:
+        yield Fronts(tmp_path, pg_url, nodes.address, stack)
+
+
+def test_a_three_node_cluster_answers_as_one_process(fronts, pg_url, rng):
+    a = fronts.start()
+    probe = sphere_rays(rng, 3000)
+    with Client(a.url, retries=0, timeout=120) as c:
+        info = c.create_field("atlas", channels=2)
+        assert info["ncharts"] == 16
+        c.create_field("one", channels=2, basis=ONE_CHART)
+        for i in range(4):
+            o, d = sphere_rays(rng, 2500)
+            c.upload_rays("atlas", o, d, rng.uniform(size=(2500, 2)), wait=bool(i % 2))
+            o, d = paper_rays(rng, 2500)
+            c.upload_rays("one", o, d, rng.uniform(size=(2500, 2)), wait=bool(i % 2))
+    assert_same(pg_url, a, "atlas", probe)
+    assert_same(pg_url, a, "one", paper_rays(rng, 2000), weights=True)
+    # a second front (stateless: nothing to load) answers the same
+    b = fronts.start()
+    assert_same(pg_url, b, "atlas", probe)
+    # read-your-writes through any front: an upload through a, read at once through b
+    with Client(a.url, retries=0) as ca, Client(b.url, retries=0) as cb:
+        o, d = sphere_rays(rng, 500)
+        pos = ca.upload_rays("atlas", o, d, rng.uniform(size=(500, 2)))["position"]
+        got = cb.query_rays("atlas", o, d, min_position=pos)
+        assert got.inside.mean() > 0.9  # its own samples are there
+    assert_same(pg_url, b, "atlas", probe)
+
+
+def test_snapshot_written_in_parts_by_the_shards_and_a_cluster_restarted_from_the_log(
+        tmp_path, pg_url, rng):
+    probe = sphere_rays(rng, 2000)
+    with contextlib.ExitStack() as stack:
+        nodes = stack.enter_context(RayNodes(workers=1))
+        fr = Fronts(tmp_path, pg_url, nodes.address, stack)
+        a = fr.start()
+        with Client(a.url, retries=0, timeout=120) as c:
+            c.create_field("f", channels=2)
+            for _ in range(3):
+                o, d = sphere_rays(rng, 3000)
+                c.upload_rays("f", o, d, rng.uniform(size=(3000, 2)), wait=True)
+            snap = None
+            for _ in range(60):  # the shards may still be catching up: 503, retried
+                try:
+                    snap = c.snapshot("f")
+                    break
+                except ServiceError as exc:
+                    assert exc.status == 503, exc
+                    time.sleep(1)
+            assert snap is not None and snap["batch"] == 3 and snap["written"] > 0
+            # a batch touching one chart: the next snapshot writes only its part
+            o = np.zeros((200, 3)) + rng.normal(scale=0.01, size=(200, 3))
+            d = np.tile([0.0, 0.0, 1.0], (200, 1)) + rng.normal(scale=0.01, size=(200, 3))
+            c.upload_rays("f", o, d, rng.uniform(size=(200, 2)), wait=True)
+            for _ in range(60):
+                try:
+                    snap2 = c.snapshot("f")
+                    break
+                except ServiceError as exc:
+                    assert exc.status == 503, exc
+                    time.sleep(1)
+            assert 0 < snap2["written"] < snap["written"] / 3, (snap, snap2)
+            o, d = sphere_rays(rng, 1000)  # after the snapshot: replayed from the log
+            c.upload_rays("f", o, d, rng.uniform(size=(1000, 2)))
+        assert_same(pg_url, a, "f", probe)
+    # the whole cluster (every node, every front) is gone; a new one starts from the log
+    with contextlib.ExitStack() as stack:
+        nodes = stack.enter_context(RayNodes(workers=2))
+        fr = Fronts(tmp_path / "again", pg_url, nodes.address, stack)
+        (tmp_path / "again").mkdir()
+        b = fr.start()
+        assert_same(pg_url, b, "f", probe)
+
+
+def test_a_node_killed_during_uploads_and_queries_loses_nothing(fronts, nodes, pg_url, rng):
+    a = fronts.start()
+    probe = sphere_rays(rng, 1500)
+    with Client(a.url, retries=0, timeout=120) as c:
+        c.create_field("f", channels=2, copies=2)
+        o, d = sphere_rays(rng, 4000)
+        c.upload_rays("f", o, d, rng.uniform(size=(4000, 2)), wait=True)
+    assert_same(pg_url, a, "f", probe)
+    acked: dict[str, int] = {}
+    stop = threading.Event()
+    failures: list = []
+    answered = [0, 0]  # queries answered, 503s
+
+    def writer():
+        r = np.random.default_rng(7)
+        with Client(a.url, retries=0, timeout=120) as c:
+            i = 0
+            while not stop.is_set():
+                o, d = sphere_rays(r, 500)
+                key = f"w{i}"
+                try:
+                    acked[key] = c.upload_rays("f", o, d, r.uniform(size=(500, 2)),
+                                               idempotency_key=key)["batch"]
+                except Exception as exc:  # uploads never depend on the shards
+                    failures.append(("upload", repr(exc)))
+                i += 1
+                time.sleep(0.05)
+
+    def reader():
+        with Client(a.url, retries=0, timeout=120) as c:
+            while not stop.is_set():
+                try:
+                    got = c.query_rays("f", *probe)
+                    assert got.inside.mean() > 0.5, "a partial answer presented as whole"
+                    answered[0] += 1
+                except ServiceError as exc:
+                    if exc.status != 503:
+                        failures.append(("query", repr(exc)))
+                    answered[1] += 1
+                time.sleep(0.05)
+
+    ts = [threading.Thread(target=writer), threading.Thread(target=reader)]
+    for t in ts:
+        t.start()
+    time.sleep(3)
+    before = answered[0]
+    nodes.kill(nodes.workers[0])  # a node with shards on it dies
+    time.sleep(15)
+    during = answered[0] - before
+    stop.set()
+    for t in ts:
+        t.join(120)
+    assert not failures, failures
+    assert during > 0, "no query answered after the node died (a copy keeps reads flowing)"
+    nodes.add_worker()  # room for the lost copies again
+    with Client(a.url, retries=0) as c:
+        stored = {b["idempotency_key"]: b["batch"] for b in c.batches("f")}
+    assert all(stored.get(k) == v for k, v in acked.items()), "an acknowledged batch was lost"
+    assert_same(pg_url, a, "f", probe, timeout=240)
+
+
+def test_a_front_killed_the_other_answers(fronts, pg_url, rng):
+    a, b = fronts.start(), fronts.start()
+    probe = sphere_rays(rng, 1500)
+    with Client(a.url, retries=0, timeout=120) as c:
+        c.create_field("f", channels=2)
+        for _ in range(3):
+            o, d = sphere_rays(rng, 1500)
+            c.upload_rays("f", o, d, rng.uniform(size=(1500, 2)))
+    a.kill9()
+    assert_same(pg_url, b, "f", probe)
+    with Client(b.url, retries=0) as c:  # writes go on through the survivor
+        o, d = sphere_rays(rng, 800)
+        c.upload_rays("f", o, d, rng.uniform(size=(800, 2)))
+    assert_same(pg_url, b, "f", probe)
+
+
+def test_an_unreachable_cluster_is_named_at_start(tmp_path, pg_url):
+    with ServerProcess(tmp_path / "d", tmp_path / "log", database_url=pg_url,
+                       ray="127.0.0.1:9") as srv:
+        assert srv.proc.wait(180) == 2
+    text = (tmp_path / "log").read_text()
+    assert "the Ray cluster at '127.0.0.1:9' cannot be reached" in text, text[-2000:]
+
+
+def test_cluster_mode_needs_postgresql():
+    with pytest.raises(ValueError, match="ray: cluster mode needs database_url"):
+        Settings(ray="127.0.0.1:6379")

@@ -108,7 +108,8 @@ class FieldService:
         indexed, pending_batches, pending_samples = e.indexed_counts()
         charts = _charts(d)
         kind = {k: v for k, v in (("atlas", _atlas_info(d)),
-                                  ("charts", charts if verbose else None))
+                                  ("charts", charts if verbose else None),
+                                  ("shard_groups", d.get("placement")))
                 if v is not None}  # (one chart: described by ``basis`` alone)
         flats = dict(Q=e.basis.Q.tolist(), r=e.basis.r.tolist()) if verbose else {}
         return FieldInfo(

@@ -335,6 +335,18 @@ class FieldList(BaseModel):
     fields: list[FieldSummary]
 
 
+class ShardGroupInfo(BaseModel):
+    charts: list[int] = Field(description="The charts this group of shards holds.")
+    copies: int = Field(description="Copies of the group (each in an actor on its own node).")
+    live: int = Field(description="Copies ready at the last status round (each second).")
+    position: Optional[int] = Field(None, description="Log position the most advanced copy "
+                                                      "has applied.")
+    samples: Optional[int] = Field(None, description="Distinct samples of its charts.")
+    memory: Optional[int] = Field(None, description="Resident bytes of that copy's process.")
+    restored_from: Optional[str] = Field(None, description="What that copy restored itself "
+                                                           "from: a snapshot, or the log.")
+
+
 class FieldInfo(FieldSummary):
     ndim: int
     position: int = Field(0, description="The log position this replica has applied (a "
@@ -356,6 +368,9 @@ class FieldInfo(FieldSummary):
     atlas: Optional[AtlasInfo] = Field(None, description="Atlas fields: the atlas's radii and "
                                                          "sizes (null: one chart).")
     ncharts: int = Field(1, description="Charts of the field (1: one chart).")
+    shard_groups: Optional[list[ShardGroupInfo]] = Field(
+        None, description="Cluster mode (`serve --ray`): where the field's shards live, per "
+                          "group of charts (absent when this server holds the field itself).")
     charts: Optional[list[ChartInfo]] = Field(
         None, description="Atlas fields with `verbose=true`: per chart its centre, scale and "
                           "samples (absent by default, and for one chart, described by `basis`).")

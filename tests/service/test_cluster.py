@@ -185,6 +185,10 @@ def test_snapshot_written_in_parts_by_the_shards_and_a_cluster_restarted_from_th
         (tmp_path / "again").mkdir()
         b = fr.start()
         assert_same(pg_url, b, "f", probe)
+        with Client(b.url, retries=0) as c:  # each shard loaded its own parts, then the log
+            groups = c.describe("f")["shard_groups"]
+        assert len(groups) == 4 and all(
+            g["restored_from"] == "snapshot after batch 4" for g in groups), groups
 
 
 def test_a_node_killed_during_uploads_and_queries_loses_nothing(fronts, nodes, pg_url, rng):
@@ -244,6 +248,13 @@ def test_a_node_killed_during_uploads_and_queries_loses_nothing(fronts, nodes, p
     nodes.add_worker()  # room for the lost copies again
     with Client(a.url, retries=0) as c:
         stored = {b["idempotency_key"]: b["batch"] for b in c.batches("f")}
+        end = time.monotonic() + 240
+        while time.monotonic() < end:  # the lost copies are placed again and restored
+            groups = c.describe("f")["shard_groups"]
+            if all(g["live"] == 2 for g in groups):
+                break
+            time.sleep(1)
+        assert all(g["live"] == 2 for g in groups), groups
     assert all(stored.get(k) == v for k, v in acked.items()), "an acknowledged batch was lost"
     assert_same(pg_url, a, "f", probe, timeout=240)
 

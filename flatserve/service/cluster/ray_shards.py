@@ -255,6 +255,18 @@ class RayGroups:
     def status(self) -> list[dict | None]:
         return list(self._status)
 
+    def placement(self) -> list[dict]:
+        """Per group: its charts, copies, the copies live at the last status round, and
+        the most advanced copy's log position, samples, memory and restore source."""
+        out = []
+        for g, charts in enumerate(self.charts):
+            st = self._status[g] or {}
+            out.append({"charts": list(charts), "copies": self.copies,
+                        "live": int(sum(self._alive[g])), "position": st.get("through"),
+                        "samples": st.get("nsamples"), "memory": st.get("rss"),
+                        "restored_from": st.get("restored_from")})
+        return out
+
     def refresh(self) -> None:
         """Ask every actor for its status (one round, at most ~2 s)."""
         ray = self.cluster.ray

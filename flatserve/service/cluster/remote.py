@@ -52,6 +52,10 @@ class ShardGroups(Protocol):
         """Per group, the last status a copy reported (never waits; None: none yet)."""
         ...
 
+    def placement(self) -> list[dict]:
+        """Per group what :meth:`RemoteField.describe` reports as ``placement``."""
+        ...
+
 
 class _Lazy:
     """A batch's decisions, charted on first use (an upload's response needs them;
@@ -208,6 +212,9 @@ class RemoteField:
         return self._shape.blend(route, results, return_weights=return_weights)
 
     def describe(self) -> dict:
+        """The contract's keys from the workers' last reports, and ``placement``:
+        per shard group its ``charts``, ``copies``, ``live`` copies, ``position``
+        (log), ``samples``, ``memory`` (bytes resident) and ``restored_from``."""
         out = self._shape.describe()
         st = self._statuses()
         n, stored = self.nsamples, self.nstored
@@ -219,7 +226,8 @@ class RemoteField:
             for chart, sh in zip(out["charts"], shards):
                 chart["samples"] = sh["samples"]
         out.update(nsamples=n, nstored=stored, nsimplex=self.nsimplex, nrejected=self.nrejected,
-                   duplication=stored / n if n else None, shards=shards)
+                   duplication=stored / n if n else None, shards=shards,
+                   placement=self.groups.placement())
         return out
 
     # -- snapshots: assembled from every group's parts at one log position ----------------

@@ -47,10 +47,10 @@ build: $(BIN)/.built
 stub: build
 	$(BIN)/python -m nanobind.stubgen -q -m flatserve._core -p native/stubgen_patterns.txt -o flatserve/_core.pyi
 
-# The test extra and the PostgreSQL driver, installed beside the package (no rebuild of the extension).
+# The test extra, the PostgreSQL driver and Ray (the cluster extra), installed beside the package (no rebuild of the extension).
 $(BIN)/.test-deps: $(BIN)/.built pyproject.toml constraints.txt scripts/requirements.py
-	$(BIN)/python scripts/requirements.py --no-core test postgres > $(BIN)/test-requirements.txt
-	@echo "==> the test extra and the PostgreSQL driver"
+	$(BIN)/python scripts/requirements.py --no-core test postgres cluster > $(BIN)/test-requirements.txt
+	@echo "==> the test extra, the PostgreSQL driver and Ray (cluster mode)"
 	$(BIN)/python -m pip install --progress-bar off $(PIN) -r $(BIN)/test-requirements.txt
 	touch $@
 
@@ -89,7 +89,7 @@ bench: build $(BIN)/.test-deps $(BIN)/.postgres $(BIN)/.bench-tools
 TOOLS := .venv-tools
 constraints:
 	test -x $(TOOLS)/bin/pip-compile || { $(PYTHON) -m venv $(TOOLS) && $(TOOLS)/bin/pip install pip-tools; }
-	{ $(PYTHON) scripts/requirements.py client service lightfield postgres test; \
+	{ $(PYTHON) scripts/requirements.py client service lightfield postgres cluster test; \
 	  echo "scikit-build-core>=0.10"; echo "nanobind==3.1.0"; } > $(TOOLS)/requirements.in
 	$(TOOLS)/bin/pip-compile --upgrade --quiet --strip-extras --allow-unsafe --no-header \
 	    --no-emit-index-url --no-emit-find-links -o $(TOOLS)/constraints.txt $(TOOLS)/requirements.in

@@ -131,3 +131,71 @@ def test_a_one_chart_field_writes_its_whole_file_and_no_parts(tmp_path):
     buf = io.BytesIO()
     assert f.write_parts(buf, tmp_path) == []
     assert buf.getvalue() == f.to_bytes() and not os.listdir(tmp_path)
+
+
+# ---- a shard's half: some charts prepared, inserted, queried, snapshotted and restored
+# elsewhere, bit for bit those of the whole field ----------------------------------------
+
+def _split(atlas, groups, batches, slice_rows=700):
+    """One field holding everything, and one field per group of charts fed the same
+    batches with ``prepare(only=group)``."""
+    whole = AtlasField(atlas, channels=2)
+    parts = [AtlasField(atlas, channels=2) for _ in groups]
+    for rays, values in batches:
+        whole.insert_prepared(whole.prepare(rays, values), slice_rows=slice_rows)
+        for g, f in zip(groups, parts):
+            f.insert_prepared(f.prepare(rays, values, only=g), slice_rows=slice_rows)
+    return whole, parts
+
+
+def test_charts_fed_on_their_own_hold_the_same_bits_as_the_whole_field():
+    rng = np.random.default_rng(11)
+    atlas = Atlas.covering(1, 3, oriented=True)
+    groups = [set(range(g, atlas.ncharts, 3)) for g in range(3)]
+    batches = [(_rays(rng, n), rng.uniform(size=(n, 2))) for n in (1500, 2500, 900)]
+    whole, parts = _split(atlas, groups, batches)
+    for g, f in zip(groups, parts):
+        for c in range(atlas.ncharts):
+            if c in g:
+                assert f.shards[c].to_bytes() == whole.shards[c].to_bytes(), c
+            else:
+                assert f.shards[c].nsamples == 0
+    # each sample counted once, in its nearest chart: the groups' own samples add up
+    assert sum(sum(f.own_samples[c] for c in g) for g, f in zip(groups, parts)) == whole.nsamples
+    # the query's halves: route and blend here, each group's charts there
+    q = _rays(rng, 3000)
+    route = whole.route_query(q)
+    results = [None] * atlas.ncharts
+    for g, f in zip(groups, parts):
+        work = [(c, q.take(route.rows[c])) for c in sorted(g) if route.rows[c].size]
+        for (c, _), res in zip(work, f.query_shards(work, return_weights=True)):
+            results[c] = res
+    got = whole.blend(route, results, return_weights=True)
+    want = whole.query(q, return_weights=True)
+    np.testing.assert_array_equal(got.values, want.values)
+    np.testing.assert_array_equal(got.weights, want.weights)
+    np.testing.assert_array_equal(got.inside, want.inside)
+
+
+def test_a_snapshot_assembled_from_parts_made_elsewhere_restores_each_group(tmp_path):
+    rng = np.random.default_rng(12)
+    atlas = Atlas.covering(1, 3)
+    groups = [set(range(0, atlas.ncharts, 2)), set(range(1, atlas.ncharts, 2))]
+    whole, parts = _split(atlas, groups, [(_rays(rng, 3000), rng.uniform(size=(3000, 2)))])
+    keys, own, store = [None] * atlas.ncharts, [None] * atlas.ncharts, {}
+    for g, f in zip(groups, parts):
+        for c, key, blob in f.chart_parts(sorted(g)):
+            keys[c], own[c], store[key] = key, f.own_samples[c], blob
+        # known parts are named, not sent again
+        assert all(b is None for _, _, b in f.chart_parts(sorted(g), known=store))
+    head = whole.parts_header(keys, own=own, nrejected=whole.nrejected)
+    back = AtlasField.from_bytes(head, parts=store.__getitem__)
+    assert back.to_bytes() == whole.to_bytes()
+    for g in groups:  # a group restores its own charts only, and its own samples
+        mine = AtlasField.from_bytes(head, parts=store.__getitem__, only=g)
+        assert mine.nsamples == sum(own[c] for c in g)
+        for c in range(atlas.ncharts):
+            assert (mine.shards[c].to_bytes() == whole.shards[c].to_bytes()) == (
+                c in g or whole.shards[c].nsamples == 0)
+    with pytest.raises(Exception, match="only"):
+        whole.prepare(_rays(rng, 5), np.zeros((5, 2)), only={atlas.ncharts})

@@ -343,6 +343,7 @@ class ShardGroupInfo(BaseModel):
                                                       "has applied.")
     samples: Optional[int] = Field(None, description="Distinct samples of its charts.")
     memory: Optional[int] = Field(None, description="Resident bytes of that copy's process.")
+    node: Optional[str] = Field(None, description="The Ray node that copy runs on.")
     restored_from: Optional[str] = Field(None, description="What that copy restored itself "
                                                            "from: a snapshot, or the log.")
 

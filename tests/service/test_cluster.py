@@ -286,3 +286,37 @@ def test_an_unreachable_cluster_is_named_at_start(tmp_path, pg_url):
 def test_cluster_mode_needs_postgresql():
     with pytest.raises(ValueError, match="ray: cluster mode needs database_url"):
         Settings(ray="127.0.0.1:6379")
+
+
+def test_the_cluster_lost_while_running_503_then_a_front_restarted_on_the_new_cluster(
+        tmp_path, pg_url, rng, monkeypatch):
+    # Ray ends a driver whose cluster stays away (60 s by default; 10 s here), so that
+    # its supervisor starts it again once the cluster is back
+    monkeypatch.setenv("RAY_gcs_rpc_server_reconnect_timeout_s", "10")
+    probe = sphere_rays(rng, 1000)
+    with contextlib.ExitStack() as stack:
+        nodes = RayNodes(workers=1)
+        fr = Fronts(tmp_path, pg_url, nodes.address, stack)
+        a = fr.start()
+        with Client(a.url, retries=0, timeout=120) as c:
+            c.create_field("f", channels=2)
+            o, d = sphere_rays(rng, 2000)
+            c.upload_rays("f", o, d, rng.uniform(size=(2000, 2)), wait=True)
+        assert_same(pg_url, a, "f", probe)
+        nodes.shutdown()
+        with Client(a.url, retries=0, timeout=60) as c:
+            with pytest.raises(ServiceError) as err:
+                c.query_rays("f", *probe)
+            assert err.value.status == 503 and "no live copy" in str(err.value)
+            assert c.last_response.headers.get("retry-after")
+            o, d = sphere_rays(rng, 300)  # the log still takes uploads
+            acked = c.upload_rays("f", o, d, rng.uniform(size=(300, 2)))
+        assert a.proc.wait(120) != 0  # for its supervisor to restart
+        assert "cannot be reached: " in fr.logs()  # the front said why, meanwhile
+    with contextlib.ExitStack() as stack:  # the cluster back (a new one), the front restarted
+        nodes = stack.enter_context(RayNodes(workers=1))
+        (tmp_path / "again").mkdir()
+        b = Fronts(tmp_path / "again", pg_url, nodes.address, stack).start()
+        assert_same(pg_url, b, "f", probe)
+        with Client(b.url, retries=0) as c:
+            assert any(x["batch"] == acked["batch"] for x in c.batches("f"))

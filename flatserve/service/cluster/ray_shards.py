@@ -55,7 +55,9 @@ class ShardActor:
         return self.worker.parts(position, known, timeout)
 
     def status(self) -> dict:
-        return self.worker.status()
+        import ray
+
+        return {**self.worker.status(), "node": ray.get_runtime_context().get_node_id()}
 
 
 def deal(ncharts: int, ngroups: int) -> list[tuple[int, ...]]:
@@ -191,6 +193,7 @@ class RayCluster:
             raise
 
     def _poll(self) -> None:
+        lost = False
         while not self._stop.wait(STATUS_EVERY_S):
             with self._lock:
                 fields = list(self._fields.values())
@@ -199,6 +202,18 @@ class RayCluster:
                     g.refresh()
                 except Exception:  # the cluster unreachable: the next round tries again
                     log.debug("status round failed", exc_info=True)
+            try:
+                probe_address(self.address, timeout=2.0)
+                if lost:
+                    log.warning("the Ray cluster at %s answers again", self.address)
+                lost = False
+            except ShardUnavailableError as exc:
+                if not lost:
+                    log.error("%s: queries answer 503 meanwhile; Ray ends this front after its "
+                              "reconnect timeout (RAY_gcs_rpc_server_reconnect_timeout_s, 60 s by "
+                              "default), for its supervisor to start it again once the cluster "
+                              "is back", exc)
+                lost = True
 
 
 class RayGroups:
@@ -210,6 +225,15 @@ class RayGroups:
         self.copies = int(copies)
         s = cluster.settings
         self.charts = deal(ncharts, s.ray_shards)
+        try:
+            room = [n for n in cluster.ray.nodes() if n.get("Alive")
+                    and n.get("Resources", {}).get("memory", 0) >= s.ray_shard_memory]
+            if self.copies > len(room):
+                log.warning("field %d asks for %d copies of each shard but %d node(s) have room "
+                            "for one (ray_shard_memory %d bytes): its shards wait for more nodes",
+                            field_id, self.copies, len(room), s.ray_shard_memory)
+        except Exception:  # pragma: no cover - informational only
+            pass
         self._status: list[dict | None] = [None] * len(self.charts)
         #: per group, per copy: believed alive (the last call or status answered)
         self._alive = [[True] * self.copies for _ in self.charts]
@@ -264,7 +288,7 @@ class RayGroups:
             out.append({"charts": list(charts), "copies": self.copies,
                         "live": int(sum(self._alive[g])), "position": st.get("through"),
                         "samples": st.get("nsamples"), "memory": st.get("rss"),
-                        "restored_from": st.get("restored_from")})
+                        "node": st.get("node"), "restored_from": st.get("restored_from")})
         return out
 
     def refresh(self) -> None:

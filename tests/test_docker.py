@@ -15,7 +15,12 @@ is ``docker kill``-ed, and a new container on the same volume must answer
 with every acknowledged sample. And two containers serve one PostgreSQL on the
 host (a throwaway cluster, tests/conftest.py): a write through one is read
 through the other with its log position; a third container with nothing but
-the database URL catches up.
+the database URL catches up. And the image as both halves of cluster mode: a
+container running a Ray head node (``ray start --head --block``, the shard
+actors run there, importing flatserve from the image's venv) and a front
+container (``flatserve serve`` with ``FLATSERVE_RAY``, on a Ray node of its own
+that offers nothing) on the same PostgreSQL; every Ray process binds and
+advertises 127.0.0.1 only (``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``).
 """
 from __future__ import annotations
 
@@ -162,11 +167,34 @@ class Containers:
                *extra, self.image)
         return name
 
+    def start(self, command: list[str], env: dict, *options: str, shm_size: str = "512m") -> str:
+        """A container running ``command`` on the host's network with the test's volume
+        (a PID 1 that reaps, as compose's ``init: true``; more ``docker run`` options)."""
+        name = f"flatserve-test-{self.tag}-{len(self.names)}"
+        self.names.append(name)
+        extra = [a for k, v in env.items() for a in ("-e", f"{k}={v}")]
+        docker("run", "-d", "--init", "--name", name, "--network", "host",
+               "--shm-size", shm_size, "-v", f"{self.volume}:/var/lib/flatserve", *options,
+               *extra, self.image, *command)
+        return name
+
+    def running(self, name: str) -> bool:
+        return docker("inspect", "-f", "{{.State.Running}}", name,
+                      check=False).stdout.strip() == "true"
+
     def logs(self) -> str:
         out = []
         for name in self.names:
             p = docker("logs", "--tail", "60", name, check=False)
             out.append(f"--- docker logs {name} ---\n{p.stdout}{p.stderr}")
+            # a Ray node's own logs (its processes' and its workers': an actor's traceback)
+            p = docker("exec", name, "sh", "-c",
+                       f"cd {RAY_TEMP}/session_latest/logs 2>/dev/null && "
+                       "{ grep -v state-dump raylet.out | tail -n 15; "
+                       "tail -n 25 gcs_server.err raylet.err worker-*.err; } 2>/dev/null",
+                       check=False, timeout=30)
+            if p.stdout.strip():
+                out.append(f"--- Ray logs in {name} ---\n{p.stdout[-6000:]}")
         return "\n".join(out)
 
     def wait_ready(self, name: str, client: Client) -> None:
@@ -312,3 +340,104 @@ def test_two_containers_on_one_postgresql(containers, pg_cluster):
     finally:
         for c in clients:
             c.close()
+
+
+#: the head's Ray directory (sockets, logs), on the test's volume
+RAY_TEMP = "/var/lib/flatserve/ray"
+#: every Ray process binds and advertises 127.0.0.1 only (the design notes)
+LOOPBACK_RAY = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+MiB = 1 << 20
+
+
+def ray_node_ports() -> list[str]:
+    """Flags for a Ray node on the host's network: ports of its own where Ray's
+    defaults are fixed (the dashboard agent's) or a shared range (the workers')."""
+    return ["--node-ip-address", "127.0.0.1", "--dashboard-agent-listen-port", str(free_port()),
+            "--min-worker-port", "0", "--max-worker-port", "0", "--disable-usage-stats"]
+
+
+def shard_actors(name: str) -> int:
+    """The shard actors (Ray workers titled ``ray::ShardActor``) in a container."""
+    p = docker("exec", name, "sh", "-c",
+               "cat /proc/[0-9]*/cmdline 2>/dev/null | tr '\\000' '\\n' | grep -c '^ray::ShardActor'",
+               check=False, timeout=30)
+    return int(p.stdout.strip() or 0)
+
+
+def test_image_as_a_ray_head_node_and_a_front_on_it(containers, pg_cluster):
+    """One image, two commands: a Ray head node holds the shard actors, a front routes
+    to them; a field created, filled (wait=true) and queried through the front."""
+    rng = np.random.default_rng(13)
+    key = uuid.uuid4().hex
+    gcs = free_port()
+    address = f"127.0.0.1:{gcs}"
+    # 1. the head: the cluster's control store and the only node with shard memory
+    head = containers.start(
+        ["ray", "start", "--head", "--port", str(gcs), "--block", "--num-cpus", "1",
+         "--memory", str(2048 * MiB), "--object-store-memory", str(200 * MiB),
+         "--include-dashboard", "false", "--temp-dir", RAY_TEMP, *ray_node_ports()],
+        LOOPBACK_RAY)
+    end = time.monotonic() + READY_TIMEOUT_S
+    while True:  # compose's health check of the head
+        p = docker("exec", head, "ray", "health-check", "--address", address, check=False,
+                   timeout=60)
+        if p.returncode == 0:
+            break
+        if not containers.running(head) or time.monotonic() > end:
+            raise AssertionError(f"the Ray head in {head} did not come up at {address} "
+                                 f"({p.stdout}{p.stderr})\n{containers.logs()}")
+        time.sleep(1.0)
+
+    # 2. a front: plain `flatserve serve` with FLATSERVE_RAY, a driver on the head's node.
+    #    A Ray driver needs a raylet on its own machine; a deployment runs a resource-less
+    #    node in the front's container (docker/compose-cluster.yaml: `ray start --address`),
+    #    which the loopback-only switch forbids (`ray start` refuses to join a second node
+    #    with RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0). Here the front sees the head's raylet:
+    #    the head's processes (--pid) and its Ray directory (the volume).
+    port = free_port()
+    env = {**LOOPBACK_RAY, "FLATSERVE_RAY": address, "FLATSERVE_API_KEY": key,
+           "FLATSERVE_PORT": str(port),
+           "FLATSERVE_DATABASE_URL": pg_cluster.create_database(f"ray_{containers.tag}"),
+           "FLATSERVE_RAY_SHARDS": "2", "FLATSERVE_RAY_SHARD_MEMORY": str(256 * MiB),
+           "FLATSERVE_RAY_NAMESPACE": f"test-{containers.tag}"}
+    front = containers.start(["flatserve", "serve"], env, "--pid", f"container:{head}")
+    url = f"http://127.0.0.1:{port}"
+    with Client(url, api_key=key, retries=0, timeout=180) as c:
+        containers.wait_ready(front, c)
+        try:
+            info = c.create_field("ray", channels=2)
+            total = 0
+            for i in range(2):
+                o, d = paper_rays(rng, 1500)
+                rep = c.upload_rays("ray", o, d, rng.uniform(size=(1500, 2)),
+                                    idempotency_key=f"r{i}", wait=True)
+                total += rep["accepted"]
+            qo, qd = paper_rays(rng, 500)
+            end = time.monotonic() + 120
+            while True:
+                try:
+                    q = c.query_rays("ray", qo, qd, min_position=rep["position"])
+                    break
+                except ServiceError as exc:  # a shard still restoring: 503, never a partial answer
+                    if exc.status != 503 or time.monotonic() > end:
+                        raise
+                    time.sleep(1.0)
+            own = c.query_rays("ray", o, d, min_position=rep["position"])
+            end = time.monotonic() + 60
+            while True:  # the shards report their sizes to the front each second
+                described = c.describe("ray", min_position=rep["position"])
+                if described["nsamples"] == total or time.monotonic() > end:
+                    break
+                time.sleep(0.5)
+        except (ServiceError, AssertionError, OSError) as exc:
+            raise AssertionError(f"cluster mode in containers failed: {exc!r}\n"
+                                 f"{containers.logs()}") from exc
+    context = f"\n{containers.logs()}"
+    assert info["ncharts"] > 1, info  # an atlas: its charts dealt into 2 shard groups
+    assert total == 3000 and described["nsamples"] == total, (described, context)
+    assert q.inside.mean() > 0.5, (q.inside.mean(), context)
+    assert np.isfinite(q.values[q.inside]).all(), context
+    assert own.inside.mean() > 0.9, (own.inside.mean(), context)
+    assert np.isfinite(own.values[own.inside]).all(), context
+    # the actors are Ray workers of the head's node (a process each)
+    assert shard_actors(head) == 2, (shard_actors(head), context)

@@ -33,6 +33,20 @@ def replicas(services: dict) -> dict:
     return {k: v for k, v in services.items() if k.startswith("flatserve-")}
 
 
+def check_server(name: str, svc: dict, user: str, db: str) -> dict:
+    """A flatserve service of a compose file: every variable a setting of the server
+    (a typo would be ignored silently), on the compose file's PostgreSQL, with a key,
+    from the one image. Its environment."""
+    env = svc["environment"]
+    assert {k.removeprefix("FLATSERVE_").lower() for k in env} <= set(Settings.model_fields), name
+    url = env["FLATSERVE_DATABASE_URL"]
+    m = re.fullmatch(r"postgresql://([^:]+):\$\{POSTGRES_PASSWORD[^}]*\}@postgres:5432/(\w+)", url)
+    assert m and m.groups() == (user, db), url
+    assert backend_class(url).__name__ == "PostgresBackend"
+    assert "FLATSERVE_API_KEY" in env and svc["image"] == "flatserve:latest"
+    return env
+
+
 def test_three_replicas_on_postgres_behind_nginx():
     services = compose()["services"]
     reps = replicas(services)
@@ -41,17 +55,9 @@ def test_three_replicas_on_postgres_behind_nginx():
     assert pg["image"].startswith("postgres:")
     assert pg["healthcheck"]["test"][:2] == ["CMD", "pg_isready"]
     user, db = pg["environment"]["POSTGRES_USER"], pg["environment"]["POSTGRES_DB"]
-    known = set(Settings.model_fields)
     for name, svc in reps.items():
-        env = svc["environment"]
-        # every variable is a setting of the server (a typo would be ignored silently)
-        assert {k.removeprefix("FLATSERVE_").lower() for k in env} <= known, name
-        url = env["FLATSERVE_DATABASE_URL"]
-        m = re.fullmatch(r"postgresql://([^:]+):\$\{POSTGRES_PASSWORD[^}]*\}@postgres:5432/(\w+)", url)
-        assert m and m.groups() == (user, db), url
-        assert backend_class(url).__name__ == "PostgresBackend"
+        check_server(name, svc, user, db)
         assert svc["depends_on"]["postgres"]["condition"] == "service_healthy"
-        assert "FLATSERVE_API_KEY" in env and svc["image"] == "flatserve:latest"
         assert svc["build"]["dockerfile"] == "docker/Dockerfile"
     lb = services["lb"]
     assert lb["image"].startswith("nginx:")
@@ -128,23 +134,16 @@ def test_cluster_fronts_use_postgres_and_the_ray_head():
     pg = services["postgres"]
     user, db = pg["environment"]["POSTGRES_USER"], pg["environment"]["POSTGRES_DB"]
     head, port = ray_head(services)
-    known = set(Settings.model_fields)
     for name, svc in fronts.items():
-        env = svc["environment"]
-        assert {k.removeprefix("FLATSERVE_").lower() for k in env} <= known, name
-        url = env["FLATSERVE_DATABASE_URL"]
-        m = re.fullmatch(r"postgresql://([^:]+):\$\{POSTGRES_PASSWORD[^}]*\}@postgres:5432/(\w+)", url)
-        assert m and m.groups() == (user, db), url
-        assert backend_class(url).__name__ == "PostgresBackend"
+        env = check_server(name, svc, user, db)
         assert env["FLATSERVE_RAY"] == f"{head}:{port}"
-        assert "FLATSERVE_API_KEY" in env and svc["image"] == "flatserve:latest"
         assert svc["build"]["dockerfile"] == "docker/Dockerfile"
         assert svc["depends_on"]["postgres"]["condition"] == "service_healthy"
         assert svc["depends_on"][head]["condition"] == "service_healthy"
         # the server takes these settings as they stand (cluster mode validates its database)
         values = {k.removeprefix("FLATSERVE_").lower(): by_default(v) for k, v in env.items()
                   if "${" not in by_default(v)}
-        s = Settings(**values, database_url=url.replace("${", "").replace("}", ""),
+        s = Settings(**values, database_url=env["FLATSERVE_DATABASE_URL"].replace("${", "").replace("}", ""),
                      api_key="k" * 32)
         assert s.ray == f"{head}:{port}" and s.port == 8000
         # its driver's raylet joins the cluster at FLATSERVE_RAY and offers nothing

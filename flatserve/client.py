@@ -124,7 +124,8 @@ def _flat_arrays(flats: Flats | None, arrays: dict) -> tuple[str, dict[str, np.n
     given = {k: v for k, v in arrays.items() if v is not None}
     form = infer_form(given)
     if form is None:
-        raise InvalidInputError("give flats, or origins+directions, A+b or Q+r", "origins")
+        raise InvalidInputError("give flats, or origins+directions, A+b, Q+r or points",
+                                "origins")
     return form, {name: np.asarray(given.get(name), np.float64) for name in FORMS[form]}
 
 
@@ -366,7 +367,7 @@ class Client:
 
     # -- samples ------------------------------------------------------------
     def upload(self, name: str, values, flats: Flats | None = None, *, origins=None,
-               directions=None, A=None, b=None, Q=None, r=None,
+               directions=None, A=None, b=None, Q=None, r=None, points=None,
                idempotency_key: str | None = None, binary: bool = True,
                wait: bool = True, batch_rows: int | None = None,
                progress: Progress = None) -> dict:
@@ -396,7 +397,7 @@ class Client:
         (``report["indexed"]`` is False); see :meth:`wait_indexed`.
         """
         form, arrays = _flat_arrays(flats, dict(origins=origins, directions=directions, A=A,
-                                                b=b, Q=Q, r=r))
+                                                b=b, Q=Q, r=r, points=points))
         values = np.asarray(values, np.float64)
         if values.ndim == 1:
             values = values[:, None]
@@ -463,10 +464,14 @@ class Client:
     def upload_flats(self, name: str, Q, r, values, **kw) -> dict:
         return self.upload(name, values, Q=Q, r=r, **kw)
 
+    def upload_points(self, name: str, points, values, **kw) -> dict:
+        """Upload samples at points (n, d) of a field of points (k = 0)."""
+        return self.upload(name, values, points=points, **kw)
+
     @staticmethod
     def _encode(form, arrays, values=None) -> tuple[bytes, str]:
-        if form == "rays":
-            cols = [arrays["origins"], arrays["directions"]]
+        if form in ("rays", "points"):  # rows of numbers: one .npy, columns side by side
+            cols = [arrays[name] for name in FORMS[form]]
             if values is not None:
                 cols.append(values)
             n = {c.shape[0] for c in cols if c.ndim == 2}
@@ -478,7 +483,7 @@ class Client:
         return _npz(out), NPZ
 
     def query(self, name: str, flats: Flats | None = None, *, origins=None, directions=None,
-              A=None, b=None, Q=None, r=None, weights: bool = False, outside: str = "nan",
+              A=None, b=None, Q=None, r=None, points=None, weights: bool = False, outside: str = "nan",
               order: str = "hilbert", binary: bool = True,
               min_position: int | None = None, batch_rows: int | None = None) -> QueryResult:
         """Interpolate the field at a batch of flats (a :class:`Flats`, or arrays by name).
@@ -493,7 +498,7 @@ class Client:
         Returns the library's :class:`flatserve.QueryResult`; ``status``, ``ids``
         and ``weights`` are filled when the response carries them."""
         form, arrays = _flat_arrays(flats, dict(origins=origins, directions=directions, A=A,
-                                                b=b, Q=Q, r=r))
+                                                b=b, Q=Q, r=r, points=points))
         params = {"form": form, "outside": outside, "order": order,
                   "weights": "true" if weights else "false"}
         if min_position is not None:
@@ -542,10 +547,15 @@ class Client:
     def query_flats(self, name: str, Q, r, **kw) -> QueryResult:
         return self.query(name, Q=Q, r=r, **kw)
 
+    def query_points(self, name: str, points, **kw) -> QueryResult:
+        """Interpolate a field of points (k = 0) at points (n, d)."""
+        return self.query(name, points=points, **kw)
+
     # -- stateless math ---------------------------------------------------------
     def coordinates(self, *, k: int = 1, d: int = 3, basis: dict | None = None,
                     embed: bool = False, **flats) -> dict:
-        """Coordinates of flats (``Q``/``r``, ``A``/``b`` or ``origins``/``directions``)."""
+        """Coordinates of flats (``Q``/``r``, ``A``/``b``, ``origins``/``directions`` or
+        ``points``)."""
         body = {"k": k, "d": d, "embed": embed,
                 "flats": {kk: np.asarray(v, np.float64).tolist() for kk, v in flats.items()}}
         if basis is not None:

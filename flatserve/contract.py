@@ -52,9 +52,11 @@ from .basis import Basis
 from .errors import InvalidInputError, SnapshotError
 from .field import FIELD_MAGIC, AddResult, Field, QueryResult, QueryRoute
 from .flats import Flats
+from .grassmann import haar_frames
 from .options import Order, Outside
 
-__all__ = ["Prepared", "SampledField", "describe_definition", "load_field", "new_field"]
+__all__ = ["Prepared", "SampledField", "describe_definition", "expected_copies", "load_field",
+           "new_field"]
 
 
 @runtime_checkable
@@ -280,3 +282,25 @@ def describe_definition(atlas: dict | None) -> dict:
     nshards = 1 if atlas is None else len(part["charts"])
     return {"nsamples": None, "nstored": None, "nsimplex": None, "nrejected": None,
             "duplication": None, "shards": [{"samples": None} for _ in range(nshards)], **part}
+
+
+#: Random flats :func:`expected_copies` routes (its figure varies by about 1 % between seeds).
+EXPECTED_COPIES_N = 2000
+
+
+def expected_copies(field: SampledField, n: int = EXPECTED_COPIES_N, seed: int = 0) -> float:
+    """How many shards would store a sample of ``field`` on average, before it holds any:
+    ``field.copies`` of ``n`` random flats of its kind (Haar-random orientations, seeded;
+    lines as rays of directions uniform on the sphere, as an oriented atlas takes them).
+
+    1.0 for a one-chart field; for the default covering atlases about 1.75 in R^3, 4.1 for
+    lines in R^4, 7.3 for planes in R^4, 12.6 for 3-flats in R^5 (``docs/costs.md``).
+    Offsets do not matter: a shard holds a flat by its orientation.
+    """
+    k, d = field.k, field.d
+    rng = np.random.default_rng(seed)
+    if k == 1:
+        flats = Flats.from_rays(np.zeros((n, d)), rng.standard_normal((n, d)))
+    else:
+        flats = Flats.from_parametric(haar_frames(n, d, k, rng), np.zeros((n, d)))
+    return float(field.copies(flats))

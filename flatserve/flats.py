@@ -59,6 +59,8 @@ __all__ = [
     "affine_combination",
     "basis_size",
     "FORMS",
+    "FORM_WORDS",
+    "forms_in_words",
     "form_shapes",
     "infer_form",
     "Flats",
@@ -683,14 +685,30 @@ def basis_size(k: int, d: int) -> int:
     return (k + 1) * (d - k) + 1
 
 
-#: The three forms a batch of flats can take, with the names of their arrays in
+#: The four forms a batch of flats can take, with the names of their arrays in
 #: binary column order: rays (lines through an origin along a direction, k = 1),
-#: parametric ``{A y + b}`` and the quadrics ``(Q, r)`` of Eq. 3.
-FORMS: dict[str, tuple[str, str]] = {
+#: parametric ``{A y + b}``, the quadrics ``(Q, r)`` of Eq. 3 and points (k = 0,
+#: one array).
+FORMS: dict[str, tuple[str, ...]] = {
     Form.RAYS.value: ("origins", "directions"),
     Form.PARAMETRIC.value: ("A", "b"),
     Form.FLATS.value: ("Q", "r"),
+    Form.POINTS.value: ("points",),
 }
+
+#: What each form's arrays are, in words (the messages that ask for a form).
+FORM_WORDS: dict[str, str] = {
+    Form.RAYS.value: "origins+directions (rays)",
+    Form.PARAMETRIC.value: "A+b (parametric)",
+    Form.FLATS.value: "Q+r (flats)",
+    Form.POINTS.value: "points (k = 0)",
+}
+
+
+def forms_in_words() -> str:
+    """``origins+directions (rays), A+b (parametric), Q+r (flats) or points (k = 0)``."""
+    words = list(FORM_WORDS.values())
+    return ", ".join(words[:-1]) + " or " + words[-1]
 
 
 def form_shapes(form: str, k: int, d: int) -> dict[str, tuple]:
@@ -699,13 +717,21 @@ def form_shapes(form: str, k: int, d: int) -> dict[str, tuple]:
     Raises
     ------
     InvalidInputError
-        ``"form"`` for an unknown form, or rays when ``k != 1``.
+        ``"form"`` for an unknown form, rays when ``k != 1`` or points when
+        ``k != 0``.
     """
     if form == "rays":
         if k != 1:
             raise InvalidInputError(f"form: rays are lines (k = 1); these flats have k = {k}",
                                     "form")
         return {"origins": ("n", d), "directions": ("n", d)}
+    if form == "points":
+        if k != 0:
+            raise InvalidInputError(
+                f"form: points are 0-flats (k = 0); these are {k}-flats in R^{d} "
+                f"(k = {k}, d = {d}): give A+b, Q+r" + (" or origins+directions" if k == 1
+                                                         else ""), "form")
+        return {"points": ("n", d)}
     if form == "parametric":
         return {"A": ("n", d, k), "b": ("n", d)}
     if form == "flats":
@@ -730,7 +756,7 @@ def infer_form(names) -> str | None:
 
 
 class Flats:
-    """An immutable batch of ``n`` k-flats in R^d, in one of three forms.
+    """An immutable batch of ``n`` k-flats in R^d, in one of four forms.
 
     The one type for "flats as input": :class:`flatserve.Field`, the service's
     codec and schemas and the client all take it. It is validated once when
@@ -739,16 +765,17 @@ class Flats:
     never needs it).
 
     Parameters are given through the constructors :meth:`from_rays`,
-    :meth:`from_parametric`, :meth:`from_quadrics` and :meth:`from_arrays`.
+    :meth:`from_parametric`, :meth:`from_quadrics`, :meth:`from_points` and
+    :meth:`from_arrays`.
 
     Attributes
     ----------
-    form : {"rays", "parametric", "flats"}
+    form : {"rays", "parametric", "flats", "points"}
     k, d : int
     arrays : dict of str to ndarray
         The form's arrays by name (:data:`FORMS`), float64, C-contiguous,
         read-only: ``origins``/``directions`` (n, d), ``A`` (n, d, k) / ``b``
-        (n, d), or ``Q`` (n, d, d) / ``r`` (n, d).
+        (n, d), ``Q`` (n, d, d) / ``r`` (n, d), or ``points`` (n, d) (k = 0).
 
     Examples
     --------
@@ -797,6 +824,27 @@ class Flats:
         return cls("flats", int(k), Q.shape[1], {"Q": Q, "r": r}, (Q, r))
 
     @classmethod
+    def from_points(cls, points) -> "Flats":
+        """Points (k = 0 flats) of R^d: ``points`` (n, d), one point a row.
+
+        The same flats as ``from_parametric`` with ``A`` of shape (n, d, 0) and
+        ``b = points``, or ``from_quadrics`` with ``Q = I`` and ``r = points``.
+        (Not :func:`from_points`, the module's function of flats through k+1
+        points each: its ``points`` are (n, k+1, d).)
+
+        Examples
+        --------
+        >>> f = Flats.from_points([[0.5, 0.25], [1.0, 0.0]])
+        >>> f.form, f.k, f.d, len(f)
+        ('points', 0, 2, 2)
+        """
+        P = as_array(points, "points", ("n", None), max_abs=MAX_ENTRY)
+        if P.shape[1] < 1:
+            raise InvalidInputError(f"points: expected shape (n, d) with d >= 1, got {P.shape}",
+                                    "points")
+        return cls("points", 0, P.shape[1], {"points": P})
+
+    @classmethod
     def from_arrays(cls, arrays, *, k: int, d: int, form: str | None = None,
                     prefix: str = "", min_rows: int = 0) -> "Flats":
         """Flats from named arrays of any form (a JSON object, an ``.npz``, ...).
@@ -804,8 +852,9 @@ class Flats:
         Parameters
         ----------
         arrays : mapping of str to array_like
-            ``origins`` + ``directions``, ``A`` + ``b`` or ``Q`` + ``r``; other
-            names are ignored (the caller decides whether they are allowed).
+            ``origins`` + ``directions``, ``A`` + ``b``, ``Q`` + ``r`` or
+            ``points`` (k = 0); other names are ignored (the caller decides
+            whether they are allowed).
         k, d : int
             What the flats must be.
         form : str, optional
@@ -825,9 +874,8 @@ class Flats:
         if form is None:
             form = infer_form(arrays)
             if form is None:
-                raise InvalidInputError(
-                    f"{prefix or 'body'}: give origins+directions (rays), A+b (parametric) "
-                    "or Q+r (flats)", prefix or "body")
+                raise InvalidInputError(f"{prefix or 'body'}: give {forms_in_words()}",
+                                        prefix or "body")
         try:
             shapes = form_shapes(form, k, d)
         except InvalidInputError as exc:
@@ -845,11 +893,11 @@ class Flats:
                 raise InvalidInputError(_join(prefix, f"{name}: expected at least one row, got 0"),
                                         _join(prefix, name))
             got[name] = as_array(x, _join(prefix, name), shape, max_abs=MAX_ENTRY)
-        first, second = shapes
-        if got[first].shape[0] != got[second].shape[0]:
+        first, *rest = shapes
+        if any(got[first].shape[0] != got[nm].shape[0] for nm in rest):
             rows = {nm: a.shape[0] for nm, a in got.items()}
             raise InvalidInputError(_join(prefix, f"rows differ between arrays: {rows}"),
-                                    _join(prefix, second))
+                                    _join(prefix, rest[0]))
         if got[first].shape[0] < min_rows:
             want = "one row" if min_rows == 1 else f"{min_rows} rows"
             raise InvalidInputError(
@@ -860,6 +908,8 @@ class Flats:
                 return cls.from_rays(got["origins"], got["directions"])
             if form == "parametric":
                 return cls.from_parametric(got["A"], got["b"])
+            if form == "points":
+                return cls.from_points(got["points"])
             return cls.from_quadrics(got["Q"], got["r"], k)
         except InvalidInputError as exc:
             if not prefix:
@@ -883,8 +933,12 @@ class Flats:
     def quadrics(self) -> tuple[np.ndarray, np.ndarray]:
         """``(Q (n, d, d), r (n, d))`` of the flats (Eq. 3), computed once."""
         if self._quadrics is None:
-            o, v = self.arrays["origins"], self.arrays["directions"]
-            Q, r = from_rays(o, v)
+            if self.form == "points":
+                P = self.arrays["points"]
+                Q, r = np.broadcast_to(np.eye(self.d), (self.n, self.d, self.d)).copy(), P.copy()
+            else:
+                o, v = self.arrays["origins"], self.arrays["directions"]
+                Q, r = from_rays(o, v)
             Q.setflags(write=False)
             r.setflags(write=False)
             self._quadrics = (Q, r)

@@ -44,13 +44,15 @@ class Order(str, Enum):
 
 
 class Form(str, Enum):
-    """The three forms of a batch of flats (:data:`flatserve.flats.FORMS` names
+    """The four forms of a batch of flats (:data:`flatserve.flats.FORMS` names
     their arrays): rays (lines through an origin along a direction, k = 1),
-    parametric ``{A y + b}`` and the quadrics ``(Q, r)`` of Eq. 3."""
+    parametric ``{A y + b}``, the quadrics ``(Q, r)`` of Eq. 3 and points
+    (k = 0)."""
 
     RAYS = "rays"
     PARAMETRIC = "parametric"
     FLATS = "flats"
+    POINTS = "points"
 
     def __str__(self) -> str:
         return self.value

@@ -183,3 +183,33 @@ def test_flats_are_not_changed_through_the_callers_arrays():
     Q, _ = p.quadrics()
     with pytest.raises(ValueError):
         Q[0, 0, 0] = 5.0  # read-only
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_points_field_answers_as_scipy_linear_nd_interpolator(d):
+    """k = 0: a field of points (the service's default, a covering atlas of one chart, and
+    a one-chart Field) answers as scipy's LinearNDInterpolator on the same points in
+    general position, in the `points` form and in the (n, d, 0) parametric form."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    from flatserve import Atlas, AtlasField
+    from flatserve.contract import new_field
+
+    rng = np.random.default_rng(30 + d)
+    P = rng.uniform(-1, 1, (400, d))
+    V = np.c_[np.sin(3 * P.sum(axis=1)), P[:, 0] ** 2]
+    q = rng.uniform(-1.1, 1.1, (500, d))  # some outside the hull
+    ref = LinearNDInterpolator(P, V)(q)
+    inside = ~np.isnan(ref).any(axis=1)
+    assert 0 < inside.sum() < len(q)
+    forms = {"points": lambda X: flatserve.Flats.from_points(X),
+             "parametric": lambda X: flatserve.Flats.from_parametric(np.zeros((len(X), d, 0)), X)}
+    for make in (lambda: AtlasField(Atlas.covering(0, d), channels=2),
+                 lambda: new_field(2, basis=Basis.tangent_simplex(np.eye(d), np.zeros(d), 0))):
+        for name, of in forms.items():
+            field = make()
+            assert field.add(of(P), V).accepted == len(P), name
+            out = field.query(of(q))
+            np.testing.assert_array_equal(out.inside, inside)
+            np.testing.assert_allclose(out.values[inside], ref[inside], rtol=0, atol=1e-12)
+            assert np.isnan(out.values[~inside]).all()

@@ -229,3 +229,47 @@ def test_bad_input_names_argument(call, arg):
     assert isinstance(e.value, InvalidInputError)
     assert e.value.argument == arg
     assert str(e.value).startswith(arg + ":")
+
+
+@pytest.mark.parametrize("d", [1, 2, 3, 5])
+def test_points_form_is_the_parametric_form_with_no_spanning_vectors(d):
+    """``Flats.from_points`` (n, d): the same flats as A (n, d, 0) + b and Q = I + r,
+    by name through ``from_arrays`` (inferred or given), arrays read-only."""
+    P = np.random.default_rng(d).uniform(-2, 2, (7, d))
+    f = flats.Flats.from_points(P)
+    assert (f.form, f.k, f.d, len(f), f.shapes) == ("points", 0, d, 7, {"points": (7, d)})
+    Q, r = f.quadrics()
+    Qp, rp = flats.Flats.from_parametric(np.zeros((7, d, 0)), P).quadrics()
+    np.testing.assert_array_equal(Q, Qp)
+    np.testing.assert_array_equal(r, rp)
+    flats.validate(Q, r, 0)
+    assert not f.arrays["points"].flags.writeable and not Q.flags.writeable
+    for form in (None, "points"):
+        g = flats.Flats.from_arrays({"points": P.tolist()}, k=0, d=d, form=form)
+        assert g.form == "points"
+        np.testing.assert_array_equal(g.arrays["points"], P)
+    assert flats.infer_form({"points": P}) == "points"
+    assert flats.form_shapes("points", 0, d) == {"points": ("n", d)}
+    np.testing.assert_array_equal(f.take([2, 0]).arrays["points"], P[[2, 0]])
+
+
+@pytest.mark.parametrize("call,arg,words", [
+    # points are k = 0 only: the message names the flats asked for
+    (lambda: flats.Flats.from_arrays({"points": np.zeros((2, 3))}, k=1, d=3), "form",
+     "1-flats in R^3 (k = 1, d = 3)"),
+    (lambda: flats.form_shapes("points", 2, 4), "form", "2-flats in R^4 (k = 2, d = 4)"),
+    (lambda: flats.Flats.from_arrays({"points": np.zeros((2, 4))}, k=0, d=3), "points",
+     "expected shape (n, 3), got (2, 4)"),
+    (lambda: flats.Flats.from_arrays({"points": [[0.0, np.nan]]}, k=0, d=2), "points", "NaN"),
+    (lambda: flats.Flats.from_arrays({"points": []}, k=0, d=2, min_rows=1), "points",
+     "at least one row"),
+    (lambda: flats.Flats.from_points(np.zeros((2, 0))), "points", "d >= 1"),
+    (lambda: flats.Flats.from_points(np.zeros((2, 2, 1))), "points", "expected shape"),
+    (lambda: flats.infer_form({"points": 1, "Q": 1}), "body", "points"),
+    (lambda: flats.Flats.from_arrays({}, k=0, d=2), "body", "points (k = 0)"),
+])
+def test_points_form_errors_name_the_field_and_shape(call, arg, words):
+    with pytest.raises(InvalidInputError) as e:
+        call()
+    assert e.value.argument == arg and str(e.value).startswith(arg + ":"), str(e.value)
+    assert words in str(e.value), str(e.value)

@@ -12,10 +12,14 @@ float32, float16 or integers; read as float64), C or Fortran order, shape
 * ``form=rays``       (k = 1): ``origin (d) | direction (d) | values (C)``  -> W = 2d + C
 * ``form=parametric``: ``A (d x k, row-major) | b (d) | values (C)``         -> W = dk + d + C
 * ``form=flats``:      ``Q (d x d, row-major) | r (d) | values (C)``         -> W = d^2 + d + C
+* ``form=points``     (k = 0): ``point (d) | values (C)``                    -> W = d + C
+
+Without ``form`` an ``.npy`` body is rays for a field of lines (k = 1) and points for a
+field of points (k = 0).
 
 ``application/x-npz``: an ``.npz`` (``numpy.savez`` or ``numpy.savez_compressed``)
-with named arrays: ``origins`` + ``directions``, or ``A`` + ``b``, or ``Q`` + ``r``;
-``values`` for uploads. Both binary bodies are read by :mod:`.binary`, which judges
+with named arrays: ``origins`` + ``directions``, or ``A`` + ``b``, or ``Q`` + ``r``, or
+``points``; ``values`` for uploads. Both binary bodies are read by :mod:`.binary`, which judges
 every header (and every ``.npz`` member) before it reads or inflates any data.
 
 Query responses per ``Accept``: ``application/json`` (default), ``application/x-npy``
@@ -37,7 +41,7 @@ from .. import _npy
 from .._validate import as_array
 from ..errors import InvalidInputError
 from .status import AnswerTooLargeError, BatchTooLargeError, BodyTooLargeError
-from ..flats import FORMS, Flats, form_shapes, infer_form
+from ..flats import FORMS, Flats, form_shapes, forms_in_words, infer_form
 from .binary import load_npy, load_npz
 from .logs import note
 from .errors import ApiError
@@ -217,6 +221,18 @@ def kind_of(k: int, d: int) -> str:
     return f"{name} in R^{d} (k={k}, d={d})"
 
 
+def check_form(form: str, k: int, d: int, field: str | None = None) -> dict[str, tuple]:
+    """The shapes of ``form``'s arrays for this field (:func:`~flatserve.flats.form_shapes`);
+    a form that cannot give its flats (rays for planes, points for lines) is refused
+    naming the ``field`` and what it holds (:func:`kind_of`)."""
+    try:
+        return form_shapes(form, k, d)
+    except InvalidInputError as exc:
+        if field is None or form not in FORMS:
+            raise
+        raise type(exc)(f"{exc} (field {field!r} holds {kind_of(k, d)})", exc.argument) from None
+
+
 def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d: int,
            channels: int | None, max_rows: int, max_json_bytes: int | None = None,
            field: str | None = None) -> tuple[Flats, np.ndarray | None, dict]:
@@ -244,18 +260,18 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
         raw = load_npz(body, max_bytes=max_bytes, max_rows=max_rows)
     else:
         if form is None:
-            if k == 1:
-                form = "rays"
-            else:
+            form = {1: "rays", 0: "points"}.get(k)
+            if form is None:
                 raise InvalidInputError("form: required with application/x-npy", "form")
+        check_form(form, k, d, field)
         raw = split_columns(load_npy(body, max_bytes=max_bytes, max_rows=max_rows), form, k, d,
                             channels)
     if form is not None and form not in FORMS:
         raise InvalidInputError(f"form: one of {tuple(FORMS)}, got {form!r}", "form")
     form = form or infer_form(raw)
     if form is None:
-        raise InvalidInputError(
-            "body: give origins+directions (rays), A+b (parametric) or Q+r (flats)", "body")
+        raise InvalidInputError(f"body: give {forms_in_words()}", "body")
+    check_form(form, k, d, field)
     nrows = _rows(raw, form)
     note(rows=nrows)
     if nrows > max_rows:

@@ -15,6 +15,7 @@ from ..basis import Basis
 from .applier import LogApplier
 from .backend import LogBackend
 from .catalogue import FieldCatalogue
+from .costs import check_capacity
 from .entry import FieldEntry, FieldSpec
 from .replica import Follower
 from .schemas import (AtlasInfo, BasisInfo, ChartCenter, ChartInfo, FieldInfo, FieldSummary,
@@ -29,7 +30,7 @@ log = logging.getLogger("flatserve.service")
 class FieldService:
     """Create, delete and describe fields (see the module doc)."""
 
-    #: ``max_fields``, ``apply_wait_timeout``
+    #: ``max_fields``, ``apply_wait_timeout``, ``max_simplices``, ``min_field_samples``
     settings: Settings
     #: commits creates and deletes to the log
     storage: LogBackend
@@ -47,10 +48,14 @@ class FieldService:
         ------
         FieldExistsError, TooManyFieldsError
             409.
+        CostLimitError
+            413: a field of this kind could not hold ``min_field_samples`` samples
+            under ``max_simplices`` (:func:`.costs.check_capacity`).
         """
         fld = spec.new_field(basis)
         fid = None
         with self.catalogue.reserve(name, self.settings.max_fields):
+            check_capacity(name, fld, self.settings)
             try:  # the name is reserved; the commit runs without the catalogue's lock
                 fid, pos = self.storage.create_field(name, spec.to_dict(),
                                                      {"Q": basis.Q, "r": basis.r})

@@ -53,7 +53,7 @@ class QueryParams(BaseModel):
     form: Optional[Form] = Field(
         None, description="Flat form of the body. JSON/.npz: inferred from the array names. "
                           "`.npy`: required unless the field holds lines (k = 1; default "
-                          "`rays`).")
+                          "`rays`) or points (k = 0; default `points`).")
     outside: Outside = Outside.NAN
     order: Order = Order.HILBERT
     weights: bool = Field(False, description="Also return sample ids and weights.")

@@ -46,7 +46,8 @@ VerboseQuery = Annotated[bool, Query(
 
 FormQuery = Annotated[Optional[Form], Query(
     description="Flat form of the body. JSON/.npz: inferred from the array names. "
-                "`.npy`: required unless the field holds lines (k = 1; default `rays`).")]
+                "`.npy`: required unless the field holds lines (k = 1; default `rays`) or "
+                "points (k = 0; default `points`).")]
 
 _BINARY = {"schema": {"type": "string", "format": "binary"}}
 _LAYOUT = (
@@ -54,8 +55,9 @@ _LAYOUT = (
     "`application/x-npy` (ONE array of a real number type, read as float64, of shape (n, W), "
     "n >= 1: per row the flat - "
     "rays: origin(d) | direction(d); parametric: A(d x k, row-major) | b(d); flats: "
-    "Q(d x d, row-major) | r(d) - then, for uploads, the C values), or `application/x-npz` "
-    "(named arrays origins+directions | A+b | Q+r, and values). Every batch has at least one row."
+    "Q(d x d, row-major) | r(d); points (k = 0): point(d) - then, for uploads, the C values), "
+    "or `application/x-npz` (named arrays origins+directions | A+b | Q+r | points, and "
+    "values). Every batch has at least one row."
 )
 
 

@@ -31,13 +31,14 @@ class _Strict(BaseModel):
 
 
 class _OneForm(_Strict):
-    """A flat or flats given in one of the alternative array pairs of ``_forms``."""
+    """A flat or flats given in one of the alternative sets of arrays of ``_forms``
+    (pairs, or one array for points)."""
 
-    _forms: ClassVar[dict[str, tuple[str, str]]]
+    _forms: ClassVar[dict[str, tuple[str, ...]]]
 
     @model_validator(mode="after")
     def _one(self):
-        """Exactly one of the alternative array pairs is given (as the schema says)."""
+        """Exactly one of the alternative sets of arrays is given (as the schema says)."""
         given = [name for name, keys in self._forms.items()
                  if any(getattr(self, key) is not None for key in keys)]
         if len(given) > 1:
@@ -48,7 +49,7 @@ class _OneForm(_Strict):
 
     @classmethod
     def __get_pydantic_json_schema__(cls, core_schema, handler):
-        """The schema says what the validator takes: one pair of arrays, both given."""
+        """The schema says what the validator takes: one set of arrays, all given."""
         js = handler.resolve_ref_schema(handler(core_schema))
         js["anyOf"] = [{"required": list(keys),
                         "properties": {key: {"not": {"type": "null"}} for key in keys}}
@@ -57,7 +58,8 @@ class _OneForm(_Strict):
 
 
 class CenterFlat(_OneForm):
-    """One flat: (Q, r), or (A, b) with A (d, k), or a line as origin + direction."""
+    """One flat: (Q, r), or (A, b) with A (d, k), or a line as origin + direction, or
+    (k = 0) a point."""
 
     Q: Optional[Mat] = None
     r: Optional[Vec] = None
@@ -65,8 +67,10 @@ class CenterFlat(_OneForm):
     b: Optional[Vec] = None
     origin: Optional[Vec] = None
     direction: Optional[Vec] = None
+    point: Optional[Vec] = None
 
-    _forms = {"Q+r": ("Q", "r"), "A+b": ("A", "b"), "origin+direction": ("origin", "direction")}
+    _forms = {"Q+r": ("Q", "r"), "A+b": ("A", "b"), "origin+direction": ("origin", "direction"),
+              "point": ("point",)}
 
 
 class TangentSimplexBasis(_Strict):
@@ -82,8 +86,9 @@ class TangentSimplexBasis(_Strict):
 
 
 class FlatsModel(_OneForm):
-    """A batch of flats in one form: Q (n,d,d) + r (n,d), A (n,d,k) + b (n,d), or
-    (k = 1) origins + directions (n,d) (the forms of :class:`flatserve.flats.Flats`)."""
+    """A batch of flats in one form: Q (n,d,d) + r (n,d), A (n,d,k) + b (n,d),
+    (k = 1) origins + directions (n,d), or (k = 0) points (n,d) (the forms of
+    :class:`flatserve.flats.Flats`)."""
 
     Q: Optional[Mats] = None
     r: Optional[Mat] = None
@@ -91,8 +96,10 @@ class FlatsModel(_OneForm):
     b: Optional[Mat] = None
     origins: Optional[Mat] = None
     directions: Optional[Mat] = None
+    points: Optional[Mat] = None
 
-    _forms = {"Q+r": ("Q", "r"), "A+b": ("A", "b"), "origins+directions": ("origins", "directions")}
+    _forms = {"Q+r": ("Q", "r"), "A+b": ("A", "b"), "origins+directions": ("origins", "directions"),
+              "points": ("points",)}
 
 
 class FlatsBasis(FlatsModel):

@@ -73,6 +73,10 @@ class Settings(BaseSettings):
     max_simplices: int = Field(50_000_000, ge=1)
     """Most cells of one field's triangulation: an upload expected to pass it is refused (413) with
     the estimate (high-dimensional fields grow fast)."""
+    min_field_samples: int = Field(1000, ge=0)
+    """Fewest samples a new field must be able to hold under max_simplices: a create of a kind
+    whose estimate (max_simplices / (cells per sample of its triangulation dimension x the
+    charts holding each sample)) is lower is refused (413) naming both settings (0: never)."""
     max_atlas_samples: int = Field(100_000, ge=1)
     """Most flats given to build a data-driven atlas (`basis: {"kind": "atlas", "atlas":
     "samples"}`) when a field is created (413)."""

@@ -44,7 +44,7 @@ def _arrays(obj) -> dict:
 
 
 def flats_of(obj, k: int, d: int, prefix: str, max_rows: int | None = None) -> Flats:
-    """The :class:`Flats` of an object with Q+r, A+b or origins+directions
+    """The :class:`Flats` of an object with Q+r, A+b, origins+directions or points
     (errors name ``prefix.<array>``; more than ``max_rows`` rows is a 413)."""
     arrays = _arrays(obj)
     form = infer_form(arrays)
@@ -57,7 +57,7 @@ def flats_of(obj, k: int, d: int, prefix: str, max_rows: int | None = None) -> F
 
 def flats_from(obj, k: int, d: int, prefix: str, max_rows: int | None = None,
                validate: bool = True):
-    """(Q (n,d,d), r (n,d)) of an object with Q+r, A+b or origins+directions.
+    """(Q (n,d,d), r (n,d)) of an object with Q+r, A+b, origins+directions or points.
 
     ``validate=False`` keeps (Q, r) given directly unchecked (basis elements of a
     tangent simplex lie on the tangent plane, not on the manifold of flats)."""
@@ -71,11 +71,12 @@ def flats_from(obj, k: int, d: int, prefix: str, max_rows: int | None = None,
 
 
 #: The members of a centre flat by form (checked in this order), one flat each: the
-#: names of :data:`FORMS` for a batch, with origins/directions in the singular.
+#: names of :data:`FORMS` for a batch, with origins/directions/points in the singular.
 _CENTER_MEMBERS = {
     "rays": ("origin", "direction"),
     "parametric": ("A", "b"),
     "flats": ("Q", "r"),
+    "points": ("point",),
 }
 
 
@@ -89,6 +90,9 @@ def center_flat(center: CenterFlat | None, k: int, d: int):
         if form == "rays" and k != 1:
             raise InvalidInputError("basis.center: origin/direction describe a line (k = 1)",
                                     "basis.center.origin")
+        if form == "points" and k != 0:
+            raise InvalidInputError(f"basis.center: point describes a point (k = 0), not a "
+                                    f"{k}-flat in R^{d}", "basis.center.point")
         shapes = form_shapes(form, k, d).values()  # ("n", ...): one row here
         one = [as_array(getattr(center, m), f"basis.center.{m}", shape[1:])
                for m, shape in zip(members, shapes)]

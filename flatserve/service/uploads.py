@@ -36,6 +36,7 @@ from ..flats import Flats
 from .applier import stored_flats
 from .backend import BatchRow, KeyTakenError, LogBackend
 from .blobs import content_hash, pack_arrays
+from .costs import COST_MIN_SAMPLES, cells_per_sample
 from .entry import FieldEntry
 from .replica import Follower
 from .schemas import BatchInfo, UploadResult
@@ -44,12 +45,6 @@ from .status import (BacklogFullError, CostLimitError, CostPendingError, FieldNo
                      IdempotencyConflictError, NotReadyError, StorageError)
 
 log = logging.getLogger("flatserve.service")
-
-#: Cells of a Delaunay triangulation per sample by dimension D (uniform points,
-#: measured with flatserve.Triangulation: 5,000 points for D <= 3, 200 for D = 8);
-#: the estimate of a field with fewer than COST_MIN_SAMPLES samples.
-CELLS_PER_SAMPLE = {2: 2.0, 3: 6.6, 4: 28.0, 5: 129.0, 6: 512.0, 7: 1704.0, 8: 5195.0}
-COST_MIN_SAMPLES = 1000
 
 
 def upload_result(seq: int, res: AddResult | PreparedBatch, *, nsamples: int, indexed: bool,
@@ -153,8 +148,8 @@ class UploadService:
         (``complete_size``, :meth:`.FieldEntry.mark_indexed`: never a triangulation
         with a batch half inserted, whose cells per sample are far from the final
         ones) plus the ``pending`` samples and the batch, times the cells per sample
-        measured then (:data:`CELLS_PER_SAMPLE` below :data:`COST_MIN_SAMPLES`
-        samples; high-dimensional fields grow very fast: 200 samples in D = 8 make a
+        measured then (:func:`.costs.cells_per_sample` below
+        :data:`.costs.COST_MIN_SAMPLES` samples; high-dimensional fields grow very fast: 200 samples in D = 8 make a
         million cells). A field of several shards stores a sample once in every shard
         that holds it: the new rows are counted with their copies (``copies``).
 
@@ -172,8 +167,7 @@ class UploadService:
         D, n = f.ndim, len(flats)
         stored, cells = e.complete_size
         copies = f.copies(flats)
-        per = cells / stored if stored >= COST_MIN_SAMPLES else CELLS_PER_SAMPLE.get(
-            D, CELLS_PER_SAMPLE[8] * 3.0 ** (D - 8))
+        per = cells / stored if stored >= COST_MIN_SAMPLES else cells_per_sample(D)
         total = stored + (pending + n) * copies
         expected = total * per
         limit = self.settings.max_simplices

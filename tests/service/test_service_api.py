@@ -268,6 +268,82 @@ def test_flats_of_another_kind_are_refused_naming_the_field_and_its_kind(api, pa
     assert "field 'f' holds lines in R^3 (k=1, d=3)" in detail["msg"]
 
 
+@pytest.mark.parametrize("path", ["samples", "query"])
+@pytest.mark.parametrize("ctype", ["json", "npy", "npz"])
+def test_points_sent_to_a_field_of_lines_are_refused_naming_the_field(api, path, ctype):
+    """The points form is for k = 0 only: sent to lines in R^3 (by JSON or .npz names,
+    or form=points with an .npy) the 422 names the form, the field and its (k, d)."""
+    tc, c = api
+    c.create_field("f", channels=1)
+    P = np.zeros((2, 3))
+    vals = np.ones((2, 1))
+    up = path == "samples"
+    if ctype == "json":
+        kw = {"json": {"points": P.tolist(), **({"values": vals.tolist()} if up else {})}}
+    elif ctype == "npz":
+        kw = {"content": npz(points=P, **({"values": vals} if up else {})),
+              "headers": {"Content-Type": "application/x-npz"}}
+    else:
+        kw = {"content": npy(np.c_[P, vals] if up else P), "params": {"form": "points"},
+              "headers": {"Content-Type": "application/x-npy"}}
+    r = tc.post(f"/v1/fields/f/{path}", **kw)
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"][0]
+    assert detail["loc"][-1] == "form", detail
+    assert "points are 0-flats (k = 0)" in detail["msg"], detail
+    assert "field 'f' holds lines in R^3 (k=1, d=3)" in detail["msg"], detail
+    assert c.describe("f")["nsamples"] == 0
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_points_field_over_http_answers_as_scipy(api, d):
+    """A field of points (k = 0) uploaded and queried in the `points` form (client .npy,
+    JSON, .npz) and in the (n, d, 0) parametric form answers as scipy's
+    LinearNDInterpolator on the same points in general position; points of another d
+    are refused naming the shapes and the field."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    tc, c = api
+    rng = np.random.default_rng(40 + d)
+    P = rng.uniform(-1, 1, (300, d))
+    V = np.c_[np.sin(3 * P.sum(axis=1)), P[:, 0] ** 2]
+    q = rng.uniform(-1.1, 1.1, (200, d))
+    ref = LinearNDInterpolator(P, V)(q)
+    inside = ~np.isnan(ref).any(axis=1)
+    assert 0 < inside.sum() < len(q)
+
+    def check(out):
+        np.testing.assert_array_equal(out.inside, inside)
+        np.testing.assert_allclose(out.values[inside], ref[inside], rtol=0, atol=1e-12)
+
+    c.create_field("pts", k=0, d=d, channels=2)
+    assert c.upload_points("pts", P, V)["accepted"] == len(P)
+    c.create_field("par", k=0, d=d, channels=2)
+    assert c.upload("par", V, A=np.zeros((len(P), d, 0)), b=P)["accepted"] == len(P)
+    for name in ("pts", "par"):
+        check(c.query_points(name, q))                 # .npy, form=points
+        check(c.query_points(name, q, binary=False))   # JSON
+        check(c.query(name, flats.Flats.from_points(q)))
+        check(c.query(name, A=np.zeros((len(q), d, 0)), b=q))
+    r = tc.post("/v1/fields/pts/query", content=npy(q),   # .npy without form: points
+                headers={"Content-Type": "application/x-npy", "Accept": "application/x-npz"})
+    assert r.status_code == 200, r.text
+    with np.load(io.BytesIO(r.content)) as z:
+        np.testing.assert_array_equal(z["inside"], inside)
+        np.testing.assert_allclose(z["values"][inside], ref[inside], rtol=0, atol=1e-12)
+    r = tc.post("/v1/fields/pts/query", content=npz(points=q),
+                headers={"Content-Type": "application/x-npz", "Accept": "application/x-npz"})
+    assert r.status_code == 200, r.text
+    batches = c.batches("pts")
+    assert [b["form"] for b in batches] == ["points"]
+    r = tc.post("/v1/fields/pts/query", json={"points": np.zeros((1, d + 1)).tolist()})
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"][0]
+    assert detail["loc"][-1] == "points"
+    assert f"expected shape (n, {d}), got (1, {d + 1})" in detail["msg"]
+    assert f"field 'pts' holds points in R^{d} (k=0, d={d})" in detail["msg"]
+
+
 def orjson_bytes(obj) -> bytes:
     return orjson.dumps(obj)
 

@@ -428,7 +428,7 @@ def test_cost_guard_counts_every_chart_holding_a_sample(make_app, rng):
     assert copies > 3 * n
     per = 512.0  # cells per sample in dimension 6 before a field has its own figure
     limit = int(2 * n * per)  # above n samples' cells, below the copies'
-    tc, c = started(make_app(max_simplices=limit))
+    tc, c = started(make_app(max_simplices=limit, min_field_samples=0))  # the upload guard
     try:
         c.create_field("a", k=1, d=4)
         c.create_field("one", k=1, d=4, basis=ONE_CHART)
@@ -441,7 +441,7 @@ def test_cost_guard_counts_every_chart_holding_a_sample(make_app, rng):
         assert c.upload_rays("one", o, v, np.ones(n))["accepted"] > 0  # one copy each
     finally:
         tc.__exit__(None, None, None)
-    tc, c = started(make_app(max_simplices=int(copies * per)))
+    tc, c = started(make_app(max_simplices=int(copies * per), min_field_samples=0))
     try:
         assert c.upload_rays("a", o, v, np.ones(n))["accepted"] == n
         info = c.describe("a")  # the copies counted are the vertices the charts hold

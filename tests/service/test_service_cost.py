@@ -89,3 +89,45 @@ def test_refusal_counting_pending_samples_is_429_and_413_only_when_it_cannot_pas
     finally:
         gate.set()
         tc.__exit__(None, None, None)
+
+
+def test_a_kind_that_could_not_hold_min_field_samples_is_refused_at_create(make_app):
+    """``POST /v1/fields``: the samples a field could hold, max_simplices / (cells per
+    sample of its dimension D x the charts holding each sample), below
+    ``min_field_samples`` is a 413 naming the kind, D, the estimate, max_simplices and
+    both settings; nothing is stored. The copies count: at 40,000 cells the default atlas
+    of lines in R^3 (about 1.76 charts a sample: ~810 samples) is refused where one chart
+    (~1,430) and points in R^2 (20,000) pass."""
+    tc, c = started(make_app(max_simplices=40_000))
+    try:
+        r = tc.post("/v1/fields", json={"name": "lines", "channels": 1})
+        assert r.status_code == 413, r.text
+        msg = r.json()["detail"]
+        assert "field 'lines' of lines in R^3 (k=1, d=3)" in msg, msg
+        assert "dimension D = 4" in msg and "28 cells per sample" in msg, msg
+        assert "charts holding each sample" in msg and "about 8" in msg, msg
+        assert "max_simplices is 40,000" in msg and "min_field_samples = 1,000" in msg, msg
+        assert "FLATSERVE_MAX_SIMPLICES" in msg and "FLATSERVE_MIN_FIELD_SAMPLES" in msg, msg
+        assert c.list_fields() == [] and tc.get("/v1/fields/lines").status_code == 404
+        assert c.create_field("one", channels=1, basis=SINGLE.basis)["nsamples"] == 0
+        assert c.create_field("pts", k=0, d=2, channels=1)["nsamples"] == 0
+        r = tc.post("/v1/fields", json={"name": "planes", "k": 2, "d": 4})
+        assert r.status_code == 413 and "planes in R^4 (k=2, d=4)" in r.text, r.text
+        assert "dimension D = 6" in r.text, r.text
+        assert sorted(f["name"] for f in c.list_fields()) == ["one", "pts"]
+    finally:
+        tc.__exit__(None, None, None)
+    tc, c = started(make_app(max_simplices=40_000, min_field_samples=500))
+    try:  # the estimate passes the setting: created
+        assert c.create_field("lines", channels=1)["ncharts"] == 16
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_default_settings_create_fields_up_to_planes_in_r4(api):
+    """At the defaults (50M cells, 1,000 samples) lines and planes in R^4 (about 24k and
+    13k samples) are created."""
+    tc, c = api
+    for name, k, d in (("l3", 1, 3), ("l4", 1, 4), ("p4", 2, 4), ("pts8", 0, 8)):
+        r = tc.post("/v1/fields", json={"name": name, "k": k, "d": d})
+        assert r.status_code == 201, r.text

@@ -64,7 +64,7 @@ def test_wait_false_backlog_is_bounded_with_429(make_app, rng, monkeypatch):
 
 
 def test_high_dimensional_field_is_refused_before_it_explodes(make_app, rng):
-    tc, c = started(make_app(max_simplices=100_000))
+    tc, c = started(make_app(max_simplices=100_000, min_field_samples=0))  # the upload guard
     try:
         c.create_field("p8", k=0, d=8, channels=1)  # points in R^8: an 8-D triangulation
         pts = rng.normal(size=(200, 8))

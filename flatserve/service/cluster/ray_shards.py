@@ -12,7 +12,8 @@ field's :class:`RayGroups` (a :class:`~.remote.ShardGroups`):
   (``max_restarts=-1``); a restarted actor restores itself
   (:class:`~.shard.ShardWorker`);
 * each actor reserves ``ray_shard_memory`` bytes of its node's ``memory``
-  resource, so a node holds shards up to its budget; the copies of a group are
+  resource, so a node holds shards up to its budget, and inserts and answers
+  on as many threads as its node has CPUs (``shard_threads`` if set); the copies of a group are
   placed on different nodes (a ``STRICT_SPREAD`` placement group), the groups
   of a field spread over the nodes (``SPREAD``);
 * a call goes to one copy of each group; a copy that is dead, restarting,
@@ -43,9 +44,11 @@ class ShardActor:
     """A :class:`~.shard.ShardWorker` as a Ray actor (one process)."""
 
     def __init__(self, settings, field_id: int, charts) -> None:
+        from ...parallel import set_shard_threads
         from .. import logs
 
         logs.configure(settings.log_level, settings.log_format)
+        set_shard_threads(settings.shard_threads or node_cpus())
         self.worker = ShardWorker(settings, field_id, charts)
 
     def query(self, work, kw, at_position, timeout):
@@ -58,6 +61,19 @@ class ShardActor:
         import ray
 
         return {**self.worker.status(), "node": ray.get_runtime_context().get_node_id()}
+
+
+def node_cpus() -> int:
+    """The CPUs of the Ray node this process runs on (its ``num_cpus``, not the
+    machine's cores): the threads of a shard actor's pool, so that a node of one
+    CPU inserts on one thread (at least 1)."""
+    import ray
+
+    me = ray.get_runtime_context().get_node_id()
+    for n in ray.nodes():
+        if n.get("NodeID") == me:
+            return max(1, int(n.get("Resources", {}).get("CPU", 1)))
+    return 1
 
 
 def deal(ncharts: int, ngroups: int) -> list[tuple[int, ...]]:

@@ -22,8 +22,7 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
-from ..atlas_field import AtlasField
-from ..field import Chart
+from ..field import Chart, Field
 from ..flats import Flats
 from .camera import Camera
 
@@ -104,7 +103,7 @@ def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None)
 
     Parameters
     ----------
-    field : flatserve.Field or flatserve.atlas_field.AtlasField
+    field : flatserve.Field, or any field of the contract (an atlas field...)
         Lines in R^3 (k = 1, d = 3) with C channels.  An atlas field charts
         the rays inside its query (per chart): ``coordinates`` is then 0 and
         the frame has no ``chart``.
@@ -126,8 +125,8 @@ def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None)
     rays = Flats.from_rays(o, d)
     # located in serpentine order (each walk starts at the previous ray's answer)
     snake = _serpentine(np.arange(o.shape[0]), camera.width * camera.side)
-    if isinstance(field, AtlasField):
-        chart = None
+    if not isinstance(field, Field):  # an atlas field (or any other of the contract):
+        chart = None                    # each of its shards charts its own rays
         t1 = time.perf_counter()
         res = field.query(rays.take(snake), order="given", threads=threads)
     else:

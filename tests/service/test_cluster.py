@@ -14,6 +14,7 @@ import contextlib
 import threading
 import time
 
+import httpx
 import numpy as np
 import pytest
 
@@ -21,6 +22,7 @@ from flatserve.client import Client, ServiceError
 from flatserve.flats import Flats
 from flatserve.service.backend import open_backend
 from flatserve.service.entry import FieldSpec
+from flatserve.service.routes_lightfield import CameraSpec, render_frame
 from flatserve.service.settings import Settings
 from tests.harness.process import ServerProcess
 from tests.harness.raycluster import RayNodes
@@ -143,6 +145,13 @@ def test_a_three_node_cluster_answers_as_one_process(fronts, pg_url, rng):
             c.upload_rays("one", o, d, rng.uniform(size=(2500, 2)), wait=bool(i % 2))
     assert_same(pg_url, a, "atlas", probe)
     assert_same(pg_url, a, "one", paper_rays(rng, 2000), weights=True)
+    # a rendered view (the light-field route) is the one-process field's, bit for bit
+    ref, _ = oracle(pg_url, "atlas")
+    want, *_ = render_frame(ref, CameraSpec(width=24, height=20).camera(), fill=0.0, fmt="npy")
+    got = httpx.post(f"{a.url}/v1/fields/atlas/render", timeout=120,
+                     json={"width": 24, "height": 20, "format": "npy"})
+    assert got.status_code == 200, got.text
+    assert got.content == want
     # a second front (stateless: nothing to load) answers the same
     b = fronts.start()
     assert_same(pg_url, b, "atlas", probe)

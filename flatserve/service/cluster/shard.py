@@ -230,14 +230,20 @@ class ShardWorker:
 
     def _apply(self, en) -> None:
         spec = self.spec
+        t0 = time.perf_counter()
         arrays = dict(self.storage.batch_arrays(self.field_id, en.seq))
         values = arrays.pop("values")
         flats = Flats.from_arrays(arrays, k=spec.k, d=spec.d)
+        t1 = time.perf_counter()
         prepared = self.field.prepare(flats, values, only=self.only)
+        t2 = time.perf_counter()
         self.field.insert_prepared(prepared, slice_rows=self.settings.insert_slice_rows)
         with self._cond:
             self.seq, self.position = en.seq, en.position
             self._cond.notify_all()
+        log.debug("shard %s of field %d: batch %d (%d rows) applied: read %.3f s, prepare "
+                  "%.3f s, insert %.3f s", self.charts, self.field_id, en.seq, en.nrows,
+                  t1 - t0, t2 - t1, time.perf_counter() - t2)
 
     # -- answers --------------------------------------------------------------------------
     def _await(self, position: int, timeout: float, what: str) -> None:

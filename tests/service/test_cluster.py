@@ -28,6 +28,7 @@ from tests.harness.process import ServerProcess
 from tests.harness.raycluster import RayNodes
 
 from .conftest import ONE_CHART, paper_rays
+from .test_service_postgres import snapshot_soon
 
 
 
@@ -106,19 +107,6 @@ def assert_same(url: str, front: ServerProcess, name: str, probe, *, weights=Fal
         np.testing.assert_array_equal(got.weights, want.weights)
 
 
-def snapshot_when_ready(c: Client, name: str, patience: float = 60.0) -> dict:
-    """A snapshot through ``c``: 503 while a shard catches up with the front's
-    position (it is held there while it serialises its charts), retried."""
-    end = time.monotonic() + patience
-    while True:
-        try:
-            return c.snapshot(name)
-        except ServiceError as exc:
-            if exc.status != 503 or time.monotonic() > end:
-                raise
-            time.sleep(1)
-
-
 @pytest.fixture
 def nodes():
     with RayNodes(workers=2) as n:  # a head and two workers: 3 nodes
@@ -176,13 +164,13 @@ def test_snapshot_written_in_parts_by_the_shards_and_a_cluster_restarted_from_th
             for _ in range(3):
                 o, d = sphere_rays(rng, 3000)
                 c.upload_rays("f", o, d, rng.uniform(size=(3000, 2)), wait=True)
-            snap = snapshot_when_ready(c, "f")
+            snap = snapshot_soon(c, 60.0, name="f", interval=1.0)
             assert snap["batch"] == 3 and snap["written"] > 0
             # a batch touching one chart: the next snapshot writes only its part
             o = np.zeros((200, 3)) + rng.normal(scale=0.01, size=(200, 3))
             d = np.tile([0.0, 0.0, 1.0], (200, 1)) + rng.normal(scale=0.01, size=(200, 3))
             c.upload_rays("f", o, d, rng.uniform(size=(200, 2)), wait=True)
-            snap2 = snapshot_when_ready(c, "f")
+            snap2 = snapshot_soon(c, 60.0, name="f", interval=1.0)
             assert 0 < snap2["written"] < snap["written"] / 3, (snap, snap2)
             o, d = sphere_rays(rng, 1000)  # after the snapshot: replayed from the log
             c.upload_rays("f", o, d, rng.uniform(size=(1000, 2)))

@@ -352,18 +352,21 @@ def test_kill9_of_the_replica_writing_a_snapshot(replicas, rng, pg_url):
     check_replicas(book, [fresh.url], probe)
 
 
-def snapshot_soon(c: Client, patience: float = 30.0) -> dict:
-    """A snapshot through ``c``; 503 ("another replica is writing a snapshot") is
-    retried while PostgreSQL ends the killed writer's session (milliseconds; the
-    patience is far below the 300 s lease a row alone would need)."""
+def snapshot_soon(c: Client, patience: float = 30.0, *, name: str = FIELD,
+                  interval: float = 0.05) -> dict:
+    """A snapshot of ``name`` through ``c``; 503 ("another replica is writing a
+    snapshot", or in cluster mode a shard catching up with the front's position) is
+    retried every ``interval`` seconds (here while PostgreSQL ends the killed
+    writer's session: milliseconds; the patience is far below the 300 s lease a row
+    alone would need)."""
     end = time.monotonic() + patience
     while True:
         try:
-            return c.snapshot(FIELD)
+            return c.snapshot(name)
         except ServiceError as exc:
             if exc.status != 503 or time.monotonic() > end:
                 raise
-            time.sleep(0.05)
+            time.sleep(interval)
 
 
 def _quiet(fn, *args):

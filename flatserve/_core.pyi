@@ -68,6 +68,16 @@ class Triangulation:
 
     def interpolate(self, xi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], values: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], clamp: bool = False, hilbert: bool = True, threads: int = 0) -> tuple[NDArray[numpy.float64], NDArray[numpy.bool_]]: ...
 
+    def interpolate_owned(self, xi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], values: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], own: Annotated[NDArray[numpy.uint8], dict(shape=(None,), order='C', device='cpu', writable=False)], clamp: bool = False, hilbert: bool = True, threads: int = 0) -> tuple[NDArray[numpy.float64], NDArray[numpy.bool_], NDArray[numpy.int64]]:
+        """
+        interpolate, answering only the queries whose cell has a vertex with own[id]; the others: NaN, not inside, and forward = the id of their cell's lexicographically first finite vertex (-1 when answered).
+        """
+
+    def conflicts(self, own: Annotated[NDArray[numpy.uint8], dict(shape=(None,), order='C', device='cpu', writable=False)], lo: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], hi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], seeds: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)] | None = None) -> list:
+        """
+        Tile & Merge's exchange: per box (lo, hi: (nbox, D)), the sorted ids of the vertices of the cells with a vertex with own[id] whose circumscribed ball (half-space beyond the hull facet for an infinite cell) meets the box; every cell, or those incident to the seed vertices.
+        """
+
     def points(self) -> NDArray[numpy.float64]: ...
 
     def simplices(self) -> NDArray[numpy.int64]: ...

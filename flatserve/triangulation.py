@@ -519,6 +519,80 @@ class Triangulation:
             self._lock.release_read()
         return out.reshape(lead + (vals.shape[1],)), inside.reshape(lead), loc
 
+    # ------------------------------------------------------------ tiles (Tile & Merge)
+    def interpolate_owned(self, xi, own, outside: Outside | str = Outside.NAN,
+                          order: Order | str = Order.HILBERT, threads: int | None = None):
+        """:meth:`interpolate`, answering only from cells with a vertex of ``own``.
+
+        A tile of a triangulation split by Tile & Merge (:mod:`flatserve.tiles`)
+        knows the cells around its own vertices exactly, not those around its
+        halo only; a query whose cell has no own vertex is handed on.
+
+        Parameters
+        ----------
+        xi : array_like, shape (n, D)
+        own : ndarray, shape (npoints,), bool or uint8
+            Per sample id: the vertex is this tile's own.
+        outside, order, threads
+            As for :meth:`interpolate`.
+
+        Returns
+        -------
+        values : ndarray, shape (n, C)
+            NaN where not answered.
+        inside : ndarray, shape (n,), bool
+        forward : ndarray, shape (n,), int64
+            -1 where answered; else the sample id of the cell's lexicographically
+            first finite vertex (whose owner holds the cell exactly, if it is one of
+            the whole triangulation's).
+        """
+        q, _ = self._queries(xi)
+        outside = choice(outside, Outside, "outside")
+        order = choice(order, Order, "order")
+        mask = np.ascontiguousarray(own, dtype=np.uint8)
+        if mask.shape != (self._n,):
+            raise InvalidInputError(f"own: expected shape ({self._n},), got {mask.shape}", "own")
+        if self._values_buf is None:
+            raise InvalidInputError("values: the triangulation has no values", "values")
+        with _Reading(self._lock):
+            return self._core.interpolate_owned(q, self._values_buf[: self._n], mask,
+                                                outside is Outside.CLAMP,
+                                                order is Order.HILBERT, _threads_arg(threads))
+
+    def conflicts(self, own, lo, hi, seeds=None) -> list[np.ndarray]:
+        """Tile & Merge's exchange step: which vertices each box must receive.
+
+        For every cell with at least one vertex of ``own`` whose circumscribed
+        ball (for an infinite cell, the half-space beyond its hull facet) meets
+        box ``b``, the ids of the cell's finite vertices. A point of another tile
+        inside such a ball would make the cell non-Delaunay; sending the cell's
+        vertices to that tile lets it send such points back (Caraffa et al.,
+        "Tile & Merge", IEEE BigData 2019). Conservative: a ball that cannot be
+        computed meets every box.
+
+        Parameters
+        ----------
+        own : ndarray, shape (npoints,), bool or uint8
+        lo, hi : array_like, shape (nbox, D)
+            Closed boxes (the tiles' own points' bounding boxes).
+        seeds : array_like of int, optional
+            Scan only the cells incident to these vertices (those an insertion of
+            them created); default every cell.
+
+        Returns
+        -------
+        list of ndarray of int64
+            Per box, sorted unique sample ids.
+        """
+        mask = np.ascontiguousarray(own, dtype=np.uint8)
+        if mask.shape != (self._n,):
+            raise InvalidInputError(f"own: expected shape ({self._n},), got {mask.shape}", "own")
+        lo = as_array(lo, "lo", (None, self._ndim))
+        hi = as_array(hi, "hi", (lo.shape[0], self._ndim))
+        sd = None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64).reshape(-1)
+        with _Reading(self._lock):
+            return list(self._core.conflicts(mask, lo, hi, sd))
+
     # ------------------------------------------------------------------ checks
     def is_valid(self, verbose: bool = False) -> bool:
         """Full CGAL validity check (combinatorics, orientation, Delaunay) and ids."""

@@ -53,6 +53,8 @@ struct OutArray {
 namespace {
 
 using CArr2 = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using U8Arr1 = nb::ndarray<const std::uint8_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using I64Arr1 = nb::ndarray<const std::int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 
 struct PyTriangulation {
   std::unique_ptr<flatserve::TriangulationBase> t;
@@ -149,12 +151,65 @@ void bind_triangulation(nb::module_& m) {
              {
                nb::gil_scoped_release r;
                s.t->interpolate(q.data(), n, values.data(), values.shape(0), C, clamp, hilbert,
-                                threads, out.data, reinterpret_cast<std::uint8_t*>(inside.data));
+                                threads, out.data, reinterpret_cast<std::uint8_t*>(inside.data),
+                                nullptr, nullptr);
              }
              return std::make_tuple(out.release(), inside.release());
            },
            nb::arg("xi"), nb::arg("values"), nb::arg("clamp") = false, nb::arg("hilbert") = true,
            nb::arg("threads") = 0)
+      .def("interpolate_owned",
+           [](const PyTriangulation& s, CArr2 q, CArr2 values, U8Arr1 own, bool clamp,
+              bool hilbert, int threads) {
+             check_cols(q, s.t->dimension(), "xi");
+             if (own.shape(0) < s.t->number_of_vertices())
+               throw std::invalid_argument("own: one entry per vertex expected");
+             const std::size_t n = q.shape(0), C = values.shape(1);
+             OutArray<double> out({n, C});
+             OutArray<bool> inside({n});
+             OutArray<std::int64_t> forward({n});
+             {
+               nb::gil_scoped_release r;
+               s.t->interpolate(q.data(), n, values.data(), values.shape(0), C, clamp, hilbert,
+                                threads, out.data, reinterpret_cast<std::uint8_t*>(inside.data),
+                                own.data(), forward.data);
+             }
+             return std::make_tuple(out.release(), inside.release(), forward.release());
+           },
+           nb::arg("xi"), nb::arg("values"), nb::arg("own"), nb::arg("clamp") = false,
+           nb::arg("hilbert") = true, nb::arg("threads") = 0,
+           "interpolate, answering only the queries whose cell has a vertex with own[id]; "
+           "the others: NaN, not inside, and forward = the id of their cell's "
+           "lexicographically first finite vertex (-1 when answered).")
+      .def("conflicts",
+           [](const PyTriangulation& s, U8Arr1 own, CArr2 lo, CArr2 hi,
+              std::optional<I64Arr1> seeds) {
+             const std::size_t D = s.t->dimension();
+             check_cols(lo, D, "lo");
+             check_cols(hi, D, "hi");
+             if (lo.shape(0) != hi.shape(0))
+               throw std::invalid_argument("lo, hi: one row per box each");
+             if (own.shape(0) < s.t->number_of_vertices())
+               throw std::invalid_argument("own: one entry per vertex expected");
+             std::vector<std::vector<std::int64_t>> got;
+             {
+               nb::gil_scoped_release r;
+               s.t->conflicts(own.data(), lo.data(), hi.data(), lo.shape(0),
+                              seeds ? seeds->data() : nullptr, seeds ? seeds->shape(0) : 0, got);
+             }
+             nb::list res;
+             for (auto& ids : got) {
+               OutArray<std::int64_t> a({ids.size()});
+               if (!ids.empty()) std::memcpy(a.data, ids.data(), sizeof(std::int64_t) * ids.size());
+               res.append(a.release());
+             }
+             return res;
+           },
+           nb::arg("own"), nb::arg("lo"), nb::arg("hi"), nb::arg("seeds").none() = nb::none(),
+           "Tile & Merge's exchange: per box (lo, hi: (nbox, D)), the sorted ids of the "
+           "vertices of the cells with a vertex with own[id] whose circumscribed ball "
+           "(half-space beyond the hull facet for an infinite cell) meets the box; every "
+           "cell, or those incident to the seed vertices.")
       .def("points",
            [](const PyTriangulation& s) {
              OutArray<double> out({s.t->number_of_vertices(), (std::size_t)s.t->dimension()});

@@ -112,10 +112,28 @@ class TriangulationBase {
   virtual void locate(const double* q, std::size_t n, bool hilbert, int threads,
                       std::int64_t* ids, double* w, std::int8_t* kind,
                       std::int64_t* simplex) const = 0;
-  // values: nvalues x C (row = sample id). out: n x C; inside: n.
+  // values: nvalues x C (row = sample id). out: n x C; inside: n. The sum runs
+  // over the cell's vertices in lexicographic order of their points (as the
+  // weights are computed: locate_one), so any triangulation holding the same
+  // cell gives the same bits. own (may be null; one byte per sample id): a
+  // query whose cell has no vertex with own[id] != 0 is not answered: out NaN,
+  // inside 0 and forward[i] = the id of its cell's lexicographically first
+  // finite vertex (-1 for answered queries; forward may be null without own).
   virtual void interpolate(const double* q, std::size_t n, const double* values,
                            std::size_t nvalues, std::size_t C, bool clamp, bool hilbert,
-                           int threads, double* out, std::uint8_t* inside) const = 0;
+                           int threads, double* out, std::uint8_t* inside,
+                           const std::uint8_t* own, std::int64_t* forward) const = 0;
+  // Tile & Merge's exchange: for every cell with at least one vertex with
+  // own[id] != 0 whose circumscribed ball (for an infinite cell: the open
+  // half-space beyond its hull facet) meets box b (lo/hi: nbox x D, closed),
+  // the ids of its finite vertices go to out[b] (sorted, unique). Cells
+  // scanned: every cell (seeds null), or those incident to the seed vertices
+  // (the cells an insertion of those vertices created). Conservative: a ball
+  // that cannot be computed meets every box. Below full dimension every
+  // vertex goes to every box.
+  virtual void conflicts(const std::uint8_t* own, const double* lo, const double* hi,
+                         std::size_t nbox, const std::int64_t* seeds, std::size_t nseeds,
+                         std::vector<std::vector<std::int64_t>>& out) const = 0;
   virtual void points(double* out) const = 0;       // n x D, row = sample id
   virtual void simplices(std::int64_t* out) const = 0;  // finite cells x (D+1), numbered order
   virtual bool is_valid(bool verbose) const = 0;

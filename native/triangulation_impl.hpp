@@ -238,13 +238,25 @@ class Triangulation final : public TriangulationBase {
 
   void interpolate(const double* q, std::size_t n, const double* values, std::size_t nvalues,
                    std::size_t C, bool clamp, bool hilbert, int threads, double* out,
-                   std::uint8_t* inside) const override {
+                   std::uint8_t* inside, const std::uint8_t* own,
+                   std::int64_t* forward) const override {
     if (nvalues < by_id_.size())
       throw std::invalid_argument("values has fewer rows than the triangulation has vertices");
     const double nan = std::numeric_limits<double>::quiet_NaN();
     const int D1 = D_ + 1;
     for_each_query(q, n, hilbert, threads, [&](std::size_t qi, Scratch& s) {
       double* o = out + qi * C;
+      if (forward) forward[qi] = -1;
+      if (own && s.kind != OUTSIDE_AFFINE_HULL) {
+        bool mine = false;
+        for (int k = 0; k < D1 && !mine; ++k) mine = s.ids[k] >= 0 && own[s.ids[k]];
+        if (!mine) {
+          if (forward) forward[qi] = s.ids[s.perm[0]];
+          inside[qi] = 0;
+          std::fill(o, o + C, nan);
+          return;
+        }
+      }
       const bool in = s.kind <= ON_VERTEX;
       inside[qi] = in ? 1 : 0;
       if (!(in || (clamp && s.kind == OUTSIDE_CONVEX_HULL))) {
@@ -252,7 +264,8 @@ class Triangulation final : public TriangulationBase {
         return;
       }
       std::fill(o, o + C, 0.0);
-      for (int k = 0; k < D1; ++k) {
+      for (int j = 0; j < D1; ++j) {
+        const int k = s.perm[j];
         const double wk = s.w[k];
         if (s.ids[k] < 0 || wk == 0.0) continue;
         const double* v = values + static_cast<std::size_t>(s.ids[k]) * C;
@@ -279,6 +292,149 @@ class Triangulation final : public TriangulationBase {
       for (int k = 0; k <= D_; ++k) out[r * (D_ + 1) + k] = it->vertex(k)->data().id;
       ++r;
     }
+  }
+
+  // ------------------------------------------------------------ Tile & Merge
+  void conflicts(const std::uint8_t* own, const double* lo, const double* hi, std::size_t nbox,
+                 const std::int64_t* seeds, std::size_t nseeds,
+                 std::vector<std::vector<std::int64_t>>& out) const override {
+    const int D = D_;
+    const std::size_t nv = by_id_.size();
+    out.assign(nbox, {});
+    if (nbox == 0 || nv == 0) return;
+    if (dt_.current_dimension() < D) {  // no cells yet: every vertex may matter anywhere
+      for (std::size_t b = 0; b < nbox; ++b)
+        for (std::size_t i = 0; i < nv; ++i) out[b].push_back(static_cast<std::int64_t>(i));
+      return;
+    }
+    std::vector<std::vector<std::uint8_t>> mark(nbox, std::vector<std::uint8_t>(nv, 0));
+    DT& dt = const_cast<DT&>(dt_);
+    const Vertex_handle inf = dt.infinite_vertex();
+    Mat A(D, D);
+    Vec rhs(D), ctr(D);
+    Eigen::MatrixXd M(D - 1 > 0 ? D - 1 : 1, D);
+    std::vector<double> nrm(D);
+    auto send = [&](Full_cell_handle c, std::size_t b) {
+      for (int k = 0; k <= D; ++k) {
+        Vertex_handle v = c->vertex(k);
+        if (v != inf) mark[b][static_cast<std::size_t>(v->data().id)] = 1;
+      }
+    };
+    auto visit = [&](Full_cell_handle c) {
+      int fi = -1;
+      bool mine = false;
+      for (int k = 0; k <= D; ++k) {
+        Vertex_handle v = c->vertex(k);
+        if (v == inf) fi = k;
+        else mine = mine || own[v->data().id];
+      }
+      if (!mine) return;
+      if (fi < 0) {
+        // circumcentre x of p0..pD: 2 (pi - p0) . (x - p0) = |pi - p0|^2
+        const Point& p0 = c->vertex(0)->point();
+        for (int i = 1; i <= D; ++i) {
+          const Point& pi = c->vertex(i)->point();
+          double r2 = 0;
+          for (int k = 0; k < D; ++k) {
+            const double t = pi[k] - p0[k];
+            A(i - 1, k) = 2 * t;
+            r2 += t * t;
+          }
+          rhs(i - 1) = r2;
+        }
+        ctr = A.partialPivLu().solve(rhs);
+        double rr = 0;
+        bool finite = true;
+        for (int k = 0; k < D; ++k) {
+          finite = finite && std::isfinite(ctr(k));
+          rr += ctr(k) * ctr(k);
+        }
+        finite = finite && std::isfinite(rr);
+        for (std::size_t b = 0; b < nbox; ++b) {
+          bool meets = !finite;
+          if (!meets) {
+            double d2 = 0;
+            for (int k = 0; k < D; ++k) {
+              const double x = p0[k] + ctr(k);
+              const double y = std::min(std::max(x, lo[b * D + k]), hi[b * D + k]);
+              d2 += (x - y) * (x - y);
+            }
+            meets = d2 <= rr * (1 + 1e-9);  // conservative: an extra point costs little
+          }
+          if (meets) send(c, b);
+        }
+        return;
+      }
+      // infinite cell: the half-space beyond the hull facet (normal n pointing
+      // away from the opposite finite vertex)
+      int f[64];
+      std::vector<int> fdyn;
+      int* fv = f;
+      if (D > 64) {
+        fdyn.resize(D);
+        fv = fdyn.data();
+      }
+      int nf = 0;
+      for (int k = 0; k <= D; ++k)
+        if (k != fi) fv[nf++] = k;
+      const Point& a = c->vertex(fv[0])->point();
+      bool finite = true;
+      if (D == 1) {
+        nrm[0] = 1.0;
+      } else {
+        for (int j = 1; j < D; ++j) {
+          const Point& pj = c->vertex(fv[j])->point();
+          for (int k = 0; k < D; ++k) M(j - 1, k) = pj[k] - a[k];
+        }
+        Eigen::FullPivLU<Eigen::MatrixXd> lu(M);
+        Eigen::MatrixXd ker = lu.kernel();
+        if (ker.cols() != 1) finite = false;
+        for (int k = 0; k < D && finite; ++k) nrm[k] = ker(k, 0);
+      }
+      const Full_cell_handle in = c->neighbor(fi);
+      const Point& pin = in->vertex(c->mirror_index(fi))->point();
+      double side = 0, scale = 0, nn = 0;
+      for (int k = 0; k < D && finite; ++k) {
+        side += nrm[k] * (pin[k] - a[k]);
+        nn += std::abs(nrm[k]);
+        scale = std::max(scale, std::abs(a[k]));
+      }
+      finite = finite && std::isfinite(side) && side != 0;
+      if (finite && side > 0)
+        for (int k = 0; k < D; ++k) nrm[k] = -nrm[k];
+      for (std::size_t b = 0; b < nbox; ++b) {
+        bool meets = !finite;
+        if (!meets) {
+          double top = 0, sc = scale;
+          for (int k = 0; k < D; ++k) {
+            const double x = nrm[k] > 0 ? hi[b * D + k] : lo[b * D + k];
+            top += nrm[k] * (x - a[k]);
+            sc = std::max(sc, std::abs(x));
+          }
+          meets = top >= -1e-9 * nn * std::max(sc, 1e-300);
+        }
+        if (meets) send(c, b);
+      }
+    };
+    if (seeds == nullptr) {
+      for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it) visit(it);
+    } else {
+      std::vector<Full_cell_handle> cells;
+      for (std::size_t i = 0; i < nseeds; ++i) {
+        const std::int64_t id = seeds[i];
+        if (id < 0 || static_cast<std::size_t>(id) >= nv)
+          throw std::invalid_argument("seeds: a vertex id out of range");
+        dt.tds().incident_full_cells(by_id_[static_cast<std::size_t>(id)],
+                                     std::back_inserter(cells));
+      }
+      std::sort(cells.begin(), cells.end(),
+                [](Full_cell_handle x, Full_cell_handle y) { return &*x < &*y; });
+      cells.erase(std::unique(cells.begin(), cells.end()), cells.end());
+      for (const Full_cell_handle& c : cells) visit(c);
+    }
+    for (std::size_t b = 0; b < nbox; ++b)
+      for (std::size_t i = 0; i < nv; ++i)
+        if (mark[b][i]) out[b].push_back(static_cast<std::int64_t>(i));
   }
 
   bool is_valid(bool verbose) const override {
@@ -497,14 +653,30 @@ class Triangulation final : public TriangulationBase {
     std::vector<int> ori;
     std::vector<std::int64_t> ids;
     std::vector<double> w;
+    // the cell's vertices in lexicographic order of their points (the
+    // infinite vertex last): the order weights are computed and summed in
+    std::vector<int> perm;
+    std::vector<const Point*> cp;
+    std::vector<double> wc;
     std::int8_t kind = OUTSIDE_AFFINE_HULL;
     Full_cell_handle cell;
     Mat T;
     Vec rhs;
     MatF F;
     explicit Scratch(int D)
-        : pts(D + 1), ori(D + 1), ids(D + 1), w(D + 1), T(D, D), rhs(D), F(D, D - 1) {}
+        : pts(D + 1), ori(D + 1), ids(D + 1), w(D + 1), perm(D + 1), cp(D + 1), wc(D + 1),
+          T(D, D), rhs(D), F(D, D - 1) {
+      std::iota(perm.begin(), perm.end(), 0);
+    }
   };
+
+  static bool lex_less(const Point& a, const Point& b, int D) {
+    for (int k = 0; k < D; ++k) {
+      if (a[k] < b[k]) return true;
+      if (b[k] < a[k]) return false;
+    }
+    return false;
+  }
 
   // Visits every query (in Hilbert or given order, chunked), locating it into
   // a per-chunk Scratch; emit(query_index, scratch) consumes the answer.
@@ -563,10 +735,17 @@ class Triangulation final : public TriangulationBase {
   // Barycentric coordinates of qc in finite cell c into s.w. False when the
   // cell is too ill-conditioned for their signs to be trusted.
   bool barycentric(Full_cell_handle c, const double* qc, Scratch& s) const {
+    for (int k = 0; k <= D_; ++k) s.pts[k] = &c->vertex(k)->point();
+    return barycentric_of(s.pts.data(), qc, s.w.data(), s);
+  }
+
+  // Barycentric coordinates of qc in the simplex P[0..D] into w[0..D] (the
+  // same arithmetic whatever cell the points come from).
+  bool barycentric_of(const Point* const* P, const double* qc, double* w, Scratch& s) const {
     const int D = D_;
-    const Point& v0 = c->vertex(0)->point();
+    const Point& v0 = *P[0];
     for (int k = 1; k <= D; ++k) {
-      const Point& vk = c->vertex(k)->point();
+      const Point& vk = *P[k];
       for (int r = 0; r < D; ++r) s.T(r, k - 1) = vk[r] - v0[r];
     }
     for (int r = 0; r < D; ++r) s.rhs(r) = qc[r] - v0[r];
@@ -578,14 +757,14 @@ class Triangulation final : public TriangulationBase {
       double lam[E];
       lu_solve<E>(s.T.data(), s.rhs.data(), lam, dmin, dmax);
       for (int k = 1; k <= D; ++k) {
-        s.w[k] = lam[k - 1];
+        w[k] = lam[k - 1];
         sum += lam[k - 1];
       }
     } else {
       Eigen::PartialPivLU<Mat> lu(s.T);
       Vec lam = lu.solve(s.rhs);
       for (int k = 1; k <= D; ++k) {
-        s.w[k] = lam(k - 1);
+        w[k] = lam(k - 1);
         sum += lam(k - 1);
       }
       for (int k = 0; k < D; ++k) {
@@ -594,7 +773,7 @@ class Triangulation final : public TriangulationBase {
         dmax = std::max(dmax, u);
       }
     }
-    s.w[0] = 1.0 - sum;
+    w[0] = 1.0 - sum;
     return dmin > dmax * kPivotRatio && std::isfinite(sum);
   }
 
@@ -729,6 +908,17 @@ class Triangulation final : public TriangulationBase {
       facet_weights(c, fi, qc, s);
       return c;
     }
+    // the answer's weights: computed with the vertices in lexicographic order
+    // of their points, so they depend on the cell only (not on its vertex
+    // order in this triangulation): a tile holding the cell answers the bits
+    // of the whole triangulation (Tile & Merge)
+    for (int k = 0; k <= D; ++k) s.perm[k] = k;
+    std::sort(s.perm.begin(), s.perm.end(), [&](int a, int b) {
+      return lex_less(c->vertex(a)->point(), c->vertex(b)->point(), D);
+    });
+    for (int j = 0; j <= D; ++j) s.cp[j] = &c->vertex(s.perm[j])->point();
+    barycentric_of(s.cp.data(), qc, s.wc.data(), s);
+    for (int j = 0; j <= D; ++j) s.w[s.perm[j]] = s.wc[j];
     int zeros = 0;
     for (int k = 0; k <= D; ++k) zeros += (s.ori[k] == CGAL::ZERO);
     s.kind = zeros == 0 ? IN_CELL : zeros == D ? ON_VERTEX : zeros == 1 ? ON_FACET : ON_FACE;
@@ -753,6 +943,12 @@ class Triangulation final : public TriangulationBase {
     int nf = 0;
     for (int k = 0; k <= D; ++k)
       if (k != fi) f[nf++] = k;
+    // lexicographic order of the facet's points (see locate_one)
+    std::sort(f, f + nf, [&](int x, int y) {
+      return lex_less(c->vertex(x)->point(), c->vertex(y)->point(), D);
+    });
+    for (int j = 0; j < nf; ++j) s.perm[j] = f[j];
+    s.perm[D] = fi;
     const Point& a = c->vertex(f[0])->point();
     for (int j = 1; j < D; ++j) {
       const Point& vj = c->vertex(f[j])->point();
@@ -774,7 +970,7 @@ class Triangulation final : public TriangulationBase {
     }
     s.w[f[0]] = std::max(0.0, 1.0 - sum);
     double tot = 0;
-    for (int k = 0; k <= D; ++k) tot += s.w[k];
+    for (int j = 0; j < nf; ++j) tot += s.w[f[j]];
     if (tot > 0)
       for (int k = 0; k <= D; ++k) s.w[k] /= tot;
   }

@@ -1,0 +1,587 @@
+"""One Delaunay triangulation over tiles: Tile & Merge.
+
+A chart's points are split into tiles, boxes of equal counts cut at the
+medians of the widest axis (a k-d tree: :class:`Tiling`). Each tile holds a
+Delaunay triangulation of its own points and of the foreign points it needs (its
+halo), found by exchange rounds until the star of every one of its own vertices
+is exact, that is the star the vertex has in the triangulation of all the
+points (Caraffa, Memari, Yirci, Brédif, "Tile & Merge: distributed Delaunay
+triangulations for cloud computing", IEEE BigData 2019; the proof of
+consistency in ISPRS Annals 2020):
+
+* a tile sends to another tile the vertices of every cell that has one of its
+  own vertices and whose circumscribed ball (the half-space beyond the hull
+  facet, for an infinite cell) meets the bounding box of the other tile's own
+  points (:meth:`flatserve.Triangulation.conflicts`); a point of that tile
+  inside the ball is then a vertex of one of the receiver's cells with such a
+  ball, and goes back the other way in the next round;
+* a round inserts what was received (new cells are all incident to a new
+  vertex, so the next round scans only those); no new point: done.
+
+A query goes to the tile whose box of the :class:`Tiling` holds it and is
+answered there from its cell when the cell has an own vertex of the tile (the
+cell is then one of the whole triangulation's); otherwise it is handed on to
+the owner of the cell's lexicographically first vertex
+(:meth:`flatserve.Triangulation.interpolate_owned`). The extension computes
+weights and values with the cell's vertices in lexicographic order of their
+points, so a tile answers the bits of the unsplit triangulation: the same
+cell, the same weights, the same value (tested against it).
+
+Sample ids are global: 0, 1, ... in the order points were first inserted, as
+:class:`flatserve.Triangulation` numbers them; a duplicate point lands on its
+existing id and its value replaces the stored one, in every tile that holds it.
+
+Examples
+--------
+>>> import numpy as np
+>>> from flatserve.tiles import TiledTriangulation
+>>> rng = np.random.default_rng(0)
+>>> pts = rng.random((2000, 3))
+>>> tt = TiledTriangulation(3, tiles=4)
+>>> res = tt.insert(pts, values=pts[:, :1])
+>>> v, inside = tt.interpolate(rng.random((5, 3)) * 0.8 + 0.1)
+>>> bool(np.allclose(v[:, 0], v[:, 0]))
+True
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._validate import as_array
+from .errors import InvalidInputError
+from .options import Order, Outside, choice
+from .parallel import shard_pool
+from .triangulation import InsertResult, LocateKind, Location, RWLock, Triangulation
+
+__all__ = ["Tiling", "TiledTriangulation", "TileStats"]
+
+
+@dataclass(frozen=True)
+class Tiling:
+    """A partition of R^D into boxes (a k-d tree of median cuts).
+
+    Attributes
+    ----------
+    ndim : int
+    axis, cut : ndarray, shape (ntiles - 1,)
+        Per inner node: the coordinate cut and where (``x < cut`` goes low).
+    low, high : ndarray of int64, shape (ntiles - 1,)
+        Per inner node its children: an inner node (>= 0) or a tile ``-1 - t``.
+    """
+
+    ndim: int
+    axis: np.ndarray
+    cut: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+
+    @property
+    def ntiles(self) -> int:
+        return len(self.axis) + 1
+
+    @classmethod
+    def split(cls, points, ntiles: int) -> "Tiling":
+        """Cut ``points`` into ``ntiles`` boxes of equal counts (±1 per cut).
+
+        Each cut halves a node's tiles (the low side gets ``floor(t/2)`` of them
+        and that share of the points) across the node's widest axis.
+
+        Parameters
+        ----------
+        points : array_like, shape (n, D)
+        ntiles : int
+            At least 1.
+
+        Returns
+        -------
+        Tiling
+        """
+        pts = as_array(points, "points", (None, "D"))
+        if isinstance(ntiles, bool) or not isinstance(ntiles, (int, np.integer)) or ntiles < 1:
+            raise InvalidInputError(f"tiles: expected an integer >= 1, got {ntiles!r}", "tiles")
+        axis, cut, low, high = [], [], [], []
+
+        def node(rows: np.ndarray, first: int, count: int) -> int:
+            if count == 1:
+                return -1 - first
+            i = len(axis)
+            axis.append(0), cut.append(0.0), low.append(0), high.append(0)
+            k = count // 2
+            if rows.size:
+                sub = pts[rows]
+                ax = int(np.argmax(sub.max(axis=0) - sub.min(axis=0)))
+                vals = np.sort(sub[:, ax])
+                c = float(vals[min(len(vals) - 1, (len(vals) * k) // count)])
+            else:
+                ax, c = 0, 0.0
+            go_low = pts[rows, ax] < c if rows.size else np.zeros(0, bool)
+            axis[i], cut[i] = ax, c
+            low[i] = node(rows[go_low], first, k)
+            high[i] = node(rows[~go_low], first + k, count - k)
+            return i
+
+        node(np.arange(len(pts)), 0, int(ntiles))
+        return cls(pts.shape[1], np.asarray(axis, np.int64), np.asarray(cut, np.float64),
+                   np.asarray(low, np.int64), np.asarray(high, np.int64))
+
+    def tile_of(self, points) -> np.ndarray:
+        """The tile whose box holds each point, shape (n,) int64."""
+        pts = np.asarray(points, dtype=np.float64)
+        n = len(pts)
+        if self.ntiles == 1:
+            return np.zeros(n, np.int64)
+        at = np.zeros(n, np.int64)  # inner node, or -1 - tile once at a leaf
+        live = np.arange(n)
+        while live.size:
+            nd = at[live]
+            go_low = pts[live, self.axis[nd]] < self.cut[nd]
+            at[live] = np.where(go_low, self.low[nd], self.high[nd])
+            live = live[at[live] >= 0]
+        return -1 - at
+
+
+@dataclass
+class TileStats:
+    """What the exchange did (:attr:`TiledTriangulation.stats`).
+
+    Attributes
+    ----------
+    rounds : list of int
+        Exchange rounds of each insert.
+    sent : int
+        Points sent between tiles so far.
+    forwarded : int
+        Queries handed on to another tile so far.
+    unresolved : int
+        Queries answered after every hop failed to find an own cell (outside
+        the hull only, where no tile is exact: a NaN either way).
+    """
+
+    rounds: list = field(default_factory=list)
+    sent: int = 0
+    forwarded: int = 0
+    unresolved: int = 0
+
+
+class TiledTriangulation:
+    """A Delaunay triangulation of points in R^D with values, over tiles (see the
+    module doc): :class:`flatserve.Triangulation`'s ``insert`` and ``query``, the
+    same answers bit for bit.
+
+    Parameters
+    ----------
+    ndim : int
+        D.
+    tiles : int
+        Tiles; the :class:`Tiling` is cut from the first insert's points (or
+        pass ``tiling``).
+    tiling : Tiling, optional
+
+    Attributes
+    ----------
+    stats : TileStats
+    """
+
+    def __init__(self, ndim: int, tiles: int = 2, *, tiling: Tiling | None = None) -> None:
+        self._ndim = int(Triangulation(ndim).ndim)
+        self._ntiles = tiling.ntiles if tiling is not None else int(tiles)
+        if tiling is None and (isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer))
+                               or tiles < 1):
+            raise InvalidInputError(f"tiles: expected an integer >= 1, got {tiles!r}", "tiles")
+        self.tiling = tiling
+        T = self._ntiles
+        self._tiles = [Triangulation(self._ndim) for _ in range(T)]
+        self._gid = [np.empty(0, np.int64) for _ in range(T)]    # local id -> global id
+        self._own = [np.empty(0, np.uint8) for _ in range(T)]    # local id -> own (1) or halo (0)
+        self._owner = np.empty(0, np.int64)                      # global id -> tile
+        self._local = np.empty(0, np.int64)                      # global id -> local id there
+        self._held = np.zeros((T, 0), dtype=bool)                # tile, global id -> held
+        self._lo = np.full((T, self._ndim), np.inf)              # own points' bounding boxes
+        self._hi = np.full((T, self._ndim), -np.inf)
+        self._n = 0
+        self._channels: int | None = None
+        self._lock = RWLock()
+        self._stats_lock = threading.Lock()
+        self.stats = TileStats()
+
+    # ------------------------------------------------------------------ access
+    @property
+    def ndim(self) -> int:
+        return self._ndim
+
+    @property
+    def ntiles(self) -> int:
+        return self._ntiles
+
+    @property
+    def npoints(self) -> int:
+        return self._n
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def lock(self) -> RWLock:
+        """Readers/writer lock: queries read, inserts (and their exchange) write."""
+        return self._lock
+
+    @property
+    def tiles(self) -> tuple[Triangulation, ...]:
+        """Each tile's triangulation (own points and halo; local sample ids)."""
+        return tuple(self._tiles)
+
+    def global_ids(self, tile: int) -> np.ndarray:
+        """Tile ``tile``'s local sample id -> global sample id, shape (its npoints,)."""
+        return self._gid[tile].copy()
+
+    def own(self, tile: int) -> np.ndarray:
+        """Tile ``tile``'s local sample id -> its own point (True) or halo, bool."""
+        return self._own[tile].astype(bool)
+
+    @property
+    def halo(self) -> np.ndarray:
+        """Per tile, halo points held (foreign points), shape (ntiles,)."""
+        return np.array([int((o == 0).sum()) for o in self._own], dtype=np.int64)
+
+    @property
+    def own_counts(self) -> np.ndarray:
+        """Per tile, own points, shape (ntiles,)."""
+        return np.array([int(o.sum()) for o in self._own], dtype=np.int64)
+
+    def _gather(self, get) -> np.ndarray | None:
+        parts = [(self._gid[t][self._own[t] == 1], get(tri)[self._own[t] == 1])
+                 for t, tri in enumerate(self._tiles) if tri.npoints]
+        if not parts:
+            return None
+        out = np.empty((self._n,) + parts[0][1].shape[1:])
+        for g, v in parts:
+            out[g] = v
+        return out
+
+    @property
+    def points(self) -> np.ndarray:
+        """(npoints, D): row = global sample id."""
+        with self._lock.read():
+            p = self._gather(lambda tri: tri.points)
+        return np.empty((0, self._ndim)) if p is None else p
+
+    @property
+    def values(self) -> np.ndarray | None:
+        """(npoints, C) sample values (row = global sample id), or None."""
+        with self._lock.read():
+            return self._gather(lambda tri: tri.values) if self._channels else None
+
+    @property
+    def nchannels(self) -> int:
+        return self._channels or 0
+
+    @property
+    def nsimplex(self) -> int:
+        """Cells of the whole triangulation: each counted in the tile owning its
+        vertex of smallest global id."""
+        with self._lock.read():
+            n = 0
+            for t, tri in enumerate(self._tiles):
+                if tri.npoints <= self._ndim:
+                    continue
+                s = self._gid[t][tri.simplices]
+                n += int((self._owner[s.min(axis=1)] == t).sum())
+            return n
+
+    # ------------------------------------------------------------------ insert
+    def insert(self, points, values=None) -> InsertResult:
+        """Insert points (and values): each into the tile whose box holds it, then
+        the exchange rounds until every tile's own stars are exact.
+
+        Parameters
+        ----------
+        points : array_like, shape (n, D)
+        values : array_like, shape (n, C), optional
+            Required once the triangulation has values.
+
+        Returns
+        -------
+        InsertResult
+            Global sample ids (as :meth:`flatserve.Triangulation.insert` numbers them).
+        """
+        pts = as_array(points, "points", (None, self._ndim))
+        n = len(pts)
+        vals = None
+        if values is not None:
+            v = np.asarray(values, dtype=np.float64)
+            if v.ndim == 1:
+                v = v.reshape(-1, 1)
+            vals = as_array(v, "values", (n, self._channels or "C"))
+        if self._n and (vals is None) != (self._channels is None):
+            raise InvalidInputError("values: required, shape (n, C), as in the first insert"
+                                    if vals is None else
+                                    "values: this triangulation was built without values",
+                                    "values")
+        with self._lock.write():
+            if self.tiling is None:
+                self.tiling = Tiling.split(pts, self._ntiles)
+            if vals is not None:
+                self._channels = vals.shape[1]
+            return self._insert(pts, vals)
+
+    def _insert(self, pts: np.ndarray, vals: np.ndarray | None) -> InsertResult:
+        T, n = self._ntiles, len(pts)
+        where = self.tiling.tile_of(pts)
+        rows = [np.flatnonzero(where == t) for t in range(T)]
+        before = [tri.npoints for tri in self._tiles]
+
+        def put(t):
+            r = rows[t]
+            if not r.size:
+                return None
+            return self._tiles[t].insert(pts[r], None if vals is None else vals[r])
+
+        got = list(shard_pool().map(put, range(T)))
+        # global ids: new points numbered in input row order (first occurrence)
+        fresh_rows, fresh_tile, fresh_local = [], [], []
+        for t, res in enumerate(got):
+            if res is None:
+                continue
+            new = res.ids >= before[t]
+            _, first = np.unique(res.ids, return_index=True)
+            first_mask = np.zeros(len(res.ids), bool)
+            first_mask[first] = True
+            sel = new & first_mask
+            fresh_rows.append(rows[t][sel])
+            fresh_tile.append(np.full(int(sel.sum()), t, np.int64))
+            fresh_local.append(res.ids[sel])
+        fr = np.concatenate(fresh_rows) if fresh_rows else np.empty(0, np.int64)
+        ft = np.concatenate(fresh_tile) if fresh_tile else np.empty(0, np.int64)
+        fl = np.concatenate(fresh_local) if fresh_local else np.empty(0, np.int64)
+        order = np.argsort(fr, kind="stable")
+        fr, ft, fl = fr[order], ft[order], fl[order]
+        g0 = self._n
+        gids = g0 + np.arange(len(fr), dtype=np.int64)
+        m = g0 + len(fr)
+        self._owner = np.concatenate([self._owner, ft])
+        self._local = np.concatenate([self._local, fl])
+        held = np.zeros((T, m), dtype=bool)
+        held[:, :g0] = self._held
+        held[ft, gids] = True
+        self._held = held
+        self._n = m
+        seeds: list = [None] * T
+        grew = False
+        for t in range(T):
+            k = self._tiles[t].npoints - before[t]
+            if k:
+                sel = ft == t
+                # the tile numbered its new vertices in its row order = global order
+                g = np.empty(k, np.int64)
+                g[fl[sel] - before[t]] = gids[sel]
+                self._gid[t] = np.concatenate([self._gid[t], g])
+                self._own[t] = np.concatenate([self._own[t], np.ones(k, np.uint8)])
+                seeds[t] = np.arange(before[t], before[t] + k, dtype=np.int64)
+            if rows[t].size:
+                lo, hi = pts[rows[t]].min(axis=0), pts[rows[t]].max(axis=0)
+                if (lo < self._lo[t]).any() or (hi > self._hi[t]).any():
+                    grew = True
+                    self._lo[t] = np.minimum(self._lo[t], lo)
+                    self._hi[t] = np.maximum(self._hi[t], hi)
+        ids = np.empty(n, np.int64)
+        for t, res in enumerate(got):
+            if res is not None:
+                ids[rows[t]] = self._gid[t][res.ids]
+        n_new = len(fr)
+        if vals is not None and n_new < n:
+            self._revalue(ids, vals)
+        self._exchange(seeds, full=grew)
+        ids.flags.writeable = False
+        return InsertResult(ids=ids, n_new=n_new, n_duplicates=n - n_new)
+
+    def _revalue(self, ids: np.ndarray, vals: np.ndarray) -> None:
+        """A duplicate's value replaces the stored one in every halo holding it (the
+        owner's was replaced by its insert): re-inserted there, it lands on its
+        vertex."""
+        rev = ids[::-1]
+        g, first = np.unique(rev, return_index=True)
+        last = len(ids) - 1 - first
+        for t in range(self._ntiles):
+            halo = self._held[t, g] & (self._owner[g] != t)
+            if halo.any():
+                hg = g[halo]
+                self._tiles[t].insert(self._points_of(hg), vals[last[halo]])
+
+    def _points_of(self, g: np.ndarray) -> np.ndarray:
+        out = np.empty((len(g), self._ndim))
+        own = self._owner[g]
+        for t in np.unique(own):
+            sel = own == t
+            out[sel] = self._tiles[t].points[self._local[g[sel]]]
+        return out
+
+    def _values_of(self, g: np.ndarray) -> np.ndarray | None:
+        if not self._channels:
+            return None
+        out = np.empty((len(g), self._channels))
+        own = self._owner[g]
+        for t in np.unique(own):
+            sel = own == t
+            out[sel] = self._tiles[t].values[self._local[g[sel]]]
+        return out
+
+    def _exchange(self, seeds: list, *, full: bool) -> None:
+        """Rounds of Tile & Merge until no tile receives a new point."""
+        T = self._ntiles
+        rounds = 0
+        if T > 1:
+            while True:
+                def scan(t):
+                    tri = self._tiles[t]
+                    if not tri.npoints or (not full and seeds[t] is None):
+                        return None
+                    return tri.conflicts(self._own[t], self._lo, self._hi,
+                                         None if full else seeds[t])
+
+                found = list(shard_pool().map(scan, range(T)))
+                recv: list = [[] for _ in range(T)]
+                for t, per_box in enumerate(found):
+                    if per_box is None:
+                        continue
+                    for b in range(T):
+                        if b != t and per_box[b].size:
+                            g = self._gid[t][per_box[b]]
+                            recv[b].append(g[~self._held[b, g]])
+                todo = [np.unique(np.concatenate(r)) if r else np.empty(0, np.int64)
+                        for r in recv]
+                if not any(len(g) for g in todo):
+                    break
+                rounds += 1
+
+                def take(b):
+                    g = todo[b]
+                    if not len(g):
+                        return None
+                    tri = self._tiles[b]
+                    k0 = tri.npoints
+                    res = tri.insert(self._points_of(g), self._values_of(g))
+                    if res.n_new != len(g):  # a point of another tile equal to one here
+                        raise RuntimeError("tiles: a point held by two tiles as its own")
+                    return np.arange(k0, k0 + len(g), dtype=np.int64)
+
+                new = list(shard_pool().map(take, range(T)))
+                for b, g in enumerate(todo):
+                    if len(g):
+                        self._gid[b] = np.concatenate([self._gid[b], g])
+                        self._own[b] = np.concatenate([self._own[b], np.zeros(len(g), np.uint8)])
+                        self._held[b, g] = True
+                        self.stats.sent += len(g)
+                seeds = new
+                full = False
+        self.stats.rounds.append(rounds)
+
+    # ------------------------------------------------------------------ queries
+    def query(self, xi, outside: Outside | str = Outside.NAN, order: Order | str = Order.HILBERT,
+              threads: int | None = None, *, locate: bool = False, blocking: bool = True):
+        """:meth:`flatserve.Triangulation.query` over the tiles: each query answered by
+        a tile that holds its cell exactly (see the module doc).
+
+        Returns
+        -------
+        (values, inside, Location or None), or None (``blocking=False`` and an
+        insert holds the triangulation). A location's ids are global sample ids,
+        its weights in the tile's vertex order of the cell, its ``simplex`` -1.
+        """
+        q = as_array(xi, "xi", (None, self._ndim))
+        outside = choice(outside, Outside, "outside")
+        order = choice(order, Order, "order")
+        if not self._channels:
+            raise InvalidInputError("values: the triangulation has no values", "values")
+        if blocking:
+            self._lock.acquire_read()
+        elif not self._lock.try_acquire_read():
+            return None
+        try:
+            return self._query(q, outside, order, threads, locate)
+        finally:
+            self._lock.release_read()
+
+    def interpolate(self, xi, outside: Outside | str = Outside.NAN,
+                    order: Order | str = Order.HILBERT, threads: int | None = None):
+        """Values (n, C) and inside (n,) (:meth:`flatserve.Triangulation.interpolate`)."""
+        v, inside, _ = self.query(xi, outside=outside, order=order, threads=threads)
+        return v, inside
+
+    def _query(self, q, outside, order, threads, locate):
+        T, n, D1 = self._ntiles, len(q), self._ndim + 1
+        out = np.full((n, self._channels), np.nan)
+        inside = np.zeros(n, dtype=bool)
+        by = np.full(n, -1, np.int64)  # the tile that answered
+        if n == 0 or self._n == 0:
+            return out, inside, self._no_location(n) if locate else None
+        at = self.tiling.tile_of(q)
+        todo = np.arange(n)
+        hops = 0
+        forwarded = unresolved = 0
+        while todo.size:
+            last = hops >= T  # every tile had its chance: answer where it is
+            groups = [todo[at[todo] == t] for t in range(T)]
+
+            def ask(t):
+                r = groups[t]
+                tri = self._tiles[t]
+                if not r.size or not tri.npoints:
+                    return None
+                own = np.ones(tri.npoints, np.uint8) if last else self._own[t]
+                return tri.interpolate_owned(q[r], own, outside=outside, order=order,
+                                             threads=threads)
+
+            nxt = []
+            for t, res in enumerate(shard_pool().map(ask, range(T))):
+                r = groups[t]
+                if res is None:
+                    if r.size and not self._tiles[t].npoints and not last:
+                        # an empty tile: hand on to any tile holding points
+                        at[r] = (t + 1) % T
+                        nxt.append(r)
+                    continue
+                v, ins, fwd = res
+                done = fwd < 0
+                out[r[done]] = v[done]
+                inside[r[done]] = ins[done]
+                by[r[done]] = t
+                if (~done).any():
+                    rr = r[~done]
+                    at[rr] = self._owner[self._gid[t][fwd[~done]]]
+                    nxt.append(rr)
+            todo = np.concatenate(nxt) if nxt else np.empty(0, np.int64)
+            if hops == 0:
+                forwarded = len(todo)
+            if last:
+                unresolved = len(todo)
+                break
+            hops += 1
+        with self._stats_lock:
+            self.stats.forwarded += forwarded
+            self.stats.unresolved += unresolved
+        loc = self._locate(q, by, order, threads) if locate else None
+        return out, inside, loc
+
+    def _no_location(self, n: int) -> Location:
+        D1 = self._ndim + 1
+        return Location(ids=np.full((n, D1), -1, np.int64), weights=np.full((n, D1), np.nan),
+                        kind=np.full(n, int(LocateKind.OUTSIDE_AFFINE_HULL), np.int8), simplex=np.full(n, -1, np.int64))
+
+    def _locate(self, q, by, order, threads) -> Location:
+        loc = self._no_location(len(q))
+        for t in range(self._ntiles):
+            r = np.flatnonzero(by == t)
+            if not r.size:
+                continue
+            got = self._tiles[t].locate(q[r], order=order, threads=threads)
+            ids = got.ids
+            g = np.where(ids >= 0, self._gid[t][np.maximum(ids, 0)], -1)
+            loc.ids[r], loc.weights[r], loc.kind[r] = g, got.weights, got.kind
+        return loc
+
+    def __repr__(self) -> str:
+        return (f"TiledTriangulation(ndim={self._ndim}, tiles={self._ntiles}, "
+                f"npoints={self._n}, halo={int(self.halo.sum())})")

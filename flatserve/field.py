@@ -25,6 +25,7 @@ from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
 from .options import Order, Outside, choice
 from .flats import Flats, check_batch
+from .tiles import TiledTriangulation
 from .triangulation import Triangulation
 from .warp import LineWarp
 
@@ -177,6 +178,10 @@ _VERSION = 1
 #: The version of a field file with a warp (its points are warped: a reader of
 #: version 1 would chart its queries without it). Both are read.
 _VERSION_WARP = 2
+#: The version of a field file whose chart is split into tiles (its payload is
+#: :meth:`flatserve.tiles.TiledTriangulation.to_bytes`, the tiling in the
+#: metadata; with or without a warp). All three are read.
+_VERSION_TILES = 3
 
 
 class Field(FieldBase):
@@ -212,6 +217,10 @@ class Field(FieldBase):
         Applied to the embedded points before they are triangulated (the
         isometric charts of an atlas of lines in R^3, :mod:`flatserve.warp`);
         None (the default): the paper's chart.
+    tiles : int
+        Split the chart's triangulation into this many tiles
+        (:mod:`flatserve.tiles`, Tile & Merge: built on the cores at once, the
+        same answers bit for bit); 1 (the default): one triangulation.
 
     Examples
     --------
@@ -226,7 +235,7 @@ class Field(FieldBase):
     """
 
     def __init__(self, basis: Basis, channels: int = 1, *, roundtrip_tol: float = ROUNDTRIP_TOL,
-                 warp: LineWarp | None = None):
+                 warp: LineWarp | None = None, tiles: int = 1):
         if not isinstance(basis, Basis):
             raise InvalidInputError(f"basis: expected a flatserve.Basis, got {type(basis).__name__}", "basis")
         if not (isinstance(channels, (int, np.integer)) and channels >= 1):
@@ -243,7 +252,12 @@ class Field(FieldBase):
                                     "in R^3", "warp")
         #: the chart's warp (None: the paper's chart)
         self.warp = warp
-        self._tri = Triangulation(basis.m - 1)
+        if isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or tiles < 1:
+            raise InvalidInputError(f"tiles: expected an integer >= 1, got {tiles!r}", "tiles")
+        #: tiles of the chart's triangulation (1: one triangulation)
+        self.tiles = int(tiles)
+        self._tri = (Triangulation(basis.m - 1) if self.tiles == 1
+                     else TiledTriangulation(basis.m - 1, self.tiles))
         self._nrejected = 0
         self._generation = 0
 
@@ -286,8 +300,9 @@ class Field(FieldBase):
         return np.empty((0, self.channels)) if v is None else v
 
     @property
-    def triangulation(self) -> Triangulation:
-        """The Delaunay triangulation of the samples' embedded coordinates (read only)."""
+    def triangulation(self) -> Triangulation | TiledTriangulation:
+        """The Delaunay triangulation of the samples' embedded coordinates (read only;
+        over tiles when the field has :attr:`tiles`)."""
         return self._tri
 
     # ------------------------------------------------------------ charting
@@ -518,10 +533,13 @@ class Field(FieldBase):
             "basis_Q": self.basis.Q.tolist(),
             "basis_r": self.basis.r.tolist(),
             **({"warp": self.warp.to_dict()} if self.warp is not None else {}),
+            **({"tiles": self._tri.tiling_dict()} if self.tiles > 1 else {}),
         }
 
     @property
     def _version(self) -> int:
+        if self.tiles > 1:
+            return _VERSION_TILES
         return _VERSION if self.warp is None else _VERSION_WARP
 
     def write_to(self, fh) -> int:
@@ -570,18 +588,25 @@ class Field(FieldBase):
         SnapshotError
             Truncated or damaged data.
         """
-        version, meta, start = read_header(data, magic=FIELD_MAGIC, versions=(_VERSION, _VERSION_WARP),
+        version, meta, start = read_header(data, magic=FIELD_MAGIC,
+                                           versions=(_VERSION, _VERSION_WARP, _VERSION_TILES),
                                            kind="field", source=source)
         try:
             basis = Basis(np.array(meta["basis_Q"]), np.array(meta["basis_r"]), int(meta["k"]))
             warp = LineWarp.from_dict(meta["warp"]) if "warp" in meta else None
-            if (warp is not None) != (version == _VERSION_WARP):
+            if version != _VERSION_TILES and (warp is not None) != (version == _VERSION_WARP):
                 raise ValueError(f"version {version} with{'' if warp else 'out'} a warp")
+            tiling = meta.get("tiles") if version == _VERSION_TILES else None
+            if version == _VERSION_TILES and not isinstance(tiling, dict):
+                raise ValueError(f"version {version} without its tiles")
             obj = cls(basis, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]),
-                      warp=warp)
+                      warp=warp, tiles=int(tiling["tiles"]) if tiling else 1)
+            if tiling:
+                obj._tri = TiledTriangulation.from_bytes(data[start:], obj.ndim, tiling)
         except (ValueError, KeyError, TypeError, InvalidInputError) as exc:
             raise corrupted("field", source, exc) from None
-        obj._tri = Triangulation.from_bytes(data[start:])
+        if not tiling:
+            obj._tri = Triangulation.from_bytes(data[start:])
         if obj._tri.ndim != obj.ndim:
             raise SnapshotError(f"{source}: triangulation dimension {obj._tri.ndim} does not match basis")
         obj._nrejected = int(meta.get("nrejected", 0))

@@ -56,7 +56,11 @@ from .options import Order, Outside, choice
 from .parallel import shard_pool
 from .triangulation import InsertResult, LocateKind, Location, RWLock, Triangulation
 
-__all__ = ["Tiling", "TiledTriangulation", "TileStats"]
+__all__ = ["Tiling", "TiledTriangulation", "TileStats", "RETILE_SHARE"]
+
+#: a tile holding more than this times its share of the points is re-tiled
+#: (once the points have doubled since the last cut)
+RETILE_SHARE = 1.5
 
 
 @dataclass(frozen=True)
@@ -158,9 +162,12 @@ class TileStats:
     unresolved : int
         Queries answered after every hop failed to find an own cell (outside
         the hull only, where no tile is exact: a NaN either way).
+    retiled : int
+        Times the tiles were cut again because they had grown unequal.
     """
 
     rounds: list = field(default_factory=list)
+    retiled: int = 0
     sent: int = 0
     forwarded: int = 0
     unresolved: int = 0
@@ -202,6 +209,7 @@ class TiledTriangulation:
         self._lo = np.full((T, self._ndim), np.inf)              # own points' bounding boxes
         self._hi = np.full((T, self._ndim), -np.inf)
         self._n = 0
+        self._tiled_at = 0
         self._channels: int | None = None
         self._lock = RWLock()
         self._stats_lock = threading.Lock()
@@ -323,9 +331,41 @@ class TiledTriangulation:
         with self._lock.write():
             if self.tiling is None:
                 self.tiling = Tiling.split(pts, self._ntiles)
+                self._tiled_at = len(pts)
             if vals is not None:
                 self._channels = vals.shape[1]
-            return self._insert(pts, vals)
+            res = self._insert(pts, vals)
+            if self._unequal():
+                self._retile()
+            return res
+
+    def _unequal(self) -> bool:
+        """Re-tile when the largest tile holds more than :data:`RETILE_SHARE` times its
+        share and the points have doubled since the tiling was cut (so re-tiling
+        costs at most as much again as the inserts themselves)."""
+        T = self._ntiles
+        return (T > 1 and self._n >= 2 * self._tiled_at
+                and int(self.own_counts.max()) > RETILE_SHARE * self._n / T)
+
+    def _retile(self) -> None:
+        """Cut a new tiling from every point and build the tiles again (sample ids,
+        values and answers unchanged)."""
+        pts = self._gather(lambda tri: tri.points)
+        vals = self._gather(lambda tri: tri.values) if self._channels else None
+        T, D = self._ntiles, self._ndim
+        self.tiling = Tiling.split(pts, T)
+        self._tiled_at = len(pts)
+        self._tiles = [Triangulation(D) for _ in range(T)]
+        self._gid = [np.empty(0, np.int64) for _ in range(T)]
+        self._own = [np.empty(0, np.uint8) for _ in range(T)]
+        self._owner = np.empty(0, np.int64)
+        self._local = np.empty(0, np.int64)
+        self._held = np.zeros((T, 0), dtype=bool)
+        self._lo = np.full((T, D), np.inf)
+        self._hi = np.full((T, D), -np.inf)
+        self._n = 0
+        self._insert(pts, vals)
+        self.stats.retiled += 1
 
     def _insert(self, pts: np.ndarray, vals: np.ndarray | None) -> InsertResult:
         T, n = self._ntiles, len(pts)
@@ -581,6 +621,106 @@ class TiledTriangulation:
             g = np.where(ids >= 0, self._gid[t][np.maximum(ids, 0)], -1)
             loc.ids[r], loc.weights[r], loc.kind[r] = g, got.weights, got.kind
         return loc
+
+    # ------------------------------------------------------------------ snapshots
+    def tiling_dict(self) -> dict:
+        """The tiling as JSON-able lists (a field file's metadata)."""
+        tl = self.tiling
+        return {"tiles": self._ntiles} if tl is None else {
+            "tiles": self._ntiles, "axis": tl.axis.tolist(), "cut": tl.cut.tolist(),
+            "low": tl.low.tolist(), "high": tl.high.tolist()}
+
+    def to_bytes(self) -> bytes:
+        """Every tile's own snapshot, with its global ids and own flags.
+
+        Layout: uint64 tiles, then per tile uint64 n, n int64 global ids, n uint8
+        own flags, uint64 length and the tile's triangulation snapshot
+        (:meth:`flatserve.Triangulation.to_bytes`). The tiling itself travels
+        in the field file's metadata (:meth:`tiling_dict`).
+        """
+        with self._lock.read():
+            out = [np.uint64(self._ntiles).tobytes()]
+            for t, tri in enumerate(self._tiles):
+                blob = tri.to_bytes()
+                out += [np.uint64(len(self._gid[t])).tobytes(), self._gid[t].tobytes(),
+                        self._own[t].tobytes(), np.uint64(len(blob)).tobytes(), blob]
+            return b"".join(out)
+
+    @classmethod
+    def from_bytes(cls, data, ndim: int, tiling: dict) -> "TiledTriangulation":
+        """Inverse of :meth:`to_bytes` (``tiling``: :meth:`tiling_dict`).
+
+        Raises
+        ------
+        ValueError
+            The bytes do not hold the tiles the tiling names (the caller says
+            which file: :class:`~flatserve.errors.SnapshotError`).
+        """
+        mv = memoryview(data)
+        at = 0
+
+        def u64() -> int:
+            nonlocal at
+            if at + 8 > len(mv):
+                raise ValueError("truncated tiles")
+            v = int(np.frombuffer(mv[at:at + 8], np.uint64)[0])
+            at += 8
+            return v
+
+        T = int(tiling["tiles"])
+        tl = None
+        if "axis" in tiling:
+            tl = Tiling(int(ndim), *(np.asarray(tiling[k], dt) for k, dt in
+                                     (("axis", np.int64), ("cut", np.float64),
+                                      ("low", np.int64), ("high", np.int64))))
+            if tl.ntiles != T:
+                raise ValueError(f"a tiling of {tl.ntiles} tiles named {T}")
+        self = cls(ndim, T, tiling=tl)
+        if u64() != T:
+            raise ValueError("the tile count differs from the tiling's")
+        owner, local = [], []
+        for t in range(T):
+            n = u64()
+            if at + 9 * n > len(mv):
+                raise ValueError("truncated tiles")
+            self._gid[t] = np.frombuffer(mv[at:at + 8 * n], np.int64).copy()
+            at += 8 * n
+            self._own[t] = np.frombuffer(mv[at:at + n], np.uint8).copy()
+            at += n
+            size = u64()
+            if at + size > len(mv):
+                raise ValueError("truncated tiles")
+            self._tiles[t] = Triangulation.from_bytes(mv[at:at + size])
+            at += size
+            tri = self._tiles[t]
+            if tri.npoints != n or tri.ndim != self._ndim:
+                raise ValueError(f"tile {t}: {tri.npoints} points for {n} ids")
+            own = self._own[t] == 1
+            owner.append((self._gid[t][own], t))
+            local.append(np.flatnonzero(own))
+            if own.any():
+                p = tri.points[own]
+                self._lo[t], self._hi[t] = p.min(axis=0), p.max(axis=0)
+            if tri.nchannels:
+                self._channels = tri.nchannels
+        if at != len(mv):
+            raise ValueError("trailing bytes after the tiles")
+        m = sum(len(g) for g, _ in owner)
+        self._n = self._tiled_at = m
+        self._owner = np.full(m, -1, np.int64)
+        self._local = np.full(m, -1, np.int64)
+        for (g, t), loc in zip(owner, local):
+            if (g < 0).any() or (g >= m).any():
+                raise ValueError("a global id out of range")
+            self._owner[g], self._local[g] = t, loc
+        if (self._owner < 0).any():
+            raise ValueError("a sample owned by no tile")
+        self._held = np.zeros((T, m), dtype=bool)
+        for t in range(T):
+            if (self._gid[t] < 0).any() or (self._gid[t] >= m).any():
+                raise ValueError("a global id out of range")
+            self._held[t, self._gid[t]] = True
+        return self
 
     def __repr__(self) -> str:
         return (f"TiledTriangulation(ndim={self._ndim}, tiles={self._ntiles}, "

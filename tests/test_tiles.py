@@ -151,3 +151,81 @@ def test_sequential_pool_gives_the_same_tiles(monkeypatch):
         out.append((tt.halo, tt.query(q)[0]))
     assert np.array_equal(out[0][0], out[1][0])
     assert np.array_equal(out[0][1], out[1][1], equal_nan=True)
+
+
+def test_unequal_tiles_are_cut_again():
+    """Batches that sweep the square from a corner: the first cut is made for the
+    first corner; once the points have doubled and a tile holds more than its
+    share, the tiles are cut again, with the same ids and answers."""
+    rng = np.random.default_rng(4)
+    pts = rng.random((8000, 2))
+    pts = pts[np.argsort(pts.sum(axis=1))]
+    vals = rng.random((8000, 1))
+    tri, tt = Triangulation(2), TiledTriangulation(2, 4)
+    for i in range(0, 8000, 1000):
+        a, b = tri.insert(pts[i:i + 1000], vals[i:i + 1000]), tt.insert(pts[i:i + 1000],
+                                                                        vals[i:i + 1000])
+        assert np.array_equal(a.ids, b.ids)
+    assert tt.stats.retiled >= 2
+    counts = tt.own_counts
+    assert counts.max() <= 1.5 * 8000 / 4
+    _same_answers(tt, tri, rng.random((3000, 2)))
+
+
+def _fig11_rays(n_side: int, seed: int):
+    """The paper's Fig. 11 sampling (n_side^2 rays of the bunny), in random order."""
+    from flatserve.lightfield.sampling import bunny_scene, sample_scene
+
+    samples, values = sample_scene(bunny_scene(), n_side, seed=seed)
+    perm = np.random.default_rng(seed).permutation(len(values))
+    return samples.origins[perm], samples.directions[perm], values[perm]
+
+
+def test_a_fields_chart_in_tiles_answers_as_the_unsplit_field():
+    """The Fig. 11 field (one chart) split into 2, 4 and 8 tiles: every query the
+    unsplit field's bits, after batches that cross tile borders too; and a tiled
+    field's file restores the same answers."""
+    from flatserve import Field, Flats
+    from flatserve.basis import Basis
+    from flatserve.lightfield.camera import paper_samples
+
+    o, d, v = _fig11_rays(160, seed=1)  # 25,600 rays
+    q = paper_samples(120, np.random.default_rng(9))
+    qf = Flats.from_rays(q.origins, q.directions)
+    basis = Basis.around_axis(axis=2, scale=0.01)
+    whole = Field(basis, channels=1)
+    tiled = {T: Field(basis, channels=1, tiles=T) for T in (2, 4, 8)}
+    for f in (whole, *tiled.values()):
+        for i in range(0, len(o), 8000):  # later batches land across the borders
+            f.add(Flats.from_rays(o[i:i + 8000], d[i:i + 8000]), v[i:i + 8000])
+    ref = whole.query(qf, return_weights=True)
+    assert ref.inside.mean() > 0.5
+    for T, f in tiled.items():
+        assert f.nsamples == whole.nsamples and f.nsimplex == whole.nsimplex
+        got = f.query(qf, return_weights=True)
+        assert np.array_equal(got.values, ref.values, equal_nan=True), T
+        assert np.array_equal(got.inside, ref.inside) and np.array_equal(got.status, ref.status)
+        same = ref.inside
+        a, b = np.argsort(ref.ids[same], 1), np.argsort(got.ids[same], 1)
+        assert np.array_equal(np.take_along_axis(ref.ids[same], a, 1),
+                              np.take_along_axis(got.ids[same], b, 1))
+        assert np.array_equal(np.take_along_axis(ref.weights[same], a, 1),
+                              np.take_along_axis(got.weights[same], b, 1))
+        back = Field.from_bytes(f.to_bytes())
+        assert back.tiles == T and back.nsamples == f.nsamples
+        assert np.array_equal(back.query(qf).values, ref.values, equal_nan=True)
+        assert np.array_equal(back.triangulation.halo, f.triangulation.halo)
+
+
+def test_a_damaged_tiled_field_file_is_refused():
+    from flatserve import Field, Flats
+    from flatserve.basis import Basis
+    from flatserve.errors import SnapshotError
+
+    o, d, v = _fig11_rays(40, seed=2)
+    f = Field(Basis.around_axis(axis=2, scale=0.01), channels=1, tiles=2)
+    f.add(Flats.from_rays(o, d), v)
+    data = f.to_bytes()
+    for bad in (data[:-7], data + b"\0"):
+        with pytest.raises(SnapshotError):
+            Field.from_bytes(bad)

@@ -61,6 +61,10 @@ __all__ = ["Tiling", "TiledTriangulation", "TileStats", "RETILE_SHARE"]
 #: a tile holding more than this times its share of the points is re-tiled
 #: (once the points have doubled since the last cut)
 RETILE_SHARE = 1.5
+#: a tile's box (around its own points) that must grow grows by this share of
+#: its extent beyond the new points, so that the next batches rarely grow it
+#: again (each growth costs a scan of every cell of every tile)
+SLACK = 0.05
 
 
 @dataclass(frozen=True)
@@ -206,14 +210,39 @@ class TiledTriangulation:
         self._owner = np.empty(0, np.int64)                      # global id -> tile
         self._local = np.empty(0, np.int64)                      # global id -> local id there
         self._held = np.zeros((T, 0), dtype=bool)                # tile, global id -> held
-        self._lo = np.full((T, self._ndim), np.inf)              # own points' bounding boxes
-        self._hi = np.full((T, self._ndim), -np.inf)
+        self._reset_boxes()
         self._n = 0
         self._tiled_at = 0
         self._channels: int | None = None
         self._lock = RWLock()
         self._stats_lock = threading.Lock()
         self.stats = TileStats()
+
+    def _reset_boxes(self) -> None:
+        T, D = self._ntiles, self._ndim
+        self._lo = np.full((T, D), np.inf)  # per tile: a box around its own points
+        self._hi = np.full((T, D), -np.inf)
+
+    def _grow_boxes(self, t: int, pts: np.ndarray) -> bool:
+        """Tile ``t``'s box holds ``pts`` (its new own points); True if it grew
+        (every cell must then be scanned again against it)."""
+        if not len(pts):
+            return False
+        lo, hi = self._lo[t], self._hi[t]
+        a, b = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
+        out_lo, out_hi = a < lo, b > hi
+        if not (out_lo.any() or out_hi.any()):
+            return False
+        if np.isfinite(lo).all():  # not the tile's first points: leave room
+            ext = (b - a) * SLACK
+            a, b = np.where(out_lo, a - ext, a), np.where(out_hi, b + ext, b)
+        self._lo[t], self._hi[t] = a, b
+        return True
+
+    def _boxes(self):
+        """The tiles' boxes for :meth:`flatserve.Triangulation.conflicts` (one group
+        of one box each; an empty tile's box is empty)."""
+        return self._lo, self._hi, np.arange(self._ntiles + 1, dtype=np.int64)
 
     # ------------------------------------------------------------------ access
     @property
@@ -253,6 +282,21 @@ class TiledTriangulation:
     def halo(self) -> np.ndarray:
         """Per tile, halo points held (foreign points), shape (ntiles,)."""
         return np.array([int((o == 0).sum()) for o in self._own], dtype=np.int64)
+
+    def star_halo(self) -> np.ndarray:
+        """Per tile, the foreign vertices of its own vertices' finite cells: the
+        least halo a tile answering exactly must hold (:attr:`halo` is what the
+        exchange's conservative ball-box test gave it), shape (ntiles,)."""
+        out = np.zeros(self._ntiles, np.int64)
+        with self._lock.read():
+            for t, tri in enumerate(self._tiles):
+                if tri.npoints <= self._ndim:
+                    continue
+                s = tri.simplices
+                own = self._own[t] == 1
+                v = np.unique(s[own[s].any(axis=1)])
+                out[t] = int((~own[v]).sum())
+        return out
 
     @property
     def own_counts(self) -> np.ndarray:
@@ -361,8 +405,7 @@ class TiledTriangulation:
         self._owner = np.empty(0, np.int64)
         self._local = np.empty(0, np.int64)
         self._held = np.zeros((T, 0), dtype=bool)
-        self._lo = np.full((T, D), np.inf)
-        self._hi = np.full((T, D), -np.inf)
+        self._reset_boxes()
         self._n = 0
         self._insert(pts, vals)
         self.stats.retiled += 1
@@ -420,12 +463,8 @@ class TiledTriangulation:
                 self._gid[t] = np.concatenate([self._gid[t], g])
                 self._own[t] = np.concatenate([self._own[t], np.ones(k, np.uint8)])
                 seeds[t] = np.arange(before[t], before[t] + k, dtype=np.int64)
-            if rows[t].size:
-                lo, hi = pts[rows[t]].min(axis=0), pts[rows[t]].max(axis=0)
-                if (lo < self._lo[t]).any() or (hi > self._hi[t]).any():
-                    grew = True
-                    self._lo[t] = np.minimum(self._lo[t], lo)
-                    self._hi[t] = np.maximum(self._hi[t], hi)
+            if k:
+                grew |= self._grow_boxes(t, pts[fr[sel]])
         ids = np.empty(n, np.int64)
         for t, res in enumerate(got):
             if res is not None:
@@ -473,13 +512,14 @@ class TiledTriangulation:
         T = self._ntiles
         rounds = 0
         if T > 1:
+            lo, hi, start = self._boxes()
             while True:
                 def scan(t):
                     tri = self._tiles[t]
                     if not tri.npoints or (not full and seeds[t] is None):
                         return None
-                    return tri.conflicts(self._own[t], self._lo, self._hi,
-                                         None if full else seeds[t])
+                    return tri.conflicts(self._own[t], lo, hi, start, skip=t,
+                                         seeds=None if full else seeds[t])
 
                 found = list(shard_pool().map(scan, range(T)))
                 recv: list = [[] for _ in range(T)]
@@ -699,8 +739,7 @@ class TiledTriangulation:
             owner.append((self._gid[t][own], t))
             local.append(np.flatnonzero(own))
             if own.any():
-                p = tri.points[own]
-                self._lo[t], self._hi[t] = p.min(axis=0), p.max(axis=0)
+                self._grow_boxes(t, tri.points[own])
             if tri.nchannels:
                 self._channels = tri.nchannels
         if at != len(mv):

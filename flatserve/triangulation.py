@@ -559,22 +559,27 @@ class Triangulation:
                                                 outside is Outside.CLAMP,
                                                 order is Order.HILBERT, _threads_arg(threads))
 
-    def conflicts(self, own, lo, hi, seeds=None) -> list[np.ndarray]:
-        """Tile & Merge's exchange step: which vertices each box must receive.
+    def conflicts(self, own, lo, hi, start, skip: int = -1, seeds=None) -> list[np.ndarray]:
+        """Tile & Merge's exchange step: which vertices each group of boxes must receive.
 
         For every cell with at least one vertex of ``own`` whose circumscribed
         ball (for an infinite cell, the half-space beyond its hull facet) meets
-        box ``b``, the ids of the cell's finite vertices. A point of another tile
-        inside such a ball would make the cell non-Delaunay; sending the cell's
-        vertices to that tile lets it send such points back (Caraffa et al.,
-        "Tile & Merge", IEEE BigData 2019). Conservative: a ball that cannot be
-        computed meets every box.
+        a box of group ``g``, the ids of the cell's finite vertices. A point of
+        another tile inside such a ball would make the cell non-Delaunay; sending
+        the cell's vertices to that tile lets it send such points back (Caraffa
+        et al., "Tile & Merge", IEEE BigData 2019). Conservative: a ball that
+        cannot be computed meets every group.
 
         Parameters
         ----------
         own : ndarray, shape (npoints,), bool or uint8
         lo, hi : array_like, shape (nbox, D)
-            Closed boxes (the tiles' own points' bounding boxes).
+            Closed boxes (a tile's own points: their bounding box, then the boxes
+            of their parts).
+        start : array_like of int, shape (ngroups + 1,)
+            Group ``g`` is boxes ``start[g]:start[g+1]``, its bounding box first.
+        skip : int
+            A group not tested (the tile's own), -1: none.
         seeds : array_like of int, optional
             Scan only the cells incident to these vertices (those an insertion of
             them created); default every cell.
@@ -582,16 +587,17 @@ class Triangulation:
         Returns
         -------
         list of ndarray of int64
-            Per box, sorted unique sample ids.
+            Per group, sorted unique sample ids (empty for ``skip``).
         """
         mask = np.ascontiguousarray(own, dtype=np.uint8)
         if mask.shape != (self._n,):
             raise InvalidInputError(f"own: expected shape ({self._n},), got {mask.shape}", "own")
-        lo = as_array(lo, "lo", (None, self._ndim))
-        hi = as_array(hi, "hi", (lo.shape[0], self._ndim))
+        lo = as_array(lo, "lo", (None, self._ndim), finite=False)  # an empty box: +-inf
+        hi = as_array(hi, "hi", (lo.shape[0], self._ndim), finite=False)
+        st = np.ascontiguousarray(start, dtype=np.int64).reshape(-1)
         sd = None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64).reshape(-1)
         with _Reading(self._lock):
-            return list(self._core.conflicts(mask, lo, hi, sd))
+            return list(self._core.conflicts(mask, lo, hi, st, int(skip), sd))
 
     # ------------------------------------------------------------------ checks
     def is_valid(self, verbose: bool = False) -> bool:

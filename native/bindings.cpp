@@ -182,8 +182,8 @@ void bind_triangulation(nb::module_& m) {
            "the others: NaN, not inside, and forward = the id of their cell's "
            "lexicographically first finite vertex (-1 when answered).")
       .def("conflicts",
-           [](const PyTriangulation& s, U8Arr1 own, CArr2 lo, CArr2 hi,
-              std::optional<I64Arr1> seeds) {
+           [](const PyTriangulation& s, U8Arr1 own, CArr2 lo, CArr2 hi, I64Arr1 start,
+              std::int64_t skip, std::optional<I64Arr1> seeds) {
              const std::size_t D = s.t->dimension();
              check_cols(lo, D, "lo");
              check_cols(hi, D, "hi");
@@ -191,10 +191,17 @@ void bind_triangulation(nb::module_& m) {
                throw std::invalid_argument("lo, hi: one row per box each");
              if (own.shape(0) < s.t->number_of_vertices())
                throw std::invalid_argument("own: one entry per vertex expected");
+             const std::size_t ng = start.shape(0) ? start.shape(0) - 1 : 0;
+             const std::int64_t* st = start.data();
+             for (std::size_t g = 0; g < ng; ++g)
+               if (st[g] < 0 || st[g] > st[g + 1])
+                 throw std::invalid_argument("start: increasing box offsets expected");
+             if (ng && static_cast<std::size_t>(st[ng]) != lo.shape(0))
+               throw std::invalid_argument("start: its last offset must be the number of boxes");
              std::vector<std::vector<std::int64_t>> got;
              {
                nb::gil_scoped_release r;
-               s.t->conflicts(own.data(), lo.data(), hi.data(), lo.shape(0),
+               s.t->conflicts(own.data(), lo.data(), hi.data(), st, ng, skip,
                               seeds ? seeds->data() : nullptr, seeds ? seeds->shape(0) : 0, got);
              }
              nb::list res;
@@ -205,11 +212,13 @@ void bind_triangulation(nb::module_& m) {
              }
              return res;
            },
-           nb::arg("own"), nb::arg("lo"), nb::arg("hi"), nb::arg("seeds").none() = nb::none(),
-           "Tile & Merge's exchange: per box (lo, hi: (nbox, D)), the sorted ids of the "
+           nb::arg("own"), nb::arg("lo"), nb::arg("hi"), nb::arg("start"), nb::arg("skip") = -1,
+           nb::arg("seeds").none() = nb::none(),
+           "Tile & Merge's exchange: per group of boxes (lo, hi: (nbox, D); group g is "
+           "boxes start[g]:start[g+1], its bounding box first), the sorted ids of the "
            "vertices of the cells with a vertex with own[id] whose circumscribed ball "
-           "(half-space beyond the hull facet for an infinite cell) meets the box; every "
-           "cell, or those incident to the seed vertices.")
+           "(half-space beyond the hull facet for an infinite cell) meets one of its boxes; "
+           "every cell, or those incident to the seed vertices; group skip untested.")
       .def("points",
            [](const PyTriangulation& s) {
              OutArray<double> out({s.t->number_of_vertices(), (std::size_t)s.t->dimension()});

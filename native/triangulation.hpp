@@ -125,14 +125,17 @@ class TriangulationBase {
                            const std::uint8_t* own, std::int64_t* forward) const = 0;
   // Tile & Merge's exchange: for every cell with at least one vertex with
   // own[id] != 0 whose circumscribed ball (for an infinite cell: the open
-  // half-space beyond its hull facet) meets box b (lo/hi: nbox x D, closed),
-  // the ids of its finite vertices go to out[b] (sorted, unique). Cells
+  // half-space beyond its hull facet) meets a box of group g (lo/hi: nbox x D,
+  // closed; group g's boxes are start[g] .. start[g+1]-1, the first of them
+  // their bounding box, tested first), the ids of its finite vertices go to
+  // out[g] (sorted, unique); group `skip` is not tested (-1: none). Cells
   // scanned: every cell (seeds null), or those incident to the seed vertices
   // (the cells an insertion of those vertices created). Conservative: a ball
-  // that cannot be computed meets every box. Below full dimension every
-  // vertex goes to every box.
+  // that cannot be computed meets every group. Below full dimension every
+  // vertex goes to every group.
   virtual void conflicts(const std::uint8_t* own, const double* lo, const double* hi,
-                         std::size_t nbox, const std::int64_t* seeds, std::size_t nseeds,
+                         const std::int64_t* start, std::size_t ngroups, std::int64_t skip,
+                         const std::int64_t* seeds, std::size_t nseeds,
                          std::vector<std::vector<std::int64_t>>& out) const = 0;
   virtual void points(double* out) const = 0;       // n x D, row = sample id
   virtual void simplices(std::int64_t* out) const = 0;  // finite cells x (D+1), numbered order

@@ -295,19 +295,35 @@ class Triangulation final : public TriangulationBase {
   }
 
   // ------------------------------------------------------------ Tile & Merge
-  void conflicts(const std::uint8_t* own, const double* lo, const double* hi, std::size_t nbox,
+  void conflicts(const std::uint8_t* own, const double* lo, const double* hi,
+                 const std::int64_t* start, std::size_t ngroups, std::int64_t skip,
                  const std::int64_t* seeds, std::size_t nseeds,
                  std::vector<std::vector<std::int64_t>>& out) const override {
     const int D = D_;
     const std::size_t nv = by_id_.size();
-    out.assign(nbox, {});
-    if (nbox == 0 || nv == 0) return;
+    const std::size_t nbox = ngroups ? static_cast<std::size_t>(start[ngroups]) : 0;
+    out.assign(ngroups, {});
+    if (ngroups == 0 || nv == 0) return;
     if (dt_.current_dimension() < D) {  // no cells yet: every vertex may matter anywhere
-      for (std::size_t b = 0; b < nbox; ++b)
-        for (std::size_t i = 0; i < nv; ++i) out[b].push_back(static_cast<std::int64_t>(i));
+      for (std::size_t g = 0; g < ngroups; ++g)
+        if (static_cast<std::int64_t>(g) != skip)
+          for (std::size_t i = 0; i < nv; ++i) out[g].push_back(static_cast<std::int64_t>(i));
       return;
     }
-    std::vector<std::vector<std::uint8_t>> mark(nbox, std::vector<std::uint8_t>(nv, 0));
+    (void)nbox;
+    std::vector<std::vector<std::uint8_t>> mark(ngroups);
+    for (std::size_t g = 0; g < ngroups; ++g)
+      if (static_cast<std::int64_t>(g) != skip) mark[g].assign(nv, 0);
+    // group g: its bounding box (the first) first, then its boxes
+    auto meets_group = [&](std::size_t g, auto&& meets) {
+      const std::size_t b0 = static_cast<std::size_t>(start[g]);
+      const std::size_t b1 = static_cast<std::size_t>(start[g + 1]);
+      if (b0 >= b1 || !meets(b0)) return false;
+      if (b1 - b0 == 1) return true;
+      for (std::size_t b = b0 + 1; b < b1; ++b)
+        if (meets(b)) return true;
+      return false;
+    };
     DT& dt = const_cast<DT&>(dt_);
     const Vertex_handle inf = dt.infinite_vertex();
     Mat A(D, D);
@@ -350,19 +366,18 @@ class Triangulation final : public TriangulationBase {
           rr += ctr(k) * ctr(k);
         }
         finite = finite && std::isfinite(rr);
-        for (std::size_t b = 0; b < nbox; ++b) {
-          bool meets = !finite;
-          if (!meets) {
-            double d2 = 0;
-            for (int k = 0; k < D; ++k) {
-              const double x = p0[k] + ctr(k);
-              const double y = std::min(std::max(x, lo[b * D + k]), hi[b * D + k]);
-              d2 += (x - y) * (x - y);
-            }
-            meets = d2 <= rr * (1 + 1e-9);  // conservative: an extra point costs little
+        auto ball_meets = [&](std::size_t b) {
+          double d2 = 0;
+          for (int k = 0; k < D; ++k) {
+            const double x = p0[k] + ctr(k);
+            const double y = std::min(std::max(x, lo[b * D + k]), hi[b * D + k]);
+            d2 += (x - y) * (x - y);
           }
-          if (meets) send(c, b);
-        }
+          return d2 <= rr * (1 + 1e-9);  // conservative: an extra point costs little
+        };
+        for (std::size_t g = 0; g < ngroups; ++g)
+          if (static_cast<std::int64_t>(g) != skip && (!finite || meets_group(g, ball_meets)))
+            send(c, g);
         return;
       }
       // infinite cell: the half-space beyond the hull facet (normal n pointing
@@ -402,19 +417,18 @@ class Triangulation final : public TriangulationBase {
       finite = finite && std::isfinite(side) && side != 0;
       if (finite && side > 0)
         for (int k = 0; k < D; ++k) nrm[k] = -nrm[k];
-      for (std::size_t b = 0; b < nbox; ++b) {
-        bool meets = !finite;
-        if (!meets) {
-          double top = 0, sc = scale;
-          for (int k = 0; k < D; ++k) {
-            const double x = nrm[k] > 0 ? hi[b * D + k] : lo[b * D + k];
-            top += nrm[k] * (x - a[k]);
-            sc = std::max(sc, std::abs(x));
-          }
-          meets = top >= -1e-9 * nn * std::max(sc, 1e-300);
+      auto half_meets = [&](std::size_t b) {
+        double top = 0, sc = scale;
+        for (int k = 0; k < D; ++k) {
+          const double x = nrm[k] > 0 ? hi[b * D + k] : lo[b * D + k];
+          top += nrm[k] * (x - a[k]);
+          sc = std::max(sc, std::abs(x));
         }
-        if (meets) send(c, b);
-      }
+        return top >= -1e-9 * nn * std::max(sc, 1e-300);
+      };
+      for (std::size_t g = 0; g < ngroups; ++g)
+        if (static_cast<std::int64_t>(g) != skip && (!finite || meets_group(g, half_meets)))
+          send(c, g);
     };
     if (seeds == nullptr) {
       for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it) visit(it);
@@ -432,9 +446,9 @@ class Triangulation final : public TriangulationBase {
       cells.erase(std::unique(cells.begin(), cells.end()), cells.end());
       for (const Full_cell_handle& c : cells) visit(c);
     }
-    for (std::size_t b = 0; b < nbox; ++b)
-      for (std::size_t i = 0; i < nv; ++i)
-        if (mark[b][i]) out[b].push_back(static_cast<std::int64_t>(i));
+    for (std::size_t g = 0; g < ngroups; ++g)
+      for (std::size_t i = 0; i < mark[g].size(); ++i)
+        if (mark[g][i]) out[g].push_back(static_cast<std::int64_t>(i));
   }
 
   bool is_valid(bool verbose) const override {

@@ -229,3 +229,11 @@ def test_a_damaged_tiled_field_file_is_refused():
     for bad in (data[:-7], data + b"\0"):
         with pytest.raises(SnapshotError):
             Field.from_bytes(bad)
+
+
+def test_the_halo_holds_at_least_the_stars_foreign_vertices():
+    rng = np.random.default_rng(8)
+    tt = TiledTriangulation(4, 4)
+    tt.insert(rng.normal(size=(4000, 4)), np.zeros((4000, 1)))
+    star = tt.star_halo()
+    assert (star > 0).all() and (star <= tt.halo).all()

@@ -1,0 +1,158 @@
+"""One chart over tiles (Tile & Merge, issue 19): tiles against the unsplit chart, same run.
+
+The paper's Fig. 11 field: ``--side``^2 rays of the bunny (1,000^2 = 1M), the
+paper's basis (one chart), in random order, added in batches of 100,000 as
+``flatserve lightfield`` builds it. Each configuration runs in a process of
+its own, pinned with ``taskset`` to its cores, interleaved, medians of
+``--runs``:
+
+1. build (chart + insert of every ray): 2 tiles on 2 cores against the unsplit
+   field on 2 cores                                  -> target >= 1.6x;
+   and 2 tiles on 1 core against the unsplit on 1 core (no slower: >= 1.0x)
+2. query throughput of ``--queries`` rays of the same sampling, on one thread
+   (forwarding included), tiled against unsplit        -> target >= 0.8x;
+   the share of queries forwarded to another tile
+3. memory: per tile count of ``--halo``, the halo (foreign points held) over
+   own points, the exchange rounds, the process's resident memory
+
+Every tiled answer is checked equal (bits) to the unsplit field's.
+
+    .venv/bin/python benchmarks/bench_tiles.py [--side 1000] [--runs 3] [--halo 2 4 8 16]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import timing  # noqa: F401  (the repository root on sys.path)
+
+BATCH = 100_000
+
+
+def rss() -> int:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+def one(side: int, tiles: int, cores: int, queries: int, out: str) -> dict:
+    """Build and query in this process (pinned by the parent); a JSON line."""
+    from flatserve import Field, Flats
+    from flatserve.basis import Basis
+    from flatserve.lightfield.camera import paper_samples
+    from flatserve.lightfield.sampling import BASIS_SCALE, bunny_scene, sample_scene
+    from flatserve.parallel import set_shard_threads
+
+    set_shard_threads(cores)
+    samples, values = sample_scene(bunny_scene(), side, seed=0)
+    perm = np.random.default_rng(0).permutation(len(values))
+    o, d, v = samples.origins[perm], samples.directions[perm], values[perm]
+    field = Field(Basis.around_axis(axis=2, scale=BASIS_SCALE), channels=v.shape[1], tiles=tiles)
+    t0 = time.perf_counter()
+    for i in range(0, len(o), BATCH):
+        field.add(Flats.from_rays(o[i:i + BATCH], d[i:i + BATCH]), v[i:i + BATCH])
+    build = time.perf_counter() - t0
+    q = paper_samples(int(queries ** 0.5), np.random.default_rng(1))
+    qf = Flats.from_rays(q.origins, q.directions)
+    chart = field.chart(qf, threads=1)
+    set_shard_threads(1)
+    ts = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        res = field.query(chart, threads=1)
+        ts.append(time.perf_counter() - t0)
+    np.save(out, res.values)
+    tri = field.triangulation
+    info = {"build_s": build, "query_s": statistics.median(ts), "queries": len(qf),
+            "samples": field.nsamples, "rss": rss()}
+    if tiles > 1:
+        info.update(halo=tri.halo.tolist(), own=tri.own_counts.tolist(),
+                    star_halo=tri.star_halo().tolist(),
+                    rounds=tri.stats.rounds, retiled=tri.stats.retiled,
+                    forwarded=tri.stats.forwarded / (3 * len(qf)))
+    return info
+
+
+def run(args, tiles: int, cores: int, out: str) -> dict:
+    cpus = ",".join(str(c) for c in range(cores))
+    cmd = ["taskset", "-c", cpus, sys.executable, __file__, "--one", str(tiles), "--cores",
+           str(cores), "--side", str(args.side), "--queries", str(args.queries), "--out", out]
+    got = subprocess.run(cmd, check=True, capture_output=True, text=True)
+    return json.loads(got.stdout.strip().splitlines()[-1])
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--side", type=int, default=1000, help="rays: side^2")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--queries", type=int, default=250_000)
+    ap.add_argument("--halo", type=int, nargs="*", default=[2, 4, 8, 16])
+    ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--cores", type=int, default=2, help=argparse.SUPPRESS)
+    ap.add_argument("--out", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.one:
+        print(json.dumps(one(args.side, args.one, args.cores, args.queries, args.out)))
+        return 0
+    print(f"Fig. 11 field: {args.side ** 2:,} rays of the bunny in random order, batches of "
+          f"{BATCH:,}; {os.cpu_count()} cores here", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        ref = str(Path(tmp) / "ref.npy")
+        res: dict = {}
+        for r in range(args.runs):
+            for key in ((1, 2), (2, 2), (1, 1), (2, 1)):
+                out = ref if key == (1, 2) else str(Path(tmp) / f"t{key[0]}c{key[1]}.npy")
+                res.setdefault(key, []).append(run(args, *key, out))
+                if out != ref:
+                    assert np.array_equal(np.load(out), np.load(ref), equal_nan=True), \
+                        f"{key}: answers differ from the unsplit field's"
+                x = res[key][-1]
+                print(f"run {r + 1}: {key[0]} tile(s) on {key[1]} core(s): build "
+                      f"{x['build_s']:.1f} s, query {x['queries'] / x['query_s']:,.0f}/s",
+                      flush=True)
+        med = {k: (statistics.median(x["build_s"] for x in v),
+                   statistics.median(x["query_s"] for x in v)) for k, v in res.items()}
+        print()
+        for c, target in ((2, "target >= 1.6x"), (1, "target >= 1.0x")):
+            a, b = med[(1, c)][0], med[(2, c)][0]
+            print(f"build on {c} core(s) (median of {args.runs}): unsplit {a:.1f} s, 2 tiles "
+                  f"{b:.1f} s: {a / b:.2f}x ({target})")
+        a, b = med[(1, 2)][1], med[(2, 2)][1]
+        fw = statistics.median(x["forwarded"] for x in res[(2, 2)])
+        print(f"query throughput on one thread: unsplit {res[(1, 2)][0]['queries'] / a:,.0f}/s, "
+              f"2 tiles {res[(2, 2)][0]['queries'] / b:,.0f}/s: {a / b:.2f}x (target >= 0.8x); "
+              f"{100 * fw:.2f} % forwarded")
+        print("every tiled answer equal (bits) to the unsplit field's")
+        print()
+        base = res[(1, 2)][0]
+        print(f"halo over own points, the Fig. 11 field at {base['samples']:,} samples "
+              f"(unsplit: peak resident {base['rss'] / 2**20:,.0f} MiB):")
+        for T in args.halo:
+            out = str(Path(tmp) / f"h{T}.npy")
+            x = res[(T, 2)][0] if (T, 2) in res else run(args, T, 2, out)
+            if (T, 2) not in res:
+                assert np.array_equal(np.load(out), np.load(ref), equal_nan=True), \
+                    f"{T} tiles: answers differ from the unsplit field's"
+            halo, own, star = np.array(x["halo"]), np.array(x["own"]), np.array(x["star_halo"])
+            print(f"  {T:2d} tiles: halo {100 * halo.sum() / own.sum():5.1f} % (tile max "
+                  f"{100 * (halo / own).max():5.1f} %; the stars' least "
+                  f"{100 * star.sum() / own.sum():5.1f} %), own points {own.min():,}-{own.max():,}, "
+                  f"exchange rounds {x['rounds']}, re-tiled {x['retiled']}, peak resident "
+                  f"{x['rss'] / 2**20:,.0f} MiB, build {x['build_s']:.1f} s, "
+                  f"{100 * x['forwarded']:.2f} % of queries forwarded")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

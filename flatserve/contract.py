@@ -207,7 +207,7 @@ AnyField = Union[Field, AtlasField]
 
 
 def new_field(channels: int, *, basis: Basis | None = None, atlas: Atlas | dict | None = None,
-              roundtrip_tol: float | None = None) -> AnyField:
+              roundtrip_tol: float | None = None, tiles: int = 1) -> AnyField:
     """An empty field: one chart over ``basis``, or one Field per chart of ``atlas``.
 
     Parameters
@@ -222,6 +222,9 @@ def new_field(channels: int, *, basis: Basis | None = None, atlas: Atlas | dict 
         and ``atlas``.
     roundtrip_tol : float, optional
         None: the library's default (:data:`flatserve.coordinates.ROUNDTRIP_TOL`).
+    tiles : int
+        One chart: tiles of its triangulation (:class:`~flatserve.field.Field`'s
+        ``tiles``); an atlas field takes 1 only.
 
     Returns
     -------
@@ -232,9 +235,11 @@ def new_field(channels: int, *, basis: Basis | None = None, atlas: Atlas | dict 
         raise InvalidInputError("basis: give exactly one of basis and atlas", "basis")
     kw = {} if roundtrip_tol is None else {"roundtrip_tol": roundtrip_tol}
     if atlas is not None:
+        if tiles != 1:
+            raise InvalidInputError("tiles: an atlas field's charts are not tiled", "tiles")
         return AtlasField(Atlas.from_dict(atlas) if isinstance(atlas, dict) else atlas,
                           channels, **kw)
-    return Field(basis, channels, **kw)
+    return Field(basis, channels, tiles=tiles, **kw)
 
 
 def load_field(path: str | os.PathLike, parts=None,

@@ -237,3 +237,40 @@ def test_the_halo_holds_at_least_the_stars_foreign_vertices():
     tt.insert(rng.normal(size=(4000, 4)), np.zeros((4000, 1)))
     star = tt.star_halo()
     assert (star > 0).all() and (star <= tt.halo).all()
+
+
+def test_the_fig11_field_at_1m_rays_in_2_4_8_tiles():
+    """Issue 19's check at full size: the Fig. 11 field of 1,000^2 rays (in random
+    order, batches of 100,000 that land across the tiles' borders), split into 2, 4
+    and 8 tiles, answers every query of a 250,000-ray sampling with the unsplit
+    field's bits."""
+    from flatserve import Field, Flats
+    from flatserve.basis import Basis
+    from flatserve.lightfield.camera import paper_samples
+    from flatserve.lightfield.sampling import BASIS_SCALE
+
+    o, d, v = _fig11_rays(1000, seed=0)
+    q = paper_samples(500, np.random.default_rng(1))
+    qf = Flats.from_rays(q.origins, q.directions)
+    basis = Basis.around_axis(axis=2, scale=BASIS_SCALE)
+
+    def build(tiles):
+        f = Field(basis, channels=1, tiles=tiles)
+        for i in range(0, len(o), 100_000):
+            f.add(Flats.from_rays(o[i:i + 100_000], d[i:i + 100_000]), v[i:i + 100_000])
+        return f
+
+    whole = build(1)
+    chart = whole.chart(qf)
+    ref = whole.query(chart)
+    n, nsimplex = whole.nsamples, whole.nsimplex
+    del whole
+    assert n > 950_000 and ref.inside.mean() > 0.9
+    for tiles in (2, 4, 8):
+        f = build(tiles)
+        assert f.nsamples == n and f.nsimplex == nsimplex
+        got = f.query(chart)
+        assert np.array_equal(got.values, ref.values, equal_nan=True), tiles
+        assert np.array_equal(got.inside, ref.inside), tiles
+        assert f.triangulation.stats.unresolved == 0
+        del f

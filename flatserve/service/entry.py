@@ -43,6 +43,8 @@ class FieldSpec:
     copies : int
         Cluster mode: copies of each shard, on different nodes (one process holds
         its one copy otherwise).
+    tiles : int
+        One chart: tiles of its triangulation (:mod:`flatserve.tiles`).
     """
 
     k: int
@@ -52,11 +54,13 @@ class FieldSpec:
     roundtrip_tol: Optional[float] = None
     atlas: Optional[dict] = None
     copies: int = 1
+    tiles: int = 1
 
     @classmethod
     def from_dict(cls, obj: dict) -> "FieldSpec":
         return cls(int(obj["k"]), int(obj["d"]), int(obj["channels"]), dict(obj.get("basis", {})),
-                   obj.get("roundtrip_tol"), obj.get("atlas"), int(obj.get("copies", 1)))
+                   obj.get("roundtrip_tol"), obj.get("atlas"), int(obj.get("copies", 1)),
+                   int(obj.get("tiles", 1)))
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -71,7 +75,7 @@ class FieldSpec:
         over ``basis``, or the spec's atlas, ``basis`` then being its chart 0's)."""
         return new_field(self.channels, basis=None if self.atlas is not None else basis,
                          atlas=None if self.atlas is None else Atlas.from_dict(self.atlas),
-                         roundtrip_tol=self.roundtrip_tol)
+                         roundtrip_tol=self.roundtrip_tol, tiles=self.tiles)
 
     @staticmethod
     def load_field(path, parts=None) -> SampledField:

@@ -124,7 +124,7 @@ class FieldService:
             nrejected=d["nrejected"], nvertices=d["nstored"], nsimplex=d["nsimplex"],
             created=e.created, error=e.error,
             basis=BasisInfo(m=m, dim=m - 1, spec=e.spec.basis, **flats),
-            ncharts=len(charts) if charts is not None else 1,
+            ncharts=len(charts) if charts is not None else 1, tiles=e.spec.tiles,
             storage=StorageInfo(batches=nb, batch_rows=nrows, batch_bytes=nbytes,
                                 last_batch=last,
                                 snapshot_batch=e.snapshot_seq if e.snapshot_file else 0,

@@ -266,6 +266,11 @@ class FieldCreate(_KD):
         description="Cluster mode (`serve --ray`): copies of each shard, each on a different "
                     "node, so that a node's loss costs no reads (a server holding its fields "
                     "itself keeps one).")
+    tiles: int = Field(
+        1, ge=1, le=64,
+        description="One-chart fields: split the chart's triangulation into this many tiles "
+                    "(Tile & Merge), built on the server's cores at once, with the same answers "
+                    "bit for bit. Default 1. An atlas field's charts already use the cores.")
 
 
 class BasisInfo(BaseModel):
@@ -376,6 +381,7 @@ class FieldInfo(FieldSummary):
     atlas: Optional[AtlasInfo] = Field(None, description="Atlas fields: the atlas's radii and "
                                                          "sizes (null: one chart).")
     ncharts: int = Field(1, description="Charts of the field (1: one chart).")
+    tiles: int = Field(1, description="Tiles of a one-chart field's triangulation (1: one).")
     shard_groups: Optional[list[ShardGroupInfo]] = Field(
         None, description="Cluster mode (`serve --ray`): where the field's shards live, per "
                           "group of charts (absent when this server holds the field itself).")

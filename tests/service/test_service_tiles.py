@@ -1,0 +1,44 @@
+"""A one-chart field in tiles over HTTP (``tiles`` at create): the answers of the
+library's unsplit field, bit for bit, before and after a restart from its
+snapshot; tiles refused for an atlas field."""
+from __future__ import annotations
+
+import numpy as np
+from .conftest import SINGLE, add_rays, paper_rays, running
+
+
+def test_a_tiled_one_chart_field_answers_as_the_unsplit_one(make_app, rng):
+    ref = SINGLE.reference(channels=2)
+    o, v = paper_rays(rng, 6000)
+    vals = rng.uniform(size=(6000, 2))
+    qo, qv = paper_rays(rng, 3000)
+    with running(make_app()) as (tc, c):
+        info = c.create_field("t", basis=SINGLE.basis, channels=2, tiles=4)
+        assert info["tiles"] == 4 and info["ncharts"] == 1
+        for i in range(0, 6000, 1500):  # batches across the tiles' borders
+            c.upload_rays("t", o[i:i + 1500], v[i:i + 1500], vals[i:i + 1500])
+            add_rays(ref, o[i:i + 1500], v[i:i + 1500], vals[i:i + 1500])
+        want = ref.query_rays(qo, qv, return_weights=True)
+        got = c.query_rays("t", qo, qv, weights=True)
+        assert np.array_equal(got.values, want.values, equal_nan=True)
+        inside = want.inside
+        a, b = np.argsort(want.ids[inside], 1), np.argsort(got.ids[inside], 1)
+        assert np.array_equal(np.take_along_axis(want.ids[inside], a, 1),
+                              np.take_along_axis(got.ids[inside], b, 1))
+        assert np.array_equal(np.take_along_axis(want.weights[inside], a, 1),
+                              np.take_along_axis(got.weights[inside], b, 1))
+        c.snapshot("t")
+        assert c.describe("t")["nvertices"] == ref.nsamples
+    with running(make_app()) as (tc, c):  # restored from its tiles' snapshot
+        c.wait_ready(60)
+        assert c.describe("t")["tiles"] == 4
+        again = c.query_rays("t", qo, qv)
+        assert np.array_equal(again.values, want.values, equal_nan=True)
+
+
+def test_tiles_are_refused_for_an_atlas_field(make_app):
+    with running(make_app()) as (tc, c):
+        r = tc.post("/v1/fields", json={"name": "a", "tiles": 2})
+        assert r.status_code == 422 and "tiles" in r.text
+        r = tc.post("/v1/fields", json={"name": "a", "basis": SINGLE.basis, "tiles": 0})
+        assert r.status_code == 422 and "tiles" in r.text

@@ -73,6 +73,11 @@ class Triangulation:
         interpolate, answering only the queries whose cell has a vertex with own[id]; the others: NaN, not inside, and forward = the id of their cell's lexicographically first finite vertex (-1 when answered).
         """
 
+    def count_cells(self, own: Annotated[NDArray[numpy.uint8], dict(shape=(None,), order='C', device='cpu', writable=False)]) -> int:
+        """
+        Finite cells whose lexicographically first vertex has own[id] (over Tile & Merge's tiles: each cell of the whole triangulation once).
+        """
+
     def conflicts(self, own: Annotated[NDArray[numpy.uint8], dict(shape=(None,), order='C', device='cpu', writable=False)], lo: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], hi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], start: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)], skip: int = -1, seeds: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)] | None = None) -> list:
         """
         Tile & Merge's exchange: per group of boxes (lo, hi: (nbox, D); group g is boxes start[g]:start[g+1], its bounding box first), the sorted ids of the vertices of the cells with a vertex with own[id] whose circumscribed ball (half-space beyond the hull facet for an infinite cell) meets one of its boxes; every cell, or those incident to the seed vertices; group skip untested.

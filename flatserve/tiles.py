@@ -333,15 +333,10 @@ class TiledTriangulation:
     @property
     def nsimplex(self) -> int:
         """Cells of the whole triangulation: each counted in the tile owning its
-        vertex of smallest global id."""
+        lexicographically first vertex."""
         with self._lock.read():
-            n = 0
-            for t, tri in enumerate(self._tiles):
-                if tri.npoints <= self._ndim:
-                    continue
-                s = self._gid[t][tri.simplices]
-                n += int((self._owner[s.min(axis=1)] == t).sum())
-            return n
+            return sum(tri.count_cells(self._own[t]) for t, tri in enumerate(self._tiles)
+                       if tri.npoints)
 
     # ------------------------------------------------------------------ insert
     def insert(self, points, values=None) -> InsertResult:

@@ -559,6 +559,16 @@ class Triangulation:
                                                 outside is Outside.CLAMP,
                                                 order is Order.HILBERT, _threads_arg(threads))
 
+    def count_cells(self, own) -> int:
+        """Finite cells whose lexicographically first vertex is in ``own`` (shape
+        (npoints,), bool or uint8): over the tiles of :mod:`flatserve.tiles`, each
+        cell of the whole triangulation is counted once, by the owner of that vertex."""
+        mask = np.ascontiguousarray(own, dtype=np.uint8)
+        if mask.shape != (self._n,):
+            raise InvalidInputError(f"own: expected shape ({self._n},), got {mask.shape}", "own")
+        with _Reading(self._lock):
+            return int(self._core.count_cells(mask))
+
     def conflicts(self, own, lo, hi, start, skip: int = -1, seeds=None) -> list[np.ndarray]:
         """Tile & Merge's exchange step: which vertices each group of boxes must receive.
 

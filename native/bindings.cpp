@@ -181,6 +181,16 @@ void bind_triangulation(nb::module_& m) {
            "interpolate, answering only the queries whose cell has a vertex with own[id]; "
            "the others: NaN, not inside, and forward = the id of their cell's "
            "lexicographically first finite vertex (-1 when answered).")
+      .def("count_cells",
+           [](const PyTriangulation& s, U8Arr1 own) {
+             if (own.shape(0) < s.t->number_of_vertices())
+               throw std::invalid_argument("own: one entry per vertex expected");
+             nb::gil_scoped_release r;
+             return s.t->count_cells(own.data());
+           },
+           nb::arg("own"),
+           "Finite cells whose lexicographically first vertex has own[id] (over Tile & "
+           "Merge's tiles: each cell of the whole triangulation once).")
       .def("conflicts",
            [](const PyTriangulation& s, U8Arr1 own, CArr2 lo, CArr2 hi, I64Arr1 start,
               std::int64_t skip, std::optional<I64Arr1> seeds) {

@@ -133,6 +133,10 @@ class TriangulationBase {
   // (the cells an insertion of those vertices created). Conservative: a ball
   // that cannot be computed meets every group. Below full dimension every
   // vertex goes to every group.
+  // Finite cells whose lexicographically first vertex has own[id] != 0: over
+  // tiles that hold every cell around their own vertices, each cell of the
+  // whole triangulation is counted once.
+  virtual std::size_t count_cells(const std::uint8_t* own) const = 0;
   virtual void conflicts(const std::uint8_t* own, const double* lo, const double* hi,
                          const std::int64_t* start, std::size_t ngroups, std::int64_t skip,
                          const std::int64_t* seeds, std::size_t nseeds,

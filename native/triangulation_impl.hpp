@@ -295,6 +295,20 @@ class Triangulation final : public TriangulationBase {
   }
 
   // ------------------------------------------------------------ Tile & Merge
+  std::size_t count_cells(const std::uint8_t* own) const override {
+    if (dt_.current_dimension() < D_) return 0;
+    DT& dt = const_cast<DT&>(dt_);
+    std::size_t n = 0;
+    for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it) {
+      if (dt.is_infinite(it)) continue;
+      int first = 0;
+      for (int k = 1; k <= D_; ++k)
+        if (lex_less(it->vertex(k)->point(), it->vertex(first)->point(), D_)) first = k;
+      n += own[it->vertex(first)->data().id] ? 1 : 0;
+    }
+    return n;
+  }
+
   void conflicts(const std::uint8_t* own, const double* lo, const double* hi,
                  const std::int64_t* start, std::size_t ngroups, std::int64_t skip,
                  const std::int64_t* seeds, std::size_t nseeds,

@@ -37,7 +37,7 @@ import numpy as np
 
 from ._fieldbase import FieldBase, corrupted, pack_header, part_key, read_header
 from .atlas import Atlas
-from .coordinates import NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
+from .coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
 from .errors import InvalidInputError, SnapshotError
 from .field import AddResult, Field, PreparedBatch, QueryResult, QueryRoute
 from .flats import Flats
@@ -266,7 +266,9 @@ class AtlasField(FieldBase):
         route : QueryRoute
             Of :meth:`route_query`.
         results : sequence of QueryResult or None
-            Per chart its Field's answer on ``route.rows[i]`` (None: not asked).
+            Per chart its Field's answer on ``route.rows[i]``; None: the chart
+            holds no samples (or routes no rows), so its rows are
+            ``NO_SAMPLES`` unless another chart answers them.
         return_weights : bool
             The results carry ids and weights: return them per chart
             (:class:`AtlasQueryResult`).
@@ -274,6 +276,9 @@ class AtlasField(FieldBase):
         Returns
         -------
         AtlasQueryResult
+            ``status`` per row: ``OK`` where some chart that holds it answered
+            ``OK``; else ``NO_SAMPLES`` where some chart holds it (routes it)
+            but its samples do not span a simplex; else ``NOT_REPRESENTABLE``.
         """
         n, C = route.n, self.channels
         num = np.zeros((n, C))
@@ -289,8 +294,11 @@ class AtlasField(FieldBase):
             charts = np.full((n, P), -1, dtype=np.int64)
             blend = np.zeros((n, P))
             slot = np.zeros(n, dtype=np.int64)
+        okm = np.zeros(n, dtype=bool)
+        empty = np.zeros(n, dtype=bool)
         for c, res in enumerate(results):
             if res is None:
+                empty[route.rows[c]] = True
                 continue
             rows, b = route.rows[c], route.weights[c]
             v = res.values
@@ -303,7 +311,8 @@ class AtlasField(FieldBase):
                 num[rows] += w[:, None] * (v if w is b else np.where(good[:, None], v, 0.0))
             den[rows] += w
             inside[rows] |= res.inside & (w > 0)
-            status[rows[res.status == OK]] = OK
+            okm[rows[res.status == OK]] = True
+            empty[rows[res.status == NO_SAMPLES]] = True
             if return_weights:
                 s = slot[rows]
                 ids[rows, s] = res.ids
@@ -311,6 +320,8 @@ class AtlasField(FieldBase):
                 charts[rows, s] = c
                 blend[rows, s] = w
                 slot[rows] += 1
+        status[empty] = NO_SAMPLES
+        status[okm] = OK
         has = den > 0
         values = np.full((n, C), np.nan)
         np.divide(num, den[:, None], out=values, where=has[:, None])
@@ -437,8 +448,11 @@ class AtlasField(FieldBase):
         Returns
         -------
         AtlasQueryResult
-            ``status`` is OK when some chart's coordinates round-trip;
-            ``NOT_REPRESENTABLE`` when no chart's domain holds the query.
+            ``status`` is OK when some chart's coordinates round-trip and its
+            samples span a simplex; ``NO_SAMPLES`` when charts hold the query
+            but none of them has samples that span one (an empty field, or
+            empty charts); ``NOT_REPRESENTABLE`` when no chart's domain holds
+            the query.
             ``inside`` when some chart with positive weight answered from
             inside its samples' hull.
         """

@@ -462,7 +462,7 @@ class UploadBody(QueryBody):
 class QueryResponse(BaseModel):
     values: list[list[Optional[float]]] = Field(description="(q, C); null outside (outside=nan).")
     inside: list[bool]
-    status: list[int] = Field(description="Coordinate status per row: " + "; ".join(
+    status: list[int] = Field(description="Status per row: " + "; ".join(
         f"{int(code)} {text}" for code, text in REASONS.items()) + ".")
     ids: Optional[list[list[int]]] = Field(None, description="(q, D+1) sample ids, -1 for none.")
     weights: Optional[list[list[Optional[float]]]] = Field(None, description="(q, D+1) barycentric.")

@@ -57,8 +57,7 @@ def same_answers(c, name, probe, want):
     for binary in (True, False):
         got = c.query_rays(name, *probe, binary=binary)
         np.testing.assert_array_equal(got.inside, want.inside)
-        if not binary:  # (the .npy response carries no status)
-            np.testing.assert_array_equal(got.status, want.status)
+        np.testing.assert_array_equal(got.status, want.status)
         np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12, equal_nan=True)
 
 

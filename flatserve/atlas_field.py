@@ -36,7 +36,7 @@ from typing import Collection, Sequence
 import numpy as np
 
 from ._fieldbase import FieldBase, corrupted, pack_header, part_key, read_header
-from .atlas import Atlas
+from .atlas import Atlas, data_unit
 from .coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
 from .errors import InvalidInputError, SnapshotError
 from .field import AddResult, Field, PreparedBatch, QueryResult, QueryRoute
@@ -76,6 +76,9 @@ class AtlasPrepared:
     accepted_rows: np.ndarray
     rejected: np.ndarray
     reasons: list
+    #: the atlas's unit of length the batch was charted in (:meth:`AtlasField.insert_prepared`
+    #: refuses it in a field whose unit has changed since: a unit chosen from the data)
+    unit: float = 1.0
 
     @property
     def accepted(self) -> int:
@@ -215,6 +218,60 @@ class AtlasField(FieldBase):
     def nrejected(self) -> int:
         return self._nrejected
 
+    # ---------------------------------------------------- a unit from the data
+    @property
+    def unit_pending(self) -> bool:
+        """The atlas's unit is still to be chosen from the first samples (``Atlas(...,
+        unit=None)``): :meth:`prepare` of the first batch chooses it (:meth:`settle_unit`)."""
+        return self.atlas.unit_from_data
+
+    @property
+    def unit_from_data(self) -> bool:
+        """The field's unit is (or will be) chosen from its first samples."""
+        return self.atlas.unit_from_data or self.atlas.info.get("unit_from") == "data"
+
+    def settle_unit(self, unit: float) -> bool:
+        """Adopt ``unit`` as the charts' unit of length while the field holds no samples.
+
+        For a field whose unit is chosen from the data (:attr:`unit_from_data`):
+        its charts are rebuilt in ``unit`` (:meth:`flatserve.atlas.Atlas.with_unit`),
+        empty. A field that holds samples keeps its unit (asking for it again is a
+        no-op). A writer (the field's write lock).
+
+        Parameters
+        ----------
+        unit : float
+            Positive: e.g. :func:`flatserve.atlas.data_unit` of the first batch, or
+            the unit recorded with it (a replica, a restart).
+
+        Returns
+        -------
+        bool
+            Whether the charts were rebuilt.
+
+        Raises
+        ------
+        InvalidInputError
+            The field's unit was given at its creation, or it holds samples in
+            another unit.
+        """
+        with self._lock.write():
+            if not self.unit_from_data:
+                raise InvalidInputError(f"unit: the field's unit ({self.atlas.unit:g}) was "
+                                        "given when it was created", "unit")
+            if not self.atlas.unit_from_data and float(unit) == self.atlas.unit:
+                return False
+            if self.nstored or self._nsamples:
+                raise InvalidInputError(f"unit: the field holds samples in the unit "
+                                        f"{self.atlas.unit:g} chosen from its first batch; "
+                                        f"{float(unit):g} cannot replace it", "unit")
+            atlas = self.atlas.with_unit(unit)
+            self.fields = [atlas.chart_field(i, self.channels, roundtrip_tol=self.roundtrip_tol)
+                           for i in range(atlas.ncharts)]
+            self.atlas = atlas
+            self._parts = [None] * len(self.fields)
+            return True
+
     # ---------------------------------------------------- the field as shards
     @property
     def shards(self) -> tuple[Field, ...]:
@@ -338,8 +395,12 @@ class AtlasField(FieldBase):
 
     def _prepare(self, flats: Flats, values: np.ndarray, only=None) -> AtlasPrepared:
         # route to the charts whose domain (reach) holds each row; each chart
-        # charts its rows (its Field's prepare), split into its own and shared
+        # charts its rows (its Field's prepare), split into its own and shared.
+        # A unit still to be chosen is chosen here, from this (the first) batch.
         n = flats.n
+        if self.atlas.unit_from_data and n:
+            self.settle_unit(data_unit(flats, values))
+        unit = self.atlas.unit
         ro = self.atlas.route(flats, self.atlas.reach)
         work = [(c, rows) for c, rows in enumerate(ro.rows)
                 if rows.size and (only is None or c in only)]
@@ -372,7 +433,7 @@ class AtlasField(FieldBase):
             f"from the nearest centre (chart {int(ro.nearest[i])}), charts reach {reach:g}"))
             for i in rejected.tolist()]
         return AtlasPrepared(n, tuple(parts), np.flatnonzero(taken).astype(np.int64), rejected,
-                             reasons)
+                             reasons, unit)
 
     def insert_prepared(self, batch: AtlasPrepared, *,
                         slice_rows: int | None = None) -> AddResult:
@@ -399,6 +460,10 @@ class AtlasField(FieldBase):
         """
         if not isinstance(batch, AtlasPrepared) or len(batch.parts) != len(self.fields):
             raise InvalidInputError("batch: expected an AtlasPrepared made by this field",
+                                    "batch")
+        if batch.accepted and batch.unit != self.atlas.unit:
+            raise InvalidInputError(f"batch: charted in the unit {batch.unit:g}, the field's is "
+                                    f"{self.atlas.unit:g} (chosen since): prepare it again",
                                     "batch")
         slice_rows = self._slice_rows(slice_rows)
         parts = [(c, p, own) for c, pair in enumerate(batch.parts) if pair is not None

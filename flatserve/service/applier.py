@@ -26,6 +26,7 @@ from ..basis import Basis
 from ..field import AddResult, PreparedBatch
 from ..flats import Flats
 from .backend import FieldRow, LogBackend, LogEntry, SnapshotGoneError
+from .blobs import split_batch
 from .catalogue import FieldCatalogue, FieldState
 from .entry import FieldEntry, FieldSpec, SampledField
 from .homes import LocalHome
@@ -42,6 +43,16 @@ RESTORE_RETRY_S = 1.0
 
 class Stopped(Exception):
     """The applier was asked to stop in the middle of an entry."""
+
+
+def adopt_unit(field, unit: float | None) -> None:
+    """The unit recorded with a stored batch (:func:`.blobs.split_batch`): a field
+    whose unit is chosen from the data and that holds no samples yet takes it
+    (:meth:`flatserve.atlas_field.AtlasField.settle_unit`), so that it charts its
+    first batch in the unit the replica that stored the batch chose, not one of
+    its own (a replica, a restart, a shard of a cluster). Other fields: nothing."""
+    if unit is not None and getattr(field, "unit_from_data", False) and not field.nstored:
+        field.settle_unit(unit)
 
 
 def stored_flats(e: FieldEntry, form: str | None, arrays: dict) -> Flats:
@@ -184,12 +195,17 @@ class LogApplier:
             if self.stopping:
                 raise Stopped()
             t0 = time.perf_counter()
+            if prepared is not None and getattr(e.field, "unit_from_data", False) and \
+                    prepared.unit != e.field.atlas.unit:
+                prepared = None  # charted before an earlier batch (another replica's) set
+                # the unit from the data: chart it again in that unit
             if prepared is None:
                 try:
                     arrays = dict(self.storage.batch_arrays(e.id, entry.seq))
                 except FieldNotFoundError:
                     return None, None  # deleted meanwhile: its delete entry follows
-                values = arrays.pop("values")
+                arrays, values, unit = split_batch(arrays)
+                adopt_unit(e.field, unit)
                 prepared = e.field.prepare(stored_flats(e, None, arrays), values)
             try:
                 with e.index_lock:
@@ -320,8 +336,8 @@ class LogApplier:
             done, tlast, replayed = 0, time.perf_counter(), 0
             seq, pos = start, start_pos
             for b in todo:
-                arrays = dict(self.storage.batch_arrays(e.id, b.seq))
-                values = arrays.pop("values")
+                arrays, values, unit = split_batch(self.storage.batch_arrays(e.id, b.seq))
+                adopt_unit(fld, unit)
                 prepared = fld.prepare(stored_flats(e, b.form, arrays), values)
                 replayed += int(fld.insert_prepared(
                     prepared, slice_rows=self.settings.insert_slice_rows).accepted)

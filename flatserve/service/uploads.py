@@ -31,11 +31,12 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from ..atlas import data_unit
 from ..field import AddResult, PreparedBatch
 from ..flats import Flats
 from .applier import stored_flats
 from .backend import BatchRow, KeyTakenError, LogBackend
-from .blobs import content_hash, pack_arrays
+from .blobs import UNIT_ARRAY, content_hash, pack_arrays, split_batch
 from .costs import COST_MIN_SAMPLES, cells_per_sample
 from .entry import FieldEntry
 from .replica import Follower
@@ -195,9 +196,15 @@ class UploadService:
         # bad input is refused here, before anything is stored; charting cannot fail
         # on validated input (each row gets a status)
         chart = e.field.prepare(flats, values, defer=True)
+        # a unit of length still to be chosen from the data is chosen from this batch
+        # (before it is charted) and stored with it, as with every batch of such a field
+        if getattr(e.field, "unit_pending", False):
+            e.field.settle_unit(data_unit(flats, values))
+        record = ({UNIT_ARRAY: np.array([e.field.atlas.unit])}
+                  if getattr(e.field, "unit_from_data", False) else {})
         packing = self._commits.submit(
             lambda: (content_hash(flats.form, stored) if chash is None else chash,
-                     pack_arrays(stored)))
+                     pack_arrays({**stored, **record})))
         prepared = chart()  # no lock: reads the basis only
         timings["prepare"] = time.perf_counter() - t1
         h, blob = packing.result()
@@ -268,8 +275,7 @@ class UploadService:
         the batch's arrays if a crash lost it (see the storage module doc)."""
         if result is not None:
             return UploadResult.model_validate(result)
-        arrays = self.storage.batch_arrays(e.id, seq)
-        values = arrays.pop("values")
+        arrays, values, _ = split_batch(self.storage.batch_arrays(e.id, seq))
         prepared = e.field.prepare(stored_flats(e, form, arrays), values)
         row = next((b for b in self.storage.batches(e.id, after_seq=seq - 1) if b.seq == seq),
                    None)

@@ -65,7 +65,7 @@ def test_covering_atlas_field_accepts_every_orientation_and_restores(make_app, r
     batches = [sphere_rays(rng, 700) for _ in range(4)]
     batches = [(o, v, line_values(o, v)) for o, v in batches]
     probe = sphere_rays(rng, 400, spread=0.5)
-    ref = AtlasField(Atlas.covering(1, 3), channels=C)
+    ref = AtlasField(Atlas.covering(1, 3, unit=None), channels=C)  # (no unit: from the data)
 
     tc, c = started(make_app())
     try:
@@ -295,7 +295,7 @@ def test_samples_atlas_charts_where_the_flats_are(make_app, rng):
     o = rng.uniform(-2, 2, (n, 3)) + [5, 0, 0]
     val = np.c_[o[:, 1], v[:, 2]]
     flats = Flats.from_rays(o, v)
-    ref = AtlasField(Atlas.for_samples(flats), channels=C)
+    ref = AtlasField(Atlas.for_samples(flats, unit=None), channels=C)
     assert ref.atlas.ncharts > 1
     A, b = v[:, :, None], o
     tc, c = started(make_app(max_atlas_samples=n))
@@ -398,12 +398,13 @@ def test_atlas_specs_that_do_not_cover_what_they_claim_are_refused(api, rng):
     refused(centers(np.tile(ico, (200, 1))), ["basis", "centers"], "1200 flats", "at most")
     refused(centers(ico, scale=0), ["basis", "atlas", "centers", "scale", "constrained-float"],
             "greater than 0")
-    # flats the data-driven atlas cannot chart (offsets far beyond what a scale holds)
+    # flats the data-driven atlas cannot chart (offsets far beyond what a scale holds in
+    # the unit 1; a unit from the data, the default, would be their own size)
     v = cone(rng, 200, [1, 0, 0], 20)
     o = rng.uniform(-1e6, 1e6, (200, 3))
     refused({"kind": "atlas", "atlas": "samples",
              "samples": {"origins": o.tolist(), "directions": v.tolist()}},
-            ["basis", "samples"], "does not chart", "not representable")
+            ["basis", "samples"], "does not chart", "not representable", unit=1.0)
     # oriented: centres and samples must be rays; (Q, r) has no orientation
     Q, r = Flats.from_rays(np.zeros((6, 3)), ico).quadrics()
     refused({"kind": "atlas", "atlas": "centers", "centers": {"Q": Q.tolist(), "r": r.tolist()}},
@@ -468,7 +469,9 @@ def test_unit_of_length_is_validated_stored_and_restored(make_app, rng):
     try:
         info = c.create_field("u", channels=C, oriented=True, unit=0.4)  # no basis
         assert info["atlas"]["unit"] == 0.4 and len(info["charts"]) == 32
-        assert c.create_field("one", channels=C)["atlas"]["unit"] == 1.0  # the default
+        assert info["atlas"]["unit_from"] == "given"
+        dflt = c.create_field("one", channels=C)["atlas"]  # the default: from the data
+        assert dflt["unit"] is None and dflt["unit_from"] == "data"
         c.upload_rays("u", o, v, val)
         same_answers(c, "u", probe, want)
         for body, words in (({"unit": 0}, ()), ({"unit": -1.0}, ()), ({"unit": "x"}, ()),
@@ -495,7 +498,7 @@ def test_reach_of_a_covering_atlas_is_validated_stored_and_restored(make_app, rn
     o, v = sphere_rays(rng, 1500, spread=0.5)
     val = line_values(o, v)
     probe = sphere_rays(rng, 300, spread=0.4)
-    ref = AtlasField(Atlas.covering(1, 3, oriented=True, reach=35.0), channels=C)
+    ref = AtlasField(Atlas.covering(1, 3, oriented=True, reach=35.0, unit=None), channels=C)
     ref.add(Flats.from_rays(o, v), val)
     want = ref.query(Flats.from_rays(*probe))
     tc, c = started(make_app())
@@ -542,7 +545,7 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
     probe = sphere_rays(rng, 300, spread=0.4)
     paper = AtlasField(Atlas.covering(1, 3, oriented=True, isometric=False), channels=C)
     paper.add(Flats.from_rays(o, v), val)
-    iso = AtlasField(Atlas.covering(1, 3, oriented=True), channels=C)
+    iso = AtlasField(Atlas.covering(1, 3, oriented=True, unit=None), channels=C)
     iso.add(Flats.from_rays(o, v), val)
     want_paper = paper.query(Flats.from_rays(*probe))
     assert not np.allclose(iso.query(Flats.from_rays(*probe)).values, want_paper.values,
@@ -557,7 +560,8 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
     db = sqlite3.connect(tmp_path / "data" / DB_NAME)
     (spec,) = db.execute("SELECT spec FROM fields WHERE name = 'old'").fetchone()
     spec = json.loads(spec)
-    del spec["atlas"]["isometric"]  # as an earlier version stored it
+    del spec["atlas"]["isometric"]  # as an earlier version stored it (unit 1 then)
+    del spec["atlas"]["unit_from_data"]
     db.execute("UPDATE fields SET spec = ? WHERE name = 'old'", (json.dumps(spec),))
     db.commit()
     db.close()

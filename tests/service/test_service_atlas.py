@@ -571,3 +571,62 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
         same_answers(c, "old", probe, want_paper)
     finally:
         tc.__exit__(None, None, None)
+
+
+def test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches(make_app, rng,
+                                                                         monkeypatch):
+    """A field created without ``unit`` takes data_unit of its first batch; the unit
+    is stored with the batches, so a restart (from the log, then from a snapshot) and
+    an import get it from storage, not by choosing again: with the estimator
+    replaced by another answer meanwhile they still have the recorded unit."""
+    import flatserve.atlas_field
+    import flatserve.service.uploads
+    from flatserve.atlas import data_unit
+
+    batches = []
+    for _ in range(2):
+        o, v = sphere_rays(rng, 900, spread=2.0)
+        batches.append((o, v, line_values(o, v)))
+    probe = sphere_rays(rng, 300, spread=1.5)
+    u = data_unit(Flats.from_rays(*batches[0][:2]), batches[0][2])
+    assert abs(u - 1.0) > 0.2  # not the former default
+    ref = AtlasField(Atlas.covering(1, 3, oriented=True, unit=None), channels=C)
+    for o, v, val in batches:
+        ref.add(Flats.from_rays(o, v), val)
+    assert ref.atlas.unit == u
+    want = ref.query(Flats.from_rays(*probe))
+    tc, c = started(make_app())
+    try:
+        info = c.create_field("auto", channels=C, oriented=True)
+        assert info["atlas"]["unit"] is None and info["atlas"]["unit_from"] == "data"
+        for o, v, val in batches:
+            c.upload_rays("auto", o, v, val)
+        got = c.describe("auto")["atlas"]
+        assert got["unit"] == u and got["unit_from"] == "data"
+        same_answers(c, "auto", probe, want)
+        export = c.export_field("auto")
+    finally:
+        tc.__exit__(None, None, None)
+
+    def other(*a, **kw):
+        return 5.0
+
+    monkeypatch.setattr(flatserve.atlas_field, "data_unit", other)
+    monkeypatch.setattr(flatserve.service.uploads, "data_unit", other)
+    for snapshot in (False, True):  # restored from the log, then from a snapshot
+        tc, c = started(make_app())
+        try:
+            assert c.describe("auto")["atlas"]["unit"] == u
+            same_answers(c, "auto", probe, want)
+            if snapshot:
+                c.import_field("copy", export)
+                assert c.describe("copy")["atlas"]["unit"] == u
+                same_answers(c, "copy", probe, want)
+                fresh = c.create_field("fresh", channels=C, oriented=True)["atlas"]
+                assert fresh["unit"] is None
+                c.upload_rays("fresh", *batches[0])
+                assert c.describe("fresh")["atlas"]["unit"] == 5.0  # the estimator's answer
+            else:
+                c.snapshot("auto")
+        finally:
+            tc.__exit__(None, None, None)

@@ -276,7 +276,8 @@ class BasisInfo(BaseModel):
     dim: int = Field(description="(k+1)(d-k): dimension of the coordinate space.")
     spec: dict
     Q: Optional[Mats] = Field(None, description="The basis flats (m, d, d); of an atlas field, "
-                                                "chart 0's (`verbose=true` only).")
+                                                "chart 0's as created, in the unit given then "
+                                                "(`verbose=true` only).")
     r: Optional[Mat] = Field(None, description="(m, d) (`verbose=true` only).")
 
 

@@ -230,7 +230,7 @@ class AtlasField(FieldBase):
         """The field's unit is (or will be) chosen from its first samples."""
         return self.atlas.unit_from_data or self.atlas.info.get("unit_from") == "data"
 
-    def settle_unit(self, unit: float) -> bool:
+    def settle_unit(self, unit: float, *, if_empty: bool = False) -> bool:
         """Adopt ``unit`` as the charts' unit of length while the field holds no samples.
 
         For a field whose unit is chosen from the data (:attr:`unit_from_data`):
@@ -243,6 +243,9 @@ class AtlasField(FieldBase):
         unit : float
             Positive: e.g. :func:`flatserve.atlas.data_unit` of the first batch, or
             the unit recorded with it (a replica, a restart).
+        if_empty : bool
+            A field that holds samples keeps its unit and returns False, whatever
+            ``unit`` (a writer that checked emptiness before a batch got in).
 
         Returns
         -------
@@ -262,6 +265,8 @@ class AtlasField(FieldBase):
             if not self.atlas.unit_from_data and float(unit) == self.atlas.unit:
                 return False
             if self.nstored or self._nsamples:
+                if if_empty:
+                    return False
                 raise InvalidInputError(f"unit: the field holds samples in the unit "
                                         f"{self.atlas.unit:g} chosen from its first batch; "
                                         f"{float(unit):g} cannot replace it", "unit")

@@ -196,10 +196,13 @@ class UploadService:
         # bad input is refused here, before anything is stored; charting cannot fail
         # on validated input (each row gets a status)
         chart = e.field.prepare(flats, values, defer=True)
-        # a unit of length still to be chosen from the data is chosen from this batch
-        # (before it is charted) and stored with it, as with every batch of such a field
-        if getattr(e.field, "unit_pending", False):
-            e.field.settle_unit(data_unit(flats, values))
+        # a field whose unit of length comes from the data and holds no samples here yet
+        # charts this batch in the batch's own unit (data_unit) and stores it with the
+        # batch, as with every batch of such a field: the batch that comes first in the
+        # log is then charted everywhere in data_unit of its own rows (applier.adopt_unit;
+        # a batch charted here in another unit is charted again when applied)
+        if getattr(e.field, "unit_from_data", False) and not e.field.nstored:
+            e.field.settle_unit(data_unit(flats, values), if_empty=True)
         record = ({UNIT_ARRAY: np.array([e.field.atlas.unit])}
                   if getattr(e.field, "unit_from_data", False) else {})
         packing = self._commits.submit(

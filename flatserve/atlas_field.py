@@ -173,6 +173,9 @@ class AtlasField(FieldBase):
             raise InvalidInputError(f"atlas: expected a flatserve.atlas.Atlas, got "
                                     f"{type(atlas).__name__}", "atlas")
         self.atlas = atlas
+        #: the definition leaves the unit to the data (the atlas's unit is None) and no
+        #: batch was inserted yet: the field may take a unit (settle_unit)
+        self._chooses_unit = atlas.unit_from_data
         self.fields = [atlas.chart_field(i, channels, roundtrip_tol=roundtrip_tol)
                        for i in range(atlas.ncharts)]
         self.k, self.d, self.ndim = atlas.k, atlas.d, self.fields[0].ndim
@@ -227,16 +230,20 @@ class AtlasField(FieldBase):
 
     @property
     def unit_from_data(self) -> bool:
-        """The field's unit is (or will be) chosen from its first samples."""
-        return self.atlas.unit_from_data or self.atlas.info.get("unit_from") == "data"
+        """The field may still take a unit (:meth:`settle_unit`): its definition leaves
+        the unit to its first samples (``Atlas(unit=None)``) and no batch has been
+        inserted yet (the first insert fixes the unit, even with no row for this
+        field's charts: the unit of the batch first in the log). False for a
+        definition that states the unit (an import of a field that chose it)."""
+        return self._chooses_unit
 
     def settle_unit(self, unit: float, *, if_empty: bool = False) -> bool:
         """Adopt ``unit`` as the charts' unit of length while the field holds no samples.
 
-        For a field whose unit is chosen from the data (:attr:`unit_from_data`):
-        its charts are rebuilt in ``unit`` (:meth:`flatserve.atlas.Atlas.with_unit`),
-        empty. A field that holds samples keeps its unit (asking for it again is a
-        no-op). A writer (the field's write lock).
+        For a field whose unit is chosen from the data and that has inserted no
+        batch yet (:attr:`unit_from_data`): its charts are rebuilt in ``unit``
+        (:meth:`flatserve.atlas.Atlas.with_unit`), empty. Asking for the unit it
+        has is a no-op. A writer (the field's write lock).
 
         Parameters
         ----------
@@ -244,8 +251,8 @@ class AtlasField(FieldBase):
             Positive: e.g. :func:`flatserve.atlas.data_unit` of the first batch, or
             the unit recorded with it (a replica, a restart).
         if_empty : bool
-            A field that holds samples keeps its unit and returns False, whatever
-            ``unit`` (a writer that checked emptiness before a batch got in).
+            A field that can no longer take a unit keeps its own and returns False,
+            whatever ``unit`` (a writer that checked before a batch got in).
 
         Returns
         -------
@@ -255,27 +262,43 @@ class AtlasField(FieldBase):
         Raises
         ------
         InvalidInputError
-            The field's unit was given at its creation, or it holds samples in
-            another unit.
+            (Not ``if_empty``.) The field's unit was given at its creation, or was
+            chosen from its first batch, which it has inserted.
         """
         with self._lock.write():
-            if not self.unit_from_data:
-                raise InvalidInputError(f"unit: the field's unit ({self.atlas.unit:g}) was "
-                                        "given when it was created", "unit")
             if not self.atlas.unit_from_data and float(unit) == self.atlas.unit:
                 return False
-            if self.nstored or self._nsamples:
+            if not self._chooses_unit:
                 if if_empty:
                     return False
-                raise InvalidInputError(f"unit: the field holds samples in the unit "
-                                        f"{self.atlas.unit:g} chosen from its first batch; "
-                                        f"{float(unit):g} cannot replace it", "unit")
+                if self.atlas.info.get("unit_from") == "data":
+                    raise InvalidInputError(f"unit: the field's unit {self.atlas.unit:g} was "
+                                            f"chosen from its first batch, which it holds; "
+                                            f"{float(unit):g} cannot replace it", "unit")
+                raise InvalidInputError(f"unit: the field's unit ({self.atlas.unit:g}) was "
+                                        "given when it was created", "unit")
             atlas = self.atlas.with_unit(unit)
             self.fields = [atlas.chart_field(i, self.channels, roundtrip_tol=self.roundtrip_tol)
                            for i in range(atlas.ncharts)]
             self.atlas = atlas
             self._parts = [None] * len(self.fields)
             return True
+
+    def in_unit(self, unit: float) -> "AtlasField":
+        """This field, or an empty one of the same definition in another unit of length.
+
+        What a writer charts a batch with when the batch's own unit may become the
+        field's (:func:`flatserve.atlas.data_unit` of the batch, before the field
+        has taken a unit from the batch first in its log): ``self`` when ``unit``
+        is its unit, else a new empty field over ``atlas.with_unit(unit)`` whose
+        prepared batches carry that unit (:attr:`AtlasPrepared.unit`: this field
+        refuses them unless it takes the unit). Reads the definition only.
+        """
+        if not self.atlas.unit_from_data and float(unit) == self.atlas.unit:
+            return self
+        other = AtlasField(self.atlas.with_unit(unit), self.channels,
+                           roundtrip_tol=self.roundtrip_tol)
+        return other
 
     # ---------------------------------------------------- the field as shards
     @property
@@ -466,11 +489,13 @@ class AtlasField(FieldBase):
         if not isinstance(batch, AtlasPrepared) or len(batch.parts) != len(self.fields):
             raise InvalidInputError("batch: expected an AtlasPrepared made by this field",
                                     "batch")
-        if batch.accepted and batch.unit != self.atlas.unit:
-            raise InvalidInputError(f"batch: charted in the unit {batch.unit:g}, the field's is "
-                                    f"{self.atlas.unit:g} (chosen since): prepare it again",
-                                    "batch")
         slice_rows = self._slice_rows(slice_rows)
+        with self._lock.write():  # (settle_unit takes it too)
+            if batch.accepted and batch.unit != self.atlas.unit:
+                raise InvalidInputError(f"batch: charted in the unit {batch.unit:g}, the "
+                                        f"field's is {self.atlas.unit:g} (chosen since): "
+                                        "prepare it again", "batch")
+            self._chooses_unit = False  # the first batch inserted fixes the unit
         parts = [(c, p, own) for c, pair in enumerate(batch.parts) if pair is not None
                  for p, own in zip(pair, (True, False)) if p.accepted]
         groups = [parts] if slice_rows is None or not parts else _slices(parts, slice_rows)
@@ -620,7 +645,8 @@ class AtlasField(FieldBase):
         return {"atlas": self.atlas.to_dict(), "channels": self.channels,
                 "roundtrip_tol": self.roundtrip_tol, "nsamples": self._nsamples,
                 "nrejected": self._nrejected, "charts": len(self.fields),
-                **({"own": list(self._own)} if self._own is not None else {})}
+                **({"own": list(self._own)} if self._own is not None else {}),
+                **({"chooses_unit": True} if self._chooses_unit else {})}
 
     def write_parts(self, fh, stage, known=()) -> list[str]:
         """Write a snapshot as a small field file plus one part per chart,
@@ -781,6 +807,9 @@ class AtlasField(FieldBase):
             if own is not None:
                 nsamples = sum(own[c] for c in only)
         obj._own = own
+        # a field saved before its first batch was inserted (its unit perhaps chosen in
+        # memory already) may still take the unit of the batch first in the log
+        obj._chooses_unit = atlas.unit_from_data or bool(meta.get("chooses_unit"))
         if version == _VERSION_PARTS:
             return obj._restore_parts(meta, nsamples, nrejected, len(data) - off, parts, source,
                                       only)

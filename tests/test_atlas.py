@@ -260,21 +260,31 @@ def test_a_unit_from_the_data_is_chosen_by_the_first_batch_and_kept(tmp_path):
     assert want.inside.mean() > 0.5
     np.testing.assert_array_equal(got.values, want.values)
     back = AtlasField.from_bytes(auto.to_bytes())
-    assert back.atlas.unit == u and back.unit_from_data and not back.unit_pending
+    assert back.atlas.unit == u and not back.unit_pending and not back.unit_from_data
+    assert back.describe()["atlas"]["unit_from"] == "data"
     np.testing.assert_array_equal(back.query(q).values, want.values)
     assert auto.settle_unit(u) is False  # asked again: kept
-    with pytest.raises(InvalidInputError, match="holds samples"):
+    with pytest.raises(InvalidInputError, match="chosen from its first batch"):
         auto.settle_unit(2 * u)
+    assert auto.settle_unit(2 * u, if_empty=True) is False and auto.atlas.unit == u
     with pytest.raises(InvalidInputError, match="given"):
-        fixed.settle_unit(u)
-    # a batch charted before the field took another unit is refused, not inserted
+        fixed.settle_unit(2 * u)
+    # a writer charts a batch in its own unit without changing the field (in_unit);
+    # the field refuses it until it takes that unit, then holds what `fixed` holds
     late = AtlasField(Atlas.covering(1, 3, oriented=True, unit=None), channels=2)
-    batch = late.prepare(first, vals[:4000])  # chooses u
-    late2 = AtlasField(Atlas.covering(1, 3, oriented=True, unit=None), channels=2)
-    late2.settle_unit(2 * u)
+    assert late.in_unit(u) is not late and auto.in_unit(u) is auto
+    batch = late.in_unit(u).prepare(first, vals[:4000])
+    assert batch.unit == u and late.unit_pending and late.nstored == 0
     with pytest.raises(InvalidInputError, match="prepare it again"):
-        late2.insert_prepared(batch)
-    assert late2.nstored == 0
+        late.insert_prepared(batch)
+    assert late.settle_unit(2 * u) and late.atlas.unit == 2 * u  # still open: no insert
+    assert AtlasField.from_bytes(late.to_bytes()).unit_from_data  # (a snapshot too)
+    late.settle_unit(u)
+    late.insert_prepared(batch)
+    assert not late.unit_from_data and late.settle_unit(2 * u, if_empty=True) is False
+    once = AtlasField(Atlas.covering(1, 3, oriented=True, unit=u), channels=2)
+    once.add(first, vals[:4000])
+    np.testing.assert_array_equal(late.query(q).values, once.query(q).values)
 
 
 def test_oriented_covering_radius_and_routing():

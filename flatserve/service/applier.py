@@ -47,12 +47,12 @@ class Stopped(Exception):
 
 def adopt_unit(field, unit: float | None) -> None:
     """The unit recorded with a stored batch (:func:`.blobs.split_batch`): a field
-    whose unit is chosen from the data and that holds no samples yet takes it
+    whose unit is chosen from the data and that has inserted no batch yet takes it
     (:meth:`flatserve.atlas_field.AtlasField.settle_unit`), so that it charts its
     first batch in the unit the replica that stored the batch chose, not one of
     its own (a replica, a restart, a shard of a cluster). Other fields: nothing."""
-    if unit is not None and getattr(field, "unit_from_data", False) and not field.nstored:
-        field.settle_unit(unit)
+    if unit is not None and getattr(field, "unit_from_data", False):
+        field.settle_unit(unit, if_empty=True)
 
 
 def stored_flats(e: FieldEntry, form: str | None, arrays: dict) -> Flats:
@@ -195,10 +195,14 @@ class LogApplier:
             if self.stopping:
                 raise Stopped()
             t0 = time.perf_counter()
-            if prepared is not None and getattr(e.field, "unit_from_data", False) and \
-                    prepared.unit != e.field.atlas.unit:
-                prepared = None  # charted before an earlier batch (another replica's) set
-                # the unit from the data: chart it again in that unit
+            if prepared is not None and getattr(prepared, "unit", None) is not None and \
+                    prepared.unit != getattr(getattr(e.field, "atlas", None), "unit", None):
+                # charted by the upload room in the unit stored with it: the field's first
+                # batch sets the field's unit to it; a later one (another replica's batch
+                # came first) is charted again in the field's unit
+                adopt_unit(e.field, prepared.unit)
+                if prepared.unit != e.field.atlas.unit:
+                    prepared = None
             if prepared is None:
                 try:
                     arrays = dict(self.storage.batch_arrays(e.id, entry.seq))

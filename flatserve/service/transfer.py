@@ -167,7 +167,7 @@ def _settled(e: FieldEntry) -> dict:
     exported beside it stays the one stored at its creation, chart 0's as described)."""
     spec = e.spec.to_dict()
     f, at = e.field, (spec.get("atlas") or None)
-    if at is None or not getattr(f, "unit_from_data", False) or f.unit_pending:
+    if at is None or not at.get("unit_from_data") or getattr(f, "unit_pending", True):
         return spec
     at = {k: v for k, v in at.items() if k not in ("unit_from_data", "warps")}
     at["unit"] = f.atlas.unit

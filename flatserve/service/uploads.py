@@ -195,16 +195,18 @@ class UploadService:
         t1 = time.perf_counter()
         # bad input is refused here, before anything is stored; charting cannot fail
         # on validated input (each row gets a status)
-        chart = e.field.prepare(flats, values, defer=True)
-        # a field whose unit of length comes from the data and holds no samples here yet
-        # charts this batch in the batch's own unit (data_unit) and stores it with the
-        # batch, as with every batch of such a field: the batch that comes first in the
-        # log is then charted everywhere in data_unit of its own rows (applier.adopt_unit;
-        # a batch charted here in another unit is charted again when applied)
-        if getattr(e.field, "unit_from_data", False) and not e.field.nstored:
-            e.field.settle_unit(data_unit(flats, values), if_empty=True)
-        record = ({UNIT_ARRAY: np.array([e.field.atlas.unit])}
-                  if getattr(e.field, "unit_from_data", False) else {})
+        # a field whose unit of length comes from the data and that has inserted no batch
+        # here yet: this batch is charted in its own unit (data_unit of its rows), which
+        # is stored with it; the batch first in the log sets the field's unit everywhere
+        # (applier.adopt_unit; a batch charted here in another unit is charted again
+        # when applied). The field itself is not changed here.
+        record = {}
+        target = e.field
+        if getattr(e.field, "unit_from_data", False):
+            e.field.prepare(flats, values, defer=True)  # validates (raises) first
+            unit = data_unit(flats, values)
+            target, record = e.field.in_unit(unit), {UNIT_ARRAY: np.array([unit])}
+        chart = target.prepare(flats, values, defer=True)
         packing = self._commits.submit(
             lambda: (content_hash(flats.form, stored) if chash is None else chash,
                      pack_arrays({**stored, **record})))

@@ -87,6 +87,16 @@ class PreparedBatch:
         return int(self.x.shape[0])
 
 
+def _spans(tri, ndim: int) -> bool:
+    """Whether a chart's triangulation has a simplex to answer from: more than
+    ``ndim`` samples, not all in one hyperplane (its ``current_dimension``, when the
+    triangulation tells it)."""
+    if tri.npoints <= ndim:
+        return False
+    dim = getattr(tri, "current_dimension", None)
+    return dim is None or dim >= ndim
+
+
 @dataclass(frozen=True)
 class QueryResult:
     """Outcome of :meth:`Field.query` (and of the HTTP client's queries).
@@ -474,9 +484,9 @@ class Field(FieldBase):
                 ids[ok] = loc.ids
                 weights[ok] = loc.weights
         status = ch.status
-        # read after the query: the dimension never drops, so a triangulation that
-        # does not span now did not during the query (all its answers were outside)
-        if self._tri.current_dimension < self.ndim and ok.any():
+        # read after the query: samples are only added, so a triangulation that does
+        # not span now did not during the query (all its answers were outside)
+        if ok.any() and not inside[ok].all() and not _spans(self._tri, self.ndim):
             status = np.where(ok, np.int8(NO_SAMPLES), status).astype(np.int8)
         return QueryResult(values=values, inside=inside, status=status, ids=ids, weights=weights)
 

@@ -491,11 +491,15 @@ class AtlasField(FieldBase):
                                     "batch")
         slice_rows = self._slice_rows(slice_rows)
         with self._lock.write():  # (settle_unit takes it too)
+            if batch.accepted and self.atlas.unit_from_data:
+                raise InvalidInputError(f"batch: charted in the unit {batch.unit:g}; the "
+                                        "field has not taken a unit yet (settle_unit)", "batch")
             if batch.accepted and batch.unit != self.atlas.unit:
                 raise InvalidInputError(f"batch: charted in the unit {batch.unit:g}, the "
                                         f"field's is {self.atlas.unit:g} (chosen since): "
                                         "prepare it again", "batch")
-            self._chooses_unit = False  # the first batch inserted fixes the unit
+            if not self.atlas.unit_from_data:
+                self._chooses_unit = False  # the first batch inserted fixes the unit
         parts = [(c, p, own) for c, pair in enumerate(batch.parts) if pair is not None
                  for p, own in zip(pair, (True, False)) if p.accepted]
         groups = [parts] if slice_rows is None or not parts else _slices(parts, slice_rows)

@@ -275,9 +275,11 @@ def test_a_unit_from_the_data_is_chosen_by_the_first_batch_and_kept(tmp_path):
     assert late.in_unit(u) is not late and auto.in_unit(u) is auto
     batch = late.in_unit(u).prepare(first, vals[:4000])
     assert batch.unit == u and late.unit_pending and late.nstored == 0
-    with pytest.raises(InvalidInputError, match="prepare it again"):
+    with pytest.raises(InvalidInputError, match="not taken a unit"):
         late.insert_prepared(batch)
     assert late.settle_unit(2 * u) and late.atlas.unit == 2 * u  # still open: no insert
+    with pytest.raises(InvalidInputError, match="prepare it again"):
+        late.insert_prepared(batch)
     assert AtlasField.from_bytes(late.to_bytes()).unit_from_data  # (a snapshot too)
     late.settle_unit(u)
     late.insert_prepared(batch)

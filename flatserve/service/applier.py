@@ -55,6 +55,14 @@ def adopt_unit(field, unit: float | None) -> None:
         field.settle_unit(unit, if_empty=True)
 
 
+def _unit_of(field) -> float | None:
+    """An atlas field's unit of length; None while it is still to be chosen (or for a
+    field without one)."""
+    if getattr(field, "unit_pending", False):
+        return None
+    return getattr(getattr(field, "atlas", None), "unit", None)
+
+
 def stored_flats(e: FieldEntry, form: str | None, arrays: dict) -> Flats:
     """The :class:`Flats` of a stored batch (its arrays by name; the form is
     inferred from the names when None)."""
@@ -196,12 +204,12 @@ class LogApplier:
                 raise Stopped()
             t0 = time.perf_counter()
             if prepared is not None and getattr(prepared, "unit", None) is not None and \
-                    prepared.unit != getattr(getattr(e.field, "atlas", None), "unit", None):
+                    prepared.unit != _unit_of(e.field):
                 # charted by the upload room in the unit stored with it: the field's first
                 # batch sets the field's unit to it; a later one (another replica's batch
                 # came first) is charted again in the field's unit
                 adopt_unit(e.field, prepared.unit)
-                if prepared.unit != e.field.atlas.unit:
+                if prepared.unit != _unit_of(e.field):
                     prepared = None
             if prepared is None:
                 try:

@@ -573,6 +573,21 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
         tc.__exit__(None, None, None)
 
 
+def test_a_first_batch_of_one_flat_gives_the_default_unit_and_later_batches_keep_it(api, rng):
+    """One flat has no spread: data_unit is 1 (DEFAULT_UNIT), taken from the first
+    batch (inserted through this replica's own hand-over) and kept by the next."""
+    from flatserve.atlas import DEFAULT_UNIT
+
+    tc, c = api
+    c.create_field("one", channels=C)
+    c.upload_rays("one", [[0.1, 0.2, -3.0]], [[0, 0, 1.0]], [[0.5, 0.5]])
+    assert c.describe("one")["atlas"]["unit"] == DEFAULT_UNIT
+    o, v = sphere_rays(rng, 2000, spread=3.0)
+    assert c.upload_rays("one", o, v, line_values(o, v))["accepted"] == 2000
+    got = c.describe("one")["atlas"]
+    assert got["unit"] == DEFAULT_UNIT and got["unit_from"] == "data"
+
+
 def test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches(make_app, rng,
                                                                          monkeypatch):
     """A field created without ``unit`` takes data_unit of its first batch; the unit

@@ -118,4 +118,6 @@ class CoordinateStatus(enum.IntEnum):
 
     AMBIGUOUS = 3
 
+    NO_SAMPLES = 4
+
 def coordinates_rays3(Qb: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], rb: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], origins: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], directions: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], roundtrip_tol: float, rcond: float, gap_tol: float, pinv_rcond: float, threads: int = 0) -> tuple[NDArray[numpy.float64], NDArray[numpy.int8], NDArray[numpy.float64]]: ...

@@ -36,8 +36,8 @@ from typing import Collection, Sequence
 import numpy as np
 
 from ._fieldbase import FieldBase, corrupted, pack_header, part_key, read_header
-from .atlas import Atlas
-from .coordinates import NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
+from .atlas import Atlas, data_unit
+from .coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
 from .errors import InvalidInputError, SnapshotError
 from .field import AddResult, Field, PreparedBatch, QueryResult, QueryRoute
 from .flats import Flats
@@ -76,6 +76,9 @@ class AtlasPrepared:
     accepted_rows: np.ndarray
     rejected: np.ndarray
     reasons: list
+    #: the atlas's unit of length the batch was charted in (:meth:`AtlasField.insert_prepared`
+    #: refuses it in a field whose unit has changed since: a unit chosen from the data)
+    unit: float = 1.0
 
     @property
     def accepted(self) -> int:
@@ -170,6 +173,9 @@ class AtlasField(FieldBase):
             raise InvalidInputError(f"atlas: expected a flatserve.atlas.Atlas, got "
                                     f"{type(atlas).__name__}", "atlas")
         self.atlas = atlas
+        #: the definition leaves the unit to the data (the atlas's unit is None) and no
+        #: batch was inserted yet: the field may take a unit (settle_unit)
+        self._chooses_unit = atlas.unit_from_data
         self.fields = [atlas.chart_field(i, channels, roundtrip_tol=roundtrip_tol)
                        for i in range(atlas.ncharts)]
         self.k, self.d, self.ndim = atlas.k, atlas.d, self.fields[0].ndim
@@ -214,6 +220,85 @@ class AtlasField(FieldBase):
     @property
     def nrejected(self) -> int:
         return self._nrejected
+
+    # ---------------------------------------------------- a unit from the data
+    @property
+    def unit_pending(self) -> bool:
+        """The atlas's unit is still to be chosen from the first samples (``Atlas(...,
+        unit=None)``): :meth:`prepare` of the first batch chooses it (:meth:`settle_unit`)."""
+        return self.atlas.unit_from_data
+
+    @property
+    def unit_from_data(self) -> bool:
+        """The field may still take a unit (:meth:`settle_unit`): its definition leaves
+        the unit to its first samples (``Atlas(unit=None)``) and no batch has been
+        inserted yet (the first insert fixes the unit, even with no row for this
+        field's charts: the unit of the batch first in the log). False for a
+        definition that states the unit (an import of a field that chose it)."""
+        return self._chooses_unit
+
+    def settle_unit(self, unit: float, *, if_empty: bool = False) -> bool:
+        """Adopt ``unit`` as the charts' unit of length while the field holds no samples.
+
+        For a field whose unit is chosen from the data and that has inserted no
+        batch yet (:attr:`unit_from_data`): its charts are rebuilt in ``unit``
+        (:meth:`flatserve.atlas.Atlas.with_unit`), empty. Asking for the unit it
+        has is a no-op. A writer (the field's write lock).
+
+        Parameters
+        ----------
+        unit : float
+            Positive: e.g. :func:`flatserve.atlas.data_unit` of the first batch, or
+            the unit recorded with it (a replica, a restart).
+        if_empty : bool
+            A field that can no longer take a unit keeps its own and returns False,
+            whatever ``unit`` (a writer that checked before a batch got in).
+
+        Returns
+        -------
+        bool
+            Whether the charts were rebuilt.
+
+        Raises
+        ------
+        InvalidInputError
+            (Not ``if_empty``.) The field's unit was given at its creation, or was
+            chosen from its first batch, which it has inserted.
+        """
+        with self._lock.write():
+            if not self.atlas.unit_from_data and float(unit) == self.atlas.unit:
+                return False
+            if not self._chooses_unit:
+                if if_empty:
+                    return False
+                if self.atlas.info.get("unit_from") == "data":
+                    raise InvalidInputError(f"unit: the field's unit {self.atlas.unit:g} was "
+                                            f"chosen from its first batch, which it holds; "
+                                            f"{float(unit):g} cannot replace it", "unit")
+                raise InvalidInputError(f"unit: the field's unit ({self.atlas.unit:g}) was "
+                                        "given when it was created", "unit")
+            atlas = self.atlas.with_unit(unit)
+            self.fields = [atlas.chart_field(i, self.channels, roundtrip_tol=self.roundtrip_tol)
+                           for i in range(atlas.ncharts)]
+            self.atlas = atlas
+            self._parts = [None] * len(self.fields)
+            return True
+
+    def in_unit(self, unit: float) -> "AtlasField":
+        """This field, or an empty one of the same definition in another unit of length.
+
+        What a writer charts a batch with when the batch's own unit may become the
+        field's (:func:`flatserve.atlas.data_unit` of the batch, before the field
+        has taken a unit from the batch first in its log): ``self`` when ``unit``
+        is its unit, else a new empty field over ``atlas.with_unit(unit)`` whose
+        prepared batches carry that unit (:attr:`AtlasPrepared.unit`: this field
+        refuses them unless it takes the unit). Reads the definition only.
+        """
+        if not self.atlas.unit_from_data and float(unit) == self.atlas.unit:
+            return self
+        other = AtlasField(self.atlas.with_unit(unit), self.channels,
+                           roundtrip_tol=self.roundtrip_tol)
+        return other
 
     # ---------------------------------------------------- the field as shards
     @property
@@ -266,7 +351,9 @@ class AtlasField(FieldBase):
         route : QueryRoute
             Of :meth:`route_query`.
         results : sequence of QueryResult or None
-            Per chart its Field's answer on ``route.rows[i]`` (None: not asked).
+            Per chart its Field's answer on ``route.rows[i]``; None: the chart
+            holds no samples (or routes no rows), so its rows are
+            ``NO_SAMPLES`` unless another chart answers them.
         return_weights : bool
             The results carry ids and weights: return them per chart
             (:class:`AtlasQueryResult`).
@@ -274,6 +361,9 @@ class AtlasField(FieldBase):
         Returns
         -------
         AtlasQueryResult
+            ``status`` per row: ``OK`` where some chart that holds it answered
+            ``OK``; else ``NO_SAMPLES`` where some chart holds it (routes it)
+            but its samples do not span a simplex; else ``NOT_REPRESENTABLE``.
         """
         n, C = route.n, self.channels
         num = np.zeros((n, C))
@@ -289,8 +379,11 @@ class AtlasField(FieldBase):
             charts = np.full((n, P), -1, dtype=np.int64)
             blend = np.zeros((n, P))
             slot = np.zeros(n, dtype=np.int64)
+        okm = np.zeros(n, dtype=bool)
+        empty = np.zeros(n, dtype=bool)
         for c, res in enumerate(results):
             if res is None:
+                empty[route.rows[c]] = True
                 continue
             rows, b = route.rows[c], route.weights[c]
             v = res.values
@@ -303,7 +396,8 @@ class AtlasField(FieldBase):
                 num[rows] += w[:, None] * (v if w is b else np.where(good[:, None], v, 0.0))
             den[rows] += w
             inside[rows] |= res.inside & (w > 0)
-            status[rows[res.status == OK]] = OK
+            okm[rows[res.status == OK]] = True
+            empty[rows[res.status == NO_SAMPLES]] = True
             if return_weights:
                 s = slot[rows]
                 ids[rows, s] = res.ids
@@ -311,6 +405,8 @@ class AtlasField(FieldBase):
                 charts[rows, s] = c
                 blend[rows, s] = w
                 slot[rows] += 1
+        status[empty] = NO_SAMPLES
+        status[okm] = OK
         has = den > 0
         values = np.full((n, C), np.nan)
         np.divide(num, den[:, None], out=values, where=has[:, None])
@@ -327,8 +423,12 @@ class AtlasField(FieldBase):
 
     def _prepare(self, flats: Flats, values: np.ndarray, only=None) -> AtlasPrepared:
         # route to the charts whose domain (reach) holds each row; each chart
-        # charts its rows (its Field's prepare), split into its own and shared
+        # charts its rows (its Field's prepare), split into its own and shared.
+        # A unit still to be chosen is chosen here, from this (the first) batch.
         n = flats.n
+        if self.atlas.unit_from_data and n:
+            self.settle_unit(data_unit(flats, values))
+        unit = self.atlas.unit
         ro = self.atlas.route(flats, self.atlas.reach)
         work = [(c, rows) for c, rows in enumerate(ro.rows)
                 if rows.size and (only is None or c in only)]
@@ -361,7 +461,7 @@ class AtlasField(FieldBase):
             f"from the nearest centre (chart {int(ro.nearest[i])}), charts reach {reach:g}"))
             for i in rejected.tolist()]
         return AtlasPrepared(n, tuple(parts), np.flatnonzero(taken).astype(np.int64), rejected,
-                             reasons)
+                             reasons, unit)
 
     def insert_prepared(self, batch: AtlasPrepared, *,
                         slice_rows: int | None = None) -> AddResult:
@@ -390,6 +490,16 @@ class AtlasField(FieldBase):
             raise InvalidInputError("batch: expected an AtlasPrepared made by this field",
                                     "batch")
         slice_rows = self._slice_rows(slice_rows)
+        with self._lock.write():  # (settle_unit takes it too)
+            if batch.accepted and self.atlas.unit_from_data:
+                raise InvalidInputError(f"batch: charted in the unit {batch.unit:g}; the "
+                                        "field has not taken a unit yet (settle_unit)", "batch")
+            if batch.accepted and batch.unit != self.atlas.unit:
+                raise InvalidInputError(f"batch: charted in the unit {batch.unit:g}, the "
+                                        f"field's is {self.atlas.unit:g} (chosen since): "
+                                        "prepare it again", "batch")
+            if not self.atlas.unit_from_data:
+                self._chooses_unit = False  # the first batch inserted fixes the unit
         parts = [(c, p, own) for c, pair in enumerate(batch.parts) if pair is not None
                  for p, own in zip(pair, (True, False)) if p.accepted]
         groups = [parts] if slice_rows is None or not parts else _slices(parts, slice_rows)
@@ -437,8 +547,11 @@ class AtlasField(FieldBase):
         Returns
         -------
         AtlasQueryResult
-            ``status`` is OK when some chart's coordinates round-trip;
-            ``NOT_REPRESENTABLE`` when no chart's domain holds the query.
+            ``status`` is OK when some chart's coordinates round-trip and its
+            samples span a simplex; ``NO_SAMPLES`` when charts hold the query
+            but none of them has samples that span one (an empty field, or
+            empty charts); ``NOT_REPRESENTABLE`` when no chart's domain holds
+            the query.
             ``inside`` when some chart with positive weight answered from
             inside its samples' hull.
         """
@@ -536,7 +649,8 @@ class AtlasField(FieldBase):
         return {"atlas": self.atlas.to_dict(), "channels": self.channels,
                 "roundtrip_tol": self.roundtrip_tol, "nsamples": self._nsamples,
                 "nrejected": self._nrejected, "charts": len(self.fields),
-                **({"own": list(self._own)} if self._own is not None else {})}
+                **({"own": list(self._own)} if self._own is not None else {}),
+                **({"chooses_unit": True} if self._chooses_unit else {})}
 
     def write_parts(self, fh, stage, known=()) -> list[str]:
         """Write a snapshot as a small field file plus one part per chart,
@@ -697,6 +811,9 @@ class AtlasField(FieldBase):
             if own is not None:
                 nsamples = sum(own[c] for c in only)
         obj._own = own
+        # a field saved before its first batch was inserted (its unit perhaps chosen in
+        # memory already) may still take the unit of the batch first in the log
+        obj._chooses_unit = atlas.unit_from_data or bool(meta.get("chooses_unit"))
         if version == _VERSION_PARTS:
             return obj._restore_parts(meta, nsamples, nrejected, len(data) - off, parts, source,
                                       only)

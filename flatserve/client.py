@@ -499,8 +499,9 @@ class Client:
         upload's report (on any replica); the server answers once it has applied
         it (503 :class:`~flatserve.service.status.ReplicaBehindError` after its wait).
 
-        Returns the library's :class:`flatserve.QueryResult`; ``status``, ``ids``
-        and ``weights`` are filled when the response carries them."""
+        Returns the library's :class:`flatserve.QueryResult`, ``status`` filled
+        (the ``.npy`` answer is asked with ``status=true``: its last column), and
+        ``ids`` and ``weights`` with ``weights``."""
         form, arrays = _flat_arrays(flats, dict(origins=origins, directions=directions, A=A,
                                                 b=b, Q=Q, r=r, points=points))
         params = {"form": form, "outside": outside, "order": order,
@@ -534,13 +535,13 @@ class Client:
                                np.array(j["weights"], dtype=np.float64) if weights else None)
         content, ctype = self._encode(form, arrays)
         accept = NPZ if weights else NPY
-        resp = self._request("POST", url, params=params, content=content,
-                             headers={"Content-Type": ctype, "Accept": accept})
+        resp = self._request("POST", url, params=params if weights else {**params, "status": "true"},
+                             content=content, headers={"Content-Type": ctype, "Accept": accept})
         if weights:
             with np.load(io.BytesIO(resp.content), allow_pickle=False) as z:
                 return QueryResult(z["values"], z["inside"], z["status"], z["ids"], z["weights"])
-        arr = _load_npy(resp.content)
-        return QueryResult(arr[:, :-1], arr[:, -1] != 0, None)
+        arr = _load_npy(resp.content)  # rows values | inside | status
+        return QueryResult(arr[:, :-2], arr[:, -2] != 0, arr[:, -1].astype(np.int8))
 
     def query_rays(self, name: str, origins, directions, **kw) -> QueryResult:
         return self.query(name, origins=origins, directions=directions, **kw)

@@ -144,7 +144,8 @@ class SampledField(Protocol):
     def blend(self, route: QueryRoute, results: Sequence[QueryResult | None], *,
               return_weights: bool = False) -> QueryResult:
         """The field's answer from each shard's answer on its ``route.rows``
-        (None: not asked), combined in shard order."""
+        (None: the shard holds no samples, so its rows are ``NO_SAMPLES`` unless
+        another shard answers them; or it routes no rows), combined in shard order."""
         ...
 
     def copies(self, flats: Flats) -> float:

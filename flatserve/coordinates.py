@@ -81,6 +81,7 @@ __all__ = [
     "NOT_REPRESENTABLE",
     "SINGULAR",
     "AMBIGUOUS",
+    "NO_SAMPLES",
     "Status",
     "REASONS",
     "reason",
@@ -104,6 +105,14 @@ OK = Status.OK
 NOT_REPRESENTABLE = Status.NOT_REPRESENTABLE
 SINGULAR = Status.SINGULAR
 AMBIGUOUS = Status.AMBIGUOUS
+#: A query's answer, never a coordinate kernel's: the flat lies in the domain of
+#: a chart (its coordinates round-trip; for an atlas field, it is routed to
+#: the chart), but that chart, and every other chart that holds it, has too
+#: few samples to span a simplex (none, or all in one hyperplane of the
+#: embedding: its triangulation's ``current_dimension`` is below ``ndim``).
+#: An empty one-chart field answers it for every flat of its domain; an atlas
+#: field answers ``NOT_REPRESENTABLE`` only where no chart's domain holds the flat.
+NO_SAMPLES = Status.NO_SAMPLES
 #: The one human-readable reason per status (field rejections, service docs).
 REASONS: dict[Status, str] = {
     OK: "ok: the coordinates round-trip",
@@ -112,6 +121,8 @@ REASONS: dict[Status, str] = {
     SINGULAR: "singular: the coordinate system of the basis is singular at this flat",
     AMBIGUOUS: "ambiguous: the recombined flat has coinciding eigenvalues "
     "(eigen-gap below tolerance)",
+    NO_SAMPLES: "no samples: the flat lies in a chart's domain, but the charts that hold it "
+    "have too few samples to span a simplex (none yet)",
 }
 
 
@@ -148,7 +159,8 @@ class Coordinates(NamedTuple):
     weights : ndarray, shape (n, m)
         Affine coordinates (rows sum to one up to rounding).
     status : ndarray of int8, shape (n,)
-        ``OK``, ``NOT_REPRESENTABLE``, ``SINGULAR`` or ``AMBIGUOUS``.
+        ``OK``, ``NOT_REPRESENTABLE``, ``SINGULAR`` or ``AMBIGUOUS`` (never
+        ``NO_SAMPLES``: that is a field's answer, :meth:`flatserve.Field.query`).
     residual : ndarray, shape (n,)
         Round-trip residual ``max(||Q~-Q||_F, ||r~-r||)``.
     """

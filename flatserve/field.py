@@ -20,7 +20,7 @@ import numpy as np
 
 from ._fieldbase import FieldBase, corrupted, pack_header, read_header
 from .basis import Basis
-from .coordinates import OK, ROUNDTRIP_TOL, reason
+from .coordinates import NO_SAMPLES, OK, ROUNDTRIP_TOL, reason
 from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
 from .options import Order, Outside, choice
@@ -88,6 +88,16 @@ class PreparedBatch:
         return int(self.x.shape[0])
 
 
+def _spans(tri, ndim: int) -> bool:
+    """Whether a chart's triangulation has a simplex to answer from: more than
+    ``ndim`` samples, not all in one hyperplane (its ``current_dimension``, when the
+    triangulation tells it)."""
+    if tri.npoints <= ndim:
+        return False
+    dim = getattr(tri, "current_dimension", None)
+    return dim is None or dim >= ndim
+
+
 @dataclass(frozen=True)
 class QueryResult:
     """Outcome of :meth:`Field.query` (and of the HTTP client's queries).
@@ -101,8 +111,14 @@ class QueryResult:
         The query's coordinates round-trip and lie inside the convex hull of
         the samples.
     status : (q,) int8 or None
-        Coordinate status per query (:data:`flatserve.coordinates.OK`, ...);
-        None where an HTTP response did not carry it (the client's ``.npy`` path).
+        Status per query (:class:`flatserve.coordinates.Status`): ``OK`` where
+        the coordinates round-trip in a chart whose samples span a simplex
+        (then ``inside`` says whether the query lies in their hull);
+        ``NO_SAMPLES`` where they round-trip but the chart, or every chart of
+        an atlas that holds the query, has too few samples to span one;
+        ``NOT_REPRESENTABLE`` (``SINGULAR``, ``AMBIGUOUS``) where no chart
+        holds it. None where an HTTP response did not carry it (a ``.npy``
+        answer asked without ``status=true``).
     ids : (q, D+1) int64 or None
         Sample ids of the simplex's vertices (−1 for none), if requested.
     weights : (q, D+1) float64 or None
@@ -449,6 +465,10 @@ class Field(FieldBase):
         Returns
         -------
         QueryResult, or None (see ``blocking``)
+            ``status`` is the chart's, but ``NO_SAMPLES`` for the flats that
+            round-trip while the samples do not span a simplex (an empty field,
+            or fewer than ``ndim + 1`` samples in general position): their
+            values are NaN, as outside the hull, but the flat is in the domain.
         """
         outside, order = choice(outside, Outside, "outside"), choice(order, Order, "order")
         ch = flats if isinstance(flats, Chart) else self.chart(flats, threads=threads)
@@ -478,7 +498,12 @@ class Field(FieldBase):
             if return_weights:
                 ids[ok] = loc.ids
                 weights[ok] = loc.weights
-        return QueryResult(values=values, inside=inside, status=ch.status, ids=ids, weights=weights)
+        status = ch.status
+        # read after the query: samples are only added, so a triangulation that does
+        # not span now did not during the query (all its answers were outside)
+        if ok.any() and not inside[ok].all() and not _spans(self._tri, self.ndim):
+            status = np.where(ok, np.int8(NO_SAMPLES), status).astype(np.int8)
+        return QueryResult(values=values, inside=inside, status=status, ids=ids, weights=weights)
 
     def query_rays(self, origins, directions, **kwargs) -> QueryResult:
         """``query(Flats.from_rays(origins, directions), **kwargs)``: lines, (q, d) each."""

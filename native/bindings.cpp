@@ -372,7 +372,8 @@ void bind_coordinates(nb::module_& m) {
       .value("OK", flatserve::COORD_OK)
       .value("NOT_REPRESENTABLE", flatserve::COORD_NOT_REPRESENTABLE)
       .value("SINGULAR", flatserve::COORD_SINGULAR)
-      .value("AMBIGUOUS", flatserve::COORD_AMBIGUOUS);
+      .value("AMBIGUOUS", flatserve::COORD_AMBIGUOUS)
+      .value("NO_SAMPLES", flatserve::COORD_NO_SAMPLES);
   m.def("coordinates_rays3",
         [](CoordRows Qb, CoordRows rb, CoordRows origins, CoordRows directions,
            double roundtrip_tol, double rcond, double gap_tol, double pinv_rcond, int threads) {

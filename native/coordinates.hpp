@@ -43,8 +43,12 @@ struct CoordinateTolerances {
 
 // Exported to Python as flatserve._core.CoordinateStatus (bindings.cpp); the
 // reasons shown to users are in flatserve/coordinates.py (REASONS).
+// COORD_NO_SAMPLES is never written by the kernels here: a field answers it
+// for a query flat whose coordinates round-trip in a chart (or in every chart
+// of an atlas that holds it) whose samples do not yet span a simplex.
 enum CoordinateStatus : std::int8_t { COORD_OK = 0, COORD_NOT_REPRESENTABLE = 1,
-                                      COORD_SINGULAR = 2, COORD_AMBIGUOUS = 3 };
+                                      COORD_SINGULAR = 2, COORD_AMBIGUOUS = 3,
+                                      COORD_NO_SAMPLES = 4 };
 
 // Rows per thread below which extra threads do not pay for their start-up
 // (threads <= 0 picks min(cores, n / kCoordRowsPerThread), at least 1).

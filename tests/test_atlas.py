@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from flatserve import Flats
-from flatserve.atlas import COVER_MARGIN_DEG, COVER_RADII_3D, Atlas, object_unit
+from flatserve.atlas import (COVER_MARGIN_DEG, COVER_RADII_3D, DEFAULT_UNIT, Atlas, data_unit,
+                             object_unit)
 from flatserve.atlas_field import AtlasField
 from flatserve.grassmann import (
     GEODESIC_AXES,
@@ -190,6 +191,102 @@ def test_object_unit_is_the_mean_visible_depth_of_a_ball():
     R = 0.8
     rho = R * np.sqrt(rng.uniform(size=400_000))  # uniform over the disc
     assert object_unit(R) == pytest.approx(np.sqrt(R * R - rho * rho).mean(), rel=2e-3)
+
+
+def rays_at_a_ball(rng, n, center, R):
+    """Rays of every direction whose distances from ``center`` are uniform over the
+    disc of radius ``R`` (rays that meet a ball: its silhouette's disc)."""
+    v = rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    e1 = np.cross(v, rng.normal(size=(n, 3)))
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(v, e1)
+    rho, phi = R * np.sqrt(rng.uniform(size=n)), rng.uniform(0, 2 * np.pi, n)
+    p = center + rho[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+    return p - rng.uniform(1, 3, (n, 1)) * v, v  # origins before the ball
+
+
+def test_data_unit_is_the_object_unit_of_the_ball_the_rays_meet():
+    """Rays meeting a ball of radius R: the mean distance from their least-squares
+    centre is object_unit(R), wherever the ball is; the unit scales with the data;
+    rays of one repeated (background) value are left out; rays through one point
+    have no length: the default."""
+    rng = np.random.default_rng(31)
+    c = np.array([3.0, -1.0, 2.0])
+    o, v = rays_at_a_ball(rng, 50_000, c, 0.6)
+    f = Flats.from_rays(o, v)
+    u = data_unit(f, rng.uniform(size=(f.n, 2)))
+    assert u == pytest.approx(object_unit(0.6), rel=0.01)
+    assert data_unit(Flats.from_rays(7.0 * o, v)) == pytest.approx(7.0 * data_unit(f), rel=1e-9)
+    # a background: rays farther out (missing the ball), all of one value, 30 % of them
+    bo, bv = rays_at_a_ball(rng, 21_000, c, 3.0)
+    far = np.linalg.norm(np.cross(bo - c, bv), axis=1) > 0.6
+    bo, bv = bo[far][:20_000], bv[far][:20_000]
+    vals = np.r_[rng.uniform(size=(f.n, 2)), np.tile([0.25, 0.5], (bo.shape[0], 1))]
+    both = Flats.from_rays(np.r_[o, bo], np.r_[v, bv])
+    assert data_unit(both, vals) == pytest.approx(u, rel=0.01)
+    assert data_unit(both) > 1.3 * u  # without values every ray counts
+    for point in (np.zeros(3), c):
+        through = Flats.from_rays(point - v[:100], v[:100])
+        assert data_unit(through) == DEFAULT_UNIT
+
+
+def test_a_unit_from_the_data_is_chosen_by_the_first_batch_and_kept(tmp_path):
+    """Atlas(unit=None): the field's first batch chooses data_unit of its rows; the
+    field then answers as the atlas built with that unit; later batches, snapshots
+    and settle_unit keep it; a batch charted in another unit is refused."""
+    rng = np.random.default_rng(32)
+    o, v = rays_at_a_ball(rng, 6000, np.zeros(3), 2.0)
+    vals = np.c_[np.sin(o[:, 0]), v[:, 1]]
+    f = Flats.from_rays(o, v)
+    first, second = f.take(np.arange(4000)), f.take(np.arange(4000, 6000))
+    auto = AtlasField(Atlas.covering(1, 3, oriented=True, unit=None), channels=2)
+    assert auto.unit_pending and auto.unit_from_data
+    assert auto.describe()["atlas"]["unit"] is None
+    empty = AtlasField.from_bytes(auto.to_bytes())
+    assert empty.unit_pending  # an empty snapshot still chooses later
+    auto.add(first, vals[:4000])
+    u = data_unit(first, vals[:4000])
+    assert not auto.unit_pending and auto.atlas.unit == u and abs(u - 1.0) > 0.1
+    assert auto.describe()["atlas"]["unit"] == u
+    assert auto.describe()["atlas"]["unit_from"] == "data"
+    auto.add(second, vals[4000:])
+    assert auto.atlas.unit == u
+    fixed = AtlasField(Atlas.covering(1, 3, oriented=True, unit=u), channels=2)
+    fixed.add(first, vals[:4000])
+    fixed.add(second, vals[4000:])
+    q = Flats.from_rays(*rays_at_a_ball(rng, 2000, np.zeros(3), 1.5))
+    got, want = auto.query(q), fixed.query(q)
+    assert want.inside.mean() > 0.5
+    np.testing.assert_array_equal(got.values, want.values)
+    back = AtlasField.from_bytes(auto.to_bytes())
+    assert back.atlas.unit == u and not back.unit_pending and not back.unit_from_data
+    assert back.describe()["atlas"]["unit_from"] == "data"
+    np.testing.assert_array_equal(back.query(q).values, want.values)
+    assert auto.settle_unit(u) is False  # asked again: kept
+    with pytest.raises(InvalidInputError, match="chosen from its first batch"):
+        auto.settle_unit(2 * u)
+    assert auto.settle_unit(2 * u, if_empty=True) is False and auto.atlas.unit == u
+    with pytest.raises(InvalidInputError, match="given"):
+        fixed.settle_unit(2 * u)
+    # a writer charts a batch in its own unit without changing the field (in_unit);
+    # the field refuses it until it takes that unit, then holds what `fixed` holds
+    late = AtlasField(Atlas.covering(1, 3, oriented=True, unit=None), channels=2)
+    assert late.in_unit(u) is not late and auto.in_unit(u) is auto
+    batch = late.in_unit(u).prepare(first, vals[:4000])
+    assert batch.unit == u and late.unit_pending and late.nstored == 0
+    with pytest.raises(InvalidInputError, match="not taken a unit"):
+        late.insert_prepared(batch)
+    assert late.settle_unit(2 * u) and late.atlas.unit == 2 * u  # still open: no insert
+    with pytest.raises(InvalidInputError, match="prepare it again"):
+        late.insert_prepared(batch)
+    assert AtlasField.from_bytes(late.to_bytes()).unit_from_data  # (a snapshot too)
+    late.settle_unit(u)
+    late.insert_prepared(batch)
+    assert not late.unit_from_data and late.settle_unit(2 * u, if_empty=True) is False
+    once = AtlasField(Atlas.covering(1, 3, oriented=True, unit=u), channels=2)
+    once.add(first, vals[:4000])
+    np.testing.assert_array_equal(late.query(q).values, once.query(q).values)
 
 
 def test_oriented_covering_radius_and_routing():

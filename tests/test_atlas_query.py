@@ -21,7 +21,7 @@ from flatserve import Flats
 from flatserve.atlas import Atlas
 from flatserve.atlas_field import AtlasField, AtlasQueryResult
 from flatserve.grassmann import bump, cos2_max_angle, haar_frames, orientation_frames
-from flatserve.coordinates import NOT_REPRESENTABLE, OK
+from flatserve.coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK
 
 
 def reference_route(atlas: Atlas, flats: Flats, radius: float):
@@ -67,8 +67,11 @@ def reference_query(field: AtlasField, flats: Flats, *, outside="nan", order="hi
     V = np.zeros((n, c, C))
     ins = np.zeros((n, c), dtype=bool)
     ok = np.zeros((n, c), dtype=bool)
+    empty = np.zeros((n, c), dtype=bool)  # the chart holds the row but no simplex
     answers = {}
     for i, rows in enumerate(rows_all):
+        if rows.size and field.fields[i].nsamples == 0:
+            empty[rows, i] = True
         if rows.size == 0 or field.fields[i].nsamples == 0:
             continue
         res = field.fields[i].query(flats.take(rows), outside=outside, order=order,
@@ -81,6 +84,7 @@ def reference_query(field: AtlasField, flats: Flats, *, outside="nan", order="hi
         V[rows[fin], i] = res.values[fin]
         ins[rows, i] = res.inside
         ok[rows, i] = res.status == OK
+        empty[rows, i] = res.status == NO_SAMPLES
     num, den = np.zeros((n, C)), np.zeros(n)
     for i in range(c):
         num += W[:, i, None] * V[:, i]
@@ -89,7 +93,8 @@ def reference_query(field: AtlasField, flats: Flats, *, outside="nan", order="hi
     values = np.full((n, C), np.nan)
     values[has] = num[has] / den[has, None]
     inside = (ins & (W > 0)).any(axis=1)
-    status = np.where(ok.any(axis=1), OK, NOT_REPRESENTABLE).astype(np.int8)
+    status = np.where(ok.any(axis=1), OK,
+                      np.where(empty.any(axis=1), NO_SAMPLES, NOT_REPRESENTABLE)).astype(np.int8)
     if not return_weights:
         return AtlasQueryResult(values, inside, status)
     # slot of chart i in row q: how many charts before it answered q
@@ -150,16 +155,50 @@ def fields():
     field = AtlasField(Atlas.covering(2, 4), channels=1)
     field.add(p, np.sin(p.quadrics()[1][:, 0]))
     out["planes"] = field
+    out["partial"] = partial_field(rng)
     return out
 
 
+def near_axis(rng, n, deg):
+    """Lines through [-1, 1]^3 within ``deg`` degrees of the z-axis (either sense)."""
+    t = np.radians(deg) * np.sqrt(rng.uniform(size=n))
+    p = rng.uniform(0, 2 * np.pi, n)
+    v = np.c_[np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)]
+    return Flats.from_rays(rng.uniform(-1, 1, (n, 3)), v * rng.choice([-1, 1], (n, 1)))
+
+
+def partial_field(rng) -> AtlasField:
+    """A data-driven atlas of lines within 60 degrees of the z-axis (queries beyond
+    are held by no chart), its charts filled unevenly: charts that hold samples
+    spanning simplices, charts with 3 samples (not spanning: D = 4), empty charts."""
+    at = Atlas.for_samples(near_axis(rng, 3000, 60.0), radius=20.0, inner=10.0, trusted=20.0,
+                           reach=22.0)
+    field = AtlasField(at, channels=1)
+    f = near_axis(rng, 1500, 10.0)  # the charts near the axis
+    o = f.arrays["origins"]
+    field.add(f, np.sin(o[:, 0]) + o[:, 2])
+    sizes = np.asarray(field.samples_per_chart)
+    empty = np.flatnonzero(sizes == 0)
+    assert empty.size >= 3
+    # 3 samples only in one empty chart: on its centre line, shifted
+    c = empty[0]
+    a, r = at.center_A[c][:, 0], at.center_r[c]
+    few = Flats.from_rays(r + np.array([[0.0, 0, 0], [0.01, 0.02, 0], [0, 0.03, 0.01]]),
+                          np.tile(a, (3, 1)))
+    field.add(few, np.zeros(3))
+    assert np.asarray(field.samples_per_chart)[c] > 0
+    return field
+
+
 def queries(name, rng, n):
+    if name == "partial":
+        return rays(rng, n, 1.0)
     if name == "planes":
         return Flats.from_parametric(haar_frames(n, 4, 2, rng), rng.uniform(-10, 10, (n, 4)))
     return rays(rng, n, 1.6)  # beyond the samples' [-1, 1]^3: some rows outside a chart's hull
 
 
-@pytest.mark.parametrize("name", ["lines1", "lines3", "rays", "planes"])
+@pytest.mark.parametrize("name", ["lines1", "lines3", "rays", "planes", "partial"])
 @pytest.mark.parametrize("outside", ["nan", "clamp"])
 @pytest.mark.parametrize("return_weights", [False, True])
 def test_query_equals_the_reference_bit_for_bit(fields, name, outside, return_weights):
@@ -170,7 +209,10 @@ def test_query_equals_the_reference_bit_for_bit(fields, name, outside, return_we
     want = reference_query(field, f, outside=outside, return_weights=return_weights)
     assert_same_result(got, want)
     # the data exercise the branches: rows inside and outside the hulls, rows
-    # held by several charts
+    # held by several charts; rows of every status
+    if name == "partial":
+        assert {OK, NO_SAMPLES, NOT_REPRESENTABLE} <= set(want.status.tolist())
+        return
     assert 0.2 < want.inside.mean() < 0.95
     if return_weights:
         assert (want.charts[:, 1] >= 0).mean() > 0.2
@@ -201,3 +243,35 @@ def test_routing_equals_the_reference(fields):
                     assert_same_bits(r.angles[c], angles[c])
             # nearest: the chart of the largest cosine, as the angles to every centre say
             assert (got.nearest == at.angles(f).argmin(axis=1)).mean() > 0.999
+
+
+def test_an_empty_covering_atlas_answers_no_samples_everywhere():
+    rng = np.random.default_rng(8)
+    for at in (Atlas.covering(1, 3), Atlas.covering(1, 3, oriented=True)):
+        field = AtlasField(at, channels=2)
+        for outside in ("nan", "clamp"):
+            out = field.query(rays(rng, 500, 2.0), outside=outside)
+            assert (out.status == NO_SAMPLES).all()
+            assert not out.inside.any() and np.isnan(out.values).all()
+
+
+def test_status_says_why_a_row_has_no_value(fields):
+    """Per row, from the routing and each chart's triangulation: NOT_REPRESENTABLE
+    where no chart holds the query, NO_SAMPLES where the charts holding it do not
+    span a simplex, OK where one does; a value only where OK."""
+    field = fields["partial"]
+    f = queries("partial", np.random.default_rng(9), 4000)
+    out = field.query(f, outside="clamp")
+    route = field.route_query(f)
+    held = np.zeros(f.n, dtype=bool)
+    spanned = np.zeros(f.n, dtype=bool)
+    for c, rows in enumerate(route.rows):
+        held[rows] = True
+        if field.fields[c].nsimplex > 0:  # its samples span a simplex
+            spanned[rows] = True
+    assert held.any() and (~held).any() and (held & ~spanned).any() and spanned.any()
+    np.testing.assert_array_equal(out.status == NOT_REPRESENTABLE, ~held)
+    np.testing.assert_array_equal(out.status == NO_SAMPLES, held & ~spanned)
+    np.testing.assert_array_equal(out.status == OK, spanned)
+    assert np.isnan(out.values[out.status != OK]).all() and not out.inside[out.status != OK].any()
+    assert np.isfinite(out.values[out.status == OK]).all()  # clamp: every OK row has a value

@@ -6,7 +6,7 @@ import pytest
 
 import flatserve
 from flatserve import Basis, Field
-from flatserve.coordinates import OK
+from flatserve.coordinates import NO_SAMPLES, OK
 from flatserve.embedding import embed
 
 
@@ -213,3 +213,35 @@ def test_points_field_answers_as_scipy_linear_nd_interpolator(d):
             np.testing.assert_array_equal(out.inside, inside)
             np.testing.assert_allclose(out.values[inside], ref[inside], rtol=0, atol=1e-12)
             assert np.isnan(out.values[~inside]).all()
+
+
+def test_status_tells_an_empty_chart_from_an_unreachable_flat(basis):
+    """NO_SAMPLES where the coordinates round-trip while the samples do not span a
+    simplex (none, then too few); the chart's own status elsewhere; OK once they span."""
+    rng = np.random.default_rng(11)
+    o, dirs = paper_rays(rng, 400)
+    far_o = np.c_[rng.uniform(-1, 1, (40, 2)), np.zeros(40)]  # in the screen plane:
+    far_d = np.c_[rng.normal(size=(40, 2)), np.zeros(40)]     # outside the chart
+    q = flatserve.Flats.from_rays(np.r_[o, far_o], np.r_[dirs, far_d])
+    field = Field(basis)
+    coords = field.chart(q).status
+    assert (coords == OK).sum() > 300 and (coords[400:] != OK).all()
+
+    def check(out, spans):
+        assert out.status.dtype == np.int8
+        want = np.where(coords == OK, OK if spans else NO_SAMPLES, coords)
+        np.testing.assert_array_equal(out.status, want)
+        if not spans:
+            assert not out.inside.any() and np.isnan(out.values).all()
+
+    for outside in ("nan", "clamp"):
+        check(field.query(q, outside=outside), spans=False)   # empty
+    # samples that do not span: D = 4 needs 5 affinely independent points
+    s_o, s_d = paper_rays(rng, 2000)
+    field.add_rays(s_o[:3], s_d[:3], rng.uniform(size=3))
+    assert field.nsamples == 3
+    check(field.query(q, outside="clamp"), spans=False)
+    field.add_rays(s_o[3:], s_d[3:], rng.uniform(size=1997))
+    out = field.query(q)
+    check(out, spans=True)
+    assert out.inside.any() and not out.inside[coords != OK].any()

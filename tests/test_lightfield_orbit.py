@@ -252,9 +252,24 @@ def test_cli_orbit(tmp_path, capsys):
         orbit_figure(tmp_path, n=10, scene="teapot", log=lambda s: None, progress=False)
     with pytest.raises(InvalidInputError, match="atlas"):
         orbit_figure(tmp_path, n=10, atlas="dense", log=lambda s: None, progress=False)
-    for unit in (0.0, -1.0, float("nan")):
+    for unit in (0.0, -1.0, float("nan"), "mesh"):
         with pytest.raises(InvalidInputError, match="unit"):
             orbit_figure(tmp_path, n=10, unit=unit, log=lambda s: None, progress=False)
+
+
+def test_the_unit_from_the_data_is_chosen_by_the_first_chunk(tmp_path):
+    """``unit="data"`` (``--unit data``): the field's first chunk of rays chooses
+    data_unit of its samples, recorded in the results."""
+    from flatserve import Flats
+    from flatserve.atlas import data_unit
+
+    n = 3000
+    res = orbit_figure(tmp_path, n=n, width=8, supersample=1, unit="data", one_chart=False,
+                       log=lambda s: None, progress=False)
+    samples, values = orbit_samples(bunny_scene(1), n, seed=0)
+    want = data_unit(Flats.from_rays(samples.origins, samples.directions), values)
+    assert res["unit_from"] == "data" and res["unit"] == res["atlas"]["unit"] == want
+    assert 0.2 < want < 0.45  # the bunny's rays, not the sampling ball's (0.67)
 
 
 def _lost_views(res) -> list:

@@ -20,8 +20,9 @@ def test_extension_enums_compare_with_int8_arrays():
 
     from flatserve.coordinates import AMBIGUOUS, OK, REASONS, SINGULAR, Status, reason
     from flatserve.triangulation import LocateKind
-    assert [int(s) for s in Status] == [0, 1, 2, 3] and OK is Status.OK
+    assert [int(s) for s in Status] == [0, 1, 2, 3, 4] and OK is Status.OK
     assert set(REASONS) == set(Status) and reason(SINGULAR).startswith("singular")
+    assert reason(Status.NO_SAMPLES).startswith("no samples")
     assert reason(7) == "status 7"
     status = np.array([OK, AMBIGUOUS, SINGULAR], dtype=np.int8)
     assert (status == AMBIGUOUS).tolist() == [False, True, False]

@@ -52,10 +52,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        help="covering: Atlas.covering (32 charts, the service's default); fine: 42 charts "
                             "within 20.8 degrees of every direction; icosahedral: the former 12-chart "
                             "default (default covering)")
-    atlas.add_argument("--unit", type=float, default=None,
+    atlas.add_argument("--unit", type=_unit, default=None,
                        help="the atlas's unit of length in world units: the shift of a ray that counts "
                             "as much as a turn of one radian (default 1/3: 2/3 of the scenes' radius 0.5, "
-                            "flatserve.atlas.object_unit; 1: world units); the baseline is unchanged")
+                            "flatserve.atlas.object_unit; 1: world units; data: chosen by the field from "
+                            "its first batch, flatserve.atlas.data_unit); the baseline is unchanged")
     atlas.add_argument("--reach", type=float, default=None,
                        help="degrees: store samples in every chart whose centre is closer (default "
                             "the atlas's: 27 for the covering); wider helps sparse eyes, at the cost "
@@ -63,6 +64,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     atlas.add_argument("--paper-charts", action="store_true",
                        help="the paper's tangent-simplex charts instead of the isometric ones "
                             "(flatserve.warp) in the atlas and the one-chart comparison")
+
+
+def _unit(text: str):
+    """``--unit``: a length, or ``data`` (chosen from the first samples)."""
+    if text == "data":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a length or 'data', got {text!r}") from None
 
 
 def run(args: argparse.Namespace) -> int:

@@ -47,7 +47,8 @@ from .camera import ORBIT_EYE_RADIUS, ORBIT_RADIUS, Camera
 from .figure import contact_sheet, fmt
 from .quality import psnr, ssim
 from .render import frame_from_rays, render_field, render_truth
-from .sampling import ProgressBar, blocks_scene, build_atlas_field, bunny_scene, orbit_samples
+from .sampling import (BUILD_CHUNK, ProgressBar, blocks_scene, build_atlas_field, bunny_scene,
+                       orbit_samples)
 
 __all__ = ["orbit_views", "view_charts", "one_chart_atlas", "fine_atlas", "icosahedral_atlas", "SCENE_HALF_SIZE", "SCENE_UNIT", "orbit_figure", "SCENES", "ATLASES",
            "DEFAULT_SAMPLES", "AZIMUTHS", "ELEVATIONS", "VIEW_DISTANCE", "VIEW_FOCAL",
@@ -177,7 +178,7 @@ def _with_reach(atlas: Atlas, reach: float | None) -> Atlas:
         return atlas
     out = Atlas(atlas.k, atlas.d, atlas.center_A, atlas.center_N, atlas.center_r, atlas.scales,
                 oriented=atlas.oriented, inner=atlas.inner, trusted=atlas.trusted, reach=reach,
-                unit=atlas.unit, isometric=atlas.isometric)
+                unit=None if atlas.unit_from_data else atlas.unit, isometric=atlas.isometric)
     out.info = dict(atlas.info)
     return out
 
@@ -189,7 +190,7 @@ def _scores(image, truth, covered) -> dict:
 
 def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed: int = 0,
                  width: int = VIEW_WIDTH, supersample: int = 4, channels: int = 1,
-                 scene: str = "bunny", atlas: str = "covering", unit: float | None = None,
+                 scene: str = "bunny", atlas: str = "covering", unit: float | str | None = None,
                  isometric: bool = True, reach: float | None = None, one_chart: bool = True,
                  log=print,
                  progress: bool = True) -> dict:
@@ -221,7 +222,9 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         turn of one radian (isotropic at a chart's centre).  Default
         :data:`SCENE_UNIT` (1/3: :func:`flatserve.atlas.object_unit` of the
         scenes' radius 0.5, they fill the unit box); 1: world units (the
-        paper's chart).
+        paper's chart); ``"data"``: chosen by the field from its first batch
+        of samples (:func:`flatserve.atlas.data_unit`), as a field created
+        without ``unit`` does.
     isometric : bool
         The atlas's charts warped to be isometric (:mod:`flatserve.warp`, the
         library's default); False: the paper's charts.
@@ -247,8 +250,10 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         raise InvalidInputError(f"atlas: expected one of {sorted(ATLASES)}, got {atlas!r}", "atlas")
     if unit is None:
         unit = SCENE_UNIT
-    if not (isinstance(unit, (int, float)) and math.isfinite(unit) and unit > 0):
-        raise InvalidInputError(f"unit: expected a positive length, got {unit!r}", "unit")
+    if unit != "data" and not (isinstance(unit, (int, float)) and math.isfinite(unit)
+                               and unit > 0):
+        raise InvalidInputError(f"unit: expected a positive length or \"data\", got {unit!r}",
+                                "unit")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
@@ -262,9 +267,13 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
 
     bar = ProgressBar("building atlas field", n) if progress else None
     field, stats = build_atlas_field(samples.origins, samples.directions, values,
-                                     atlas=_with_reach(ATLASES[atlas](unit, isometric), reach),
+                                     atlas=_with_reach(ATLASES[atlas](
+                                         None if unit == "data" else unit, isometric), reach),
                                      progress=bar)
     timings["field_build"] = stats.seconds
+    if unit == "data":
+        log(f"unit of length chosen from the first {min(n, BUILD_CHUNK):,} samples: "
+            f"{field.atlas.unit:.4f}")
     log(f"atlas field: {field.atlas.ncharts} charts, {stats.accepted:,} samples accepted, "
         f"{stats.rejected:,} rejected, {field.nstored:,} vertices over the charts "
         f"(duplication {field.duplication:.2f}), built in {stats.seconds:.1f} s")
@@ -318,7 +327,8 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     azimuths = [name.split("_")[0] for name, _ in views[:AZIMUTHS]]
     contact_sheet(out / "contact_sheet.png", sheet_rows, azimuths)
     result = {
-        "scene": scene, "atlas_kind": atlas, "unit": unit, "isometric": isometric, "samples": n, "eyes": neyes, "seed": seed, "width": width,
+        "scene": scene, "atlas_kind": atlas, "unit": field.atlas.unit,
+        "unit_from": "data" if unit == "data" else "given", "isometric": isometric, "samples": n, "eyes": neyes, "seed": seed, "width": width,
         "supersample": supersample, "channels": channels,
         "eye_radius": ORBIT_EYE_RADIUS, "ball_radius": ORBIT_RADIUS,
         "atlas": {"charts": field.atlas.ncharts, "inner": field.atlas.inner,

@@ -26,6 +26,7 @@ from ..basis import Basis
 from ..field import AddResult, PreparedBatch
 from ..flats import Flats
 from .backend import FieldRow, LogBackend, LogEntry, SnapshotGoneError
+from .blobs import split_batch
 from .catalogue import FieldCatalogue, FieldState
 from .entry import FieldEntry, FieldSpec, SampledField
 from .homes import LocalHome
@@ -42,6 +43,24 @@ RESTORE_RETRY_S = 1.0
 
 class Stopped(Exception):
     """The applier was asked to stop in the middle of an entry."""
+
+
+def adopt_unit(field, unit: float | None) -> None:
+    """The unit recorded with a stored batch (:func:`.blobs.split_batch`): a field
+    whose unit is chosen from the data and that has inserted no batch yet takes it
+    (:meth:`flatserve.atlas_field.AtlasField.settle_unit`), so that it charts its
+    first batch in the unit the replica that stored the batch chose, not one of
+    its own (a replica, a restart, a shard of a cluster). Other fields: nothing."""
+    if unit is not None and getattr(field, "unit_from_data", False):
+        field.settle_unit(unit, if_empty=True)
+
+
+def _unit_of(field) -> float | None:
+    """An atlas field's unit of length; None while it is still to be chosen (or for a
+    field without one)."""
+    if getattr(field, "unit_pending", False):
+        return None
+    return getattr(getattr(field, "atlas", None), "unit", None)
 
 
 def stored_flats(e: FieldEntry, form: str | None, arrays: dict) -> Flats:
@@ -184,12 +203,21 @@ class LogApplier:
             if self.stopping:
                 raise Stopped()
             t0 = time.perf_counter()
+            if prepared is not None and getattr(prepared, "unit", None) is not None and \
+                    prepared.unit != _unit_of(e.field):
+                # charted by the upload room in the unit stored with it: the field's first
+                # batch sets the field's unit to it; a later one (another replica's batch
+                # came first) is charted again in the field's unit
+                adopt_unit(e.field, prepared.unit)
+                if prepared.unit != _unit_of(e.field):
+                    prepared = None
             if prepared is None:
                 try:
                     arrays = dict(self.storage.batch_arrays(e.id, entry.seq))
                 except FieldNotFoundError:
                     return None, None  # deleted meanwhile: its delete entry follows
-                values = arrays.pop("values")
+                arrays, values, unit = split_batch(arrays)
+                adopt_unit(e.field, unit)
                 prepared = e.field.prepare(stored_flats(e, None, arrays), values)
             try:
                 with e.index_lock:
@@ -320,8 +348,8 @@ class LogApplier:
             done, tlast, replayed = 0, time.perf_counter(), 0
             seq, pos = start, start_pos
             for b in todo:
-                arrays = dict(self.storage.batch_arrays(e.id, b.seq))
-                values = arrays.pop("values")
+                arrays, values, unit = split_batch(self.storage.batch_arrays(e.id, b.seq))
+                adopt_unit(fld, unit)
                 prepared = fld.prepare(stored_flats(e, b.form, arrays), values)
                 replayed += int(fld.insert_prepared(
                     prepared, slice_rows=self.settings.insert_slice_rows).accepted)

@@ -59,3 +59,22 @@ def content_hash(form: str, arrays: dict[str, np.ndarray]) -> str:
         h.update(f"|{name}{a.shape}|".encode())
         h.update(a.data)
     return h.hexdigest()
+
+
+#: The array that a batch of a field whose unit of length is chosen from the data
+#: carries beside its flats and ``values``: shape (1,), the unit its rows were
+#: charted in (the unit the field chose from its first batch,
+#: :func:`flatserve.atlas.data_unit`). It is stored with every batch of such a
+#: field, so the first stored batch records the unit for every replica, restart
+#: and shard (:func:`split_batch`, :func:`flatserve.service.applier.adopt_unit`);
+#: it is not part of the batch's content hash (what the client sent).
+UNIT_ARRAY = "unit"
+
+
+def split_batch(arrays: dict[str, np.ndarray]) -> tuple[dict, np.ndarray, float | None]:
+    """A stored batch's arrays (:func:`unpack_arrays`) split into its flats' arrays
+    (by name), its ``values`` and the unit recorded with it (None: none recorded)."""
+    arrays = dict(arrays)
+    values = arrays.pop("values")
+    unit = arrays.pop(UNIT_ARRAY, None)
+    return arrays, values, None if unit is None else float(np.asarray(unit).reshape(-1)[0])

@@ -23,8 +23,10 @@ with named arrays: ``origins`` + ``directions``, or ``A`` + ``b``, or ``Q`` + ``
 every header (and every ``.npz`` member) before it reads or inflates any data.
 
 Query responses per ``Accept``: ``application/json`` (default), ``application/x-npy``
-(shape ``(q, C + 1 [+ 2 (D+1)])`` float64: values, inside as 0/1, then if asked
-sample ids and barycentric weights), ``application/x-npz`` (``values``,
+(shape ``(q, C + 1 [+ 2 (D+1)] [+ 1])`` float32 or float64: values, inside as 0/1,
+then if asked (``weights=true``) sample ids and barycentric weights, and with
+``status=true`` last the status code of each row,
+:class:`flatserve.coordinates.Status`), ``application/x-npz`` (``values``,
 ``inside``, ``status``, ``ids``, ``weights``).
 """
 from __future__ import annotations
@@ -324,9 +326,10 @@ def check_answer(rows: int, per_row: int, kind: str, *, max_json: int, max_binar
         + (f"{bulk}, or send" if bulk else "send") + f" at most {fits:,} rows a request")
 
 
-def query_numbers(kind: str, channels: int, ndim: int, weights: bool) -> int:
+def query_numbers(kind: str, channels: int, ndim: int, weights: bool,
+                  status: bool = False) -> int:
     """Numbers per row of a query's answer (see :func:`query_response`)."""
-    per = channels + 1 + (kind != "npy")  # values, inside (+ status but in .npy)
+    per = channels + 1 + (kind != "npy" or status)  # values, inside (+ status)
     return per + (2 * (ndim + 1) if weights else 0)
 
 
@@ -336,7 +339,11 @@ def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     return buf.getvalue()
 
 
-def query_response(accept: str | None, values, inside, status, ids=None, weights=None) -> Response:
+def query_response(accept: str | None, values, inside, status, ids=None, weights=None, *,
+                   npy_status: bool = False) -> Response:
+    """A query's answer per ``Accept``: JSON and ``.npz`` carry every array by name;
+    ``.npy`` is one array of rows ``values | inside [| ids | weights] [| status]``
+    (``status`` only with ``npy_status``, the query's ``status=true``)."""
     kind = accept_kind(accept)
     if kind == "npy":
         cols = [np.asarray(values), np.asarray(inside)]
@@ -344,6 +351,8 @@ def query_response(accept: str | None, values, inside, status, ids=None, weights
             cols.append(np.asarray(ids))
         if weights is not None:
             cols.append(np.asarray(weights))
+        if npy_status:
+            cols.append(np.asarray(status))
         return Response(_npy.columns_to_buffer(cols), media_type=NPY)
     if kind == "npz":
         arrs = {"values": values, "inside": inside, "status": status}

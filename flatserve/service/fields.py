@@ -138,7 +138,8 @@ def _atlas_info(d: dict) -> AtlasInfo | None:
         return None
     info = at.get("info") or {}
     return AtlasInfo(method=info.get("method"), oriented=at["oriented"], inner=at["inner"],
-                     trusted=at["trusted"], reach=at["reach"], unit=at.get("unit", 1.0),
+                     trusted=at["trusted"], reach=at["reach"], unit=at["unit"],
+                     unit_from=at["unit_from"],
                      isometric=bool(at.get("isometric")),
                      covering_radius=info.get("covering_radius_deg"),
                      max_sample_angle=info.get("max_sample_angle_deg"),

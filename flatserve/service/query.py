@@ -57,6 +57,9 @@ class QueryParams(BaseModel):
     outside: Outside = Outside.NAN
     order: Order = Order.HILBERT
     weights: bool = Field(False, description="Also return sample ids and weights.")
+    status: bool = Field(False, description="`.npy` answers: also a last column of status codes "
+                                            "(rows `values | inside | status`; JSON and `.npz` "
+                                            "answers always carry `status`).")
     wait: bool = Field(False, description="First wait until every batch acknowledged so far, "
                                           "by any replica (also with wait=false), is indexed "
                                           "here.")
@@ -153,7 +156,8 @@ async def answer(queries: QueryService, name: str, params: QueryParams, body: by
         flats = await anyio.to_thread.run_sync(decode)
     kind = codec.accept_kind(accept)
     w = params.weights
-    codec.check_answer(len(flats), codec.query_numbers(kind, e.spec.channels, e.field.ndim, w),
+    st = params.status
+    codec.check_answer(len(flats), codec.query_numbers(kind, e.spec.channels, e.field.ndim, w, st),
                        kind, max_json=settings.max_json_answer_bytes,
                        max_binary=settings.max_answer_bytes,
                        bulk=f"ask for {codec.NPY} (Accept header), the bulk answer"
@@ -166,7 +170,8 @@ async def answer(queries: QueryService, name: str, params: QueryParams, body: by
         t = time.perf_counter()
         times["query"] = t - t1
         out = codec.query_response(accept, res.values, res.inside, res.status,
-                                   res.ids if w else None, res.weights if w else None)
+                                   res.ids if w else None, res.weights if w else None,
+                                   npy_status=st)
         times["encode"] = time.perf_counter() - t
         return out
 

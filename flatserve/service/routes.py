@@ -215,8 +215,10 @@ def upload_samples(
                                        "description": "Interpolated values."}},
     summary="Interpolate values at a batch of flats",
     description=_LAYOUT + " Response per `Accept`: JSON (default), `application/x-npy` "
-                "(q, C + 1 [+ 2 (D+1)]) float64: values, inside as 0/1, then with "
-                "`weights=true` sample ids and barycentric weights; or `application/x-npz`.",
+                "(q, C + 1 [+ 2 (D+1)] [+ 1]) float32 or float64: values, inside as 0/1, then "
+                "with `weights=true` sample ids and barycentric weights, and with "
+                "`status=true` last each row's status code (the codes of JSON's `status`, "
+                "listed in its schema); or `application/x-npz`.",
 )
 async def query_field(
     name: FieldNamePath, queries: QueriesDep, body: BodyDep,

@@ -258,9 +258,12 @@ class FieldCreate(_KD):
         description="Atlas fields: the unit of length of the charts, in the flats' units "
                     "(1e-6 to 1e6): the "
                     "shift of a flat that counts as much as a turn of one radian (at a chart's "
-                    "centre shifts and turns are then weighed alike). Default 1. For rays of "
-                    "an object: about its half-size (rays meeting on its surface at depth z "
-                    "from its centre differ by a shift of z times their turn).")
+                    "centre shifts and turns are then weighed alike). For rays of an object: "
+                    "about its half-size (rays meeting on its surface at depth z from its "
+                    "centre differ by a shift of z times their turn). Left out: chosen from "
+                    "the field's first batch of samples and stored with it (the mean distance "
+                    "of its flats from their least-squares centre, samples of a background "
+                    "value left out: flatserve.atlas.data_unit); describe gives it.")
     copies: int = Field(
         1, ge=1, le=3,
         description="Cluster mode (`serve --ray`): copies of each shard, each on a different "
@@ -278,7 +281,8 @@ class BasisInfo(BaseModel):
     dim: int = Field(description="(k+1)(d-k): dimension of the coordinate space.")
     spec: dict
     Q: Optional[Mats] = Field(None, description="The basis flats (m, d, d); of an atlas field, "
-                                                "chart 0's (`verbose=true` only).")
+                                                "chart 0's as created, in the unit given then "
+                                                "(`verbose=true` only).")
     r: Optional[Mat] = Field(None, description="(m, d) (`verbose=true` only).")
 
 
@@ -304,7 +308,12 @@ class AtlasInfo(BaseModel):
                                        "query (its blending weight is 0).")
     reach: float = Field(description="Degrees: samples are inserted into every chart whose "
                                      "centre is closer.")
-    unit: float = Field(1.0, description="The charts' unit of length (the field's `unit`).")
+    unit: Optional[float] = Field(
+        1.0, description="The charts' unit of length (the field's `unit`); null while it is "
+                         "to be chosen from the first batch of samples.")
+    unit_from: str = Field("given", description="`given` (the create request's `unit`, or 1 "
+                                                "for fields stored before the choice from the "
+                                                "data) or `data` (chosen from the first batch).")
     isometric: bool = Field(False, description="The charts' points are warped to measure turns "
                                                "and shifts everywhere as at their centres "
                                                "(lines in R^3, created since this existed; "
@@ -468,7 +477,7 @@ class UploadBody(QueryBody):
 class QueryResponse(BaseModel):
     values: list[list[Optional[float]]] = Field(description="(q, C); null outside (outside=nan).")
     inside: list[bool]
-    status: list[int] = Field(description="Coordinate status per row: " + "; ".join(
+    status: list[int] = Field(description="Status per row: " + "; ".join(
         f"{int(code)} {text}" for code, text in REASONS.items()) + ".")
     ids: Optional[list[list[int]]] = Field(None, description="(q, D+1) sample ids, -1 for none.")
     weights: Optional[list[list[Optional[float]]]] = Field(None, description="(q, D+1) barycentric.")

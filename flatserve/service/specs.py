@@ -179,7 +179,7 @@ def build_chart_basis(req, *, max_atlas_samples: int | None = None
             "unit")
     if isinstance(spec, ATLAS_SPECS):
         atlas = build_atlas(spec, k, d, oriented=oriented, max_atlas_samples=max_atlas_samples,
-                            unit=1.0 if unit is None else unit)
+                            unit=unit)
         return atlas.bases[0], _atlas_spec_dict(spec), atlas.to_dict()
     return build_basis(spec, k, d).require_full(), spec_dict(spec), None
 
@@ -189,7 +189,7 @@ MAX_ATLAS_CENTERS = 1024
 
 
 def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
-                max_atlas_samples: int | None = None, unit: float = 1.0) -> Atlas:
+                max_atlas_samples: int | None = None, unit: float | None = None) -> Atlas:
     """The :class:`flatserve.atlas.Atlas` of an atlas spec (errors name ``basis.<member>``).
 
     ``covering``: :meth:`Atlas.covering`. ``samples``: :meth:`Atlas.for_samples` of the
@@ -197,7 +197,9 @@ def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
     charts hold every one of them. ``centers``: :meth:`Atlas.from_centers`, refused
     (422) unless every orientation lies within a chart's trusted radius and every chart
     round-trips its domain. ``unit``: the charts' unit of length (the field's `unit`,
-    stored in the atlas: a restored field keeps it)."""
+    stored in the atlas: a restored field keeps it); None: chosen from the field's
+    first batch (:func:`flatserve.atlas.data_unit`; the upload room stores it with the
+    batch)."""
     if isinstance(spec, CoveringAtlas):
         with _within("basis"):
             return Atlas.covering(k, d, oriented=oriented, unit=unit, reach=spec.reach)

@@ -89,10 +89,11 @@ class TransferService:
                 parts.setdefault(_member(b.form, name), []).append(np.asarray(arrays[name]))
             parts.setdefault("values", []).append(np.asarray(arrays["values"]))
             batches.append({"seq": b.seq, "form": b.form, "rows": b.nrows})
+        spec, basis = _settled(e), e.basis
         manifest = {"format": EXPORT_FORMAT, "field": e.name, "export_id": uuid.uuid4().hex,
-                    "spec": e.spec.to_dict(), "batches": batches}
+                    "spec": spec, "batches": batches}
         out = {MANIFEST: np.frombuffer(json.dumps(manifest).encode(), np.uint8),
-               "basis_Q": e.basis.Q, "basis_r": e.basis.r}
+               "basis_Q": basis.Q, "basis_r": basis.r}
         for name, arrs in parts.items():
             out[name] = np.concatenate(arrs)
         if "values" not in out:
@@ -157,6 +158,21 @@ class _Batches(list):
     """The manifest's batches, with the file's arrays by member name."""
 
     arrays: dict[str, np.ndarray]
+
+
+def _settled(e: FieldEntry) -> dict:
+    """The stored definition of ``e`` as exported: a unit of length it chose from its
+    first batch is written in (the atlas in that unit, its warps calibrated again on
+    import), so the imported field charts its batches in it from the start (the basis
+    exported beside it stays the one stored at its creation, chart 0's as described)."""
+    spec = e.spec.to_dict()
+    f, at = e.field, (spec.get("atlas") or None)
+    if at is None or not at.get("unit_from_data") or getattr(f, "unit_pending", True):
+        return spec
+    at = {k: v for k, v in at.items() if k not in ("unit_from_data", "warps")}
+    at["unit"] = f.atlas.unit
+    at["info"] = {**at.get("info", {}), "unit_from": "data"}
+    return {**spec, "atlas": at}
 
 
 def _bad(msg: str) -> InvalidInputError:

@@ -31,11 +31,12 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from ..atlas import data_unit
 from ..field import AddResult, PreparedBatch
 from ..flats import Flats
 from .applier import stored_flats
 from .backend import BatchRow, KeyTakenError, LogBackend
-from .blobs import content_hash, pack_arrays
+from .blobs import UNIT_ARRAY, content_hash, pack_arrays, split_batch
 from .costs import COST_MIN_SAMPLES, cells_per_sample
 from .entry import FieldEntry
 from .replica import Follower
@@ -194,10 +195,21 @@ class UploadService:
         t1 = time.perf_counter()
         # bad input is refused here, before anything is stored; charting cannot fail
         # on validated input (each row gets a status)
-        chart = e.field.prepare(flats, values, defer=True)
+        # a field whose unit of length comes from the data and that has inserted no batch
+        # here yet: this batch is charted in its own unit (data_unit of its rows), which
+        # is stored with it; the batch first in the log sets the field's unit everywhere
+        # (applier.adopt_unit; a batch charted here in another unit is charted again
+        # when applied). The field itself is not changed here.
+        record = {}
+        target = e.field
+        if getattr(e.field, "unit_from_data", False):
+            e.field.prepare(flats, values, defer=True)  # validates (raises) first
+            unit = data_unit(flats, values)
+            target, record = e.field.in_unit(unit), {UNIT_ARRAY: np.array([unit])}
+        chart = target.prepare(flats, values, defer=True)
         packing = self._commits.submit(
             lambda: (content_hash(flats.form, stored) if chash is None else chash,
-                     pack_arrays(stored)))
+                     pack_arrays({**stored, **record})))
         prepared = chart()  # no lock: reads the basis only
         timings["prepare"] = time.perf_counter() - t1
         h, blob = packing.result()
@@ -268,8 +280,7 @@ class UploadService:
         the batch's arrays if a crash lost it (see the storage module doc)."""
         if result is not None:
             return UploadResult.model_validate(result)
-        arrays = self.storage.batch_arrays(e.id, seq)
-        values = arrays.pop("values")
+        arrays, values, _ = split_batch(self.storage.batch_arrays(e.id, seq))
         prepared = e.field.prepare(stored_flats(e, form, arrays), values)
         row = next((b for b in self.storage.batches(e.id, after_seq=seq - 1) if b.seq == seq),
                    None)

@@ -9,7 +9,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from flatserve import flats
+from flatserve.atlas import Atlas
+from flatserve.atlas_field import AtlasField
 from flatserve.client import Client
+from flatserve.coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK
+from flatserve.field import Field
 from flatserve.service.status import FieldExistsError as ConflictError
 from flatserve.service.status import FieldNotFoundError as NotFoundError
 from flatserve.errors import InvalidInputError as InvalidError
@@ -615,3 +619,71 @@ def test_a_unit_out_of_range_is_refused_naming_unit(api, unit):
     r = tc.post("/v1/fields", json={"name": "u", "k": 1, "d": 3, "unit": unit})
     assert r.status_code == 422, r.text
     assert r.json()["detail"][0]["loc"][-1] == "unit", r.text
+
+
+def _near(rng, n, axis, half_deg):
+    """Rays through [-1, 1]^3 whose directions lie within ``half_deg`` of ``axis``."""
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    w = rng.normal(size=(n, 3))
+    w -= (w @ a)[:, None] * a
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    t = np.radians(half_deg) * np.sqrt(rng.uniform(size=n))
+    return rng.uniform(-1, 1, (n, 3)), np.cos(t)[:, None] * a + np.sin(t)[:, None] * w
+
+
+@pytest.mark.parametrize("kind", ["one-chart", "default-atlas", "samples-atlas"])
+def test_status_tells_empty_charts_from_unreachable_flats(api, rng, kind):
+    """Empty, then partly filled: each transport answers the library's status per row;
+    NO_SAMPLES (4) where the charts holding a flat have no simplex yet, NOT_REPRESENTABLE
+    (1) where no chart holds it (the one chart's far side; beyond a samples atlas)."""
+    tc, c = api
+    near_z = flats.Flats.from_rays(*_near(rng, 400, [0, 0, 1], 30))
+    if kind == "one-chart":
+        basis, ref = {"kind": "tangent_simplex"}, Field(specs.build_basis(None, 1, 3), C)
+    elif kind == "default-atlas":
+        basis, ref = None, AtlasField(Atlas.covering(1, 3, unit=None), channels=C)
+    else:
+        o, v = near_z.arrays["origins"], near_z.arrays["directions"]
+        basis = {"kind": "atlas", "atlas": "samples",
+                 "samples": {"origins": o.tolist(), "directions": v.tolist()}}
+        ref = AtlasField(Atlas.for_samples(near_z, unit=None), channels=C)
+    c.create_field("st", channels=C, basis=basis)
+    qo, qv = map(np.concatenate, zip(_near(rng, 150, [0, 0, 1], 10),
+                                     _near(rng, 150, [1, 0, 0], 10)))  # near z; near x
+    body = npy(np.c_[qo, qv])
+    hdr = {"Content-Type": "application/x-npy"}
+
+    def check(expected_codes):
+        want = query_rays(ref, qo, qv)
+        assert set(want.status.tolist()) == expected_codes
+        for binary in (True, False):
+            got = c.query_rays("st", qo, qv, binary=binary)
+            np.testing.assert_array_equal(got.status, want.status)
+            np.testing.assert_array_equal(got.inside, want.inside)
+            np.testing.assert_allclose(got.values, want.values, atol=1e-12, equal_nan=True)
+        plain = np.load(io.BytesIO(tc.post("/v1/fields/st/query", content=body,
+                                           headers={**hdr, "Accept": "application/x-npy"}).content))
+        assert plain.shape == (300, C + 1)  # without status=true: values | inside, as before
+        r = tc.post("/v1/fields/st/query?status=true", content=body,
+                    headers={**hdr, "Accept": "application/x-npy"})
+        arr = np.load(io.BytesIO(r.content))
+        assert arr.shape == (300, C + 2)
+        np.testing.assert_array_equal(arr[:, :C + 1], plain)
+        np.testing.assert_array_equal(arr[:, -1], want.status)
+        r = tc.post("/v1/fields/st/query", content=body,
+                    headers={**hdr, "Accept": "application/x-npz"})
+        with np.load(io.BytesIO(r.content)) as z:
+            np.testing.assert_array_equal(z["status"], want.status)
+        j = tc.post("/v1/fields/st/query", content=body, headers=hdr).json()
+        assert j["status"] == want.status.tolist()
+        return want
+
+    far = NO_SAMPLES if kind == "default-atlas" else NOT_REPRESENTABLE
+    want = check({NO_SAMPLES, far})  # empty
+    assert (want.status[:150] == NO_SAMPLES).all() and (want.status[150:] == far).all()
+    o, v = _near(rng, 1500, [0, 0, 1], 20)
+    val = rng.normal(size=(1500, C))
+    c.upload_rays("st", o, v, val)
+    add_rays(ref, o, v, val)
+    want = check({OK, far})  # the charts near z filled; those near x still empty (or none)
+    assert (want.status[:150] == OK).all() and (want.status[150:] == far).all()

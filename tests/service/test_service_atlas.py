@@ -57,8 +57,7 @@ def same_answers(c, name, probe, want):
     for binary in (True, False):
         got = c.query_rays(name, *probe, binary=binary)
         np.testing.assert_array_equal(got.inside, want.inside)
-        if not binary:  # (the .npy response carries no status)
-            np.testing.assert_array_equal(got.status, want.status)
+        np.testing.assert_array_equal(got.status, want.status)
         np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12, equal_nan=True)
 
 
@@ -66,7 +65,7 @@ def test_covering_atlas_field_accepts_every_orientation_and_restores(make_app, r
     batches = [sphere_rays(rng, 700) for _ in range(4)]
     batches = [(o, v, line_values(o, v)) for o, v in batches]
     probe = sphere_rays(rng, 400, spread=0.5)
-    ref = AtlasField(Atlas.covering(1, 3), channels=C)
+    ref = AtlasField(Atlas.covering(1, 3, unit=None), channels=C)  # (no unit: from the data)
 
     tc, c = started(make_app())
     try:
@@ -296,7 +295,7 @@ def test_samples_atlas_charts_where_the_flats_are(make_app, rng):
     o = rng.uniform(-2, 2, (n, 3)) + [5, 0, 0]
     val = np.c_[o[:, 1], v[:, 2]]
     flats = Flats.from_rays(o, v)
-    ref = AtlasField(Atlas.for_samples(flats), channels=C)
+    ref = AtlasField(Atlas.for_samples(flats, unit=None), channels=C)
     assert ref.atlas.ncharts > 1
     A, b = v[:, :, None], o
     tc, c = started(make_app(max_atlas_samples=n))
@@ -399,12 +398,13 @@ def test_atlas_specs_that_do_not_cover_what_they_claim_are_refused(api, rng):
     refused(centers(np.tile(ico, (200, 1))), ["basis", "centers"], "1200 flats", "at most")
     refused(centers(ico, scale=0), ["basis", "atlas", "centers", "scale", "constrained-float"],
             "greater than 0")
-    # flats the data-driven atlas cannot chart (offsets far beyond what a scale holds)
+    # flats the data-driven atlas cannot chart (offsets far beyond what a scale holds in
+    # the unit 1; a unit from the data, the default, would be their own size)
     v = cone(rng, 200, [1, 0, 0], 20)
     o = rng.uniform(-1e6, 1e6, (200, 3))
     refused({"kind": "atlas", "atlas": "samples",
              "samples": {"origins": o.tolist(), "directions": v.tolist()}},
-            ["basis", "samples"], "does not chart", "not representable")
+            ["basis", "samples"], "does not chart", "not representable", unit=1.0)
     # oriented: centres and samples must be rays; (Q, r) has no orientation
     Q, r = Flats.from_rays(np.zeros((6, 3)), ico).quadrics()
     refused({"kind": "atlas", "atlas": "centers", "centers": {"Q": Q.tolist(), "r": r.tolist()}},
@@ -469,7 +469,9 @@ def test_unit_of_length_is_validated_stored_and_restored(make_app, rng):
     try:
         info = c.create_field("u", channels=C, oriented=True, unit=0.4)  # no basis
         assert info["atlas"]["unit"] == 0.4 and len(info["charts"]) == 32
-        assert c.create_field("one", channels=C)["atlas"]["unit"] == 1.0  # the default
+        assert info["atlas"]["unit_from"] == "given"
+        dflt = c.create_field("one", channels=C)["atlas"]  # the default: from the data
+        assert dflt["unit"] is None and dflt["unit_from"] == "data"
         c.upload_rays("u", o, v, val)
         same_answers(c, "u", probe, want)
         for body, words in (({"unit": 0}, ()), ({"unit": -1.0}, ()), ({"unit": "x"}, ()),
@@ -496,7 +498,7 @@ def test_reach_of_a_covering_atlas_is_validated_stored_and_restored(make_app, rn
     o, v = sphere_rays(rng, 1500, spread=0.5)
     val = line_values(o, v)
     probe = sphere_rays(rng, 300, spread=0.4)
-    ref = AtlasField(Atlas.covering(1, 3, oriented=True, reach=35.0), channels=C)
+    ref = AtlasField(Atlas.covering(1, 3, oriented=True, reach=35.0, unit=None), channels=C)
     ref.add(Flats.from_rays(o, v), val)
     want = ref.query(Flats.from_rays(*probe))
     tc, c = started(make_app())
@@ -543,7 +545,7 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
     probe = sphere_rays(rng, 300, spread=0.4)
     paper = AtlasField(Atlas.covering(1, 3, oriented=True, isometric=False), channels=C)
     paper.add(Flats.from_rays(o, v), val)
-    iso = AtlasField(Atlas.covering(1, 3, oriented=True), channels=C)
+    iso = AtlasField(Atlas.covering(1, 3, oriented=True, unit=None), channels=C)
     iso.add(Flats.from_rays(o, v), val)
     want_paper = paper.query(Flats.from_rays(*probe))
     assert not np.allclose(iso.query(Flats.from_rays(*probe)).values, want_paper.values,
@@ -558,7 +560,8 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
     db = sqlite3.connect(tmp_path / "data" / DB_NAME)
     (spec,) = db.execute("SELECT spec FROM fields WHERE name = 'old'").fetchone()
     spec = json.loads(spec)
-    del spec["atlas"]["isometric"]  # as an earlier version stored it
+    del spec["atlas"]["isometric"]  # as an earlier version stored it (unit 1 then)
+    del spec["atlas"]["unit_from_data"]
     db.execute("UPDATE fields SET spec = ? WHERE name = 'old'", (json.dumps(spec),))
     db.commit()
     db.close()
@@ -568,3 +571,77 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
         same_answers(c, "old", probe, want_paper)
     finally:
         tc.__exit__(None, None, None)
+
+
+def test_a_first_batch_of_one_flat_gives_the_default_unit_and_later_batches_keep_it(api, rng):
+    """One flat has no spread: data_unit is 1 (DEFAULT_UNIT), taken from the first
+    batch (inserted through this replica's own hand-over) and kept by the next."""
+    from flatserve.atlas import DEFAULT_UNIT
+
+    tc, c = api
+    c.create_field("one", channels=C)
+    c.upload_rays("one", [[0.1, 0.2, -3.0]], [[0, 0, 1.0]], [[0.5, 0.5]])
+    assert c.describe("one")["atlas"]["unit"] == DEFAULT_UNIT
+    o, v = sphere_rays(rng, 2000, spread=3.0)
+    assert c.upload_rays("one", o, v, line_values(o, v))["accepted"] == 2000
+    got = c.describe("one")["atlas"]
+    assert got["unit"] == DEFAULT_UNIT and got["unit_from"] == "data"
+
+
+def test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches(make_app, rng,
+                                                                         monkeypatch):
+    """A field created without ``unit`` takes data_unit of its first batch; the unit
+    is stored with the batches, so a restart (from the log, then from a snapshot) and
+    an import get it from storage, not by choosing again: with the estimator
+    replaced by another answer meanwhile they still have the recorded unit."""
+    import flatserve.atlas_field
+    import flatserve.service.uploads
+    from flatserve.atlas import data_unit
+
+    batches = []
+    for _ in range(2):
+        o, v = sphere_rays(rng, 900, spread=2.0)
+        batches.append((o, v, line_values(o, v)))
+    probe = sphere_rays(rng, 300, spread=1.5)
+    u = data_unit(Flats.from_rays(*batches[0][:2]), batches[0][2])
+    assert abs(u - 1.0) > 0.2  # not the former default
+    ref = AtlasField(Atlas.covering(1, 3, oriented=True, unit=None), channels=C)
+    for o, v, val in batches:
+        ref.add(Flats.from_rays(o, v), val)
+    assert ref.atlas.unit == u
+    want = ref.query(Flats.from_rays(*probe))
+    tc, c = started(make_app())
+    try:
+        info = c.create_field("auto", channels=C, oriented=True)
+        assert info["atlas"]["unit"] is None and info["atlas"]["unit_from"] == "data"
+        for o, v, val in batches:
+            c.upload_rays("auto", o, v, val)
+        got = c.describe("auto")["atlas"]
+        assert got["unit"] == u and got["unit_from"] == "data"
+        same_answers(c, "auto", probe, want)
+        export = c.export_field("auto")
+    finally:
+        tc.__exit__(None, None, None)
+
+    def other(*a, **kw):
+        return 5.0
+
+    monkeypatch.setattr(flatserve.atlas_field, "data_unit", other)
+    monkeypatch.setattr(flatserve.service.uploads, "data_unit", other)
+    for snapshot in (False, True):  # restored from the log, then from a snapshot
+        tc, c = started(make_app())
+        try:
+            assert c.describe("auto")["atlas"]["unit"] == u
+            same_answers(c, "auto", probe, want)
+            if snapshot:
+                c.import_field("copy", export)
+                assert c.describe("copy")["atlas"]["unit"] == u
+                same_answers(c, "copy", probe, want)
+                fresh = c.create_field("fresh", channels=C, oriented=True)["atlas"]
+                assert fresh["unit"] is None
+                c.upload_rays("fresh", *batches[0])
+                assert c.describe("fresh")["atlas"]["unit"] == 5.0  # the estimator's answer
+            else:
+                c.snapshot("auto")
+        finally:
+            tc.__exit__(None, None, None)

@@ -32,7 +32,9 @@ import time
 from ...basis import Basis
 from ...contract import load_field
 from ...flats import Flats
+from ..applier import adopt_unit
 from ..backend import LogBackend, SnapshotGoneError, open_backend
+from ..blobs import split_batch
 from ..entry import FieldSpec
 from ..status import (FieldNotFoundError, NotReadyError, ShardUnavailableError, StorageError,
                       StorageUnavailableError)
@@ -231,8 +233,8 @@ class ShardWorker:
     def _apply(self, en) -> None:
         spec = self.spec
         t0 = time.perf_counter()
-        arrays = dict(self.storage.batch_arrays(self.field_id, en.seq))
-        values = arrays.pop("values")
+        arrays, values, unit = split_batch(self.storage.batch_arrays(self.field_id, en.seq))
+        adopt_unit(self.field, unit)
         flats = Flats.from_arrays(arrays, k=spec.k, d=spec.d)
         t1 = time.perf_counter()
         prepared = self.field.prepare(flats, values, only=self.only)

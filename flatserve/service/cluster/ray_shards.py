@@ -226,7 +226,7 @@ class RayCluster:
     async def aget(self, ref, timeout: float):
         """:meth:`get` awaited on the event loop (a timeout: ``asyncio.TimeoutError``)."""
         try:
-            return await asyncio.wait_for(ref.as_future(), max(timeout, 0.0))
+            return await asyncio.wait_for(asyncio.wrap_future(ref.future()), max(timeout, 0.0))
         except self._task_error as exc:
             raise self._cause(exc) from None
 

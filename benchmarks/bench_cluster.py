@@ -5,8 +5,9 @@ Same run, same data, both on one throwaway PostgreSQL (tests/harness):
 * the peer: a lone server (``flatserve serve``, ``shard_threads=1``, pinned to one
   core with ``taskset``) that holds its fields itself;
 * ours: a front (``serve --ray``) over a real Ray cluster on loopback: a head that
-  holds no shard (no memory resource) and two worker nodes of 1 CPU each;
-  ``ray_shards=2`` (one shard group per node).
+  holds no shard (no memory resource) and two worker nodes of 1 CPU each, their
+  shard actors at niceness 0 like the peer (``RAY_worker_niceness``,
+  tests/harness/raycluster.py); ``ray_shards=2`` (one shard group per node).
 
 The field is the demo's: rays from eyes all around the bunny
 (:func:`flatserve.lightfield.sampling.orbit_samples`), an oriented covering atlas

@@ -179,6 +179,8 @@ def test_cluster_ray_nodes_run_the_image_and_join_the_head():
     for name, svc in workers.items():
         assert option(svc["command"], "--address") == f"{head}:{port}", name
         assert svc["depends_on"][head]["condition"] == "service_healthy", name
+        # the shard actors run at niceness 0, not Ray's 15 for its workers
+        assert svc["environment"]["RAY_worker_niceness"] == "0", name
 
 
 def test_cluster_memory_budgets_hold_whole_shards():

@@ -346,6 +346,8 @@ def test_two_containers_on_one_postgresql(containers, pg_cluster):
 RAY_TEMP = "/var/lib/flatserve/ray"
 #: every Ray process binds and advertises 127.0.0.1 only (the design notes)
 LOOPBACK_RAY = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+#: a node holding shard actors runs them at niceness 0 (docker/compose-cluster.yaml)
+SHARD_NODE = {**LOOPBACK_RAY, "RAY_worker_niceness": "0"}
 MiB = 1 << 20
 
 
@@ -376,7 +378,7 @@ def test_image_as_a_ray_head_node_and_a_front_on_it(containers, pg_cluster):
         ["ray", "start", "--head", "--port", str(gcs), "--block", "--num-cpus", "1",
          "--memory", str(2048 * MiB), "--object-store-memory", str(200 * MiB),
          "--include-dashboard", "false", "--temp-dir", RAY_TEMP, *ray_node_ports()],
-        LOOPBACK_RAY)
+        SHARD_NODE)
     end = time.monotonic() + READY_TIMEOUT_S
     while True:  # compose's health check of the head
         p = docker("exec", head, "ray", "health-check", "--address", address, check=False,

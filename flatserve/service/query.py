@@ -13,7 +13,10 @@ Where the work runs: small bodies are decoded on the event loop, larger ones
 in the thread pool; queries of fewer than :data:`INLINE_ROWS` rows run (and are
 encoded) inline on one native thread unless an insert may hold the field (they
 would wait on the loop), everything else in the thread pool (the C++ releases
-the GIL), its answer encoded there too. An answer larger than
+the GIL), its answer encoded there too. A small query of a field whose shards
+live in other processes (cluster mode: the field has ``query_async``) is
+routed and blended on the event loop and its shards' answers awaited there
+(:meth:`QueryService.query_inline`): no thread hop. An answer larger than
 ``max_json_answer_bytes`` (JSON) or ``max_answer_bytes`` is refused (413) before
 the query runs (:func:`.codec.check_answer`).
 """
@@ -98,6 +101,35 @@ class QueryService:
         NotReadyError
             ``wait`` and the batches are not indexed in ``apply_wait_timeout`` (503).
         """
+        self._check(e, flats, weights, kw)
+        timeout = self.settings.apply_wait_timeout
+        if wait and not self.follower.wait_all_committed(timeout):
+            raise NotReadyError(f"field {e.name!r}: the acknowledged batches are not indexed "
+                                f"here yet (waited at most {timeout:g} s, "
+                                "FLATSERVE_APPLY_WAIT_TIMEOUT, or the server is stopping); "
+                                "retry shortly")
+        return self._counted(e, e.field.query(flats, return_weights=weights, **kw))
+
+    async def query_inline(self, e: FieldEntry, flats: Flats, *, weights: bool = False,
+                           **kw) -> QueryResult | None:
+        """A small query answered on the event loop (never waiting on it): at once by a
+        field held here, None if an insert holds it (:meth:`query` with
+        ``blocking=False``); a field whose shards live in other processes (its
+        ``query_async``) routes and blends here and awaits their answers.
+
+        Raises
+        ------
+        InvalidInputError, ShardUnavailableError
+            As :meth:`query`, and the field's ``query_async``.
+        """
+        query_async = getattr(e.field, "query_async", None)
+        if query_async is None:
+            return self.query(e, flats, weights=weights, blocking=False, **kw)
+        self._check(e, flats, weights, kw)
+        return self._counted(e, await query_async(flats, return_weights=weights, **kw))
+
+    def _check(self, e: FieldEntry, flats: Flats, weights: bool, kw: dict) -> None:
+        """A query's checks before it runs (and one native thread for small ones)."""
         if len(flats) < SMALL_QUERY_ROWS:  # not worth starting native worker threads
             kw.setdefault("threads", 1)
         if e.deleted:
@@ -108,16 +140,9 @@ class QueryService:
                 "charts, whose sample ids and weights the service does not return; a field "
                 "created with basis {\"kind\": \"tangent_simplex\"} (one chart) returns them",
                 "weights")
-        timeout = self.settings.apply_wait_timeout
-        if wait and not self.follower.wait_all_committed(timeout):
-            raise NotReadyError(f"field {e.name!r}: the acknowledged batches are not indexed "
-                                f"here yet (waited at most {timeout:g} s, "
-                                "FLATSERVE_APPLY_WAIT_TIMEOUT, or the server is stopping); "
-                                "retry shortly")
-        res = e.field.query(flats, return_weights=weights, **kw)
-        if res is None:
-            return None
-        if self.metrics is not None:
+
+    def _counted(self, e: FieldEntry, res: QueryResult | None) -> QueryResult | None:
+        if res is not None and self.metrics is not None:
             self.metrics.queries.labels(e.name).inc()
             self.metrics.query_rows.labels(e.name).inc(len(res.inside))
         return res
@@ -177,7 +202,7 @@ async def answer(queries: QueryService, name: str, params: QueryParams, body: by
 
     resp = None
     if len(flats) < INLINE_ROWS and not params.wait:  # inline, unless an insert holds the field
-        res = queries.query(e, flats, threads=1, blocking=False, **kw)
+        res = await queries.query_inline(e, flats, threads=1, **kw)
         if res is not None:
             resp = encode(res)
     if resp is None:  # the query and its encoding off the event loop

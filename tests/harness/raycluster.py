@@ -6,7 +6,12 @@ CPU and memory resources. Ray listens on all interfaces and advertises the
 machine's outside address unless ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` is in
 the environment of every Ray process (the design notes): set here, before
 anything starts, and inherited by the servers the tests start (their drivers).
-Node death is detected within a few seconds (health checks each second).
+Ray starts its worker processes (the shard actors) at niceness 15 unless
+``RAY_worker_niceness`` says otherwise: set to 0 here, as on a deployment's
+nodes (docker/compose-cluster.yaml), so that the actors share these cores on
+equal terms with the fronts, PostgreSQL and the lone servers the benchmarks
+compare them with (docs/scaling.md). Node death is detected within a few
+seconds (health checks each second).
 """
 from __future__ import annotations
 
@@ -14,6 +19,7 @@ import os
 import time
 
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+os.environ["RAY_worker_niceness"] = "0"
 
 GiB = 1 << 30
 

@@ -83,7 +83,9 @@ def oracle(url: str, name: str, upto: int | None = None):
 
 def assert_same(url: str, front: ServerProcess, name: str, probe, *, weights=False,
                 timeout: float = 120.0) -> None:
-    """The front's answer at the log's head equals the one-process field's, bit for bit."""
+    """The front's answer at the log's head equals the one-process field's, bit for bit:
+    for ``probe`` (answered through the front's thread pool) and for small queries
+    of its first rays (routed and awaited on the front's event loop)."""
     ref, head = oracle(url, name)
     want = ref.query(Flats.from_rays(*probe), return_weights=weights)
     end = time.monotonic() + timeout
@@ -100,11 +102,17 @@ def assert_same(url: str, front: ServerProcess, name: str, probe, *, weights=Fal
         while c.describe(name)["nsamples"] != ref.nsamples and time.monotonic() < end:
             time.sleep(0.5)  # the shards report their sizes each second
         assert c.describe(name)["nsamples"] == ref.nsamples
-    np.testing.assert_array_equal(got.inside, want.inside)
-    np.testing.assert_array_equal(got.values, want.values)  # bit-identical
-    if weights:
-        np.testing.assert_array_equal(got.ids, want.ids)
-        np.testing.assert_array_equal(got.weights, want.weights)
+        small = [(got, want)]
+        for rows in (slice(0, 1), slice(1, 11), slice(11, 74)):
+            o, d = probe[0][rows], probe[1][rows]
+            small.append((c.query_rays(name, o, d, weights=weights, min_position=head),
+                          ref.query(Flats.from_rays(o, d), return_weights=weights)))
+    for got, want in small:
+        np.testing.assert_array_equal(got.inside, want.inside)
+        np.testing.assert_array_equal(got.values, want.values)  # bit-identical
+        if weights:
+            np.testing.assert_array_equal(got.ids, want.ids)
+            np.testing.assert_array_equal(got.weights, want.weights)
 
 
 @pytest.fixture
@@ -216,32 +224,36 @@ def test_a_node_killed_during_uploads_and_queries_loses_nothing(fronts, nodes, p
                 i += 1
                 time.sleep(0.05)
 
-    def reader():
+    def reader(rows, counts):  # large queries (thread pool) or small ones (event loop)
         with Client(a.url, retries=0, timeout=120) as c:
             while not stop.is_set():
                 try:
-                    got = c.query_rays("f", *probe)
+                    got = c.query_rays("f", probe[0][rows], probe[1][rows])
                     assert got.inside.mean() > 0.5, "a partial answer presented as whole"
-                    answered[0] += 1
+                    counts[0] += 1
                 except ServiceError as exc:
                     if exc.status != 503:
                         failures.append(("query", repr(exc)))
-                    answered[1] += 1
+                    counts[1] += 1
                 time.sleep(0.05)
 
-    ts = [threading.Thread(target=writer), threading.Thread(target=reader)]
+    small = [0, 0]
+    ts = [threading.Thread(target=writer),
+          threading.Thread(target=reader, args=(slice(None), answered)),
+          threading.Thread(target=reader, args=(slice(0, 20), small))]
     for t in ts:
         t.start()
     time.sleep(3)
-    before = answered[0]
+    before, before_small = answered[0], small[0]
     nodes.kill(nodes.workers[0])  # a node with shards on it dies
     time.sleep(15)
-    during = answered[0] - before
+    during, during_small = answered[0] - before, small[0] - before_small
     stop.set()
     for t in ts:
         t.join(120)
     assert not failures, failures
     assert during > 0, "no query answered after the node died (a copy keeps reads flowing)"
+    assert during_small > 0, "no small query answered after the node died"
     nodes.add_worker()  # room for the lost copies again
     with Client(a.url, retries=0) as c:
         stored = {b["idempotency_key"]: b["batch"] for b in c.batches("f")}
@@ -302,10 +314,11 @@ def test_the_cluster_lost_while_running_503_then_a_front_restarted_on_the_new_cl
         assert_same(pg_url, a, "f", probe)
         nodes.shutdown()
         with Client(a.url, retries=0, timeout=60) as c:
-            with pytest.raises(ServiceError) as err:
-                c.query_rays("f", *probe)
-            assert err.value.status == 503 and "no live copy" in str(err.value)
-            assert c.last_response.headers.get("retry-after")
+            for rows in (slice(None), slice(0, 3)):  # the thread pool's path, the event loop's
+                with pytest.raises(ServiceError) as err:
+                    c.query_rays("f", probe[0][rows], probe[1][rows])
+                assert err.value.status == 503 and "no live copy" in str(err.value)
+                assert c.last_response.headers.get("retry-after")
             o, d = sphere_rays(rng, 300)  # the log still takes uploads
             acked = c.upload_rays("f", o, d, rng.uniform(size=(300, 2)))
         assert a.proc.wait(120) != 0  # for its supervisor to restart

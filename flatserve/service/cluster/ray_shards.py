@@ -19,12 +19,21 @@ field's :class:`RayGroups` (a :class:`~.remote.ShardGroups`):
 * a call goes to one copy of each group; a copy that is dead, restarting,
   restoring or behind is passed over for the next; a group with no copy
   left is :class:`~flatserve.service.status.ShardUnavailableError` (503);
+  :meth:`RayGroups.call` waits on the calling thread,
+  :meth:`RayGroups.call_async` on the event loop (Ray's results are
+  awaitable): the same failover (:class:`_Fanout`);
+* a query travels as one pickled ``bytes`` each way (:data:`PACKED`): Ray's
+  cost of a small call grows with the objects it serialises (measured on 2
+  cores: four arguments and a list of results 1.8 ms a call, one blob each
+  way 1.3 ms, a call of nothing 1.2 ms);
 * a thread asks every actor for its status each second
   (:meth:`RayGroups.status` never waits for it).
 """
 from __future__ import annotations
 
+import asyncio
 import logging
+import pickle
 import threading
 import time
 from typing import Any
@@ -38,6 +47,14 @@ log = logging.getLogger("flatserve.service.cluster")
 STATUS_EVERY_S = 1.0
 #: concurrent calls an actor takes (queries beside its log follower and snapshots)
 ACTOR_CONCURRENCY = 16
+#: methods whose arguments and result travel as one pickled ``bytes`` each way (small,
+#: frequent calls; a snapshot's parts, large, keep Ray's own serialisation of their bytes)
+PACKED = frozenset({"query"})
+
+
+def pack(value) -> bytes:
+    """A call's arguments, or its result, as one blob (:data:`PACKED`)."""
+    return pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
 
 
 class ShardActor:
@@ -51,8 +68,9 @@ class ShardActor:
         set_shard_threads(settings.shard_threads or node_cpus())
         self.worker = ShardWorker(settings, field_id, charts)
 
-    def query(self, work, kw, at_position, timeout):
-        return self.worker.query(work, kw, at_position, timeout)
+    def query(self, request: bytes) -> bytes:
+        """:meth:`~.shard.ShardWorker.query`; arguments and answer packed (:data:`PACKED`)."""
+        return pack(self.worker.query(*pickle.loads(request)))
 
     def parts(self, position, known, timeout):
         return self.worker.parts(position, known, timeout)
@@ -165,7 +183,7 @@ class RayCluster:
                                     RaySystemError, RayTaskError)
 
         self._lost = (ActorUnavailableError, GetTimeoutError, RayActorError, RaySystemError,
-                      ConnectionError)
+                      ConnectionError, asyncio.TimeoutError)
         self._task_error = RayTaskError
         self._remote = ray.remote(ShardActor)
         self._fields: dict[int, RayGroups] = {}
@@ -203,10 +221,19 @@ class RayCluster:
         try:
             return self.ray.get(ref, timeout=timeout)
         except self._task_error as exc:
-            cause = getattr(exc, "cause", None)
-            if isinstance(cause, Exception):
-                raise cause from None
-            raise
+            raise self._cause(exc) from None
+
+    async def aget(self, ref, timeout: float):
+        """:meth:`get` awaited on the event loop (a timeout: ``asyncio.TimeoutError``)."""
+        try:
+            return await asyncio.wait_for(asyncio.wrap_future(ref.future()), max(timeout, 0.0))
+        except self._task_error as exc:
+            raise self._cause(exc) from None
+
+    @staticmethod
+    def _cause(exc: Exception) -> Exception:
+        cause = getattr(exc, "cause", None)
+        return cause if isinstance(cause, Exception) else exc
 
     def _poll(self) -> None:
         lost = False
@@ -330,50 +357,51 @@ class RayGroups:
                 self._status[g] = st
 
     def call(self, calls: dict[int, tuple[str, tuple]], timeout: float) -> dict[int, Any]:
-        """``{group: (method, args)}`` on one live copy of each group (see the module doc)."""
-        deadline = time.monotonic() + timeout
-        tried: dict[int, list[int]] = {g: [] for g in calls}
-        last: dict[int, str] = {}
-        pending: dict[int, tuple[int, Any]] = {}
-
-        def submit(g: int) -> bool:
-            order = self._order(g)
-            for j in order:
-                if j not in tried[g]:
-                    tried[g].append(j)
-                    method, args = calls[g]
-                    try:
-                        pending[g] = (j, getattr(self.actors[g][j], method).remote(*args))
-                    except Exception as exc:  # the cluster unreachable
-                        last[g] = f"{type(exc).__name__}: {exc}"
-                        self._alive[g][j] = False
-                        continue
-                    return True
-            return False
-
-        for g in calls:
-            if not submit(g):
-                raise self._unavailable(g, last)
+        """``{group: (method, args)}`` on one live copy of each group, waited for on this
+        thread (see the module doc)."""
+        fan = _Fanout(self, calls, timeout)
+        pending = {g: fan.submit(g) for g in calls}
         out: dict[int, Any] = {}
-        while pending:
-            g, (j, ref) = next(iter(pending.items()))
-            del pending[g]
-            try:
-                out[g] = self.cluster.get(ref, max(0.05, deadline - time.monotonic()))
-                self._alive[g][j] = True
-                continue
-            except ShardUnavailableError as exc:  # restoring, behind, failed: another copy
-                last[g] = str(exc)
-            except NotReadyError:
-                raise
-            except self.cluster._lost as exc:
-                last[g] = f"{type(exc).__name__}: {exc}"
-                self._alive[g][j] = False
-            if not submit(g):
-                for _, (_, r) in pending.items():
-                    self.cluster.ray.cancel(r)
-                raise self._unavailable(g, last)
+        try:
+            while pending:
+                g, (j, ref) = next(iter(pending.items()))
+                del pending[g]
+                try:
+                    out[g] = fan.answered(g, j, self.cluster.get(ref, fan.left()))
+                except Exception as exc:
+                    pending[g] = fan.failed(g, j, exc)
+        except BaseException:
+            fan.cancel(ref for _, ref in pending.values())
+            raise
         return out
+
+    async def call_async(self, calls: dict[int, tuple[str, tuple]],
+                         timeout: float) -> dict[int, Any]:
+        """:meth:`call` awaited on the event loop: the calls are submitted at once and
+        their results awaited (Ray's object refs are awaitable), with the same failover;
+        nothing blocks the loop but the submission (Ray's serialisation of the arguments:
+        for small calls only)."""
+        fan = _Fanout(self, calls, timeout)
+        first = {g: fan.submit(g) for g in calls}
+        live: dict[int, Any] = {}
+
+        async def one(g: int):
+            j, ref = first[g]
+            while True:
+                live[g] = ref
+                try:
+                    return g, fan.answered(g, j, await self.cluster.aget(ref, fan.left()))
+                except Exception as exc:
+                    j, ref = fan.failed(g, j, exc)
+
+        tasks = [asyncio.ensure_future(one(g)) for g in calls]
+        try:
+            return dict(await asyncio.gather(*tasks))
+        except BaseException:
+            for t in tasks:
+                t.cancel()
+            fan.cancel(live.values())
+            raise
 
     def _order(self, g: int) -> list[int]:
         """The copies of group ``g``, those believed alive first, in rotation."""
@@ -405,3 +433,74 @@ class RayGroups:
                     remove_placement_group(get_placement_group(self._name(g)))
                 except Exception:
                     pass
+
+
+class _Fanout:
+    """One request's calls to a field's groups, one copy of each (:meth:`RayGroups.call`
+    and :meth:`RayGroups.call_async` wait for them; this is their failover).
+
+    A copy's answer marks it alive. A copy that is dead, restarting or unreachable
+    (marked so), or that answers :class:`~flatserve.service.status.ShardUnavailableError`
+    (restoring, behind), is passed over for the group's next copy not tried yet; a
+    group with none left fails the request with ``ShardUnavailableError``. Any other
+    error of a worker (:class:`~flatserve.service.status.NotReadyError` included) is
+    the request's.
+    """
+
+    def __init__(self, groups: RayGroups, calls: dict[int, tuple[str, tuple]],
+                 timeout: float) -> None:
+        self.groups, self.calls = groups, calls
+        self.deadline = time.monotonic() + timeout
+        self.tried: dict[int, list[int]] = {g: [] for g in calls}
+        self.last: dict[int, str] = {}
+
+    def left(self) -> float:
+        """Seconds left for the answers (at least 50 ms: a copy that answered counts)."""
+        return max(0.05, self.deadline - time.monotonic())
+
+    def submit(self, g: int) -> tuple[int, Any]:
+        """Group ``g``'s call on its next copy: ``(copy, ref)``.
+
+        Raises
+        ------
+        ShardUnavailableError
+            Every copy of the group has been tried.
+        """
+        gr = self.groups
+        method, args = self.calls[g]
+        for j in gr._order(g):
+            if j in self.tried[g]:
+                continue
+            self.tried[g].append(j)
+            try:
+                fn = getattr(gr.actors[g][j], method)
+                return j, (fn.remote(pack(args)) if method in PACKED else fn.remote(*args))
+            except Exception as exc:  # the cluster unreachable
+                self.last[g] = f"{type(exc).__name__}: {exc}"
+                gr._alive[g][j] = False
+        raise gr._unavailable(g, self.last)
+
+    def answered(self, g: int, j: int, result):
+        """Copy ``j`` of group ``g`` answered ``result``: its value."""
+        self.groups._alive[g][j] = True
+        return pickle.loads(result) if self.calls[g][0] in PACKED else result
+
+    def failed(self, g: int, j: int, exc: Exception) -> tuple[int, Any]:
+        """Copy ``j`` of group ``g`` failed with ``exc``: the call on the next copy
+        (:meth:`submit`), or ``exc`` raised when it is the worker's own error."""
+        if isinstance(exc, ShardUnavailableError):  # restoring, behind, failed: another copy
+            self.last[g] = str(exc)
+        elif isinstance(exc, NotReadyError) or not isinstance(exc, self.groups.cluster._lost):
+            raise exc
+        else:
+            self.last[g] = f"{type(exc).__name__}: {exc}"
+            self.groups._alive[g][j] = False
+        return self.submit(g)
+
+    def cancel(self, refs) -> None:
+        """The request failed: its calls still running are cancelled."""
+        for r in list(refs):
+            try:
+                self.groups.cluster.ray.cancel(r)
+            except Exception:  # already done, or the cluster gone
+                pass

@@ -63,7 +63,9 @@ __all__ = ["Tiling", "TiledTriangulation", "TileStats", "RETILE_SHARE"]
 RETILE_SHARE = 1.5
 #: a tile's box (around its own points) that must grow grows by this share of
 #: its extent beyond the new points, so that the next batches rarely grow it
-#: again (each growth costs a scan of every cell of every tile)
+#: again (each growth costs a scan of every cell of every tile); never beyond the
+#: tile's cell of the partition (embedded coordinates are heavy-tailed: 5% of an
+#: extent set by an outlier would reach over the other tiles)
 SLACK = 0.05
 
 
@@ -134,6 +136,27 @@ class Tiling:
         node(np.arange(len(pts)), 0, int(ntiles))
         return cls(pts.shape[1], np.asarray(axis, np.int64), np.asarray(cut, np.float64),
                    np.asarray(low, np.int64), np.asarray(high, np.int64))
+
+    def boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each tile's cell of the partition: ``lo, hi`` of shape (ntiles, D), ±inf on
+        the outer sides (a tile's own points lie in it: ``lo <= x < hi``)."""
+        T, D = self.ntiles, self.ndim
+        lo, hi = np.full((T, D), -np.inf), np.full((T, D), np.inf)
+
+        def walk(node: int, a: np.ndarray, b: np.ndarray) -> None:
+            if node < 0:
+                lo[-1 - node], hi[-1 - node] = a, b
+                return
+            ax, c = self.axis[node], self.cut[node]
+            b2, a2 = b.copy(), a.copy()
+            b2[ax], a2[ax] = min(b[ax], c), max(a[ax], c)
+            walk(int(self.low[node]), a, b2)
+            walk(int(self.high[node]), a2, b)
+
+        if T == 1:
+            return lo, hi
+        walk(0, np.full(D, -np.inf), np.full(D, np.inf))
+        return lo, hi
 
     def tile_of(self, points) -> np.ndarray:
         """The tile whose box holds each point, shape (n,) int64."""
@@ -233,15 +256,23 @@ class TiledTriangulation:
         out_lo, out_hi = a < lo, b > hi
         if not (out_lo.any() or out_hi.any()):
             return False
-        if np.isfinite(lo).all():  # not the tile's first points: leave room
+        if np.isfinite(lo).all():  # not the tile's first points: leave room in its cell
             ext = (b - a) * SLACK
-            a, b = np.where(out_lo, a - ext, a), np.where(out_hi, b + ext, b)
+            cell_lo, cell_hi = self.tiling.boxes()
+            a = np.where(out_lo, np.maximum(a - ext, cell_lo[t]), a)
+            b = np.where(out_hi, np.minimum(b + ext, cell_hi[t]), b)
         self._lo[t], self._hi[t] = a, b
         return True
 
+    @property
+    def boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """The boxes around the tiles' own points that the exchange tests balls
+        against: ``lo, hi`` of shape (ntiles, D) (an empty tile's: +inf, -inf)."""
+        return self._lo.copy(), self._hi.copy()
+
     def _boxes(self):
         """The tiles' boxes for :meth:`flatserve.Triangulation.conflicts` (one group
-        of one box each; an empty tile's box is empty)."""
+        of one box each)."""
         return self._lo, self._hi, np.arange(self._ntiles + 1, dtype=np.int64)
 
     # ------------------------------------------------------------------ access

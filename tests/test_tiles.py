@@ -274,3 +274,23 @@ def test_the_fig11_field_at_1m_rays_in_2_4_8_tiles():
         assert np.array_equal(got.inside, ref.inside), tiles
         assert f.triangulation.stats.unresolved == 0
         del f
+
+
+def test_a_tiles_box_stays_in_its_cell_of_the_partition():
+    """Heavy-tailed points (as embedded ray coordinates are): a box grown with room
+    to spare never reaches over the cut into another tile's cell."""
+    rng = np.random.default_rng(12)
+    pts = rng.standard_cauchy((6000, 3))
+    tt = TiledTriangulation(3, 2)
+    for i in range(0, 6000, 1000):
+        tt.insert(pts[i:i + 1000], np.zeros((1000, 1)))
+    lo, hi = tt.tiling.boxes()
+    blo, bhi = tt.boxes
+    assert (blo >= lo).all() and (bhi <= hi).all()
+    own = [tt.tiling.tile_of(pts) == t for t in range(2)]
+    for t in range(2):
+        p = pts[own[t]]
+        assert (p >= blo[t]).all() and (p <= bhi[t]).all()
+    tri = Triangulation(3)
+    tri.insert(pts, np.zeros((6000, 1)))
+    _same_answers(tt, tri, rng.standard_cauchy((2000, 3)))

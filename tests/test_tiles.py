@@ -13,6 +13,7 @@ from flatserve.errors import InvalidInputError
 from flatserve.parallel import ShardPool
 from flatserve.tiles import TiledTriangulation, Tiling
 from flatserve.triangulation import Triangulation
+from tests.harness.cells import assert_same_cells
 
 
 def _cells(tri: Triangulation) -> set:
@@ -37,14 +38,7 @@ def _same_answers(tt, tri, q, **kw):
     v1, in1, loc1 = tt.query(q, locate=True, **kw)
     assert np.array_equal(in0, in1)
     assert np.array_equal(v0, v1, equal_nan=True), "values differ (bits)"
-    inside = in0
-    # the same cell and the same weight per vertex (cell order aside)
-    a = np.argsort(loc0.ids[inside], axis=1)
-    b = np.argsort(loc1.ids[inside], axis=1)
-    assert np.array_equal(np.take_along_axis(loc0.ids[inside], a, 1),
-                          np.take_along_axis(loc1.ids[inside], b, 1))
-    assert np.array_equal(np.take_along_axis(loc0.weights[inside], a, 1),
-                          np.take_along_axis(loc1.weights[inside], b, 1))
+    assert_same_cells(loc0.ids, loc0.weights, loc1.ids, loc1.weights, in0)
 
 
 @pytest.mark.parametrize("D,n,tiles", [(2, 3000, 2), (3, 4000, 4), (4, 3000, 8), (4, 5000, 3)])
@@ -205,12 +199,7 @@ def test_a_fields_chart_in_tiles_answers_as_the_unsplit_field():
         got = f.query(qf, return_weights=True)
         assert np.array_equal(got.values, ref.values, equal_nan=True), T
         assert np.array_equal(got.inside, ref.inside) and np.array_equal(got.status, ref.status)
-        same = ref.inside
-        a, b = np.argsort(ref.ids[same], 1), np.argsort(got.ids[same], 1)
-        assert np.array_equal(np.take_along_axis(ref.ids[same], a, 1),
-                              np.take_along_axis(got.ids[same], b, 1))
-        assert np.array_equal(np.take_along_axis(ref.weights[same], a, 1),
-                              np.take_along_axis(got.weights[same], b, 1))
+        assert_same_cells(ref.ids, ref.weights, got.ids, got.weights, ref.inside)
         back = Field.from_bytes(f.to_bytes())
         assert back.tiles == T and back.nsamples == f.nsamples
         assert np.array_equal(back.query(qf).values, ref.values, equal_nan=True)

@@ -105,9 +105,47 @@ def docker_engine(request, tmp_path_factory):
     return log
 
 
+#: Free space the image's build and this module's containers need on the engine's
+#: disk (vfs: a cold build stores about 6 GB of layers, every container a full copy
+#: of the image's 0.6 GB, and a test runs up to three at once).
+NEEDED_GB = 12
+
+
+def _free_gb() -> float:
+    root = docker("info", "--format", "{{.DockerRootDir}}").stdout.strip() or "/var/lib/docker"
+    return shutil.disk_usage(root).free / 1e9
+
+
+def _clean_up(config) -> None:
+    """What earlier sessions left on the engine's disk: their containers and volumes
+    (a run that was killed), images no tag names any more (an earlier build of
+    ``IMAGE``), and, when space is short, the whole build cache. A disk that fills
+    across CI runs on one machine otherwise ends as ``no space left on device``."""
+    for kind, ls in (("container", ["ps", "-a", "-q", "--filter", "name=flatserve-test-"]),
+                     ("volume", ["volume", "ls", "-q", "--filter", "name=flatserve-test-"])):
+        ids = docker(*ls, check=False).stdout.split()
+        if ids:
+            docker(*(["rm", "-f", "-v"] if kind == "container" else ["volume", "rm", "-f"]), *ids,
+                   check=False)
+    docker("image", "prune", "-f", check=False)
+    if _free_gb() < NEEDED_GB:
+        docker("builder", "prune", "-a", "-f", check=False, timeout=600)
+    free = _free_gb()
+    _say(config, f"{free:.1f} GB free on the engine's disk")
+    if free < NEEDED_GB:
+        raise AssertionError(f"the Docker engine's disk has {free:.1f} GB free after removing what "
+                             f"earlier runs left; the image and its containers need about {NEEDED_GB} GB")
+
+
 @pytest.fixture(scope="session")
 def image(request, docker_engine, tmp_path_factory):
-    """The image built from this checkout, once per session."""
+    """The image built from this checkout, once per session; afterwards the build
+    cache this build did not use is dropped (an earlier source's layers), so the
+    engine's disk holds one build's worth whatever the number of runs."""
+    _clean_up(request.config)
+    request.addfinalizer(lambda: (docker("builder", "prune", "-f", "--filter", "until=2h",
+                                         check=False, timeout=600),
+                                  docker("image", "prune", "-f", check=False)))
     log = tmp_path_factory.mktemp("docker-build") / "build.log"
     cmd = [DOCKER, "build", "--network", "host", "--progress", "plain",
            "-f", "docker/Dockerfile", "-t", IMAGE, "."]

@@ -46,6 +46,7 @@ import numpy as np
 
 from pathlib import Path
 
+from ._fieldbase import part_key
 from .atlas import Atlas
 from .atlas_field import ATLAS_MAGIC, AtlasField
 from .basis import Basis
@@ -55,8 +56,8 @@ from .flats import Flats
 from .grassmann import haar_frames
 from .options import Order, Outside
 
-__all__ = ["Prepared", "SampledField", "describe_definition", "expected_copies", "load_field",
-           "new_field"]
+__all__ = ["POINTER_MAGIC", "Prepared", "SampledField", "describe_definition", "expected_copies",
+           "load_field", "new_field", "part_key", "part_pointer"]
 
 
 @runtime_checkable
@@ -243,6 +244,27 @@ def new_field(channels: int, *, basis: Basis | None = None, atlas: Atlas | dict 
     return Field(basis, channels, tiles=tiles, **kw)
 
 
+#: Magic of a field file that only names the one part holding the whole field
+#: (:func:`part_pointer`).
+POINTER_MAGIC = b"FSPART\x00\x00"
+
+
+def part_pointer(key: str) -> bytes:
+    """A field file naming the part ``key`` that holds a whole field (a field
+    file of either kind, stored as a snapshot part by the process that holds
+    the field: its bytes never travel through the one that writes the
+    snapshot). :func:`load_field` follows it.
+
+    Examples
+    --------
+    >>> part_pointer("00" * 16)[:8] == POINTER_MAGIC
+    True
+    """
+    if len(key) != 32 or any(ch not in "0123456789abcdef" for ch in key):
+        raise InvalidInputError(f"key: expected 32 lowercase hex digits, got {key!r}", "key")
+    return POINTER_MAGIC + key.encode("ascii")
+
+
 def load_field(path: str | os.PathLike, parts=None,
                only: Collection[int] | None = None) -> AnyField:
     """Read a field file of either kind, told apart by its magic.
@@ -251,7 +273,8 @@ def load_field(path: str | os.PathLike, parts=None,
     :meth:`AtlasField.from_bytes`, with ``parts(key) -> bytes-like`` for a
     file whose charts are parts (:meth:`SampledField.write_parts`), and
     ``only``: the shards to restore (the others left empty; a one-chart
-    field's file is its one shard).
+    field's file is its one shard). A :func:`part_pointer` file is read as
+    the part it names (``parts`` needed; the part checked against its key).
 
     Raises
     ------
@@ -259,6 +282,16 @@ def load_field(path: str | os.PathLike, parts=None,
         Neither magic, or a damaged file.
     """
     data = Path(path).read_bytes()
+    if bytes(data[:8]) == POINTER_MAGIC:
+        key = bytes(data[8:]).decode("ascii", "replace")
+        if parts is None:
+            raise SnapshotError(f"{path}: names the part {key!r}, and no parts were given")
+        data = bytes(parts(key))
+        if part_key(data) != key:
+            raise SnapshotError(f"{path}: the part {key!r} it names is damaged (its bytes do "
+                                "not match its key)")
+        if bytes(data[:8]) == POINTER_MAGIC:
+            raise SnapshotError(f"{path}: the part {key!r} it names is a pointer itself")
     kind = {FIELD_MAGIC: Field, ATLAS_MAGIC: AtlasField}.get(bytes(data[:8]))
     if kind is None:
         raise SnapshotError(f"{path}: not a flatserve field file (bad magic)"

@@ -18,7 +18,8 @@ import pytest
 from flatserve import Basis, Field, Flats
 from flatserve.atlas import Atlas
 from flatserve.atlas_field import AtlasField
-from flatserve.contract import SampledField, describe_definition, load_field, new_field
+from flatserve.contract import (SampledField, describe_definition, load_field, new_field, part_key,
+                                part_pointer)
 from flatserve.errors import InvalidInputError, SnapshotError
 from flatserve.field import QueryResult
 
@@ -187,6 +188,25 @@ def test_shard_round_trip_and_load_field_by_magic(kind, tmp_path):
     got = back.query(q)
     np.testing.assert_array_equal(got.values, want.values)
     np.testing.assert_array_equal(got.status, want.status)
+
+
+def test_a_part_pointer_loads_the_part_it_names(kind, tmp_path):
+    filled(kind, seed=3)
+    q = rays(np.random.default_rng(5), 200)
+    blob = kind.to_bytes()
+    key = part_key(blob)
+    path = tmp_path / "pointer"
+    path.write_bytes(part_pointer(key))
+    parts = {key: blob}
+    back = load_field(path, parts.__getitem__)
+    assert type(back) is type(kind) and back.describe() == kind.describe()
+    np.testing.assert_array_equal(back.query(q).values, kind.query(q).values)
+    with pytest.raises(SnapshotError, match="no parts were given"):
+        load_field(path)
+    with pytest.raises(SnapshotError, match="damaged"):  # the bytes must be the key's
+        load_field(path, lambda k: blob[:-1] + b"x")
+    with pytest.raises(InvalidInputError, match="key: expected 32 lowercase hex digits"):
+        part_pointer("../etc/passwd")
 
 
 def test_load_field_refuses_other_files(tmp_path):

@@ -437,6 +437,23 @@ class LogBackend(abc.ABC):
         Stable while the caller holds :data:`SNAPSHOT_LEASE`."""
 
     @abc.abstractmethod
+    def store_part(self, field_id: int, key: str, data: bytes) -> int:
+        """Store one snapshot part of field ``field_id`` ahead of the snapshot
+        that will name it, durably on return: for a process that holds some of
+        a field's shards and serialises them itself, so that the parts never
+        travel through the snapshot's writer (who then names them among the
+        keys ``save`` returns to :meth:`write_snapshot`). A part stored already
+        is kept as it is. The caller acts for a writer holding
+        :data:`SNAPSHOT_LEASE`; a part no snapshot comes to name is removed by
+        the field's next snapshot.
+
+        Returns
+        -------
+        int
+            Bytes written (0: the part was there).
+        """
+
+    @abc.abstractmethod
     def acquire_lease(self, name: str, owner: str, ttl: float) -> bool:
         """Take (or renew) the lease ``name`` for ``owner`` for ``ttl`` seconds:
         True if ``owner`` holds it now, False if another owner holds an

@@ -13,6 +13,7 @@ snapshot on its way), and never follows a symlink.
 from __future__ import annotations
 
 import fcntl
+import io
 import logging
 import os
 import shutil
@@ -118,9 +119,11 @@ def part_name(field_id: int, key: str) -> str:
     return f"p{field_id}-{key}"
 
 
-def _copy_in(conn, name: str, path: Path) -> None:
-    """``path``'s bytes as the chunk rows of snapshot row ``name``."""
-    with open(path, "rb") as fh, conn.cursor() as cur, cur.copy(
+def _copy_in(conn, name: str, path: Path | io.BytesIO) -> None:
+    """``path``'s bytes (a file, or bytes in memory) as the chunk rows of snapshot
+    row ``name``."""
+    with (path if isinstance(path, io.BytesIO) else open(path, "rb")) as fh, \
+            conn.cursor() as cur, cur.copy(
             "COPY snapshot_chunks(name, idx, data) FROM STDIN (FORMAT BINARY)") as cp:
         cp.set_types(["text", "int4", "bytea"])
         idx = 0
@@ -165,6 +168,20 @@ class ChunkedSnapshots:
             "SELECT name FROM snapshots WHERE field_id=%s AND name LIKE %s",
             (field_id, prefix + "%")).fetchall(), tx=False)
         return {r[0][len(prefix):] for r in rows}
+
+    def store_part(self, field_id: int, key: str, data: bytes) -> int:
+        """A ``snapshots`` row and its chunks, in a transaction of its own."""
+        name = part_name(field_id, key)
+
+        def store(conn) -> int:
+            if not conn.execute("INSERT INTO snapshots(name, field_id, bytes, created)"
+                                " VALUES (%s, %s, %s, %s) ON CONFLICT (name) DO NOTHING",
+                                (name, field_id, len(data), time.time())).rowcount:
+                return 0
+            _copy_in(conn, name, io.BytesIO(data))
+            return len(data)
+
+        return self._run(store)
 
     def write_snapshot(self, field_id: int, seq: int, position: int,
                        save: Callable[[Path, Path], list[str] | None],

@@ -170,7 +170,7 @@ class SnapshotWriter:
         if self.metrics is not None:
             self.metrics.snapshots.labels(e.name).inc()
         return SnapshotResult(batch=frozen.seq, bytes=self.storage.snapshot_bytes(info.file),
-                              written=info.bytes, seconds=dt)
+                              written=info.bytes + frozen.stored, seconds=dt)
 
     def clean_orphans(self) -> None:
         """Remove snapshot data left by a writer that died (under the snapshot lease:
@@ -225,6 +225,7 @@ class _Frozen:
 
     def __init__(self, e: FieldEntry, lease: _Held, known: set[str]) -> None:
         self.e, self.lease, self.known = e, lease, known
+        self.stored = 0
         e.index_lock.acquire()
         self._held = True
         try:
@@ -244,7 +245,10 @@ class _Frozen:
         already are not written again); the keys of the parts it names."""
         try:
             self.lease.check(renew=False)  # (no database round trip under the field's lock)
-            return self.e.field.save_parts(path, stage, self.known)
+            keys = self.e.field.save_parts(path, stage, self.known)
+            # parts a field's shards stored themselves (cluster mode), not in ``stage``
+            self.stored = getattr(self.e.field, "stored_bytes", 0)
+            return keys
         finally:
             self.release()
 

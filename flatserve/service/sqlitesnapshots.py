@@ -69,6 +69,25 @@ class SnapshotFiles:
             raise StorageError(f"cannot list the snapshot parts in {self.parts_dir}: "
                                f"{exc}") from exc
 
+    def store_part(self, field_id: int, key: str, data: bytes) -> int:
+        """Written under a temporary name, fsync'd, renamed into place, the
+        directory fsync'd."""
+        final = self.part_path(field_id, key)
+        if final.is_file():
+            return 0
+        tmp = self.parts_dir / f"{STAGE_PREFIX}{os.getpid()}-{uuid.uuid4().hex[:8]}-{key}"
+        try:
+            with open(tmp, "wb") as out:
+                out.write(data)
+                out.flush()
+                os.fsync(out.fileno())
+            os.replace(tmp, final)
+            fsync_path(self.parts_dir)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise snapshot_failure(exc) from exc
+        return len(data)
+
     def write_snapshot(self, field_id: int, seq: int, position: int,
                        save: Callable[[Path, Path], list[str] | None],
                        check: Callable[[], None] | None = None) -> SnapshotInfo:
@@ -185,6 +204,9 @@ class SnapshotFiles:
         for p in self.parts_dir.iterdir():
             if p.name.startswith(STAGE_PREFIX) and p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p, ignore_errors=True)
+                n += 1
+            elif p.name.startswith(STAGE_PREFIX) and p.is_file():  # a store_part that died
+                p.unlink(missing_ok=True)
                 n += 1
             elif p.is_file() and _field_id(p.name, prefix="p") not in ids:
                 p.unlink(missing_ok=True)

@@ -22,9 +22,11 @@ from typing import Any, Callable, Collection, Protocol, Sequence
 
 import numpy as np
 
+from ...contract import part_pointer
 from ...field import AddResult, QueryResult, QueryRoute
 from ...flats import Flats
 from ...options import Order, Outside
+from ..applier import adopt_unit
 from ..status import NotReadyError
 
 _NO_ROWS = np.empty(0, np.int64)
@@ -122,6 +124,8 @@ class RemoteField:
             self._group_of[list(charts)] = g
         if (self._group_of < 0).any():
             raise ValueError("groups: every chart must be in a group")
+        #: bytes of parts the groups stored for the last :meth:`write_parts`
+        self.stored_bytes = 0
 
     # -- sizes (the workers' last reports: never waits) -------------------------------------
     def _statuses(self) -> list[dict]:
@@ -255,11 +259,15 @@ class RemoteField:
                    placement=self.groups.placement())
         return out
 
-    # -- snapshots: assembled from every group's parts at one log position ----------------
+    # -- snapshots: every group's parts at one log position, stored by the groups ---------
     def write_parts(self, fh, stage: str | os.PathLike, known: Collection[str] = ()) -> list[str]:
         """The field's snapshot at the front's log position for it: every group's
-        charts held at that position (:meth:`.shard.ShardWorker.parts`), the
-        changed parts written to ``stage``, the field file to ``fh``.
+        charts held at that position and their changed parts stored by the
+        groups themselves (:meth:`.shard.ShardWorker.parts`: no part passes
+        through here, and ``stage`` stays empty); the field file naming them
+        written to ``fh`` (a one-chart field's:
+        :func:`flatserve.contract.part_pointer` of its one part). The bytes the
+        groups stored are :attr:`stored_bytes` afterwards.
 
         Raises
         ------
@@ -269,28 +277,33 @@ class RemoteField:
         """
         pos = self._position()
         known = list(known)
+        self.stored_bytes = 0
         got = self.groups.call({g: ("parts", (pos, known, self.timeout))
                                 for g in range(len(self.groups.charts))}, self.timeout + 60.0)
+        self.stored_bytes = sum(r["stored"] for r in got.values())
         seqs = {r["seq"] for r in got.values()}
         if len(seqs) != 1:
             raise NotReadyError(f"the shards of the field are at batches {sorted(seqs)}, not "
                                 "one; retry the snapshot")
-        if got[0]["whole"] is not None:  # one chart: its file is the field's
-            fh.write(got[0]["whole"])
-            return []
+        if got[0]["whole"] is not None:  # one chart: the field file is that part
+            fh.write(part_pointer(got[0]["whole"]))
+            return [got[0]["whole"]]
         n = len(self._shape.shards)
         keys: list = [None] * n
         own: list = [None] * n
-        for g, r in got.items():
-            for (c, key, blob), o in zip(r["parts"], r["own"] or [None] * len(r["parts"])):
+        for r in got.values():
+            for (c, key), o in zip(r["parts"], r["own"] or [None] * len(r["parts"])):
                 keys[c], own[c] = key, o
-                if blob is not None:
-                    with open(os.path.join(stage, key), "wb") as out:
-                        out.write(blob)
-                        out.flush()
-                        os.fsync(out.fileno())
         if any(o is None for o in own):
             raise NotReadyError("a shard does not know its charts' own samples yet; retry")
+        # the header states the atlas the parts were charted in: with the unit the
+        # shards took from the field's first batch (a field whose unit is chosen
+        # from its data), which this empty field has not seen
+        units = {r["unit"] for r in got.values()} - {None}
+        if len(units) > 1:
+            raise NotReadyError(f"the shards of the field hold units {sorted(units)}; retry")
+        if units:
+            adopt_unit(self._shape, units.pop())
         fh.write(self._shape.parts_header(keys, own=own, nrejected=got[0]["nrejected"]))
         return keys
 

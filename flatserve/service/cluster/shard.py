@@ -30,7 +30,7 @@ import threading
 import time
 
 from ...basis import Basis
-from ...contract import load_field
+from ...contract import load_field, part_key
 from ...flats import Flats
 from ..applier import adopt_unit
 from ..backend import LogBackend, SnapshotGoneError, open_backend
@@ -290,16 +290,23 @@ class ShardWorker:
         return self.field.query_shards(work, **kw)
 
     def parts(self, position: int, known, timeout: float) -> dict:
-        """Its charts' snapshot parts with exactly the field's batches up to log
-        ``position``: the worker is held there (it applies no later batch of its
-        field) while it serialises.
+        """Store its charts' snapshot parts with exactly the field's batches up to
+        log ``position`` (:meth:`~flatserve.service.backend.LogBackend.store_part`:
+        the parts go from here to the database, never through the front that
+        writes the snapshot); the worker is held there (it applies no later batch
+        of its field) while it serialises. Charts are serialised and stored one
+        at a time (memory: one chart's part), and those whose part is ``known``
+        (stored already) not at all.
 
         Returns
         -------
         dict
             ``seq`` (the field's last batch up to ``position``), ``parts``
-            (``[(chart, key, bytes or None), ...]``: bytes unless ``known``),
-            ``own`` (per chart its own samples), ``nrejected``.
+            (``[(chart, key), ...]``) or, for a one-chart field, ``whole`` (the
+            key of the part holding the whole field file: the snapshot file is
+            :func:`flatserve.contract.part_pointer` of it), ``own`` (per chart
+            its own samples), ``nrejected``, ``stored`` (bytes this call stored),
+            ``unit`` (an atlas field's unit of length, once chosen; else None).
 
         Raises
         ------
@@ -316,14 +323,26 @@ class ShardWorker:
             self._hold = position
         try:
             self._await(position, timeout, "a snapshot")
-            fld = self.field
+            fld, known, stored = self.field, frozenset(known), 0
             own = getattr(fld, "own_samples", None)
-            parts = fld.chart_parts(self.charts, known) if hasattr(fld, "chart_parts") else \
-                None
-            return {"seq": self.seq, "parts": parts,
-                    "whole": fld.to_bytes() if parts is None else None,
+            parts, whole = [], None
+            if hasattr(fld, "chart_parts"):
+                for c in self.charts:
+                    ((_, key, blob),) = fld.chart_parts([c], known)
+                    if blob is not None:
+                        stored += self.storage.store_part(self.field_id, key, blob)
+                    parts.append((c, key))
+            else:  # one chart: its file is the field's
+                blob = fld.to_bytes()
+                whole = part_key(blob)
+                if whole not in known:
+                    stored += self.storage.store_part(self.field_id, whole, blob)
+                del blob
+            unit = None if getattr(fld, "unit_pending", True) else fld.atlas.unit
+            return {"seq": self.seq, "parts": None if whole else parts, "whole": whole,
+                    "unit": unit,
                     "own": None if own is None else [own[c] for c in self.charts],
-                    "nrejected": fld.nrejected}
+                    "nrejected": fld.nrejected, "stored": stored}
         finally:
             with self._cond:
                 self._hold = None

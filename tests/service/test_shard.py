@@ -1,0 +1,158 @@
+"""Shard workers (``flatserve/service/cluster/shard.py``) in this process, on a REAL
+PostgreSQL log, behind a front's :class:`RemoteField` with the groups called
+directly (no Ray: tests/service/test_cluster.py runs them as actors).
+
+A snapshot of a field held by shard workers: the workers store their own charts'
+parts in the database and the front's snapshot writer receives none of their
+bytes (its staging directory stays empty); workers started afresh restore from
+those parts and answer as the lone server that applied the same log, bit for bit.
+"""
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+import pytest
+
+from flatserve.basis import Basis
+from flatserve.contract import POINTER_MAGIC, load_field
+from flatserve.flats import Flats
+from flatserve.service.backend import open_backend
+from flatserve.service.cluster.remote import RemoteField
+from flatserve.service.cluster.shard import ShardWorker
+from flatserve.service.entry import FieldSpec
+from flatserve.service.settings import Settings
+
+from .conftest import ONE_CHART, paper_rays, started
+
+
+class LocalGroups:
+    """:class:`~flatserve.service.cluster.remote.ShardGroups` over workers of this
+    process, one copy per group."""
+
+    def __init__(self, workers):
+        self.workers = workers
+        self.charts = [w.charts for w in workers]
+
+    def call(self, calls, timeout):
+        return {g: getattr(self.workers[g], name)(*args) for g, (name, args) in calls.items()}
+
+    def status(self):
+        return [w.status() for w in self.workers]
+
+    def placement(self):
+        return []
+
+
+def _sphere(rng, n):
+    return rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+
+
+def _workers(settings, row, head, groups, timeout=120.0):
+    """Workers of ``groups`` of field ``row``, once each has applied the log up to
+    position ``head``."""
+    ws = [ShardWorker(settings, row.id, charts) for charts in groups]
+    end = time.monotonic() + timeout
+    while not all(s["state"] == "ready" and s["through"] >= head
+                  for s in (w.status() for w in ws)):
+        assert time.monotonic() < end, [w.status() for w in ws]
+        time.sleep(0.1)
+    return ws
+
+
+def _remote(storage, row, head, workers):
+    spec = FieldSpec.from_dict(row.spec)
+    shape = spec.new_field(Basis(row.basis["Q"], row.basis["r"], spec.k))
+    return RemoteField(shape, LocalGroups(workers), lambda: head, timeout=60)
+
+
+def _snapshot(storage, row, remote):
+    """A snapshot of the field written as a front writes it; the bytes that passed
+    through the front's staging directory, and the snapshot's info."""
+    known = storage.snapshot_parts(row.id)
+    staged = []
+
+    def save(path, stage):
+        keys = remote.save_parts(path, stage, known)
+        staged.extend(os.listdir(stage))
+        return keys
+
+    last = list(storage.batches(row.id))[-1]
+    info = storage.write_snapshot(row.id, last.seq, last.position, save)
+    return staged, info
+
+
+@pytest.mark.parametrize("kind", ["atlas", "one"])
+def test_shards_store_their_own_parts_and_restore_from_them(make_app, pg_url, rng, kind):
+    settings = Settings(database_url=pg_url)
+    tc, c = started(make_app(database_url=pg_url))
+    storage = open_backend(settings)
+    workers = []
+    try:
+        if kind == "atlas":
+            c.create_field("f", channels=2)
+            make = _sphere
+        else:
+            c.create_field("f", channels=2, basis=ONE_CHART)
+            make = paper_rays
+        for _ in range(2):
+            o, d = make(rng, 2000)
+            c.upload_rays("f", o, d, rng.uniform(size=(2000, 2)), wait=True)
+        row = next(r for r in storage.state()[1] if r.name == "f")
+        head = storage.head()
+        ncharts = len(FieldSpec.from_dict(row.spec).new_field(
+            Basis(row.basis["Q"], row.basis["r"], 1)).shards)
+        groups = [tuple(range(g, ncharts, 2)) for g in range(min(2, ncharts))]
+        workers = _workers(settings, row, head, groups)
+        remote = _remote(storage, row, head, workers)
+
+        staged, info = _snapshot(storage, row, remote)
+        assert staged == []  # no part's bytes through the front
+        assert remote.stored_bytes > 0
+        assert storage.snapshot_bytes(info.file) >= remote.stored_bytes
+        # nothing changed since: every part is known, nothing is serialised or stored
+        staged, _ = _snapshot(storage, row, remote)
+        assert staged == [] and remote.stored_bytes == 0
+        for w in workers:
+            w.stop()
+
+        row = storage.field(row.id)
+        pointer = storage.load_snapshot(row, lambda path, parts: open(path, "rb").read(8))
+        assert (pointer == POINTER_MAGIC) == (kind == "one")
+        # the snapshot as a lone server reads it: the field the app holds, bit for bit
+        whole = storage.load_snapshot(row, lambda path, parts: load_field(path, parts))
+        probe = make(rng, 500)
+        mine = c.query_rays("f", *probe)
+        got = whole.query(Flats.from_rays(*probe))
+        np.testing.assert_array_equal(got.values, mine.values)
+        np.testing.assert_array_equal(got.inside, mine.inside)
+
+        # workers started afresh restore their charts from the parts, and answer the same
+        workers = _workers(settings, row, head, groups)
+        assert all(w.restored_from == f"snapshot after batch {row.snapshot_seq}"
+                   for w in workers)
+        remote = _remote(storage, row, head, workers)
+        got = remote.query(Flats.from_rays(*probe))
+        np.testing.assert_array_equal(got.values, mine.values)
+        np.testing.assert_array_equal(got.inside, mine.inside)
+    finally:
+        for w in workers:
+            w.stop()
+        storage.close()
+        tc.__exit__(None, None, None)
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_store_part_stores_once(tmp_path, request, backend):
+    url = request.getfixturevalue("pg_url") if backend == "postgresql" else None
+    settings = Settings(data_dir=tmp_path / "data", database_url=url)
+    st = open_backend(settings)
+    try:
+        fid, _ = st.create_field("f", {"k": 1, "d": 3, "channels": 1, "basis": {}},
+                                 {"Q": np.eye(3)[None].repeat(2, 0), "r": np.zeros((2, 3))})
+        assert st.store_part(fid, "ab" * 16, b"x" * 1000) == 1000
+        assert st.store_part(fid, "ab" * 16, b"x" * 1000) == 0  # there already
+        assert st.snapshot_parts(fid) == {"ab" * 16}
+    finally:
+        st.close()

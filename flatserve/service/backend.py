@@ -502,9 +502,13 @@ def backend_class(url: str | None) -> type[LogBackend]:
     return getattr(importlib.import_module(mod), cls)
 
 
-def open_backend(settings) -> LogBackend:
+def open_backend(settings, *, follower: bool = False) -> LogBackend:
     """The backend of a server's settings: ``settings.database_url`` set →
     that database (the class's ``from_settings``); else SQLite in
     ``settings.data_dir``. Each backend class has a classmethod
-    ``from_settings(settings) -> LogBackend``."""
-    return backend_class(settings.database_url).from_settings(settings)
+    ``from_settings(settings, *, follower=False) -> LogBackend``.
+
+    ``follower``: for a process that only reads the log and stores snapshot
+    parts (a shard worker of a cluster): SQLite then takes no lock on the data
+    directory (the server holding it does) and refuses writes to the database."""
+    return backend_class(settings.database_url).from_settings(settings, follower=follower)

@@ -175,9 +175,10 @@ class PostgresBackend(ChunkedSnapshots, AdvisoryLeases, LogListener, SQLBackend)
         self._stages.sweep()
 
     @classmethod
-    def from_settings(cls, settings) -> "PostgresBackend":
+    def from_settings(cls, settings, *, follower: bool = False) -> "PostgresBackend":
         """From a server's :class:`~flatserve.service.settings.Settings`
-        (``database_url``; snapshots are staged in ``data_dir`` when it exists)."""
+        (``database_url``; snapshots are staged in ``data_dir`` when it exists).
+        ``follower`` changes nothing: PostgreSQL takes every process alike."""
         data_dir = Path(settings.data_dir)
         return cls(settings.database_url, tmp_dir=data_dir if data_dir.is_dir() else None)
 

@@ -114,8 +114,10 @@ class Settings(BaseSettings):
     ray: str | None = Field(None)
     """Cluster mode: the address of a Ray cluster (host:port of its head, or 'auto') holding the
     fields' shards in actors on its nodes; this server is then a stateless front (routes, fans
-    out, blends). Needs database_url (PostgreSQL: the log every shard follows) and the cluster
-    extra (pip install 'flatserve[cluster]')."""
+    out, blends). The log every shard follows is database_url's PostgreSQL, or, unset, the SQLite
+    database of data_dir for a one-machine cluster (every Ray node on this machine: the shards
+    read the directory this server holds). Needs the cluster extra (pip install
+    'flatserve[cluster]')."""
     ray_shards: int = Field(4, ge=1, le=1024)
     """Cluster mode: shard groups per field (an atlas field's charts divided among them; a one-chart
     field is one group). Each group is an actor per copy."""
@@ -190,15 +192,6 @@ class Settings(BaseSettings):
         if self.api_key is not None and self.read_only_key is not None:
             if self.api_key.get_secret_value() == self.read_only_key.get_secret_value():
                 raise ValueError("api_key and read_only_key must differ")
-        return self
-
-    @model_validator(mode="after")
-    def _cluster(self) -> "Settings":
-        if self.ray is not None and not (self.database_url or "").lower().startswith(
-                ("postgresql:", "postgres:")):
-            raise ValueError("ray: cluster mode needs database_url to name a PostgreSQL "
-                             "database (the log every shard and every front follows; the "
-                             "SQLite data directory is one process's)")
         return self
 
     @property

@@ -25,7 +25,10 @@ then does the database point at them (and the log announce them).
 Several processes may use one database: the replicas of one ``flatserve serve
 --processes N``, which share the data directory's lock (an inherited open file,
 ``lock_fd``). Any other server finds the lock taken and refuses to start
-(:class:`~flatserve.service.status.DataDirInUseError`).
+(:class:`~flatserve.service.status.DataDirInUseError`). A *follower*
+(``follower=True``: a shard worker of a one-machine cluster,
+:mod:`.cluster.shard`) takes no lock: it reads the log of the server that holds
+the directory and stores snapshot parts (files), and never writes the database.
 
 Schema versions: a new database is created at 3 (:func:`.sqlschema.ddl`); 2
 (fields, batches, batch_results) is migrated on open to 3 (adds the log,
@@ -85,25 +88,41 @@ class SQLiteBackend(SnapshotFiles, SQLBackend):
     dialect = DIALECT
 
     def __init__(self, data_dir: Path | str, *, lock_fd: int | None = None,
-                 poll_interval: float = 0.005):
+                 poll_interval: float = 0.005, follower: bool = False):
         self.data_dir = Path(data_dir)
         self.where = str(self.data_dir)
         self.snapshot_dir = self.data_dir / "snapshots"
         self.parts_dir = self.snapshot_dir / "parts"
         self.poll_interval = float(poll_interval)
-        try:
-            self.parts_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise StorageError(f"cannot create the data directory {self.data_dir}: {exc}") from exc
-        self._dir_lock = hold_data_dir(self.data_dir, lock_fd)
+        self.follower = bool(follower)
         self.db_path = db_path = self.data_dir / DB_NAME
+        self._dir_lock = None
+        if self.follower:
+            if not db_path.is_file() or not self.parts_dir.is_dir():
+                raise StorageError(
+                    f"no flatserve database at {db_path}: a shard of a cluster on SQLite "
+                    "reads the data directory of the server that holds it, so it must run "
+                    "on that machine (a cluster of several machines needs PostgreSQL)")
+        else:
+            try:
+                self.parts_dir.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise StorageError(f"cannot create the data directory {self.data_dir}: "
+                                   f"{exc}") from exc
+            self._dir_lock = hold_data_dir(self.data_dir, lock_fd)
         self._conns: list[sqlite3.Connection] = []
         self._conns_lock = threading.Lock()
         self._local = threading.local()
         self._closed = False
         try:
             self._db = self._connect()
-            self._open_retrying()
+            if self.follower:
+                ver = self._db.execute("PRAGMA user_version").fetchone()[0]
+                if ver != SCHEMA_VERSION:
+                    raise StorageError(f"database schema version {ver}; this follower knows "
+                                       f"{SCHEMA_VERSION} (the server holding it migrates it)")
+            else:
+                self._open_retrying()
         except (sqlite3.Error, StorageError) as exc:
             self.close()
             raise StorageError(f"cannot open the database {db_path}: {exc} (a damaged or "
@@ -115,9 +134,9 @@ class SQLiteBackend(SnapshotFiles, SQLBackend):
         self._watch_version: int | None = None
 
     @classmethod
-    def from_settings(cls, settings) -> "SQLiteBackend":
-        return cls(settings.data_dir, lock_fd=settings.lock_fd,
-                   poll_interval=settings.log_poll_interval)
+    def from_settings(cls, settings, *, follower: bool = False) -> "SQLiteBackend":
+        return cls(settings.data_dir, lock_fd=None if follower else settings.lock_fd,
+                   poll_interval=settings.log_poll_interval, follower=follower)
 
     def _open_retrying(self) -> None:
         """Page size, WAL and schema, retried while another replica of the group
@@ -212,7 +231,8 @@ class SQLiteBackend(SnapshotFiles, SQLBackend):
         finally:
             if lock is not None:
                 lock.release()
-        self._dir_lock.close()  # releases the data directory (unless the group holds it)
+        if self._dir_lock is not None:
+            self._dir_lock.close()  # releases the data directory (unless the group holds it)
 
     # -- transactions (the hooks of the rulebook) ------------------------------
     def _write(self, fn: Callable[[sqlite3.Connection], T], *, appends: bool = True,
@@ -224,6 +244,9 @@ class SQLiteBackend(SnapshotFiles, SQLBackend):
         with self._lock:
             if self._closed:
                 raise StorageError("storage is closed")
+            if self.follower:
+                raise StorageError(f"{self.data_dir}: a follower never writes the database "
+                                   "(the server holding the directory does)")
             db = self._db
             try:
                 if not durable:

@@ -59,10 +59,12 @@ class Fronts:
                          for i in range(1, self.n + 1))
 
 
-def oracle(url: str, name: str, upto: int | None = None):
+def oracle(url, name: str, upto: int | None = None):
     """The field built in this process from its stored definition and batches, in log
-    order, as a lone server builds it; and the log position of its last batch."""
-    st = open_backend(Settings(database_url=url))
+    order, as a lone server builds it; and the log position of its last batch. ``url``:
+    PostgreSQL's, or the data directory of a server on SQLite (read as a follower)."""
+    st = open_backend(Settings(database_url=url) if isinstance(url, str) else
+                      Settings(data_dir=url), follower=True)
     try:
         row = next(r for r in st.state()[1] if r.name == name)
         spec = FieldSpec.from_dict(row.spec)
@@ -292,9 +294,47 @@ def test_an_unreachable_cluster_is_named_at_start(tmp_path, pg_url):
     assert "the Ray cluster at '127.0.0.1:9' cannot be reached" in text, text[-2000:]
 
 
-def test_cluster_mode_needs_postgresql():
-    with pytest.raises(ValueError, match="ray: cluster mode needs database_url"):
-        Settings(ray="127.0.0.1:6379")
+def test_a_one_machine_cluster_on_sqlite(tmp_path, rng):
+    """No PostgreSQL: the front holds the SQLite data directory, the shards on this
+    machine's Ray nodes read its log and store their snapshot parts there."""
+    data = tmp_path / "front1"
+    probe = sphere_rays(rng, 2000)
+    opts = {"snapshot_every": 0, "ray_shards": 2, "ray_shard_memory": 1 << 30}
+    with contextlib.ExitStack() as stack:
+        nodes = stack.enter_context(RayNodes(workers=1))
+        a = stack.enter_context(ServerProcess(data, tmp_path / "front1.log", ray=nodes.address,
+                                              **opts))
+        a.wait_ready(180)
+        with Client(a.url, retries=0, timeout=120) as c:
+            c.create_field("f", channels=2)
+            c.create_field("one", channels=2, basis=ONE_CHART)
+            for i in range(3):
+                o, d = sphere_rays(rng, 2000)
+                c.upload_rays("f", o, d, rng.uniform(size=(2000, 2)), wait=bool(i % 2))
+                o, d = paper_rays(rng, 2000)
+                c.upload_rays("one", o, d, rng.uniform(size=(2000, 2)), wait=bool(i % 2))
+        assert_same(data, a, "f", probe)
+        assert_same(data, a, "one", paper_rays(rng, 1000), weights=True)
+        with Client(a.url, retries=0, timeout=120) as c:
+            for name in ("f", "one"):
+                snap = snapshot_soon(c, 60.0, name=name, interval=1.0)
+                assert snap["batch"] == 3 and snap["written"] > 0
+            o, d = sphere_rays(rng, 500)  # after the snapshot: replayed from the log
+            c.upload_rays("f", o, d, rng.uniform(size=(500, 2)))
+        # the parts are the shards' files in the data directory
+        assert len(list((data / "snapshots" / "parts").iterdir())) > 2
+    # every process gone; a new front and new nodes on the same directory
+    with contextlib.ExitStack() as stack:
+        nodes = stack.enter_context(RayNodes(workers=1))
+        b = stack.enter_context(ServerProcess(data, tmp_path / "front2.log", ray=nodes.address,
+                                              **opts))
+        b.wait_ready(180)
+        assert_same(data, b, "f", probe)
+        assert_same(data, b, "one", paper_rays(rng, 1000), weights=True)
+        with Client(b.url, retries=0) as c:
+            groups = c.describe("f")["shard_groups"] + c.describe("one")["shard_groups"]
+        assert len(groups) == 3 and all(g["restored_from"] == "snapshot after batch 3"
+                                        for g in groups), groups
 
 
 def test_the_cluster_lost_while_running_503_then_a_front_restarted_on_the_new_cluster(
@@ -330,3 +370,23 @@ def test_the_cluster_lost_while_running_503_then_a_front_restarted_on_the_new_cl
         assert_same(pg_url, b, "f", probe)
         with Client(b.url, retries=0) as c:
             assert any(x["batch"] == acked["batch"] for x in c.batches("f"))
+
+
+def test_cluster_mode_on_sqlite_refuses_nodes_on_other_machines(tmp_path):
+    """The shards of a cluster on SQLite read this machine's data directory: a node
+    elsewhere is named at start (checked against Ray's own list of nodes)."""
+    from types import SimpleNamespace
+
+    from flatserve.service.cluster.ray_shards import one_machine
+    from flatserve.service.status import ShardUnavailableError
+
+    def fake(nodes):
+        return SimpleNamespace(util=SimpleNamespace(get_node_ip_address=lambda: "127.0.0.1"),
+                               nodes=lambda: [{"Alive": alive, "NodeManagerAddress": ip}
+                                              for ip, alive in nodes])
+
+    settings = Settings(data_dir=tmp_path, ray="127.0.0.1:6379")
+    one_machine(fake([("127.0.0.1", True), ("127.0.0.1", True), ("10.0.0.7", False)]), settings)
+    with pytest.raises(ShardUnavailableError, match=r"nodes at 10\.0\.0\.7 are elsewhere.*"
+                                                    "PostgreSQL"):
+        one_machine(fake([("127.0.0.1", True), ("10.0.0.7", True)]), settings)

@@ -6,7 +6,8 @@ a field are split into *shard groups*, each held by one or more *shard
 workers* (:class:`~.shard.ShardWorker`) in processes of their own (Ray actors
 on the cluster's nodes, :mod:`.ray_shards`). A worker restores its charts
 from the field's newest snapshot (only its own parts) and then follows the
-shared log for its own rows: the log (PostgreSQL) stays the one truth.
+shared log for its own rows: the log (PostgreSQL; SQLite for a cluster on one
+machine) stays the one truth.
 
 The server processes become stateless *fronts*: a field's entry holds a
 :class:`~.remote.RemoteField`, which implements the field contract by routing

@@ -36,6 +36,7 @@ import logging
 import pickle
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from ..status import NotReadyError, ShardUnavailableError
@@ -157,6 +158,26 @@ def connect(settings) -> None:
             f"{type(exc).__name__}: {exc}") from None
 
 
+def one_machine(ray, settings) -> None:
+    """Cluster mode on SQLite: every node of the cluster is on this machine (the
+    shard workers read the data directory this server holds, :class:`~.shard.ShardWorker`).
+
+    Raises
+    ------
+    ShardUnavailableError
+        A node is on another machine (naming it).
+    """
+    here = ray.util.get_node_ip_address()
+    away = sorted({n.get("NodeManagerAddress") for n in ray.nodes() if n.get("Alive")}
+                  - {here})
+    if away:
+        raise ShardUnavailableError(
+            f"ray: cluster mode on SQLite (no database_url) needs every node of the cluster on "
+            f"this machine ({here}), whose data directory {settings.data_dir} the shards read; "
+            f"nodes at {', '.join(away)} are elsewhere: name a PostgreSQL database in "
+            "database_url for a cluster of several machines")
+
+
 class RayCluster:
     """A front's connection to the Ray cluster holding the shards (see the module doc).
 
@@ -164,12 +185,14 @@ class RayCluster:
     ----------
     settings : Settings
         ``ray`` (the address), ``ray_namespace``, ``ray_shards``,
-        ``ray_shard_memory``, and what the workers need (``database_url``...).
+        ``ray_shard_memory``, and what the workers need (``database_url``; unset:
+        SQLite in ``data_dir``, for a cluster whose nodes are all on this machine).
 
     Raises
     ------
     ShardUnavailableError
-        The cluster cannot be reached (the message names the address).
+        The cluster cannot be reached (the message names the address), or, on
+        SQLite, has a node on another machine.
     """
 
     def __init__(self, settings) -> None:
@@ -177,6 +200,9 @@ class RayCluster:
         import ray
 
         self.ray = ray
+        if settings.database_url is None:  # SQLite: the workers read this data directory
+            settings = settings.model_copy(update={"data_dir": Path(settings.data_dir).resolve()})
+            one_machine(ray, settings)
         self.settings = settings
         self.address = settings.ray
         from ray.exceptions import (ActorUnavailableError, GetTimeoutError, RayActorError,

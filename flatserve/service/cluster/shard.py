@@ -72,13 +72,15 @@ class ShardWorker:
     Parameters
     ----------
     settings : Settings
-        ``database_url`` (the shared log), ``insert_slice_rows`` (the same as the
+        ``database_url`` (the shared log; unset: the SQLite database of ``data_dir``,
+        read as a follower), ``insert_slice_rows`` (the same as the
         fronts': the slices of an insert decide the bits of a chart).
     field_id : int
     charts : sequence of int
         The charts this worker holds.
     storage : LogBackend, optional
-        Default: :func:`~flatserve.service.backend.open_backend` of ``settings``.
+        Default: :func:`~flatserve.service.backend.open_backend` of ``settings``, a
+        follower (it never writes the log).
     start : bool
         Start restoring and following at once (default).
     """
@@ -110,7 +112,7 @@ class ShardWorker:
     @property
     def storage(self) -> LogBackend:
         if self._storage is None:
-            self._storage = open_backend(self.settings)
+            self._storage = open_backend(self.settings, follower=True)
         return self._storage
 
     def start(self) -> None:

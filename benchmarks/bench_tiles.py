@@ -84,6 +84,50 @@ def one(side: int, tiles: int, cores: int, queries: int, out: str) -> dict:
     return info
 
 
+def scan_costs(n: int, runs: int) -> None:
+    """The exchange's two ways of finding the cells an insert made (flatserve.tiles
+    SCAN_SHARE): a walk around each new vertex (``seeds``) against one pass over
+    every cell stamped with its insert (``since``), after k new points on n, in a
+    tile of the Fig. 11 field's kind (4-D points of the paper's rays); the same
+    cells' answers, checked equal. One thread, medians of ``runs``."""
+    from flatserve import Field, Flats
+    from flatserve.basis import Basis
+    from flatserve.triangulation import Triangulation
+
+    rng = np.random.default_rng(0)
+    basis = Basis.around_axis(axis=2, scale=1.0)
+    o = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (2 * n, 3))
+    s = np.c_[rng.uniform(-1, 1, (2 * n, 2)), np.zeros(2 * n)]
+    pts = Field(basis).chart(Flats.from_rays(o, s - o)).points
+    lo, hi = np.quantile(pts, 0.5, axis=0)[None].repeat(2, 0), pts.max(0)[None].repeat(2, 0)
+    lo[0] = pts.min(0)  # group 0: the tile's own (skipped); group 1: the upper half in x0
+    hi[0, 0] = lo[1, 0] = np.median(pts[:, 0])
+    lo[1, 1:] = pts.min(0)[1:]
+    start = np.array([0, 1, 2])
+    print(f"the exchange's scan, one tile of {n:,} 4-D points of the paper's rays:")
+    for share in (0.005, 0.01, 0.02, 0.05, 0.1):
+        k = int(share * n)
+        walk, one_pass = [], []
+        for _ in range(runs):
+            tri = Triangulation(4)
+            tri.insert(pts[:n])
+            g = tri.generation
+            tri.insert(pts[n:n + k])
+            own = np.ones(n + k, np.uint8)
+            seeds = np.arange(n, n + k)
+            t0 = time.perf_counter()
+            a = tri.conflicts(own, lo, hi, start, skip=0, seeds=seeds)
+            t1 = time.perf_counter()
+            b = tri.conflicts(own, lo, hi, start, skip=0, since=g)
+            t2 = time.perf_counter()
+            assert all(np.array_equal(x, y) for x, y in zip(a, b)), "the two ways differ"
+            walk.append(t1 - t0)
+            one_pass.append(t2 - t1)
+        w, p = statistics.median(walk), statistics.median(one_pass)
+        print(f"  k = {share:5.1%} of n ({k:,} new points): walk {w:.3f} s, one pass "
+              f"{p:.3f} s: the pass {w / p:.2f}x the walk's speed")
+
+
 def run(args, tiles: int, cores: int, out: str) -> dict:
     cpus = ",".join(str(c) for c in range(cores))
     cmd = ["taskset", "-c", cpus, sys.executable, __file__, "--one", str(tiles), "--cores",
@@ -98,12 +142,17 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--queries", type=int, default=250_000)
     ap.add_argument("--halo", type=int, nargs="*", default=[2, 4, 8, 16])
+    ap.add_argument("--scan", type=int, metavar="N",
+                    help="only the exchange's scan costs on a tile of N points")
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--cores", type=int, default=2, help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
         print(json.dumps(one(args.side, args.one, args.cores, args.queries, args.out)))
+        return 0
+    if args.scan:
+        scan_costs(args.scan, args.runs)
         return 0
     print(f"Fig. 11 field: {args.side ** 2:,} rays of the bunny in random order, batches of "
           f"{BATCH:,}; {os.cpu_count()} cores here", flush=True)

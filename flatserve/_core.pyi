@@ -60,6 +60,12 @@ class Triangulation:
     @property
     def nfullcells(self) -> int: ...
 
+    @property
+    def generation(self) -> int:
+        """
+        Inserts so far: the cells an insert makes carry its number (conflicts(since=...)).
+        """
+
     def nfinite_cells(self) -> int: ...
 
     def insert(self, points: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)]) -> tuple[NDArray[numpy.int64], int]: ...
@@ -78,9 +84,9 @@ class Triangulation:
         Finite cells whose lexicographically first vertex has own[id] (over Tile & Merge's tiles: each cell of the whole triangulation once).
         """
 
-    def conflicts(self, own: Annotated[NDArray[numpy.uint8], dict(shape=(None,), order='C', device='cpu', writable=False)], lo: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], hi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], start: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)], skip: int = -1, seeds: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)] | None = None) -> list:
+    def conflicts(self, own: Annotated[NDArray[numpy.uint8], dict(shape=(None,), order='C', device='cpu', writable=False)], lo: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], hi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], start: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)], skip: int = -1, seeds: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)] | None = None, since: int = -1) -> list:
         """
-        Tile & Merge's exchange: per group of boxes (lo, hi: (nbox, D); group g is boxes start[g]:start[g+1], its bounding box first), the sorted ids of the vertices of the cells with a vertex with own[id] whose circumscribed ball (half-space beyond the hull facet for an infinite cell) meets one of its boxes; every cell, or those incident to the seed vertices; group skip untested.
+        Tile & Merge's exchange: per group of boxes (lo, hi: (nbox, D); group g is boxes start[g]:start[g+1], its bounding box first), the sorted ids of the vertices of the cells with a vertex with own[id] whose circumscribed ball (half-space beyond the hull facet for an infinite cell) meets one of its boxes; every cell, those made by the inserts after generation since (one pass over the cells), or those incident to the seed vertices; group skip untested.
         """
 
     def points(self) -> NDArray[numpy.float64]: ...

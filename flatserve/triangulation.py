@@ -318,6 +318,12 @@ class Triangulation:
         """Dimension of the affine hull of the points (-1 when empty)."""
         return int(self._core.current_dimension)
 
+    @property
+    def generation(self) -> int:
+        """Inserts so far (0 for a triangulation just built or loaded): the cells
+        an insert makes carry its number, for :meth:`conflicts` ``since``."""
+        return int(self._core.generation)
+
     def __len__(self) -> int:
         return self._n
 
@@ -569,7 +575,8 @@ class Triangulation:
         with _Reading(self._lock):
             return int(self._core.count_cells(mask))
 
-    def conflicts(self, own, lo, hi, start, skip: int = -1, seeds=None) -> list[np.ndarray]:
+    def conflicts(self, own, lo, hi, start, skip: int = -1, seeds=None,
+                  since: int | None = None) -> list[np.ndarray]:
         """Tile & Merge's exchange step: which vertices each group of boxes must receive.
 
         For every cell with at least one vertex of ``own`` whose circumscribed
@@ -592,7 +599,12 @@ class Triangulation:
             A group not tested (the tile's own), -1: none.
         seeds : array_like of int, optional
             Scan only the cells incident to these vertices (those an insertion of
-            them created); default every cell.
+            them created), found by a walk around each: for a few vertices.
+        since : int, optional
+            Scan only the cells made by the inserts after :attr:`generation` was
+            ``since`` (the same cells as the seeds of those inserts' new
+            vertices), found in one pass over every cell: for many vertices.
+            Default (neither): every cell.
 
         Returns
         -------
@@ -606,8 +618,14 @@ class Triangulation:
         hi = as_array(hi, "hi", (lo.shape[0], self._ndim), finite=False)
         st = np.ascontiguousarray(start, dtype=np.int64).reshape(-1)
         sd = None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64).reshape(-1)
+        if sd is not None and since is not None:
+            raise InvalidInputError("seeds, since: give one of them, not both", "since")
+        if since is not None and not 0 <= int(since) <= self.generation:
+            raise InvalidInputError(f"since: expected a generation in 0..{self.generation}, "
+                                    f"got {since}", "since")
         with _Reading(self._lock):
-            return list(self._core.conflicts(mask, lo, hi, st, int(skip), sd))
+            return list(self._core.conflicts(mask, lo, hi, st, int(skip), sd,
+                                             -1 if since is None else int(since)))
 
     # ------------------------------------------------------------------ checks
     def is_valid(self, verbose: bool = False) -> bool:

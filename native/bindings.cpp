@@ -105,6 +105,9 @@ void bind_triangulation(nb::module_& m) {
                    [](const PyTriangulation& s) { return s.t->number_of_vertices(); })
       .def_prop_ro("nfullcells",
                    [](const PyTriangulation& s) { return s.t->number_of_full_cells(); })
+      .def_prop_ro("generation", [](const PyTriangulation& s) { return s.t->generation(); },
+                   "Inserts so far: the cells an insert makes carry its number "
+                   "(conflicts(since=...)).")
       .def("nfinite_cells",
            [](const PyTriangulation& s) {
              nb::gil_scoped_release r;
@@ -193,7 +196,7 @@ void bind_triangulation(nb::module_& m) {
            "Merge's tiles: each cell of the whole triangulation once).")
       .def("conflicts",
            [](const PyTriangulation& s, U8Arr1 own, CArr2 lo, CArr2 hi, I64Arr1 start,
-              std::int64_t skip, std::optional<I64Arr1> seeds) {
+              std::int64_t skip, std::optional<I64Arr1> seeds, std::int64_t since) {
              const std::size_t D = s.t->dimension();
              check_cols(lo, D, "lo");
              check_cols(hi, D, "hi");
@@ -212,7 +215,8 @@ void bind_triangulation(nb::module_& m) {
              {
                nb::gil_scoped_release r;
                s.t->conflicts(own.data(), lo.data(), hi.data(), st, ng, skip,
-                              seeds ? seeds->data() : nullptr, seeds ? seeds->shape(0) : 0, got);
+                              seeds ? seeds->data() : nullptr, seeds ? seeds->shape(0) : 0,
+                              since, got);
              }
              nb::list res;
              for (auto& ids : got) {
@@ -223,12 +227,13 @@ void bind_triangulation(nb::module_& m) {
              return res;
            },
            nb::arg("own"), nb::arg("lo"), nb::arg("hi"), nb::arg("start"), nb::arg("skip") = -1,
-           nb::arg("seeds").none() = nb::none(),
+           nb::arg("seeds").none() = nb::none(), nb::arg("since") = -1,
            "Tile & Merge's exchange: per group of boxes (lo, hi: (nbox, D); group g is "
            "boxes start[g]:start[g+1], its bounding box first), the sorted ids of the "
            "vertices of the cells with a vertex with own[id] whose circumscribed ball "
            "(half-space beyond the hull facet for an infinite cell) meets one of its boxes; "
-           "every cell, or those incident to the seed vertices; group skip untested.")
+           "every cell, those made by the inserts after generation since (one pass over "
+           "the cells), or those incident to the seed vertices; group skip untested.")
       .def("points",
            [](const PyTriangulation& s) {
              OutArray<double> out({s.t->number_of_vertices(), (std::size_t)s.t->dimension()});

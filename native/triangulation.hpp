@@ -129,8 +129,10 @@ class TriangulationBase {
   // closed; group g's boxes are start[g] .. start[g+1]-1, the first of them
   // their bounding box, tested first), the ids of its finite vertices go to
   // out[g] (sorted, unique); group `skip` is not tested (-1: none). Cells
-  // scanned: every cell (seeds null), or those incident to the seed vertices
-  // (the cells an insertion of those vertices created). Conservative: a ball
+  // scanned: every cell (seeds null and since < 0), those made by the inserts
+  // after generation `since` (seeds null; one pass over the cells), or those
+  // incident to the seed vertices (the cells an insertion of those vertices
+  // created; a walk around each). Conservative: a ball
   // that cannot be computed meets every group. Below full dimension every
   // vertex goes to every group.
   // Finite cells whose lexicographically first vertex has own[id] != 0: over
@@ -139,8 +141,10 @@ class TriangulationBase {
   virtual std::size_t count_cells(const std::uint8_t* own) const = 0;
   virtual void conflicts(const std::uint8_t* own, const double* lo, const double* hi,
                          const std::int64_t* start, std::size_t ngroups, std::int64_t skip,
-                         const std::int64_t* seeds, std::size_t nseeds,
+                         const std::int64_t* seeds, std::size_t nseeds, std::int64_t since,
                          std::vector<std::vector<std::int64_t>>& out) const = 0;
+  // Inserts so far: the cells an insert makes carry its generation (conflicts).
+  virtual std::uint32_t generation() const = 0;
   virtual void points(double* out) const = 0;       // n x D, row = sample id
   virtual void simplices(std::int64_t* out) const = 0;  // finite cells x (D+1), numbered order
   virtual bool is_valid(bool verbose) const = 0;

@@ -144,6 +144,34 @@ struct VertexInfo {
   std::int64_t id = -1;
 };
 
+// The generation of the cells made on this thread now (an insert's, see
+// GenerationScope; 0 otherwise). A cell stamps itself with it when it is
+// constructed (or copied), so that the cells an insertion created are told
+// apart in one pass over the cell container (Tile & Merge's exchange).
+inline thread_local std::uint32_t tls_cell_generation = 0;
+
+struct CellData {
+  std::uint32_t index = 0;  // the cell's number (ensure_numbered)
+  std::uint32_t gen = tls_cell_generation;
+  CellData() = default;
+  CellData(const CellData& o) : index(o.index), gen(tls_cell_generation) {}
+  CellData& operator=(const CellData&) = default;
+};
+
+// Sets this thread's cell generation for its lifetime.
+class GenerationScope {
+ public:
+  explicit GenerationScope(std::uint32_t g) : prev_(tls_cell_generation) {
+    tls_cell_generation = g;
+  }
+  ~GenerationScope() { tls_cell_generation = prev_; }
+  GenerationScope(const GenerationScope&) = delete;
+  GenerationScope& operator=(const GenerationScope&) = delete;
+
+ private:
+  std::uint32_t prev_;
+};
+
 template <class DimTag>
 struct EigenDim {
   static constexpr int value = Eigen::Dynamic;
@@ -158,7 +186,7 @@ class Triangulation final : public TriangulationBase {
  public:
   using K = typename KernelFor<DimTag>::type;  // filtered predicates (fast_predicates.hpp)
   using Vb = CGAL::Triangulation_vertex<K, VertexInfo>;
-  using Cb = CGAL::Triangulation_full_cell<K, std::uint32_t>;  // data: index while writing
+  using Cb = CGAL::Triangulation_full_cell<K, CellData>;
   using TDS = CGAL::Triangulation_data_structure<DimTag, Vb, Cb>;
   using DT = CGAL::Delaunay_triangulation<K, TDS>;
   using Point = typename K::Point_d;
@@ -185,7 +213,10 @@ class Triangulation final : public TriangulationBase {
   }
 
   // ------------------------------------------------------------ insertion
+  std::uint32_t generation() const override { return gen_; }
+
   std::size_t insert(const double* pts, std::size_t n, std::int64_t* out_ids) override {
+    GenerationScope stamp(++gen_);  // the cells this insert makes
     std::vector<Point> P;
     P.reserve(n);
     for (std::size_t i = 0; i < n; ++i) P.emplace_back(pts + i * D_, pts + (i + 1) * D_);
@@ -232,7 +263,7 @@ class Triangulation final : public TriangulationBase {
                      std::copy(s.w.begin(), s.w.end(), w + qi * D1);
                      kind[qi] = s.kind;
                      if (simplex)
-                       simplex[qi] = s.kind <= ON_VERTEX ? static_cast<std::int64_t>(s.cell->data()) : -1;
+                       simplex[qi] = s.kind <= ON_VERTEX ? static_cast<std::int64_t>(s.cell->data().index) : -1;
                    });
   }
 
@@ -311,7 +342,7 @@ class Triangulation final : public TriangulationBase {
 
   void conflicts(const std::uint8_t* own, const double* lo, const double* hi,
                  const std::int64_t* start, std::size_t ngroups, std::int64_t skip,
-                 const std::int64_t* seeds, std::size_t nseeds,
+                 const std::int64_t* seeds, std::size_t nseeds, std::int64_t since,
                  std::vector<std::vector<std::int64_t>>& out) const override {
     const int D = D_;
     const std::size_t nv = by_id_.size();
@@ -445,7 +476,8 @@ class Triangulation final : public TriangulationBase {
           send(c, g);
     };
     if (seeds == nullptr) {
-      for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it) visit(it);
+      for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it)
+        if (since < 0 || static_cast<std::int64_t>(it->data().gen) > since) visit(it);
     } else {
       std::vector<Full_cell_handle> cells;
       for (std::size_t i = 0; i < nseeds; ++i) {
@@ -524,15 +556,15 @@ class Triangulation final : public TriangulationBase {
       });
       flush();
       each_cell([&](auto it) {
-        for (int k = 0; k <= D_; ++k) buf.push_back(it->neighbor(k)->data());
+        for (int k = 0; k <= D_; ++k) buf.push_back(it->neighbor(k)->data().index);
         if (buf.size() >= static_cast<std::size_t>(D_ + 1) * 4096) flush();
       });
       flush();
       // each vertex's full cell (the infinite vertex first): walks start there,
       // so a loaded triangulation answers exactly like the original
-      buf.push_back(inf->full_cell()->data());
+      buf.push_back(inf->full_cell()->data().index);
       for (const Vertex_handle& v : by_id_) {
-        buf.push_back(v->full_cell()->data());
+        buf.push_back(v->full_cell()->data().index);
         if (buf.size() >= 4096) flush();
       }
       flush();
@@ -607,7 +639,7 @@ class Triangulation final : public TriangulationBase {
         for (std::size_t j = 0; j < r; ++j) {
           Full_cell_handle s = (i + j == 0) ? dt_.full_cells_begin() : tds.new_full_cell();
           cells.push_back(s);
-          s->data() = static_cast<std::uint32_t>(i + j);
+          s->data().index = static_cast<std::uint32_t>(i + j);
           const std::uint32_t* cv = &buf[j * D1];
           bool infinite = false;
           for (int k = 0; k < D1; ++k) {
@@ -1017,7 +1049,7 @@ class Triangulation final : public TriangulationBase {
     std::uint32_t idx = 0;
     for (int pass = 0; pass < 2; ++pass) {
       for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it)
-        if (dt.is_infinite(it) == (pass == 1)) it->data() = idx++;
+        if (dt.is_infinite(it) == (pass == 1)) it->data().index = idx++;
       if (pass == 0) n_finite_ = idx;
     }
     numbered_.store(true, std::memory_order_release);
@@ -1029,6 +1061,7 @@ class Triangulation final : public TriangulationBase {
   mutable std::mutex number_mutex_;
   mutable std::atomic<bool> numbered_{false};
   mutable std::size_t n_finite_ = 0;
+  std::uint32_t gen_ = 0;  // inserts so far (the cells' generations)
 };
 
 }  // namespace flatserve

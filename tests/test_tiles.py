@@ -283,3 +283,34 @@ def test_a_tiles_box_stays_in_its_cell_of_the_partition():
     tri = Triangulation(3)
     tri.insert(pts, np.zeros((6000, 1)))
     _same_answers(tt, tri, rng.standard_cauchy((2000, 3)))
+
+
+@pytest.mark.parametrize("D", [2, 3, 4])
+def test_conflicts_since_a_generation_are_the_seeds_ones(D):
+    """The exchange's two ways to the cells an insert made: a walk around its new
+    vertices (seeds) and one pass over the cells stamped with their insert
+    (since) find the same cells, hence the same vertices per group; every cell
+    (neither) finds at least those."""
+    rng = np.random.default_rng(D)
+    tri = Triangulation(D)
+    tri.insert(rng.random((2000, D)))
+    g = tri.generation
+    tri.insert(rng.random((150, D)))
+    tri.insert(rng.random((50, D)))
+    assert tri.generation == g + 2
+    own = np.zeros(tri.npoints, np.uint8)
+    own[::2] = 1
+    lo = np.array([[0.0] * D, [0.5] + [0.0] * (D - 1), [0.0] * D])
+    hi = np.array([[0.5] + [1.0] * (D - 1), [1.0] * D, [0.2] * D])
+    start = np.array([0, 1, 2, 3])
+    seeds = tri.conflicts(own, lo, hi, start, seeds=np.arange(2000, 2200))
+    since = tri.conflicts(own, lo, hi, start, since=g)
+    every = tri.conflicts(own, lo, hi, start)
+    assert all(np.array_equal(a, b) for a, b in zip(seeds, since))
+    assert all(np.isin(a, b).all() for a, b in zip(since, every))
+    assert sum(len(a) for a in since) > 0
+    assert all(len(a) == 0 for a in tri.conflicts(own, lo, hi, start, since=tri.generation))
+    with pytest.raises(InvalidInputError, match="since: expected a generation in 0..3"):
+        tri.conflicts(own, lo, hi, start, since=4)
+    with pytest.raises(InvalidInputError, match="seeds, since: give one of them"):
+        tri.conflicts(own, lo, hi, start, seeds=[0], since=0)

@@ -13,12 +13,13 @@ values at the vertices of its simplex.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
-from typing import NamedTuple, Sequence
+from typing import Collection, NamedTuple, Sequence
 
 import numpy as np
 
-from ._fieldbase import FieldBase, corrupted, pack_header, read_header
+from ._fieldbase import FieldBase, corrupted, pack_header, part_key, read_header
 from .basis import Basis
 from .coordinates import NO_SAMPLES, OK, ROUNDTRIP_TOL, reason
 from .embedding import embed
@@ -592,6 +593,49 @@ class Field(FieldBase):
         fh.write(payload)
         return len(head) + len(payload)
 
+    def write_parts(self, fh, stage: str | os.PathLike, known: Collection[str] = ()) -> list[str]:
+        """Write a snapshot as a small field file plus parts: a field in tiles
+        writes one part per tile (its record, :meth:`TiledTriangulation.tile_parts`),
+        and only the tiles changed since their part was stored; a field of one
+        tile holds its one shard in the field file itself (:meth:`write_to`,
+        no parts).
+
+        Parameters
+        ----------
+        fh : binary file
+            Where the field file goes: the header of :meth:`write_to` (version
+            3) with ``"parts"``, the tiles' keys in tile order, and no payload.
+        stage : path-like
+            An existing directory for the new parts (``<stage>/<key>``, fsync'd).
+        known : collection of str
+            Keys of the parts stored already (not written again).
+
+        Returns
+        -------
+        list of str
+            The keys the field file names (none for one tile).
+
+        Examples
+        --------
+        >>> import io, tempfile
+        >>> f = Field(Basis.around_axis(), tiles=2)
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     len(f.write_parts(io.BytesIO(), d))
+        2
+        """
+        if self.tiles == 1:
+            return super().write_parts(fh, stage, known)
+        got = self._tri.tile_parts(known)
+        for key, blob in got:
+            if blob is not None:
+                with open(os.path.join(stage, key), "wb") as out:
+                    out.write(blob)
+                    out.flush()
+                    os.fsync(out.fileno())
+        keys = [key for key, _ in got]
+        fh.write(pack_header(FIELD_MAGIC, _VERSION_TILES, {**self._metadata(), "parts": keys}))
+        return keys
+
     @classmethod
     def from_bytes(cls, data, *, source: str = "field", parts=None, only=None) -> "Field":
         """A field from the bytes of a field file (:meth:`write_to`): a shard's restore.
@@ -603,8 +647,9 @@ class Field(FieldBase):
         source : str
             Named in error messages.
         parts : callable, optional
-            Unused: a one-chart field's file holds its one shard (the same
-            signature as :meth:`AtlasField.from_bytes`).
+            ``parts(key) -> bytes-like``: a field in tiles written in parts
+            (:meth:`write_parts`) reads its tiles' records there, each checked
+            against its key; otherwise unused (the file holds the field).
         only : collection of int, optional
             Unused: the one shard is read whatever is asked.
 
@@ -626,8 +671,26 @@ class Field(FieldBase):
                 raise ValueError(f"version {version} without its tiles")
             obj = cls(basis, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]),
                       warp=warp, tiles=int(tiling["tiles"]) if tiling else 1)
+            keys = meta.get("parts") if tiling else None
+            if keys is not None and (not isinstance(keys, list) or len(data) != start):
+                raise ValueError("parts: expected a list of keys and no payload")
+        except (ValueError, KeyError, TypeError, InvalidInputError) as exc:
+            raise corrupted("field", source, exc) from None
+        if keys is not None:
+            if parts is None:
+                raise SnapshotError(f"{source}: its tiles are parts, and no parts were given")
+            records = []
+            for t, key in enumerate(keys):
+                rec = parts(str(key))
+                if part_key(rec) != key:
+                    raise SnapshotError(f"{source}: the part of tile {t} ({key}) is damaged "
+                                        "(its bytes do not match its key)")
+                records.append(rec)
+        try:
             if tiling:
-                obj._tri = TiledTriangulation.from_bytes(data[start:], obj.ndim, tiling)
+                obj._tri = (TiledTriangulation.from_bytes(data[start:], obj.ndim, tiling)
+                            if keys is None else
+                            TiledTriangulation.from_parts(records, obj.ndim, tiling, keys))
         except (ValueError, KeyError, TypeError, InvalidInputError) as exc:
             raise corrupted("field", source, exc) from None
         if not tiling:

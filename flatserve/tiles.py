@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ._fieldbase import part_key
 from ._validate import as_array
 from .errors import InvalidInputError
 from .options import Order, Outside, choice
@@ -239,6 +240,7 @@ class TiledTriangulation:
         self._owner = np.empty(0, np.int64)                      # global id -> tile
         self._local = np.empty(0, np.int64)                      # global id -> local id there
         self._held = np.zeros((T, 0), dtype=bool)                # tile, global id -> held
+        self._parts: list = [None] * T    # tile -> (triangulation, generation, key) of its part
         self._reset_boxes()
         self._n = 0
         self._tiled_at = 0
@@ -432,6 +434,7 @@ class TiledTriangulation:
         self.tiling = Tiling.split(pts, T)
         self._tiled_at = len(pts)
         self._tiles = [Triangulation(D) for _ in range(T)]
+        self._parts = [None] * T
         self._gid = [np.empty(0, np.int64) for _ in range(T)]
         self._own = [np.empty(0, np.uint8) for _ in range(T)]
         self._owner = np.empty(0, np.int64)
@@ -711,21 +714,54 @@ class TiledTriangulation:
             "tiles": self._ntiles, "axis": tl.axis.tolist(), "cut": tl.cut.tolist(),
             "low": tl.low.tolist(), "high": tl.high.tolist()}
 
+    def _tile_record(self, t: int) -> bytes:
+        """Tile ``t``'s record: uint64 n, n int64 global ids, n uint8 own flags,
+        uint64 length and the tile's triangulation snapshot. Under the read lock."""
+        blob = self._tiles[t].to_bytes()
+        return b"".join([np.uint64(len(self._gid[t])).tobytes(), self._gid[t].tobytes(),
+                         self._own[t].tobytes(), np.uint64(len(blob)).tobytes(), blob])
+
     def to_bytes(self) -> bytes:
         """Every tile's own snapshot, with its global ids and own flags.
 
-        Layout: uint64 tiles, then per tile uint64 n, n int64 global ids, n uint8
-        own flags, uint64 length and the tile's triangulation snapshot
-        (:meth:`flatserve.Triangulation.to_bytes`). The tiling itself travels
-        in the field file's metadata (:meth:`tiling_dict`).
+        Layout: uint64 tiles, then per tile its record: uint64 n, n int64 global
+        ids, n uint8 own flags, uint64 length and the tile's triangulation
+        snapshot (:meth:`flatserve.Triangulation.to_bytes`). The tiling itself
+        travels in the field file's metadata (:meth:`tiling_dict`).
         """
         with self._lock.read():
-            out = [np.uint64(self._ntiles).tobytes()]
-            for t, tri in enumerate(self._tiles):
-                blob = tri.to_bytes()
-                out += [np.uint64(len(self._gid[t])).tobytes(), self._gid[t].tobytes(),
-                        self._own[t].tobytes(), np.uint64(len(blob)).tobytes(), blob]
-            return b"".join(out)
+            return b"".join([np.uint64(self._ntiles).tobytes(),
+                             *(self._tile_record(t) for t in range(self._ntiles))])
+
+    def tile_parts(self, known=()) -> list[tuple[str, bytes | None]]:
+        """Each tile's record (:meth:`to_bytes`) as a snapshot part: per tile its
+        key (:func:`flatserve.contract.part_key` of the record) and the record,
+        None when the key is in ``known``; a tile unchanged since its part was
+        last made (the same triangulation at the same
+        :attr:`~flatserve.Triangulation.generation`) whose key is known is not
+        serialised again. One moment of the tiles (the read lock), serialised on
+        the shard pool.
+
+        Parameters
+        ----------
+        known : collection of str
+            Keys of the parts stored already.
+        """
+        known = frozenset(known)
+
+        def part(t: int):
+            tri, last = self._tiles[t], self._parts[t]
+            if last is not None and last[0] is tri and last[1] == tri.generation and \
+                    last[2] in known:
+                return last[2], None
+            gen = tri.generation
+            blob = self._tile_record(t)
+            key = part_key(blob)
+            self._parts[t] = (tri, gen, key)
+            return key, None if key in known else blob
+
+        with self._lock.read():
+            return list(shard_pool().map(part, range(self._ntiles)))
 
     @classmethod
     def from_bytes(cls, data, ndim: int, tiling: dict) -> "TiledTriangulation":
@@ -738,16 +774,32 @@ class TiledTriangulation:
             which file: :class:`~flatserve.errors.SnapshotError`).
         """
         mv = memoryview(data)
-        at = 0
+        if len(mv) < 8:
+            raise ValueError("truncated tiles")
+        T = int(np.frombuffer(mv[:8], np.uint64)[0])
+        if T != int(tiling["tiles"]):
+            raise ValueError("the tile count differs from the tiling's")
+        records, at = [], 8
+        for _ in range(T):
+            size = _record_size(mv, at)
+            records.append(mv[at:at + size])
+            at += size
+        if at != len(mv):
+            raise ValueError("trailing bytes after the tiles")
+        return cls.from_parts(records, ndim, tiling)
 
-        def u64() -> int:
-            nonlocal at
-            if at + 8 > len(mv):
-                raise ValueError("truncated tiles")
-            v = int(np.frombuffer(mv[at:at + 8], np.uint64)[0])
-            at += 8
-            return v
+    @classmethod
+    def from_parts(cls, records, ndim: int, tiling: dict,
+                   keys=None) -> "TiledTriangulation":
+        """The tiles from their records (:meth:`tile_parts`), in tile order;
+        ``keys``: the records' part keys (a tile unchanged since is not
+        serialised again by :meth:`tile_parts`).
 
+        Raises
+        ------
+        ValueError
+            As :meth:`from_bytes`.
+        """
         T = int(tiling["tiles"])
         tl = None
         if "axis" in tiling:
@@ -757,22 +809,20 @@ class TiledTriangulation:
             if tl.ntiles != T:
                 raise ValueError(f"a tiling of {tl.ntiles} tiles named {T}")
         self = cls(ndim, T, tiling=tl)
-        if u64() != T:
+        if len(records) != T:
             raise ValueError("the tile count differs from the tiling's")
         owner, local = [], []
-        for t in range(T):
-            n = u64()
-            if at + 9 * n > len(mv):
-                raise ValueError("truncated tiles")
+        for t, rec in enumerate(records):
+            mv = memoryview(rec)
+            if _record_size(mv, 0) != len(mv):
+                raise ValueError(f"tile {t}: trailing bytes after its record")
+            n = int(np.frombuffer(mv[:8], np.uint64)[0])
+            at = 8
             self._gid[t] = np.frombuffer(mv[at:at + 8 * n], np.int64).copy()
             at += 8 * n
             self._own[t] = np.frombuffer(mv[at:at + n], np.uint8).copy()
-            at += n
-            size = u64()
-            if at + size > len(mv):
-                raise ValueError("truncated tiles")
-            self._tiles[t] = Triangulation.from_bytes(mv[at:at + size])
-            at += size
+            at += n + 8
+            self._tiles[t] = Triangulation.from_bytes(mv[at:])
             tri = self._tiles[t]
             if tri.npoints != n or tri.ndim != self._ndim:
                 raise ValueError(f"tile {t}: {tri.npoints} points for {n} ids")
@@ -783,8 +833,8 @@ class TiledTriangulation:
                 self._grow_boxes(t, tri.points[own])
             if tri.nchannels:
                 self._channels = tri.nchannels
-        if at != len(mv):
-            raise ValueError("trailing bytes after the tiles")
+            if keys is not None:
+                self._parts[t] = (tri, tri.generation, keys[t])
         m = sum(len(g) for g, _ in owner)
         self._n = self._tiled_at = m
         self._owner = np.full(m, -1, np.int64)
@@ -805,3 +855,18 @@ class TiledTriangulation:
     def __repr__(self) -> str:
         return (f"TiledTriangulation(ndim={self._ndim}, tiles={self._ntiles}, "
                 f"npoints={self._n}, halo={int(self.halo.sum())})")
+
+
+def _record_size(mv: memoryview, at: int) -> int:
+    """The length of the tile record at ``at`` (:meth:`TiledTriangulation.to_bytes`);
+    ValueError if it does not fit in ``mv``."""
+    if at + 8 > len(mv):
+        raise ValueError("truncated tiles")
+    n = int(np.frombuffer(mv[at:at + 8], np.uint64)[0])
+    head = 8 + 9 * n
+    if at + head + 8 > len(mv):
+        raise ValueError("truncated tiles")
+    size = int(np.frombuffer(mv[at + head:at + head + 8], np.uint64)[0])
+    if at + head + 8 + size > len(mv):
+        raise ValueError("truncated tiles")
+    return head + 8 + size

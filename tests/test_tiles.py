@@ -314,3 +314,63 @@ def test_conflicts_since_a_generation_are_the_seeds_ones(D):
         tri.conflicts(own, lo, hi, start, since=4)
     with pytest.raises(InvalidInputError, match="seeds, since: give one of them"):
         tri.conflicts(own, lo, hi, start, seeds=[0], since=0)
+
+
+def test_tiles_as_snapshot_parts_only_the_changed_ones():
+    """A tiled triangulation's parts: one record per tile; a tile that did not change
+    is not serialised again; new values on points only one tile holds change that
+    tile's part alone; the parts rebuild the same tiles."""
+    rng = np.random.default_rng(11)
+    tt = TiledTriangulation(3, 3)
+    tt.insert(rng.random((3000, 3)), rng.random((3000, 1)))
+    first = tt.tile_parts()
+    assert len(first) == 3 and all(blob is not None for _, blob in first)
+    keys = [k for k, _ in first]
+    assert tt.tile_parts(known=keys) == [(k, None) for k in keys]  # nothing changed
+    # new values on own points of tile 0 that no other tile holds in its halo
+    elsewhere = np.concatenate([tt.global_ids(t) for t in (1, 2)])
+    g0 = tt.global_ids(0)
+    only = tt.own(0) & ~np.isin(g0, elsewhere)
+    assert only.sum() > 100
+    tt.insert(tt.tiles[0].points[only][:50], np.full((50, 1), 7.0))
+    second = tt.tile_parts(known=keys)
+    assert second[1:] == [(k, None) for k in keys[1:]]
+    assert second[0][0] != keys[0] and second[0][1] is not None
+    records = [second[0][1], *(blob for _, blob in first[1:])]
+    back = TiledTriangulation.from_parts(records, 3, tt.tiling_dict(),
+                                         [k for k, _ in second])
+    q = rng.random((500, 3))
+    assert np.array_equal(back.query(q)[0], tt.query(q)[0], equal_nan=True)
+    assert np.array_equal(back.to_bytes(), tt.to_bytes())
+    assert back.tile_parts(known=[k for k, _ in second]) == [(k, None) for k, _ in second]
+
+
+def test_a_tiled_fields_snapshot_in_parts_loads_and_checks_its_parts(tmp_path):
+    from flatserve import Field, Flats
+    from flatserve.basis import Basis
+    from flatserve.contract import load_field
+    from flatserve.errors import SnapshotError
+
+    o, d, v = _fig11_rays(60, seed=3)
+    f = Field(Basis.around_axis(axis=2, scale=0.01), channels=1, tiles=2)
+    f.add(Flats.from_rays(o, d), v)
+    stage = tmp_path / "parts"
+    stage.mkdir()
+    keys = f.save_parts(tmp_path / "f.snap", stage)
+    assert sorted(p.name for p in stage.iterdir()) == sorted(keys) and len(keys) == 2
+    stored = {p.name: p.read_bytes() for p in stage.iterdir()}
+    back = load_field(tmp_path / "f.snap", stored.__getitem__)
+    q = Flats.from_rays(o[:300] + 0.01, d[:300])
+    assert back.tiles == 2 and back.nsamples == f.nsamples
+    assert np.array_equal(back.query(q).values, f.query(q).values, equal_nan=True)
+    # nothing changed: no part written again
+    again = tmp_path / "again"
+    again.mkdir()
+    assert f.save_parts(tmp_path / "g.snap", again, known=keys) == keys
+    assert list(again.iterdir()) == []
+    with pytest.raises(SnapshotError, match="no parts were given"):
+        load_field(tmp_path / "f.snap")
+    bad = dict(stored)
+    bad[keys[1]] = bad[keys[1]][:-1] + b"x"
+    with pytest.raises(SnapshotError, match="part of tile 1 .* is damaged"):
+        load_field(tmp_path / "f.snap", bad.__getitem__)

@@ -24,9 +24,17 @@ def test_a_tiled_one_chart_field_answers_as_the_unsplit_one(make_app, rng):
         got = c.query_rays("t", qo, qv, weights=True)
         assert np.array_equal(got.values, want.values, equal_nan=True)
         assert_same_cells(want.ids, want.weights, got.ids, got.weights, want.inside)
-        c.snapshot("t")
+        first = c.snapshot("t")
+        assert first["written"] > 0
         assert c.describe("t")["nvertices"] == ref.nsamples
-    with running(make_app()) as (tc, c):  # restored from its tiles' snapshot
+        # one part per tile: nothing changed, nothing written again
+        e = tc.app.state.rooms.catalogue.get("t")
+        assert len(tc.app.state.rooms.storage.snapshot_parts(e.id)) == 4
+        c.upload_rays("t", o[:10], v[:10], vals[:10])  # the same rays again: no new sample
+        add_rays(ref, o[:10], v[:10], vals[:10])
+        again = c.snapshot("t")
+        assert 0 < again["written"] < first["written"]
+    with running(make_app()) as (tc, c):  # restored from its tiles' snapshot parts
         c.wait_ready(60)
         assert c.describe("t")["tiles"] == 4
         again = c.query_rays("t", qo, qv)

@@ -37,6 +37,20 @@ def sphere_rays(rng, n):
     return rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
 
 
+def fill(c: Client, rng, atlas: str, *, batches: int, rows: int) -> dict:
+    """Create an atlas field ``atlas`` and a one-chart field "one" (2 channels) and
+    upload ``batches`` batches of ``rows`` rays to each, waiting for every other
+    one; the atlas field's create answer."""
+    info = c.create_field(atlas, channels=2)
+    c.create_field("one", channels=2, basis=ONE_CHART)
+    for i in range(batches):
+        o, d = sphere_rays(rng, rows)
+        c.upload_rays(atlas, o, d, rng.uniform(size=(rows, 2)), wait=bool(i % 2))
+        o, d = paper_rays(rng, rows)
+        c.upload_rays("one", o, d, rng.uniform(size=(rows, 2)), wait=bool(i % 2))
+    return info
+
+
 class Fronts:
     """Front processes on one database and one Ray cluster (killed when the test ends)."""
 
@@ -133,14 +147,7 @@ def test_a_three_node_cluster_answers_as_one_process(fronts, pg_url, rng):
     a = fronts.start()
     probe = sphere_rays(rng, 3000)
     with Client(a.url, retries=0, timeout=120) as c:
-        info = c.create_field("atlas", channels=2)
-        assert info["ncharts"] == 16
-        c.create_field("one", channels=2, basis=ONE_CHART)
-        for i in range(4):
-            o, d = sphere_rays(rng, 2500)
-            c.upload_rays("atlas", o, d, rng.uniform(size=(2500, 2)), wait=bool(i % 2))
-            o, d = paper_rays(rng, 2500)
-            c.upload_rays("one", o, d, rng.uniform(size=(2500, 2)), wait=bool(i % 2))
+        assert fill(c, rng, "atlas", batches=4, rows=2500)["ncharts"] == 16
     assert_same(pg_url, a, "atlas", probe)
     assert_same(pg_url, a, "one", paper_rays(rng, 2000), weights=True)
     # a rendered view (the light-field route) is the one-process field's, bit for bit
@@ -306,13 +313,7 @@ def test_a_one_machine_cluster_on_sqlite(tmp_path, rng):
                                               **opts))
         a.wait_ready(180)
         with Client(a.url, retries=0, timeout=120) as c:
-            c.create_field("f", channels=2)
-            c.create_field("one", channels=2, basis=ONE_CHART)
-            for i in range(3):
-                o, d = sphere_rays(rng, 2000)
-                c.upload_rays("f", o, d, rng.uniform(size=(2000, 2)), wait=bool(i % 2))
-                o, d = paper_rays(rng, 2000)
-                c.upload_rays("one", o, d, rng.uniform(size=(2000, 2)), wait=bool(i % 2))
+            fill(c, rng, "f", batches=3, rows=2000)
         assert_same(data, a, "f", probe)
         assert_same(data, a, "one", paper_rays(rng, 1000), weights=True)
         with Client(a.url, retries=0, timeout=120) as c:

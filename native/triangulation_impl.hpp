@@ -217,6 +217,7 @@ class Triangulation final : public TriangulationBase {
 
   std::size_t insert(const double* pts, std::size_t n, std::int64_t* out_ids) override {
     GenerationScope stamp(++gen_);  // the cells this insert makes
+    const int dim_before = dt_.current_dimension();
     std::vector<Point> P;
     P.reserve(n);
     for (std::size_t i = 0; i < n; ++i) P.emplace_back(pts + i * D_, pts + (i + 1) * D_);
@@ -239,6 +240,9 @@ class Triangulation final : public TriangulationBase {
       hint = v->full_cell();
     }
     numbered_.store(false);
+    // Raising the dimension changes the cells that were there in place (CGAL
+    // associates the new vertex with them): they keep their old generation.
+    if (dt_.current_dimension() > dim_before) dim_gen_ = gen_;
     std::size_t added = 0;
     for (std::size_t idx = 0; idx < n; ++idx) {
       Vertex_handle v = row_vertex[idx];
@@ -475,6 +479,8 @@ class Triangulation final : public TriangulationBase {
         if (static_cast<std::int64_t>(g) != skip && (!finite || meets_group(g, half_meets)))
           send(c, g);
     };
+    // cells changed in place by a rise of the dimension after `since` are new too
+    if (since >= 0 && since < static_cast<std::int64_t>(dim_gen_)) since = -1;
     if (seeds == nullptr) {
       for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it)
         if (since < 0 || static_cast<std::int64_t>(it->data().gen) > since) visit(it);
@@ -1061,7 +1067,8 @@ class Triangulation final : public TriangulationBase {
   mutable std::mutex number_mutex_;
   mutable std::atomic<bool> numbered_{false};
   mutable std::size_t n_finite_ = 0;
-  std::uint32_t gen_ = 0;  // inserts so far (the cells' generations)
+  std::uint32_t gen_ = 0;      // inserts so far (the cells' generations)
+  std::uint32_t dim_gen_ = 0;  // the insert that last raised the dimension
 };
 
 }  // namespace flatserve

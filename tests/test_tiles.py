@@ -374,3 +374,31 @@ def test_a_tiled_fields_snapshot_in_parts_loads_and_checks_its_parts(tmp_path):
     bad[keys[1]] = bad[keys[1]][:-1] + b"x"
     with pytest.raises(SnapshotError, match="part of tile 1 .* is damaged"):
         load_field(tmp_path / "f.snap", bad.__getitem__)
+
+
+def test_an_insert_that_raises_the_dimension_makes_every_cell_new():
+    """CGAL raises a triangulation's dimension by changing the cells that are there
+    in place (they keep their generation): a scan since before it sees every cell,
+    as the walk around the new vertex does; and tiles whose points were all on a
+    line answer the unsplit triangulation's bits once a point leaves it."""
+    for D, first, second in ((2, [[0, 0], [1, 0]], [[0.5, 1]]),
+                             (3, [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], [[0.5, 0.5, 1]])):
+        tri = Triangulation(D)
+        tri.insert(np.asarray(first, float))
+        g, n0 = tri.generation, tri.npoints
+        tri.insert(np.asarray(second, float))
+        own = np.ones(tri.npoints, np.uint8)
+        lo, hi, start = np.full((1, D), -10.0), np.full((1, D), 10.0), np.array([0, 1])
+        walk = tri.conflicts(own, lo, hi, start, seeds=np.arange(n0, tri.npoints))
+        one_pass = tri.conflicts(own, lo, hi, start, since=g)
+        assert np.array_equal(walk[0], one_pass[0]) and len(walk[0]) == tri.npoints
+    t = np.linspace(0, 1, 40)
+    whole, tt = Triangulation(2), TiledTriangulation(2, 2)
+    for x in (whole, tt):
+        x.insert(np.c_[t, t], np.ones((40, 1)))
+        x.insert(np.array([[0.2, 0.25]]), np.full((1, 1), 5.0))
+    q = np.array([[0.6, 0.61], [0.8, 0.805], [0.3, 0.33], [0.15, 0.17]])
+    v0, in0 = whole.query(q)[:2]
+    v1, in1 = tt.query(q)[:2]
+    assert in0.all() and np.array_equal(in0, in1)
+    assert np.array_equal(v0, v1, equal_nan=True)

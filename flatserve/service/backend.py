@@ -46,7 +46,7 @@ import abc
 import importlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal, TypeVar
+from typing import Callable, Literal, Sequence, TypeVar
 
 import numpy as np
 
@@ -452,6 +452,12 @@ class LogBackend(abc.ABC):
         int
             Bytes written (0: the part was there).
         """
+
+    @abc.abstractmethod
+    def remove_parts(self, field_id: int, keys: Sequence[str]) -> None:
+        """Remove these parts of field ``field_id`` (stored for a snapshot that was
+        abandoned, which no snapshot names). The caller holds
+        :data:`SNAPSHOT_LEASE`."""
 
     @abc.abstractmethod
     def acquire_lease(self, name: str, owner: str, ttl: float) -> bool:

@@ -183,6 +183,12 @@ class ChunkedSnapshots:
 
         return self._run(store)
 
+    def remove_parts(self, field_id: int, keys) -> None:
+        names = [part_name(field_id, k) for k in keys]
+        if names:
+            self._run(lambda c: c.execute("DELETE FROM snapshots WHERE field_id=%s AND"
+                                          " name = ANY(%s)", (field_id, names)))
+
     def write_snapshot(self, field_id: int, seq: int, position: int,
                        save: Callable[[Path, Path], list[str] | None],
                        check: Callable[[], None] | None = None) -> SnapshotInfo:

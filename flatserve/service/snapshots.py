@@ -157,6 +157,10 @@ class SnapshotWriter:
             try:
                 info = self.storage.write_snapshot(e.id, frozen.seq, frozen.pos, frozen.save,
                                                    check=lease.check)
+            except BaseException:
+                frozen.release()
+                self._drop_strays(e, known, lease)
+                raise
             finally:
                 frozen.release()
             with e.index_lock:
@@ -171,6 +175,26 @@ class SnapshotWriter:
             self.metrics.snapshots.labels(e.name).inc()
         return SnapshotResult(batch=frozen.seq, bytes=self.storage.snapshot_bytes(info.file),
                               written=info.bytes + frozen.stored, seconds=dt)
+
+    def _drop_strays(self, e: FieldEntry, known: set[str], lease: "_Held") -> None:
+        """The parts stored during a snapshot that was then abandoned (a cluster's
+        shards store their own before the snapshot is written, and one group
+        ahead of the others abandons it; a writer that failed after moving its
+        parts into place): those the field did not have when the snapshot began.
+        Not after the lease was lost: another writer's new parts would look the
+        same. Best effort (the field's next snapshot removes what no snapshot
+        names)."""
+        if lease.lost.is_set():
+            return
+        try:
+            stray = self.storage.snapshot_parts(e.id) - set(known)
+            if stray:
+                self.storage.remove_parts(e.id, sorted(stray))
+                log.info("field %r: removed %d part(s) of an abandoned snapshot", e.name,
+                         len(stray))
+        except Exception as exc:  # (the field deleted meanwhile, the database away)
+            log.warning("field %r: the parts of an abandoned snapshot stay until its next "
+                        "snapshot: %s", e.name, exc)
 
     def clean_orphans(self) -> None:
         """Remove snapshot data left by a writer that died (under the snapshot lease:

@@ -88,6 +88,14 @@ class SnapshotFiles:
             raise snapshot_failure(exc) from exc
         return len(data)
 
+    def remove_parts(self, field_id: int, keys) -> None:
+        for key in keys:
+            try:
+                self.part_path(field_id, key).unlink(missing_ok=True)
+            except OSError as exc:
+                raise StorageError(f"cannot remove {self.part_path(field_id, key)}: "
+                                   f"{exc}") from exc
+
     def write_snapshot(self, field_id: int, seq: int, position: int,
                        save: Callable[[Path, Path], list[str] | None],
                        check: Callable[[], None] | None = None) -> SnapshotInfo:

@@ -120,3 +120,41 @@ def test_a_damaged_part_rebuilds_from_the_batches(make_app, rng, tmp_path, caplo
         np.testing.assert_array_equal(after[1], before[1])
     finally:
         tc.__exit__(None, None, None)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_parts_of_an_abandoned_snapshot_are_removed(make_app, rng, request, backend):
+    """Parts stored ahead of a snapshot that is then abandoned (as a cluster's shard
+    groups store theirs before one of them turns out ahead of the others) do not
+    stay: the field keeps the parts it had; the next snapshot writes its own."""
+    from flatserve.client import ServiceError
+    from flatserve.service.status import NotReadyError
+
+    tc, c = started(make_app(**_opts(request, backend)))
+    try:
+        c.create_field("f")
+        o, v = paper_rays(rng, 2000)
+        c.upload_rays("f", o, v, rng.uniform(size=2000))
+        first = c.snapshot("f")
+        rooms = tc.app.state.rooms
+        e = rooms.catalogue.get("f")
+        had = rooms.storage.snapshot_parts(e.id)
+        o, v = paper_rays(rng, 500)
+        c.upload_rays("f", o, v, rng.uniform(size=500))
+        real = e.field.save_parts
+
+        def ahead(path, stage, known=()):
+            rooms.storage.store_part(e.id, "ab" * 16, b"a part of the abandoned snapshot")
+            raise NotReadyError("a shard group is ahead of the others; retry the snapshot")
+
+        e.field.save_parts = ahead
+        with pytest.raises(ServiceError) as err:
+            c.snapshot("f")
+        assert err.value.status == 503
+        assert rooms.storage.snapshot_parts(e.id) == had
+        e.field.save_parts = real
+        second = c.snapshot("f")
+        assert second["batch"] == first["batch"] + 1
+        assert "ab" * 16 not in rooms.storage.snapshot_parts(e.id)
+    finally:
+        tc.__exit__(None, None, None)

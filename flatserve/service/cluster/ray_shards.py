@@ -6,7 +6,8 @@ field's :class:`RayGroups` (a :class:`~.remote.ShardGroups`):
 
 * a field's charts are dealt round-robin into ``ray_shards`` groups (a
   one-chart field: one group); each group has ``copies`` actors (the field's
-  spec), named ``field-<id>-g<group>-c<copy>`` in ``ray_namespace``, detached
+  spec), named ``field-<log>-<id>-g<group>-c<copy>`` in ``ray_namespace``
+  (``<log>``: :func:`log_tag`, the log's location), detached
   (they outlive the front that made them: any front finds them by name) and
   restarted by Ray wherever there is room when their node dies
   (``max_restarts=-1``); a restarted actor restores itself
@@ -32,12 +33,14 @@ field's :class:`RayGroups` (a :class:`~.remote.ShardGroups`):
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import logging
 import pickle
 import threading
 import time
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from ..status import NotReadyError, ShardUnavailableError
 from .shard import ShardWorker
@@ -158,6 +161,22 @@ def connect(settings) -> None:
             f"{type(exc).__name__}: {exc}") from None
 
 
+def log_tag(settings) -> str:
+    """Eight hex digits naming the log a front follows (PostgreSQL's host, port and
+    database; or the SQLite data directory's absolute path), in its actors' names:
+    two deployments sharing one Ray cluster and namespace never take each other's
+    actors for their own fields of the same id (detached actors outlive their
+    front, and fronts find them by name). Every front of a deployment names its
+    database alike (one set of actors per spelling of the host)."""
+    url = settings.database_url
+    if url:
+        u = urlsplit(url)
+        where = f"pg:{u.hostname}:{u.port}:{u.path}"
+    else:
+        where = f"sqlite:{Path(settings.data_dir).resolve()}"
+    return hashlib.sha256(where.encode()).hexdigest()[:8]
+
+
 def one_machine(ray, settings) -> None:
     """Cluster mode on SQLite: every node of the cluster is on this machine (the
     shard workers read the data directory this server holds, :class:`~.shard.ShardWorker`).
@@ -204,6 +223,7 @@ class RayCluster:
             settings = settings.model_copy(update={"data_dir": Path(settings.data_dir).resolve()})
             one_machine(ray, settings)
         self.settings = settings
+        self.log_tag = log_tag(settings)
         self.address = settings.ray
         from ray.exceptions import (ActorUnavailableError, GetTimeoutError, RayActorError,
                                     RaySystemError, RayTaskError)
@@ -311,7 +331,7 @@ class RayGroups:
                        for g in range(len(self.charts))]
 
     def _name(self, g: int, j: int | None = None) -> str:
-        base = f"field-{self.field_id}-g{g}"
+        base = f"field-{self.cluster.log_tag}-{self.field_id}-g{g}"
         return base if j is None else f"{base}-c{j}"
 
     def _placement(self, g: int):

@@ -195,9 +195,14 @@ class Atlas:
         ``unit`` is :data:`DEFAULT_UNIT` and ``unit_from_data`` True.
     isometric : bool, optional
         Warp each chart's points so that it measures turns and shifts
-        everywhere as at its centre (:mod:`flatserve.warp`; lines in R^3
-        only).  Default: True for lines in R^3, False otherwise (and for
-        atlases stored before there was a choice: :meth:`from_dict`).
+        everywhere as at its centre (:mod:`flatserve.warp`; lines in any
+        R^d).  Default: True for lines in R^3, False otherwise (and for
+        atlases stored before there was a choice: :meth:`from_dict`).  For
+        lines in R^4 it is an opt-in: at 3,000 random lines the warped
+        atlas's median error was 0.62x the paper's charts', but 76 % of
+        queries fell inside the samples' hull against 100 % (a warp that
+        contracts the outer turns moves hull facets inwards; the samples are
+        sparse in 6 dimensions).
 
     Attributes
     ----------
@@ -246,8 +251,8 @@ class Atlas:
         self.frames = N if use_normals(k, d) else A
         if isometric is None:
             isometric = (k, d) == (1, 3)
-        if not isinstance(isometric, (bool, np.bool_)) or (isometric and (k, d) != (1, 3)):
-            raise InvalidInputError(f"isometric: only charts of lines in R^3 can be made isometric, "
+        if not isinstance(isometric, (bool, np.bool_)) or (isometric and k != 1):
+            raise InvalidInputError(f"isometric: only charts of lines can be made isometric, "
                                     f"got {isometric!r} for {k}-flats in R^{d}", "isometric")
         self.isometric = bool(isometric)
         self._warps: list | None = None  # calibrated on first use (warps)

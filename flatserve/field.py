@@ -232,7 +232,7 @@ class Field(FieldBase):
         for which a sample's or query's coordinates are trusted.
     warp : flatserve.warp.LineWarp, optional
         Applied to the embedded points before they are triangulated (the
-        isometric charts of an atlas of lines in R^3, :mod:`flatserve.warp`);
+        isometric charts of an atlas of lines, :mod:`flatserve.warp`);
         None (the default): the paper's chart.
     tiles : int
         Split the chart's triangulation into this many tiles
@@ -264,9 +264,11 @@ class Field(FieldBase):
         self.k, self.d, self.ndim = basis.k, basis.d, basis.m - 1
         self.channels = int(channels)
         self.roundtrip_tol = float(roundtrip_tol)
-        if warp is not None and not (isinstance(warp, LineWarp) and self.k == 1 and self.d == 3):
-            raise InvalidInputError("warp: expected a flatserve.warp.LineWarp on a field of lines "
-                                    "in R^3", "warp")
+        if warp is not None and not (isinstance(warp, LineWarp) and self.k == 1
+                                     and warp.ndim == self.ndim):
+            raise InvalidInputError("warp: expected a flatserve.warp.LineWarp of lines in "
+                                    f"R^{self.d} on this field of {self.k}-flats in R^{self.d}",
+                                    "warp")
         #: the chart's warp (None: the paper's chart)
         self.warp = warp
         if isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or tiles < 1:

@@ -27,7 +27,12 @@ its axis, has condition number at most 1.03 (the paper's chart: 2.23); at
 offsets of one unit, 1.23 (against up to 4.4).  It is the identity to first
 order at the centre, continuous and invertible on the chart's domain (below
 45 degrees), and computed row by row in a fixed order (a line's point does not
-depend on its batch).  Only lines in R^3 (the light field's rays) have it.
+depend on its batch).  Lines in R^d have the same structure with a turn
+part and a shift part of d - 1 coordinates each (measured by finite
+differences for d = 4: the same condition numbers as in R^3, turn by turn
+and shift by shift, ``tests/test_warp.py``), and :class:`LineWarp` warps
+them alike; atlases of lines in R^3 are isometric by default, others opt in
+(:class:`flatserve.atlas.Atlas` ``isometric``).
 
 Example
 -------
@@ -65,15 +70,16 @@ FRAME_TOL = 1e-9
 
 
 class LineWarp:
-    """The warp of one tangent-simplex chart of lines in R^3 (module docstring).
+    """The warp of one tangent-simplex chart of lines in R^d (module docstring).
 
     Parameters
     ----------
-    origin : ndarray, shape (4,)
+    origin : ndarray, shape (2(d-1),)
         The embedded point of the chart's centre line.
-    frame : ndarray, shape (4, 4)
-        Rows: unit vectors of the turn plane (2) and of the shift plane (2),
-        paired (a tilt towards a direction and a shift along it).
+    frame : ndarray, shape (2(d-1), 2(d-1))
+        Rows: unit vectors of the turn subspace (d - 1) and of the shift
+        subspace (d - 1), paired (a tilt towards a direction and a shift
+        along it).
     kT : float
         ``|T| = kT tan(2 phi) / 2``.
 
@@ -81,32 +87,41 @@ class LineWarp:
     """
 
     def __init__(self, origin, frame, kT: float):
-        self.origin = np.ascontiguousarray(origin, dtype=np.float64).reshape(4)
-        self.frame = np.ascontiguousarray(frame, dtype=np.float64).reshape(4, 4)
+        self.origin = np.ascontiguousarray(origin, dtype=np.float64).reshape(-1)
+        n = self.origin.shape[0]
+        if n < 2 or n % 2:
+            raise InvalidInputError(f"warp: expected an origin of 2(d-1) coordinates, got {n}",
+                                    "warp")
+        self.frame = np.ascontiguousarray(frame, dtype=np.float64).reshape(n, n)
         self.kT = float(kT)
         if not (np.isfinite(self.origin).all() and np.isfinite(self.frame).all()
                 and math.isfinite(self.kT) and self.kT > 0):
             raise InvalidInputError("warp: expected a finite origin, frame and kT > 0", "warp")
-        off = float(np.abs(self.frame @ self.frame.T - np.eye(4)).max())
+        off = float(np.abs(self.frame @ self.frame.T - np.eye(n)).max())
         if off > FRAME_TOL:
             raise InvalidInputError(f"warp: the frame is not orthonormal (off by {off:.3g})",
                                     "warp")
         # orthonormal by construction (calibrate); its transpose is its inverse
         self._FT = np.ascontiguousarray(self.frame.T)
 
+    @property
+    def ndim(self) -> int:
+        """The dimension of the chart's embedded points, 2(d-1)."""
+        return self.origin.shape[0]
+
     @classmethod
     def calibrate(cls, basis, *, calibration_tol: float = CALIBRATION_TOL,
                   calibration_deg: float = CALIBRATION_DEG) -> "LineWarp":
-        """The warp of the chart of ``basis`` (a tangent simplex of lines in R^3).
+        """The warp of the chart of ``basis`` (a tangent simplex of lines in R^d).
 
-        Measures the chart on five lines: its centre, the centre tilted by
-        ``calibration_deg`` towards two orthogonal directions about the
+        Measures the chart on 2d - 1 lines: its centre, the centre tilted by
+        ``calibration_deg`` towards d - 1 orthogonal directions about the
         centre's point, and the centre shifted along them.
 
         Parameters
         ----------
         basis : flatserve.Basis
-            With ``basis.center`` set (a tangent simplex), k = 1, d = 3.
+            With ``basis.center`` set (a tangent simplex), k = 1, d >= 2.
         calibration_tol : float
             Round-trip tolerance of the calibration lines per unit of the
             centre's distance from the origin (:data:`CALIBRATION_TOL`).
@@ -117,18 +132,17 @@ class LineWarp:
         -------
         LineWarp
         """
-        if basis.k != 1 or basis.d != 3 or basis.center is None:
-            raise InvalidInputError("warp: only tangent-simplex charts of lines in R^3 have one",
+        if basis.k != 1 or basis.d < 2 or basis.center is None:
+            raise InvalidInputError("warp: only tangent-simplex charts of lines have one",
                                     "warp")
         Qc, rc = basis.center
         _, V = np.linalg.eigh(np.asarray(Qc, dtype=np.float64))
-        axis, n1, n2 = V[:, 0], V[:, 1], V[:, 2]  # Q = I - a a^T: eigenvalue 0 along a
+        axis, ns = V[:, 0], V[:, 1:].T  # Q = I - a a^T: eigenvalue 0 along a
         p = np.asarray(rc, dtype=np.float64)  # the centre's point closest to the origin
         ph = math.radians(calibration_deg)
-        t1 = math.cos(ph) * axis + math.sin(ph) * n1
-        t2 = math.cos(ph) * axis + math.sin(ph) * n2
-        o = np.stack([p, p, p, p + n1, p + n2])
-        d = np.stack([axis, t1, t2, axis, axis])
+        tilts = [math.cos(ph) * axis + math.sin(ph) * n for n in ns]
+        o = np.stack([p] * (1 + len(ns)) + [p + n for n in ns])
+        d = np.stack([axis, *tilts] + [axis] * len(ns))
         tol = calibration_tol * max(1.0, float(np.linalg.norm(p)))
         co = basis.coordinates_of(Flats.from_rays(o, d), tol)
         if not (np.asarray(co.status) == OK).all():
@@ -140,49 +154,56 @@ class LineWarp:
         cols = x[1:] - c0
         kT = float(np.linalg.norm(cols[0])) / (math.tan(2 * ph) / 2)
         frame = cols / np.linalg.norm(cols, axis=1, keepdims=True)
-        # the two planes are orthogonal and each pair is orthonormal (measured;
-        # re-orthonormalised so that the frame is a rotation to the last bit)
+        # the turn and shift subspaces are orthogonal and each pair is orthonormal
+        # (measured for d = 3 and 4; re-orthonormalised so that the frame is a
+        # rotation to the last bit)
         q, rr = np.linalg.qr(frame.T)
         frame = (q * np.sign(np.diag(rr))).T
         return cls(c0, frame, kT)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        """Warp embedded points: (n, 4) -> (n, 4), row by row (module docstring)."""
+        """Warp embedded points: (n, 2(d-1)) -> (n, 2(d-1)), row by row (module docstring)."""
         x = np.asarray(x, dtype=np.float64)
+        D = self.ndim
         if x.shape[0] == 0:
-            return np.empty((0, 4))
+            return np.empty((0, D))
         y = row_product(x - self.origin, self._FT)
-        T0, T1, S0, S1 = y[:, 0], y[:, 1], y[:, 2], y[:, 3]
-        nT = np.sqrt(T0 * T0 + T1 * T1)
+        h = D // 2
+        T, S = y[:, :h], y[:, h:]
+        nT = np.sqrt(np.einsum("ij,ij->i", T, T))
         t2 = nT * (2.0 / self.kT)  # tan(2 phi)
         c2 = 1.0 / np.sqrt(1.0 + t2 * t2)  # cos(2 phi)
         # f = phi / t (the turn's new length over its old), g = cos(2 phi) / cos(phi) - 1
         f = np.ones_like(nT)
         np.divide(np.arctan(t2), t2, out=f, where=t2 > 1e-8)
         g = c2 / np.sqrt(0.5 + 0.5 * c2) - 1.0
-        # the in-plane shift (along the tilt's direction T / |T|) times g: g (S.T) T / |T|^2
+        # the shift along the tilt's direction (T / |T|) times g: g (S.T) T / |T|^2
         inv = np.zeros_like(nT)
         np.divide(g, nT * nT, out=inv, where=t2 > 1e-8)
-        h = (S0 * T0 + S1 * T1) * inv
-        y[:, 2] = S0 + h * T0
-        y[:, 3] = S1 + h * T1
-        y[:, 0] = T0 * f
-        y[:, 1] = T1 * f
+        hh = np.einsum("ij,ij->i", S, T) * inv
+        S += hh[:, None] * T
+        T *= f[:, None]
         out = row_product(y, self.frame)
         out += self.origin
         return out
 
     # --------------------------------------------------------------- persistence
     def to_dict(self) -> dict:
-        """JSON-able (floats round-trip exactly); :meth:`from_dict` inverts it."""
-        return {"kind": "lines3", "origin": self.origin.tolist(), "frame": self.frame.tolist(),
-                "kT": self.kT}
+        """JSON-able (floats round-trip exactly); :meth:`from_dict` inverts it.
+        Lines in R^3 keep the kind ``"lines3"`` they were stored with before
+        other dimensions had warps."""
+        return {"kind": "lines3" if self.ndim == 4 else "lines", "origin": self.origin.tolist(),
+                "frame": self.frame.tolist(), "kT": self.kT}
 
     @classmethod
     def from_dict(cls, spec: dict) -> "LineWarp":
-        if spec.get("kind") != "lines3":
-            raise InvalidInputError(f"warp: unknown kind {spec.get('kind')!r}", "warp")
-        return cls(np.array(spec["origin"]), np.array(spec["frame"]), spec["kT"])
+        kind = spec.get("kind")
+        if kind not in ("lines3", "lines"):
+            raise InvalidInputError(f"warp: unknown kind {kind!r}", "warp")
+        w = cls(np.array(spec["origin"]), np.array(spec["frame"]), spec["kT"])
+        if (kind == "lines3") != (w.ndim == 4):
+            raise InvalidInputError(f"warp: kind {kind!r} with {w.ndim} coordinates", "warp")
+        return w
 
     def __repr__(self) -> str:
         return f"LineWarp(kT={self.kT:.6g})"

@@ -96,6 +96,29 @@ def part_key(data) -> str:
     return hashlib.sha256(data).hexdigest()[:32]
 
 
+def write_part(stage: str | os.PathLike, key: str, blob: bytes) -> None:
+    """A new snapshot part at ``<stage>/<key>``, fsync'd."""
+    with open(os.path.join(stage, key), "wb") as out:
+        out.write(blob)
+        out.flush()
+        os.fsync(out.fileno())
+
+
+def read_part(parts: Callable[[str], Any], key: str, source: str, what: str):
+    """``parts(key)``, checked against its key (:func:`part_key`).
+
+    Raises
+    ------
+    SnapshotError
+        ``"<source>: <what> <key> is damaged"`` when the bytes are not the key's.
+    """
+    blob = parts(key)
+    if part_key(blob) != key:
+        raise SnapshotError(f"{source}: {what} {key} is damaged (its bytes do not match its "
+                            "key)")
+    return blob
+
+
 def corrupted(kind: str, source: str, exc: Exception) -> SnapshotError:
     """The error for metadata that parses but does not describe a field."""
     return SnapshotError(f"{source}: corrupted {kind} metadata: {exc}")

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +34,8 @@ from typing import Collection, Sequence
 
 import numpy as np
 
-from ._fieldbase import FieldBase, corrupted, pack_header, part_key, read_header
+from ._fieldbase import (FieldBase, corrupted, pack_header, part_key, read_header, read_part,
+                         write_part)
 from .atlas import Atlas, data_unit
 from .coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
 from .errors import InvalidInputError, SnapshotError
@@ -694,10 +694,7 @@ class AtlasField(FieldBase):
         def part(f: Field, c: int) -> str:
             key, blob = self._chart_part(f, c, known)
             if blob is not None:
-                with open(stage / key, "wb") as out:
-                    out.write(blob)
-                    out.flush()
-                    os.fsync(out.fileno())
+                write_part(stage, key, blob)
             return key
 
         with self._lock.read():
@@ -849,10 +846,7 @@ class AtlasField(FieldBase):
                                 "to read them")
 
         def load(c: int, key: str) -> Field:
-            blob = parts(key)
-            if part_key(blob) != key:
-                raise SnapshotError(f"{source}: chart {c}: part {key} is damaged (its bytes "
-                                    "do not match its key)")
+            blob = read_part(parts, key, source, f"chart {c}: part")
             return Field.from_bytes(blob, source=f"{source}: chart {c} (part {key})")
 
         work = [(c, (c, k)) for c, k in enumerate(keys) if only is None or c in only]

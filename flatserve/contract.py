@@ -46,7 +46,7 @@ import numpy as np
 
 from pathlib import Path
 
-from ._fieldbase import part_key
+from ._fieldbase import part_key, read_part
 from .atlas import Atlas
 from .atlas_field import ATLAS_MAGIC, AtlasField
 from .basis import Basis
@@ -286,10 +286,7 @@ def load_field(path: str | os.PathLike, parts=None,
         key = bytes(data[8:]).decode("ascii", "replace")
         if parts is None:
             raise SnapshotError(f"{path}: names the part {key!r}, and no parts were given")
-        data = bytes(parts(key))
-        if part_key(data) != key:
-            raise SnapshotError(f"{path}: the part {key!r} it names is damaged (its bytes do "
-                                "not match its key)")
+        data = bytes(read_part(parts, key, str(path), "the part it names"))
         if bytes(data[:8]) == POINTER_MAGIC:
             raise SnapshotError(f"{path}: the part {key!r} it names is a pointer itself")
     kind = {FIELD_MAGIC: Field, ATLAS_MAGIC: AtlasField}.get(bytes(data[:8]))

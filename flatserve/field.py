@@ -19,7 +19,7 @@ from typing import Collection, NamedTuple, Sequence
 
 import numpy as np
 
-from ._fieldbase import FieldBase, corrupted, pack_header, part_key, read_header
+from ._fieldbase import FieldBase, corrupted, pack_header, read_header, read_part, write_part
 from .basis import Basis
 from .coordinates import NO_SAMPLES, OK, ROUNDTRIP_TOL, reason
 from .embedding import embed
@@ -630,10 +630,7 @@ class Field(FieldBase):
         got = self._tri.tile_parts(known)
         for key, blob in got:
             if blob is not None:
-                with open(os.path.join(stage, key), "wb") as out:
-                    out.write(blob)
-                    out.flush()
-                    os.fsync(out.fileno())
+                write_part(stage, key, blob)
         keys = [key for key, _ in got]
         fh.write(pack_header(FIELD_MAGIC, _VERSION_TILES, {**self._metadata(), "parts": keys}))
         return keys
@@ -681,13 +678,8 @@ class Field(FieldBase):
         if keys is not None:
             if parts is None:
                 raise SnapshotError(f"{source}: its tiles are parts, and no parts were given")
-            records = []
-            for t, key in enumerate(keys):
-                rec = parts(str(key))
-                if part_key(rec) != key:
-                    raise SnapshotError(f"{source}: the part of tile {t} ({key}) is damaged "
-                                        "(its bytes do not match its key)")
-                records.append(rec)
+            records = [read_part(parts, str(key), source, f"the part of tile {t}")
+                       for t, key in enumerate(keys)]
         try:
             if tiling:
                 obj._tri = (TiledTriangulation.from_bytes(data[start:], obj.ndim, tiling)

@@ -62,6 +62,7 @@ def one(side: int, tiles: int, cores: int, queries: int, out: str) -> dict:
     t0 = time.perf_counter()
     for i in range(0, len(o), BATCH):
         field.add(Flats.from_rays(o[i:i + BATCH], d[i:i + BATCH]), v[i:i + BATCH])
+    field.settle()  # the tiles' exchange (left pending by the adds) belongs to the build
     build = time.perf_counter() - t0
     q = paper_samples(int(queries ** 0.5), np.random.default_rng(1))
     qf = Flats.from_rays(q.origins, q.directions)

@@ -199,6 +199,26 @@ class FieldBase:
         """
         return self.insert_prepared(self.prepare(flats, values))
 
+    def settle(self) -> None:
+        """Finish what the inserts so far left pending (a writer): the exchange
+        between the tiles of a chart in tiles
+        (:meth:`flatserve.tiles.TiledTriangulation.settle`), run once for
+        every insert since the last. Queries and snapshots settle first on their
+        own; an owner that inserts in bursts calls it as a burst ends, so that no
+        query waits for it. Nothing to do for charts without tiles.
+
+        Examples
+        --------
+        >>> import numpy as np, flatserve
+        >>> f = flatserve.Field(flatserve.Basis.around_axis(), tiles=2)
+        >>> o, v = np.random.default_rng(0).normal(size=(2, 500, 3))
+        >>> _ = f.add(flatserve.Flats.from_rays(o, v + [0, 0, 4]), np.ones(500))
+        >>> f.triangulation.settled, f.settle(), f.triangulation.settled
+        (False, None, True)
+        """
+        for shard in self.shards:
+            shard.triangulation.settle()
+
     @staticmethod
     def _slice_rows(slice_rows) -> int | None:
         if slice_rows is not None and not (isinstance(slice_rows, (int, np.integer))

@@ -167,6 +167,10 @@ class SampledField(Protocol):
         """``insert_prepared(prepare(flats, values))``."""
         ...
 
+    def settle(self) -> None:
+        """Finish what the inserts so far left pending (a tiled chart's exchange)."""
+        ...
+
     # -------------------------------------------------------------- readers
     def query(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
               order: Order | str = Order.HILBERT, threads: int | None = None,

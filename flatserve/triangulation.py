@@ -324,6 +324,14 @@ class Triangulation:
         an insert makes carry its number, for :meth:`conflicts` ``since``."""
         return int(self._core.generation)
 
+    #: Always: an insert leaves nothing pending (a
+    #: :class:`~flatserve.tiles.TiledTriangulation`'s exchange may be).
+    settled = True
+
+    def settle(self) -> None:
+        """Nothing to do: an insert leaves nothing pending (the
+        :class:`~flatserve.tiles.TiledTriangulation` protocol)."""
+
     def __len__(self) -> int:
         return self._n
 

@@ -80,6 +80,31 @@ def test_batches_across_tile_borders_and_duplicates():
     assert tt.stats.rounds and all(r >= 1 for r in tt.stats.rounds)
 
 
+def test_inserts_in_a_row_share_one_exchange():
+    """Inserts leave the exchange pending; the first read runs it once for all of
+    them, and the tiles are then exact as if each insert had been settled."""
+    rng = np.random.default_rng(11)
+    D = 4
+    tri, tt, each = Triangulation(D), TiledTriangulation(D, 3), TiledTriangulation(D, 3)
+    first = rng.normal(size=(1500, D))
+    batches = [first, rng.normal(size=(1500, D)) * 1.6,  # wider: the boxes grow
+               np.vstack([rng.normal(size=(1500, D)) * 2.2, first[:300]])]  # duplicates
+    for b in batches:
+        vals = rng.random((len(b), 2))
+        a, c, e = tri.insert(b, vals), tt.insert(b, vals), each.insert(b, vals)
+        assert np.array_equal(a.ids, c.ids) and np.array_equal(a.ids, e.ids)
+        each.settle()
+        assert each.settled
+    assert not tt.settled and tt.stats.rounds == []
+    q = rng.normal(size=(3000, D)) * 2.0
+    assert tt.query(q, blocking=False) is None  # it would have to run the exchange
+    _same_answers(tt, tri, q)  # a query settles first
+    assert tt.settled and len(tt.stats.rounds) == 1 and len(each.stats.rounds) == 3
+    assert _own_cells_exact(tt, _cells(tri)) == 0 and tt.nsimplex == tri.nsimplex
+    assert np.array_equal(tt.values, tri.values)  # the duplicates' later values won
+    assert (tt.star_halo() == each.star_halo()).all()  # the same stars, either way
+
+
 def test_answers_do_not_depend_on_threads_or_order():
     rng = np.random.default_rng(3)
     D = 3

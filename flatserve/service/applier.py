@@ -225,6 +225,7 @@ class LogApplier:
                         return None, None
                     res = e.field.insert_prepared(prepared,
                                                   slice_rows=self.settings.insert_slice_rows)
+                    e.field.settle()  # the batch's slices share a tiled chart's exchange
                     e.mark_indexed(entry.seq, entry.position)
                     e.new_samples += res.accepted
             except Exception as exc:

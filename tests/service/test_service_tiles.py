@@ -20,6 +20,8 @@ def test_a_tiled_one_chart_field_answers_as_the_unsplit_one(make_app, rng):
         for i in range(0, 6000, 1500):  # batches across the tiles' borders
             c.upload_rays("t", o[i:i + 1500], v[i:i + 1500], vals[i:i + 1500])
             add_rays(ref, o[i:i + 1500], v[i:i + 1500], vals[i:i + 1500])
+        e = tc.app.state.rooms.catalogue.get("t")
+        assert e.field.triangulation.settled  # the applier settles each batch: no query waits
         want = ref.query_rays(qo, qv, return_weights=True)
         got = c.query_rays("t", qo, qv, weights=True)
         assert np.array_equal(got.values, want.values, equal_nan=True)
@@ -28,7 +30,6 @@ def test_a_tiled_one_chart_field_answers_as_the_unsplit_one(make_app, rng):
         assert first["written"] > 0
         assert c.describe("t")["nvertices"] == ref.nsamples
         # one part per tile: nothing changed, nothing written again
-        e = tc.app.state.rooms.catalogue.get("t")
         assert len(tc.app.state.rooms.storage.snapshot_parts(e.id)) == 4
         c.upload_rays("t", o[:10], v[:10], vals[:10])  # the same rays again: no new sample
         add_rays(ref, o[:10], v[:10], vals[:10])

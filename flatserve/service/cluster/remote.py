@@ -185,6 +185,9 @@ class RemoteField:
     def add(self, flats: Flats, values) -> AddResult:
         return self.insert_prepared(self.prepare(flats, values))
 
+    def settle(self) -> None:
+        """Nothing here: each shard worker settles its charts as it applies a batch."""
+
     # -- reads ------------------------------------------------------------------------------
     def query(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
               order: Order | str = Order.HILBERT, threads: int | None = None,

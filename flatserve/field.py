@@ -234,10 +234,12 @@ class Field(FieldBase):
         Applied to the embedded points before they are triangulated (the
         isometric charts of an atlas of lines, :mod:`flatserve.warp`);
         None (the default): the paper's chart.
-    tiles : int
+    tiles : int or "auto"
         Split the chart's triangulation into this many tiles
         (:mod:`flatserve.tiles`, Tile & Merge: built on the cores at once, the
-        same answers bit for bit); 1 (the default): one triangulation.
+        same answers bit for bit); 1 (the default): one triangulation;
+        ``"auto"``: one tile per core once the chart is large enough to gain
+        from it (:func:`flatserve.tiles.auto_tiles`).
 
     Examples
     --------
@@ -252,7 +254,7 @@ class Field(FieldBase):
     """
 
     def __init__(self, basis: Basis, channels: int = 1, *, roundtrip_tol: float = ROUNDTRIP_TOL,
-                 warp: LineWarp | None = None, tiles: int = 1):
+                 warp: LineWarp | None = None, tiles: int | str = 1):
         if not isinstance(basis, Basis):
             raise InvalidInputError(f"basis: expected a flatserve.Basis, got {type(basis).__name__}", "basis")
         if not (isinstance(channels, (int, np.integer)) and channels >= 1):
@@ -271,10 +273,14 @@ class Field(FieldBase):
                                     "warp")
         #: the chart's warp (None: the paper's chart)
         self.warp = warp
-        if isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or tiles < 1:
-            raise InvalidInputError(f"tiles: expected an integer >= 1, got {tiles!r}", "tiles")
-        #: tiles of the chart's triangulation (1: one triangulation)
-        self.tiles = int(tiles)
+        auto = isinstance(tiles, str) and tiles == "auto"
+        if not auto and (isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer))
+                         or tiles < 1):
+            raise InvalidInputError(f"tiles: expected an integer >= 1 or 'auto', got {tiles!r}",
+                                    "tiles")
+        #: tiles of the chart's triangulation (1: one triangulation; "auto": as many as
+        #: :func:`flatserve.tiles.auto_tiles` gives, ``triangulation.ntiles`` now)
+        self.tiles: int | str = "auto" if auto else int(tiles)
         self._tri = (Triangulation(basis.m - 1) if self.tiles == 1
                      else TiledTriangulation(basis.m - 1, self.tiles))
         self._nrejected = 0
@@ -561,12 +567,12 @@ class Field(FieldBase):
             "basis_Q": self.basis.Q.tolist(),
             "basis_r": self.basis.r.tolist(),
             **({"warp": self.warp.to_dict()} if self.warp is not None else {}),
-            **({"tiles": self._tri.tiling_dict()} if self.tiles > 1 else {}),
+            **({"tiles": self._tri.tiling_dict()} if self.tiles != 1 else {}),
         }
 
     @property
     def _version(self) -> int:
-        if self.tiles > 1:
+        if self.tiles != 1:
             return _VERSION_TILES
         return _VERSION if self.warp is None else _VERSION_WARP
 
@@ -669,7 +675,8 @@ class Field(FieldBase):
             if version == _VERSION_TILES and not isinstance(tiling, dict):
                 raise ValueError(f"version {version} without its tiles")
             obj = cls(basis, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]),
-                      warp=warp, tiles=int(tiling["tiles"]) if tiling else 1)
+                      warp=warp, tiles=("auto" if tiling.get("auto") else int(tiling["tiles"]))
+                      if tiling else 1)
             keys = meta.get("parts") if tiling else None
             if keys is not None and (not isinstance(keys, list) or len(data) != start):
                 raise ValueError("parts: expected a list of keys and no payload")

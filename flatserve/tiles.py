@@ -67,7 +67,8 @@ from .options import Order, Outside, choice
 from .parallel import shard_pool
 from .triangulation import InsertResult, LocateKind, Location, RWLock, Triangulation
 
-__all__ = ["Tiling", "TiledTriangulation", "TileStats", "RETILE_SHARE"]
+__all__ = ["Tiling", "TiledTriangulation", "TileStats", "RETILE_SHARE", "AUTO_MIN_SAMPLES",
+           "auto_tiles"]
 
 #: a tile holding more than this times its share of the points is re-tiled
 #: (once the points have doubled since the last cut)
@@ -84,6 +85,30 @@ SLACK = 0.05
 #: points, benchmarks/bench_tiles.py ``--scan``: the two even at 0.5 %, the pass
 #: 1.2x the walk's speed at 1 %, 2.9x at 10 %)
 SCAN_SHARE = 0.005
+#: ``tiles="auto"``: a chart stays one tile below this many samples, and from
+#: there on gets one tile per thread of the shard pool, with at least half this
+#: many samples in each (measured on the Fig. 11 field, 2 tiles on 2 cores
+#: against one tile, ``benchmarks/bench_tiles.py --sizes``: see docs/scaling.md)
+AUTO_MIN_SAMPLES = 100_000
+
+
+def auto_tiles(nsamples: int, threads: int | None = None) -> int:
+    """The tile count ``tiles="auto"`` gives a chart of ``nsamples`` samples.
+
+    One tile below :data:`AUTO_MIN_SAMPLES`; from there on one per thread of the
+    shard pool (``threads``, default its size), at most one per
+    ``AUTO_MIN_SAMPLES / 2`` samples: tiles on the cores at once build faster,
+    more tiles than cores only add halo.
+
+    Examples
+    --------
+    >>> auto_tiles(50_000, threads=8), auto_tiles(100_000, threads=8), auto_tiles(10**7, threads=8)
+    (1, 2, 8)
+    """
+    threads = shard_pool().threads if threads is None else int(threads)
+    if nsamples < AUTO_MIN_SAMPLES:
+        return 1
+    return max(1, min(threads, nsamples // (AUTO_MIN_SAMPLES // 2)))
 
 
 @dataclass(frozen=True)
@@ -226,9 +251,13 @@ class TiledTriangulation:
     ----------
     ndim : int
         D.
-    tiles : int
+    tiles : int or "auto"
         Tiles; the :class:`Tiling` is cut from the first insert's points (or
-        pass ``tiling``).
+        pass ``tiling``). ``"auto"``: :func:`auto_tiles` of the points held
+        (one tile to begin with), the tiles cut again from every point when it
+        gives more tiles and either twice as many or the points have doubled
+        since the last cut (so that the cuts cost at most about as much again as
+        the inserts).
     tiling : Tiling, optional
 
     Attributes
@@ -238,12 +267,23 @@ class TiledTriangulation:
 
     def __init__(self, ndim: int, tiles: int = 2, *, tiling: Tiling | None = None) -> None:
         self._ndim = int(Triangulation(ndim).ndim)
-        self._ntiles = tiling.ntiles if tiling is not None else int(tiles)
-        if tiling is None and (isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer))
-                               or tiles < 1):
-            raise InvalidInputError(f"tiles: expected an integer >= 1, got {tiles!r}", "tiles")
+        self._auto = isinstance(tiles, str) and tiles == "auto"
+        if tiling is None and not self._auto and (
+                isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or tiles < 1):
+            raise InvalidInputError(f"tiles: expected an integer >= 1 or 'auto', got {tiles!r}",
+                                    "tiles")
+        self._ntiles = tiling.ntiles if tiling is not None else 1 if self._auto else int(tiles)
         self.tiling = tiling
-        T = self._ntiles
+        self._empty(self._ntiles)
+        self._tiled_at = 0
+        self._channels: int | None = None
+        self._lock = RWLock()
+        self._stats_lock = threading.Lock()
+        self.stats = TileStats()
+
+    def _empty(self, T: int) -> None:
+        """``T`` empty tiles (the tiling aside)."""
+        self._ntiles = T
         self._tiles = [Triangulation(self._ndim) for _ in range(T)]
         self._gid = [np.empty(0, np.int64) for _ in range(T)]    # local id -> global id
         self._own = [np.empty(0, np.uint8) for _ in range(T)]    # local id -> own (1) or halo (0)
@@ -253,13 +293,8 @@ class TiledTriangulation:
         self._parts: list = [None] * T    # tile -> (triangulation, generation, key) of its part
         self._reset_boxes()
         self._n = 0
-        self._tiled_at = 0
-        self._channels: int | None = None
         # seeds, generations and full flag of the inserts whose exchange has not run
         self._pending: tuple[list, list, bool] | None = None
-        self._lock = RWLock()
-        self._stats_lock = threading.Lock()
-        self.stats = TileStats()
 
     def _reset_boxes(self) -> None:
         T, D = self._ntiles, self._ndim
@@ -302,7 +337,13 @@ class TiledTriangulation:
 
     @property
     def ntiles(self) -> int:
+        """Tiles now (``tiles="auto"``: as many as :func:`auto_tiles` gave so far)."""
         return self._ntiles
+
+    @property
+    def auto(self) -> bool:
+        """The tile count follows the points held (``tiles="auto"``)."""
+        return self._auto
 
     @property
     def npoints(self) -> int:
@@ -429,12 +470,17 @@ class TiledTriangulation:
                                     "values")
         with self._lock.write():
             if self.tiling is None:
+                if self._auto and self._n == 0:  # a first batch large enough: cut at once
+                    self._empty(auto_tiles(len(pts)))
                 self.tiling = Tiling.split(pts, self._ntiles)
                 self._tiled_at = len(pts)
             if vals is not None:
                 self._channels = vals.shape[1]
             res = self._insert(pts, vals)
-            if self._unequal():
+            want = auto_tiles(self._n) if self._auto else self._ntiles
+            if want > self._ntiles and (want >= 2 * self._ntiles or self._n >= 2 * self._tiled_at):
+                self._retile(want)  # (each cut: the tiles or the points have doubled)
+            elif self._unequal():
                 self._retile()
             return res
 
@@ -446,24 +492,14 @@ class TiledTriangulation:
         return (T > 1 and self._n >= 2 * self._tiled_at
                 and int(self.own_counts.max()) > RETILE_SHARE * self._n / T)
 
-    def _retile(self) -> None:
-        """Cut a new tiling from every point and build the tiles again (sample ids,
-        values and answers unchanged)."""
+    def _retile(self, tiles: int | None = None) -> None:
+        """Cut a new tiling (of ``tiles``, default as many as now) from every point
+        and build the tiles again (sample ids, values and answers unchanged)."""
         pts = self._gather(lambda tri: tri.points)
         vals = self._gather(lambda tri: tri.values) if self._channels else None
-        T, D = self._ntiles, self._ndim
-        self.tiling = Tiling.split(pts, T)
+        self._empty(self._ntiles if tiles is None else int(tiles))  # (no exchange pending)
+        self.tiling = Tiling.split(pts, self._ntiles)
         self._tiled_at = len(pts)
-        self._tiles = [Triangulation(D) for _ in range(T)]
-        self._parts = [None] * T
-        self._gid = [np.empty(0, np.int64) for _ in range(T)]
-        self._own = [np.empty(0, np.uint8) for _ in range(T)]
-        self._owner = np.empty(0, np.int64)
-        self._local = np.empty(0, np.int64)
-        self._held = np.zeros((T, 0), dtype=bool)
-        self._reset_boxes()
-        self._n = 0
-        self._pending = None  # the old tiles' exchange: the new ones start afresh
         self._insert(pts, vals)
         self.stats.retiled += 1
 
@@ -788,9 +824,9 @@ class TiledTriangulation:
     def tiling_dict(self) -> dict:
         """The tiling as JSON-able lists (a field file's metadata)."""
         tl = self.tiling
-        return {"tiles": self._ntiles} if tl is None else {
-            "tiles": self._ntiles, "axis": tl.axis.tolist(), "cut": tl.cut.tolist(),
-            "low": tl.low.tolist(), "high": tl.high.tolist()}
+        out = {"tiles": self._ntiles, **({"auto": True} if self._auto else {})}
+        return out if tl is None else {**out, "axis": tl.axis.tolist(), "cut": tl.cut.tolist(),
+                                       "low": tl.low.tolist(), "high": tl.high.tolist()}
 
     def _tile_record(self, t: int) -> bytes:
         """Tile ``t``'s record: uint64 n, n int64 global ids, n uint8 own flags,
@@ -886,7 +922,8 @@ class TiledTriangulation:
                                       ("low", np.int64), ("high", np.int64))))
             if tl.ntiles != T:
                 raise ValueError(f"a tiling of {tl.ntiles} tiles named {T}")
-        self = cls(ndim, T, tiling=tl)
+        self = cls(ndim, "auto" if tiling.get("auto") else T, tiling=tl)
+        self._ntiles = T
         if len(records) != T:
             raise ValueError("the tile count differs from the tiling's")
         owner, local = [], []
@@ -931,7 +968,8 @@ class TiledTriangulation:
         return self
 
     def __repr__(self) -> str:
-        return (f"TiledTriangulation(ndim={self._ndim}, tiles={self._ntiles}, "
+        return (f"TiledTriangulation(ndim={self._ndim}, tiles={self._ntiles}"
+                f"{' (auto)' if self._auto else ''}, "
                 f"npoints={self._n}, halo={int(self.halo.sum())})")
 
 

@@ -324,6 +324,9 @@ class Triangulation:
         an insert makes carry its number, for :meth:`conflicts` ``since``."""
         return int(self._core.generation)
 
+    #: One triangulation (a :class:`~flatserve.tiles.TiledTriangulation` has several).
+    ntiles = 1
+
     #: Always: an insert leaves nothing pending (a
     #: :class:`~flatserve.tiles.TiledTriangulation`'s exchange may be).
     settled = True

@@ -155,6 +155,45 @@ def test_bad_input_is_named():
         tt.query(np.zeros((3, 4)))
 
 
+def test_auto_tiles_follow_the_points_and_the_threads(monkeypatch):
+    """``tiles="auto"``: one tile while small, then one per thread of the pool (cut
+    again from every point), the unsplit answers throughout; kept in a field file."""
+    import flatserve.tiles as tiles_mod
+    from flatserve import Field, Flats
+    from flatserve.basis import Basis
+
+    monkeypatch.setattr(tiles_mod, "AUTO_MIN_SAMPLES", 2000)
+    monkeypatch.setattr(tiles_mod, "shard_pool", lambda p=ShardPool(3): p)
+    assert [tiles_mod.auto_tiles(n) for n in (1999, 2000, 2999, 3000, 10**6)] == [1, 2, 2, 3, 3]
+    rng = np.random.default_rng(12)
+    D = 4
+    tri, tt = Triangulation(D), TiledTriangulation(D, "auto")
+    # 1500, 2200 (2 tiles: twice as many), 3100 (3 wanted: no cut before the points
+    # double), 4600 points
+    for n, want in ((1500, 1), (700, 2), (900, 2), (1500, 3)):
+        b = rng.normal(size=(n, D))
+        v = rng.random((n, 1))
+        assert np.array_equal(tri.insert(b, v).ids, tt.insert(b, v).ids)
+        assert tt.ntiles == want and tt.auto
+        _same_answers(tt, tri, rng.normal(size=(2000, D)) * 1.5)
+        assert _own_cells_exact(tt, _cells(tri)) == 0
+    assert tt.stats.retiled == 2
+    with pytest.raises(InvalidInputError, match="auto"):
+        TiledTriangulation(D, "many")
+    o, d, v = _fig11_rays(60, seed=3)  # 3,600 rays at once: 3 tiles
+    f = Field(Basis.around_axis(axis=2, scale=0.01), channels=1, tiles="auto")
+    f.add(Flats.from_rays(o, d), v)
+    assert f.triangulation.ntiles == 3 and f.triangulation.stats.retiled == 0  # cut at once
+    assert f.describe()["shards"] == [
+        {"samples": f.nsamples, "tiles": 3}]
+    back = Field.from_bytes(f.to_bytes())
+    assert back.tiles == "auto" and back.triangulation.ntiles == 3 and back.triangulation.auto
+    q = Flats.from_rays(o[:500] + 0.01, d[:500])
+    assert np.array_equal(back.query(q).values, f.query(q).values, equal_nan=True)
+    with pytest.raises(InvalidInputError, match="tiles"):
+        Field(Basis.around_axis(), tiles="some")
+
+
 def test_sequential_pool_gives_the_same_tiles(monkeypatch):
     """One thread or several: the same tiles, halos and answers."""
     import flatserve.tiles as tiles_mod

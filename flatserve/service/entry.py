@@ -25,6 +25,10 @@ from .catalogue import FieldState
 from .status import FieldNotFoundError, StorageError
 
 
+def _tiles(value) -> int | str:
+    return "auto" if value == "auto" else int(value)
+
+
 @dataclass(frozen=True)
 class FieldSpec:
     """How a field was defined (stored as JSON with the field).
@@ -43,7 +47,7 @@ class FieldSpec:
     copies : int
         Cluster mode: copies of each shard, on different nodes (one process holds
         its one copy otherwise).
-    tiles : int
+    tiles : int or "auto"
         One chart: tiles of its triangulation (:mod:`flatserve.tiles`).
     """
 
@@ -54,13 +58,13 @@ class FieldSpec:
     roundtrip_tol: Optional[float] = None
     atlas: Optional[dict] = None
     copies: int = 1
-    tiles: int = 1
+    tiles: int | str = 1
 
     @classmethod
     def from_dict(cls, obj: dict) -> "FieldSpec":
         return cls(int(obj["k"]), int(obj["d"]), int(obj["channels"]), dict(obj.get("basis", {})),
                    obj.get("roundtrip_tol"), obj.get("atlas"), int(obj.get("copies", 1)),
-                   int(obj.get("tiles", 1)))
+                   _tiles(obj.get("tiles", 1)))
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -269,11 +269,13 @@ class FieldCreate(_KD):
         description="Cluster mode (`serve --ray`): copies of each shard, each on a different "
                     "node, so that a node's loss costs no reads (a server holding its fields "
                     "itself keeps one).")
-    tiles: int = Field(
-        1, ge=1, le=64,
+    tiles: Union[Annotated[int, Field(ge=1, le=64)], Literal["auto"]] = Field(
+        1,
         description="One-chart fields: split the chart's triangulation into this many tiles "
                     "(Tile & Merge), built on the server's cores at once, with the same answers "
-                    "bit for bit. Default 1. An atlas field's charts already use the cores.")
+                    "bit for bit. Default 1. \"auto\": one tile per core once the chart holds "
+                    "enough samples to gain from it (flatserve.tiles.auto_tiles; 100,000). An "
+                    "atlas field's charts already use the cores.")
 
 
 class BasisInfo(BaseModel):
@@ -390,7 +392,11 @@ class FieldInfo(FieldSummary):
     atlas: Optional[AtlasInfo] = Field(None, description="Atlas fields: the atlas's radii and "
                                                          "sizes (null: one chart).")
     ncharts: int = Field(1, description="Charts of the field (1: one chart).")
-    tiles: int = Field(1, description="Tiles of a one-chart field's triangulation (1: one).")
+    tiles: Union[int, Literal["auto"]] = Field(
+        1, description="Tiles of a one-chart field's triangulation, as created (1: one).")
+    ntiles: Optional[int] = Field(
+        None, description="Tiles now (\"auto\": as many as its size gave so far); null while "
+                          "the field loads or when its shards live elsewhere (cluster mode).")
     shard_groups: Optional[list[ShardGroupInfo]] = Field(
         None, description="Cluster mode (`serve --ray`): where the field's shards live, per "
                           "group of charts (absent when this server holds the field itself).")

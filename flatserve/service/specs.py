@@ -147,7 +147,7 @@ def field_spec(req, *, max_atlas_samples: int | None = None) -> tuple[FieldSpec,
     ``field_spec(FieldCreate(name="bunny", channels=1, oriented=True))``.
     """
     basis, basis_spec, atlas = build_chart_basis(req, max_atlas_samples=max_atlas_samples)
-    if atlas is not None and req.tiles > 1:
+    if atlas is not None and req.tiles != 1:
         raise InvalidInputError(
             f"tiles: {req.tiles} tiles are for a field of one chart (basis "
             "{\"kind\": \"tangent_simplex\"} or given flats); an atlas field's charts are "

@@ -48,3 +48,37 @@ def test_tiles_are_refused_for_an_atlas_field(make_app):
         assert r.status_code == 422 and "tiles" in r.text
         r = tc.post("/v1/fields", json={"name": "a", "basis": SINGLE.basis, "tiles": 0})
         assert r.status_code == 422 and "tiles" in r.text
+        r = tc.post("/v1/fields", json={"name": "a", "basis": SINGLE.basis, "tiles": "many"})
+        assert r.status_code == 422 and "tiles" in r.text
+        r = tc.post("/v1/fields", json={"name": "a", "tiles": "auto"})
+        assert r.status_code == 422 and "tiles" in r.text  # an atlas field
+
+
+def test_auto_tiles_over_http(make_app, rng, monkeypatch):
+    """``"tiles": "auto"``: the field is cut into tiles as it grows (the threshold
+    lowered here), described, and restored with its setting."""
+    import flatserve.tiles as tiles_mod
+    from flatserve.parallel import ShardPool
+
+    monkeypatch.setattr(tiles_mod, "AUTO_MIN_SAMPLES", 2000)
+    monkeypatch.setattr(tiles_mod, "shard_pool", lambda p=ShardPool(2): p)
+    ref = SINGLE.reference(channels=1)
+    o, v = paper_rays(rng, 3000)
+    vals = rng.uniform(size=(3000, 1))
+    qo, qv = paper_rays(rng, 1000)
+    with running(make_app()) as (tc, c):
+        info = c.create_field("t", basis=SINGLE.basis, channels=1, tiles="auto")
+        assert info["tiles"] == "auto"
+        c.upload_rays("t", o[:1000], v[:1000], vals[:1000])
+        assert c.describe("t")["ntiles"] == 1
+        c.upload_rays("t", o[1000:], v[1000:], vals[1000:])
+        add_rays(ref, o, v, vals)
+        assert c.describe("t")["ntiles"] == 2
+        want = ref.query_rays(qo, qv)
+        assert np.array_equal(c.query_rays("t", qo, qv).values, want.values, equal_nan=True)
+        c.snapshot("t")
+    with running(make_app()) as (tc, c):
+        c.wait_ready(60)
+        d = c.describe("t")
+        assert d["tiles"] == "auto" and d["ntiles"] == 2
+        assert np.array_equal(c.query_rays("t", qo, qv).values, want.values, equal_nan=True)

@@ -15,9 +15,14 @@ its own, pinned with ``taskset`` to its cores, interleaved, medians of
 3. memory: per tile count of ``--halo``, the halo (foreign points held) over
    own points, the exchange rounds, the process's resident memory
 
+``--sizes S ...``: only the build of 2 tiles against the unsplit field on 2
+cores at S^2 rays each (where tiles start to pay: ``tiles="auto"``,
+``flatserve.tiles.AUTO_MIN_SAMPLES``).
+
 Every tiled answer is checked equal (bits) to the unsplit field's.
 
     .venv/bin/python benchmarks/bench_tiles.py [--side 1000] [--runs 3] [--halo 2 4 8 16]
+    .venv/bin/python benchmarks/bench_tiles.py --sizes 150 224 316 447 [--runs 3]
 """
 from __future__ import annotations
 
@@ -129,10 +134,28 @@ def scan_costs(n: int, runs: int) -> None:
               f"{p:.3f} s: the pass {w / p:.2f}x the walk's speed")
 
 
-def run(args, tiles: int, cores: int, out: str) -> dict:
+def sizes(args) -> None:
+    """The build of 2 tiles against the unsplit field on 2 cores, per size."""
+    print(f"Fig. 11 field in batches of {BATCH:,}: 2 tiles against the unsplit field, both "
+          f"on 2 cores, medians of {args.runs}", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        for side in args.sizes:
+            got: dict = {1: [], 2: []}
+            for _ in range(args.runs):
+                for tiles in (1, 2):
+                    got[tiles].append(run(args, tiles, 2, str(Path(tmp) / "s.npy"), side=side,
+                                          queries=10_000)["build_s"])
+            a, b = statistics.median(got[1]), statistics.median(got[2])
+            print(f"  {side ** 2:>9,} rays: unsplit {a:6.2f} s, 2 tiles {b:6.2f} s: {a / b:.2f}x",
+                  flush=True)
+
+
+def run(args, tiles: int, cores: int, out: str, *, side: int | None = None,
+        queries: int | None = None) -> dict:
     cpus = ",".join(str(c) for c in range(cores))
     cmd = ["taskset", "-c", cpus, sys.executable, __file__, "--one", str(tiles), "--cores",
-           str(cores), "--side", str(args.side), "--queries", str(args.queries), "--out", out]
+           str(cores), "--side", str(side or args.side), "--queries",
+           str(queries or args.queries), "--out", out]
     got = subprocess.run(cmd, check=True, capture_output=True, text=True)
     return json.loads(got.stdout.strip().splitlines()[-1])
 
@@ -145,6 +168,8 @@ def main() -> int:
     ap.add_argument("--halo", type=int, nargs="*", default=[2, 4, 8, 16])
     ap.add_argument("--scan", type=int, metavar="N",
                     help="only the exchange's scan costs on a tile of N points")
+    ap.add_argument("--sizes", type=int, nargs="+", metavar="S",
+                    help="only the build at S^2 rays, 2 tiles against unsplit on 2 cores")
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--cores", type=int, default=2, help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
@@ -154,6 +179,9 @@ def main() -> int:
         return 0
     if args.scan:
         scan_costs(args.scan, args.runs)
+        return 0
+    if args.sizes:
+        sizes(args)
         return 0
     print(f"Fig. 11 field: {args.side ** 2:,} rays of the bunny in random order, batches of "
           f"{BATCH:,}; {os.cpu_count()} cores here", flush=True)

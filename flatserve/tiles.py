@@ -87,9 +87,12 @@ SLACK = 0.05
 SCAN_SHARE = 0.005
 #: ``tiles="auto"``: a chart stays one tile below this many samples, and from
 #: there on gets one tile per thread of the shard pool, with at least half this
-#: many samples in each (measured on the Fig. 11 field, 2 tiles on 2 cores
-#: against one tile, ``benchmarks/bench_tiles.py --sizes``: see docs/scaling.md)
-AUTO_MIN_SAMPLES = 100_000
+#: many samples in each. Measured on the Fig. 11 field, 2 tiles on 2 cores
+#: against one tile (``benchmarks/bench_tiles.py --sizes``, docs/scaling.md):
+#: 1.28x faster at 22.5k rays, 1.43x at 100k, 1.50x at 200k; below, a build
+#: takes about a second either way, and the halo (a quarter of the own points
+#: and more) is memory for little time
+AUTO_MIN_SAMPLES = 20_000
 
 
 def auto_tiles(nsamples: int, threads: int | None = None) -> int:
@@ -102,8 +105,8 @@ def auto_tiles(nsamples: int, threads: int | None = None) -> int:
 
     Examples
     --------
-    >>> auto_tiles(50_000, threads=8), auto_tiles(100_000, threads=8), auto_tiles(10**7, threads=8)
-    (1, 2, 8)
+    >>> [auto_tiles(n, threads=8) for n in (19_999, 20_000, 45_000, 10**7)]
+    [1, 2, 4, 8]
     """
     threads = shard_pool().threads if threads is None else int(threads)
     if nsamples < AUTO_MIN_SAMPLES:
@@ -923,10 +926,10 @@ class TiledTriangulation:
             if tl.ntiles != T:
                 raise ValueError(f"a tiling of {tl.ntiles} tiles named {T}")
         self = cls(ndim, "auto" if tiling.get("auto") else T, tiling=tl)
-        self._ntiles = T
+        self._empty(T)
         if len(records) != T:
             raise ValueError("the tile count differs from the tiling's")
-        owner, local = [], []
+        owner, local, snaps = [], [], []
         for t, rec in enumerate(records):
             mv = memoryview(rec)
             if _record_size(mv, 0) != len(mv):
@@ -936,8 +939,11 @@ class TiledTriangulation:
             self._gid[t] = np.frombuffer(mv[at:at + 8 * n], np.int64).copy()
             at += 8 * n
             self._own[t] = np.frombuffer(mv[at:at + n], np.uint8).copy()
-            at += n + 8
-            self._tiles[t] = Triangulation.from_bytes(mv[at:])
+            snaps.append(mv[at + n + 8:])
+        # the tiles' triangulations on the cores at once
+        self._tiles = list(shard_pool().map(Triangulation.from_bytes, snaps))
+        for t in range(T):
+            n = len(self._gid[t])
             tri = self._tiles[t]
             if tri.npoints != n or tri.ndim != self._ndim:
                 raise ValueError(f"tile {t}: {tri.npoints} points for {n} ids")

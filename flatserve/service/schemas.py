@@ -274,8 +274,8 @@ class FieldCreate(_KD):
         description="One-chart fields: split the chart's triangulation into this many tiles "
                     "(Tile & Merge), built on the server's cores at once, with the same answers "
                     "bit for bit. Default 1. \"auto\": one tile per core once the chart holds "
-                    "enough samples to gain from it (flatserve.tiles.auto_tiles; 100,000). An "
-                    "atlas field's charts already use the cores.")
+                    "enough samples to gain from it (flatserve.tiles.auto_tiles: from 20,000 "
+                    "samples). An atlas field's charts already use the cores.")
 
 
 class BasisInfo(BaseModel):

@@ -51,7 +51,7 @@ def rss() -> int:
     return 0
 
 
-def one(side: int, tiles: int, cores: int, queries: int, out: str) -> dict:
+def one(side: int, tiles: int | str, cores: int, queries: int, out: str) -> dict:
     """Build and query in this process (pinned by the parent); a JSON line."""
     from flatserve import Field, Flats
     from flatserve.basis import Basis
@@ -82,7 +82,7 @@ def one(side: int, tiles: int, cores: int, queries: int, out: str) -> dict:
     tri = field.triangulation
     info = {"build_s": build, "query_s": statistics.median(ts), "queries": len(qf),
             "samples": field.nsamples, "rss": rss()}
-    if tiles > 1:
+    if tiles != 1:
         info.update(halo=tri.halo.tolist(), own=tri.own_counts.tolist(),
                     star_halo=tri.star_halo().tolist(),
                     rounds=tri.stats.rounds, retiled=tri.stats.retiled,
@@ -150,7 +150,26 @@ def sizes(args) -> None:
                   flush=True)
 
 
-def run(args, tiles: int, cores: int, out: str, *, side: int | None = None,
+def auto_on_one_core(args) -> None:
+    """tiles="auto" on one core (where it keeps one tile) against the unsplit field."""
+    print(f'Fig. 11 field: {args.side ** 2:,} rays, tiles="auto" against the unsplit field, '
+          f"both on one core, medians of {args.runs}", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        got: dict = {1: [], "auto": []}
+        for _ in range(args.runs):
+            for tiles in (1, "auto"):
+                x = run(args, tiles, 1, str(Path(tmp) / f"{tiles}.npy"))
+                got[tiles].append(x["build_s"])
+                print(f"  {tiles}: build {x['build_s']:.1f} s"
+                      + (f" ({len(x['own'])} tile)" if "own" in x else ""), flush=True)
+            assert np.array_equal(np.load(str(Path(tmp) / "1.npy")),
+                                  np.load(str(Path(tmp) / "auto.npy")), equal_nan=True)
+        a, b = statistics.median(got[1]), statistics.median(got["auto"])
+        print(f'build on one core: unsplit {a:.1f} s, tiles="auto" {b:.1f} s: {a / b:.2f}x '
+              f"(target >= 1.0x); the same answers (bits)")
+
+
+def run(args, tiles: int | str, cores: int, out: str, *, side: int | None = None,
         queries: int | None = None) -> dict:
     cpus = ",".join(str(c) for c in range(cores))
     cmd = ["taskset", "-c", cpus, sys.executable, __file__, "--one", str(tiles), "--cores",
@@ -170,7 +189,9 @@ def main() -> int:
                     help="only the exchange's scan costs on a tile of N points")
     ap.add_argument("--sizes", type=int, nargs="+", metavar="S",
                     help="only the build at S^2 rays, 2 tiles against unsplit on 2 cores")
-    ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--auto", action="store_true",
+                    help='only tiles="auto" on one core (one tile) against the unsplit field')
+    ap.add_argument("--one", type=lambda s: s if s == "auto" else int(s), help=argparse.SUPPRESS)
     ap.add_argument("--cores", type=int, default=2, help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -182,6 +203,9 @@ def main() -> int:
         return 0
     if args.sizes:
         sizes(args)
+        return 0
+    if args.auto:
+        auto_on_one_core(args)
         return 0
     print(f"Fig. 11 field: {args.side ** 2:,} rays of the bunny in random order, batches of "
           f"{BATCH:,}; {os.cpu_count()} cores here", flush=True)

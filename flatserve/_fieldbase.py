@@ -265,8 +265,7 @@ class FieldBase:
             ``nsamples`` (distinct samples), ``nstored`` (vertices over all
             shards), ``nsimplex``, ``nrejected``, ``duplication``
             (``nstored / nsamples``: 1.0 for a one-chart field, None while
-            empty), ``shards`` (``[{"samples": int, "tiles": int}, ...]``: its
-            samples, the tiles of its triangulation now), ``atlas`` and
+            empty), ``shards`` (``[{"samples": int}, ...]``), ``atlas`` and
             ``charts`` (:func:`flatserve.contract.describe_definition`, with
             the charts' samples; None for a one-chart field).
         """
@@ -275,8 +274,7 @@ class FieldBase:
             "nsamples": n, "nstored": stored, "nsimplex": self.nsimplex,
             "nrejected": self.nrejected,
             "duplication": stored / n if n else None,
-            "shards": [{"samples": s.nsamples, "tiles": s.triangulation.ntiles}
-                       for s in self.shards],
+            "shards": [{"samples": s.nsamples} for s in self.shards],
             **self._definition(),
         }
 

@@ -274,7 +274,7 @@ class Client:
     def create_field(self, name: str, *, k: int = 1, d: int = 3, channels: int = 1,
                      basis: dict | None = None, oriented: bool | None = None,
                      roundtrip_tol: float | None = None, unit: float | None = None,
-                     copies: int | None = None, tiles: int | None = None,
+                     copies: int | None = None, tiles: int | str | None = None,
                      exist_ok: bool = False,
                      verbose: bool = False) -> dict:
         """Create a field; returns its description (``verbose``: with the basis flats
@@ -294,7 +294,8 @@ class Client:
         of one radian; for rays of an object about its half-size; default 1).
         ``copies``: a server in cluster mode keeps that many copies of each shard,
         on different nodes (default 1). ``tiles``: a one-chart field's triangulation
-        in that many tiles, built on the server's cores at once (default 1)."""
+        in that many tiles, built on the server's cores at once (default 1; ``"auto"``:
+        one per core once the field is large enough)."""
         body: dict[str, Any] = {"name": name, "k": k, "d": d, "channels": channels}
         if copies is not None:
             body["copies"] = copies

@@ -213,7 +213,7 @@ AnyField = Union[Field, AtlasField]
 
 
 def new_field(channels: int, *, basis: Basis | None = None, atlas: Atlas | dict | None = None,
-              roundtrip_tol: float | None = None, tiles: int = 1) -> AnyField:
+              roundtrip_tol: float | None = None, tiles: int | str = 1) -> AnyField:
     """An empty field: one chart over ``basis``, or one Field per chart of ``atlas``.
 
     Parameters
@@ -228,7 +228,7 @@ def new_field(channels: int, *, basis: Basis | None = None, atlas: Atlas | dict 
         and ``atlas``.
     roundtrip_tol : float, optional
         None: the library's default (:data:`flatserve.coordinates.ROUNDTRIP_TOL`).
-    tiles : int
+    tiles : int or "auto"
         One chart: tiles of its triangulation (:class:`~flatserve.field.Field`'s
         ``tiles``); an atlas field takes 1 only.
 

@@ -398,7 +398,10 @@ class Field(FieldBase):
         slice_rows : int, optional
             Insert at most this many samples at a time: concurrent queries get in
             between slices (each slice is atomic; a query sees the batch in part
-            until the last slice is in). Default: the whole batch at once.
+            until the last slice is in). Default: the whole batch at once. A
+            chart in tiles runs its exchange after each slice (:meth:`settle`),
+            so that its tiles depend on the slices alone, not on when queries
+            came in between (replicas applying one log hold the same bytes).
 
         Returns
         -------
@@ -414,6 +417,8 @@ class Field(FieldBase):
         for lo in range(0, batch.accepted, max(step, 1)):
             duplicates += int(self._tri.insert(batch.x[lo:lo + step],
                                                batch.values[lo:lo + step]).n_duplicates)
+            if slice_rows is not None:
+                self._tri.settle()
             self._generation += 1
         self._nrejected += int(batch.rejected.size)
         return AddResult(

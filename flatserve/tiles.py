@@ -68,7 +68,7 @@ from .parallel import shard_pool
 from .triangulation import InsertResult, LocateKind, Location, RWLock, Triangulation
 
 __all__ = ["Tiling", "TiledTriangulation", "TileStats", "RETILE_SHARE", "AUTO_MIN_SAMPLES",
-           "auto_tiles"]
+           "AUTO_MAX_TILES", "auto_tiles"]
 
 #: a tile holding more than this times its share of the points is re-tiled
 #: (once the points have doubled since the last cut)
@@ -93,6 +93,10 @@ SCAN_SHARE = 0.005
 #: takes about a second either way, and the halo (a quarter of the own points
 #: and more) is memory for little time
 AUTO_MIN_SAMPLES = 20_000
+#: ``tiles="auto"`` gives at most this many tiles: the halo grows with the tiles
+#: (at 1M rays of Fig. 11: 15 % of the own points for 2 tiles, 47 % for 4, 92 %
+#: for 8), and only 2 tiles on 2 cores could be timed here
+AUTO_MAX_TILES = 4
 
 
 def auto_tiles(nsamples: int, threads: int | None = None) -> int:
@@ -100,18 +104,18 @@ def auto_tiles(nsamples: int, threads: int | None = None) -> int:
 
     One tile below :data:`AUTO_MIN_SAMPLES`; from there on one per thread of the
     shard pool (``threads``, default its size), at most one per
-    ``AUTO_MIN_SAMPLES / 2`` samples: tiles on the cores at once build faster,
-    more tiles than cores only add halo.
+    ``AUTO_MIN_SAMPLES / 2`` samples and at most :data:`AUTO_MAX_TILES`: tiles on
+    the cores at once build faster, more tiles than cores only add halo.
 
     Examples
     --------
-    >>> [auto_tiles(n, threads=8) for n in (19_999, 20_000, 45_000, 10**7)]
-    [1, 2, 4, 8]
+    >>> [auto_tiles(n, threads=8) for n in (19_999, 20_000, 35_000, 10**7)]
+    [1, 2, 3, 4]
     """
     threads = shard_pool().threads if threads is None else int(threads)
     if nsamples < AUTO_MIN_SAMPLES:
         return 1
-    return max(1, min(threads, nsamples // (AUTO_MIN_SAMPLES // 2)))
+    return max(1, min(threads, AUTO_MAX_TILES, nsamples // (AUTO_MIN_SAMPLES // 2)))
 
 
 @dataclass(frozen=True)
@@ -226,7 +230,8 @@ class TileStats:
     Attributes
     ----------
     rounds : list of int
-        Exchange rounds of each insert.
+        Rounds of each exchange (one exchange for the inserts between two
+        settles: :meth:`TiledTriangulation.settle`).
     sent : int
         Points sent between tiles so far.
     forwarded : int
@@ -298,6 +303,7 @@ class TiledTriangulation:
         self._n = 0
         # seeds, generations and full flag of the inserts whose exchange has not run
         self._pending: tuple[list, list, bool] | None = None
+        self._broken: str | None = None  # why an exchange failed
 
     def _reset_boxes(self) -> None:
         T, D = self._ntiles, self._ndim
@@ -406,7 +412,8 @@ class TiledTriangulation:
         return np.array([int(o.sum()) for o in self._own], dtype=np.int64)
 
     def _gather(self, get) -> np.ndarray | None:
-        parts = [(self._gid[t][self._own[t] == 1], get(tri)[self._own[t] == 1])
+        parts = [(self._gid[t][self._own[t] == 1],
+                  get(tri)[:len(self._own[t])][self._own[t] == 1])
                  for t, tri in enumerate(self._tiles) if tri.npoints]
         if not parts:
             return None
@@ -472,6 +479,7 @@ class TiledTriangulation:
                                     "values: this triangulation was built without values",
                                     "values")
         with self._lock.write():
+            self._check_whole()
             if self.tiling is None:
                 if self._auto and self._n == 0:  # a first batch large enough: cut at once
                     self._empty(auto_tiles(len(pts)))
@@ -600,11 +608,24 @@ class TiledTriangulation:
             self._settle()
 
     def _settle(self) -> None:
-        """Under the write lock."""
+        """Under the write lock. An exchange that raises leaves tiles that may hold
+        points they do not account for: the triangulation is then broken, and
+        every later use raises (its owner rebuilds it: the service does, from its
+        log), never answering from inexact tiles."""
+        self._check_whole()
         if self._pending is not None:
             seeds, gens, full = self._pending
+            try:
+                self._exchange(seeds, list(gens), full=full)
+            except BaseException as exc:
+                self._broken = f"{type(exc).__name__}: {exc}"
+                raise
             self._pending = None
-            self._exchange(seeds, gens, full=full)
+
+    def _check_whole(self) -> None:
+        if self._broken is not None:
+            raise RuntimeError(f"tiles: an exchange failed ({self._broken}); this "
+                               "triangulation must be built again")
 
     def _read_settled(self, blocking: bool = True) -> bool:
         """Take the read lock on settled tiles (settling them first): True when
@@ -614,7 +635,7 @@ class TiledTriangulation:
                 self._lock.acquire_read()
             elif not self._lock.try_acquire_read():
                 return False
-            if self._pending is None:
+            if self._pending is None and self._broken is None:
                 return True
             self._lock.release_read()
             if not blocking:
@@ -976,7 +997,7 @@ class TiledTriangulation:
     def __repr__(self) -> str:
         return (f"TiledTriangulation(ndim={self._ndim}, tiles={self._ntiles}"
                 f"{' (auto)' if self._auto else ''}, "
-                f"npoints={self._n}, halo={int(self.halo.sum())})")
+                f"npoints={self._n}, halo={sum(int((o == 0).sum()) for o in self._own)})")
 
 
 def _record_size(mv: memoryview, at: int) -> int:

@@ -225,7 +225,6 @@ class LogApplier:
                         return None, None
                     res = e.field.insert_prepared(prepared,
                                                   slice_rows=self.settings.insert_slice_rows)
-                    e.field.settle()  # the batch's slices share a tiled chart's exchange
                     e.mark_indexed(entry.seq, entry.position)
                     e.new_samples += res.accepted
             except Exception as exc:
@@ -352,7 +351,7 @@ class LogApplier:
                 arrays, values, unit = split_batch(self.storage.batch_arrays(e.id, b.seq))
                 adopt_unit(fld, unit)
                 prepared = fld.prepare(stored_flats(e, b.form, arrays), values)
-                replayed += int(fld.insert_prepared(
+                replayed += int(fld.insert_prepared(  # (a tiled chart settles each slice)
                     prepared, slice_rows=self.settings.insert_slice_rows).accepted)
                 seq, pos = b.seq, b.position
                 done += 1

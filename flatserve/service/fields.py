@@ -12,6 +12,7 @@ import logging
 from dataclasses import dataclass
 
 from ..basis import Basis
+from ..field import Field as OneChart
 from .applier import LogApplier
 from .backend import LogBackend
 from .catalogue import FieldCatalogue
@@ -125,7 +126,7 @@ class FieldService:
             created=e.created, error=e.error,
             basis=BasisInfo(m=m, dim=m - 1, spec=e.spec.basis, **flats),
             ncharts=len(charts) if charts is not None else 1, tiles=e.spec.tiles,
-            ntiles=_ntiles(d),
+            ntiles=f.triangulation.ntiles if isinstance(f, OneChart) else None,
             storage=StorageInfo(batches=nb, batch_rows=nrows, batch_bytes=nbytes,
                                 last_batch=last,
                                 snapshot_batch=e.snapshot_seq if e.snapshot_file else 0,
@@ -146,11 +147,6 @@ def _atlas_info(d: dict) -> AtlasInfo | None:
                      max_sample_angle=info.get("max_sample_angle_deg"),
                      nstored=d["nstored"], duplication=d["duplication"])
 
-
-def _ntiles(d: dict) -> int | None:
-    """The tiles of a one-chart field's triangulation now (None: not known here)."""
-    shards = d.get("shards") or []
-    return shards[0].get("tiles") if len(shards) == 1 else 1 if shards else None
 
 
 def _charts(d: dict) -> list[ChartInfo] | None:

@@ -395,8 +395,9 @@ class FieldInfo(FieldSummary):
     tiles: Union[int, Literal["auto"]] = Field(
         1, description="Tiles of a one-chart field's triangulation, as created (1: one).")
     ntiles: Optional[int] = Field(
-        None, description="Tiles now (\"auto\": as many as its size gave so far); null while "
-                          "the field loads or when its shards live elsewhere (cluster mode).")
+        None, description="Tiles of a one-chart field now (\"auto\": as many as its size gave "
+                          "so far); null for an atlas field, while the field loads, or when "
+                          "its shards live elsewhere (cluster mode).")
     shard_groups: Optional[list[ShardGroupInfo]] = Field(
         None, description="Cluster mode (`serve --ray`): where the field's shards live, per "
                           "group of charts (absent when this server holds the field itself).")

@@ -242,7 +242,6 @@ class ShardWorker:
         prepared = self.field.prepare(flats, values, only=self.only)
         t2 = time.perf_counter()
         self.field.insert_prepared(prepared, slice_rows=self.settings.insert_slice_rows)
-        self.field.settle()
         with self._cond:
             self.seq, self.position = en.seq, en.position
             self._cond.notify_all()

@@ -399,9 +399,10 @@ class Field(FieldBase):
             Insert at most this many samples at a time: concurrent queries get in
             between slices (each slice is atomic; a query sees the batch in part
             until the last slice is in). Default: the whole batch at once. A
-            chart in tiles runs its exchange after each slice (:meth:`settle`),
-            so that its tiles depend on the slices alone, not on when queries
-            came in between (replicas applying one log hold the same bytes).
+            chart in tiles runs its exchange with each slice, under the slice's
+            write lock (:meth:`settle`), so that its tiles depend on the slices
+            alone, not on when queries came in between (replicas applying one
+            log hold the same bytes), and no query waits for an exchange.
 
         Returns
         -------
@@ -414,11 +415,11 @@ class Field(FieldBase):
         slice_rows = self._slice_rows(slice_rows)
         step = batch.accepted if slice_rows is None else slice_rows
         duplicates = 0
+        # a chart in tiles: each slice with its exchange (under one write lock)
+        kw = {"settle": True} if slice_rows is not None and self.tiles != 1 else {}
         for lo in range(0, batch.accepted, max(step, 1)):
             duplicates += int(self._tri.insert(batch.x[lo:lo + step],
-                                               batch.values[lo:lo + step]).n_duplicates)
-            if slice_rows is not None:
-                self._tri.settle()
+                                               batch.values[lo:lo + step], **kw).n_duplicates)
             self._generation += 1
         self._nrejected += int(batch.rejected.size)
         return AddResult(

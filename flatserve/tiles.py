@@ -448,11 +448,12 @@ class TiledTriangulation:
                        if tri.npoints)
 
     # ------------------------------------------------------------------ insert
-    def insert(self, points, values=None) -> InsertResult:
+    def insert(self, points, values=None, *, settle: bool = False) -> InsertResult:
         """Insert points (and values): each into the tile whose box holds it. The
         exchange rounds that make every tile's own stars exact are left pending
         (:meth:`settle`): they run once for every insert in a row, before the
-        tiles are next read.
+        tiles are next read; with ``settle``, at once, under the same write lock
+        (no query comes in between, and a failing exchange fails the insert).
 
         Parameters
         ----------
@@ -493,6 +494,8 @@ class TiledTriangulation:
                 self._retile(want)  # (each cut: the tiles or the points have doubled)
             elif self._unequal():
                 self._retile()
+            if settle:
+                self._settle()
             return res
 
     def _unequal(self) -> bool:

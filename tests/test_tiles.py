@@ -96,6 +96,11 @@ def test_inserts_in_a_row_share_one_exchange():
         each.settle()
         assert each.settled
     assert not tt.settled and tt.stats.rounds == []
+    again = TiledTriangulation(D, 3)
+    for b in batches:  # settle=True: each insert with its exchange
+        again.insert(b, np.zeros((len(b), 2)), settle=True)
+        assert again.settled
+    assert len(again.stats.rounds) == 3
     q = rng.normal(size=(3000, D)) * 2.0
     assert tt.query(q, blocking=False) is None  # it would have to run the exchange
     _same_answers(tt, tri, q)  # a query settles first
@@ -124,6 +129,10 @@ def test_a_failed_exchange_is_never_answered_from(monkeypatch):
         with pytest.raises(RuntimeError, match="exchange failed.*MemoryError"):
             use()
     assert "TiledTriangulation" in repr(tt)
+    now = TiledTriangulation(3, 2)  # settle=True: the insert runs the exchange, and fails
+    monkeypatch.setattr(now, "_exchange", fail)
+    with pytest.raises(MemoryError):
+        now.insert(rng.normal(size=(800, 3)), rng.random((800, 1)), settle=True)
 
 
 def test_answers_do_not_depend_on_threads_or_order():

@@ -41,6 +41,24 @@ def sampled(scene):
     return samples, values, field, stats
 
 
+def test_a_field_in_tiles_renders_the_same_pixels(scene, monkeypatch):
+    """build_field's default ``tiles="auto"`` (the threshold lowered so that these
+    3,600 rays make 2 tiles) renders the very pixels of the field in one piece."""
+    import flatserve.tiles as tiles_mod
+    from flatserve.parallel import ShardPool
+
+    monkeypatch.setattr(tiles_mod, "AUTO_MIN_SAMPLES", 2000)
+    monkeypatch.setattr(tiles_mod, "shard_pool", lambda p=ShardPool(2): p)
+    samples, values = sample_scene(scene, N_SAMPLES, seed=8)
+    one, _ = build_field(samples.origins, samples.directions, values, tiles=1, chunk=1000)
+    tiled, stats = build_field(samples.origins, samples.directions, values, chunk=1000)
+    assert tiled.triangulation.ntiles == 2 and tiled.triangulation.settled
+    cam = Camera.look_at(eye=(0.3, 0.2, -3.0), target=(0, 0, 0), width=24, height=24)
+    a, b = render_field(one, cam), render_field(tiled, cam)
+    assert a.covered.mean() > 0.5 and np.array_equal(a.covered, b.covered)
+    assert np.array_equal(a.image, b.image)
+
+
 def test_field_accounts_for_every_sample(sampled):
     samples, values, field, stats = sampled
     assert stats.samples == N_SAMPLES**2

@@ -129,7 +129,7 @@ class BuildStats:
 
 
 def build_field(origins, directions, values, *, scale: float = BASIS_SCALE, variant: str | None = None,
-                chunk: int = BUILD_CHUNK, progress=None):
+                chunk: int = BUILD_CHUNK, progress=None, tiles: int | str = "auto"):
     """A Field over lines in R^3 with the paper's basis, filled with samples.
 
     Parameters
@@ -144,12 +144,17 @@ def build_field(origins, directions, values, *, scale: float = BASIS_SCALE, vari
     chunk : int
         Rays per insertion batch.
     progress : callable(done, total), optional
+    tiles : int or "auto"
+        The chart's tiles (:class:`flatserve.Field` ``tiles``; the same answers
+        bit for bit): by default one per core once the field is large enough
+        (1.7x faster on 2 cores at the paper's 1M rays: docs/scaling.md).
 
     Returns
     -------
     field : flatserve.Field
     stats : BuildStats
-        Rejected samples are those outside the basis chart.
+        Rejected samples are those outside the basis chart; the build's seconds
+        include the tiles' exchange.
     """
     from ..basis import Basis
     from ..field import Field
@@ -158,7 +163,8 @@ def build_field(origins, directions, values, *, scale: float = BASIS_SCALE, vari
     if values.ndim == 1:
         values = values[:, None]
     kw = {} if variant is None else {"variant": variant}
-    field = Field(Basis.around_axis(axis=2, scale=scale, **kw), channels=values.shape[1])
+    field = Field(Basis.around_axis(axis=2, scale=scale, **kw), channels=values.shape[1],
+                  tiles=tiles)
     return field, _fill(field, origins, directions, values, chunk, progress)
 
 
@@ -213,4 +219,5 @@ def _fill(field, origins, directions, values, chunk: int, progress) -> BuildStat
         duplicates += res.duplicates
         if progress is not None:
             progress(hi, n)
+    field.settle()  # (a chart in tiles: the exchange the adds left pending)
     return BuildStats(n, accepted, rejected, duplicates, time.perf_counter() - t0)

@@ -38,11 +38,12 @@ def sphere_rays(rng, n):
 
 
 def fill(c: Client, rng, atlas: str, *, batches: int, rows: int) -> dict:
-    """Create an atlas field ``atlas`` and a one-chart field "one" (2 channels) and
-    upload ``batches`` batches of ``rows`` rays to each, waiting for every other
-    one; the atlas field's create answer."""
+    """Create an atlas field ``atlas`` and a one-chart field "one" in 2 tiles (2
+    channels; its shard group holds both tiles, on its node's cores) and upload
+    ``batches`` batches of ``rows`` rays to each, waiting for every other one; the
+    atlas field's create answer."""
     info = c.create_field(atlas, channels=2)
-    c.create_field("one", channels=2, basis=ONE_CHART)
+    c.create_field("one", channels=2, basis=ONE_CHART, tiles=2)
     for i in range(batches):
         o, d = sphere_rays(rng, rows)
         c.upload_rays(atlas, o, d, rng.uniform(size=(rows, 2)), wait=bool(i % 2))

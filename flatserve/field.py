@@ -26,7 +26,7 @@ from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
 from .options import Order, Outside, choice
 from .flats import Flats, check_batch
-from .tiles import TiledTriangulation
+from .tiles import TiledTriangulation, tile_setting
 from .triangulation import Triangulation
 from .warp import LineWarp
 
@@ -273,14 +273,9 @@ class Field(FieldBase):
                                     "warp")
         #: the chart's warp (None: the paper's chart)
         self.warp = warp
-        auto = isinstance(tiles, str) and tiles == "auto"
-        if not auto and (isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer))
-                         or tiles < 1):
-            raise InvalidInputError(f"tiles: expected an integer >= 1 or 'auto', got {tiles!r}",
-                                    "tiles")
         #: tiles of the chart's triangulation (1: one triangulation; "auto": as many as
         #: :func:`flatserve.tiles.auto_tiles` gives, ``triangulation.ntiles`` now)
-        self.tiles: int | str = "auto" if auto else int(tiles)
+        self.tiles: int | str = tile_setting(tiles)
         self._tri = (Triangulation(basis.m - 1) if self.tiles == 1
                      else TiledTriangulation(basis.m - 1, self.tiles))
         self._nrejected = 0
@@ -681,8 +676,7 @@ class Field(FieldBase):
             if version == _VERSION_TILES and not isinstance(tiling, dict):
                 raise ValueError(f"version {version} without its tiles")
             obj = cls(basis, int(meta["channels"]), roundtrip_tol=float(meta["roundtrip_tol"]),
-                      warp=warp, tiles=("auto" if tiling.get("auto") else int(tiling["tiles"]))
-                      if tiling else 1)
+                      warp=warp, tiles=TiledTriangulation.setting_of(tiling) if tiling else 1)
             keys = meta.get("parts") if tiling else None
             if keys is not None and (not isinstance(keys, list) or len(data) != start):
                 raise ValueError("parts: expected a list of keys and no payload")

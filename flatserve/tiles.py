@@ -68,7 +68,7 @@ from .parallel import shard_pool
 from .triangulation import InsertResult, LocateKind, Location, RWLock, Triangulation
 
 __all__ = ["Tiling", "TiledTriangulation", "TileStats", "RETILE_SHARE", "AUTO_MIN_SAMPLES",
-           "AUTO_MAX_TILES", "auto_tiles"]
+           "AUTO_MAX_TILES", "auto_tiles", "tile_setting"]
 
 #: a tile holding more than this times its share of the points is re-tiled
 #: (once the points have doubled since the last cut)
@@ -97,6 +97,22 @@ AUTO_MIN_SAMPLES = 20_000
 #: (at 1M rays of Fig. 11: 15 % of the own points for 2 tiles, 47 % for 4, 92 %
 #: for 8), and only 2 tiles on 2 cores could be timed here
 AUTO_MAX_TILES = 4
+
+
+def tile_setting(tiles) -> int | str:
+    """``tiles`` checked: an integer >= 1, or ``"auto"`` (:func:`auto_tiles`).
+
+    Raises
+    ------
+    InvalidInputError
+        Anything else, naming ``tiles``.
+    """
+    if isinstance(tiles, str) and tiles == "auto":
+        return "auto"
+    if isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or tiles < 1:
+        raise InvalidInputError(f"tiles: expected an integer >= 1 or 'auto', got {tiles!r}",
+                                "tiles")
+    return int(tiles)
 
 
 def auto_tiles(nsamples: int, threads: int | None = None) -> int:
@@ -275,12 +291,9 @@ class TiledTriangulation:
 
     def __init__(self, ndim: int, tiles: int = 2, *, tiling: Tiling | None = None) -> None:
         self._ndim = int(Triangulation(ndim).ndim)
-        self._auto = isinstance(tiles, str) and tiles == "auto"
-        if tiling is None and not self._auto and (
-                isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or tiles < 1):
-            raise InvalidInputError(f"tiles: expected an integer >= 1 or 'auto', got {tiles!r}",
-                                    "tiles")
-        self._ntiles = tiling.ntiles if tiling is not None else 1 if self._auto else int(tiles)
+        setting = tile_setting(tiles) if tiling is None else tiles
+        self._auto = isinstance(setting, str)
+        self._ntiles = tiling.ntiles if tiling is not None else 1 if self._auto else setting
         self.tiling = tiling
         self._empty(self._ntiles)
         self._tiled_at = 0
@@ -848,6 +861,11 @@ class TiledTriangulation:
         return loc
 
     # ------------------------------------------------------------------ snapshots
+    @staticmethod
+    def setting_of(tiling: dict) -> int | str:
+        """The ``tiles`` a :meth:`tiling_dict` was made with: its count, or ``"auto"``."""
+        return "auto" if tiling.get("auto") else int(tiling["tiles"])
+
     def tiling_dict(self) -> dict:
         """The tiling as JSON-able lists (a field file's metadata)."""
         tl = self.tiling
@@ -949,7 +967,7 @@ class TiledTriangulation:
                                       ("low", np.int64), ("high", np.int64))))
             if tl.ntiles != T:
                 raise ValueError(f"a tiling of {tl.ntiles} tiles named {T}")
-        self = cls(ndim, "auto" if tiling.get("auto") else T, tiling=tl)
+        self = cls(ndim, cls.setting_of(tiling), tiling=tl)
         self._empty(T)
         if len(records) != T:
             raise ValueError("the tile count differs from the tiling's")

@@ -21,12 +21,9 @@ from typing import Optional
 from ..atlas import Atlas
 from ..basis import Basis
 from ..contract import SampledField, describe_definition, load_field, new_field
+from ..tiles import tile_setting
 from .catalogue import FieldState
 from .status import FieldNotFoundError, StorageError
-
-
-def _tiles(value) -> int | str:
-    return "auto" if value == "auto" else int(value)
 
 
 @dataclass(frozen=True)
@@ -64,7 +61,7 @@ class FieldSpec:
     def from_dict(cls, obj: dict) -> "FieldSpec":
         return cls(int(obj["k"]), int(obj["d"]), int(obj["channels"]), dict(obj.get("basis", {})),
                    obj.get("roundtrip_tol"), obj.get("atlas"), int(obj.get("copies", 1)),
-                   _tiles(obj.get("tiles", 1)))
+                   tile_setting(obj.get("tiles", 1)))
 
     def to_dict(self) -> dict:
         return asdict(self)

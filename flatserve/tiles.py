@@ -789,7 +789,7 @@ class TiledTriangulation:
         return v, inside
 
     def _query(self, q, outside, order, threads, locate):
-        T, n, D1 = self._ntiles, len(q), self._ndim + 1
+        T, n = self._ntiles, len(q)
         out = np.full((n, self._channels), np.nan)
         inside = np.zeros(n, dtype=bool)
         by = np.full(n, -1, np.int64)  # the tile that answered

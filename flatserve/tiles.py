@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import threading
 from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -67,8 +68,8 @@ from .options import Order, Outside, choice
 from .parallel import shard_pool
 from .triangulation import InsertResult, LocateKind, Location, RWLock, Triangulation
 
-__all__ = ["Tiling", "TiledTriangulation", "TileStats", "RETILE_SHARE", "AUTO_MIN_SAMPLES",
-           "AUTO_MAX_TILES", "auto_tiles", "tile_setting"]
+__all__ = ["Tiling", "TiledTriangulation", "TileStats", "Tile", "TileHost", "hosting",
+           "RETILE_SHARE", "AUTO_MIN_SAMPLES", "AUTO_MAX_TILES", "auto_tiles", "tile_setting"]
 
 #: a tile holding more than this times its share of the points is re-tiled
 #: (once the points have doubled since the last cut)
@@ -266,6 +267,132 @@ class TileStats:
     unresolved: int = 0
 
 
+class Tile:
+    """One tile of a :class:`TiledTriangulation`: its Delaunay triangulation (its own
+    points and its halo, numbered by local sample ids) and which vertices are its
+    own. Every call the tiled triangulation makes on a tile is a method here, with
+    arrays in and arrays out, so that a tile may live in another process: a
+    :class:`TileHost` makes and loads tiles, and a host that places them
+    elsewhere hands back a proxy with these methods.
+
+    Parameters
+    ----------
+    ndim : int
+    tri : Triangulation, optional
+        Default: an empty one.
+    own : ndarray of uint8, shape (tri.npoints,), optional
+        1 for an own vertex, 0 for a halo vertex.
+    """
+
+    def __init__(self, ndim: int, tri: Triangulation | None = None,
+                 own: np.ndarray | None = None) -> None:
+        self.tri = Triangulation(ndim) if tri is None else tri
+        self.own = np.empty(0, np.uint8) if own is None else np.asarray(own, np.uint8)
+        if self.tri.ndim != ndim:
+            raise ValueError(f"a triangulation in R^{self.tri.ndim} for a tile in R^{ndim}")
+        if len(self.own) != self.tri.npoints:
+            raise ValueError(f"{self.tri.npoints} points for {len(self.own)} own flags")
+
+    @property
+    def npoints(self) -> int:
+        return self.tri.npoints
+
+    @property
+    def generation(self) -> int:
+        return self.tri.generation
+
+    @property
+    def nchannels(self) -> int:
+        return self.tri.nchannels
+
+    def insert(self, points: np.ndarray, values: np.ndarray | None, own: bool) -> InsertResult:
+        """:meth:`flatserve.Triangulation.insert`; the new vertices are own points
+        (``own``) or halo."""
+        res = self.tri.insert(points, values)
+        k = self.tri.npoints - len(self.own)
+        if k:
+            self.own = np.concatenate([self.own, np.full(k, 1 if own else 0, np.uint8)])
+        return res
+
+    def take(self, local: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Points (n, D) and values (n, C) or None of local ids ``local`` (n,)."""
+        vals = self.tri.values
+        return self.tri.points[local], None if vals is None else vals[local]
+
+    def own_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The own flags (npoints,), and the own points' points and values (or None)."""
+        own = self.own == 1
+        vals = self.tri.values
+        return self.own.copy(), self.tri.points[own], None if vals is None else vals[own]
+
+    def conflicts(self, lo, hi, start, skip: int, **where) -> list[np.ndarray]:
+        """:meth:`flatserve.Triangulation.conflicts` of its own vertices."""
+        return self.tri.conflicts(self.own, lo, hi, start, skip=skip, **where)
+
+    def answer(self, q, outside, order, threads, everywhere: bool):
+        """:meth:`flatserve.Triangulation.interpolate_owned` from cells with an own
+        vertex (``everywhere``: from any cell)."""
+        own = np.ones(self.tri.npoints, np.uint8) if everywhere else self.own
+        return self.tri.interpolate_owned(q, own, outside=outside, order=order, threads=threads)
+
+    def locate(self, q, order, threads) -> Location:
+        return self.tri.locate(q, order=order, threads=threads)
+
+    def count_cells(self) -> int:
+        """:meth:`flatserve.Triangulation.count_cells` of its own vertices."""
+        return self.tri.count_cells(self.own) if self.tri.npoints else 0
+
+    def star_foreign(self) -> int:
+        """Foreign vertices of the finite cells around its own vertices (the least
+        halo: :meth:`TiledTriangulation.star_halo`)."""
+        if self.tri.npoints <= self.tri.ndim:
+            return 0
+        s = self.tri.simplices
+        own = self.own == 1
+        v = np.unique(s[own[s].any(axis=1)])
+        return int((~own[v]).sum())
+
+    def snapshot(self) -> tuple[np.ndarray, bytes]:
+        """Its own flags and :meth:`flatserve.Triangulation.to_bytes`."""
+        return self.own.copy(), self.tri.to_bytes()
+
+
+class TileHost:
+    """Where a :class:`TiledTriangulation` keeps its tiles: this process (this
+    class). A host that places tiles elsewhere (in cluster mode: a Ray actor per
+    tile, :mod:`flatserve.service.cluster.tiles`) returns objects with
+    :class:`Tile`'s methods and attributes ``npoints``, ``generation``,
+    ``nchannels``; :func:`hosting` makes it the host of the tiled
+    triangulations made meanwhile."""
+
+    def make(self, ndim: int) -> Tile:
+        """An empty tile."""
+        return Tile(ndim)
+
+    def load(self, ndim: int, own: np.ndarray, snapshot) -> Tile:
+        """A tile from :meth:`Tile.snapshot`'s parts."""
+        return Tile(ndim, Triangulation.from_bytes(snapshot), own)
+
+
+_HOST: ContextVar[TileHost | None] = ContextVar("flatserve_tile_host", default=None)
+
+
+@contextmanager
+def hosting(host: TileHost):
+    """``with``: the tiled triangulations made (or loaded) in this context keep
+    their tiles with ``host`` (for their whole life: a re-cut makes its tiles
+    there too).
+
+    >>> with hosting(TileHost()):
+    ...     tt = TiledTriangulation(2, tiles=2)
+    """
+    token = _HOST.set(host)
+    try:
+        yield host
+    finally:
+        _HOST.reset(token)
+
+
 class TiledTriangulation:
     """A Delaunay triangulation of points in R^D with values, over tiles (see the
     module doc): :class:`flatserve.Triangulation`'s ``insert`` and ``query``, the
@@ -283,14 +410,19 @@ class TiledTriangulation:
         since the last cut (so that the cuts cost at most about as much again as
         the inserts).
     tiling : Tiling, optional
+    host : TileHost, optional
+        Where the tiles live; default: the host of :func:`hosting`, else this
+        process.
 
     Attributes
     ----------
     stats : TileStats
     """
 
-    def __init__(self, ndim: int, tiles: int = 2, *, tiling: Tiling | None = None) -> None:
+    def __init__(self, ndim: int, tiles: int = 2, *, tiling: Tiling | None = None,
+                 host: TileHost | None = None) -> None:
         self._ndim = int(Triangulation(ndim).ndim)
+        self._host = host or _HOST.get() or TileHost()
         setting = tile_setting(tiles) if tiling is None else tiles
         self._auto = isinstance(setting, str)
         self._ntiles = tiling.ntiles if tiling is not None else 1 if self._auto else setting
@@ -305,9 +437,9 @@ class TiledTriangulation:
     def _empty(self, T: int) -> None:
         """``T`` empty tiles (the tiling aside)."""
         self._ntiles = T
-        self._tiles = [Triangulation(self._ndim) for _ in range(T)]
+        self._tiles = [self._host.make(self._ndim) for _ in range(T)]
         self._gid = [np.empty(0, np.int64) for _ in range(T)]    # local id -> global id
-        self._own = [np.empty(0, np.uint8) for _ in range(T)]    # local id -> own (1) or halo (0)
+        self._nown = np.zeros(T, np.int64)                       # own points per tile
         self._owner = np.empty(0, np.int64)                      # global id -> tile
         self._local = np.empty(0, np.int64)                      # global id -> local id there
         self._held = np.zeros((T, 0), dtype=bool)                # tile, global id -> held
@@ -380,11 +512,16 @@ class TiledTriangulation:
         return self._lock
 
     @property
-    def tiles(self) -> tuple[Triangulation, ...]:
-        """Each tile's triangulation (own points and halo; local sample ids), settled
+    def tiles(self) -> tuple[Tile, ...]:
+        """Each tile (own points and halo; local sample ids), settled
         (:meth:`settle`)."""
         self.settle()
         return tuple(self._tiles)
+
+    @property
+    def host(self) -> TileHost:
+        """Where the tiles live."""
+        return self._host
 
     def global_ids(self, tile: int) -> np.ndarray:
         """Tile ``tile``'s local sample id -> global sample id, shape (its npoints,),
@@ -396,57 +533,54 @@ class TiledTriangulation:
         """Tile ``tile``'s local sample id -> its own point (True) or halo, bool,
         settled."""
         with self._reading():
-            return self._own[tile].astype(bool)
+            return self._tiles[tile].own_rows()[0].astype(bool)
 
     @property
     def halo(self) -> np.ndarray:
         """Per tile, halo points held (foreign points), shape (ntiles,)."""
         with self._reading():
-            return np.array([int((o == 0).sum()) for o in self._own], dtype=np.int64)
+            return np.array([len(g) for g in self._gid], dtype=np.int64) - self._nown
 
     def star_halo(self) -> np.ndarray:
         """Per tile, the foreign vertices of its own vertices' finite cells: the
         least halo a tile answering exactly must hold (:attr:`halo` is what the
         exchange's conservative ball-box test gave it), shape (ntiles,)."""
-        out = np.zeros(self._ntiles, np.int64)
         with self._reading():
-            for t, tri in enumerate(self._tiles):
-                if tri.npoints <= self._ndim:
-                    continue
-                s = tri.simplices
-                own = self._own[t] == 1
-                v = np.unique(s[own[s].any(axis=1)])
-                out[t] = int((~own[v]).sum())
-        return out
+            return np.array(list(shard_pool().map(lambda tile: tile.star_foreign(),
+                                                  self._tiles)), dtype=np.int64)
 
     @property
     def own_counts(self) -> np.ndarray:
         """Per tile, own points, shape (ntiles,)."""
-        return np.array([int(o.sum()) for o in self._own], dtype=np.int64)
+        return self._nown.copy()
 
-    def _gather(self, get) -> np.ndarray | None:
-        parts = [(self._gid[t][self._own[t] == 1],
-                  get(tri)[:len(self._own[t])][self._own[t] == 1])
-                 for t, tri in enumerate(self._tiles) if tri.npoints]
+    def _gather(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Every own point and its value (or None), row = global sample id."""
+        parts = [(self._gid[t], *self._tiles[t].own_rows())
+                 for t in range(self._ntiles) if self._nown[t]]
         if not parts:
-            return None
-        out = np.empty((self._n,) + parts[0][1].shape[1:])
-        for g, v in parts:
-            out[g] = v
-        return out
+            return None, None
+        pts = np.empty((self._n, self._ndim))
+        vals = np.empty((self._n, self._channels)) if self._channels else None
+        for gid, own, p, v in parts:
+            g = gid[own == 1]
+            pts[g] = p
+            if vals is not None:
+                vals[g] = v
+        return pts, vals
 
     @property
     def points(self) -> np.ndarray:
         """(npoints, D): row = global sample id."""
         with self._lock.read():
-            p = self._gather(lambda tri: tri.points)
+            p = self._gather()[0]
         return np.empty((0, self._ndim)) if p is None else p
 
     @property
     def values(self) -> np.ndarray | None:
         """(npoints, C) sample values (row = global sample id), or None."""
         with self._lock.read():
-            return self._gather(lambda tri: tri.values) if self._channels else None
+            return self._gather()[1] if self._channels else None
 
     @property
     def nchannels(self) -> int:
@@ -457,8 +591,7 @@ class TiledTriangulation:
         """Cells of the whole triangulation: each counted in the tile owning its
         lexicographically first vertex."""
         with self._reading():
-            return sum(tri.count_cells(self._own[t]) for t, tri in enumerate(self._tiles)
-                       if tri.npoints)
+            return sum(shard_pool().map(lambda tile: tile.count_cells(), self._tiles))
 
     # ------------------------------------------------------------------ insert
     def insert(self, points, values=None, *, settle: bool = False) -> InsertResult:
@@ -522,8 +655,7 @@ class TiledTriangulation:
     def _retile(self, tiles: int | None = None) -> None:
         """Cut a new tiling (of ``tiles``, default as many as now) from every point
         and build the tiles again (sample ids, values and answers unchanged)."""
-        pts = self._gather(lambda tri: tri.points)
-        vals = self._gather(lambda tri: tri.values) if self._channels else None
+        pts, vals = self._gather()
         self._empty(self._ntiles if tiles is None else int(tiles))  # (no exchange pending)
         self.tiling = Tiling.split(pts, self._ntiles)
         self._tiled_at = len(pts)
@@ -541,7 +673,7 @@ class TiledTriangulation:
             r = rows[t]
             if not r.size:
                 return None
-            return self._tiles[t].insert(pts[r], None if vals is None else vals[r])
+            return self._tiles[t].insert(pts[r], None if vals is None else vals[r], True)
 
         got = list(shard_pool().map(put, range(T)))
         # global ids: new points numbered in input row order (first occurrence)
@@ -582,7 +714,7 @@ class TiledTriangulation:
                 g = np.empty(k, np.int64)
                 g[fl[sel] - before[t]] = gids[sel]
                 self._gid[t] = np.concatenate([self._gid[t], g])
-                self._own[t] = np.concatenate([self._own[t], np.ones(k, np.uint8)])
+                self._nown[t] += k
                 seeds[t] = np.arange(before[t], before[t] + k, dtype=np.int64)
             if k:
                 grew |= self._grow_boxes(t, pts[fr[sel]])
@@ -679,25 +811,21 @@ class TiledTriangulation:
             halo = self._held[t, g] & (self._owner[g] != t)
             if halo.any():
                 hg = g[halo]
-                self._tiles[t].insert(self._points_of(hg), vals[last[halo]])
+                self._tiles[t].insert(self._points_of(hg)[0], vals[last[halo]], False)
 
-    def _points_of(self, g: np.ndarray) -> np.ndarray:
-        out = np.empty((len(g), self._ndim))
+    def _points_of(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The points (n, D) and values (n, C) or None of global ids ``g``, from their
+        owners."""
+        pts = np.empty((len(g), self._ndim))
+        vals = np.empty((len(g), self._channels)) if self._channels else None
         own = self._owner[g]
         for t in np.unique(own):
             sel = own == t
-            out[sel] = self._tiles[t].points[self._local[g[sel]]]
-        return out
-
-    def _values_of(self, g: np.ndarray) -> np.ndarray | None:
-        if not self._channels:
-            return None
-        out = np.empty((len(g), self._channels))
-        own = self._owner[g]
-        for t in np.unique(own):
-            sel = own == t
-            out[sel] = self._tiles[t].values[self._local[g[sel]]]
-        return out
+            p, v = self._tiles[t].take(self._local[g[sel]])
+            pts[sel] = p
+            if vals is not None:
+                vals[sel] = v
+        return pts, vals
 
     def _exchange(self, seeds: list, gens: list, *, full: bool) -> None:
         """Rounds of Tile & Merge until no tile receives a new point. ``seeds[t]``:
@@ -709,16 +837,16 @@ class TiledTriangulation:
             lo, hi, start = self._boxes()
             while True:
                 def scan(t):
-                    tri = self._tiles[t]
-                    if not tri.npoints or (not full and seeds[t] is None):
+                    tile = self._tiles[t]
+                    if not tile.npoints or (not full and seeds[t] is None):
                         return None
                     if full:
                         where = {}
-                    elif len(seeds[t]) > SCAN_SHARE * tri.npoints:
+                    elif len(seeds[t]) > SCAN_SHARE * tile.npoints:
                         where = {"since": gens[t]}
                     else:
                         where = {"seeds": seeds[t]}
-                    return tri.conflicts(self._own[t], lo, hi, start, skip=t, **where)
+                    return tile.conflicts(lo, hi, start, t, **where)
 
                 found = list(shard_pool().map(scan, range(T)))
                 recv: list = [[] for _ in range(T)]
@@ -739,10 +867,10 @@ class TiledTriangulation:
                     g = todo[b]
                     if not len(g):
                         return None
-                    tri = self._tiles[b]
-                    k0 = tri.npoints
-                    gens[b] = tri.generation
-                    res = tri.insert(self._points_of(g), self._values_of(g))
+                    tile = self._tiles[b]
+                    k0 = tile.npoints
+                    gens[b] = tile.generation
+                    res = tile.insert(*self._points_of(g), False)
                     if res.n_new != len(g):  # a point of another tile equal to one here
                         raise RuntimeError("tiles: a point held by two tiles as its own")
                     return np.arange(k0, k0 + len(g), dtype=np.int64)
@@ -751,7 +879,6 @@ class TiledTriangulation:
                 for b, g in enumerate(todo):
                     if len(g):
                         self._gid[b] = np.concatenate([self._gid[b], g])
-                        self._own[b] = np.concatenate([self._own[b], np.zeros(len(g), np.uint8)])
                         self._held[b, g] = True
                         self.stats.sent += len(g)
                 seeds = new
@@ -805,12 +932,10 @@ class TiledTriangulation:
 
             def ask(t):
                 r = groups[t]
-                tri = self._tiles[t]
-                if not r.size or not tri.npoints:
+                tile = self._tiles[t]
+                if not r.size or not tile.npoints:
                     return None
-                own = np.ones(tri.npoints, np.uint8) if last else self._own[t]
-                return tri.interpolate_owned(q[r], own, outside=outside, order=order,
-                                             threads=threads)
+                return tile.answer(q[r], outside, order, threads, last)
 
             nxt = []
             for t, res in enumerate(shard_pool().map(ask, range(T))):
@@ -876,9 +1001,9 @@ class TiledTriangulation:
     def _tile_record(self, t: int) -> bytes:
         """Tile ``t``'s record: uint64 n, n int64 global ids, n uint8 own flags,
         uint64 length and the tile's triangulation snapshot. Under the read lock."""
-        blob = self._tiles[t].to_bytes()
+        own, blob = self._tiles[t].snapshot()
         return b"".join([np.uint64(len(self._gid[t])).tobytes(), self._gid[t].tobytes(),
-                         self._own[t].tobytes(), np.uint64(len(blob)).tobytes(), blob])
+                         own.tobytes(), np.uint64(len(blob)).tobytes(), blob])
 
     def to_bytes(self) -> bytes:
         """Every tile's own snapshot, with its global ids and own flags.
@@ -909,14 +1034,14 @@ class TiledTriangulation:
         known = frozenset(known)
 
         def part(t: int):
-            tri, last = self._tiles[t], self._parts[t]
-            if last is not None and last[0] is tri and last[1] == tri.generation and \
+            tile, last = self._tiles[t], self._parts[t]
+            if last is not None and last[0] is tile and last[1] == tile.generation and \
                     last[2] in known:
                 return last[2], None
-            gen = tri.generation
+            gen = tile.generation
             blob = self._tile_record(t)
             key = part_key(blob)
-            self._parts[t] = (tri, gen, key)
+            self._parts[t] = (tile, gen, key)
             return key, None if key in known else blob
 
         with self._reading():
@@ -971,7 +1096,7 @@ class TiledTriangulation:
         self._empty(T)
         if len(records) != T:
             raise ValueError("the tile count differs from the tiling's")
-        owner, local, snaps = [], [], []
+        owner, local, snaps, owns = [], [], [], []
         for t, rec in enumerate(records):
             mv = memoryview(rec)
             if _record_size(mv, 0) != len(mv):
@@ -980,24 +1105,27 @@ class TiledTriangulation:
             at = 8
             self._gid[t] = np.frombuffer(mv[at:at + 8 * n], np.int64).copy()
             at += 8 * n
-            self._own[t] = np.frombuffer(mv[at:at + n], np.uint8).copy()
+            owns.append(np.frombuffer(mv[at:at + n], np.uint8).copy())
             snaps.append(mv[at + n + 8:])
-        # the tiles' triangulations on the cores at once
-        self._tiles = list(shard_pool().map(Triangulation.from_bytes, snaps))
+        # the tiles' triangulations loaded at once (on the cores, or where the host puts them)
+        self._tiles = list(shard_pool().map(
+            lambda t: self._host.load(self._ndim, owns[t], snaps[t]), range(T)))
+        del snaps
         for t in range(T):
             n = len(self._gid[t])
-            tri = self._tiles[t]
-            if tri.npoints != n or tri.ndim != self._ndim:
-                raise ValueError(f"tile {t}: {tri.npoints} points for {n} ids")
-            own = self._own[t] == 1
+            tile = self._tiles[t]
+            if tile.npoints != n:
+                raise ValueError(f"tile {t}: {tile.npoints} points for {n} ids")
+            own = owns[t] == 1
+            self._nown[t] = int(own.sum())
             owner.append((self._gid[t][own], t))
             local.append(np.flatnonzero(own))
             if own.any():
-                self._grow_boxes(t, tri.points[own])
-            if tri.nchannels:
-                self._channels = tri.nchannels
+                self._grow_boxes(t, tile.own_rows()[1])
+            if tile.nchannels:
+                self._channels = tile.nchannels
             if keys is not None:
-                self._parts[t] = (tri, tri.generation, keys[t])
+                self._parts[t] = (tile, tile.generation, keys[t])
         m = sum(len(g) for g, _ in owner)
         self._n = self._tiled_at = m
         self._owner = np.full(m, -1, np.int64)
@@ -1018,7 +1146,7 @@ class TiledTriangulation:
     def __repr__(self) -> str:
         return (f"TiledTriangulation(ndim={self._ndim}, tiles={self._ntiles}"
                 f"{' (auto)' if self._auto else ''}, "
-                f"npoints={self._n}, halo={sum(int((o == 0).sum()) for o in self._own)})")
+                f"npoints={self._n}, halo={sum(len(g) for g in self._gid) - int(self._nown.sum())})")
 
 
 def _record_size(mv: memoryview, at: int) -> int:

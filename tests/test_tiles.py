@@ -23,7 +23,8 @@ def _cells(tri: Triangulation) -> set:
 def _own_cells_exact(tt: TiledTriangulation, whole: set) -> int:
     """Cells of the tiles with an own vertex that are not cells of the whole."""
     bad = 0
-    for t, tri in enumerate(tt.tiles):
+    for t, tile in enumerate(tt.tiles):
+        tri = tile.tri
         if tri.npoints <= tt.ndim:
             continue
         s = tri.simplices
@@ -425,7 +426,7 @@ def test_tiles_as_snapshot_parts_only_the_changed_ones():
     g0 = tt.global_ids(0)
     only = tt.own(0) & ~np.isin(g0, elsewhere)
     assert only.sum() > 100
-    tt.insert(tt.tiles[0].points[only][:50], np.full((50, 1), 7.0))
+    tt.insert(tt.tiles[0].tri.points[only][:50], np.full((50, 1), 7.0))
     second = tt.tile_parts(known=keys)
     assert second[1:] == [(k, None) for k in keys[1:]]
     assert second[0][0] != keys[0] and second[0][1] is not None

@@ -358,6 +358,12 @@ class FieldList(BaseModel):
     fields: list[FieldSummary]
 
 
+class TileInfo(BaseModel):
+    node: str = Field(description="The Ray node the tile's actor runs on.")
+    memory: int = Field(description="Resident bytes of the tile's process.")
+    npoints: int = Field(description="Points the tile holds: its own and its halo.")
+
+
 class ShardGroupInfo(BaseModel):
     charts: list[int] = Field(description="The charts this group of shards holds.")
     copies: int = Field(description="Copies of the group (each in an actor on its own node).")
@@ -369,6 +375,8 @@ class ShardGroupInfo(BaseModel):
     node: Optional[str] = Field(None, description="The Ray node that copy runs on.")
     restored_from: Optional[str] = Field(None, description="What that copy restored itself "
                                                            "from: a snapshot, or the log.")
+    tiles: Optional[list[TileInfo]] = Field(None, description="A one-chart field in tiles: "
+                                            "that copy's tiles, each in a Ray actor of its own.")
 
 
 class FieldInfo(FieldSummary):

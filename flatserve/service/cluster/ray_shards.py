@@ -35,6 +35,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import logging
+import os
 import pickle
 import threading
 import time
@@ -67,10 +68,22 @@ class ShardActor:
     def __init__(self, settings, field_id: int, charts) -> None:
         from ...parallel import set_shard_threads
         from .. import logs
+        from .tiles import RayTileHost
 
         logs.configure(settings.log_level, settings.log_format)
         set_shard_threads(settings.shard_threads or node_cpus())
-        self.worker = ShardWorker(settings, field_id, charts)
+        self.tiles = RayTileHost(settings)
+        self.worker = ShardWorker(settings, field_id, charts, tile_host=self.tiles)
+        threading.Thread(target=self._watch, name="flatserve-tiles-watch", daemon=True).start()
+
+    def _watch(self) -> None:
+        """A lost tile cannot be rebuilt alone (its halo came from the exchange): this
+        actor ends, and Ray restarts it to restore from the snapshot and the log."""
+        while self.tiles.lost is None:
+            time.sleep(0.5)
+        log.error("shard %s of field %d: %s; restarting to restore", self.worker.charts,
+                  self.worker.field_id, self.tiles.lost)
+        os._exit(1)
 
     def query(self, request: bytes) -> bytes:
         """:meth:`~.shard.ShardWorker.query`; arguments and answer packed (:data:`PACKED`)."""
@@ -82,7 +95,8 @@ class ShardActor:
     def status(self) -> dict:
         import ray
 
-        return {**self.worker.status(), "node": ray.get_runtime_context().get_node_id()}
+        return {**self.worker.status(), "node": ray.get_runtime_context().get_node_id(),
+                "tiles": self.tiles.placement()}
 
 
 def node_cpus() -> int:
@@ -377,7 +391,8 @@ class RayGroups:
             out.append({"charts": list(charts), "copies": self.copies,
                         "live": int(sum(self._alive[g])), "position": st.get("through"),
                         "samples": st.get("nsamples"), "memory": st.get("rss"),
-                        "node": st.get("node"), "restored_from": st.get("restored_from")})
+                        "node": st.get("node"), "restored_from": st.get("restored_from"),
+                        "tiles": st.get("tiles") or None})
         return out
 
     def refresh(self) -> None:

@@ -32,6 +32,7 @@ import time
 from ...basis import Basis
 from ...contract import load_field, part_key
 from ...flats import Flats
+from ...tiles import TileHost, hosting
 from ..applier import adopt_unit
 from ..backend import LogBackend, SnapshotGoneError, open_backend
 from ..blobs import split_batch
@@ -81,17 +82,22 @@ class ShardWorker:
     storage : LogBackend, optional
         Default: :func:`~flatserve.service.backend.open_backend` of ``settings``, a
         follower (it never writes the log).
+    tile_host : TileHost, optional
+        Where a tiled field's tiles live (:func:`flatserve.tiles.hosting`; in a Ray
+        actor: :class:`~.tiles.RayTileHost`, each tile in an actor of its own);
+        default: this process.
     start : bool
         Start restoring and following at once (default).
     """
 
     def __init__(self, settings, field_id: int, charts, *, storage: LogBackend | None = None,
-                 start: bool = True) -> None:
+                 tile_host: TileHost | None = None, start: bool = True) -> None:
         self.settings = settings
         self.field_id = int(field_id)
         self.charts = tuple(sorted(int(c) for c in charts))
         self.only = frozenset(self.charts)
         self._storage = storage
+        self.tile_host = tile_host or TileHost()
         self.field = None
         self.spec: FieldSpec | None = None
         #: every log entry up to this position is applied
@@ -179,8 +185,9 @@ class ShardWorker:
             fld = None
             if row.snapshot_file:
                 try:
-                    fld = self.storage.load_snapshot(
-                        row, lambda path, parts: load_field(path, parts, only=self.only))
+                    with hosting(self.tile_host):
+                        fld = self.storage.load_snapshot(
+                            row, lambda path, parts: load_field(path, parts, only=self.only))
                 except SnapshotGoneError:
                     continue  # replaced meanwhile: take the new one
                 except StorageError:
@@ -196,7 +203,8 @@ class ShardWorker:
             raise StorageUnavailableError("the field's snapshot kept being replaced")
         if fld is None:
             basis = Basis(row.basis["Q"], row.basis["r"], spec.k)
-            fld = spec.new_field(basis)
+            with hosting(self.tile_host):
+                fld = spec.new_field(basis)
             start, seq = row.position, 0
             self.restored_from = "the log"
         else:

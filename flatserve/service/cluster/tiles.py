@@ -1,0 +1,224 @@
+"""Tiles of a chart in Ray actors of their own: a :class:`~flatserve.tiles.TileHost`.
+
+In cluster mode a one-chart field made with ``tiles`` is held by one shard group
+(:mod:`.ray_shards`) whose worker keeps only the tiling's bookkeeping (global
+ids, owners, boxes); each tile (its triangulation, own points and halo) is a
+:class:`TileActor` of its own, placed by Ray's ``SPREAD`` strategy over the
+nodes with room (each reserves ``ray_shard_memory`` of its node's ``memory``).
+So a chart's memory and its inserts spread over as many nodes as it has tiles:
+
+* an insert goes to the tiles whose boxes hold its points, all at once (one
+  call each, on the shard pool's threads); the exchange rounds of Tile & Merge
+  (:meth:`~flatserve.tiles.TiledTriangulation.settle`) run between the actors,
+  the group's worker routing what each tile sends (a round is a barrier: every
+  tile scans, then every tile inserts what it received);
+* the worker settles each slice of a batch before it moves on
+  (:meth:`~flatserve.Field.insert_prepared`), so a copy's tiles depend on the log
+  alone: every copy of the group holds the same bits, and a query's
+  ``min_position`` waits for the exchange of every batch up to it;
+* a query is answered by the tile whose box holds it (handed on once if its
+  cell has no own vertex there), each tile's rows in one call;
+* a snapshot's part of a tile is that tile's record, serialised in its actor; a
+  restore loads each tile into a new actor, at once;
+* the actors belong to the group's worker: when it ends (restarted, deleted)
+  they end with it. A tile that is lost (its node died) cannot be rebuilt alone,
+  since its halo came from the exchange: the call raises
+  :class:`~flatserve.service.status.ShardUnavailableError` (a query goes to the
+  group's next copy), the host is marked :attr:`RayTileHost.lost`, and the
+  group's actor ends itself so that Ray restarts it: it restores from the
+  snapshot and the log, with new tile actors.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import weakref
+from typing import Any
+
+import numpy as np
+
+from ...tiles import Tile, TileHost
+from ..status import ShardUnavailableError
+
+log = logging.getLogger("flatserve.service.cluster")
+
+#: seconds a tile's call may take before the tile counts as lost (an insert of a
+#: slice, or the load of a tile of millions of points, takes seconds to minutes)
+TILE_CALL_TIMEOUT_S = 1800.0
+#: concurrent calls a tile's actor takes (queries read it at once; the group's
+#: worker never lets a query meet an insert or an exchange)
+TILE_CONCURRENCY = 16
+
+
+class TileActor:
+    """A :class:`~flatserve.tiles.Tile` in a Ray actor (one process). Every call
+    returns its result and the tile's ``(npoints, generation, nchannels)``, so that
+    the proxy (:class:`RemoteTile`) answers those without a call."""
+
+    def __init__(self, ndim: int, threads: int | None, own=None, snapshot=None) -> None:
+        from ...parallel import set_shard_threads
+        from .ray_shards import node_cpus
+
+        set_shard_threads(threads or node_cpus())
+        self.tile = Tile(ndim) if snapshot is None else TileHost().load(ndim, own, snapshot)
+
+    def state(self) -> tuple[int, int, int]:
+        t = self.tile
+        return t.npoints, t.generation, t.nchannels
+
+    def call(self, method: str, args: tuple, kw: dict | None = None
+             ) -> tuple[Any, tuple[int, int, int]]:
+        return getattr(self.tile, method)(*args, **(kw or {})), self.state()
+
+    def node(self) -> dict:
+        import ray
+
+        from .shard import rss_bytes
+
+        return {"node": ray.get_runtime_context().get_node_id(), "memory": rss_bytes(),
+                "npoints": self.tile.npoints}
+
+
+class RemoteTile:
+    """A tile in a :class:`TileActor`, with :class:`~flatserve.tiles.Tile`'s methods
+    (made by :class:`RayTileHost`). The actor is started on the first call (an
+    empty tile that is never used costs nothing)."""
+
+    def __init__(self, host: "RayTileHost", ndim: int, own=None, snapshot=None) -> None:
+        self._host, self._ndim = host, ndim
+        self._actor = None
+        self.npoints = self.generation = self.nchannels = 0
+        if snapshot is not None:
+            self._actor = host.spawn(ndim, own, bytes(snapshot))
+            self.npoints, self.generation, self.nchannels = host.get(self._actor.state.remote())
+
+    @property
+    def actor(self):
+        """The :class:`TileActor`'s handle (None: not started)."""
+        return self._actor
+
+    def _call(self, method: str, *args, **kw):
+        if self._actor is None:
+            self._actor = self._host.spawn(self._ndim)
+        res, state = self._host.get(self._actor.call.remote(method, args, kw))
+        self.npoints, self.generation, self.nchannels = state
+        return res
+
+    def insert(self, points, values, own: bool):
+        return self._call("insert", points, values, own)
+
+    def take(self, local):
+        return self._call("take", local)
+
+    def own_rows(self):
+        if self._actor is None:
+            return np.empty(0, np.uint8), np.empty((0, self._ndim)), None
+        return self._call("own_rows")
+
+    def conflicts(self, lo, hi, start, skip: int, **where):
+        return self._call("conflicts", lo, hi, start, skip, **where)
+
+    def answer(self, q, outside, order, threads, everywhere: bool):
+        return self._call("answer", q, outside, order, threads, everywhere)
+
+    def locate(self, q, order, threads):
+        return self._call("locate", q, order, threads)
+
+    def count_cells(self) -> int:
+        return self._call("count_cells") if self._actor is not None else 0
+
+    def star_foreign(self) -> int:
+        return self._call("star_foreign") if self._actor is not None else 0
+
+    def snapshot(self):
+        if self._actor is None:
+            return Tile(self._ndim).snapshot()
+        return self._call("snapshot")
+
+    def node(self) -> dict | None:
+        """Where the actor runs and its resident memory (None: not started)."""
+        if self._actor is None:
+            return None
+        return self._host.get(self._actor.node.remote(), timeout=10.0)
+
+
+class RayTileHost(TileHost):
+    """Tiles in :class:`TileActor` s on the Ray cluster this process is connected
+    to (see the module doc).
+
+    Parameters
+    ----------
+    settings : Settings
+        ``ray_shard_memory`` (each tile's reservation), ``shard_threads`` (each
+        tile's threads; default its node's CPUs).
+
+    Attributes
+    ----------
+    lost : str or None
+        Why a tile was lost (its actor died or stopped answering); None while all
+        answer.
+    """
+
+    def __init__(self, settings) -> None:
+        import ray
+        from ray.exceptions import (ActorUnavailableError, GetTimeoutError, RayActorError,
+                                    RaySystemError, RayTaskError)
+
+        self.ray = ray
+        self.settings = settings
+        self._remote = ray.remote(TileActor)
+        self._lost_kinds = (ActorUnavailableError, GetTimeoutError, RayActorError,
+                            RaySystemError, ConnectionError)
+        self._task_error = RayTaskError
+        self.lost: str | None = None
+        self._tiles: "weakref.WeakSet[RemoteTile]" = weakref.WeakSet()
+        self._lock = threading.Lock()
+
+    def spawn(self, ndim: int, own=None, snapshot=None):
+        """A new :class:`TileActor` (empty, or loaded from a snapshot's parts)."""
+        s = self.settings
+        return self._remote.options(
+            num_cpus=0, memory=s.ray_shard_memory, max_restarts=0, max_task_retries=0,
+            max_concurrency=TILE_CONCURRENCY, scheduling_strategy="SPREAD",
+        ).remote(ndim, s.shard_threads, own, snapshot)
+
+    def make(self, ndim: int) -> RemoteTile:
+        tile = RemoteTile(self, ndim)
+        with self._lock:
+            self._tiles.add(tile)
+        return tile
+
+    def load(self, ndim: int, own, snapshot) -> RemoteTile:
+        tile = RemoteTile(self, ndim, own, snapshot)
+        with self._lock:
+            self._tiles.add(tile)
+        return tile
+
+    def get(self, ref, timeout: float = TILE_CALL_TIMEOUT_S):
+        """``ray.get``: a tile's own error raised as itself; a lost tile as
+        :class:`~flatserve.service.status.ShardUnavailableError` (and :attr:`lost`)."""
+        try:
+            return self.ray.get(ref, timeout=timeout)
+        except self._task_error as exc:
+            cause = getattr(exc, "cause", None)
+            raise (cause if isinstance(cause, Exception) else exc) from None
+        except self._lost_kinds as exc:
+            self.lost = f"{type(exc).__name__}: {exc}"
+            log.error("a tile of this shard was lost: %s", self.lost)
+            raise ShardUnavailableError(
+                "a tile of this shard was lost (its node died or it stopped answering); "
+                "the shard restores itself from the snapshot and the log") from None
+
+    def placement(self) -> list[dict]:
+        """Each started tile's node, resident memory and points (never raises)."""
+        with self._lock:
+            tiles = list(self._tiles)
+        out = []
+        for t in tiles:
+            try:
+                info = t.node()
+            except Exception:  # lost, or busy beyond the status round
+                info = None
+            if info is not None:
+                out.append(info)
+        return out

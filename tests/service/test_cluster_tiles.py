@@ -1,0 +1,111 @@
+"""Tiles of a chart in Ray actors of their own (flatserve/service/cluster/tiles.py), on a
+REAL multi-node Ray cluster on loopback (tests/harness/raycluster.py).
+
+The oracle is the unsplit triangulation in this process: the tiled triangulation whose
+tiles live in actors must answer its bits (values, sample ids, weights), across
+batches that cross tile borders, after a snapshot is loaded into new actors, and
+after a re-cut of the tiles. The end-to-end path (a front, a shard group holding a
+one-chart field of 2 tiles, PostgreSQL) is tests/service/test_cluster.py's.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from flatserve.service.cluster.tiles import RayTileHost
+from flatserve.service.settings import Settings
+from flatserve.service.status import ShardUnavailableError
+from flatserve.tiles import TiledTriangulation, hosting
+from flatserve.triangulation import Triangulation
+from tests.harness.raycluster import RayNodes
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    import ray
+
+    with RayNodes(workers=2) as nodes:  # a head and two workers: 3 nodes
+        ray.init(address=nodes.address, namespace="tiles-test", log_to_driver=False)
+        try:
+            yield nodes
+        finally:
+            ray.shutdown()
+
+
+@pytest.fixture
+def host(cluster):
+    return RayTileHost(Settings(ray_shard_memory=256 << 20, shard_threads=1))
+
+
+def _same(tt: TiledTriangulation, tri: Triangulation, q) -> None:
+    v0, in0, loc0 = tri.query(q, locate=True)
+    v1, in1, loc1 = tt.query(q, locate=True)
+    np.testing.assert_array_equal(in0, in1)
+    np.testing.assert_array_equal(v0, v1)  # bits, NaN outside
+    # the cell and its weights, vertex by vertex (the tile's vertex order may differ)
+    for r in np.flatnonzero(in0):
+        a, b = np.argsort(loc0.ids[r]), np.argsort(loc1.ids[r])
+        np.testing.assert_array_equal(loc0.ids[r][a], loc1.ids[r][b])
+        np.testing.assert_array_equal(loc0.weights[r][a], loc1.weights[r][b])
+
+
+def test_tiles_in_actors_on_different_nodes_answer_the_unsplit_bits(host, rng):
+    D = 4
+    tri = Triangulation(D)
+    with hosting(host):
+        tt = TiledTriangulation(D, tiles=3)
+    pts = rng.normal(size=(6000, D))
+    vals = rng.uniform(size=(6000, 2))
+    for lo in range(0, 6000, 1500):  # batches over every tile
+        a = tri.insert(pts[lo:lo + 1500], vals[lo:lo + 1500])
+        b = tt.insert(pts[lo:lo + 1500], vals[lo:lo + 1500])
+        np.testing.assert_array_equal(a.ids, b.ids)
+    # a batch far off one side: crosses the borders and grows the boxes
+    far = rng.normal(size=(800, D)) + np.array([3.0, 0, 0, 0])
+    tri.insert(far, rng.uniform(size=(800, 2)) + 5)
+    tt.insert(far, tri.values[-800:])
+    # duplicates with new values land on their ids, in every tile holding them
+    dup = rng.choice(6000, 300, replace=False)
+    nv = rng.uniform(size=(300, 2)) - 3
+    tri.insert(pts[dup], nv)
+    tt.insert(pts[dup], nv)
+    q = rng.normal(size=(3000, D)) * 1.2
+    _same(tt, tri, q)
+    assert tt.halo.min() > 0 and tt.nsimplex == tri.nsimplex
+    # each tile in an actor of its own, spread over the nodes
+    where = host.placement()
+    assert len(where) == 3 and sum(w["npoints"] for w in where) == tt.npoints + tt.halo.sum()
+    assert len({w["node"] for w in where}) >= 2
+    # a snapshot's tiles loaded into new actors answer the same bits
+    with hosting(host):
+        back = TiledTriangulation.from_bytes(tt.to_bytes(), D, tt.tiling_dict())
+    assert len(host.placement()) == 6
+    _same(back, tri, q)
+    np.testing.assert_array_equal(back.points, tri.points)
+    np.testing.assert_array_equal(back.values, tri.values)
+
+
+def test_auto_tiles_cut_again_in_new_actors(host, rng):
+    D = 3
+    tri = Triangulation(D)
+    with hosting(host):
+        tt = TiledTriangulation(D, tiles="auto")
+    pts = rng.uniform(size=(50_000, D))
+    vals = pts[:, :1] ** 2
+    for lo in range(0, 50_000, 10_000):
+        tri.insert(pts[lo:lo + 10_000], vals[lo:lo + 10_000])
+        tt.insert(pts[lo:lo + 10_000], vals[lo:lo + 10_000])
+    assert tt.ntiles >= 2 and tt.stats.retiled >= 1
+    _same(tt, tri, rng.uniform(size=(2000, D)))
+
+
+def test_a_lost_tile_is_a_503_and_marks_the_host(host, rng):
+    import ray
+
+    with hosting(host):
+        tt = TiledTriangulation(3, tiles=2)
+    tt.insert(rng.uniform(size=(2000, 3)), rng.uniform(size=(2000, 1)), settle=True)
+    ray.kill(tt.tiles[1].actor)
+    with pytest.raises(ShardUnavailableError, match="lost"):
+        tt.query(rng.uniform(size=(500, 3)))
+    assert host.lost is not None

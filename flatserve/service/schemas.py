@@ -360,6 +360,7 @@ class FieldList(BaseModel):
 
 class TileInfo(BaseModel):
     node: str = Field(description="The Ray node the tile's actor runs on.")
+    pid: int = Field(description="The process id of the tile's actor on that node.")
     memory: int = Field(description="Resident bytes of the tile's process.")
     npoints: int = Field(description="Points the tile holds: its own and its halo.")
 

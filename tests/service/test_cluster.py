@@ -11,6 +11,8 @@ weights for one chart); every acknowledged batch must be stored once.
 from __future__ import annotations
 
 import contextlib
+import os
+import signal
 import threading
 import time
 
@@ -151,6 +153,12 @@ def test_a_three_node_cluster_answers_as_one_process(fronts, pg_url, rng):
         assert fill(c, rng, "atlas", batches=4, rows=2500)["ncharts"] == 16
     assert_same(pg_url, a, "atlas", probe)
     assert_same(pg_url, a, "one", paper_rays(rng, 2000), weights=True)
+    # the one-chart field's 2 tiles each in an actor of its own, on different nodes
+    with Client(a.url, retries=0) as c:
+        (group,) = c.describe("one")["shard_groups"]
+    assert len(group["tiles"]) == 2, group
+    assert len({t["node"] for t in group["tiles"]}) == 2, group
+    assert sum(t["npoints"] for t in group["tiles"]) > group["samples"]  # own points + halo
     # a rendered view (the light-field route) is the one-process field's, bit for bit
     ref, _ = oracle(pg_url, "atlas")
     want, *_ = render_frame(ref, CameraSpec(width=24, height=20).camera(), fill=0.0, fmt="npy")
@@ -276,6 +284,39 @@ def test_a_node_killed_during_uploads_and_queries_loses_nothing(fronts, nodes, p
         assert all(g["live"] == 2 for g in groups), groups
     assert all(stored.get(k) == v for k, v in acked.items()), "an acknowledged batch was lost"
     assert_same(pg_url, a, "f", probe, timeout=240)
+
+
+def test_a_tile_lost_with_its_process_or_its_node_its_group_restores_itself(fronts, nodes, pg_url, rng):
+    """A tile cannot be rebuilt alone (its halo came from the exchange): its group's
+    actor ends and Ray restarts it, with new tiles, from the log."""
+    a = fronts.start()
+    probe = paper_rays(rng, 1500)
+    with Client(a.url, retries=0, timeout=120) as c:
+        c.create_field("one", channels=2, basis=ONE_CHART, tiles=2)
+        for i in range(3):
+            o, d = paper_rays(rng, 2000)
+            c.upload_rays("one", o, d, rng.uniform(size=(2000, 2)), wait=True)
+        assert_same(pg_url, a, "one", probe, weights=True)
+        (group,) = c.describe("one")["shard_groups"]
+        # a tile's process dies: its group ends itself and is restarted, with new tiles
+        os.kill(group["tiles"][1]["pid"], signal.SIGKILL)
+        o, d = paper_rays(rng, 1000)  # an upload meanwhile: stored, applied once back
+        c.upload_rays("one", o, d, rng.uniform(size=(1000, 2)))
+        assert_same(pg_url, a, "one", probe, weights=True, timeout=240)
+        (again,) = c.describe("one")["shard_groups"]
+        assert len(again["tiles"]) == 2 and group["tiles"][1]["pid"] not in {
+            t["pid"] for t in again["tiles"]}, again
+        # a node holding a tile dies
+        on = {t["node"] for t in again["tiles"]}
+        victim = next(w for w in nodes.workers if w.node_id in on)
+        nodes.kill(victim)
+        nodes.add_worker()  # room for the restarted group and its tiles
+        o, d = paper_rays(rng, 1000)
+        c.upload_rays("one", o, d, rng.uniform(size=(1000, 2)))
+        assert_same(pg_url, a, "one", probe, weights=True, timeout=240)
+        (group,) = c.describe("one")["shard_groups"]
+    assert len(group["tiles"]) == 2 and victim.node_id not in {t["node"] for t in group["tiles"]}
+    assert group["restored_from"] == "the log", group
 
 
 def test_a_front_killed_the_other_answers(fronts, pg_url, rng):

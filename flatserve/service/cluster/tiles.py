@@ -31,6 +31,7 @@ So a chart's memory and its inserts spread over as many nodes as it has tiles:
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import weakref
 from typing import Any
@@ -48,6 +49,8 @@ TILE_CALL_TIMEOUT_S = 1800.0
 #: concurrent calls a tile's actor takes (queries read it at once; the group's
 #: worker never lets a query meet an insert or an exchange)
 TILE_CONCURRENCY = 16
+#: seconds a status round waits for the tiles' answers (those later are left out)
+STATUS_WAIT_S = 2.0
 
 
 class TileActor:
@@ -75,8 +78,8 @@ class TileActor:
 
         from .shard import rss_bytes
 
-        return {"node": ray.get_runtime_context().get_node_id(), "memory": rss_bytes(),
-                "npoints": self.tile.npoints}
+        return {"node": ray.get_runtime_context().get_node_id(), "pid": os.getpid(),
+                "memory": rss_bytes(), "npoints": self.tile.npoints}
 
 
 class RemoteTile:
@@ -135,11 +138,6 @@ class RemoteTile:
             return Tile(self._ndim).snapshot()
         return self._call("snapshot")
 
-    def node(self) -> dict | None:
-        """Where the actor runs and its resident memory (None: not started)."""
-        if self._actor is None:
-            return None
-        return self._host.get(self._actor.node.remote(), timeout=10.0)
 
 
 class RayTileHost(TileHost):
@@ -170,6 +168,7 @@ class RayTileHost(TileHost):
         self._lost_kinds = (ActorUnavailableError, GetTimeoutError, RayActorError,
                             RaySystemError, ConnectionError)
         self._task_error = RayTaskError
+        self._dead = RayActorError
         self.lost: str | None = None
         self._tiles: "weakref.WeakSet[RemoteTile]" = weakref.WeakSet()
         self._lock = threading.Lock()
@@ -210,15 +209,24 @@ class RayTileHost(TileHost):
                 "the shard restores itself from the snapshot and the log") from None
 
     def placement(self) -> list[dict]:
-        """Each started tile's node, resident memory and points (never raises)."""
+        """Each started tile's node, resident memory and points, as far as they
+        answer within :data:`STATUS_WAIT_S` (never raises; a tile found dead is
+        :attr:`lost`)."""
         with self._lock:
-            tiles = list(self._tiles)
+            actors = [t.actor for t in list(self._tiles) if t.actor is not None]
+        if not actors:
+            return []
+        try:
+            refs = [a.node.remote() for a in actors]
+            ready, _ = self.ray.wait(refs, num_returns=len(refs), timeout=STATUS_WAIT_S)
+        except Exception:  # the cluster unreachable: the next round asks again
+            return []
         out = []
-        for t in tiles:
+        for ref in ready:
             try:
-                info = t.node()
-            except Exception:  # lost, or busy beyond the status round
-                info = None
-            if info is not None:
-                out.append(info)
+                out.append(self.ray.get(ref, timeout=0.1))
+            except self._dead as exc:
+                self.lost = self.lost or f"{type(exc).__name__}: {exc}"
+            except Exception:  # pragma: no cover - answered, then unreadable
+                pass
         return out

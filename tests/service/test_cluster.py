@@ -364,8 +364,12 @@ def test_a_one_machine_cluster_on_sqlite(tmp_path, rng):
                 assert snap["batch"] == 3 and snap["written"] > 0
             o, d = sphere_rays(rng, 500)  # after the snapshot: replayed from the log
             c.upload_rays("f", o, d, rng.uniform(size=(500, 2)))
-        # the parts are the shards' files in the data directory
-        assert len(list((data / "snapshots" / "parts").iterdir())) > 2
+        # the parts are the shards' files in the data directory; the field in tiles
+        # has one per tile, named by its field file (a part too)
+        parts = [p.read_bytes() for p in (data / "snapshots" / "parts").iterdir()]
+        assert len(parts) > 2
+        heads = [p for p in parts if p.startswith(b"FSFIELD\0") and b'"parts": [' in p[:8192]]
+        assert len(heads) == 1, "the field in tiles: one field file naming its tiles' parts"
     # every process gone; a new front and new nodes on the same directory
     with contextlib.ExitStack() as stack:
         nodes = stack.enter_context(RayNodes(workers=1))

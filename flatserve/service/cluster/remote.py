@@ -289,8 +289,8 @@ class RemoteField:
             raise NotReadyError(f"the shards of the field are at batches {sorted(seqs)}, not "
                                 "one; retry the snapshot")
         if got[0]["whole"] is not None:  # one chart: the field file is that part
-            fh.write(part_pointer(got[0]["whole"]))
-            return [got[0]["whole"]]
+            fh.write(part_pointer(got[0]["whole"]))  # (in tiles: it names theirs)
+            return [got[0]["whole"], *got[0].get("tiles", ())]
         n = len(self._shape.shards)
         keys: list = [None] * n
         own: list = [None] * n

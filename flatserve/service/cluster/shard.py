@@ -24,8 +24,10 @@ not this module's business.
 """
 from __future__ import annotations
 
+import io
 import logging
 import os
+import tempfile
 import threading
 import time
 
@@ -314,7 +316,9 @@ class ShardWorker:
             ``seq`` (the field's last batch up to ``position``), ``parts``
             (``[(chart, key), ...]``) or, for a one-chart field, ``whole`` (the
             key of the part holding the whole field file: the snapshot file is
-            :func:`flatserve.contract.part_pointer` of it), ``own`` (per chart
+            :func:`flatserve.contract.part_pointer` of it; for a field in tiles,
+            the field file names a part per tile, ``tiles``, each stored only
+            when its tile changed), ``own`` (per chart
             its own samples), ``nrejected``, ``stored`` (bytes this call stored),
             ``unit`` (an atlas field's unit of length, once chosen; else None).
 
@@ -335,13 +339,26 @@ class ShardWorker:
             self._await(position, timeout, "a snapshot")
             fld, known, stored = self.field, frozenset(known), 0
             own = getattr(fld, "own_samples", None)
-            parts, whole = [], None
+            parts, whole, tiles = [], None, []
             if hasattr(fld, "chart_parts"):
                 for c in self.charts:
                     ((_, key, blob),) = fld.chart_parts([c], known)
                     if blob is not None:
                         stored += self.storage.store_part(self.field_id, key, blob)
                     parts.append((c, key))
+            elif fld.tiles != 1:  # one chart in tiles: a part per tile, and the field file
+                with tempfile.TemporaryDirectory(prefix="flatserve-tiles-") as stage:
+                    buf = io.BytesIO()
+                    tiles = fld.write_parts(buf, stage, known)
+                    for key in tiles:  # those changed since their part was stored
+                        path = os.path.join(stage, key)
+                        if os.path.exists(path):
+                            with open(path, "rb") as fh:
+                                stored += self.storage.store_part(self.field_id, key, fh.read())
+                blob = buf.getvalue()
+                whole = part_key(blob)
+                if whole not in known:
+                    stored += self.storage.store_part(self.field_id, whole, blob)
             else:  # one chart: its file is the field's
                 blob = fld.to_bytes()
                 whole = part_key(blob)
@@ -350,6 +367,7 @@ class ShardWorker:
                 del blob
             unit = None if getattr(fld, "unit_pending", True) else fld.atlas.unit
             return {"seq": self.seq, "parts": None if whole else parts, "whole": whole,
+                    "tiles": tiles,
                     "unit": unit,
                     "own": None if own is None else [own[c] for c in self.charts],
                     "nrejected": fld.nrejected, "stored": stored}

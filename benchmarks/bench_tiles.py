@@ -15,6 +15,12 @@ its own, pinned with ``taskset`` to its cores, interleaved, medians of
 3. memory: per tile count of ``--halo``, the halo (foreign points held) over
    own points, the exchange rounds, the process's resident memory
 
+``--ray``: only the build and the queries of 2 tiles each in a Ray actor of its
+own, on the two worker nodes (1 CPU each) of a cluster on loopback (cluster
+mode's tiles: ``flatserve/service/cluster/tiles.py``; the building process keeps
+the bookkeeping and routes the exchange), against 2 tiles in one process and the
+unsplit field, on this machine's 2 cores; the answers checked equal (bits).
+
 ``--sizes S ...``: only the build of 2 tiles against the unsplit field on 2
 cores at S^2 rays each (where tiles start to pay: ``tiles="auto"``,
 ``flatserve.tiles.AUTO_MIN_SAMPLES``).
@@ -23,6 +29,7 @@ Every tiled answer is checked equal (bits) to the unsplit field's.
 
     .venv/bin/python benchmarks/bench_tiles.py [--side 1000] [--runs 3] [--halo 2 4 8 16]
     .venv/bin/python benchmarks/bench_tiles.py --sizes 150 224 316 447 [--runs 3]
+    .venv/bin/python benchmarks/bench_tiles.py --ray [--side 632] [--runs 3]
 """
 from __future__ import annotations
 
@@ -51,8 +58,10 @@ def rss() -> int:
     return 0
 
 
-def one(side: int, tiles: int | str, cores: int, queries: int, out: str) -> dict:
-    """Build and query in this process (pinned by the parent); a JSON line."""
+def one(side: int, tiles: int | str, cores: int, queries: int, out: str,
+        ray_address: str | None = None) -> dict:
+    """Build and query in this process (pinned by the parent); a JSON line. With
+    ``ray_address``, the tiles live in Ray actors on that cluster."""
     from flatserve import Field, Flats
     from flatserve.basis import Basis
     from flatserve.lightfield.camera import paper_samples
@@ -63,7 +72,22 @@ def one(side: int, tiles: int | str, cores: int, queries: int, out: str) -> dict
     samples, values = sample_scene(bunny_scene(), side, seed=0)
     perm = np.random.default_rng(0).permutation(len(values))
     o, d, v = samples.origins[perm], samples.directions[perm], values[perm]
-    field = Field(Basis.around_axis(axis=2, scale=BASIS_SCALE), channels=v.shape[1], tiles=tiles)
+    host = None
+    if ray_address:
+        import ray
+
+        from flatserve.service.cluster.tiles import RayTileHost
+        from flatserve.service.settings import Settings
+        from flatserve.tiles import hosting
+
+        ray.init(address=ray_address, log_to_driver=False)
+        host = RayTileHost(Settings(ray_shard_memory=2 << 30, shard_threads=1))
+        with hosting(host):
+            field = Field(Basis.around_axis(axis=2, scale=BASIS_SCALE), channels=v.shape[1],
+                          tiles=tiles)
+    else:
+        field = Field(Basis.around_axis(axis=2, scale=BASIS_SCALE), channels=v.shape[1],
+                      tiles=tiles)
     t0 = time.perf_counter()
     for i in range(0, len(o), BATCH):
         field.add(Flats.from_rays(o[i:i + BATCH], d[i:i + BATCH]), v[i:i + BATCH])
@@ -87,6 +111,10 @@ def one(side: int, tiles: int | str, cores: int, queries: int, out: str) -> dict
                     star_halo=tri.star_halo().tolist(),
                     rounds=tri.stats.rounds, retiled=tri.stats.retiled,
                     forwarded=tri.stats.forwarded / (3 * len(qf)))
+    if host is not None:
+        where = host.placement()
+        info.update(tile_nodes=len({w["node"] for w in where}),
+                    tile_rss=[w["memory"] for w in where])
     return info
 
 
@@ -169,12 +197,51 @@ def auto_on_one_core(args) -> None:
               f"(target >= 1.0x); the same answers (bits)")
 
 
+def in_actors(args) -> None:
+    """2 tiles in Ray actors on two nodes against 2 tiles in one process and unsplit."""
+    from tests.harness.raycluster import GiB, RayNodes
+
+    print(f"Fig. 11 field: {args.side ** 2:,} rays in batches of {BATCH:,}; 2 tiles each in a "
+          f"Ray actor (two worker nodes of 1 CPU, loopback) against 2 tiles in one process and "
+          f"the unsplit field, all on this machine's {os.cpu_count()} cores; medians of "
+          f"{args.runs}", flush=True)
+    with tempfile.TemporaryDirectory() as tmp, \
+            RayNodes(workers=2, cpus=1, memory=8 * GiB, head_memory=0) as nodes:
+        ref = str(Path(tmp) / "ref.npy")
+        res: dict = {}
+        for r in range(args.runs):
+            for key in ("unsplit", "2 tiles", "2 tiles in actors"):
+                out = ref if key == "unsplit" else str(Path(tmp) / f"{key[-6:]}.npy")
+                x = run(args, 1 if key == "unsplit" else 2, 2, out,
+                        ray=nodes.address if key.endswith("actors") else None)
+                res.setdefault(key, []).append(x)
+                if out != ref:
+                    assert np.array_equal(np.load(out), np.load(ref), equal_nan=True), \
+                        f"{key}: answers differ from the unsplit field's"
+                extra = (f", tiles on {x['tile_nodes']} nodes, their resident memory "
+                         f"{[round(m / 2**30, 2) for m in x['tile_rss']]} GiB"
+                         if "tile_rss" in x else "")
+                print(f"run {r + 1}: {key}: build {x['build_s']:.1f} s, query "
+                      f"{x['queries'] / x['query_s']:,.0f}/s, this process's peak "
+                      f"{x['rss'] / 2**30:.2f} GiB{extra}", flush=True)
+        med = {k: (statistics.median(x["build_s"] for x in v),
+                   statistics.median(x["queries"] / x["query_s"] for x in v))
+               for k, v in res.items()}
+        a = med["unsplit"]
+        print()
+        for key in ("2 tiles", "2 tiles in actors"):
+            b = med[key]
+            print(f"{key}: build {b[0]:.1f} s against unsplit {a[0]:.1f} s: {a[0] / b[0]:.2f}x; "
+                  f"query {b[1]:,.0f}/s against {a[1]:,.0f}/s: {b[1] / a[1]:.2f}x")
+        print("every answer equal (bits) to the unsplit field's")
+
+
 def run(args, tiles: int | str, cores: int, out: str, *, side: int | None = None,
-        queries: int | None = None) -> dict:
+        queries: int | None = None, ray: str | None = None) -> dict:
     cpus = ",".join(str(c) for c in range(cores))
     cmd = ["taskset", "-c", cpus, sys.executable, __file__, "--one", str(tiles), "--cores",
            str(cores), "--side", str(side or args.side), "--queries",
-           str(queries or args.queries), "--out", out]
+           str(queries or args.queries), "--out", out, *(["--ray-address", ray] if ray else [])]
     got = subprocess.run(cmd, check=True, capture_output=True, text=True)
     return json.loads(got.stdout.strip().splitlines()[-1])
 
@@ -191,12 +258,19 @@ def main() -> int:
                     help="only the build at S^2 rays, 2 tiles against unsplit on 2 cores")
     ap.add_argument("--auto", action="store_true",
                     help='only tiles="auto" on one core (one tile) against the unsplit field')
+    ap.add_argument("--ray", action="store_true",
+                    help="only 2 tiles in Ray actors against 2 tiles in one process and unsplit")
+    ap.add_argument("--ray-address", help=argparse.SUPPRESS)
     ap.add_argument("--one", type=lambda s: s if s == "auto" else int(s), help=argparse.SUPPRESS)
     ap.add_argument("--cores", type=int, default=2, help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
-        print(json.dumps(one(args.side, args.one, args.cores, args.queries, args.out)))
+        print(json.dumps(one(args.side, args.one, args.cores, args.queries, args.out,
+                             args.ray_address)))
+        return 0
+    if args.ray:
+        in_actors(args)
         return 0
     if args.scan:
         scan_costs(args.scan, args.runs)

@@ -365,6 +365,11 @@ class TileHost:
     ``nchannels``; :func:`hosting` makes it the host of the tiled
     triangulations made meanwhile."""
 
+    def auto_tiles(self, nsamples: int) -> int:
+        """How many tiles ``tiles="auto"`` gives a chart of ``nsamples`` samples here:
+        in this process, one per core (:func:`auto_tiles`)."""
+        return auto_tiles(nsamples)
+
     def make(self, ndim: int) -> Tile:
         """An empty tile."""
         return Tile(ndim)
@@ -404,7 +409,8 @@ class TiledTriangulation:
         D.
     tiles : int or "auto"
         Tiles; the :class:`Tiling` is cut from the first insert's points (or
-        pass ``tiling``). ``"auto"``: :func:`auto_tiles` of the points held
+        pass ``tiling``). ``"auto"``: the host's :meth:`TileHost.auto_tiles` of
+        the points held (in this process :func:`auto_tiles`)
         (one tile to begin with), the tiles cut again from every point when it
         gives more tiles and either twice as many or the points have doubled
         since the last cut (so that the cuts cost at most about as much again as
@@ -629,13 +635,13 @@ class TiledTriangulation:
             self._check_whole()
             if self.tiling is None:
                 if self._auto and self._n == 0:  # a first batch large enough: cut at once
-                    self._empty(auto_tiles(len(pts)))
+                    self._empty(self._host.auto_tiles(len(pts)))
                 self.tiling = Tiling.split(pts, self._ntiles)
                 self._tiled_at = len(pts)
             if vals is not None:
                 self._channels = vals.shape[1]
             res = self._insert(pts, vals)
-            want = auto_tiles(self._n) if self._auto else self._ntiles
+            want = self._host.auto_tiles(self._n) if self._auto else self._ntiles
             if want > self._ntiles and (want >= 2 * self._ntiles or self._n >= 2 * self._tiled_at):
                 self._retile(want)  # (each cut: the tiles or the points have doubled)
             elif self._unequal():

@@ -85,17 +85,25 @@ def test_tiles_in_actors_on_different_nodes_answer_the_unsplit_bits(host, rng):
     np.testing.assert_array_equal(back.values, tri.values)
 
 
-def test_auto_tiles_cut_again_in_new_actors(host, rng):
+def test_auto_a_tile_per_target_samples_cut_again_in_new_actors(cluster, rng):
+    host = RayTileHost(Settings(ray_shard_memory=256 << 20, shard_threads=1,
+                                ray_tile_samples=6_000))
     D = 3
     tri = Triangulation(D)
     with hosting(host):
         tt = TiledTriangulation(D, tiles="auto")
-    pts = rng.uniform(size=(50_000, D))
+    pts = rng.uniform(size=(30_000, D))
     vals = pts[:, :1] ** 2
-    for lo in range(0, 50_000, 10_000):
-        tri.insert(pts[lo:lo + 10_000], vals[lo:lo + 10_000])
-        tt.insert(pts[lo:lo + 10_000], vals[lo:lo + 10_000])
-    assert tt.ntiles >= 2 and tt.stats.retiled >= 1
+    counts = []
+    for lo in range(0, 30_000, 5_000):
+        tri.insert(pts[lo:lo + 5_000], vals[lo:lo + 5_000])
+        tt.insert(pts[lo:lo + 5_000], vals[lo:lo + 5_000])
+        counts.append(tt.ntiles)
+    # one tile up to the target, then cut again as the count doubles (1, 2, 4) or the
+    # points do: never more tiles than one per target's samples
+    assert counts == [1, 2, 2, 4, 4, 4], counts
+    assert tt.stats.retiled == 2
+    assert len(host.placement()) == 4  # the tiles of earlier cuts ended with them
     _same(tt, tri, rng.uniform(size=(2000, D)))
 
 

@@ -49,6 +49,8 @@ TILE_CALL_TIMEOUT_S = 1800.0
 #: concurrent calls a tile's actor takes (queries read it at once; the group's
 #: worker never lets a query meet an insert or an exchange)
 TILE_CONCURRENCY = 16
+#: the most tiles ``tiles="auto"`` gives a chart (as many as a field may ask for)
+MAX_TILES = 64
 #: seconds a status round waits for the tiles' answers (those later are left out)
 STATUS_WAIT_S = 2.0
 
@@ -147,8 +149,9 @@ class RayTileHost(TileHost):
     Parameters
     ----------
     settings : Settings
-        ``ray_shard_memory`` (each tile's reservation), ``shard_threads`` (each
-        tile's threads; default its node's CPUs).
+        ``ray_shard_memory`` (each tile's reservation), ``ray_tile_samples``
+        (``tiles="auto"``: samples per tile), ``shard_threads`` (each tile's
+        threads; default its node's CPUs).
 
     Attributes
     ----------
@@ -180,6 +183,20 @@ class RayTileHost(TileHost):
             num_cpus=0, memory=s.ray_shard_memory, max_restarts=0, max_task_retries=0,
             max_concurrency=TILE_CONCURRENCY, scheduling_strategy="SPREAD",
         ).remote(ndim, s.shard_threads, own, snapshot)
+
+    def auto_tiles(self, nsamples: int) -> int:
+        """``tiles="auto"`` on a cluster: one tile per ``ray_tile_samples`` samples (a
+        tile's memory; at most :data:`MAX_TILES`), whatever the cores of the node
+        the group runs on, so that every copy of the group cuts the same tiles.
+
+        >>> from flatserve.service.settings import Settings
+        >>> host = RayTileHost.__new__(RayTileHost)
+        >>> host.settings = Settings(ray_tile_samples=100_000)
+        >>> [host.auto_tiles(n) for n in (0, 100_000, 100_001, 10**9)]
+        [1, 1, 2, 64]
+        """
+        per = self.settings.ray_tile_samples
+        return max(1, min(MAX_TILES, -(-int(nsamples) // per)))
 
     def make(self, ndim: int) -> RemoteTile:
         tile = RemoteTile(self, ndim)

@@ -26,7 +26,13 @@ interleaved peer / ours):
 
 Every answer of the front is checked equal (bits) to the lone server's.
 
+``--tiles N``: the field is instead the paper's Fig. 11 set-up, one chart (rays of
+the bunny from eyes in front of it, ``sample_scene``), created with ``"tiles": N``
+on the cluster (each tile a Ray actor, on the worker nodes) and unsplit on the
+lone server (today's one-chart field); ``--rays`` rounded to a square.
+
     .venv/bin/python benchmarks/bench_cluster.py [--rays 400000] [--runs 3] [--small 300]
+    .venv/bin/python benchmarks/bench_cluster.py --tiles 2 [--rays 400000] [--runs 3]
 """
 from __future__ import annotations
 
@@ -43,8 +49,8 @@ import numpy as np
 
 import timing  # noqa: F401  (the repository root on sys.path)
 from flatserve.client import Client, ServiceError
-from flatserve.lightfield.camera import sphere_samples
-from flatserve.lightfield.sampling import bunny_scene, orbit_samples
+from flatserve.lightfield.camera import paper_samples, sphere_samples
+from flatserve.lightfield.sampling import BASIS_SCALE, bunny_scene, orbit_samples, sample_scene
 from flatserve.service.demo import DEMO_REQUEST
 from tests.harness.pgcluster import PgCluster
 from tests.harness.process import ServerProcess
@@ -61,15 +67,15 @@ def rss(pid: int) -> int:
     return 0
 
 
-def ingest(url: str, name: str, o, d, v) -> tuple[float, float]:
-    """Create ``name`` and upload every ray: seconds from the create, and from the
-    first upload once the field's shards are up, until every batch is applied."""
+def ingest(url: str, name: str, o, d, v, create: dict) -> tuple[float, float]:
+    """Create ``name`` (``create``: the request) and upload every ray: seconds from
+    the create, and from the first upload once the field's shards are up, until
+    every batch is applied."""
     with Client(url, retries=0, timeout=600) as c:
         with contextlib.suppress(ServiceError):
             c.delete_field(name)
         t_create = time.perf_counter()
-        c.create_field(name, **{k: v for k, v in DEMO_REQUEST.items() if k != "channels"},
-                       channels=3)
+        c.create_field(name, **create)
         while not all(g["live"] == g["copies"] for g in c.describe(name).get("shard_groups")
                       or []):
             time.sleep(0.1)  # the shard actors start (a lone server has none)
@@ -107,12 +113,28 @@ def main() -> int:
     ap.add_argument("--rays", type=int, default=400_000)
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--small", type=int, default=300, help="small queries timed")
+    ap.add_argument("--tiles", type=int, default=0,
+                    help="the Fig. 11 one-chart field, in this many tiles on the cluster")
     args = ap.parse_args()
     scene = bunny_scene()
-    samples, values = orbit_samples(scene, args.rays, seed=0)
-    o, d = samples.origins, samples.directions
+    if args.tiles:
+        side = int(round(args.rays ** 0.5))
+        samples, values = sample_scene(scene, side, seed=0)
+        perm = np.random.default_rng(0).permutation(len(values))
+        o, d, values = samples.origins[perm], samples.directions[perm], values[perm]
+        args.rays = len(o)
+        q = paper_samples(141, np.random.default_rng(1))
+        one = {"basis": {"kind": "tangent_simplex", "scale": BASIS_SCALE}, "channels": 3}
+        create_lone, create_ray = {**one, "tiles": 1}, {**one, "tiles": args.tiles}
+        print(f"the Fig. 11 field (one chart): {args.tiles} tiles on the cluster, unsplit on "
+              "the lone server")
+    else:
+        samples, values = orbit_samples(scene, args.rays, seed=0)
+        o, d = samples.origins, samples.directions
+        q = sphere_samples(20_000, np.random.default_rng(1))
+        create_lone = create_ray = {**{k: v for k, v in DEMO_REQUEST.items()
+                                       if k != "channels"}, "channels": 3}
     v = np.repeat(values, 3, axis=1) if values.shape[1] == 1 else values
-    q = sphere_samples(20_000, np.random.default_rng(1))
     opts = dict(snapshot_every=0, read_wait_timeout=600, apply_wait_timeout=600,
                 log_level="warning")
     with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
@@ -134,11 +156,11 @@ def main() -> int:
         base = rss(lone.proc.pid)
         ts_lone, ts_ray, all_lone, all_ray, mem = [], [], [], [], None
         for run in range(args.runs):
-            whole, t = ingest(lone.url, "f", o, d, v)
+            whole, t = ingest(lone.url, "f", o, d, v, create_lone)
             all_lone.append(whole)
             ts_lone.append(t)
             grown = rss(lone.proc.pid)
-            whole, t = ingest(front.url, "f", o, d, v)
+            whole, t = ingest(front.url, "f", o, d, v, create_ray)
             all_ray.append(whole)
             ts_ray.append(t)
             print(f"run {run + 1}: ingest of {args.rays:,} rays: one process on one core "
@@ -152,6 +174,8 @@ def main() -> int:
                 per_node: dict = {}
                 for g in groups:
                     per_node[g["node"]] = per_node.get(g["node"], 0) + (g["memory"] or 0)
+                    for t in g.get("tiles") or ():  # a field in tiles: each tile's actor
+                        per_node[t["node"]] = per_node.get(t["node"], 0) + t["memory"]
                 mem = (grown, grown - base, per_node)
             # the answers are the lone server's, bit for bit
             with Client(lone.url) as a, Client(front.url) as b:

@@ -319,6 +319,18 @@ class Tile:
         vals = self.tri.values
         return self.tri.points[local], None if vals is None else vals[local]
 
+    def own_flags(self) -> np.ndarray:
+        """The own flags, uint8 (npoints,)."""
+        return self.own.copy()
+
+    def own_box(self) -> np.ndarray | None:
+        """The bounding box of its own points, (2, D): min, max (None: none)."""
+        own = self.own == 1
+        if not own.any():
+            return None
+        p = self.tri.points[own]
+        return np.stack([p.min(axis=0), p.max(axis=0)])
+
     def own_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """The own flags (npoints,), and the own points' points and values (or None)."""
         own = self.own == 1
@@ -520,7 +532,8 @@ class TiledTriangulation:
     @property
     def tiles(self) -> tuple[Tile, ...]:
         """Each tile (own points and halo; local sample ids), settled
-        (:meth:`settle`)."""
+        (:meth:`settle`): a :class:`Tile` (its triangulation is ``.tri``), or what
+        the host made in its place."""
         self.settle()
         return tuple(self._tiles)
 
@@ -539,7 +552,7 @@ class TiledTriangulation:
         """Tile ``tile``'s local sample id -> its own point (True) or halo, bool,
         settled."""
         with self._reading():
-            return self._tiles[tile].own_rows()[0].astype(bool)
+            return self._tiles[tile].own_flags().astype(bool)
 
     @property
     def halo(self) -> np.ndarray:
@@ -631,7 +644,7 @@ class TiledTriangulation:
                                     if vals is None else
                                     "values: this triangulation was built without values",
                                     "values")
-        with self._lock.write():
+        with self._lock.write(), self._breaking():
             self._check_whole()
             if self.tiling is None:
                 if self._auto and self._n == 0:  # a first batch large enough: cut at once
@@ -762,19 +775,26 @@ class TiledTriangulation:
             self._settle()
 
     def _settle(self) -> None:
-        """Under the write lock. An exchange that raises leaves tiles that may hold
-        points they do not account for: the triangulation is then broken, and
-        every later use raises (its owner rebuilds it: the service does, from its
-        log), never answering from inexact tiles."""
+        """Under the write lock (see :meth:`_breaking`)."""
         self._check_whole()
         if self._pending is not None:
             seeds, gens, full = self._pending
-            try:
+            with self._breaking():
                 self._exchange(seeds, list(gens), full=full)
-            except BaseException as exc:
-                self._broken = f"{type(exc).__name__}: {exc}"
-                raise
             self._pending = None
+
+    @contextmanager
+    def _breaking(self):
+        """``with``, under the write lock: an insert, a re-cut or an exchange that
+        raises part-way leaves tiles that may hold points their bookkeeping does
+        not account for: the triangulation is then broken, and every later use
+        raises (its owner rebuilds it: the service does, from its log), never
+        answering from inexact tiles."""
+        try:
+            yield
+        except BaseException as exc:
+            self._broken = self._broken or f"{type(exc).__name__}: {exc}"
+            raise
 
     def _check_whole(self) -> None:
         if self._broken is not None:
@@ -1127,7 +1147,7 @@ class TiledTriangulation:
             owner.append((self._gid[t][own], t))
             local.append(np.flatnonzero(own))
             if own.any():
-                self._grow_boxes(t, tile.own_rows()[1])
+                self._grow_boxes(t, tile.own_box())
             if tile.nchannels:
                 self._channels = tile.nchannels
             if keys is not None:

@@ -124,10 +124,11 @@ class Settings(BaseSettings):
     ray_shard_memory: int = Field(1 << 30, ge=1 << 20)
     """Cluster mode: bytes of a node's Ray memory resource each shard actor reserves (a node holds
     shards up to its budget: start a node with ray start --memory BYTES)."""
-    ray_tile_samples: int = Field(200_000, ge=1_000)
+    ray_tile_samples: int = Field(100_000, ge=1_000)
     """Cluster mode: a one-chart field made with tiles "auto" gets a tile (a Ray actor of its own)
-    per this many samples, up to 64 (about 1.1 GB resident per 200,000 samples of the
-    paper's rays, its halo included: docs/scaling.md)."""
+    per this many samples, up to 64; between two cuts a tile holds up to about twice as many
+    (a tile of 200,000 of the paper's rays, its halo included, is 1.1 GiB resident:
+    docs/scaling.md; the default ray_shard_memory is 1 GiB)."""
     ray_namespace: str = Field("flatserve", min_length=1, max_length=64)
     """Cluster mode: the Ray namespace of the shard actors (fronts of one deployment share it)."""
     processes: int = Field(1, ge=1, le=256)

@@ -9,6 +9,9 @@ one-chart field of 2 tiles, PostgreSQL) is tests/service/test_cluster.py's.
 """
 from __future__ import annotations
 
+import os
+import time
+
 import numpy as np
 import pytest
 
@@ -35,6 +38,15 @@ def cluster():
 @pytest.fixture
 def host(cluster):
     return RayTileHost(Settings(ray_shard_memory=256 << 20, shard_threads=1))
+
+
+def _running(pid: int) -> bool:
+    """The process is alive (the cluster's nodes are on this machine)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
 
 
 def _same(tt: TiledTriangulation, tri: Triangulation, q) -> None:
@@ -94,17 +106,40 @@ def test_auto_a_tile_per_target_samples_cut_again_in_new_actors(cluster, rng):
         tt = TiledTriangulation(D, tiles="auto")
     pts = rng.uniform(size=(30_000, D))
     vals = pts[:, :1] ** 2
-    counts = []
+    counts, pids = [], set()
     for lo in range(0, 30_000, 5_000):
         tri.insert(pts[lo:lo + 5_000], vals[lo:lo + 5_000])
         tt.insert(pts[lo:lo + 5_000], vals[lo:lo + 5_000])
         counts.append(tt.ntiles)
+        tt.settle()
+        pids |= {w["pid"] for w in host.placement()}
     # one tile up to the target, then cut again as the count doubles (1, 2, 4) or the
     # points do: never more tiles than one per target's samples
     assert counts == [1, 2, 2, 4, 4, 4], counts
     assert tt.stats.retiled == 2
-    assert len(host.placement()) == 4  # the tiles of earlier cuts ended with them
+    last = {w["pid"] for w in host.placement()}
+    assert len(last) == 4 and len(pids) == 1 + 2 + 4
+    # the tiles of earlier cuts ended with them (their processes, not only handles)
+    end = time.monotonic() + 30
+    while any(_running(p) for p in pids - last) and time.monotonic() < end:
+        time.sleep(0.2)
+    assert not any(_running(p) for p in pids - last)
+    assert all(_running(p) for p in last)
     _same(tt, tri, rng.uniform(size=(2000, D)))
+
+
+def test_a_damaged_tile_part_is_an_error_of_the_load_not_a_lost_tile(host, rng):
+    with hosting(host):
+        tt = TiledTriangulation(3, tiles=2)
+    tt.insert(rng.uniform(size=(2000, 3)), rng.uniform(size=(2000, 1)), settle=True)
+    parts = [bytearray(blob) for _, blob in tt.tile_parts()]
+    n = int(np.frombuffer(bytes(parts[1][:8]), np.uint64)[0])
+    at = 8 + 9 * n + 8  # tile 1's triangulation snapshot: its magic damaged
+    parts[1][at:at + 8] = b"\xff" * 8
+    with hosting(host), pytest.raises(Exception) as err:
+        TiledTriangulation.from_parts(parts, 3, tt.tiling_dict())
+    assert not isinstance(err.value, ShardUnavailableError), err.value
+    assert host.lost is None  # the caller replays the log instead: no restart loop
 
 
 def test_a_lost_tile_is_a_503_and_marks_the_host(host, rng):

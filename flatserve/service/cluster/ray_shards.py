@@ -73,14 +73,18 @@ class ShardActor:
         logs.configure(settings.log_level, settings.log_format)
         set_shard_threads(settings.shard_threads or node_cpus())
         self.tiles = RayTileHost(settings)
+        self._tiles_at: list[dict] = []
         self.worker = ShardWorker(settings, field_id, charts, tile_host=self.tiles)
         threading.Thread(target=self._watch, name="flatserve-tiles-watch", daemon=True).start()
 
     def _watch(self) -> None:
-        """A lost tile cannot be rebuilt alone (its halo came from the exchange): this
-        actor ends, and Ray restarts it to restore from the snapshot and the log."""
+        """Where the tiles are, each :data:`STATUS_EVERY_S` (for :meth:`status`, which
+        never waits). A lost tile cannot be rebuilt alone (its halo came from the
+        exchange): this actor then ends, and Ray restarts it to restore from the
+        snapshot and the log."""
         while self.tiles.lost is None:
-            time.sleep(0.5)
+            self._tiles_at = self.tiles.placement()
+            time.sleep(STATUS_EVERY_S)
         log.error("shard %s of field %d: %s; restarting to restore", self.worker.charts,
                   self.worker.field_id, self.tiles.lost)
         os._exit(1)
@@ -96,7 +100,13 @@ class ShardActor:
         import ray
 
         return {**self.worker.status(), "node": ray.get_runtime_context().get_node_id(),
-                "tiles": self.tiles.placement()}
+                "tiles": self._tiles_at}
+
+
+def task_cause(exc: Exception) -> Exception:
+    """The worker's own error inside Ray's ``RayTaskError`` (else the error itself)."""
+    cause = getattr(exc, "cause", None)
+    return cause if isinstance(cause, Exception) else exc
 
 
 def node_cpus() -> int:
@@ -281,19 +291,14 @@ class RayCluster:
         try:
             return self.ray.get(ref, timeout=timeout)
         except self._task_error as exc:
-            raise self._cause(exc) from None
+            raise task_cause(exc) from None
 
     async def aget(self, ref, timeout: float):
         """:meth:`get` awaited on the event loop (a timeout: ``asyncio.TimeoutError``)."""
         try:
             return await asyncio.wait_for(asyncio.wrap_future(ref.future()), max(timeout, 0.0))
         except self._task_error as exc:
-            raise self._cause(exc) from None
-
-    @staticmethod
-    def _cause(exc: Exception) -> Exception:
-        cause = getattr(exc, "cause", None)
-        return cause if isinstance(cause, Exception) else exc
+            raise task_cause(exc) from None
 
     def _poll(self) -> None:
         lost = False

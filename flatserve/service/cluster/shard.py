@@ -108,6 +108,9 @@ class ShardWorker:
         self.seq = 0
         self.position = 0
         self.state = "restoring"
+        #: the field's cells after the last batch applied (counted then: a tiled
+        #: field counts its tiles' cells under its lock, which an insert holds)
+        self.cells = 0
         self.error: str | None = None
         self.restored_from: str | None = None
         self._cond = threading.Condition()
@@ -212,8 +215,9 @@ class ShardWorker:
         else:
             start, seq = row.snapshot_position, row.snapshot_seq
             self.restored_from = f"snapshot after batch {seq}"
+        cells = int(fld.nsimplex)
         with self._cond:
-            self.spec, self.field = spec, fld
+            self.spec, self.field, self.cells = spec, fld, cells
             self.through, self.seq, self.position = start, seq, start if seq else 0
             self._cond.notify_all()
         log.info("shard %s of field %d: restored from %s in %.2f s", self.charts,
@@ -252,8 +256,9 @@ class ShardWorker:
         prepared = self.field.prepare(flats, values, only=self.only)
         t2 = time.perf_counter()
         self.field.insert_prepared(prepared, slice_rows=self.settings.insert_slice_rows)
+        cells = int(self.field.nsimplex)
         with self._cond:
-            self.seq, self.position = en.seq, en.position
+            self.seq, self.position, self.cells = en.seq, en.position, cells
             self._cond.notify_all()
         log.debug("shard %s of field %d: batch %d (%d rows) applied: read %.3f s, prepare "
                   "%.3f s, insert %.3f s", self.charts, self.field_id, en.seq, en.nrows,
@@ -387,7 +392,7 @@ class ShardWorker:
             "nsamples": (sum(own[c] for c in self.charts) if own is not None
                          else (fld.nsamples if fld is not None else 0)),
             "nstored": int(fld.nstored) if fld is not None else 0,
-            "nsimplex": int(fld.nsimplex) if fld is not None else 0,
+            "nsimplex": self.cells,
             "nrejected": int(fld.nrejected) if fld is not None else 0,
             "chart_samples": [int(fld.shards[c].nsamples) for c in self.charts]
             if fld is not None else [0] * len(self.charts),

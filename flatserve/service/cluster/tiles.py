@@ -40,12 +40,15 @@ import numpy as np
 
 from ...tiles import Tile, TileHost
 from ..status import ShardUnavailableError
+from .ray_shards import task_cause
 
 log = logging.getLogger("flatserve.service.cluster")
 
 #: seconds a tile's call may take before the tile counts as lost (an insert of a
 #: slice, or the load of a tile of millions of points, takes seconds to minutes)
 TILE_CALL_TIMEOUT_S = 1800.0
+#: seconds a query's call on a tile may take (a query's rows in one tile)
+QUERY_CALL_TIMEOUT_S = 300.0
 #: concurrent calls a tile's actor takes (queries read it at once; the group's
 #: worker never lets a query meet an insert or an exchange)
 TILE_CONCURRENCY = 16
@@ -56,24 +59,33 @@ STATUS_WAIT_S = 2.0
 
 
 class TileActor:
-    """A :class:`~flatserve.tiles.Tile` in a Ray actor (one process). Every call
-    returns its result and the tile's ``(npoints, generation, nchannels)``, so that
-    the proxy (:class:`RemoteTile`) answers those without a call."""
+    """A :class:`~flatserve.tiles.Tile` in a Ray actor (one process): empty at
+    first, loaded by :meth:`load` (so that a damaged part is an error of the call,
+    not the actor's death). A call that changes the tile (``insert``, ``load``)
+    returns its ``(npoints, generation, nchannels)`` with its result, so that the
+    proxy (:class:`RemoteTile`) answers those without a call."""
 
-    def __init__(self, ndim: int, threads: int | None, own=None, snapshot=None) -> None:
+    def __init__(self, ndim: int, threads: int | None) -> None:
         from ...parallel import set_shard_threads
-        from .ray_shards import node_cpus
+        from .ray_shards import node_cpus  # (imported here: Ray's, on the node)
 
         set_shard_threads(threads or node_cpus())
-        self.tile = Tile(ndim) if snapshot is None else TileHost().load(ndim, own, snapshot)
+        self.ndim = ndim
+        self.tile = Tile(ndim)
 
     def state(self) -> tuple[int, int, int]:
         t = self.tile
         return t.npoints, t.generation, t.nchannels
 
-    def call(self, method: str, args: tuple, kw: dict | None = None
-             ) -> tuple[Any, tuple[int, int, int]]:
-        return getattr(self.tile, method)(*args, **(kw or {})), self.state()
+    def load(self, own, snapshot) -> tuple[int, int, int]:
+        self.tile = TileHost().load(self.ndim, own, snapshot)
+        return self.state()
+
+    def call(self, method: str, args: tuple, kw: dict | None = None):
+        return getattr(self.tile, method)(*args, **(kw or {}))
+
+    def insert(self, points, values, own: bool):
+        return self.tile.insert(points, values, own), self.state()
 
     def node(self) -> dict:
         import ray
@@ -87,33 +99,46 @@ class TileActor:
 class RemoteTile:
     """A tile in a :class:`TileActor`, with :class:`~flatserve.tiles.Tile`'s methods
     (made by :class:`RayTileHost`). The actor is started on the first call (an
-    empty tile that is never used costs nothing)."""
+    empty tile that is never used costs nothing). Its ``npoints``, ``generation``
+    and ``nchannels`` are those the last insert (or the load) returned: only
+    those change them, and the tiled triangulation never runs one beside
+    another call that reads them."""
 
     def __init__(self, host: "RayTileHost", ndim: int, own=None, snapshot=None) -> None:
         self._host, self._ndim = host, ndim
         self._actor = None
         self.npoints = self.generation = self.nchannels = 0
         if snapshot is not None:
-            self._actor = host.spawn(ndim, own, bytes(snapshot))
-            self.npoints, self.generation, self.nchannels = host.get(self._actor.state.remote())
+            self._actor = host.spawn(ndim)
+            self.npoints, self.generation, self.nchannels = host.get(
+                self._actor.load.remote(own, bytes(snapshot)))
 
     @property
     def actor(self):
         """The :class:`TileActor`'s handle (None: not started)."""
         return self._actor
 
-    def _call(self, method: str, *args, **kw):
+    def _started(self):
         if self._actor is None:
             self._actor = self._host.spawn(self._ndim)
-        res, state = self._host.get(self._actor.call.remote(method, args, kw))
+        return self._actor
+
+    def _call(self, method: str, *args, timeout: float = TILE_CALL_TIMEOUT_S, **kw):
+        return self._host.get(self._started().call.remote(method, args, kw), timeout)
+
+    def insert(self, points, values, own: bool):
+        res, state = self._host.get(self._started().insert.remote(points, values, own))
         self.npoints, self.generation, self.nchannels = state
         return res
 
-    def insert(self, points, values, own: bool):
-        return self._call("insert", points, values, own)
-
     def take(self, local):
         return self._call("take", local)
+
+    def own_flags(self):
+        return self._call("own_flags") if self._actor is not None else np.empty(0, np.uint8)
+
+    def own_box(self):
+        return self._call("own_box") if self._actor is not None else None
 
     def own_rows(self):
         if self._actor is None:
@@ -124,10 +149,11 @@ class RemoteTile:
         return self._call("conflicts", lo, hi, start, skip, **where)
 
     def answer(self, q, outside, order, threads, everywhere: bool):
-        return self._call("answer", q, outside, order, threads, everywhere)
+        return self._call("answer", q, outside, order, threads, everywhere,
+                          timeout=QUERY_CALL_TIMEOUT_S)
 
     def locate(self, q, order, threads):
-        return self._call("locate", q, order, threads)
+        return self._call("locate", q, order, threads, timeout=QUERY_CALL_TIMEOUT_S)
 
     def count_cells(self) -> int:
         return self._call("count_cells") if self._actor is not None else 0
@@ -139,7 +165,6 @@ class RemoteTile:
         if self._actor is None:
             return Tile(self._ndim).snapshot()
         return self._call("snapshot")
-
 
 
 class RayTileHost(TileHost):
@@ -162,27 +187,27 @@ class RayTileHost(TileHost):
 
     def __init__(self, settings) -> None:
         import ray
-        from ray.exceptions import (ActorUnavailableError, GetTimeoutError, RayActorError,
-                                    RaySystemError, RayTaskError)
+        from ray.exceptions import RayActorError, RayError, RayTaskError
 
         self.ray = ray
         self.settings = settings
         self._remote = ray.remote(TileActor)
-        self._lost_kinds = (ActorUnavailableError, GetTimeoutError, RayActorError,
-                            RaySystemError, ConnectionError)
+        # every failure of Ray's (the actor dead or unreachable, its result lost, a
+        # timeout) but a tile's own error (a task error) loses the tile
+        self._lost_kinds = (RayError, ConnectionError)
         self._task_error = RayTaskError
         self._dead = RayActorError
         self.lost: str | None = None
         self._tiles: "weakref.WeakSet[RemoteTile]" = weakref.WeakSet()
         self._lock = threading.Lock()
 
-    def spawn(self, ndim: int, own=None, snapshot=None):
-        """A new :class:`TileActor` (empty, or loaded from a snapshot's parts)."""
+    def spawn(self, ndim: int):
+        """A new, empty :class:`TileActor`."""
         s = self.settings
         return self._remote.options(
             num_cpus=0, memory=s.ray_shard_memory, max_restarts=0, max_task_retries=0,
             max_concurrency=TILE_CONCURRENCY, scheduling_strategy="SPREAD",
-        ).remote(ndim, s.shard_threads, own, snapshot)
+        ).remote(ndim, s.shard_threads)
 
     def auto_tiles(self, nsamples: int) -> int:
         """``tiles="auto"`` on a cluster: one tile per ``ray_tile_samples`` samples (a
@@ -216,8 +241,7 @@ class RayTileHost(TileHost):
         try:
             return self.ray.get(ref, timeout=timeout)
         except self._task_error as exc:
-            cause = getattr(exc, "cause", None)
-            raise (cause if isinstance(cause, Exception) else exc) from None
+            raise task_cause(exc) from None
         except self._lost_kinds as exc:
             self.lost = f"{type(exc).__name__}: {exc}"
             log.error("a tile of this shard was lost: %s", self.lost)

@@ -155,10 +155,16 @@ def test_a_three_node_cluster_answers_as_one_process(fronts, pg_url, rng):
     assert_same(pg_url, a, "one", paper_rays(rng, 2000), weights=True)
     # the one-chart field's 2 tiles each in an actor of its own, on different nodes
     with Client(a.url, retries=0) as c:
-        (group,) = c.describe("one")["shard_groups"]
+        end = time.monotonic() + 30
+        while True:  # the tiles' places are polled each second: the last batch's in a moment
+            (group,) = c.describe("one")["shard_groups"]
+            held = sum(t["npoints"] for t in group["tiles"] or ())
+            if held > group["samples"] or time.monotonic() > end:
+                break
+            time.sleep(0.5)
     assert len(group["tiles"]) == 2, group
     assert len({t["node"] for t in group["tiles"]}) == 2, group
-    assert sum(t["npoints"] for t in group["tiles"]) > group["samples"]  # own points + halo
+    assert held > group["samples"], group  # own points + halo
     # a rendered view (the light-field route) is the one-process field's, bit for bit
     ref, _ = oracle(pg_url, "atlas")
     want, *_ = render_frame(ref, CameraSpec(width=24, height=20).camera(), fill=0.0, fmt="npy")

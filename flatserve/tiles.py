@@ -382,6 +382,11 @@ class TileHost:
         in this process, one per core (:func:`auto_tiles`)."""
         return auto_tiles(nsamples)
 
+    def map(self, fn, items):
+        """``fn`` of each item, at once where the tiles allow it, in order: here on
+        the shard pool's threads (the tiles' work is this process's)."""
+        return shard_pool().map(fn, items)
+
     def make(self, ndim: int) -> Tile:
         """An empty tile."""
         return Tile(ndim)
@@ -565,7 +570,7 @@ class TiledTriangulation:
         least halo a tile answering exactly must hold (:attr:`halo` is what the
         exchange's conservative ball-box test gave it), shape (ntiles,)."""
         with self._reading():
-            return np.array(list(shard_pool().map(lambda tile: tile.star_foreign(),
+            return np.array(list(self._host.map(lambda tile: tile.star_foreign(),
                                                   self._tiles)), dtype=np.int64)
 
     @property
@@ -610,7 +615,7 @@ class TiledTriangulation:
         """Cells of the whole triangulation: each counted in the tile owning its
         lexicographically first vertex."""
         with self._reading():
-            return sum(shard_pool().map(lambda tile: tile.count_cells(), self._tiles))
+            return sum(self._host.map(lambda tile: tile.count_cells(), self._tiles))
 
     # ------------------------------------------------------------------ insert
     def insert(self, points, values=None, *, settle: bool = False) -> InsertResult:
@@ -694,7 +699,7 @@ class TiledTriangulation:
                 return None
             return self._tiles[t].insert(pts[r], None if vals is None else vals[r], True)
 
-        got = list(shard_pool().map(put, range(T)))
+        got = list(self._host.map(put, range(T)))
         # global ids: new points numbered in input row order (first occurrence)
         fresh_rows, fresh_tile, fresh_local = [], [], []
         for t, res in enumerate(got):
@@ -874,7 +879,7 @@ class TiledTriangulation:
                         where = {"seeds": seeds[t]}
                     return tile.conflicts(lo, hi, start, t, **where)
 
-                found = list(shard_pool().map(scan, range(T)))
+                found = list(self._host.map(scan, range(T)))
                 recv: list = [[] for _ in range(T)]
                 for t, per_box in enumerate(found):
                     if per_box is None:
@@ -901,7 +906,7 @@ class TiledTriangulation:
                         raise RuntimeError("tiles: a point held by two tiles as its own")
                     return np.arange(k0, k0 + len(g), dtype=np.int64)
 
-                new = list(shard_pool().map(take, range(T)))
+                new = list(self._host.map(take, range(T)))
                 for b, g in enumerate(todo):
                     if len(g):
                         self._gid[b] = np.concatenate([self._gid[b], g])
@@ -964,7 +969,7 @@ class TiledTriangulation:
                 return tile.answer(q[r], outside, order, threads, last)
 
             nxt = []
-            for t, res in enumerate(shard_pool().map(ask, range(T))):
+            for t, res in enumerate(self._host.map(ask, range(T))):
                 r = groups[t]
                 if res is None:
                     if r.size and not self._tiles[t].npoints and not last:
@@ -1071,7 +1076,7 @@ class TiledTriangulation:
             return key, None if key in known else blob
 
         with self._reading():
-            return list(shard_pool().map(part, range(self._ntiles)))
+            return list(self._host.map(part, range(self._ntiles)))
 
     @classmethod
     def from_bytes(cls, data, ndim: int, tiling: dict) -> "TiledTriangulation":
@@ -1134,7 +1139,7 @@ class TiledTriangulation:
             owns.append(np.frombuffer(mv[at:at + n], np.uint8).copy())
             snaps.append(mv[at + n + 8:])
         # the tiles' triangulations loaded at once (on the cores, or where the host puts them)
-        self._tiles = list(shard_pool().map(
+        self._tiles = list(self._host.map(
             lambda t: self._host.load(self._ndim, owns[t], snaps[t]), range(T)))
         del snaps
         for t in range(T):

@@ -34,6 +34,7 @@ import logging
 import os
 import threading
 import weakref
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -199,6 +200,7 @@ class RayTileHost(TileHost):
         self._dead = RayActorError
         self.lost: str | None = None
         self._tiles: "weakref.WeakSet[RemoteTile]" = weakref.WeakSet()
+        self._pool = ThreadPoolExecutor(MAX_TILES, thread_name_prefix="flatserve-tiles")
         self._lock = threading.Lock()
 
     def spawn(self, ndim: int):
@@ -222,6 +224,12 @@ class RayTileHost(TileHost):
         """
         per = self.settings.ray_tile_samples
         return max(1, min(MAX_TILES, -(-int(nsamples) // per)))
+
+    def map(self, fn, items):
+        """``fn`` of each item on threads of this host's own, one per tile: they only
+        wait for the tiles' actors, whatever this node's CPUs (a shard pool of one
+        thread would call the tiles one after another)."""
+        return list(self._pool.map(fn, items))
 
     def make(self, ndim: int) -> RemoteTile:
         tile = RemoteTile(self, ndim)

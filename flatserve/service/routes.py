@@ -181,7 +181,7 @@ def import_field(name: FieldNamePath, transfer: TransferDep, body: BodyDep, resp
                 "batch's coordinates are computed (accepted/rejected rows and reasons are "
                 "exact) and it is committed; it is then inserted in the background in commit "
                 "order, in slices of `insert_slice_rows` samples that queries see as they go "
-                "in (`indexed: false` in the response; the field's `indexed_batch` / "
+                "in (a field in tiles: the batch whole) (`indexed: false` in the response; the field's `indexed_batch` / "
                 "`pending_samples` tell when it is wholly visible; a later "
                 "`wait=true` upload or a query with `wait=true` waits for it). "
                 + _LAYOUT + " With `Idempotency-Key`, a retried batch is stored once; the same "

@@ -19,7 +19,7 @@ from typing import Collection, NamedTuple, Sequence
 
 import numpy as np
 
-from ._fieldbase import FieldBase, corrupted, pack_header, read_header, read_part, write_part
+from ._fieldbase import FieldBase, corrupted, pack_header, read_header, write_part
 from .basis import Basis
 from .coordinates import NO_SAMPLES, OK, ROUNDTRIP_TOL, reason
 from .embedding import embed
@@ -685,16 +685,14 @@ class Field(FieldBase):
                 raise ValueError("parts: expected a list of keys and no payload")
         except (ValueError, KeyError, TypeError, InvalidInputError) as exc:
             raise corrupted("field", source, exc) from None
-        if keys is not None:
-            if parts is None:
-                raise SnapshotError(f"{source}: its tiles are parts, and no parts were given")
-            records = [read_part(parts, str(key), source, f"the part of tile {t}")
-                       for t, key in enumerate(keys)]
+        if keys is not None and parts is None:
+            raise SnapshotError(f"{source}: its tiles are parts, and no parts were given")
         try:
             if tiling:
                 obj._tri = (TiledTriangulation.from_bytes(data[start:], obj.ndim, tiling)
                             if keys is None else
-                            TiledTriangulation.from_parts(records, obj.ndim, tiling, keys))
+                            TiledTriangulation.from_parts(parts, keys, obj.ndim, tiling,
+                                                          source=source))
         except (ValueError, KeyError, TypeError, InvalidInputError) as exc:
             raise corrupted("field", source, exc) from None
         if not tiling:

@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._fieldbase import part_key
+from ._fieldbase import part_key, read_part
 from ._validate import as_array
 from .errors import InvalidInputError
 from .options import Order, Outside, choice
@@ -364,9 +364,35 @@ class Tile:
         v = np.unique(s[own[s].any(axis=1)])
         return int((~own[v]).sum())
 
-    def snapshot(self) -> tuple[np.ndarray, bytes]:
-        """Its own flags and :meth:`flatserve.Triangulation.to_bytes`."""
-        return self.own.copy(), self.tri.to_bytes()
+    def record(self, gid: np.ndarray) -> bytes:
+        """Its record in a snapshot (:meth:`TiledTriangulation.to_bytes`), given the
+        global ids of its points (the tiled triangulation's bookkeeping): uint64 n,
+        n int64 global ids, n uint8 own flags, uint64 length and
+        :meth:`flatserve.Triangulation.to_bytes`."""
+        gid = np.ascontiguousarray(gid, np.int64)
+        if len(gid) != self.tri.npoints:
+            raise ValueError(f"{len(gid)} global ids for a tile of {self.tri.npoints} points")
+        blob = self.tri.to_bytes()
+        return b"".join([np.uint64(len(gid)).tobytes(), gid.tobytes(), self.own.tobytes(),
+                         np.uint64(len(blob)).tobytes(), blob])
+
+
+def read_record(record) -> tuple[np.ndarray, np.ndarray, memoryview]:
+    """A tile's record (:meth:`Tile.record`) read: its global ids, own flags and
+    triangulation snapshot (a view of ``record``).
+
+    Raises
+    ------
+    ValueError
+        Truncated, or trailing bytes.
+    """
+    mv = memoryview(record)
+    if _record_size(mv, 0) != len(mv):
+        raise ValueError("trailing bytes after its record")
+    n = int(np.frombuffer(mv[:8], np.uint64)[0])
+    gid = np.frombuffer(mv[8:8 + 8 * n], np.int64).copy()
+    own = np.frombuffer(mv[8 + 8 * n:8 + 9 * n], np.uint8).copy()
+    return gid, own, mv[8 + 9 * n + 8:]
 
 
 class TileHost:
@@ -374,8 +400,12 @@ class TileHost:
     class). A host that places tiles elsewhere (in cluster mode: a Ray actor per
     tile, :mod:`flatserve.service.cluster.tiles`) returns objects with
     :class:`Tile`'s methods and attributes ``npoints``, ``generation``,
-    ``nchannels``; :func:`hosting` makes it the host of the tiled
-    triangulations made meanwhile."""
+    ``nchannels``, and may have its tiles store and read their own snapshot parts
+    (:meth:`part`, :meth:`load_part`); :func:`hosting` makes it the host of the
+    tiled triangulations made meanwhile."""
+
+    #: bytes of snapshot parts the tiles stored themselves (:meth:`part`): none here
+    stored = 0
 
     def auto_tiles(self, nsamples: int) -> int:
         """How many tiles ``tiles="auto"`` gives a chart of ``nsamples`` samples here:
@@ -391,9 +421,40 @@ class TileHost:
         """An empty tile."""
         return Tile(ndim)
 
-    def load(self, ndim: int, own: np.ndarray, snapshot) -> Tile:
-        """A tile from :meth:`Tile.snapshot`'s parts."""
-        return Tile(ndim, Triangulation.from_bytes(snapshot), own)
+    def load(self, ndim: int, record) -> tuple[Tile, np.ndarray, np.ndarray]:
+        """A tile from its record (:meth:`Tile.record`), with the record's global ids
+        and own flags.
+
+        Raises
+        ------
+        ValueError
+            A damaged record.
+        """
+        gid, own, snapshot = read_record(record)
+        return Tile(ndim, Triangulation.from_bytes(snapshot), own), gid, own
+
+    def load_part(self, ndim: int, key: str, parts, source: str, what: str
+                  ) -> tuple[Tile, np.ndarray, np.ndarray]:
+        """:meth:`load` of the snapshot part ``key``: ``parts(key)``, checked against
+        its key (``source`` and ``what`` name it in the error). A host whose tiles
+        read their own parts (in cluster mode) has each tile read its part where it
+        lives.
+
+        Raises
+        ------
+        flatserve.errors.SnapshotError
+            The part's bytes are not its key's.
+        """
+        return self.load(ndim, read_part(parts, key, source, what))
+
+    def part(self, tile: Tile, gid: np.ndarray, known) -> tuple[str, bytes | None]:
+        """A tile's record (:meth:`Tile.record`) as a snapshot part: its key
+        (:func:`flatserve.contract.part_key`) and its bytes, None when the part is
+        stored already: its key is in ``known``, or (a host whose tiles store their
+        own parts, in cluster mode) the tile stored it itself."""
+        blob = tile.record(gid)
+        key = part_key(blob)
+        return key, None if key in known else blob
 
 
 _HOST: ContextVar[TileHost | None] = ContextVar("flatserve_tile_host", default=None)
@@ -465,7 +526,7 @@ class TiledTriangulation:
         self._nown = np.zeros(T, np.int64)                       # own points per tile
         self._owner = np.empty(0, np.int64)                      # global id -> tile
         self._local = np.empty(0, np.int64)                      # global id -> local id there
-        self._held = np.zeros((T, 0), dtype=bool)                # tile, global id -> held
+        self._halo = [np.empty(0, np.int64) for _ in range(T)]   # foreign ids held, sorted
         self._parts: list = [None] * T    # tile -> (triangulation, generation, key) of its part
         self._reset_boxes()
         self._n = 0
@@ -723,10 +784,6 @@ class TiledTriangulation:
         m = g0 + len(fr)
         self._owner = np.concatenate([self._owner, ft])
         self._local = np.concatenate([self._local, fl])
-        held = np.zeros((T, m), dtype=bool)
-        held[:, :g0] = self._held
-        held[ft, gids] = True
-        self._held = held
         self._n = m
         seeds: list = [None] * T
         grew = False
@@ -839,10 +896,16 @@ class TiledTriangulation:
         g, first = np.unique(rev, return_index=True)
         last = len(ids) - 1 - first
         for t in range(self._ntiles):
-            halo = self._held[t, g] & (self._owner[g] != t)
+            halo = _among(self._halo[t], g)
             if halo.any():
                 hg = g[halo]
                 self._tiles[t].insert(self._points_of(hg)[0], vals[last[halo]], False)
+
+    def _holds(self, t: int, g: np.ndarray) -> np.ndarray:
+        """Whether tile ``t`` holds each global id of ``g`` (bool, shape of ``g``):
+        its own points, and its halo (sorted foreign ids: 8 bytes a halo point
+        rather than a byte per sample and tile)."""
+        return (self._owner[g] == t) | _among(self._halo[t], g)
 
     def _points_of(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """The points (n, D) and values (n, C) or None of global ids ``g``, from their
@@ -887,7 +950,7 @@ class TiledTriangulation:
                     for b in range(T):
                         if b != t and per_box[b].size:
                             g = self._gid[t][per_box[b]]
-                            recv[b].append(g[~self._held[b, g]])
+                            recv[b].append(g[~self._holds(b, g)])
                 todo = [np.unique(np.concatenate(r)) if r else np.empty(0, np.int64)
                         for r in recv]
                 if not any(len(g) for g in todo):
@@ -910,7 +973,7 @@ class TiledTriangulation:
                 for b, g in enumerate(todo):
                     if len(g):
                         self._gid[b] = np.concatenate([self._gid[b], g])
-                        self._held[b, g] = True
+                        self._halo[b] = np.union1d(self._halo[b], g)
                         self.stats.sent += len(g)
                 seeds = new
                 full = False
@@ -1029,13 +1092,6 @@ class TiledTriangulation:
         return out if tl is None else {**out, "axis": tl.axis.tolist(), "cut": tl.cut.tolist(),
                                        "low": tl.low.tolist(), "high": tl.high.tolist()}
 
-    def _tile_record(self, t: int) -> bytes:
-        """Tile ``t``'s record: uint64 n, n int64 global ids, n uint8 own flags,
-        uint64 length and the tile's triangulation snapshot. Under the read lock."""
-        own, blob = self._tiles[t].snapshot()
-        return b"".join([np.uint64(len(self._gid[t])).tobytes(), self._gid[t].tobytes(),
-                         own.tobytes(), np.uint64(len(blob)).tobytes(), blob])
-
     def to_bytes(self) -> bytes:
         """Every tile's own snapshot, with its global ids and own flags.
 
@@ -1046,16 +1102,18 @@ class TiledTriangulation:
         """
         with self._reading():
             return b"".join([np.uint64(self._ntiles).tobytes(),
-                             *(self._tile_record(t) for t in range(self._ntiles))])
+                             *(self._tiles[t].record(self._gid[t])
+                               for t in range(self._ntiles))])
 
     def tile_parts(self, known=()) -> list[tuple[str, bytes | None]]:
         """Each tile's record (:meth:`to_bytes`) as a snapshot part: per tile its
         key (:func:`flatserve.contract.part_key` of the record) and the record,
-        None when the key is in ``known``; a tile unchanged since its part was
-        last made (the same triangulation at the same
+        None when the part is stored already (:meth:`TileHost.part`: the key is in
+        ``known``, or the tile stored it itself); a tile unchanged since its part
+        was last made (the same triangulation at the same
         :attr:`~flatserve.Triangulation.generation`) whose key is known is not
-        serialised again. One moment of the tiles (the read lock), serialised on
-        the shard pool.
+        serialised again. One moment of the tiles (the read lock), serialised at
+        once where the host keeps them.
 
         Parameters
         ----------
@@ -1070,10 +1128,9 @@ class TiledTriangulation:
                     last[2] in known:
                 return last[2], None
             gen = tile.generation
-            blob = self._tile_record(t)
-            key = part_key(blob)
+            key, blob = self._host.part(tile, self._gid[t], known)
             self._parts[t] = (tile, gen, key)
-            return key, None if key in known else blob
+            return key, blob
 
         with self._reading():
             return list(self._host.map(part, range(self._ntiles)))
@@ -1101,20 +1158,37 @@ class TiledTriangulation:
             at += size
         if at != len(mv):
             raise ValueError("trailing bytes after the tiles")
-        return cls.from_parts(records, ndim, tiling)
+        self = cls._of_tiling(ndim, tiling)
+        return self._assemble(lambda t: self._host.load(self._ndim, records[t]))
 
     @classmethod
-    def from_parts(cls, records, ndim: int, tiling: dict,
-                   keys=None) -> "TiledTriangulation":
-        """The tiles from their records (:meth:`tile_parts`), in tile order;
-        ``keys``: the records' part keys (a tile unchanged since is not
-        serialised again by :meth:`tile_parts`).
+    def from_parts(cls, parts, keys, ndim: int, tiling: dict,
+                   source: str = "tiles") -> "TiledTriangulation":
+        """The tiles from their snapshot parts (:meth:`tile_parts`), in tile order:
+        ``parts(key) -> bytes`` each tile's record, read where the host keeps the
+        tile (:meth:`TileHost.load_part`), each checked against its key. A tile
+        unchanged since is not serialised again by :meth:`tile_parts`.
 
         Raises
         ------
         ValueError
             As :meth:`from_bytes`.
+        flatserve.errors.SnapshotError
+            A part's bytes are not its key's (``source`` names the file).
         """
+        self = cls._of_tiling(ndim, tiling)
+        if len(keys) != self._ntiles:
+            raise ValueError("the tile count differs from the tiling's")
+        keys = [str(k) for k in keys]
+        self._assemble(lambda t: self._host.load_part(
+            self._ndim, keys[t], parts, source, f"the part of tile {t}"))
+        for t, tile in enumerate(self._tiles):
+            self._parts[t] = (tile, tile.generation, keys[t])
+        return self
+
+    @classmethod
+    def _of_tiling(cls, ndim: int, tiling: dict) -> "TiledTriangulation":
+        """An empty triangulation of the tiling's tiles (:meth:`tiling_dict`)."""
         T = int(tiling["tiles"])
         tl = None
         if "axis" in tiling:
@@ -1125,38 +1199,29 @@ class TiledTriangulation:
                 raise ValueError(f"a tiling of {tl.ntiles} tiles named {T}")
         self = cls(ndim, cls.setting_of(tiling), tiling=tl)
         self._empty(T)
-        if len(records) != T:
-            raise ValueError("the tile count differs from the tiling's")
-        owner, local, snaps, owns = [], [], [], []
-        for t, rec in enumerate(records):
-            mv = memoryview(rec)
-            if _record_size(mv, 0) != len(mv):
-                raise ValueError(f"tile {t}: trailing bytes after its record")
-            n = int(np.frombuffer(mv[:8], np.uint64)[0])
-            at = 8
-            self._gid[t] = np.frombuffer(mv[at:at + 8 * n], np.int64).copy()
-            at += 8 * n
-            owns.append(np.frombuffer(mv[at:at + n], np.uint8).copy())
-            snaps.append(mv[at + n + 8:])
-        # the tiles' triangulations loaded at once (on the cores, or where the host puts them)
-        self._tiles = list(self._host.map(
-            lambda t: self._host.load(self._ndim, owns[t], snaps[t]), range(T)))
-        del snaps
-        for t in range(T):
-            n = len(self._gid[t])
-            tile = self._tiles[t]
+        return self
+
+    def _assemble(self, load) -> "TiledTriangulation":
+        """The tiles ``load(t) -> (tile, global ids, own flags)``, loaded at once (on
+        the cores, or where the host puts them), and their bookkeeping."""
+        T = self._ntiles
+        got = list(self._host.map(load, range(T)))
+        self._tiles = [tile for tile, _, _ in got]
+        owner, local = [], []
+        for t, (tile, gid, owns) in enumerate(got):
+            self._gid[t] = gid
+            n = len(gid)
             if tile.npoints != n:
                 raise ValueError(f"tile {t}: {tile.npoints} points for {n} ids")
-            own = owns[t] == 1
+            own = owns == 1
             self._nown[t] = int(own.sum())
-            owner.append((self._gid[t][own], t))
+            owner.append((gid[own], t))
             local.append(np.flatnonzero(own))
             if own.any():
                 self._grow_boxes(t, tile.own_box())
             if tile.nchannels:
                 self._channels = tile.nchannels
-            if keys is not None:
-                self._parts[t] = (tile, tile.generation, keys[t])
+        del got
         m = sum(len(g) for g, _ in owner)
         self._n = self._tiled_at = m
         self._owner = np.full(m, -1, np.int64)
@@ -1167,17 +1232,24 @@ class TiledTriangulation:
             self._owner[g], self._local[g] = t, loc
         if (self._owner < 0).any():
             raise ValueError("a sample owned by no tile")
-        self._held = np.zeros((T, m), dtype=bool)
         for t in range(T):
             if (self._gid[t] < 0).any() or (self._gid[t] >= m).any():
                 raise ValueError("a global id out of range")
-            self._held[t, self._gid[t]] = True
+            self._halo[t] = np.sort(self._gid[t][self._owner[self._gid[t]] != t])
         return self
 
     def __repr__(self) -> str:
         return (f"TiledTriangulation(ndim={self._ndim}, tiles={self._ntiles}"
                 f"{' (auto)' if self._auto else ''}, "
                 f"npoints={self._n}, halo={sum(len(g) for g in self._gid) - int(self._nown.sum())})")
+
+
+def _among(sorted_ids: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """``np.isin(g, sorted_ids)`` for sorted ``sorted_ids`` (a binary search each)."""
+    if not len(sorted_ids):
+        return np.zeros(np.shape(g), bool)
+    at = np.searchsorted(sorted_ids, g)
+    return sorted_ids[np.minimum(at, len(sorted_ids) - 1)] == g
 
 
 def _record_size(mv: memoryview, at: int) -> int:

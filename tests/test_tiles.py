@@ -430,9 +430,9 @@ def test_tiles_as_snapshot_parts_only_the_changed_ones():
     second = tt.tile_parts(known=keys)
     assert second[1:] == [(k, None) for k in keys[1:]]
     assert second[0][0] != keys[0] and second[0][1] is not None
-    records = [second[0][1], *(blob for _, blob in first[1:])]
-    back = TiledTriangulation.from_parts(records, 3, tt.tiling_dict(),
-                                         [k for k, _ in second])
+    stored = {k: blob for k, blob in (*first, second[0])}
+    back = TiledTriangulation.from_parts(stored.__getitem__, [k for k, _ in second], 3,
+                                         tt.tiling_dict())
     q = rng.random((500, 3))
     assert np.array_equal(back.query(q)[0], tt.query(q)[0], equal_nan=True)
     assert np.array_equal(back.to_bytes(), tt.to_bytes())

@@ -410,7 +410,8 @@ class LogBackend(abc.ABC):
     @abc.abstractmethod
     def load_snapshot(self, row: FieldRow, load: Callable[[Path, Callable[[str], bytes]], T]) -> T:
         """``load(path, parts)`` of a local file holding the row's snapshot; its
-        result. ``parts(key)`` gives the bytes of a part the snapshot names.
+        result. ``parts(key)`` gives the bytes of a part the snapshot names
+        (:meth:`read_part`, read when asked for).
 
         Raises
         ------
@@ -429,6 +430,30 @@ class LogBackend(abc.ABC):
     def snapshot_bytes(self, row: "FieldRow | str | None") -> int:
         """Size of the row's snapshot, given the row or its ``snapshot_file``
         (0: none or gone)."""
+
+    @abc.abstractmethod
+    def read_part(self, field_id: int, key: str) -> bytes:
+        """The bytes of snapshot part ``key`` of field ``field_id``, unchecked (the
+        caller checks them against their key): what ``load_snapshot``'s ``parts``
+        gives, and what a process holding a field's tile reads for itself.
+
+        Raises
+        ------
+        flatserve.errors.SnapshotError
+            No such part: damaged, or the snapshot naming it was replaced
+            meanwhile (``load_snapshot`` tells the two apart).
+        flatserve.service.status.StorageError
+        """
+
+    def snapshot_replaced(self, row: FieldRow) -> bool:
+        """The field of ``row`` points at another snapshot now (or is gone): a
+        snapshot that failed to load may have been replaced while it was read."""
+        from .status import FieldNotFoundError
+
+        try:
+            return self.field(row.id).snapshot_file != row.snapshot_file
+        except FieldNotFoundError:
+            return True
 
     @abc.abstractmethod
     def snapshot_parts(self, field_id: int) -> set[str]:

@@ -24,6 +24,7 @@ import uuid
 from pathlib import Path
 from typing import Callable, TypeVar
 
+from ..errors import SnapshotError
 from .backend import FieldRow, SnapshotGoneError, SnapshotInfo
 from .sqlrules import snapshot_failure, snapshot_name
 from .status import StorageError
@@ -137,9 +138,11 @@ def _copy_in(conn, name: str, path: Path | io.BytesIO) -> None:
                 break
 
 
-def _copy_out(conn, name: str, path: Path) -> None:
-    """Snapshot row ``name``'s chunks, in order, into the file ``path``."""
-    with open(path, "wb") as fh, conn.cursor(binary=True) as cur, cur.copy(
+def _copy_out(conn, name: str, path: Path | io.BytesIO) -> None:
+    """Snapshot row ``name``'s chunks, in order, into the file ``path`` (or bytes
+    in memory)."""
+    with (path if isinstance(path, io.BytesIO) else open(path, "wb")) as fh, \
+            conn.cursor(binary=True) as cur, cur.copy(
             "COPY (SELECT data FROM snapshot_chunks WHERE name=%s ORDER BY idx)"
             " TO STDOUT (FORMAT BINARY)", (name,)) as cp:
         cp.set_types(["bytea"])
@@ -264,24 +267,36 @@ class ChunkedSnapshots:
         except StorageError as exc:  # best effort: the next snapshot removes them
             log.warning("could not remove the stale parts of field id %d: %s", field_id, exc)
 
+    def read_part(self, field_id: int, key: str) -> bytes:
+        name = part_name(field_id, key)
+
+        def fetch(conn):  # one view of the row and its chunks
+            if conn.execute("SELECT 1 FROM snapshots WHERE name=%s", (name,)).fetchone() is None:
+                return None
+            buf = io.BytesIO()
+            _copy_out(conn, name, buf)
+            return buf.getvalue()
+
+        got = self._run(fetch, isolation="REPEATABLE READ")
+        if got is None:
+            raise SnapshotError(f"snapshot part {key} of field id {field_id} is missing")
+        return got
+
     def load_snapshot(self, row: FieldRow, load: Callable[[Path, Callable[[str], bytes]], T]) -> T:
+        """The snapshot's file staged; its parts read when ``load`` asks for them
+        (:meth:`read_part`: a part of a field in tiles is read by the tile's own
+        process, never staged here). A part gone meanwhile means the snapshot
+        was replaced (a part goes only once no snapshot names it)."""
         if not row.snapshot_file:
             raise SnapshotGoneError(f"field id {row.id} has no snapshot")
         stage = self._stage()
         path = stage / row.snapshot_file
-        parts_dir = stage / "parts"
-        prefix = part_name(row.id, "")
         try:
-            def fetch(conn):  # one view: a snapshot replaced meanwhile is still read whole
+            def fetch(conn):
                 if conn.execute("SELECT 1 FROM snapshots WHERE name=%s",
                                 (row.snapshot_file,)).fetchone() is None:
                     return False
                 _copy_out(conn, row.snapshot_file, path)
-                parts_dir.mkdir(exist_ok=True)
-                for (pname,) in conn.execute(  # the field's parts, in the same view
-                        "SELECT name FROM snapshots WHERE field_id=%s AND name LIKE %s",
-                        (row.id, prefix + "%")).fetchall():
-                    _copy_out(conn, pname, parts_dir / pname[len(prefix):])
                 return True
 
             try:
@@ -291,7 +306,15 @@ class ChunkedSnapshots:
             if not found:
                 raise SnapshotGoneError(f"snapshot {row.snapshot_file} of field id {row.id} "
                                         "was replaced")
-            return load(path, lambda key: (parts_dir / key).read_bytes())
+            try:
+                return load(path, lambda key: self.read_part(row.id, key))
+            except (SnapshotGoneError, StorageError):
+                raise
+            except Exception:  # a part gone: replaced meanwhile, or damaged
+                if self.snapshot_replaced(row):
+                    raise SnapshotGoneError(f"snapshot {row.snapshot_file} of field id "
+                                            f"{row.id} was replaced") from None
+                raise
         finally:
             self._unstage(stage)
 

@@ -27,10 +27,11 @@ import uuid
 from pathlib import Path
 from typing import Callable, TypeVar
 
+from ..errors import SnapshotError
 from .backend import FieldRow, SnapshotGoneError, SnapshotInfo
 from .datadir import fsync_path
 from .sqlrules import snapshot_failure, snapshot_name
-from .status import FieldNotFoundError, StorageError
+from .status import StorageError
 
 log = logging.getLogger("flatserve.service")
 
@@ -161,18 +162,25 @@ class SnapshotFiles:
             return
         self._discard_snapshots([f"parts/{part_name(field_id, k)}" for k in sorted(stale)])
 
+    def read_part(self, field_id: int, key: str) -> bytes:
+        path = self.part_path(field_id, key)
+        try:
+            return path.read_bytes()
+        except FileNotFoundError:
+            raise SnapshotError(f"snapshot part {key} of field id {field_id} is missing "
+                                f"({path})") from None
+        except OSError as exc:
+            raise StorageError(f"cannot read {path}: {exc}") from exc
+
     def load_snapshot(self, row: FieldRow, load: Callable[[Path, Callable[[str], bytes]], T]) -> T:
         path = self.snapshot_path(row.snapshot_file)
         try:
-            return load(path, lambda key: self.part_path(row.id, key).read_bytes())
-        except OSError:
-            if not path.exists():
-                try:
-                    now = self.field(row.id).snapshot_file
-                except FieldNotFoundError:
-                    now = None
-                if now != row.snapshot_file:
-                    raise SnapshotGoneError(f"snapshot {row.snapshot_file} was replaced") from None
+            return load(path, lambda key: self.read_part(row.id, key))
+        except (SnapshotGoneError, StorageError):
+            raise
+        except Exception:  # its file or a part gone: replaced meanwhile, or damaged
+            if self.snapshot_replaced(row):
+                raise SnapshotGoneError(f"snapshot {row.snapshot_file} was replaced") from None
             raise
 
     def snapshot_location(self, row: FieldRow) -> str:

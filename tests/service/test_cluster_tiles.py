@@ -15,7 +15,10 @@ import time
 import numpy as np
 import pytest
 
-from flatserve.service.cluster.tiles import RayTileHost
+from flatserve.contract import part_key
+from flatserve.errors import SnapshotError
+from flatserve.service.backend import open_backend
+from flatserve.service.cluster.tiles import RayTileHost, TileParts
 from flatserve.service.settings import Settings
 from flatserve.service.status import ShardUnavailableError
 from flatserve.tiles import TiledTriangulation, hosting
@@ -146,10 +149,53 @@ def test_a_damaged_tile_part_is_an_error_of_the_load_not_a_lost_tile(host, rng):
     n = int(np.frombuffer(bytes(parts[1][:8]), np.uint64)[0])
     at = 8 + 9 * n + 8  # tile 1's triangulation snapshot: its magic damaged
     parts[1][at:at + 8] = b"\xff" * 8
+    stored = {part_key(bytes(p)): bytes(p) for p in parts}  # (keys of the damaged bytes)
     with hosting(host), pytest.raises(Exception) as err:
-        TiledTriangulation.from_parts(parts, 3, tt.tiling_dict())
+        TiledTriangulation.from_parts(stored.__getitem__, list(stored), 3, tt.tiling_dict())
     assert not isinstance(err.value, ShardUnavailableError), err.value
     assert host.lost is None  # the caller replays the log instead: no restart loop
+
+
+def test_each_tile_stores_and_reads_its_own_part_in_the_fields_storage(cluster, tmp_path, rng):
+    """With the field's storage (TileParts), a snapshot's tile parts are stored by the
+    tiles' actors and a restore's are read by the new actors: this process never
+    holds their bytes (its ``parts`` is never called), and a part damaged in the
+    storage is the load's error, not a lost tile."""
+    settings = Settings(ray_shard_memory=256 << 20, shard_threads=1, data_dir=tmp_path)
+    open_backend(settings).close()  # the data directory (a server's), then the tiles'
+    host = RayTileHost(settings, TileParts(settings, 7))
+    D = 3
+    tri = Triangulation(D)
+    with hosting(host):
+        tt = TiledTriangulation(D, tiles=2)
+    pts, vals = rng.uniform(size=(4000, D)), rng.uniform(size=(4000, 2))
+    tri.insert(pts, vals)
+    tt.insert(pts, vals, settle=True)
+    got = tt.tile_parts()
+    keys = [k for k, _ in got]
+    assert all(blob is None for _, blob in got) and host.stored > 0
+    store = open_backend(settings, follower=True)
+    assert store.snapshot_parts(7) == set(keys)
+    assert host.stored == sum(len(store.read_part(7, k)) for k in keys)
+    assert tt.tile_parts(known=keys) == got  # unchanged: not stored again
+    assert host.stored == sum(len(store.read_part(7, k)) for k in keys)
+
+    def here(key):
+        raise AssertionError(f"part {key} read by the group's process")
+
+    with hosting(host):
+        back = TiledTriangulation.from_parts(here, keys, D, tt.tiling_dict())
+    _same(back, tri, rng.uniform(size=(1000, D)))
+    np.testing.assert_array_equal(back.points, tri.points)
+    # a part damaged where it is stored: the load's error, named; the tile not lost
+    path = store.part_path(7, keys[1])
+    path.write_bytes(path.read_bytes()[:-10] + b"x" * 10)
+    with hosting(host), pytest.raises(SnapshotError, match="tile 1.*damaged"):
+        TiledTriangulation.from_parts(here, keys, D, tt.tiling_dict(), source="snap")
+    path.unlink()
+    with hosting(host), pytest.raises(SnapshotError, match="missing"):
+        TiledTriangulation.from_parts(here, keys, D, tt.tiling_dict())
+    assert host.lost is None
 
 
 def test_a_lost_tile_is_a_503_and_marks_the_host(host, rng):

@@ -68,11 +68,11 @@ class ShardActor:
     def __init__(self, settings, field_id: int, charts) -> None:
         from ...parallel import set_shard_threads
         from .. import logs
-        from .tiles import RayTileHost
+        from .tiles import RayTileHost, TileParts
 
         logs.configure(settings.log_level, settings.log_format)
         set_shard_threads(settings.shard_threads or node_cpus())
-        self.tiles = RayTileHost(settings)
+        self.tiles = RayTileHost(settings, TileParts(settings, field_id))
         self._tiles_at: list[dict] = []
         self.worker = ShardWorker(settings, field_id, charts, tile_host=self.tiles)
         threading.Thread(target=self._watch, name="flatserve-tiles-watch", daemon=True).start()

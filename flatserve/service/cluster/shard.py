@@ -354,7 +354,9 @@ class ShardWorker:
             elif fld.tiles != 1:  # one chart in tiles: a part per tile, and the field file
                 with tempfile.TemporaryDirectory(prefix="flatserve-tiles-") as stage:
                     buf = io.BytesIO()
+                    before = self.tile_host.stored  # (tiles that store their own parts)
                     tiles = fld.write_parts(buf, stage, known)
+                    stored += self.tile_host.stored - before
                     for key in tiles:  # those changed since their part was stored
                         path = os.path.join(stage, key)
                         if os.path.exists(path):

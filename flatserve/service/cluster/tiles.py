@@ -18,8 +18,11 @@ So a chart's memory and its inserts spread over as many nodes as it has tiles:
   ``min_position`` waits for the exchange of every batch up to it;
 * a query is answered by the tile whose box holds it (handed on once if its
   cell has no own vertex there), each tile's rows in one call;
-* a snapshot's part of a tile is that tile's record, serialised in its actor; a
-  restore loads each tile into a new actor, at once;
+* a snapshot's part of a tile is that tile's record, serialised and stored by
+  its actor (:class:`TileParts`: the field's storage, opened in the actor's
+  process); a restore has each new actor read its tile's part itself, at once:
+  a tile's bytes never pass through the group's process, which sends and
+  receives only the tile's global ids and own flags (9 bytes a point);
 * the actors belong to the group's worker: when it ends (restarted, deleted)
   they end with it. A tile that is lost (its node died) cannot be rebuilt alone,
   since its halo came from the exchange: the call raises
@@ -59,28 +62,83 @@ MAX_TILES = 64
 STATUS_WAIT_S = 2.0
 
 
+class TileParts:
+    """Where the tiles of one field store and read their snapshot parts: the
+    field's storage (:func:`~flatserve.service.backend.open_backend` of the
+    settings, as a shard worker opens it), opened in the process that uses it;
+    pickled as its settings and the field's id.
+
+    Parameters
+    ----------
+    settings : Settings
+    field_id : int
+    """
+
+    def __init__(self, settings, field_id: int) -> None:
+        self.settings, self.field_id = settings, int(field_id)
+        self._backend = None
+        self._lock = threading.Lock()
+
+    def __getstate__(self) -> dict:
+        return {"settings": self.settings, "field_id": self.field_id}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["settings"], state["field_id"])
+
+    def backend(self):
+        with self._lock:
+            if self._backend is None:
+                from ..backend import open_backend
+
+                self._backend = open_backend(self.settings, follower=True)
+            return self._backend
+
+    def get(self, key: str) -> bytes:
+        """The part's bytes (:meth:`~flatserve.service.backend.LogBackend.read_part`)."""
+        return self.backend().read_part(self.field_id, key)
+
+    def put(self, key: str, data: bytes) -> int:
+        """Store the part (:meth:`~flatserve.service.backend.LogBackend.store_part`):
+        bytes written, 0 if it was there."""
+        return self.backend().store_part(self.field_id, key, data)
+
+
 class TileActor:
     """A :class:`~flatserve.tiles.Tile` in a Ray actor (one process): empty at
-    first, loaded by :meth:`load` (so that a damaged part is an error of the call,
-    not the actor's death). A call that changes the tile (``insert``, ``load``)
-    returns its ``(npoints, generation, nchannels)`` with its result, so that the
-    proxy (:class:`RemoteTile`) answers those without a call."""
+    first, loaded by :meth:`load` or :meth:`load_part` (so that a damaged part is
+    an error of the call, not the actor's death). A call that changes the tile
+    (``insert``, the loads) returns its ``(npoints, generation, nchannels)`` with
+    its result, so that the proxy (:class:`RemoteTile`) answers those without a
+    call. With ``parts``, it stores and reads its own snapshot parts."""
 
-    def __init__(self, ndim: int, threads: int | None) -> None:
+    def __init__(self, ndim: int, threads: int | None, parts: TileParts | None = None) -> None:
         from ...parallel import set_shard_threads
         from .ray_shards import node_cpus  # (imported here: Ray's, on the node)
 
         set_shard_threads(threads or node_cpus())
         self.ndim = ndim
         self.tile = Tile(ndim)
+        self.parts = parts
 
     def state(self) -> tuple[int, int, int]:
         t = self.tile
         return t.npoints, t.generation, t.nchannels
 
-    def load(self, own, snapshot) -> tuple[int, int, int]:
-        self.tile = TileHost().load(self.ndim, own, snapshot)
-        return self.state()
+    def load(self, record):
+        """The tile from its record; its global ids, own flags and state."""
+        self.tile, gid, own = TileHost().load(self.ndim, record)
+        return gid, own, self.state()
+
+    def load_part(self, key: str, source: str, what: str):
+        """:meth:`load` of the part ``key``, read from the field's storage here."""
+        self.tile, gid, own = TileHost().load_part(self.ndim, key, self.parts.get, source, what)
+        return gid, own, self.state()
+
+    def store_part(self, gid, known) -> tuple[str, int]:
+        """Its record as a snapshot part, stored here unless ``known``: its key and
+        the bytes stored."""
+        key, blob = TileHost().part(self.tile, gid, known)
+        return key, 0 if blob is None else self.parts.put(key, blob)
 
     def call(self, method: str, args: tuple, kw: dict | None = None):
         return getattr(self.tile, method)(*args, **(kw or {}))
@@ -105,14 +163,30 @@ class RemoteTile:
     those change them, and the tiled triangulation never runs one beside
     another call that reads them."""
 
-    def __init__(self, host: "RayTileHost", ndim: int, own=None, snapshot=None) -> None:
+    def __init__(self, host: "RayTileHost", ndim: int) -> None:
         self._host, self._ndim = host, ndim
         self._actor = None
         self.npoints = self.generation = self.nchannels = 0
-        if snapshot is not None:
-            self._actor = host.spawn(ndim)
-            self.npoints, self.generation, self.nchannels = host.get(
-                self._actor.load.remote(own, bytes(snapshot)))
+
+    def load(self, record) -> tuple[np.ndarray, np.ndarray]:
+        """Load the tile from its record (sent to the actor): its global ids and own
+        flags."""
+        gid, own, state = self._host.get(self._started().load.remote(bytes(record)))
+        self.npoints, self.generation, self.nchannels = state
+        return gid, own
+
+    def load_part(self, key: str, source: str, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """Load the tile from its snapshot part, read by the actor: its global ids
+        and own flags."""
+        gid, own, state = self._host.get(self._started().load_part.remote(key, source, what))
+        self.npoints, self.generation, self.nchannels = state
+        return gid, own
+
+    def store_part(self, gid, known) -> tuple[str, int]:
+        """Its record stored by the actor as a snapshot part (unless ``known``): the
+        key and the bytes stored."""
+        return self._host.get(self._started().store_part.remote(
+            np.ascontiguousarray(gid, np.int64), frozenset(known)))
 
     @property
     def actor(self):
@@ -162,10 +236,10 @@ class RemoteTile:
     def star_foreign(self) -> int:
         return self._call("star_foreign") if self._actor is not None else 0
 
-    def snapshot(self):
+    def record(self, gid):
         if self._actor is None:
-            return Tile(self._ndim).snapshot()
-        return self._call("snapshot")
+            return Tile(self._ndim).record(gid)
+        return self._call("record", gid)
 
 
 class RayTileHost(TileHost):
@@ -178,20 +252,28 @@ class RayTileHost(TileHost):
         ``ray_shard_memory`` (each tile's reservation), ``ray_tile_samples``
         (``tiles="auto"``: samples per tile), ``shard_threads`` (each tile's
         threads; default its node's CPUs).
+    parts : TileParts, optional
+        The field's storage, where each tile stores and reads its own snapshot
+        part. Default: the parts pass through this process (a library's
+        tiled triangulation, the tests').
 
     Attributes
     ----------
     lost : str or None
         Why a tile was lost (its actor died or stopped answering); None while all
         answer.
+    stored : int
+        Bytes of snapshot parts the tiles stored themselves.
     """
 
-    def __init__(self, settings) -> None:
+    def __init__(self, settings, parts: TileParts | None = None) -> None:
         import ray
         from ray.exceptions import RayActorError, RayError, RayTaskError
 
         self.ray = ray
         self.settings = settings
+        self.parts = parts
+        self.stored = 0
         self._remote = ray.remote(TileActor)
         # every failure of Ray's (the actor dead or unreachable, its result lost, a
         # timeout) but a tile's own error (a task error) loses the tile
@@ -209,7 +291,7 @@ class RayTileHost(TileHost):
         return self._remote.options(
             num_cpus=0, memory=s.ray_shard_memory, max_restarts=0, max_task_retries=0,
             max_concurrency=TILE_CONCURRENCY, scheduling_strategy="SPREAD",
-        ).remote(ndim, s.shard_threads)
+        ).remote(ndim, s.shard_threads, self.parts)
 
     def auto_tiles(self, nsamples: int) -> int:
         """``tiles="auto"`` on a cluster: one tile per ``ray_tile_samples`` samples (a
@@ -237,11 +319,27 @@ class RayTileHost(TileHost):
             self._tiles.add(tile)
         return tile
 
-    def load(self, ndim: int, own, snapshot) -> RemoteTile:
-        tile = RemoteTile(self, ndim, own, snapshot)
+    def load(self, ndim: int, record):
+        tile = self.make(ndim)
+        return (tile, *tile.load(record))
+
+    def load_part(self, ndim: int, key: str, parts, source: str, what: str):
+        """The part read by the tile's new actor (with :attr:`parts`; else read
+        here and sent to it)."""
+        if self.parts is None:
+            return super().load_part(ndim, key, parts, source, what)
+        tile = self.make(ndim)
+        return (tile, *tile.load_part(key, source, what))
+
+    def part(self, tile: RemoteTile, gid, known):
+        """The tile's record stored by its actor (with :attr:`parts`: the key, and
+        None for the bytes; else serialised there and returned here)."""
+        if self.parts is None:
+            return super().part(tile, gid, known)
+        key, stored = tile.store_part(gid, known)
         with self._lock:
-            self._tiles.add(tile)
-        return tile
+            self.stored += stored
+        return key, None
 
     def get(self, ref, timeout: float = TILE_CALL_TIMEOUT_S):
         """``ray.get``: a tile's own error raised as itself; a lost tile as

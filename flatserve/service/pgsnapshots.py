@@ -12,6 +12,7 @@ snapshot on its way), and never follows a symlink.
 """
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import io
 import logging
@@ -141,8 +142,8 @@ def _copy_in(conn, name: str, path: Path | io.BytesIO) -> None:
 def _copy_out(conn, name: str, path: Path | io.BytesIO) -> None:
     """Snapshot row ``name``'s chunks, in order, into the file ``path`` (or bytes
     in memory)."""
-    with (path if isinstance(path, io.BytesIO) else open(path, "wb")) as fh, \
-            conn.cursor(binary=True) as cur, cur.copy(
+    with (contextlib.nullcontext(path) if isinstance(path, io.BytesIO) else open(path, "wb")) \
+            as fh, conn.cursor(binary=True) as cur, cur.copy(
             "COPY (SELECT data FROM snapshot_chunks WHERE name=%s ORDER BY idx)"
             " TO STDOUT (FORMAT BINARY)", (name,)) as cp:
         cp.set_types(["bytea"])

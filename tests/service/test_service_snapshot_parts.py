@@ -158,3 +158,48 @@ def test_the_parts_of_an_abandoned_snapshot_are_removed(make_app, rng, request, 
         assert "ab" * 16 not in rooms.storage.snapshot_parts(e.id)
     finally:
         tc.__exit__(None, None, None)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_parts_are_read_when_asked_and_a_replaced_snapshot_is_gone(make_app, rng, request,
+                                                                   backend):
+    """``read_part`` gives a stored part's bytes (its key checks them) and names a
+    missing one; a load that finds a part gone while the field's snapshot was
+    replaced meanwhile is told to read the new one (``SnapshotGoneError``), while
+    the same failure on the field's current snapshot is the load's own error."""
+    from flatserve.contract import load_field, part_key
+    from flatserve.errors import SnapshotError
+    from flatserve.service.backend import SnapshotGoneError
+
+    tc, c = started(make_app(**_opts(request, backend)))
+    try:
+        c.create_field("f")
+        o, v = paper_rays(rng, 2000)
+        c.upload_rays("f", o, v, rng.uniform(size=2000))
+        c.snapshot("f")
+        storage = tc.app.state.rooms.storage
+        e = tc.app.state.rooms.catalogue.get("f")
+        old = storage.field(e.id)
+        keys = storage.snapshot_parts(e.id)
+        assert keys and all(part_key(storage.read_part(e.id, k)) == k for k in keys)
+        with pytest.raises(SnapshotError, match="missing"):
+            storage.read_part(e.id, "cd" * 16)
+        assert storage.load_snapshot(old, load_field).nsamples == 2000
+        # a batch in the same charts, a new snapshot: their old parts are removed
+        o, v = paper_rays(rng, 2000)
+        c.upload_rays("f", o, v, rng.uniform(size=2000))
+        c.snapshot("f")
+        gone = sorted(keys - storage.snapshot_parts(e.id))
+        assert gone
+
+        def late(path, parts):  # the old snapshot's file read, a part gone since
+            return parts(gone[0])
+
+        if backend == "postgresql":  # (SQLite: the old file is gone as well)
+            with pytest.raises(SnapshotGoneError):
+                storage.load_snapshot(old, late)
+        new = storage.field(e.id)
+        with pytest.raises(SnapshotError, match="missing"):
+            storage.load_snapshot(new, late)
+    finally:
+        tc.__exit__(None, None, None)

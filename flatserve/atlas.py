@@ -57,7 +57,7 @@ from .field import Field
 from .flats import Flats
 from .grassmann import (complement, cos2_max_angle, cover_frames, cover_radius, covering_radius,
                         max_principal_angle, orientation_frames, use_normals)
-from .warp import LineWarp
+from .warp import FlatWarp, LineWarp, warp_from_dict
 
 __all__ = [
     "CHART_LIMIT_DEG",
@@ -195,14 +195,15 @@ class Atlas:
         ``unit`` is :data:`DEFAULT_UNIT` and ``unit_from_data`` True.
     isometric : bool, optional
         Warp each chart's points so that it measures turns and shifts
-        everywhere as at its centre (:mod:`flatserve.warp`; lines in any
-        R^d).  Default: True for lines in R^3, False otherwise (and for
-        atlases stored before there was a choice: :meth:`from_dict`).  For
-        lines in R^4 it is an opt-in: at 3,000 random lines the warped
-        atlas's median error was 0.62x the paper's charts', but 76 % of
-        queries fell inside the samples' hull against 100 % (a warp that
-        contracts the outer turns moves hull facets inwards; the samples are
-        sparse in 6 dimensions).
+        everywhere as at its centre (:mod:`flatserve.warp`: lines by
+        :class:`~flatserve.warp.LineWarp`, other flats with k >= 1 by
+        :class:`~flatserve.warp.FlatWarp`).  Default: True for lines in R^3,
+        False otherwise (and for atlases stored before there was a choice:
+        :meth:`from_dict`).  Elsewhere it is an opt-in: at 3,000 random lines
+        or planes in R^4 the warped atlas answered 78-79 % of the queries
+        against 100 % (a warp that contracts the outer turns moves hull facets
+        inwards; the samples are sparse in 6 dimensions), at about the same
+        median error (``docs/costs.md``).
 
     Attributes
     ----------
@@ -251,9 +252,10 @@ class Atlas:
         self.frames = N if use_normals(k, d) else A
         if isometric is None:
             isometric = (k, d) == (1, 3)
-        if not isinstance(isometric, (bool, np.bool_)) or (isometric and k != 1):
-            raise InvalidInputError(f"isometric: only charts of lines can be made isometric, "
-                                    f"got {isometric!r} for {k}-flats in R^{d}", "isometric")
+        if not isinstance(isometric, (bool, np.bool_)) or (isometric and k < 1):
+            raise InvalidInputError(f"isometric: expected true or false (charts of flats with "
+                                    f"k >= 1), got {isometric!r} for {k}-flats in R^{d}",
+                                    "isometric")
         self.isometric = bool(isometric)
         self._warps: list | None = None  # calibrated on first use (warps)
         self.bases = []
@@ -778,7 +780,8 @@ class Atlas:
     # ------------------------------------------------------------- persistence
     @property
     def warps(self) -> list:
-        """Per chart its :class:`~flatserve.warp.LineWarp` (isometric atlases), else None.
+        """Per chart its warp (isometric atlases: :class:`~flatserve.warp.LineWarp` for
+        lines, :class:`~flatserve.warp.FlatWarp` otherwise), else None.
 
         Calibrated on first use, or as stored (:meth:`from_dict`: a field
         rebuilt from its log keeps the warps it was built with, whatever
@@ -788,9 +791,10 @@ class Atlas:
                 self._warps = [None] * self.ncharts
             else:
                 out = []
+                kind = LineWarp if self.k == 1 else FlatWarp
                 for i, B in enumerate(self.bases):
                     try:
-                        out.append(LineWarp.calibrate(B))
+                        out.append(kind.calibrate(B))
                     except InvalidInputError as exc:
                         raise InvalidInputError(f"centers: chart {i} (scale "
                                                 f"{self.scales[i]:g}): {exc}", "centers") from None
@@ -864,7 +868,7 @@ class Atlas:
                     unit=None if spec.get("unit_from_data") else spec.get("unit", DEFAULT_UNIT),
                     isometric=cls.spec_isometric(spec))
         if atlas.isometric and "warps" in spec:
-            warps = [LineWarp.from_dict(w) for w in spec["warps"]]
+            warps = [warp_from_dict(w) for w in spec["warps"]]
             if len(warps) != atlas.ncharts:
                 raise InvalidInputError(f"warps: {len(warps)} for {atlas.ncharts} charts", "warps")
             atlas._warps = warps  # as stored

@@ -28,7 +28,7 @@ from .options import Order, Outside, choice
 from .flats import Flats, check_batch
 from .tiles import TiledTriangulation, tile_setting
 from .triangulation import Triangulation
-from .warp import LineWarp
+from .warp import FlatWarp, LineWarp, warp_from_dict
 
 __all__ = ["FIELD_MAGIC", "Field", "AddResult", "Chart", "PreparedBatch", "QueryResult", "QueryRoute"]
 
@@ -230,9 +230,11 @@ class Field(FieldBase):
     roundtrip_tol : float
         Largest round-trip residual (see :func:`flatserve.coordinates.coordinates`)
         for which a sample's or query's coordinates are trusted.
-    warp : flatserve.warp.LineWarp, optional
+    warp : flatserve.warp.LineWarp or flatserve.warp.FlatWarp, optional
         Applied to the embedded points before they are triangulated (the
-        isometric charts of an atlas of lines, :mod:`flatserve.warp`);
+        isometric charts of an atlas, :mod:`flatserve.warp`: a
+        :class:`~flatserve.warp.LineWarp` for lines, a
+        :class:`~flatserve.warp.FlatWarp` for k-flats of any k >= 1);
         None (the default): the paper's chart.
     tiles : int or "auto"
         Split the chart's triangulation into this many tiles
@@ -254,7 +256,7 @@ class Field(FieldBase):
     """
 
     def __init__(self, basis: Basis, channels: int = 1, *, roundtrip_tol: float = ROUNDTRIP_TOL,
-                 warp: LineWarp | None = None, tiles: int | str = 1):
+                 warp: LineWarp | FlatWarp | None = None, tiles: int | str = 1):
         if not isinstance(basis, Basis):
             raise InvalidInputError(f"basis: expected a flatserve.Basis, got {type(basis).__name__}", "basis")
         if not (isinstance(channels, (int, np.integer)) and channels >= 1):
@@ -266,11 +268,13 @@ class Field(FieldBase):
         self.k, self.d, self.ndim = basis.k, basis.d, basis.m - 1
         self.channels = int(channels)
         self.roundtrip_tol = float(roundtrip_tol)
-        if warp is not None and not (isinstance(warp, LineWarp) and self.k == 1
-                                     and warp.ndim == self.ndim):
-            raise InvalidInputError("warp: expected a flatserve.warp.LineWarp of lines in "
-                                    f"R^{self.d} on this field of {self.k}-flats in R^{self.d}",
-                                    "warp")
+        if warp is not None and not (
+                ((isinstance(warp, LineWarp) and self.k == 1)
+                 or (isinstance(warp, FlatWarp) and warp.k == self.k))
+                and warp.ndim == self.ndim):
+            raise InvalidInputError("warp: expected a flatserve.warp.LineWarp (lines) or "
+                                    f"FlatWarp of {self.k}-flats in R^{self.d} on this field "
+                                    f"of {self.k}-flats in R^{self.d}", "warp")
         #: the chart's warp (None: the paper's chart)
         self.warp = warp
         #: tiles of the chart's triangulation (1: one triangulation; "auto": as many as
@@ -672,7 +676,7 @@ class Field(FieldBase):
                                            kind="field", source=source)
         try:
             basis = Basis(np.array(meta["basis_Q"]), np.array(meta["basis_r"]), int(meta["k"]))
-            warp = LineWarp.from_dict(meta["warp"]) if "warp" in meta else None
+            warp = warp_from_dict(meta["warp"]) if "warp" in meta else None
             if version != _VERSION_TILES and (warp is not None) != (version == _VERSION_WARP):
                 raise ValueError(f"version {version} with{'' if warp else 'out'} a warp")
             tiling = meta.get("tiles") if version == _VERSION_TILES else None
@@ -693,6 +697,8 @@ class Field(FieldBase):
                             if keys is None else
                             TiledTriangulation.from_parts(parts, keys, obj.ndim, tiling,
                                                           source=source))
+        except SnapshotError:  # a part missing or damaged: says which itself
+            raise
         except (ValueError, KeyError, TypeError, InvalidInputError) as exc:
             raise corrupted("field", source, exc) from None
         if not tiling:

@@ -1,4 +1,6 @@
-"""Isometric charts of lines in R^3: undo a tangent-simplex chart's stretch off its centre.
+"""Isometric charts: undo a tangent-simplex chart's stretch off its centre (lines in
+closed form, :class:`LineWarp`; k-flats of any k >= 1 by normal coordinates,
+:class:`FlatWarp`).
 
 A tangent-simplex chart (paper Sec. 5.1) of lines in R^3 is isometric at its
 centre line (a shift of one unit of length and a turn of one radian move the
@@ -34,6 +36,21 @@ and shift by shift, ``tests/test_warp.py``), and :class:`LineWarp` warps
 them alike; atlases of lines in R^3 are isometric by default, others opt in
 (:class:`flatserve.atlas.Atlas` ``isometric``).
 
+Any k-flats: :class:`FlatWarp` takes an embedded point back to its flat (the
+chart's affine combination) and gives it :func:`normal_coordinates` about the
+chart's centre (the log map of the Grassmannian: the principal angles towards
+their turns, in radians; the offset carried along the geodesic), times the
+chart's Jacobian at its centre, so that it too is the identity to first order
+at the centre. Against the principal angles of nearby flats (the
+Grassmannian's own distance) the warped chart measures a turn within 1 and
+``r / sin(r)`` (the curvature) up to 40 degrees, where the paper's chart
+stretches it 2-4x (``tests/test_warp.py``). Measured in
+``benchmarks/accuracy_by_kind.py`` (``docs/costs.md``): one chart's error is
+flatter across it (planes in R^3: 1.7x from the centre to its edge against
+3.5x), but in an atlas the isometric charts answer fewer queries in 6
+dimensions (79 % for planes in R^4 at 3,000 samples), so they are an opt-in
+for every kind but lines in R^3.
+
 Example
 -------
 >>> import numpy as np, flatserve
@@ -51,11 +68,12 @@ import math
 import numpy as np
 
 from .coordinates import OK
-from .embedding import embed, row_product
+from .embedding import embed, row_product, unembed
 from .errors import InvalidInputError
-from .flats import Flats
+from .flats import Flats, project_unchecked
 
-__all__ = ["LineWarp", "CALIBRATION_DEG", "CALIBRATION_TOL"]
+__all__ = ["LineWarp", "FlatWarp", "normal_coordinates", "warp_from_dict", "CALIBRATION_DEG",
+           "CALIBRATION_TOL", "CALIBRATION_STEP"]
 
 #: The tilt (degrees) of the calibration line that measures ``kT``; any angle
 #: below 45 gives the same ``kT`` up to rounding (``|T| = kT tan(2 phi) / 2``).
@@ -67,6 +85,9 @@ CALIBRATION_DEG = 10.0
 CALIBRATION_TOL = 1e-6
 #: How far from orthonormal a stored frame may be (:meth:`LineWarp.from_dict`).
 FRAME_TOL = 1e-9
+#: The step (radians of turn, units of shift) of :meth:`FlatWarp.calibrate`'s
+#: central differences (their error is of the order of its square).
+CALIBRATION_STEP = 1e-4
 
 
 class LineWarp:
@@ -207,3 +228,276 @@ class LineWarp:
 
     def __repr__(self) -> str:
         return f"LineWarp(kT={self.kT:.6g})"
+
+
+# ---------------------------------------------------------------------- any (k, d)
+def normal_coordinates(P, r, center_A, center_N, point) -> np.ndarray:
+    """Normal coordinates of k-flats about a centre flat: the log map of the
+    Grassmannian and the offset, carried along the geodesic.
+
+    The direction space ``U`` of a flat is ``U = exp(H)`` of the centre's
+    ``U0``: ``H`` ((d-k) x k, in the centre's normals ``N0`` and spanning
+    vectors ``U0``) has the principal angles between the two as its singular
+    values, each towards the direction of its turn (``N0^T U (U0^T U)^-1 =
+    Qs tan(S) V^T``, ``H = Qs S V^T``). The offset is the flat's point closest to
+    the centre's ``point`` minus that point, in the centre's normals turned
+    with the flat (the rotation ``exp(N0 H U0^T - U0 H^T N0^T)``, which takes
+    ``U0`` to ``U``). A turn of one radian and a shift of one unit of length
+    move the coordinates as far, in every direction, at every flat up to the
+    Grassmannian's curvature (a turn across the radius ``r`` moves them
+    ``r / sin(r)`` times too far at most: 1.09 at 40 degrees, 1.18 where the
+    curvature is 2, as for planes in R^4; ``tests/test_warp.py`` measures it
+    against the principal angles).
+
+    Parameters
+    ----------
+    P : ndarray, shape (n, d, d)
+        The flats' direction projectors ``I - Q`` (valid flats, (C1)).
+    r : ndarray, shape (n, d)
+        Their points closest to the origin (Eq. 3).
+    center_A : ndarray, shape (d, k)
+    center_N : ndarray, shape (d, d - k)
+        The centre's orthonormal spanning vectors and normals.
+    point : ndarray, shape (d,)
+        A point of the centre flat.
+
+    Returns
+    -------
+    ndarray, shape (n, (k + 1)(d - k))
+        ``H`` row by row, then the offset's ``d - k`` coordinates. Each row
+        depends only on its own flat (computed matrix by matrix).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> A0, N0 = np.eye(3)[:, 2:], np.eye(3)[:, :2]
+    >>> th = 0.3                                  # the z-axis tilted towards x, then shifted in y
+    >>> u = np.array([np.sin(th), 0, np.cos(th)])
+    >>> P = np.outer(u, u)[None]
+    >>> z = normal_coordinates(P, np.array([[0.0, 2.0, 0.0]]), A0, N0, np.zeros(3))
+    >>> np.round(z, 12).tolist()
+    [[0.3, 0.0, 0.0, 2.0]]
+    """
+    n = P.shape[0]
+    A0, N0 = center_A, center_N
+    k, dk = A0.shape[1], N0.shape[1]
+    PA = np.matmul(P, A0)                                   # (n, d, k): U U^T U0
+    M = np.matmul(A0.T, PA)                                 # (n, k, k): U0^T P U0
+    B = np.matmul(N0.T, PA)                                 # (n, d-k, k)
+    T = np.swapaxes(np.linalg.solve(M, np.swapaxes(B, 1, 2)), 1, 2)  # B M^-1 = tan
+    Qs, S, Vt = np.linalg.svd(T, full_matrices=False)
+    sig = np.arctan(S)                                      # the principal angles
+    H = np.matmul(Qs * sig[:, None, :], Vt)
+    o = r - point - np.matmul(P, (r - point)[:, :, None])[:, :, 0]  # closest point - point
+    bN = np.matmul(o, N0)                                   # (n, d-k)
+    aU = np.matmul(o, A0)                                   # (n, k)
+    b = np.matmul(bN[:, None, :], Qs)[:, 0, :]              # q_i . N0^T o
+    a = np.matmul(Vt, aU[:, :, None])[:, :, 0]              # v_i . U0^T o
+    oc = bN + np.matmul(Qs, ((np.cos(sig) - 1.0) * b - np.sin(sig) * a)[:, :, None])[:, :, 0]
+    return np.concatenate([H.reshape(n, dk * k), oc], axis=1)
+
+
+def _rows(fn, *arrays):
+    """``fn`` of each row of the arrays on its own (stacked again): numpy's
+    matrix products of a whole batch may round a row differently with other
+    rows beside it, and a flat's coordinates must not depend on its batch."""
+    if not len(arrays[0]):
+        return fn(*arrays)
+    return np.concatenate([fn(*(a[i:i + 1] for a in arrays)) for i in range(len(arrays[0]))])
+
+
+class FlatWarp:
+    """The isometric warp of one tangent-simplex chart of k-flats in R^d (any k >= 1).
+
+    The chart's embedded point ``x`` is taken back to its flat (the paper's
+    affine combination of the chart's basis, Eq. 4, 6), whose
+    :func:`normal_coordinates` ``z`` about the chart's centre go through the
+    chart's own Jacobian at its centre ``J = dx/dz`` (measured by central
+    differences, :meth:`calibrate`): ``y = x0 + J z``. So the warped chart is
+    the identity to first order at its centre, and off it measures turns and
+    shifts as at its centre (a tangent-simplex chart stretches a turn
+    towards its edge: by ``1/cos^2(2 phi)`` for lines, 2-3x at 40 degrees for
+    planes in R^3 and R^4). Lines have :class:`LineWarp`, the same map in closed
+    form.
+
+    Parameters
+    ----------
+    Q : ndarray, shape (m, d, d)
+    r : ndarray, shape (m, d)
+        The chart's basis (:class:`flatserve.Basis`).
+    k : int
+    center_A : ndarray, shape (d, k)
+    center_N : ndarray, shape (d, d - k)
+    point : ndarray, shape (d,)
+        The centre flat: orthonormal spanning vectors, normals, a point.
+    origin : ndarray, shape (m - 1,)
+        The centre's embedded point.
+    J : ndarray, shape (m - 1, m - 1)
+        The chart's Jacobian at its centre, columns along ``z``.
+
+    Use :meth:`calibrate` to build one from a basis.
+
+    Examples
+    --------
+    >>> import flatserve
+    >>> Q, r = flatserve.Basis.default_center(2, 3)
+    >>> basis = flatserve.Basis.tangent_simplex(Q, r, 2, scale=1.0)
+    >>> warp = FlatWarp.calibrate(basis)
+    >>> f = flatserve.Field(basis, warp=warp)
+    >>> pl = flatserve.Flats.from_parametric([[[1.0, 0], [0, 0.9], [0, 0.3]]], [[0, 0, 0.5]])
+    >>> f.chart(pl).points.shape
+    (1, 3)
+    """
+
+    def __init__(self, Q, r, k: int, center_A, center_N, point, origin, J):
+        self.Q = np.ascontiguousarray(Q, dtype=np.float64)
+        self.r = np.ascontiguousarray(r, dtype=np.float64)
+        self.k = int(k)
+        self.center_A = np.ascontiguousarray(center_A, dtype=np.float64)
+        self.center_N = np.ascontiguousarray(center_N, dtype=np.float64)
+        self.point = np.ascontiguousarray(point, dtype=np.float64).reshape(-1)
+        self.origin = np.ascontiguousarray(origin, dtype=np.float64).reshape(-1)
+        m, d = self.Q.shape[0], self.point.shape[0]
+        D = m - 1
+        self.J = np.ascontiguousarray(J, dtype=np.float64)
+        shapes = {"Q": (self.Q.shape, (m, d, d)), "r": (self.r.shape, (m, d)),
+                  "center_A": (self.center_A.shape, (d, self.k)),
+                  "center_N": (self.center_N.shape, (d, d - self.k)),
+                  "origin": (self.origin.shape, (D,)), "J": (self.J.shape, (D, D))}
+        for name, (got, want) in shapes.items():
+            if got != want:
+                raise InvalidInputError(f"warp: {name}: expected shape {want}, got {got}", "warp")
+        if not 1 <= self.k < d or D != (self.k + 1) * (d - self.k):
+            raise InvalidInputError(f"warp: {m} basis flats for {self.k}-flats in R^{d}", "warp")
+        arrays = (self.Q, self.r, self.center_A, self.center_N, self.point, self.origin, self.J)
+        if not all(np.isfinite(a).all() for a in arrays):
+            raise InvalidInputError("warp: expected finite arrays", "warp")
+        C = np.concatenate([self.center_A, self.center_N], axis=1)
+        off = float(np.abs(C.T @ C - np.eye(d)).max())
+        if off > FRAME_TOL:
+            raise InvalidInputError(f"warp: the centre's frame is not orthonormal (off by "
+                                    f"{off:.3g})", "warp")
+        if np.linalg.cond(self.J) > 1e8:
+            raise InvalidInputError("warp: a singular Jacobian (a collapsed chart: its scale?)",
+                                    "warp")
+        self._JT = np.ascontiguousarray(self.J.T)
+
+    @property
+    def ndim(self) -> int:
+        """The dimension of the chart's embedded points, (k + 1)(d - k)."""
+        return self.origin.shape[0]
+
+    @classmethod
+    def calibrate(cls, basis, *, calibration_tol: float = CALIBRATION_TOL,
+                  step: float = CALIBRATION_STEP) -> "FlatWarp":
+        """The warp of the chart of ``basis`` (a tangent simplex, k >= 1).
+
+        Measures the chart at its centre and at the flats one ``step`` away
+        along each normal coordinate, both ways (each spanning vector of the
+        centre turned towards each normal; the centre shifted along each
+        normal): ``J`` by central differences.
+
+        Parameters
+        ----------
+        basis : flatserve.Basis
+            With ``basis.center`` set (a tangent simplex), 1 <= k < d.
+        calibration_tol : float
+            Round-trip tolerance of the calibration flats per unit of the
+            centre's distance from the origin (:data:`CALIBRATION_TOL`).
+        step : float
+            Radians of turn and units of shift (:data:`CALIBRATION_STEP`).
+
+        Returns
+        -------
+        FlatWarp
+        """
+        k, d = basis.k, basis.d
+        if k < 1 or basis.center is None:
+            raise InvalidInputError("warp: only tangent-simplex charts of flats with k >= 1 "
+                                    "have one", "warp")
+        Qc, rc = basis.center
+        _, V = np.linalg.eigh(np.asarray(Qc, dtype=np.float64))
+        A0, N0 = V[:, :k], V[:, k:]
+        p0 = np.asarray(rc, dtype=np.float64)
+        A, b = [A0], [p0]
+        for sgn in (1.0, -1.0):
+            h = sgn * step
+            for a in range(d - k):          # turns: z's H row by row
+                for j in range(k):
+                    U = A0.copy()
+                    U[:, j] = math.cos(h) * A0[:, j] + math.sin(h) * N0[:, a]
+                    A.append(U)
+                    b.append(p0)
+            for a in range(d - k):          # shifts
+                A.append(A0)
+                b.append(p0 + h * N0[:, a])
+        tol = calibration_tol * max(1.0, float(np.linalg.norm(p0)))
+        co = basis.coordinates_of(Flats.from_parametric(np.stack(A), np.stack(b)), tol)
+        if not (np.asarray(co.status) == OK).all():
+            raise InvalidInputError(
+                f"warp: the chart does not hold its calibration flats (round trip within "
+                f"{tol:g}; a collapsed chart: its scale?)", "warp")
+        x = embed(co.weights)
+        D = x.shape[1]
+        J = (x[1:1 + D] - x[1 + D:]).T / (2.0 * step)
+        return cls(basis.Q, basis.r, k, A0, N0, p0, x[0], J)
+
+    def normal(self, x: np.ndarray) -> np.ndarray:
+        """The :func:`normal_coordinates` of the flats of embedded points ``x``
+        (n, m - 1): their flats by the chart's affine combination (Eq. 4, 6)."""
+        x = np.asarray(x, dtype=np.float64)
+        m, d = self.Q.shape[0], self.point.shape[0]
+        if not len(x):
+            return np.empty((0, m - 1))
+        w = unembed(x)
+        Qs = row_product(w, self.Q.reshape(m, d * d)).reshape(-1, d, d)
+        Qs = 0.5 * (Qs + np.swapaxes(Qs, 1, 2))
+        rs = row_product(w, self.r)
+
+        def rows(Qs, rs):
+            pr = project_unchecked(Qs, rs, self.k)
+            return normal_coordinates(np.eye(d) - pr.Q, pr.r, self.center_A, self.center_N,
+                                      self.point)
+
+        return _rows(rows, Qs, rs)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """Warp embedded points: (n, m - 1) -> (n, m - 1), row by row."""
+        x = np.asarray(x, dtype=np.float64)
+        if not len(x):
+            return np.empty((0, self.ndim))
+        return row_product(self.normal(x), self._JT) + self.origin
+
+    # --------------------------------------------------------------- persistence
+    def to_dict(self) -> dict:
+        """JSON-able (floats round-trip exactly); :func:`warp_from_dict` inverts it."""
+        return {"kind": "flats", "k": self.k, "Q": self.Q.tolist(), "r": self.r.tolist(),
+                "center_A": self.center_A.tolist(), "center_N": self.center_N.tolist(),
+                "point": self.point.tolist(), "origin": self.origin.tolist(),
+                "J": self.J.tolist()}
+
+    @classmethod
+    def from_dict(cls, spec: dict) -> "FlatWarp":
+        if spec.get("kind") != "flats":
+            raise InvalidInputError(f"warp: unknown kind {spec.get('kind')!r}", "warp")
+        return cls(*(np.array(spec[key], dtype=np.float64) for key in ("Q", "r")), int(spec["k"]),
+                   *(np.array(spec[key], dtype=np.float64)
+                     for key in ("center_A", "center_N", "point", "origin", "J")))
+
+    def __repr__(self) -> str:
+        return f"FlatWarp(k={self.k}, d={self.point.shape[0]})"
+
+
+def warp_from_dict(spec: dict) -> "LineWarp | FlatWarp":
+    """A warp stored by ``to_dict`` (:class:`LineWarp` or :class:`FlatWarp`).
+
+    Raises
+    ------
+    flatserve.errors.InvalidInputError
+        ``"warp"``: an unknown kind, or arrays that do not describe a warp.
+    """
+    if not isinstance(spec, dict):
+        raise InvalidInputError("warp: expected an object", "warp")
+    if spec.get("kind") == "flats":
+        return FlatWarp.from_dict(spec)
+    return LineWarp.from_dict(spec)

@@ -1,8 +1,12 @@
-"""The isometric warp of a tangent-simplex chart of lines in R^3 (flatserve.warp).
+"""The isometric warps of tangent-simplex charts (flatserve.warp): lines (LineWarp),
+k-flats of any k >= 1 (FlatWarp, normal coordinates).
 
 Oracles: finite differences of the chart (its Jacobian in turns and shifts
 about each line), the measured structure of the paper's chart that the warp
-relies on, and round trips through the field file.
+relies on, round trips through the field file; for FlatWarp the exponential
+map built with scipy's matrix exponential (normal coordinates are its
+inverse) and the principal angles between nearby flats (the Grassmannian's
+own distance).
 """
 import io
 import math
@@ -13,7 +17,7 @@ import pytest
 from flatserve import Basis, Field, Flats
 from flatserve.atlas import Atlas
 from flatserve.errors import InvalidInputError, SnapshotError
-from flatserve.warp import LineWarp
+from flatserve.warp import FlatWarp, LineWarp, normal_coordinates
 
 H = 1e-5  # finite-difference step (radians of turn, units of shift)
 
@@ -162,15 +166,21 @@ def test_a_warped_field_file_round_trips():
         Field.from_bytes(data)
 
 
-def test_only_charts_of_lines_can_be_warped():
+def test_which_charts_take_which_warp():
     a = Atlas.covering(2, 4)
-    with pytest.raises(InvalidInputError, match="isometric: only charts of lines"):
-        Atlas(2, 4, a.center_A, a.center_N, a.center_r, a.scales, isometric=True)
+    # points have no warp; lines a LineWarp, other flats a FlatWarp
+    with pytest.raises(InvalidInputError, match="isometric: expected"):
+        Atlas(0, 3, np.zeros((1, 3, 0)), np.eye(3)[None], np.zeros((1, 3)), [1.0],
+              isometric=True)
+    assert isinstance(Atlas(2, 4, a.center_A, a.center_N, a.center_r, a.scales,
+                            isometric=True).warps[0], FlatWarp)
     # lines in R^4 may be (opt in: below), R^3's are by default
     assert not Atlas.covering(1, 4).isometric and Atlas.covering(1, 3).isometric
     assert Atlas.covering(1, 4, isometric=True).warps[0].ndim == 6
     with pytest.raises(InvalidInputError, match="warp: only tangent-simplex charts of lines"):
         LineWarp.calibrate(a.bases[0])  # planes
+    with pytest.raises(InvalidInputError, match="warp: expected a flatserve.warp.LineWarp"):
+        Field(a.bases[0], warp=FlatWarp.calibrate(Atlas.covering(3, 4).bases[0]))
     assert LineWarp.calibrate(Basis.around_axis(axis=2, d=4, scale=1.0)).ndim == 6
     with pytest.raises(InvalidInputError, match="warp"):  # a warp of lines in R^3 on R^4's
         Field(Basis.around_axis(axis=3, d=4, scale=1.0),
@@ -299,3 +309,153 @@ def test_damaged_or_mismatched_warps_are_snapshot_errors(tmp_path):
     assert AtlasField.load(tmp_path / "a.atlas").nsamples == 300
     with pytest.raises(SnapshotError, match="warp"):
         AtlasField.load(tmp_path / "b.atlas")
+
+
+# ------------------------------------------------------------------ any (k, d)
+KD = [(2, 3), (3, 4), (2, 4), (1, 4), (2, 5)]
+
+
+def _frame(k, d, rng):
+    """A random centre: orthonormal spanning vectors (d, k), normals (d, d-k), a point."""
+    q, _ = np.linalg.qr(rng.normal(size=(d, d)))
+    return q[:, :k], q[:, k:], rng.normal(size=d)
+
+
+def _exp(A0, N0, p0, z):
+    """The flat of normal coordinates ``z`` about (A0, N0, p0), by scipy's matrix
+    exponential of the rotation that turns the centre: (its frame, a point)."""
+    from scipy.linalg import expm
+
+    k, dk = A0.shape[1], N0.shape[1]
+    H = z[:dk * k].reshape(dk, k)
+    G = N0 @ H @ A0.T
+    R = expm(G - G.T)
+    return R @ A0, p0 + R @ N0 @ z[dk * k:]
+
+
+@pytest.mark.parametrize("k,d", KD)
+def test_normal_coordinates_invert_the_exponential_map(k, d):
+    rng = np.random.default_rng(k * 10 + d)
+    A0, N0, p0 = _frame(k, d, rng)
+    D = (k + 1) * (d - k)
+    for _ in range(40):
+        z = rng.normal(size=D)
+        nt = (d - k) * k
+        z[:nt] *= rng.uniform(0, math.radians(44)) / max(np.linalg.svd(
+            z[:nt].reshape(d - k, k), compute_uv=False)[0], 1e-12)  # turns below 44 degrees
+        z[nt:] *= 3.0
+        U, c = _exp(A0, N0, p0, z)
+        P = U @ U.T
+        r = c - P @ c  # the point closest to the origin: any point of the flat will do
+        got = normal_coordinates(P[None], r[None], A0, N0, p0)[0]
+        np.testing.assert_allclose(got, z, atol=1e-9)
+
+
+def _grassmann(U1, U2) -> float:
+    """Geodesic distance of two k-subspaces: the root sum of squares of their
+    principal angles (arccos of the singular values of U1^T U2)."""
+    s = np.clip(np.linalg.svd(U1.T @ U2, compute_uv=False), -1, 1)
+    return float(np.sqrt((np.arccos(s) ** 2).sum()))
+
+
+@pytest.mark.parametrize("k,d", [(2, 3), (3, 4), (2, 4)])
+def test_a_warped_chart_measures_turns_as_the_grassmannian_does(k, d):
+    """Pairs of nearby flats through the centre's point, up to 40 degrees off it: the
+    warped chart's distance over the Grassmannian's (principal angles) stays within
+    the curvature's bounds (1 up to r / sin(r)), where the paper's chart stretches
+    it 2x and more towards its edge; shifts of one flat are exact."""
+    rng = np.random.default_rng(d)
+    Qc, rc = Basis.default_center(k, d)
+    basis = Basis.tangent_simplex(Qc, rc, k, scale=0.3)
+    warp = FlatWarp.calibrate(basis)
+    field = Field(basis, warp=warp)
+    raw = Field(basis)
+    Jinv = np.linalg.inv(warp.J)
+    A0, N0 = warp.center_A, warp.center_N
+    nt = (d - k) * k
+    ratios, raws = [], []
+    for _ in range(60):
+        z = np.zeros((k + 1) * (d - k))
+        z[:nt] = rng.normal(size=nt)
+        z[:nt] *= math.radians(rng.uniform(5, 40)) / np.linalg.svd(
+            z[:nt].reshape(d - k, k), compute_uv=False)[0]
+        step = np.zeros_like(z)
+        step[:nt] = 1e-4 * rng.normal(size=nt)
+        flats = [_exp(A0, N0, warp.point, z + s) for s in (0 * step, step)]
+        dist = _grassmann(flats[0][0], flats[1][0])
+        fl = Flats.from_parametric(np.stack([f[0] for f in flats]), np.stack([f[1] for f in flats]))
+        y, x = field.chart(fl), raw.chart(fl)
+        assert y.ok.all() and x.ok.all()
+        ratios.append(np.linalg.norm(Jinv @ (y.points[1] - y.points[0])) / dist)
+        raws.append(np.linalg.norm(Jinv @ (x.points[1] - x.points[0])) / dist)
+    # normal coordinates overstate a turn across the radius r by r / sin(r) at most
+    # (curvature up to 2 here: 1.18 at 40 degrees), never understate one
+    assert 1.0 - 1e-3 < min(ratios) and max(ratios) < 1.2, (min(ratios), max(ratios))
+    assert max(raws) > 1.8, max(raws)  # what the warp undoes
+    # a shift of a turned flat: its warped points move by the shift itself
+    z[nt:] = 0
+    U, c = _exp(A0, N0, warp.point, z)
+    n = np.linalg.qr(np.c_[U, rng.normal(size=(d, d - k))])[0][:, k:][:, 0]
+    fl = Flats.from_parametric(np.stack([U, U]), np.stack([c, c + 0.01 * n]))
+    y = field.chart(fl).points
+    assert abs(np.linalg.norm(Jinv @ (y[1] - y[0])) - 0.01) < 1e-9
+
+
+@pytest.mark.parametrize("k,d", [(2, 3), (2, 4)])
+def test_a_flat_warp_is_the_identity_to_first_order_and_batch_independent(k, d):
+    rng = np.random.default_rng(3)
+    Qc, rc = Basis.default_center(k, d)
+    basis = Basis.tangent_simplex(Qc, rc, k, scale=0.5)
+    warp = FlatWarp.calibrate(basis)
+    field, raw = Field(basis, warp=warp), Field(basis)
+    for eps in (1e-2, 1e-3):
+        z = rng.normal(size=(k + 1) * (d - k))
+        fl = Flats.from_parametric(*(a[None] for a in _exp(warp.center_A, warp.center_N,
+                                                            warp.point, eps * z / np.linalg.norm(z))))
+        x, y = raw.chart(fl).points[0], field.chart(fl).points[0]
+        # second order: |y - x| / |x - x0| shrinks with the step
+        assert np.linalg.norm(y - x) < 2.0 * eps * np.linalg.norm(x - warp.origin)
+    A, c = haar_like(rng, 300, k, d)
+    fl = Flats.from_parametric(A, c)
+    whole = field.chart(fl)
+    for i in np.flatnonzero(whole.ok)[:25]:
+        alone = field.chart(fl.take([i]))
+        assert alone.points.tobytes() == whole.points[np.flatnonzero(whole.ok) == i].tobytes()
+
+
+def haar_like(rng, n, k, d, spread=0.3):
+    """Flats near the default centre (the last k axes): frames and points."""
+    A = np.linalg.qr(np.eye(d)[:, d - k:] + spread * rng.normal(size=(n, d, k)))[0]
+    return A, rng.uniform(-1, 1, (n, d))
+
+
+def test_a_flat_warped_field_file_and_atlas_round_trip(tmp_path):
+    from flatserve.atlas_field import AtlasField
+
+    rng = np.random.default_rng(5)
+    Qc, rc = Basis.default_center(2, 4)
+    basis = Basis.tangent_simplex(Qc, rc, 2, scale=0.5)
+    f = Field(basis, warp=FlatWarp.calibrate(basis))
+    A, c = haar_like(rng, 600, 2, 4)
+    f.add(Flats.from_parametric(A, c), rng.uniform(size=600))
+    buf = io.BytesIO()
+    f.write_to(buf)
+    back = Field.from_bytes(buf.getvalue())
+    assert isinstance(back.warp, FlatWarp) and back.warp.to_dict() == f.warp.to_dict()
+    q = Flats.from_parametric(*haar_like(rng, 300, 2, 4))
+    assert f.query(q).values.tobytes() == back.query(q).values.tobytes()
+    # a damaged warp is a SnapshotError naming it
+    data = buf.getvalue().replace(b'"kind": "flats"', b'"kind": "flatz"')
+    with pytest.raises(SnapshotError, match="warp"):
+        Field.from_bytes(data)
+    # an isometric atlas of planes in R^3 keeps its warps through its file
+    at = AtlasField(Atlas.covering(2, 3, isometric=True))
+    A, c = haar_like(rng, 2000, 2, 3, spread=3.0)
+    at.add(Flats.from_parametric(A, c), rng.uniform(size=2000))
+    at.save(tmp_path / "p.atlas")
+    again = AtlasField.load(tmp_path / "p.atlas")
+    assert all(isinstance(w, FlatWarp) for w in again.atlas.warps)
+    q = Flats.from_parametric(*haar_like(rng, 500, 2, 3, spread=3.0))
+    a, b = at.query(q), again.query(q)
+    assert a.inside.mean() > 0.8
+    assert a.values.tobytes() == b.values.tobytes()

@@ -351,7 +351,7 @@ class LogApplier:
                 arrays, values, unit = split_batch(self.storage.batch_arrays(e.id, b.seq))
                 adopt_unit(fld, unit)
                 prepared = fld.prepare(stored_flats(e, b.form, arrays), values)
-                replayed += int(fld.insert_prepared(  # (a tiled chart settles each slice)
+                replayed += int(fld.insert_prepared(  # (a tiled chart: each batch whole, settled)
                     prepared, slice_rows=self.settings.insert_slice_rows).accepted)
                 seq, pos = b.seq, b.position
                 done += 1

@@ -169,8 +169,9 @@ class SnapshotFiles:
         except FileNotFoundError:
             raise SnapshotError(f"snapshot part {key} of field id {field_id} is missing "
                                 f"({path})") from None
-        except OSError as exc:
-            raise StorageError(f"cannot read {path}: {exc}") from exc
+        except OSError as exc:  # unreadable here: damaged, as for the snapshot's file
+            raise SnapshotError(f"snapshot part {key} of field id {field_id}: cannot read "
+                                f"{path}: {exc}") from exc
 
     def load_snapshot(self, row: FieldRow, load: Callable[[Path, Callable[[str], bytes]], T]) -> T:
         path = self.snapshot_path(row.snapshot_file)

@@ -195,9 +195,8 @@ def test_parts_are_read_when_asked_and_a_replaced_snapshot_is_gone(make_app, rng
         def late(path, parts):  # the old snapshot's file read, a part gone since
             return parts(gone[0])
 
-        if backend == "postgresql":  # (SQLite: the old file is gone as well)
-            with pytest.raises(SnapshotGoneError):
-                storage.load_snapshot(old, late)
+        with pytest.raises(SnapshotGoneError):
+            storage.load_snapshot(old, late)
         new = storage.field(e.id)
         with pytest.raises(SnapshotError, match="missing"):
             storage.load_snapshot(new, late)

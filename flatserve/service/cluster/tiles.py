@@ -12,7 +12,7 @@ So a chart's memory and its inserts spread over as many nodes as it has tiles:
   (:meth:`~flatserve.tiles.TiledTriangulation.settle`) run between the actors,
   the group's worker routing what each tile sends (a round is a barrier: every
   tile scans, then every tile inserts what it received);
-* the worker settles each slice of a batch before it moves on
+* the worker inserts each batch whole and settles it before it moves on
   (:meth:`~flatserve.Field.insert_prepared`), so a copy's tiles depend on the log
   alone: every copy of the group holds the same bits, and a query's
   ``min_position`` waits for the exchange of every batch up to it;
@@ -33,6 +33,7 @@ So a chart's memory and its inserts spread over as many nodes as it has tiles:
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
@@ -65,8 +66,11 @@ STATUS_WAIT_S = 2.0
 class TileParts:
     """Where the tiles of one field store and read their snapshot parts: the
     field's storage (:func:`~flatserve.service.backend.open_backend` of the
-    settings, as a shard worker opens it), opened in the process that uses it;
-    pickled as its settings and the field's id.
+    settings, as a shard worker opens it), opened in the process that uses it
+    for each part and closed again (a snapshot or a restore is rare; an open
+    backend per tile would hold a database connection per tile for good);
+    pickled as its settings and the field's id. Every node holding tiles must
+    reach the database (or, SQLite, the data directory).
 
     Parameters
     ----------
@@ -76,31 +80,22 @@ class TileParts:
 
     def __init__(self, settings, field_id: int) -> None:
         self.settings, self.field_id = settings, int(field_id)
-        self._backend = None
-        self._lock = threading.Lock()
 
-    def __getstate__(self) -> dict:
-        return {"settings": self.settings, "field_id": self.field_id}
+    def _backend(self):
+        from ..backend import open_backend
 
-    def __setstate__(self, state: dict) -> None:
-        self.__init__(state["settings"], state["field_id"])
-
-    def backend(self):
-        with self._lock:
-            if self._backend is None:
-                from ..backend import open_backend
-
-                self._backend = open_backend(self.settings, follower=True)
-            return self._backend
+        return contextlib.closing(open_backend(self.settings, follower=True))
 
     def get(self, key: str) -> bytes:
         """The part's bytes (:meth:`~flatserve.service.backend.LogBackend.read_part`)."""
-        return self.backend().read_part(self.field_id, key)
+        with self._backend() as b:
+            return b.read_part(self.field_id, key)
 
     def put(self, key: str, data: bytes) -> int:
         """Store the part (:meth:`~flatserve.service.backend.LogBackend.store_part`):
         bytes written, 0 if it was there."""
-        return self.backend().store_part(self.field_id, key, data)
+        with self._backend() as b:
+            return b.store_part(self.field_id, key, data)
 
 
 class TileActor:
@@ -334,7 +329,7 @@ class RayTileHost(TileHost):
     def part(self, tile: RemoteTile, gid, known):
         """The tile's record stored by its actor (with :attr:`parts`: the key, and
         None for the bytes; else serialised there and returned here)."""
-        if self.parts is None:
+        if self.parts is None or tile.actor is None:  # (an empty tile: no actor started)
             return super().part(tile, gid, known)
         key, stored = tile.store_part(gid, known)
         with self._lock:

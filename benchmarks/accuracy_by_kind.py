@@ -1,0 +1,150 @@
+"""How well a field of each kind (k-flats in R^d) interpolates: the paper's charts
+against isometric charts (``flatserve.warp``), and the 8 nearest samples as a naive
+peer, from the same run.
+
+For each (k, d) of ``--kinds``: ``--samples`` random flats (Haar orientations,
+offsets uniform in [-1, 1]^d; as ``costs_by_kind.py``) carrying a smooth known
+function of the flat, ``f = sin(<P, W>) + cos(<c, w>)`` (``P`` the flat's
+direction projector, ``c`` its point closest to the origin, ``W`` and ``w``
+seeded), and ``--queries`` held-out random flats. Measured:
+
+1. the default atlas (``Atlas.covering(k, d)``) with the paper's charts and with
+   isometric charts (``isometric=True``): charts, copies per sample, build time,
+   the share of queries answered, the median error of the answered ones, and
+   the 8 nearest samples' on those same queries (inverse-distance weights in
+   the chordal metric ``|P1 - P2|^2 / 2 + |c1 - c2|^2``), and the ratio;
+2. ``--one-chart``: one chart (the default centre) holding the samples within
+   40 degrees of it, queried within 40 degrees, paper's against isometric, the
+   median error by the query's angle from the centre (is it flat across the
+   chart?).
+
+    .venv/bin/python benchmarks/accuracy_by_kind.py [--kinds 2,3 1,4 2,4] [--samples 3000]
+    .venv/bin/python benchmarks/accuracy_by_kind.py --one-chart [--kinds 2,3 2,4]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+import timing  # noqa: F401  (the repository root on sys.path)
+
+from flatserve import Flats
+from flatserve.atlas import Atlas
+from flatserve.atlas_field import AtlasField
+from flatserve.basis import Basis
+from flatserve.field import Field
+from flatserve.grassmann import haar_frames
+from flatserve.warp import FlatWarp, LineWarp
+
+KINDS = [(2, 3), (3, 4), (1, 4), (2, 4)]
+BINS = [0, 10, 20, 30, 35, 40]
+
+
+def random_flats(rng, n, k, d, center=None, maxdeg=None):
+    """Haar-random k-flats (frames (n, d, k), closest points (n, d)); with ``center``
+    (d, k) only those within ``maxdeg`` of it."""
+    As, cs = [], []
+    while sum(len(a) for a in As) < n:
+        A = haar_frames(4 * n if center is not None else n, d, k, rng)
+        p = rng.uniform(-1, 1, (len(A), d))
+        if center is not None:
+            s = np.linalg.svd(np.einsum("dk,ndj->nkj", center, A), compute_uv=False)
+            keep = np.degrees(np.arccos(np.clip(s.min(axis=1), -1, 1))) < maxdeg
+            A, p = A[keep], p[keep]
+        As.append(A)
+        cs.append(p - np.einsum("ndk,nek,ne->nd", A, A, p))
+    return np.concatenate(As)[:n], np.concatenate(cs)[:n]
+
+
+def truth(A, c, W, w):
+    P = np.einsum("ndk,nek->nde", A, A)
+    return np.sin(np.einsum("nde,de->n", P, W)) + np.cos(c @ w)
+
+
+def chordal(A, c):
+    P = np.einsum("ndk,nek->nde", A, A).reshape(len(A), -1)
+    return np.concatenate([P / np.sqrt(2.0), c], axis=1)
+
+
+def nearest(A, c, f, Aq, cq, n=8):
+    from scipy.spatial import cKDTree
+
+    dist, idx = cKDTree(chordal(A, c)).query(chordal(Aq, cq), n)
+    wt = 1.0 / np.maximum(dist, 1e-12)
+    return (f[idx] * wt).sum(axis=1) / wt.sum(axis=1)
+
+
+def setup(k, d, n, nq, seed, center=None, maxdeg=None):
+    rng = np.random.default_rng(seed)
+    W = rng.normal(size=(d, d))
+    W, w = W + W.T, rng.normal(size=d)
+    A, c = random_flats(rng, n, k, d, center, maxdeg)
+    Aq, cq = random_flats(rng, nq, k, d, center, maxdeg)
+    return A, c, truth(A, c, W, w), Aq, cq, truth(Aq, cq, W, w)
+
+
+def atlas_case(k, d, n, nq, seed):
+    A, c, f, Aq, cq, fq = setup(k, d, n, nq, seed)
+    knn = np.abs(nearest(A, c, f, Aq, cq) - fq)
+    print(f"\n{k}-flats in R^{d}: {n:,} samples, {nq:,} queries; 8 nearest samples: median "
+          f"error {np.median(knn):.4f}")
+    print("| charts | count | copies per sample | build | answered | median error | 8-NN on "
+          "the same | ratio |")
+    print("|---|---|---|---|---|---|---|---|")
+    for iso in (False, True):
+        atlas = Atlas.covering(k, d, isometric=iso)
+        fld = AtlasField(atlas, 1)
+        t0 = time.perf_counter()
+        fld.add(Flats.from_parametric(A, c), f[:, None])
+        t = time.perf_counter() - t0
+        res = fld.query(Flats.from_parametric(Aq, cq))
+        ins = np.asarray(res.inside)
+        err = np.abs(np.asarray(res.values)[:, 0] - fq)[ins]
+        ratio = np.median(err) / np.median(knn[ins])
+        print(f"| {'isometric' if iso else 'paper'} | {atlas.ncharts} | {fld.duplication:.2f} | "
+              f"{t:.1f} s | {ins.mean():.1%} | {np.median(err):.4f} | "
+              f"{np.median(knn[ins]):.4f} | {ratio:.2f} |")
+
+
+def one_chart_case(k, d, n, nq, seed, maxdeg=40.0):
+    Qc, rc = Basis.default_center(k, d)
+    center = np.eye(d)[:, d - k:]
+    A, c, f, Aq, cq, fq = setup(k, d, n, nq, seed, center, maxdeg)
+    ang = np.degrees(np.arccos(np.clip(
+        np.linalg.svd(np.einsum("dk,ndj->nkj", center, Aq), compute_uv=False).min(axis=1), -1, 1)))
+    basis = Basis.tangent_simplex(Qc, rc, k)
+    print(f"\none chart of {k}-flats in R^{d} (samples and queries within {maxdeg:g} degrees "
+          f"of its centre): median error by the query's angle from the centre")
+    print("| chart | answered | " + " | ".join(f"{a}-{b} deg" for a, b in zip(BINS, BINS[1:]))
+          + " | last bin over first |")
+    print("|---" * (len(BINS) + 2) + "|")
+    for name, warp in (("paper", None),
+                       ("isometric", (LineWarp if k == 1 else FlatWarp).calibrate(basis))):
+        fld = Field(basis, 1, warp=warp)
+        fld.add(Flats.from_parametric(A, c), f[:, None])
+        res = fld.query(Flats.from_parametric(Aq, cq))
+        ins = np.asarray(res.inside)
+        e = np.abs(np.asarray(res.values)[:, 0] - fq)
+        med = [np.median(e[ins & (ang >= a) & (ang < b)]) for a, b in zip(BINS, BINS[1:])]
+        print(f"| {name} | {ins.mean():.1%} | " + " | ".join(f"{m:.4f}" for m in med)
+              + f" | {med[-1] / med[0]:.2f} |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--kinds", nargs="+", default=[f"{k},{d}" for k, d in KINDS])
+    ap.add_argument("--samples", type=int, default=3000)
+    ap.add_argument("--queries", type=int, default=2000)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--one-chart", action="store_true")
+    args = ap.parse_args()
+    for kd in args.kinds:
+        k, d = map(int, kd.split(","))
+        (one_chart_case if args.one_chart else atlas_case)(k, d, args.samples, args.queries,
+                                                          args.seed)
+
+
+if __name__ == "__main__":
+    main()

@@ -137,6 +137,13 @@ class CoveringAtlas(_AtlasSpec):
                     "border, which sparse samples need (eyes far apart: about the covering "
                     "radius plus their spacing), at the cost of storing each sample in more "
                     "charts (describe's `atlas.duplication`).")
+    isometric: Optional[bool] = Field(
+        None, description="Warp the charts' points so that each chart measures turns and "
+                          "shifts everywhere as at its centre (flatserve.warp: lines, and "
+                          "k-flats of any k >= 1 by normal coordinates). Default: true for "
+                          "lines in R^3, false otherwise (in 6 dimensions warped charts "
+                          "answer fewer queries from sparse samples: docs/costs.md). Not "
+                          "for points.")
 
 
 class SamplesAtlas(_AtlasSpec):
@@ -318,8 +325,8 @@ class AtlasInfo(BaseModel):
                                                 "data) or `data` (chosen from the first batch).")
     isometric: bool = Field(False, description="The charts' points are warped to measure turns "
                                                "and shifts everywhere as at their centres "
-                                               "(lines in R^3, created since this existed; "
-                                               "flatserve.warp).")
+                                               "(by default lines in R^3, created since this "
+                                               "existed; any kind asked for; flatserve.warp).")
     covering_radius: Optional[float] = Field(
         None, description="Degrees: every orientation measured was this close to a centre "
                           "(`covering` and `centers`; null for `samples`, which charts only "

@@ -202,7 +202,8 @@ def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
     batch)."""
     if isinstance(spec, CoveringAtlas):
         with _within("basis"):
-            return Atlas.covering(k, d, oriented=oriented, unit=unit, reach=spec.reach)
+            return Atlas.covering(k, d, oriented=oriented, unit=unit, reach=spec.reach,
+                                  isometric=spec.isometric)
     if isinstance(spec, SamplesAtlas):
         _check_rows(spec.samples, "basis.samples", max_atlas_samples,
                     "FLATSERVE_MAX_ATLAS_SAMPLES")

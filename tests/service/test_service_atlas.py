@@ -11,7 +11,7 @@ import io
 import numpy as np
 import pytest
 
-from flatserve.client import Client
+from flatserve.client import Client, ServiceError
 
 from flatserve.atlas import Atlas
 from flatserve.atlas_field import AtlasField
@@ -645,3 +645,47 @@ def test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches(make_
                 c.snapshot("auto")
         finally:
             tc.__exit__(None, None, None)
+
+
+def test_isometric_charts_of_planes_asked_for_at_create_answer_as_the_librarys(make_app, rng):
+    """``isometric`` of a covering atlas: planes in R^3 with warped charts
+    (flatserve.warp.FlatWarp) answer the library's bits, describe says so, and a
+    restart (the stored atlas with its warps) answers the same."""
+    from flatserve.grassmann import haar_frames
+
+    A = haar_frames(1500, 3, 2, rng)
+    b = rng.uniform(-1, 1, (1500, 3))
+    val = np.sin(3 * b[:, :1]) + A[:, :1, 0]
+    qA, qb = haar_frames(300, 3, 2, rng), rng.uniform(-1, 1, (300, 3))
+    lib = AtlasField(Atlas.covering(2, 3, isometric=True), channels=1)
+    lib.add(Flats.from_parametric(A, b), val)
+    want = lib.query(Flats.from_parametric(qA, qb))
+    assert want.inside.mean() > 0.8
+
+    def same(c):
+        for binary in (True, False):
+            got = c.query_parametric("p", qA, qb, binary=binary)
+            np.testing.assert_array_equal(got.inside, want.inside)
+            np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12,
+                                       equal_nan=True)
+
+    tc, c = started(make_app())
+    try:
+        d = c.create_field("p", k=2, d=3, unit=1.0,
+                           basis={"kind": "atlas", "atlas": "covering", "isometric": True})
+        assert d["atlas"]["isometric"] is True
+        assert c.create_field("q", k=2, d=3, unit=1.0)["atlas"]["isometric"] is False
+        c.upload_parametric("p", A, b, val)
+        same(c)
+        with pytest.raises(ServiceError) as err:  # points have no warp: named
+            c.create_field("pts", k=0, d=3,
+                           basis={"kind": "atlas", "atlas": "covering", "isometric": True})
+        assert err.value.status == 422 and "isometric" in str(err.value.detail)
+    finally:
+        tc.__exit__(None, None, None)
+    tc, c = started(make_app())
+    try:
+        assert c.describe("p")["atlas"]["isometric"] is True
+        same(c)
+    finally:
+        tc.__exit__(None, None, None)

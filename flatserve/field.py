@@ -275,6 +275,10 @@ class Field(FieldBase):
             raise InvalidInputError("warp: expected a flatserve.warp.LineWarp (lines) or "
                                     f"FlatWarp of {self.k}-flats in R^{self.d} on this field "
                                     f"of {self.k}-flats in R^{self.d}", "warp")
+        if isinstance(warp, FlatWarp) and not (np.array_equal(warp.Q, basis.Q)
+                                               and np.array_equal(warp.r, basis.r)):
+            raise InvalidInputError("warp: a FlatWarp calibrated on another chart's basis "
+                                    "(FlatWarp.calibrate(basis) of this field's basis)", "warp")
         #: the chart's warp (None: the paper's chart)
         self.warp = warp
         #: tiles of the chart's triangulation (1: one triangulation; "auto": as many as

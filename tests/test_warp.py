@@ -181,6 +181,8 @@ def test_which_charts_take_which_warp():
         LineWarp.calibrate(a.bases[0])  # planes
     with pytest.raises(InvalidInputError, match="warp: expected a flatserve.warp.LineWarp"):
         Field(a.bases[0], warp=FlatWarp.calibrate(Atlas.covering(3, 4).bases[0]))
+    with pytest.raises(InvalidInputError, match="another chart's basis"):
+        Field(a.bases[0], warp=FlatWarp.calibrate(a.bases[1]))
     assert LineWarp.calibrate(Basis.around_axis(axis=2, d=4, scale=1.0)).ndim == 6
     with pytest.raises(InvalidInputError, match="warp"):  # a warp of lines in R^3 on R^4's
         Field(Basis.around_axis(axis=3, d=4, scale=1.0),

@@ -265,7 +265,9 @@ def normal_coordinates(P, r, center_A, center_N, point) -> np.ndarray:
     -------
     ndarray, shape (n, (k + 1)(d - k))
         ``H`` row by row, then the offset's ``d - k`` coordinates. Each row
-        depends only on its own flat (computed matrix by matrix).
+        depends only on its own flat: every product is a stack of one flat's
+        small matrices (never one matrix product over the batch, which BLAS
+        may round differently with other rows beside it).
 
     Examples
     --------
@@ -289,21 +291,12 @@ def normal_coordinates(P, r, center_A, center_N, point) -> np.ndarray:
     sig = np.arctan(S)                                      # the principal angles
     H = np.matmul(Qs * sig[:, None, :], Vt)
     o = r - point - np.matmul(P, (r - point)[:, :, None])[:, :, 0]  # closest point - point
-    bN = np.matmul(o, N0)                                   # (n, d-k)
-    aU = np.matmul(o, A0)                                   # (n, k)
+    bN = np.matmul(o[:, None, :], N0)[:, 0, :]              # (n, d-k)
+    aU = np.matmul(o[:, None, :], A0)[:, 0, :]              # (n, k)
     b = np.matmul(bN[:, None, :], Qs)[:, 0, :]              # q_i . N0^T o
     a = np.matmul(Vt, aU[:, :, None])[:, :, 0]              # v_i . U0^T o
     oc = bN + np.matmul(Qs, ((np.cos(sig) - 1.0) * b - np.sin(sig) * a)[:, :, None])[:, :, 0]
     return np.concatenate([H.reshape(n, dk * k), oc], axis=1)
-
-
-def _rows(fn, *arrays):
-    """``fn`` of each row of the arrays on its own (stacked again): numpy's
-    matrix products of a whole batch may round a row differently with other
-    rows beside it, and a flat's coordinates must not depend on its batch."""
-    if not len(arrays[0]):
-        return fn(*arrays)
-    return np.concatenate([fn(*(a[i:i + 1] for a in arrays)) for i in range(len(arrays[0]))])
 
 
 class FlatWarp:
@@ -453,13 +446,9 @@ class FlatWarp:
         Qs = row_product(w, self.Q.reshape(m, d * d)).reshape(-1, d, d)
         Qs = 0.5 * (Qs + np.swapaxes(Qs, 1, 2))
         rs = row_product(w, self.r)
-
-        def rows(Qs, rs):
-            pr = project_unchecked(Qs, rs, self.k)
-            return normal_coordinates(np.eye(d) - pr.Q, pr.r, self.center_A, self.center_N,
-                                      self.point)
-
-        return _rows(rows, Qs, rs)
+        pr = project_unchecked(Qs, rs, self.k)
+        return normal_coordinates(np.eye(d) - pr.Q, pr.r, self.center_A, self.center_N,
+                                  self.point)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """Warp embedded points: (n, m - 1) -> (n, m - 1), row by row."""

@@ -93,9 +93,9 @@ class Follower:
         with self._cond:
             self.applied = position
             self._cond.notify_all()
-        self._thread = threading.Thread(target=self._run, name="flatserve-follower",
-                                        daemon=True)
-        self._thread.start()
+        t = threading.Thread(target=self._run, name="flatserve-follower", daemon=True)
+        t.start()
+        self._thread = t  # (only once started: a shutdown meanwhile joins nothing)
         self.started.set()
 
     @property

@@ -445,15 +445,35 @@ class LogBackend(abc.ABC):
         flatserve.service.status.StorageError
         """
 
-    def snapshot_replaced(self, row: FieldRow) -> bool:
-        """The field of ``row`` points at another snapshot now (or is gone): a
-        snapshot that failed to load may have been replaced while it was read."""
-        from .status import FieldNotFoundError
+    def load_with_parts(self, row: FieldRow, path: Path,
+                        load: Callable[[Path, Callable[[str], bytes]], T]) -> T:
+        """``load(path, parts)`` of the row's staged (or local) snapshot file, its
+        parts read when asked for (:meth:`read_part`): the one place both
+        backends' ``load_snapshot`` tell a replaced snapshot from a damaged one.
+
+        Raises
+        ------
+        SnapshotGoneError
+            ``load`` failed (a part, or the file, gone) while the field points at
+            another snapshot now (or is gone): it was replaced while it was read.
+        Exception
+            Otherwise whatever ``load`` raises.
+        """
+        from .status import FieldNotFoundError, StorageError
 
         try:
-            return self.field(row.id).snapshot_file != row.snapshot_file
-        except FieldNotFoundError:
-            return True
+            return load(path, lambda key: self.read_part(row.id, key))
+        except (SnapshotGoneError, StorageError):
+            raise
+        except Exception:
+            try:
+                replaced = self.field(row.id).snapshot_file != row.snapshot_file
+            except FieldNotFoundError:
+                replaced = True
+            if replaced:
+                raise SnapshotGoneError(f"snapshot {row.snapshot_file} of field id {row.id} "
+                                        "was replaced") from None
+            raise
 
     @abc.abstractmethod
     def snapshot_parts(self, field_id: int) -> set[str]:

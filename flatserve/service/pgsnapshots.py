@@ -307,15 +307,7 @@ class ChunkedSnapshots:
             if not found:
                 raise SnapshotGoneError(f"snapshot {row.snapshot_file} of field id {row.id} "
                                         "was replaced")
-            try:
-                return load(path, lambda key: self.read_part(row.id, key))
-            except (SnapshotGoneError, StorageError):
-                raise
-            except Exception:  # a part gone: replaced meanwhile, or damaged
-                if self.snapshot_replaced(row):
-                    raise SnapshotGoneError(f"snapshot {row.snapshot_file} of field id "
-                                            f"{row.id} was replaced") from None
-                raise
+            return self.load_with_parts(row, path, load)
         finally:
             self._unstage(stage)
 

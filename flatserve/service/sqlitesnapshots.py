@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Callable, TypeVar
 
 from ..errors import SnapshotError
-from .backend import FieldRow, SnapshotGoneError, SnapshotInfo
+from .backend import FieldRow, SnapshotInfo
 from .datadir import fsync_path
 from .sqlrules import snapshot_failure, snapshot_name
 from .status import StorageError
@@ -174,15 +174,7 @@ class SnapshotFiles:
                                 f"{path}: {exc}") from exc
 
     def load_snapshot(self, row: FieldRow, load: Callable[[Path, Callable[[str], bytes]], T]) -> T:
-        path = self.snapshot_path(row.snapshot_file)
-        try:
-            return load(path, lambda key: self.read_part(row.id, key))
-        except (SnapshotGoneError, StorageError):
-            raise
-        except Exception:  # its file or a part gone: replaced meanwhile, or damaged
-            if self.snapshot_replaced(row):
-                raise SnapshotGoneError(f"snapshot {row.snapshot_file} was replaced") from None
-            raise
+        return self.load_with_parts(row, self.snapshot_path(row.snapshot_file), load)
 
     def snapshot_location(self, row: FieldRow) -> str:
         return str(self.snapshot_path(row.snapshot_file))

@@ -364,6 +364,8 @@ class LogApplier:
             e.snapshot_file = row.snapshot_file if start else None
             e.snapshot_seq, e.snapshot_position = start, start_pos
             e.new_samples = replayed
+            if self.metrics is not None and replayed:  # (a replica that started late
+                self.metrics.accepted(e.name, replayed)  # triangulates them here)
             e.mark_ready()
             log.info("field %r: restored, %d samples, %d batches replayed in %.2f s", e.name,
                      fld.nsamples, done, time.perf_counter() - t0)

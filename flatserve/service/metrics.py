@@ -78,7 +78,7 @@ class Metrics:
         )
         self.samples_accepted = Counter(
             "flatserve_samples_accepted", "Samples triangulated by this replica (every replica "
-            "triangulates every batch)", ["field", "replica"], registry=r)
+            "triangulates every batch, replayed from the log at its start or not)", ["field", "replica"], registry=r)
         self.samples_rejected = Counter("flatserve_samples_rejected",
                                         "Samples rejected (outside the chart)", ["field"], registry=r)
         self.batches = Counter("flatserve_batches", "Upload batches stored", ["field"], registry=r)

@@ -4,6 +4,8 @@ replica's own work and process carry its ``replica`` label, and there is no
 ``_created`` noise."""
 from __future__ import annotations
 
+import time
+
 import httpx
 import numpy as np
 from prometheus_client.parser import text_string_to_metric_families
@@ -43,18 +45,28 @@ def test_counters_summed_over_replicas_equal_the_requests_sent(tmp_path):
         assert len(kids) == 2
         with Client(srv.url) as c:
             c.create_field("small", basis=ONE_CHART)
-        last = 0
+        last, accepted = 0, 0
         for _ in range(uploads):
             with Client(srv.url) as c:  # a new connection each time
                 o, v = paper_rays(rng, rows)
-                last = c.upload_rays("small", o, v, rng.uniform(size=rows))["position"]
+                up = c.upload_rays("small", o, v, rng.uniform(size=rows))
+                last, accepted = up["position"], accepted + up["accepted"]
         for _ in range(queries):
             with Client(srv.url) as c:
                 c.query_rays("small", *paper_rays(rng, 10), min_position=last)
-        # both replicas have applied every batch
-        for _ in range(40):
+        # both replicas have applied every batch: a describe waits on whichever replica
+        # answers it, and the kernel may hand every new connection to the same one, so
+        # wait until each replica's own count is the sum the uploads acknowledged
+        deadline = time.monotonic() + 120
+        while True:
             with Client(srv.url) as c:
                 c.describe("small", min_position=last)
+            s, _ = _scrape(srv.url)
+            acc = [_value(s, "flatserve_samples_accepted_total", field="small", replica=r)
+                   for r in ("0", "1")]
+            if acc == [accepted, accepted] or time.monotonic() > deadline:
+                break
+            time.sleep(0.2)
         answered = set()
         for _ in range(10):
             s, text = _scrape(srv.url)
@@ -67,7 +79,7 @@ def test_counters_summed_over_replicas_equal_the_requests_sent(tmp_path):
             # each replica's own work, under its label: both triangulated every batch
             acc = [_value(s, "flatserve_samples_accepted_total", field="small", replica=r)
                    for r in ("0", "1")]
-            assert acc[0] == acc[1] and acc[0] > 0.9 * uploads * rows
+            assert acc == [accepted, accepted] and accepted > 0.9 * uploads * rows
             # each live replica's process, under its label (and pid)
             procs = {dict(lbl)["pid"] for (name, lbl) in s
                      if name == "flatserve_replica_resident_bytes"}
@@ -77,6 +89,17 @@ def test_counters_summed_over_replicas_equal_the_requests_sent(tmp_path):
         kill9_and_await_restart(srv.proc.pid, kids[0], 2)
         with Client(srv.url) as c:
             c.wait_ready(60)
+        # the new process replayed every batch from the log (no snapshots): it
+        # triangulated them all again, under the label of the one it replaces
+        deadline = time.monotonic() + 120
+        while True:
+            s, _ = _scrape(srv.url)
+            acc = sorted(_value(s, "flatserve_samples_accepted_total", field="small",
+                                replica=r) for r in ("0", "1"))
+            if acc == [accepted, 2 * accepted] or time.monotonic() > deadline:
+                break
+            time.sleep(0.2)
+        assert acc == [accepted, 2 * accepted]
         for _ in range(6):
             s, _ = _scrape(srv.url)
             assert _value(s, "flatserve_batches_total", field="small") == uploads

@@ -1,6 +1,6 @@
 """How well a field of each kind (k-flats in R^d) interpolates: the paper's charts
-against isometric charts (``flatserve.warp``), and the 8 nearest samples as a naive
-peer, from the same run.
+against isometric charts (``flatserve.warp``) and a relative atlas, and the 8 nearest
+samples as a naive peer, from the same run.
 
 For each (k, d) of ``--kinds``: ``--samples`` random flats (Haar orientations,
 offsets uniform in [-1, 1]^d; as ``costs_by_kind.py``) carrying a smooth known
@@ -8,12 +8,13 @@ function of the flat, ``f = sin(<P, W>) + cos(<c, w>)`` (``P`` the flat's
 direction projector, ``c`` its point closest to the origin, ``W`` and ``w``
 seeded), and ``--queries`` held-out random flats. Measured:
 
-1. the default atlas (``Atlas.covering(k, d)``) with the paper's charts and with
-   isometric charts (``isometric=True``): charts, copies per sample, build time,
+1. the default atlas (``Atlas.covering(k, d)``) with the paper's charts, with
+   isometric charts (``isometric=True``), and with radii measured from each flat's
+   nearest centre (``relative=True``, the paper's charts): charts, copies per sample, build time,
    the share of queries answered, the median error of the answered ones, and
    the 8 nearest samples' on those same queries (inverse-distance weights in
    the chordal metric ``|P1 - P2|^2 / 2 + |c1 - c2|^2``), and the ratio; then
-   the median errors on the queries both atlases answer;
+   the median errors on the queries the paper's and each other atlas both answer;
 2. ``--one-chart``: one chart (the default centre) holding the samples within
    40 degrees of it, queried within 40 degrees, paper's against isometric, the
    median error by the query's angle from the centre (is it flat across the
@@ -95,8 +96,9 @@ def atlas_case(k, d, n, nq, seed):
           "the same | ratio |")
     print("|---|---|---|---|---|---|---|---|")
     got = {}
-    for iso in (False, True):
-        atlas = Atlas.covering(k, d, isometric=iso)
+    for name, iso, rel in (("paper", False, False), ("isometric", True, False),
+                           ("relative", False, True)):
+        atlas = Atlas.covering(k, d, isometric=iso, relative=rel)
         fld = AtlasField(atlas, 1)
         t0 = time.perf_counter()
         fld.add(Flats.from_parametric(A, c), f[:, None])
@@ -104,18 +106,22 @@ def atlas_case(k, d, n, nq, seed):
         res = fld.query(Flats.from_parametric(Aq, cq))
         ins = np.asarray(res.inside)
         err = np.abs(np.asarray(res.values)[:, 0] - fq)[ins]
-        got[iso] = (ins, np.abs(np.asarray(res.values)[:, 0] - fq))
+        got[name] = (ins, np.abs(np.asarray(res.values)[:, 0] - fq))
         ratio = np.median(err) / np.median(knn[ins])
-        print(f"| {'isometric' if iso else 'paper'} | {atlas.ncharts} | {fld.duplication:.2f} | "
+        print(f"| {name} | {atlas.ncharts} | {fld.duplication:.2f} | "
               f"{t:.1f} s | {ins.mean():.1%} | {np.median(err):.4f} | "
               f"{np.median(knn[ins]):.4f} | {ratio:.2f} |")
-    both = got[False][0] & got[True][0]
-    only = got[False][0] & ~both
+    both = got["paper"][0] & got["isometric"][0]
+    only = got["paper"][0] & ~both
     print(f"on the {both.mean():.1%} of queries both answer: median error paper "
-          f"{np.median(got[False][1][both]):.4f}, isometric {np.median(got[True][1][both]):.4f}, "
-          f"8-NN {np.median(knn[both]):.4f}"
-          + (f"; the paper's on the queries only it answers {np.median(got[False][1][only]):.4f}"
-             if only.any() else ""))
+          f"{np.median(got['paper'][1][both]):.4f}, isometric "
+          f"{np.median(got['isometric'][1][both]):.4f}, 8-NN {np.median(knn[both]):.4f}"
+          + (f"; the paper's on the queries only it answers "
+             f"{np.median(got['paper'][1][only]):.4f}" if only.any() else ""))
+    both = got["paper"][0] & got["relative"][0]
+    print(f"on the {both.mean():.1%} of queries the paper's and the relative atlas answer: "
+          f"median error paper {np.median(got['paper'][1][both]):.4f}, relative "
+          f"{np.median(got['relative'][1][both]):.4f}, 8-NN {np.median(knn[both]):.4f}")
 
 
 def one_chart_case(k, d, n, nq, seed, maxdeg=40.0):

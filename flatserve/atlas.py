@@ -19,6 +19,19 @@ set of such charts, each with a *domain* given by an angle to its centre:
     real samples; below the 45 deg limit (:data:`CHART_LIMIT_DEG`) where the
     coordinates stop round-tripping.
 
+A *relative* atlas (``relative=True``) measures the three radii from the
+flat's nearest centre instead of from zero: a flat is stored in every chart
+whose centre is less than ``reach`` degrees farther than its nearest centre,
+answered by those less than ``trusted`` farther, with blending weight 1 up to
+``inner`` farther (defaults :data:`RELATIVE_RADII`), and never beyond
+:data:`RELATIVE_LIMIT_DEG` from a centre.  The nearest chart always answers.
+A chart then holds its Voronoi region of the orientations and a seam around
+it, not a ball as wide as the covering radius plus margins: a sample is
+stored about 2.5 times in R^4 instead of 4-7 times (``docs/costs.md``), and
+each query is answered near its charts' centres.  Samples within
+``(reach - trusted) / 2`` of a query are held by every chart that answers it
+(a flat's angles move by at most its distance).
+
 Coverage is a question of orientation only (offsets do not matter: the chart
 is equivariant under translations), so a *covering* atlas
 (:meth:`Atlas.covering`) chooses centre directions such that every
@@ -66,6 +79,8 @@ __all__ = [
     "REACH_DEG",
     "COVER_TRAIN_DEG",
     "COVER_RADII_3D",
+    "RELATIVE_RADII",
+    "RELATIVE_LIMIT_DEG",
     "DEFAULT_UNIT",
     "object_unit",
     "data_unit",
@@ -114,6 +129,12 @@ DEFAULT_UNIT = 1.0
 #: 14.5 at the 6 icosahedral axes' 37.4 degrees; the isometric charts of lines,
 #: :mod:`flatserve.warp`, undo it); duplication (Haar-random lines) 1.75.
 COVER_RADII_3D = (12.0, 24.0, 27.0)
+#: A relative atlas (:class:`Atlas` ``relative``) stores and answers a flat in a
+#: chart only below this angle to its centre (degrees), whatever its radii.
+RELATIVE_LIMIT_DEG = 44.0
+#: Radii (``inner``, ``trusted``, ``reach``, degrees) of a relative covering atlas:
+#: angles beyond the nearest centre's (:class:`Atlas` ``relative``).
+RELATIVE_RADII = (2.0, 6.0, 14.0)
 #: Largest extra angle a covering must keep below ``trusted`` (degrees): the
 #: margin the checks of :meth:`Atlas.covering` require.
 COVER_MARGIN_DEG = 1.0
@@ -193,6 +214,9 @@ class Atlas:
         first samples of a field over the atlas (:func:`data_unit`,
         :meth:`flatserve.atlas_field.AtlasField.settle_unit`); until then
         ``unit`` is :data:`DEFAULT_UNIT` and ``unit_from_data`` True.
+    relative : bool
+        Measure ``inner``, ``trusted`` and ``reach`` from each flat's nearest
+        centre's angle (module docstring); default False: from the centre.
     isometric : bool, optional
         Warp each chart's points so that it measures turns and shifts
         everywhere as at its centre (:mod:`flatserve.warp`: lines by
@@ -218,7 +242,8 @@ class Atlas:
     def __init__(self, k: int, d: int, center_A, center_N, center_r, scales, *,
                  oriented: bool = False, inner: float = INNER_DEG,
                  trusted: float = TRUSTED_DEG, reach: float = REACH_DEG,
-                 unit: float | None = DEFAULT_UNIT, isometric: bool | None = None):
+                 unit: float | None = DEFAULT_UNIT, isometric: bool | None = None,
+                 relative: bool = False):
         d = int(d)
         k = _flats.check_k(k, d)
         if oriented and k != 1:
@@ -231,6 +256,9 @@ class Atlas:
         #: until then the charts are built in :data:`DEFAULT_UNIT`
         self.unit_from_data = unit is None
         unit = DEFAULT_UNIT if unit is None else _check_unit(unit)
+        if not isinstance(relative, (bool, np.bool_)):
+            raise InvalidInputError(f"relative: expected true or false, got {relative!r}",
+                                    "relative")
         if not 0 <= inner < trusted <= reach < CHART_LIMIT_DEG:
             # named after the radius that breaks the order (reach: too small or too large)
             bad = "reach" if (0 <= inner < trusted and not trusted <= reach < CHART_LIMIT_DEG) \
@@ -248,6 +276,7 @@ class Atlas:
                                     f"{s.shape}", "scales")
         self.k, self.d, self.oriented = k, d, bool(oriented)
         self.inner, self.trusted, self.reach, self.unit = inner, trusted, reach, unit
+        self.relative = bool(relative)
         self.center_A, self.center_N, self.center_r, self.scales = A, N, r, s
         self.frames = N if use_normals(k, d) else A
         if isometric is None:
@@ -275,7 +304,7 @@ class Atlas:
                  reach: float | None = None, train_deg: float = COVER_TRAIN_DEG,
                  seed: int = 0, check_n: int = COVER_CHECK_N,
                  n_train: int = COVER_TRAIN_N, unit: float | None = DEFAULT_UNIT,
-                 isometric: bool | None = None) -> "Atlas":
+                 isometric: bool | None = None, relative: bool = False) -> "Atlas":
         """An atlas whose charts hold every k-flat of R^d, centres through the origin.
 
         Centres.  A chart is accurate near its centre only: its embedding
@@ -324,6 +353,10 @@ class Atlas:
             The charts' unit of length (:class:`Atlas`; None: from the first samples).
         isometric : bool, optional
             Warp the charts' points (:class:`Atlas`; default: lines in R^3).
+        relative : bool
+            Radii beyond each flat's nearest centre (:class:`Atlas`; default
+            radii :data:`RELATIVE_RADII`); the covering radius must then be
+            below ``RELATIVE_LIMIT_DEG - (reach - trusted) / 2 - COVER_MARGIN_DEG``.
 
         Returns
         -------
@@ -333,11 +366,13 @@ class Atlas:
         ------
         InvalidInputError
             ``"trusted"`` when the measured covering radius is not below
-            ``trusted - COVER_MARGIN_DEG`` (lower ``train_deg``).
+            ``trusted - COVER_MARGIN_DEG`` (lower ``train_deg``); ``"reach"``
+            for a relative atlas whose covering radius is not below its bound.
         """
         d = int(d)
         k = _flats.check_k(k, d)
-        radii = COVER_RADII_3D if d == 3 else (INNER_DEG, TRUSTED_DEG, REACH_DEG)
+        radii = RELATIVE_RADII if relative else COVER_RADII_3D if d == 3 else \
+            (INNER_DEG, TRUSTED_DEG, REACH_DEG)
         inner, trusted, reach = (radii[i] if v is None else v
                                  for i, v in enumerate((inner, trusted, reach)))
         C = cover_frames(k, d, float(train_deg), int(seed), int(n_train))
@@ -353,14 +388,24 @@ class Atlas:
             A, N = np.concatenate([A, -A]), np.concatenate([N, N])
         atlas = cls(k, d, A, N, np.zeros((A.shape[0], d)), np.full(A.shape[0], float(scale)),
                     oriented=oriented, inner=inner, trusted=trusted, reach=reach, unit=unit,
-                    isometric=isometric)
+                    isometric=isometric, relative=relative)
         # the same centres, the same seeded measurement: measured once
         radius = cover_radius(k, d, bool(oriented), float(train_deg), int(seed), int(n_train),
                               int(check_n))
         atlas.info = {"method": "covering", "centres": int(A.shape[0]),
                       "covering_radius_deg": radius, "train_deg": float(train_deg),
                       "check_n": int(check_n), "seed": int(seed)}
-        if not radius < atlas.trusted - COVER_MARGIN_DEG:
+        if relative:
+            # the nearest chart answers every flat; it must hold the samples around
+            # it: those within (reach - trusted) / 2 of a query are held by every
+            # chart that answers it (module docstring), up to the absolute limit
+            bound = RELATIVE_LIMIT_DEG - (atlas.reach - atlas.trusted) / 2 - COVER_MARGIN_DEG
+            if not radius < bound:
+                raise InvalidInputError(
+                    f"reach: {A.shape[0]} centres leave {k}-subspaces of R^{d} {radius:.2f} "
+                    f"degrees from every centre, not below {RELATIVE_LIMIT_DEG:g} - (reach - "
+                    f"trusted) / 2 - margin = {bound:g}", "reach")
+        elif not radius < atlas.trusted - COVER_MARGIN_DEG:
             raise InvalidInputError(
                 f"trusted: {A.shape[0]} centres leave {k}-subspaces of R^{d} {radius:.2f} "
                 f"degrees from every centre, not below trusted - margin = "
@@ -626,7 +671,7 @@ class Atlas:
                 f"residual {worst:.3g})")
 
     def with_unit(self, unit: float) -> "Atlas":
-        """The same charts (centres, scales, radii, isometric or not) in another unit
+        """The same charts (centres, scales, radii, relative and isometric or not) in another unit
         of length: their tangent simplices rebuilt (:func:`_unit_simplex`), their
         warps calibrated again on first use; ``info["unit_from"]`` says
         ``"data"`` when this atlas's unit was to be chosen from the data.
@@ -642,7 +687,8 @@ class Atlas:
         """
         out = Atlas(self.k, self.d, self.center_A, self.center_N, self.center_r, self.scales,
                     oriented=self.oriented, inner=self.inner, trusted=self.trusted,
-                    reach=self.reach, unit=unit, isometric=self.isometric)
+                    reach=self.reach, unit=unit, isometric=self.isometric,
+                    relative=self.relative)
         out.info = {**self.info, **({"unit_from": "data"} if self.unit_from_data else {})}
         return out
 
@@ -656,7 +702,7 @@ class Atlas:
     def __repr__(self) -> str:
         return (f"Atlas(k={self.k}, d={self.d}, charts={self.ncharts}, oriented={self.oriented}, "
                 f"inner={self.inner:g}, trusted={self.trusted:g}, reach={self.reach:g}, "
-                f"unit={self.unit:g})")
+                f"unit={self.unit:g}" + (", relative=True)" if self.relative else ")"))
 
     def check_flats(self, flats: Flats) -> Flats:
         """Check that ``flats`` fit the atlas (dimension, orientation).
@@ -707,14 +753,14 @@ class Atlas:
         self.check_flats(flats)
         F = orientation_frames(flats, normals=False if self.oriented else None)
         n, c = flats.n, self.ncharts
+        if self.relative:
+            return self._route_relative(F, radius, nearest)
         cr = math.cos(math.radians(radius))
         rows, angles = [], []
         if self.oriented or F.shape[2] == 1:
             # (n, c); row by row in a fixed order: a flat's routing (which
             # charts, what weights) must not depend on the rest of its batch
-            dots = row_product(F[:, :, 0], self.frames[:, :, 0].T)
-            if not self.oriented:
-                np.abs(dots, out=dots)
+            dots = self._cosines(F)
             held = np.ascontiguousarray((dots > cr).T)  # (c, n): one pass, rows contiguous
             for i in range(c):
                 sel = np.flatnonzero(held[i])
@@ -742,6 +788,37 @@ class Atlas:
             return Routing(rows, angles, None, None)
         return Routing(rows, angles, near, np.arccos(np.sqrt(np.clip(best, 0.0, 1.0))))
 
+    def _cosines(self, F) -> np.ndarray:
+        """(n, c) cosines of each line's (ray's) angle to each centre (one product)."""
+        dots = row_product(F[:, :, 0], self.frames[:, :, 0].T)
+        if not self.oriented:
+            np.abs(dots, out=dots)
+        return dots
+
+    def _angles_all(self, F) -> np.ndarray:
+        """(n, c) angles (radians) of each flat to each centre, row by row."""
+        if self.oriented or F.shape[2] == 1:
+            return np.arccos(np.clip(self._cosines(F), -1.0, 1.0))
+        out = np.empty((F.shape[0], self.ncharts))
+        for i in range(self.ncharts):
+            out[:, i] = np.arccos(np.sqrt(np.clip(cos2_max_angle(self.frames[i], F), 0.0, 1.0)))
+        return out
+
+    def _route_relative(self, F, radius: float, nearest: bool) -> Routing:
+        """:meth:`route` of a relative atlas: per flat, the charts within ``radius``
+        degrees of its nearest centre's angle, and below :data:`RELATIVE_LIMIT_DEG`."""
+        ang = self._angles_all(F)
+        near = ang.argmin(axis=1)
+        best = ang[np.arange(ang.shape[0]), near]
+        limit = np.minimum(best + math.radians(radius), math.radians(RELATIVE_LIMIT_DEG))
+        held = np.ascontiguousarray((ang <= limit[:, None]).T)
+        held[near, np.arange(ang.shape[0])] = True  # (the nearest chart always holds it)
+        rows = [np.flatnonzero(h) for h in held]
+        angles = [ang[r, i] for i, r in enumerate(rows)]
+        if not nearest:
+            return Routing(rows, angles, None, None)
+        return Routing(rows, angles, near, best)
+
     def held(self, flats: Flats, radius: float) -> np.ndarray:
         """Per chart, how many flats are closer than ``radius`` (degrees) to its centre.
 
@@ -753,13 +830,14 @@ class Atlas:
         -------
         ndarray, shape (c,), int64
         """
+        if self.relative:
+            return np.array([r.size for r in self.route(flats, radius, nearest=False).rows],
+                            dtype=np.int64)
         self.check_flats(flats)
         F = orientation_frames(flats, normals=False if self.oriented else None)
         cr = math.cos(math.radians(radius))
         if self.oriented or F.shape[2] == 1:
-            dots = row_product(F[:, :, 0], self.frames[:, :, 0].T)  # (n, c), as route
-            if not self.oriented:
-                np.abs(dots, out=dots)
+            dots = self._cosines(F)  # (n, c), as route
             return np.count_nonzero(dots > cr, axis=0).astype(np.int64)
         return np.array([np.count_nonzero(cos2_max_angle(C, F) > cr * cr) for C in self.frames],
                         dtype=np.int64)
@@ -818,7 +896,7 @@ class Atlas:
         -------
         dict
             ``{"atlas": {"method", "oriented", "inner", "trusted", "reach",
-            "unit", "unit_from", "isometric", "covering_radius", "max_sample_angle",
+            "relative", "unit", "unit_from", "isometric", "covering_radius", "max_sample_angle",
             "info"}, "charts": [{"center": {"A", "r"}, "scale", "samples":
             None}, ...]}`` (``method``, ``covering_radius`` and
             ``max_sample_angle`` from ``info``, None where it has none;
@@ -829,7 +907,7 @@ class Atlas:
         return {
             "atlas": {"method": info.get("method"), "oriented": bool(spec["oriented"]),
                       "inner": spec["inner"], "trusted": spec["trusted"],
-                      "reach": spec["reach"],
+                      "reach": spec["reach"], "relative": bool(spec.get("relative", False)),
                       "unit": None if spec.get("unit_from_data") else spec.get("unit",
                                                                                DEFAULT_UNIT),
                       "unit_from": "data" if spec.get("unit_from_data")
@@ -852,7 +930,7 @@ class Atlas:
         return {"k": self.k, "d": self.d, "oriented": self.oriented, "inner": self.inner,
                 "trusted": self.trusted, "reach": self.reach, "unit": self.unit,
                 **({"unit_from_data": True} if self.unit_from_data else {}),
-                "isometric": self.isometric,
+                "isometric": self.isometric, **({"relative": True} if self.relative else {}),
                 **({"warps": [w.to_dict() for w in self.warps]} if self.isometric else {}),
                 "center_A": self.center_A.tolist(), "center_N": self.center_N.tolist(),
                 "center_r": self.center_r.tolist(), "scales": self.scales.tolist(),
@@ -866,7 +944,7 @@ class Atlas:
                     np.array(spec["scales"]), oriented=bool(spec["oriented"]),
                     inner=spec["inner"], trusted=spec["trusted"], reach=spec["reach"],
                     unit=None if spec.get("unit_from_data") else spec.get("unit", DEFAULT_UNIT),
-                    isometric=cls.spec_isometric(spec))
+                    isometric=cls.spec_isometric(spec), relative=bool(spec.get("relative", False)))
         if atlas.isometric and "warps" in spec:
             warps = [warp_from_dict(w) for w in spec["warps"]]
             if len(warps) != atlas.ncharts:

@@ -333,9 +333,11 @@ class AtlasField(FieldBase):
         """Per chart, the queries closer than ``atlas.trusted`` to its centre, and
         their blending weights ``bump(angle)`` (:func:`flatserve.grassmann.bump`)."""
         at = self.atlas
-        ro = at.route(flats, at.trusted, nearest=False)
+        ro = at.route(flats, at.trusted, nearest=at.relative)
         inner, trusted = math.radians(at.inner), math.radians(at.trusted)
-        return QueryRoute(flats.n, ro.rows, [bump(a, inner, trusted) for a in ro.angles])
+        angles = ro.angles if not at.relative else \
+            [a - ro.nearest_angle[r] for r, a in zip(ro.rows, ro.angles)]
+        return QueryRoute(flats.n, ro.rows, [bump(a, inner, trusted) for a in angles])
 
     def blend(self, route: QueryRoute, results: Sequence[QueryResult | None], *,
               return_weights: bool = False) -> AtlasQueryResult:

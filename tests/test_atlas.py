@@ -632,3 +632,98 @@ def test_a_flats_routing_does_not_depend_on_its_batch(oriented):
                 sel = (whole.rows[c] >= lo) & (whole.rows[c] < lo + size)
                 np.testing.assert_array_equal(part.rows[c], whole.rows[c][sel] - lo)
                 assert part.angles[c].tobytes() == whole.angles[c][sel].tobytes()
+
+
+# ------------------------------------------------------------ relative atlases
+RELATIVE_KINDS = [(1, 4), (2, 4), (1, 3)]
+
+
+@pytest.mark.parametrize("k, d", RELATIVE_KINDS)
+def test_a_relative_atlas_routes_by_the_angle_beyond_the_nearest_centre(k, d):
+    """Each flat goes to the charts whose centre is within ``radius`` of its nearest
+    centre's angle (and below the absolute limit), the nearest always: the angles
+    of an SVD (max_principal_angle) say the same, except within rounding of a
+    limit."""
+    from flatserve.atlas import RELATIVE_LIMIT_DEG
+
+    rng = np.random.default_rng(31)
+    at = Atlas.covering(k, d, relative=True)
+    f = random_flats(rng, 3000, k, d, 1.0)
+    ang = at.angles(f)  # (n, c), by SVD
+    best = ang.min(axis=1)
+    for radius in (at.trusted, at.reach):
+        ro = at.route(f, radius)
+        limit = np.minimum(best + math.radians(radius), math.radians(RELATIVE_LIMIT_DEG))
+        held = np.zeros_like(ang, dtype=bool)
+        for c, rows in enumerate(ro.rows):
+            held[rows, c] = True
+        want = ang <= limit[:, None]
+        close = np.abs(ang - limit[:, None]) < 1e-9
+        assert not (held != want)[~close].any()
+        assert held[np.arange(f.n), ang.argmin(axis=1)].all()  # the nearest always
+        np.testing.assert_allclose(ro.nearest_angle, best, atol=1e-9)
+        np.testing.assert_array_equal(at.held(f, radius), held.sum(axis=0))
+
+
+@pytest.mark.parametrize("k, d", [(1, 4), (2, 4)])
+def test_a_relative_chart_holds_the_samples_around_every_query_it_answers(k, d):
+    """A chart that answers a query (its angle within ``trusted`` of the nearest
+    centre's) stores every flat within ``(reach - trusted) / 2`` of it (the angles of
+    a flat move by at most its distance), up to the absolute limit: the seam is wide
+    enough for the chart's triangulation around its queries."""
+    from flatserve.atlas import RELATIVE_LIMIT_DEG
+
+    rng = np.random.default_rng(32)
+    at = Atlas.covering(k, d, relative=True)
+    delta = math.radians((at.reach - at.trusted) / 2)
+    q = random_flats(rng, 400, k, d, 1.0)
+    A = orientation_frames(q, normals=False)
+    # neighbours: each query's frame turned a little, then re-orthonormalised
+    B = np.linalg.qr(A + rng.normal(scale=0.025, size=A.shape))[0]
+    s = Flats.from_parametric(B, rng.uniform(-1, 1, (q.n, d)))
+    dist = np.array([max_principal_angle(A[i:i + 1], B[i:i + 1])[0, 0] for i in range(q.n)])
+    near = dist <= delta
+    assert near.mean() > 0.5
+    asked, stored = at.route(q, at.trusted), at.route(s, at.reach)
+    aq = at.angles(q)
+    checked = 0
+    for c in range(at.ncharts):
+        rows = asked.rows[c]
+        rows = rows[near[rows] & (aq[rows, c] + delta < math.radians(RELATIVE_LIMIT_DEG) - 1e-9)]
+        assert np.isin(rows, stored.rows[c]).all(), c
+        checked += rows.size
+    assert checked > q.n  # queries answered by more than one chart were checked
+
+
+def test_a_relative_atlas_stores_fewer_copies_and_keeps_what_it_is():
+    """Lines and planes in R^4: a sample is stored in fewer charts than by the
+    balls of the default atlas (the open issue's target: at most 2.5 for lines;
+    planes measured 3.76 in docs/costs.md); the setting survives to_dict, with_unit
+    and a field file; a bad value is refused naming it."""
+    rng = np.random.default_rng(33)
+    for k, most in ((1, 2.5), (2, 4.0)):
+        f = random_flats(rng, 4000, k, 4, 1.0)
+        ball, rel = Atlas.covering(k, 4), Atlas.covering(k, 4, relative=True)
+        copies = [at.held(f, at.reach).sum() / f.n for at in (ball, rel)]
+        assert 1.0 < copies[1] <= most < copies[0], (k, copies)
+    at = Atlas.covering(1, 4, relative=True)
+    assert Atlas.from_dict(at.to_dict()).relative and at.with_unit(2.0).relative
+    assert not Atlas.from_dict(Atlas.covering(1, 4).to_dict()).relative
+    assert Atlas.describe_spec(at.to_dict())["atlas"]["relative"] is True
+    with pytest.raises(InvalidInputError, match="relative"):
+        Atlas(1, 3, at.center_A[:1, :3], None, np.zeros((1, 3)), [1.0], relative="yes")
+
+
+def test_a_relative_field_file_answers_the_same(tmp_path):
+    rng = np.random.default_rng(34)
+    field = AtlasField(Atlas.covering(1, 4, relative=True), channels=1)
+    f = random_flats(rng, 1500, 1, 4, 1.0)
+    field.add(f, np.sin(f.quadrics()[1][:, 0]))
+    path = tmp_path / "rel.flatfield"
+    field.save(path)
+    back = AtlasField.load(path)
+    assert back.atlas.relative
+    q = random_flats(rng, 500, 1, 4, 1.0)
+    a, b = field.query(q), back.query(q)
+    assert np.isfinite(a.values).mean() > 0.5
+    np.testing.assert_array_equal(a.values, b.values)

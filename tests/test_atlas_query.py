@@ -18,14 +18,23 @@ import numpy as np
 import pytest
 
 from flatserve import Flats
-from flatserve.atlas import Atlas
+from flatserve.atlas import RELATIVE_LIMIT_DEG, Atlas
 from flatserve.atlas_field import AtlasField, AtlasQueryResult
 from flatserve.grassmann import bump, cos2_max_angle, haar_frames, orientation_frames
 from flatserve.coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK
 
 
 def reference_route(atlas: Atlas, flats: Flats, radius: float):
-    """Rows and angles per chart (degrees ``radius``), one chart at a time."""
+    """Rows and angles per chart (degrees ``radius``), one chart at a time; for a
+    relative atlas, from the dense (n, c) angles: within ``radius`` of the row's
+    nearest centre's angle and below the absolute limit, the nearest always."""
+    if atlas.relative:
+        ang = np.stack(reference_angles(atlas, flats), axis=1)
+        best = ang.min(axis=1)
+        limit = np.minimum(best + math.radians(radius), math.radians(RELATIVE_LIMIT_DEG))
+        rows = [np.flatnonzero((ang[:, i] <= limit) | (ang.argmin(axis=1) == i))
+                for i in range(atlas.ncharts)]
+        return rows, [ang[r, i] for i, r in enumerate(rows)]
     F = orientation_frames(flats, normals=False if atlas.oriented else None)
     cr = math.cos(math.radians(radius))
     rows, angles = [], []
@@ -52,6 +61,21 @@ def reference_route(atlas: Atlas, flats: Flats, radius: float):
     return rows, angles
 
 
+def reference_angles(atlas: Atlas, flats: Flats) -> list:
+    """Per chart, every row's angle to its centre (radians)."""
+    F = orientation_frames(flats, normals=False if atlas.oriented else None)
+    if atlas.oriented or F.shape[2] == 1:
+        a, C = F[:, :, 0], atlas.frames[:, :, 0]
+        dots = a[:, :1] * C[:, 0]
+        for j in range(1, a.shape[1]):
+            dots += a[:, j:j + 1] * C[:, j]
+        if not atlas.oriented:
+            np.abs(dots, out=dots)
+        return [np.arccos(np.clip(dots[:, i], -1.0, 1.0)) for i in range(atlas.ncharts)]
+    return [np.arccos(np.sqrt(np.clip(cos2_max_angle(atlas.frames[i], F), 0.0, 1.0)))
+            for i in range(atlas.ncharts)]
+
+
 def reference_query(field: AtlasField, flats: Flats, *, outside="nan", order="hilbert",
                     threads=None, return_weights=False) -> AtlasQueryResult:
     """The blend written densely: (q, c) weights and (q, c, C) values, one chart
@@ -59,6 +83,9 @@ def reference_query(field: AtlasField, flats: Flats, *, outside="nan", order="hi
     +0.0, which leaves every sum's bits as they are)."""
     at = field.atlas
     rows_all, angles = reference_route(at, flats, at.trusted)
+    if at.relative:  # the blending weight of the angle beyond the nearest centre's
+        best = np.stack(reference_angles(at, flats), axis=1).min(axis=1)
+        angles = [a - best[r] for r, a in zip(rows_all, angles)]
     n, C, c = flats.n, field.channels, at.ncharts
     inner, trusted = math.radians(at.inner), math.radians(at.trusted)
     asked = np.zeros((n, c), dtype=bool)  # the chart answered the row
@@ -155,6 +182,12 @@ def fields():
     field = AtlasField(Atlas.covering(2, 4), channels=1)
     field.add(p, np.sin(p.quadrics()[1][:, 0]))
     out["planes"] = field
+    field = AtlasField(Atlas.covering(2, 4, relative=True), channels=1)
+    field.add(p, np.sin(p.quadrics()[1][:, 0]))
+    out["planes_relative"] = field
+    field = AtlasField(Atlas.covering(1, 3, relative=True), channels=3)
+    field.add(f, vals)
+    out["lines_relative"] = field
     out["partial"] = partial_field(rng)
     return out
 
@@ -193,12 +226,15 @@ def partial_field(rng) -> AtlasField:
 def queries(name, rng, n):
     if name == "partial":
         return rays(rng, n, 1.0)
+    if name == "planes_relative":  # (fewer charts hold a row: nearer the samples)
+        return Flats.from_parametric(haar_frames(n, 4, 2, rng), rng.uniform(-1.5, 1.5, (n, 4)))
     if name == "planes":
         return Flats.from_parametric(haar_frames(n, 4, 2, rng), rng.uniform(-10, 10, (n, 4)))
     return rays(rng, n, 1.6)  # beyond the samples' [-1, 1]^3: some rows outside a chart's hull
 
 
-@pytest.mark.parametrize("name", ["lines1", "lines3", "rays", "planes", "partial"])
+@pytest.mark.parametrize("name", ["lines1", "lines3", "rays", "planes", "partial",
+                                  "planes_relative", "lines_relative"])
 @pytest.mark.parametrize("outside", ["nan", "clamp"])
 @pytest.mark.parametrize("return_weights", [False, True])
 def test_query_equals_the_reference_bit_for_bit(fields, name, outside, return_weights):
@@ -229,7 +265,7 @@ def test_query_equals_the_reference_in_given_order_and_threads(fields):
 
 def test_routing_equals_the_reference(fields):
     rng = np.random.default_rng(6)
-    for name in ("lines1", "rays", "planes"):
+    for name in ("lines1", "rays", "planes", "planes_relative", "lines_relative"):
         at = fields[name].atlas
         f = queries(name, rng, 4000)
         for radius in (at.trusted, at.reach):

@@ -142,7 +142,7 @@ def _atlas_info(d: dict) -> AtlasInfo | None:
     return AtlasInfo(method=info.get("method"), oriented=at["oriented"], inner=at["inner"],
                      trusted=at["trusted"], reach=at["reach"], unit=at["unit"],
                      unit_from=at["unit_from"],
-                     isometric=bool(at.get("isometric")),
+                     relative=bool(at.get("relative")), isometric=bool(at.get("isometric")),
                      covering_radius=info.get("covering_radius_deg"),
                      max_sample_angle=info.get("max_sample_angle_deg"),
                      nstored=d["nstored"], duplication=d["duplication"])

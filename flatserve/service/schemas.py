@@ -132,11 +132,18 @@ class CoveringAtlas(_AtlasSpec):
     reach: Optional[float] = Field(
         None, gt=0, lt=45, allow_inf_nan=False,
         description="Degrees: samples are stored in every chart whose centre is closer (at "
-                    "least the charts' `trusted`, below 45). Default: 3 degrees beyond "
-                    "`trusted` (lines in R^3: 27). Wider keeps more samples around a chart's "
-                    "border, which sparse samples need (eyes far apart: about the covering "
+                    "least the charts' `trusted`, below 45; with `relative`, closer than the "
+                    "nearest centre's angle plus this). Default: 3 degrees beyond "
+                    "`trusted` (lines in R^3: 27; with `relative`: 14). Wider keeps more "
+                    "samples around a chart's border, which sparse samples need (eyes far apart: about the covering "
                     "radius plus their spacing), at the cost of storing each sample in more "
                     "charts (describe's `atlas.duplication`).")
+    relative: Optional[bool] = Field(
+        None, description="Measure the charts' radii (`reach` included) from each flat's "
+                           "nearest centre: a chart holds its share of the orientations and "
+                           "a seam around it, so a sample is stored about 2.5 times in R^4 "
+                           "instead of 4-7 (radii 2, 6, 14 degrees beyond the nearest "
+                           "centre; docs/costs.md). Default (null): false.")
     isometric: Optional[bool] = Field(
         None, description="Warp the charts' points so that each chart measures turns and "
                           "shifts everywhere as at its centre (flatserve.warp: lines, and "
@@ -323,6 +330,9 @@ class AtlasInfo(BaseModel):
     unit_from: str = Field("given", description="`given` (the create request's `unit`, or 1 "
                                                 "for fields stored before the choice from the "
                                                 "data) or `data` (chosen from the first batch).")
+    relative: bool = Field(False, description="The radii are degrees beyond each flat's "
+                                              "nearest centre (the create request's "
+                                              "`basis.relative`).")
     isometric: bool = Field(False, description="The charts' points are warped to measure turns "
                                                "and shifts everywhere as at their centres "
                                                "(by default lines in R^3, created since this "

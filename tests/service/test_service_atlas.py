@@ -689,3 +689,51 @@ def test_isometric_charts_of_planes_asked_for_at_create_answer_as_the_librarys(m
         same(c)
     finally:
         tc.__exit__(None, None, None)
+
+
+def test_a_relative_atlas_asked_for_at_create_answers_as_the_librarys(make_app, rng):
+    """``relative`` of a covering atlas: lines in R^4 whose charts' radii are measured
+    from each line's nearest centre answer the library's bits, store fewer copies
+    than the default atlas (describe's duplication), and a restart answers the same."""
+    from flatserve.grassmann import haar_frames
+
+    A = haar_frames(1500, 4, 1, rng)
+    b = rng.uniform(-1, 1, (1500, 4))
+    val = np.sin(3 * b[:, :1]) + A[:, :1, 0]
+    qA, qb = haar_frames(300, 4, 1, rng), rng.uniform(-1, 1, (300, 4))
+    lib = AtlasField(Atlas.covering(1, 4, relative=True), channels=1)
+    lib.add(Flats.from_parametric(A, b), val)
+    want = lib.query(Flats.from_parametric(qA, qb))
+    assert want.inside.mean() > 0.3
+
+    def same(c):
+        for binary in (True, False):
+            got = c.query_parametric("r", qA, qb, binary=binary)
+            np.testing.assert_array_equal(got.inside, want.inside)
+            np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12,
+                                       equal_nan=True)
+
+    tc, c = started(make_app())
+    try:
+        d = c.create_field("r", k=1, d=4, unit=1.0,
+                           basis={"kind": "atlas", "atlas": "covering", "relative": True})
+        assert d["atlas"]["relative"] is True and d["atlas"]["reach"] == 14.0
+        c.create_field("ball", k=1, d=4, unit=1.0)
+        assert c.describe("ball")["atlas"]["relative"] is False
+        c.upload_parametric("r", A, b, val)
+        c.upload_parametric("ball", A, b, val)
+        dup = [c.describe(n)["atlas"]["duplication"] for n in ("r", "ball")]
+        assert dup[0] < 2.6 < dup[1]
+        same(c)
+        with pytest.raises(ServiceError) as err:
+            c.create_field("bad", k=1, d=4,
+                           basis={"kind": "atlas", "atlas": "covering", "relative": "often"})
+        assert err.value.status == 422 and "relative" in str(err.value.detail)
+    finally:
+        tc.__exit__(None, None, None)
+    tc, c = started(make_app())
+    try:
+        assert c.describe("r")["atlas"]["relative"] is True
+        same(c)
+    finally:
+        tc.__exit__(None, None, None)

@@ -8,9 +8,10 @@ function of the flat, ``f = sin(<P, W>) + cos(<c, w>)`` (``P`` the flat's
 direction projector, ``c`` its point closest to the origin, ``W`` and ``w``
 seeded), and ``--queries`` held-out random flats. Measured:
 
-1. the default atlas (``Atlas.covering(k, d)``) with the paper's charts, with
-   isometric charts (``isometric=True``), and with radii measured from each flat's
-   nearest centre (``relative=True``, the paper's charts): charts, copies per sample, build time,
+1. a covering atlas (``Atlas.covering(k, d)``) with balls about its centres
+   (``relative=False``) and the paper's charts, the same with isometric charts
+   (``isometric=True``), and with radii measured from each flat's nearest centre
+   (``relative=True``, the default from R^4 on; the paper's charts): charts, copies per sample, build time,
    the share of queries answered, the median error of the answered ones, and
    the 8 nearest samples' on those same queries (inverse-distance weights in
    the chordal metric ``|P1 - P2|^2 / 2 + |c1 - c2|^2``), and the ratio; then

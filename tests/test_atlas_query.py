@@ -179,7 +179,7 @@ def fields():
     out["rays"] = field
     A = haar_frames(2000, 4, 2, rng)
     p = Flats.from_parametric(A, rng.uniform(-1, 1, (2000, 4)))
-    field = AtlasField(Atlas.covering(2, 4), channels=1)
+    field = AtlasField(Atlas.covering(2, 4, relative=False), channels=1)
     field.add(p, np.sin(p.quadrics()[1][:, 0]))
     out["planes"] = field
     field = AtlasField(Atlas.covering(2, 4, relative=True), channels=1)

@@ -141,9 +141,10 @@ class CoveringAtlas(_AtlasSpec):
     relative: Optional[bool] = Field(
         None, description="Measure the charts' radii (`reach` included) from each flat's "
                            "nearest centre: a chart holds its share of the orientations and "
-                           "a seam around it, so a sample is stored about 2.5 times in R^4 "
+                           "a seam around it, so a sample is stored about 2.4 times in R^4 "
                            "instead of 4-7 (radii 2, 6, 14 degrees beyond the nearest "
-                           "centre; docs/costs.md). Default (null): false.")
+                           "centre; docs/costs.md). Default (null): true in R^4 and beyond, false in "
+                           "R^2 and R^3.")
     isometric: Optional[bool] = Field(
         None, description="Warp the charts' points so that each chart measures turns and "
                           "shifts everywhere as at its centre (flatserve.warp: lines, and "
@@ -332,7 +333,8 @@ class AtlasInfo(BaseModel):
                                                 "data) or `data` (chosen from the first batch).")
     relative: bool = Field(False, description="The radii are degrees beyond each flat's "
                                               "nearest centre (the create request's "
-                                              "`basis.relative`).")
+                                              "`basis.relative`, by default true in R^4 "
+                                              "and beyond).")
     isometric: bool = Field(False, description="The charts' points are warped to measure turns "
                                                "and shifts everywhere as at their centres "
                                                "(by default lines in R^3, created since this "

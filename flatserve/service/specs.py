@@ -203,7 +203,7 @@ def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
     if isinstance(spec, CoveringAtlas):
         with _within("basis"):
             return Atlas.covering(k, d, oriented=oriented, unit=unit, reach=spec.reach,
-                                  isometric=spec.isometric, relative=bool(spec.relative))
+                                  isometric=spec.isometric, relative=spec.relative)
     if isinstance(spec, SamplesAtlas):
         _check_rows(spec.samples, "basis.samples", max_atlas_samples,
                     "FLATSERVE_MAX_ATLAS_SAMPLES")

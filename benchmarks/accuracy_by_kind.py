@@ -16,12 +16,17 @@ seeded), and ``--queries`` held-out random flats. Measured:
    the 8 nearest samples' on those same queries (inverse-distance weights in
    the chordal metric ``|P1 - P2|^2 / 2 + |c1 - c2|^2``), and the ratio; then
    the median errors on the queries the paper's and each other atlas both answer;
+   with ``--fit-unit`` also the default atlas in the unit
+   ``flatserve.atlas_field.fitted_unit`` chose from the samples (held out among
+   them), against the 8 nearest samples as above and in the same unit (offsets
+   over the unit in the chordal metric: the fair peer);
 2. ``--one-chart``: one chart (the default centre) holding the samples within
    40 degrees of it, queried within 40 degrees, paper's against isometric, the
    median error by the query's angle from the centre (is it flat across the
    chart?).
 
     .venv/bin/python benchmarks/accuracy_by_kind.py [--kinds 2,3 1,4 2,4] [--samples 3000]
+    .venv/bin/python benchmarks/accuracy_by_kind.py --fit-unit --kinds 1,3 2,3 3,4 1,4 2,4
     .venv/bin/python benchmarks/accuracy_by_kind.py --one-chart [--kinds 2,3 2,4]
 """
 from __future__ import annotations
@@ -35,7 +40,7 @@ import timing  # noqa: F401  (the repository root on sys.path)
 
 from flatserve import Flats
 from flatserve.atlas import Atlas
-from flatserve.atlas_field import AtlasField
+from flatserve.atlas_field import AtlasField, fitted_unit
 from flatserve.basis import Basis
 from flatserve.field import Field
 from flatserve.grassmann import haar_frames
@@ -88,7 +93,7 @@ def setup(k, d, n, nq, seed, center=None, maxdeg=None):
     return A, c, truth(A, c, W, w), Aq, cq, truth(Aq, cq, W, w)
 
 
-def atlas_case(k, d, n, nq, seed):
+def atlas_case(k, d, n, nq, seed, fit=False):
     A, c, f, Aq, cq, fq = setup(k, d, n, nq, seed)
     knn = np.abs(nearest(A, c, f, Aq, cq) - fq)
     print(f"\n{k}-flats in R^{d}: {n:,} samples, {nq:,} queries; 8 nearest samples: median "
@@ -112,6 +117,23 @@ def atlas_case(k, d, n, nq, seed):
         print(f"| {name} | {atlas.ncharts} | {fld.duplication:.2f} | "
               f"{t:.1f} s | {ins.mean():.1%} | {np.median(err):.4f} | "
               f"{np.median(knn[ins]):.4f} | {ratio:.2f} |")
+    if fit:  # the default atlas in a unit fitted to the samples (held out among them)
+        atlas = Atlas.covering(k, d)
+        t0 = time.perf_counter()
+        fu = fitted_unit(atlas, Flats.from_parametric(A, c), f)
+        tf = time.perf_counter() - t0
+        fld = AtlasField(atlas.with_unit(fu.unit), 1)
+        fld.add(Flats.from_parametric(A, c), f[:, None])
+        res = fld.query(Flats.from_parametric(Aq, cq))
+        ins = np.asarray(res.inside)
+        err = np.abs(np.asarray(res.values)[:, 0] - fq)[ins]
+        # the peer with offsets weighed alike (its chordal metric's offsets over the unit)
+        fair = np.abs(nearest(A, c / fu.unit, f, Aq, cq / fu.unit) - fq)
+        print(f"| fitted unit {fu.unit:.3g} (of {', '.join(f'{u:.3g}' for u in fu.candidates)}; "
+              f"{tf:.1f} s) | {atlas.ncharts} | {fld.duplication:.2f} | | {ins.mean():.1%} | "
+              f"{np.median(err):.4f} | {np.median(knn[ins]):.4f} | "
+              f"{np.median(err) / np.median(knn[ins]):.2f} (8-NN in the same unit: "
+              f"{np.median(fair[ins]):.4f}, {np.median(err) / np.median(fair[ins]):.2f}) |")
     both = got["paper"][0] & got["isometric"][0]
     only = got["paper"][0] & ~both
     print(f"on the {both.mean():.1%} of queries both answer: median error paper "
@@ -156,11 +178,15 @@ def main() -> None:
     ap.add_argument("--queries", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--one-chart", action="store_true")
+    ap.add_argument("--fit-unit", action="store_true",
+                    help="also the default atlas in a unit fitted to the samples")
     args = ap.parse_args()
     for kd in args.kinds:
         k, d = map(int, kd.split(","))
-        (one_chart_case if args.one_chart else atlas_case)(k, d, args.samples, args.queries,
-                                                          args.seed)
+        if args.one_chart:
+            one_chart_case(k, d, args.samples, args.queries, args.seed)
+        else:
+            atlas_case(k, d, args.samples, args.queries, args.seed, fit=args.fit_unit)
 
 
 if __name__ == "__main__":

@@ -30,13 +30,13 @@ import math
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Collection, Sequence
+from typing import Collection, NamedTuple, Sequence
 
 import numpy as np
 
 from ._fieldbase import (FieldBase, corrupted, pack_header, part_key, read_header, read_part,
                          write_part)
-from .atlas import Atlas, data_unit
+from .atlas import MAX_UNIT, MIN_UNIT, Atlas, data_unit
 from .coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
 from .errors import InvalidInputError, SnapshotError
 from .field import AddResult, Field, PreparedBatch, QueryResult, QueryRoute
@@ -45,7 +45,8 @@ from .grassmann import bump
 from .options import Order, Outside, choice
 from .triangulation import RWLock
 
-__all__ = ["ATLAS_MAGIC", "AtlasField", "AtlasPrepared", "AtlasQueryResult"]
+__all__ = ["ATLAS_MAGIC", "AtlasField", "AtlasPrepared", "AtlasQueryResult", "FIT_FACTORS",
+           "FittedUnit", "fitted_unit"]
 
 ATLAS_MAGIC = b"FSATLAS\x00"
 _VERSION = 1
@@ -877,3 +878,111 @@ class AtlasField(FieldBase):
         return (f"AtlasField(k={self.k}, d={self.d}, charts={self.atlas.ncharts}, "
                 f"oriented={self.atlas.oriented}, channels={self.channels}, "
                 f"nsamples={self.nsamples}, nstored={self.nstored})")
+
+
+#: Multiples of :func:`flatserve.atlas.data_unit` that :func:`fitted_unit` tries.
+FIT_FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+
+
+class FittedUnit(NamedTuple):
+    """What :func:`fitted_unit` chose, and why.
+
+    Attributes
+    ----------
+    unit : float
+        The candidate of least median held-out error.
+    candidates : ndarray, shape (u,)
+        The units tried (increasing).
+    errors : ndarray, shape (u,)
+        Their median absolute error on the held-out rows every candidate answered.
+    compared : int
+        How many held-out rows that was.
+    """
+
+    unit: float
+    candidates: np.ndarray
+    errors: np.ndarray
+    compared: int
+
+
+def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
+                holdout: float = 0.25, max_rows: int = 4000, seed: int = 0) -> FittedUnit:
+    """The unit of length (:class:`~flatserve.atlas.Atlas` ``unit``) that interpolates
+    these samples best, by held-out validation.
+
+    ``data_unit(flats, values)`` (the geometry of the flats alone) times each of
+    ``factors`` is tried: a field over ``atlas.with_unit(u)`` is filled with a
+    seeded ``1 - holdout`` share of the rows (at most ``max_rows`` in all) and
+    queried at the rest; the unit whose median absolute error (mean over
+    channels) on the held-out rows every candidate answered is least wins.  The
+    unit balances turns against shifts (a shift of ``unit`` weighs as a turn of
+    one radian); the best balance depends on how fast the values change along
+    each, which the geometry cannot tell.  It costs ``len(factors)`` builds of
+    ``(1 - holdout) * min(n, max_rows)`` samples (lines in R^3, 3,000 samples:
+    about 2 s; lines in R^4: about two minutes).
+
+    Parameters
+    ----------
+    atlas : Atlas
+        The charts (their unit is replaced).
+    flats : Flats
+        ``n`` sample flats; at least 40 rows.
+    values : (n, C) or (n,) array_like
+        Their values (finite).
+    factors : sequence of float
+        Multiples of ``data_unit`` to try (positive).
+    holdout : float
+        Share of the rows held out, in (0, 1).
+    max_rows : int
+        Rows used at most (a seeded subset of them).
+    seed : int
+
+    Returns
+    -------
+    FittedUnit
+
+    Example
+    -------
+    >>> import numpy as np, flatserve
+    >>> from flatserve.atlas import Atlas
+    >>> rng = np.random.default_rng(0)
+    >>> o, v = rng.uniform(-1, 1, (1500, 3)), rng.normal(size=(1500, 3))
+    >>> f = flatserve.Flats.from_rays(o, v)
+    >>> fit = fitted_unit(Atlas.covering(1, 3), f, np.sin(3 * v[:, 0] / np.linalg.norm(v, axis=1)))
+    >>> bool(fit.unit > fit.candidates[2])   # values that change with the turn: a long unit
+    True
+    """
+    n = atlas.check_flats(flats).n
+    vals = np.asarray(values, dtype=np.float64).reshape(n, -1) if n else np.zeros((0, 1))
+    if not np.isfinite(vals).all():
+        raise InvalidInputError("values: a unit is fitted to finite values only", "values")
+    if not 0.0 < float(holdout) < 1.0:
+        raise InvalidInputError(f"holdout: expected a share in (0, 1), got {holdout!r}",
+                                "holdout")
+    fac = np.asarray(factors, dtype=np.float64).reshape(-1)
+    if fac.size == 0 or not (np.isfinite(fac) & (fac > 0)).all():
+        raise InvalidInputError(f"factors: expected positive multiples, got {factors!r}",
+                                "factors")
+    rng = np.random.default_rng(seed)
+    rows = rng.permutation(n)[:max(int(max_rows), 0)]
+    test = np.sort(rows[:int(round(holdout * rows.size))])
+    train = np.sort(rows[test.size:])
+    if train.size < 30 or test.size < 10:
+        raise InvalidInputError(f"flats: fitting a unit needs at least 30 rows to build and "
+                                f"10 to hold out, got {train.size} and {test.size} of {n}",
+                                "flats")
+    base = data_unit(flats.take(train), vals[train])
+    units = np.unique(np.clip(base * fac, MIN_UNIT, MAX_UNIT))
+    errs = []
+    for u in units:
+        fld = AtlasField(atlas.with_unit(float(u)), channels=vals.shape[1])
+        fld.add(flats.take(train), vals[train])
+        got = np.asarray(fld.query(flats.take(test)).values)
+        errs.append(np.abs(got - vals[test]).mean(axis=1))
+    errs = np.stack(errs)  # (u, test)
+    both = np.isfinite(errs).all(axis=0)
+    if not both.any():
+        raise InvalidInputError("flats: no held-out row was answered by every candidate unit "
+                                "(too few samples, or too spread out)", "flats")
+    med = np.median(errs[:, both], axis=1)
+    return FittedUnit(float(units[int(med.argmin())]), units, med, int(both.sum()))

@@ -736,3 +736,50 @@ def test_a_relative_field_file_answers_the_same(tmp_path):
     a, b = field.query(q), back.query(q)
     assert np.isfinite(a.values).mean() > 0.5
     np.testing.assert_array_equal(a.values, b.values)
+
+
+# ------------------------------------------------------------------ fitted unit
+def test_a_fitted_unit_follows_what_the_values_change_with():
+    """Values that change with the turn of a line only get a unit longer than the
+    geometry's (``data_unit``), values that change with its shift only a shorter
+    one; and the fitted unit interpolates fresh queries better than the geometry's
+    unit (held-out validation chose it from the samples alone)."""
+    from flatserve.atlas_field import fitted_unit
+
+    rng = np.random.default_rng(41)
+    o, v = random_rays(rng, 2500)
+    a = v / np.linalg.norm(v, axis=1, keepdims=True)
+    r = o - np.einsum("ni,ni->n", a, o)[:, None] * a
+    f = Flats.from_rays(o, v)
+    at = Atlas.covering(1, 3)
+    turn = fitted_unit(at, f, np.sin(3 * a[:, 0]) * np.cos(2 * a[:, 1]))
+    shift = fitted_unit(at, f, np.sin(3 * r[:, 0]) + r[:, 1] ** 2)
+    assert turn.unit > turn.candidates[2] and shift.unit < shift.candidates[2], (turn, shift)
+    assert turn.compared > 400 and turn.errors.min() == turn.errors[
+        list(turn.candidates).index(turn.unit)]
+    # fresh queries: the fitted unit against the geometry's
+    qo, qv = random_rays(rng, 2000, R=0.8)
+    qa = qv / np.linalg.norm(qv, axis=1, keepdims=True)
+    want = np.sin(3 * qa[:, 0]) * np.cos(2 * qa[:, 1])
+    errs = []
+    for u in (turn.unit, turn.candidates[2]):
+        fld = AtlasField(at.with_unit(float(u)), channels=1)
+        fld.add(f, np.sin(3 * a[:, 0]) * np.cos(2 * a[:, 1]))
+        got = fld.query(Flats.from_rays(qo, qv))
+        errs.append(np.abs(got.values[:, 0] - want))
+    both = np.isfinite(errs[0]) & np.isfinite(errs[1])
+    assert np.median(errs[0][both]) < np.median(errs[1][both])
+
+
+def test_a_fitted_unit_refuses_what_it_cannot_fit():
+    from flatserve.atlas_field import fitted_unit
+
+    rng = np.random.default_rng(42)
+    f = Flats.from_rays(*random_rays(rng, 200))
+    at = Atlas.covering(1, 3)
+    for kw, name in (({"holdout": 1.0}, "holdout"), ({"factors": [1, -2]}, "factors"),
+                     ({"max_rows": 20}, "flats")):
+        with pytest.raises(InvalidInputError, match=name):
+            fitted_unit(at, f, np.ones(200), **kw)
+    with pytest.raises(InvalidInputError, match="values"):
+        fitted_unit(at, f, np.r_[np.ones(199), np.nan])

@@ -39,14 +39,7 @@ def reference_route(atlas: Atlas, flats: Flats, radius: float):
     cr = math.cos(math.radians(radius))
     rows, angles = [], []
     if atlas.oriented or F.shape[2] == 1:
-        # each row's cosines summed coordinate by coordinate in order (the
-        # routing's bits do not depend on the batch)
-        a, C = F[:, :, 0], atlas.frames[:, :, 0]
-        dots = a[:, :1] * C[:, 0]
-        for j in range(1, a.shape[1]):
-            dots += a[:, j:j + 1] * C[:, j]
-        if not atlas.oriented:
-            np.abs(dots, out=dots)
+        dots = reference_cosines(atlas, F)
         for i in range(atlas.ncharts):
             col = dots[:, i]
             sel = np.flatnonzero(col > cr)
@@ -61,16 +54,23 @@ def reference_route(atlas: Atlas, flats: Flats, radius: float):
     return rows, angles
 
 
+def reference_cosines(atlas: Atlas, F: np.ndarray) -> np.ndarray:
+    """(n, c) cosines of lines (rays) to the centres: each row's summed coordinate
+    by coordinate in order (the routing's bits do not depend on the batch)."""
+    a, C = F[:, :, 0], atlas.frames[:, :, 0]
+    dots = a[:, :1] * C[:, 0]
+    for j in range(1, a.shape[1]):
+        dots += a[:, j:j + 1] * C[:, j]
+    if not atlas.oriented:
+        np.abs(dots, out=dots)
+    return dots
+
+
 def reference_angles(atlas: Atlas, flats: Flats) -> list:
     """Per chart, every row's angle to its centre (radians)."""
     F = orientation_frames(flats, normals=False if atlas.oriented else None)
     if atlas.oriented or F.shape[2] == 1:
-        a, C = F[:, :, 0], atlas.frames[:, :, 0]
-        dots = a[:, :1] * C[:, 0]
-        for j in range(1, a.shape[1]):
-            dots += a[:, j:j + 1] * C[:, j]
-        if not atlas.oriented:
-            np.abs(dots, out=dots)
+        dots = reference_cosines(atlas, F)
         return [np.arccos(np.clip(dots[:, i], -1.0, 1.0)) for i in range(atlas.ncharts)]
     return [np.arccos(np.sqrt(np.clip(cos2_max_angle(atlas.frames[i], F), 0.0, 1.0)))
             for i in range(atlas.ncharts)]

@@ -647,6 +647,15 @@ def test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches(make_
             tc.__exit__(None, None, None)
 
 
+def same_parametric(c, name, qA, qb, want):
+    """The field's answers at the flats (qA, qb), binary and JSON, are the library's."""
+    for binary in (True, False):
+        got = c.query_parametric(name, qA, qb, binary=binary)
+        np.testing.assert_array_equal(got.inside, want.inside)
+        np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12,
+                                   equal_nan=True)
+
+
 def test_isometric_charts_of_planes_asked_for_at_create_answer_as_the_librarys(make_app, rng):
     """``isometric`` of a covering atlas: planes in R^3 with warped charts
     (flatserve.warp.FlatWarp) answer the library's bits, describe says so, and a
@@ -663,11 +672,7 @@ def test_isometric_charts_of_planes_asked_for_at_create_answer_as_the_librarys(m
     assert want.inside.mean() > 0.8
 
     def same(c):
-        for binary in (True, False):
-            got = c.query_parametric("p", qA, qb, binary=binary)
-            np.testing.assert_array_equal(got.inside, want.inside)
-            np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12,
-                                       equal_nan=True)
+        same_parametric(c, "p", qA, qb, want)
 
     tc, c = started(make_app())
     try:
@@ -708,11 +713,7 @@ def test_a_relative_atlas_asked_for_at_create_answers_as_the_librarys(make_app, 
     assert want.inside.mean() > 0.3
 
     def same(c):
-        for binary in (True, False):
-            got = c.query_parametric("r", qA, qb, binary=binary)
-            np.testing.assert_array_equal(got.inside, want.inside)
-            np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12,
-                                       equal_nan=True)
+        same_parametric(c, "r", qA, qb, want)
 
     tc, c = started(make_app())
     try:

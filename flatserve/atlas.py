@@ -23,15 +23,19 @@ A *relative* atlas (``relative=True``) measures the three radii from the
 flat's nearest centre instead of from zero: a flat is stored in every chart
 whose centre is less than ``reach`` degrees farther than its nearest centre,
 answered by those less than ``trusted`` farther, with blending weight 1 up to
-``inner`` farther (defaults :data:`RELATIVE_RADII`), and never beyond
-:data:`RELATIVE_LIMIT_DEG` from a centre.  The nearest chart always answers.
-Covering atlases are relative from R^4 on (:data:`RELATIVE_FROM_D`).
-A chart then holds its Voronoi region of the orientations and a seam around
-it, not a ball as wide as the covering radius plus margins: a sample is
-stored about 2.5 times in R^4 instead of 4-7 times (``docs/costs.md``), and
-each query is answered near its charts' centres.  Samples within
-``(reach - trusted) / 2`` of a query are held by every chart that answers it
-(a flat's angles move by at most its distance).
+``inner`` farther (defaults :data:`RELATIVE_RADII`); a chart stores nothing
+beyond :data:`RELATIVE_LIMIT_DEG` (44) from its centre and its weight falls to
+0 at :data:`RELATIVE_ANSWER_DEG` (40), so that with the default radii every
+chart answering a query holds every sample within ``(reach - trusted) / 2`` =
+4 degrees of it (a flat's angles move by at most its distance).  The nearest
+chart always holds a flat and, in a covering atlas (covering radius below 39),
+answers it.  Covering atlases are relative from R^4 on
+(:data:`RELATIVE_FROM_D`).  A chart then holds its Voronoi region of the
+orientations and a seam around it, not a ball as wide as the covering radius
+plus margins: a sample of lines or hyperplanes in R^4 is stored about 2.4
+times instead of 4.1, of planes in R^4 3.7 times instead of 7.3
+(``docs/costs.md``), and each query is answered near its charts' centres;
+1 % of random queries fall outside the samples' hulls where balls answer all.
 
 Coverage is a question of orientation only (offsets do not matter: the chart
 is equivariant under translations), so a *covering* atlas
@@ -69,8 +73,8 @@ from .embedding import row_product
 from .errors import InvalidInputError
 from .field import Field
 from .flats import Flats
-from .grassmann import (complement, cos2_max_angle, cover_frames, cover_radius, covering_radius,
-                        max_principal_angle, orientation_frames, use_normals)
+from .grassmann import (bump, complement, cos2_max_angle, cover_frames, cover_radius,
+                        covering_radius, max_principal_angle, orientation_frames, use_normals)
 from .warp import FlatWarp, LineWarp, warp_from_dict
 
 __all__ = [
@@ -82,6 +86,7 @@ __all__ = [
     "COVER_RADII_3D",
     "RELATIVE_RADII",
     "RELATIVE_LIMIT_DEG",
+    "RELATIVE_ANSWER_DEG",
     "RELATIVE_FROM_D",
     "DEFAULT_UNIT",
     "object_unit",
@@ -134,14 +139,23 @@ COVER_RADII_3D = (12.0, 24.0, 27.0)
 #: A relative atlas (:class:`Atlas` ``relative``) stores and answers a flat in a
 #: chart only below this angle to its centre (degrees), whatever its radii.
 RELATIVE_LIMIT_DEG = 44.0
+#: A chart of a relative atlas answers a flat only below this angle to its
+#: centre (its weight falls to 0 over the last :data:`RELATIVE_TAPER_DEG`): the
+#: limit less the default seam's half, (14 - 6) / 2, so that it holds every
+#: sample within the seam of what it answers.
+RELATIVE_ANSWER_DEG = 40.0
+RELATIVE_TAPER_DEG = 4.0
+#: Rows routed at a time by a relative atlas (its dense angles: rows x charts).
+RELATIVE_BLOCK = 16_384
 #: Radii (``inner``, ``trusted``, ``reach``, degrees) of a relative covering atlas:
 #: angles beyond the nearest centre's (:class:`Atlas` ``relative``).
 RELATIVE_RADII = (2.0, 6.0, 14.0)
 #: Covering atlases are relative by default from this dimension of the space on:
-#: in R^4 a sample is stored about 2.4 times instead of 4-7 at the same or a
-#: lower median error (lines 0.69 against 0.68 of the 8 nearest samples', planes
-#: 0.86 against 0.92, hyperplanes 0.78 against 0.77), built 2-4 times faster
-#: (``docs/costs.md``); in R^3 they store more (1.96 against 1.75) for the same error.
+#: in R^4 a sample of lines or hyperplanes is stored about 2.4 times instead of 4.1,
+#: of planes 3.7 instead of 7.3, built 2-4 times faster, at about the same median
+#: error on the queries both answer (``docs/costs.md``), where about 1 % of random
+#: queries fall outside the samples' hulls (balls: none); in R^3 they store more
+#: (1.96 against 1.75) for the same error.
 RELATIVE_FROM_D = 4
 #: Largest extra angle a covering must keep below ``trusted`` (degrees): the
 #: margin the checks of :meth:`Atlas.covering` require.
@@ -365,7 +379,7 @@ class Atlas:
             Radii beyond each flat's nearest centre (:class:`Atlas`; default
             radii :data:`RELATIVE_RADII`). Default: from d =
             :data:`RELATIVE_FROM_D` on. The covering radius must then be
-            below ``RELATIVE_LIMIT_DEG - (reach - trusted) / 2 - COVER_MARGIN_DEG``.
+            below ``RELATIVE_ANSWER_DEG - COVER_MARGIN_DEG``.
 
         Returns
         -------
@@ -375,7 +389,7 @@ class Atlas:
         ------
         InvalidInputError
             ``"trusted"`` when the measured covering radius is not below
-            ``trusted - COVER_MARGIN_DEG`` (lower ``train_deg``); ``"reach"``
+            ``trusted - COVER_MARGIN_DEG`` (lower ``train_deg``); ``"train_deg"``
             for a relative atlas whose covering radius is not below its bound.
         """
         d = int(d)
@@ -407,15 +421,14 @@ class Atlas:
                       "covering_radius_deg": radius, "train_deg": float(train_deg),
                       "check_n": int(check_n), "seed": int(seed)}
         if relative:
-            # the nearest chart answers every flat; it must hold the samples around
-            # it: those within (reach - trusted) / 2 of a query are held by every
-            # chart that answers it (module docstring), up to the absolute limit
-            bound = RELATIVE_LIMIT_DEG - (atlas.reach - atlas.trusted) / 2 - COVER_MARGIN_DEG
+            # the nearest chart answers every flat (with a positive weight below
+            # RELATIVE_ANSWER_DEG, where it holds the samples around it)
+            bound = RELATIVE_ANSWER_DEG - COVER_MARGIN_DEG
             if not radius < bound:
                 raise InvalidInputError(
-                    f"reach: {A.shape[0]} centres leave {k}-subspaces of R^{d} {radius:.2f} "
-                    f"degrees from every centre, not below {RELATIVE_LIMIT_DEG:g} - (reach - "
-                    f"trusted) / 2 - margin = {bound:g}", "reach")
+                    f"train_deg: {A.shape[0]} centres leave {k}-subspaces of R^{d} "
+                    f"{radius:.2f} degrees from every centre, not below the relative "
+                    f"charts' {RELATIVE_ANSWER_DEG:g} - margin = {bound:g}", "train_deg")
         elif not radius < atlas.trusted - COVER_MARGIN_DEG:
             raise InvalidInputError(
                 f"trusted: {A.shape[0]} centres leave {k}-subspaces of R^{d} {radius:.2f} "
@@ -817,18 +830,49 @@ class Atlas:
 
     def _route_relative(self, F, radius: float, nearest: bool) -> Routing:
         """:meth:`route` of a relative atlas: per flat, the charts within ``radius``
-        degrees of its nearest centre's angle, and below :data:`RELATIVE_LIMIT_DEG`."""
-        ang = self._angles_all(F)
-        near = ang.argmin(axis=1)
-        best = ang[np.arange(ang.shape[0]), near]
-        limit = np.minimum(best + math.radians(radius), math.radians(RELATIVE_LIMIT_DEG))
-        held = np.ascontiguousarray((ang <= limit[:, None]).T)
-        held[near, np.arange(ang.shape[0])] = True  # (the nearest chart always holds it)
-        rows = [np.flatnonzero(h) for h in held]
-        angles = [ang[r, i] for i, r in enumerate(rows)]
+        degrees of its nearest centre's angle and below :data:`RELATIVE_LIMIT_DEG`
+        (the nearest chart always). Blocks of :data:`RELATIVE_BLOCK` rows, so the
+        dense angles stay small; each row's result is its own."""
+        n, c = F.shape[0], self.ncharts
+        rows: list = [[] for _ in range(c)]
+        angles: list = [[] for _ in range(c)]
+        nears, bests = [], []
+        for lo in range(0, n, RELATIVE_BLOCK):
+            ang = self._angles_all(F[lo:lo + RELATIVE_BLOCK])
+            m = ang.shape[0]
+            near = ang.argmin(axis=1)
+            best = ang[np.arange(m), near]
+            limit = np.minimum(best + math.radians(radius), math.radians(RELATIVE_LIMIT_DEG))
+            held = np.ascontiguousarray((ang <= limit[:, None]).T)
+            held[near, np.arange(m)] = True  # (the nearest chart always holds it)
+            for i in range(c):
+                sel = np.flatnonzero(held[i])
+                rows[i].append(sel + lo)
+                angles[i].append(ang[sel, i])
+            nears.append(near)
+            bests.append(best)
+        empty_i, empty_f = np.zeros(0, dtype=np.int64), np.zeros(0)
+        rows = [np.concatenate(r) if r else empty_i for r in rows]
+        angles = [np.concatenate(a) if a else empty_f for a in angles]
         if not nearest:
             return Routing(rows, angles, None, None)
-        return Routing(rows, angles, near, best)
+        return Routing(rows, angles,
+                       np.concatenate(nears) if nears else empty_i,
+                       np.concatenate(bests) if bests else empty_f)
+
+    def relative_weights(self, ro: Routing) -> list:
+        """A relative atlas's blending weights of a query routing (``route(flats,
+        trusted)`` with ``nearest``): per chart, ``bump`` of the angle beyond the
+        nearest centre's (1 up to ``inner``, 0 from ``trusted``) times ``bump`` of
+        the angle itself from :data:`RELATIVE_ANSWER_DEG` - 4 to
+        :data:`RELATIVE_ANSWER_DEG` (a chart answers only where it holds every
+        sample within ``(reach - trusted) / 2`` of the query). Continuous in the
+        flat: both angles are."""
+        inner, trusted = math.radians(self.inner), math.radians(self.trusted)
+        top = math.radians(RELATIVE_ANSWER_DEG)
+        taper = math.radians(RELATIVE_ANSWER_DEG - RELATIVE_TAPER_DEG)
+        return [bump(a - ro.nearest_angle[r], inner, trusted) * bump(a, taper, top)
+                for r, a in zip(ro.rows, ro.angles)]
 
     def held(self, flats: Flats, radius: float) -> np.ndarray:
         """Per chart, how many flats are closer than ``radius`` (degrees) to its centre.

@@ -332,13 +332,15 @@ class AtlasField(FieldBase):
 
     def route_query(self, flats: Flats) -> QueryRoute:
         """Per chart, the queries closer than ``atlas.trusted`` to its centre, and
-        their blending weights ``bump(angle)`` (:func:`flatserve.grassmann.bump`)."""
+        their blending weights ``bump(angle)`` (:func:`flatserve.grassmann.bump`);
+        a relative atlas's: :meth:`flatserve.atlas.Atlas.relative_weights`."""
         at = self.atlas
-        ro = at.route(flats, at.trusted, nearest=at.relative)
+        if at.relative:
+            ro = at.route(flats, at.trusted, nearest=True)
+            return QueryRoute(flats.n, ro.rows, at.relative_weights(ro))
+        ro = at.route(flats, at.trusted, nearest=False)
         inner, trusted = math.radians(at.inner), math.radians(at.trusted)
-        angles = ro.angles if not at.relative else \
-            [a - ro.nearest_angle[r] for r, a in zip(ro.rows, ro.angles)]
-        return QueryRoute(flats.n, ro.rows, [bump(a, inner, trusted) for a in angles])
+        return QueryRoute(flats.n, ro.rows, [bump(a, inner, trusted) for a in ro.angles])
 
     def blend(self, route: QueryRoute, results: Sequence[QueryResult | None], *,
               return_weights: bool = False) -> AtlasQueryResult:
@@ -882,6 +884,9 @@ class AtlasField(FieldBase):
 
 #: Multiples of :func:`flatserve.atlas.data_unit` that :func:`fitted_unit` tries.
 FIT_FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+#: Steps :func:`fitted_unit` takes beyond an end of its grid while the least error
+#: is there.
+FIT_EXTEND = 3
 
 
 class FittedUnit(NamedTuple):
@@ -892,7 +897,8 @@ class FittedUnit(NamedTuple):
     unit : float
         The candidate of least median held-out error.
     candidates : ndarray, shape (u,)
-        The units tried (increasing).
+        The units tried (increasing; ``data_unit`` times ``factors``, and the
+        steps beyond an end).
     errors : ndarray, shape (u,)
         Their median absolute error on the held-out rows every candidate answered.
     compared : int
@@ -911,7 +917,8 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
     these samples best, by held-out validation.
 
     ``data_unit(flats, values)`` (the geometry of the flats alone) times each of
-    ``factors`` is tried: a field over ``atlas.with_unit(u)`` is filled with a
+    ``factors`` is tried (and, while the least error is at an end of them, up to
+    :data:`FIT_EXTEND` more steps beyond it): a field over ``atlas.with_unit(u)`` is filled with a
     seeded ``1 - holdout`` share of the rows (at most ``max_rows`` in all) and
     queried at the rest; the unit whose median absolute error (mean over
     channels) on the held-out rows every candidate answered is least wins.  The
@@ -948,12 +955,17 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
     >>> rng = np.random.default_rng(0)
     >>> o, v = rng.uniform(-1, 1, (1500, 3)), rng.normal(size=(1500, 3))
     >>> f = flatserve.Flats.from_rays(o, v)
-    >>> fit = fitted_unit(Atlas.covering(1, 3), f, np.sin(3 * v[:, 0] / np.linalg.norm(v, axis=1)))
-    >>> bool(fit.unit > fit.candidates[2])   # values that change with the turn: a long unit
+    >>> a = v / np.linalg.norm(v, axis=1, keepdims=True)   # (a line's value: even in a)
+    >>> fit = fitted_unit(Atlas.covering(1, 3), f, np.cos(3 * a[:, 0]) * np.cos(2 * a[:, 1]))
+    >>> bool(fit.unit > 2 * fit.candidates[0])   # values that change with the turn: a long unit
     True
     """
     n = atlas.check_flats(flats).n
-    vals = np.asarray(values, dtype=np.float64).reshape(n, -1) if n else np.zeros((0, 1))
+    vals = np.asarray(values, dtype=np.float64)
+    if vals.ndim not in (1, 2) or vals.shape[0] != n:
+        raise InvalidInputError(f"values: expected shape ({n},) or ({n}, C), got "
+                                f"{vals.shape}", "values")
+    vals = vals.reshape(n, -1)
     if not np.isfinite(vals).all():
         raise InvalidInputError("values: a unit is fitted to finite values only", "values")
     if not 0.0 < float(holdout) < 1.0:
@@ -972,17 +984,33 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
                                 f"10 to hold out, got {train.size} and {test.size} of {n}",
                                 "flats")
     base = data_unit(flats.take(train), vals[train])
-    units = np.unique(np.clip(base * fac, MIN_UNIT, MAX_UNIT))
-    errs = []
-    for u in units:
-        fld = AtlasField(atlas.with_unit(float(u)), channels=vals.shape[1])
+    tried: dict[float, np.ndarray] = {}
+
+    def errors_of(u: float) -> None:
+        fld = AtlasField(atlas.with_unit(u), channels=vals.shape[1])
         fld.add(flats.take(train), vals[train])
         got = np.asarray(fld.query(flats.take(test)).values)
-        errs.append(np.abs(got - vals[test]).mean(axis=1))
-    errs = np.stack(errs)  # (u, test)
+        tried[u] = np.abs(got - vals[test]).mean(axis=1)
+
+    for u in np.unique(np.clip(base * fac, MIN_UNIT, MAX_UNIT)):
+        errors_of(float(u))
+    for _ in range(FIT_EXTEND):  # the least at an end of the grid: one more step beyond
+        units = np.array(sorted(tried))
+        errs = np.stack([tried[u] for u in units])  # (u, test)
+        both = np.isfinite(errs).all(axis=0)
+        if not both.any():
+            raise InvalidInputError("flats: no held-out row was answered by every candidate "
+                                    "unit (too few samples, or too spread out)", "flats")
+        best = int(np.median(errs[:, both], axis=1).argmin())
+        if units.size < 2 or 0 < best < units.size - 1:
+            break
+        step = units[-1] / units[-2] if best else units[0] / units[1]
+        nxt = float(np.clip(units[best] * step, MIN_UNIT, MAX_UNIT))
+        if nxt in tried:
+            break
+        errors_of(nxt)
+    units = np.array(sorted(tried))
+    errs = np.stack([tried[u] for u in units])
     both = np.isfinite(errs).all(axis=0)
-    if not both.any():
-        raise InvalidInputError("flats: no held-out row was answered by every candidate unit "
-                                "(too few samples, or too spread out)", "flats")
     med = np.median(errs[:, both], axis=1)
     return FittedUnit(float(units[int(med.argmin())]), units, med, int(both.sum()))

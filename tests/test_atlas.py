@@ -568,11 +568,11 @@ def test_planes_in_r4_field():
 
 @pytest.mark.parametrize("k, d, oriented", [(1, 3, True), (1, 3, False), (2, 4, False),
                                              (3, 4, False)])
-@pytest.mark.parametrize("relative", [False, True])
-def test_held_counts_what_route_routes(k, d, oriented, relative):
-    """Atlas.held: per chart, the sizes of Atlas.route's rows (the same test)."""
+def test_held_counts_what_route_routes(k, d, oriented):
+    """Atlas.held: per chart, the sizes of Atlas.route's rows (the same test; a
+    relative atlas's held is route's, checked against an SVD in the relative tests)."""
     rng = np.random.default_rng(5)
-    at = Atlas.covering(k, d, oriented=oriented, relative=relative)
+    at = Atlas.covering(k, d, oriented=oriented, relative=False)
     n = 2000
     f = (Flats.from_rays(rng.normal(size=(n, d)), rng.normal(size=(n, d))) if k == 1 else
          Flats.from_parametric(rng.normal(size=(n, d, k)), rng.normal(size=(n, d))))
@@ -622,15 +622,21 @@ def test_a_sample_queried_alone_gets_its_value_back():
         np.testing.assert_allclose(got.values[0], vals[i], rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("oriented", [False, True])
-def test_a_flats_routing_does_not_depend_on_its_batch(oriented):
-    """Which charts hold a flat and at what angle (hence its blending weights)
-    are the same bits whether the flat is routed alone, in a small batch or in
-    a large one: a query near a border must not change charts with its company."""
+@pytest.mark.parametrize("oriented, k, d, relative", [(False, 1, 3, False),
+                                                      (True, 1, 3, False),
+                                                      (True, 1, 3, True), (False, 2, 4, True)])
+def test_a_flats_routing_does_not_depend_on_its_batch(oriented, k, d, relative, monkeypatch):
+    """Which charts hold a flat and at what angle (hence its blending weights; a
+    relative atlas's nearest angle too) are the same bits whether the flat is routed
+    alone, in a small batch or in a large one (a relative atlas routes in blocks:
+    made small here): a query near a border must not change charts with its company."""
+    import flatserve.atlas
+
+    monkeypatch.setattr(flatserve.atlas, "RELATIVE_BLOCK", 1000)
     rng = np.random.default_rng(12)
-    at = Atlas.covering(1, 3, oriented=oriented)
+    at = Atlas.covering(k, d, oriented=oriented, relative=relative)
     n = 3000
-    flats = Flats.from_rays(rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)))
+    flats = random_flats(rng, n, k, d, 1.0)
     whole = at.route(flats, at.trusted)
     for size in (1, 7, 333):
         for lo in range(0, n if size > 1 else 300, size):
@@ -639,6 +645,8 @@ def test_a_flats_routing_does_not_depend_on_its_batch(oriented):
                 sel = (whole.rows[c] >= lo) & (whole.rows[c] < lo + size)
                 np.testing.assert_array_equal(part.rows[c], whole.rows[c][sel] - lo)
                 assert part.angles[c].tobytes() == whole.angles[c][sel].tobytes()
+            got = part.nearest_angle.tobytes()
+            assert got == whole.nearest_angle[lo:lo + size].tobytes()
 
 
 # ------------------------------------------------------------ relative atlases
@@ -700,6 +708,12 @@ def test_a_relative_chart_holds_the_samples_around_every_query_it_answers(k, d):
         assert np.isin(rows, stored.rows[c]).all(), c
         checked += rows.size
     assert checked > q.n  # queries answered by more than one chart were checked
+    # without the seam (reach just past trusted) some of those neighbours are missing
+    narrow = Atlas.covering(k, d, relative=True, reach=at.trusted + 0.5)
+    stored = narrow.route(s, narrow.reach)
+    missing = sum(int((~np.isin(rows[near[rows]], stored.rows[c])).sum())
+                  for c, rows in enumerate(narrow.route(q, narrow.trusted).rows))
+    assert missing > 0
 
 
 def test_a_relative_atlas_stores_fewer_copies_and_keeps_what_it_is():
@@ -752,19 +766,22 @@ def test_a_fitted_unit_follows_what_the_values_change_with():
     r = o - np.einsum("ni,ni->n", a, o)[:, None] * a
     f = Flats.from_rays(o, v)
     at = Atlas.covering(1, 3)
-    turn = fitted_unit(at, f, np.sin(3 * a[:, 0]) * np.cos(2 * a[:, 1]))
+    turn = fitted_unit(at, f, np.cos(3 * a[:, 0]) * np.cos(2 * a[:, 1]))  # (a line's: even)
     shift = fitted_unit(at, f, np.sin(3 * r[:, 0]) + r[:, 1] ** 2)
-    assert turn.unit > turn.candidates[2] and shift.unit < shift.candidates[2], (turn, shift)
+    geometry = data_unit(f, None)
+    for fit in (turn, shift):  # the geometry's unit is among the candidates
+        assert np.isclose(fit.candidates, geometry, rtol=0.3).any()
+    assert turn.unit > 2 * geometry and shift.unit < geometry, (turn, shift)
     assert turn.compared > 400 and turn.errors.min() == turn.errors[
         list(turn.candidates).index(turn.unit)]
     # fresh queries: the fitted unit against the geometry's
     qo, qv = random_rays(rng, 2000, R=0.8)
     qa = qv / np.linalg.norm(qv, axis=1, keepdims=True)
-    want = np.sin(3 * qa[:, 0]) * np.cos(2 * qa[:, 1])
+    want = np.cos(3 * qa[:, 0]) * np.cos(2 * qa[:, 1])
     errs = []
-    for u in (turn.unit, turn.candidates[2]):
+    for u in (turn.unit, geometry):
         fld = AtlasField(at.with_unit(float(u)), channels=1)
-        fld.add(f, np.sin(3 * a[:, 0]) * np.cos(2 * a[:, 1]))
+        fld.add(f, np.cos(3 * a[:, 0]) * np.cos(2 * a[:, 1]))
         got = fld.query(Flats.from_rays(qo, qv))
         errs.append(np.abs(got.values[:, 0] - want))
     both = np.isfinite(errs[0]) & np.isfinite(errs[1])
@@ -783,3 +800,5 @@ def test_a_fitted_unit_refuses_what_it_cannot_fit():
             fitted_unit(at, f, np.ones(200), **kw)
     with pytest.raises(InvalidInputError, match="values"):
         fitted_unit(at, f, np.r_[np.ones(199), np.nan])
+    with pytest.raises(InvalidInputError, match=r"values: expected shape \(200,\)"):
+        fitted_unit(at, f, np.ones((2, 200)))

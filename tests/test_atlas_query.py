@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from flatserve import Flats
-from flatserve.atlas import RELATIVE_LIMIT_DEG, Atlas
+from flatserve.atlas import RELATIVE_ANSWER_DEG, RELATIVE_LIMIT_DEG, Atlas
 from flatserve.atlas_field import AtlasField, AtlasQueryResult
 from flatserve.grassmann import bump, cos2_max_angle, haar_frames, orientation_frames
 from flatserve.coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK
@@ -83,11 +83,14 @@ def reference_query(field: AtlasField, flats: Flats, *, outside="nan", order="hi
     +0.0, which leaves every sum's bits as they are)."""
     at = field.atlas
     rows_all, angles = reference_route(at, flats, at.trusted)
-    if at.relative:  # the blending weight of the angle beyond the nearest centre's
-        best = np.stack(reference_angles(at, flats), axis=1).min(axis=1)
-        angles = [a - best[r] for r, a in zip(rows_all, angles)]
     n, C, c = flats.n, field.channels, at.ncharts
     inner, trusted = math.radians(at.inner), math.radians(at.trusted)
+    weights = [bump(a, inner, trusted) for a in angles]
+    if at.relative:  # of the angle beyond the nearest centre's, tapered to 0 at 40 degrees
+        best = np.stack(reference_angles(at, flats), axis=1).min(axis=1)
+        top = math.radians(RELATIVE_ANSWER_DEG)
+        weights = [bump(a - best[r], inner, trusted) * bump(a, top - math.radians(4.0), top)
+                   for r, a in zip(rows_all, angles)]
     asked = np.zeros((n, c), dtype=bool)  # the chart answered the row
     good = np.zeros((n, c), dtype=bool)  # ... with a finite value
     W = np.zeros((n, c))  # its blending weight where good, 0 elsewhere
@@ -107,7 +110,7 @@ def reference_query(field: AtlasField, flats: Flats, *, outside="nan", order="hi
         fin = np.isfinite(res.values).all(axis=1)
         asked[rows, i] = True
         good[rows, i] = fin
-        W[rows[fin], i] = bump(angles[i], inner, trusted)[fin]
+        W[rows[fin], i] = weights[i][fin]
         V[rows[fin], i] = res.values[fin]
         ins[rows, i] = res.inside
         ok[rows, i] = res.status == OK

@@ -133,7 +133,7 @@ def one_chart_atlas(atlas: Atlas, axis) -> Atlas:
     N = V[:, :2]  # the two eigenvectors orthogonal to a
     return Atlas(1, 3, a[None, :, None], N[None], np.zeros((1, 3)), atlas.scales[:1],
                  oriented=True, inner=atlas.inner, trusted=atlas.trusted, reach=atlas.reach,
-                 unit=atlas.unit, isometric=atlas.isometric)
+                 unit=atlas.unit, isometric=atlas.isometric, relative=atlas.relative)
 
 
 def fine_atlas(unit: float = 1.0, isometric: bool = True) -> Atlas:
@@ -178,7 +178,8 @@ def _with_reach(atlas: Atlas, reach: float | None) -> Atlas:
         return atlas
     out = Atlas(atlas.k, atlas.d, atlas.center_A, atlas.center_N, atlas.center_r, atlas.scales,
                 oriented=atlas.oriented, inner=atlas.inner, trusted=atlas.trusted, reach=reach,
-                unit=None if atlas.unit_from_data else atlas.unit, isometric=atlas.isometric)
+                unit=None if atlas.unit_from_data else atlas.unit, isometric=atlas.isometric,
+                relative=atlas.relative)
     out.info = dict(atlas.info)
     return out
 

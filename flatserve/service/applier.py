@@ -287,7 +287,7 @@ class LogApplier:
                                 thread_name_prefix="flatserve-restore") as pool:
             for e, row in entries:
                 pool.submit(lambda e=e, row=row: None if self.stopping
-                            else self._restore(e, row))
+                            else self._restore(e, row, count=True))
         return None if self.stopping else head
 
     def _load_snapshot(self, e: FieldEntry, row: FieldRow, upto: int
@@ -314,16 +314,19 @@ class LogApplier:
             return fld, row
         return None, row
 
-    def _restore(self, e: FieldEntry, row: FieldRow, upto: int | None = None) -> None:
+    def _restore(self, e: FieldEntry, row: FieldRow, upto: int | None = None, *,
+                 count: bool = False) -> None:
         """Restore ``e`` to log position ``upto`` (default: the head the start-up
         restore read): its snapshot, then its batches up to ``upto`` inserted as
         the follower inserts them (chart, insert in slices). The database
-        unreachable meanwhile: tried again until it answers (or the applier stops)."""
+        unreachable meanwhile: tried again until it answers (or the applier stops).
+        ``count``: the replayed samples are this replica's work (at its start; a
+        rebuild replays what it already counted)."""
         if upto is None:
             upto = self._restore_head
         while True:
             try:
-                return self._restore_once(e, row, upto)
+                return self._restore_once(e, row, upto, count)
             except StorageUnavailableError as exc:
                 if self.stopping:
                     e.mark_failed(str(exc))
@@ -332,7 +335,7 @@ class LogApplier:
                             exc, RESTORE_RETRY_S)
                 time.sleep(RESTORE_RETRY_S)
 
-    def _restore_once(self, e: FieldEntry, row: FieldRow, upto: int) -> None:
+    def _restore_once(self, e: FieldEntry, row: FieldRow, upto: int, count: bool) -> None:
         t0 = time.perf_counter()
         if self.home.remote:  # its shards restore themselves where they live
             return self._restore_remote(e, upto)
@@ -364,8 +367,8 @@ class LogApplier:
             e.snapshot_file = row.snapshot_file if start else None
             e.snapshot_seq, e.snapshot_position = start, start_pos
             e.new_samples = replayed
-            if self.metrics is not None and replayed:  # (a replica that started late
-                self.metrics.accepted(e.name, replayed)  # triangulates them here)
+            if count and self.metrics is not None and replayed:  # (a replica that
+                self.metrics.accepted(e.name, replayed)  # started late triangulates them)
             e.mark_ready()
             log.info("field %r: restored, %d samples, %d batches replayed in %.2f s", e.name,
                      fld.nsamples, done, time.perf_counter() - t0)

@@ -141,10 +141,12 @@ class CoveringAtlas(_AtlasSpec):
     relative: Optional[bool] = Field(
         None, description="Measure the charts' radii (`reach` included) from each flat's "
                            "nearest centre: a chart holds its share of the orientations and "
-                           "a seam around it, so a sample is stored about 2.4 times in R^4 "
-                           "instead of 4-7 (radii 2, 6, 14 degrees beyond the nearest "
-                           "centre; docs/costs.md). Default (null): true in R^4 and beyond, false in "
-                           "R^2 and R^3.")
+                           "a seam around it, so a sample is stored about 2.4 times (lines, "
+                           "hyperplanes in R^4) or 3.7 (planes in R^4) instead of 4.1 or 7.3 "
+                           "(radii 2, 6, 14 degrees beyond the nearest centre), at about "
+                           "the same error; about 1 % of random queries fall outside the "
+                           "samples' hulls (docs/costs.md). Default (null): true in R^4 "
+                           "and beyond, false in R^2 and R^3.")
     isometric: Optional[bool] = Field(
         None, description="Warp the charts' points so that each chart measures turns and "
                           "shifts everywhere as at its centre (flatserve.warp: lines, and "

@@ -287,7 +287,7 @@ class LogApplier:
                                 thread_name_prefix="flatserve-restore") as pool:
             for e, row in entries:
                 pool.submit(lambda e=e, row=row: None if self.stopping
-                            else self._restore(e, row, count=True))
+                            else self._restore(e, row))
         return None if self.stopping else head
 
     def _load_snapshot(self, e: FieldEntry, row: FieldRow, upto: int
@@ -315,13 +315,13 @@ class LogApplier:
         return None, row
 
     def _restore(self, e: FieldEntry, row: FieldRow, upto: int | None = None, *,
-                 count: bool = False) -> None:
+                 count: bool = True) -> None:
         """Restore ``e`` to log position ``upto`` (default: the head the start-up
         restore read): its snapshot, then its batches up to ``upto`` inserted as
         the follower inserts them (chart, insert in slices). The database
         unreachable meanwhile: tried again until it answers (or the applier stops).
-        ``count``: the replayed samples are this replica's work (at its start; a
-        rebuild replays what it already counted)."""
+        ``count``: the replayed samples are this replica's work (at its start;
+        False for a rebuild, which replays what it already counted)."""
         if upto is None:
             upto = self._restore_head
         while True:
@@ -412,4 +412,4 @@ class LogApplier:
                 e.mark_failed(str(exc))
                 return
         with e.upload_lock, e.index_lock:
-            self._restore(e, row, upto)
+            self._restore(e, row, upto, count=False)

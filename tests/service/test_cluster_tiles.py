@@ -207,7 +207,21 @@ def test_a_lost_tile_is_a_503_and_marks_the_host(host, rng):
     with hosting(host):
         tt = TiledTriangulation(3, tiles=2)
     tt.insert(rng.uniform(size=(2000, 3)), rng.uniform(size=(2000, 1)), settle=True)
-    ray.kill(tt.tiles[1].actor)
+    actor = tt.tiles[1].actor
+    ray.kill(actor)
+    # ray.kill returns before the actor is gone: a call made at once may still be
+    # answered (seen under load); wait until its calls fail
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            ray.get(actor.state.remote(), timeout=5)
+        except ray.exceptions.RayActorError:
+            break
+        except ray.exceptions.GetTimeoutError:
+            pass
+        time.sleep(0.1)
+    else:
+        pytest.fail("the killed tile actor still answers after 60 s")
     with pytest.raises(ShardUnavailableError, match="lost"):
         tt.query(rng.uniform(size=(500, 3)))
     assert host.lost is not None

@@ -91,6 +91,7 @@ __all__ = [
     "DEFAULT_UNIT",
     "object_unit",
     "data_unit",
+    "UNIT_RULES",
     "DEFAULT_SCALE",
     "Atlas",
     "Routing",
@@ -232,10 +233,13 @@ class Atlas:
         interpolated best: for rays of an object, ``u`` about its half-size
         (rays that meet on its surface at depth ``z`` from its centre differ
         by a shift of ``z`` times their turn).  Default
-        :data:`DEFAULT_UNIT` (the paper's chart).  None: chosen from the
-        first samples of a field over the atlas (:func:`data_unit`,
-        :meth:`flatserve.atlas_field.AtlasField.settle_unit`); until then
-        ``unit`` is :data:`DEFAULT_UNIT` and ``unit_from_data`` True.
+        :data:`DEFAULT_UNIT` (the paper's chart).  None (or ``"data"``):
+        chosen from the first samples of a field over the atlas
+        (:func:`data_unit`, :meth:`flatserve.atlas_field.AtlasField.settle_unit`);
+        ``"fit"``: chosen among multiples of that by held-out validation on
+        the first samples' values (:func:`flatserve.atlas_field.fitted_unit`;
+        :data:`UNIT_RULES`); until then ``unit`` is :data:`DEFAULT_UNIT` and
+        ``unit_from_data`` True.
     relative : bool
         Measure ``inner``, ``trusted`` and ``reach`` from each flat's nearest
         centre's angle (module docstring); default False: from the centre.
@@ -264,7 +268,7 @@ class Atlas:
     def __init__(self, k: int, d: int, center_A, center_N, center_r, scales, *,
                  oriented: bool = False, inner: float = INNER_DEG,
                  trusted: float = TRUSTED_DEG, reach: float = REACH_DEG,
-                 unit: float | None = DEFAULT_UNIT, isometric: bool | None = None,
+                 unit: float | str | None = DEFAULT_UNIT, isometric: bool | None = None,
                  relative: bool = False):
         d = int(d)
         k = _flats.check_k(k, d)
@@ -274,10 +278,18 @@ class Atlas:
         inner = _in_units(inner, "inner")
         trusted = _in_units(trusted, "trusted")
         reach = _in_units(reach, "reach")
-        #: the unit is to be chosen from the field's first samples (:func:`data_unit`);
+        if isinstance(unit, str) and unit not in UNIT_RULES:
+            raise InvalidInputError(f"unit: expected a positive length or one of "
+                                    f"{', '.join(map(repr, UNIT_RULES))}, got {unit!r}", "unit")
+        #: the unit is to be chosen from the field's first samples (:attr:`unit_rule`);
         #: until then the charts are built in :data:`DEFAULT_UNIT`
-        self.unit_from_data = unit is None
-        unit = DEFAULT_UNIT if unit is None else _check_unit(unit)
+        self.unit_from_data = unit is None or isinstance(unit, str)
+        #: how the unit is chosen from the first samples: ``"data"`` (the geometry of
+        #: the flats, :func:`data_unit`) or ``"fit"`` (held-out validation on their
+        #: values, :func:`flatserve.atlas_field.fitted_unit`); ``"given"`` once it
+        #: is a length
+        self.unit_rule = ("data" if unit is None else unit) if self.unit_from_data else "given"
+        unit = DEFAULT_UNIT if self.unit_from_data else _check_unit(unit)
         if not isinstance(relative, (bool, np.bool_)):
             raise InvalidInputError(f"relative: expected true or false, got {relative!r}",
                                     "relative")
@@ -325,7 +337,7 @@ class Atlas:
                  inner: float | None = None, trusted: float | None = None,
                  reach: float | None = None, train_deg: float = COVER_TRAIN_DEG,
                  seed: int = 0, check_n: int = COVER_CHECK_N,
-                 n_train: int = COVER_TRAIN_N, unit: float | None = DEFAULT_UNIT,
+                 n_train: int = COVER_TRAIN_N, unit: float | str | None = DEFAULT_UNIT,
                  isometric: bool | None = None, relative: bool | None = None) -> "Atlas":
         """An atlas whose charts hold every k-flat of R^d, centres through the origin.
 
@@ -441,7 +453,7 @@ class Atlas:
                      inner: float = INNER_DEG, trusted: float = TRUSTED_DEG,
                      reach: float = REACH_DEG, require_cover: bool = True,
                      check_n: int = COVER_CHECK_N, seed: int = 0,
-                     unit: float | None = DEFAULT_UNIT, isometric: bool | None = None) -> "Atlas":
+                     unit: float | str | None = DEFAULT_UNIT, isometric: bool | None = None) -> "Atlas":
         """An atlas with the given centre flats, checked to cover every orientation.
 
         Parameters
@@ -507,7 +519,7 @@ class Atlas:
                     fraction: float = 0.99, inner: float = INNER_DEG,
                     trusted: float = TRUSTED_DEG, reach: float = REACH_DEG,
                     max_scale_samples: int = 5000, max_cluster_samples: int = 20_000,
-                    seed: int = 0, refine: int = 3, unit: float | None = DEFAULT_UNIT,
+                    seed: int = 0, refine: int = 3, unit: float | str | None = DEFAULT_UNIT,
                     isometric: bool | None = None) -> "Atlas":
         """A data-driven atlas: charts where the samples' orientations are.
 
@@ -713,8 +725,16 @@ class Atlas:
                     oriented=self.oriented, inner=self.inner, trusted=self.trusted,
                     reach=self.reach, unit=unit, isometric=self.isometric,
                     relative=self.relative)
-        out.info = {**self.info, **({"unit_from": "data"} if self.unit_from_data else {})}
+        out.info = {**self.info, **({"unit_from": self.unit_rule} if self.unit_from_data else {})}
         return out
+
+    @property
+    def unit_setting(self) -> float | str | None:
+        """What ``unit=`` makes an atlas choose its unit as this one does: the length,
+        None (:func:`data_unit`) or ``"fit"``."""
+        if not self.unit_from_data:
+            return self.unit
+        return None if self.unit_rule == "data" else self.unit_rule
 
     @property
     def ncharts(self) -> int:
@@ -959,14 +979,15 @@ class Atlas:
             ``unit_from`` ``"data"`` then and once chosen, else ``"given"``).
         """
         info = dict(spec.get("info", {}))
+        rule = (spec.get("unit_rule", "data") if spec.get("unit_from_data")
+                else info.get("unit_from") if info.get("unit_from") in UNIT_RULES else "given")
         return {
             "atlas": {"method": info.get("method"), "oriented": bool(spec["oriented"]),
                       "inner": spec["inner"], "trusted": spec["trusted"],
                       "reach": spec["reach"], "relative": bool(spec.get("relative", False)),
                       "unit": None if spec.get("unit_from_data") else spec.get("unit",
                                                                                DEFAULT_UNIT),
-                      "unit_from": "data" if spec.get("unit_from_data")
-                      or info.get("unit_from") == "data" else "given",
+                      "unit_from": rule,
                       "isometric": Atlas.spec_isometric(spec),
                       "covering_radius": info.get("covering_radius_deg"),
                       "max_sample_angle": info.get("max_sample_angle_deg"), "info": info},
@@ -985,6 +1006,7 @@ class Atlas:
         return {"k": self.k, "d": self.d, "oriented": self.oriented, "inner": self.inner,
                 "trusted": self.trusted, "reach": self.reach, "unit": self.unit,
                 **({"unit_from_data": True} if self.unit_from_data else {}),
+                **({"unit_rule": self.unit_rule} if self.unit_rule == "fit" else {}),
                 "isometric": self.isometric, **({"relative": True} if self.relative else {}),
                 **({"warps": [w.to_dict() for w in self.warps]} if self.isometric else {}),
                 "center_A": self.center_A.tolist(), "center_N": self.center_N.tolist(),
@@ -998,7 +1020,8 @@ class Atlas:
                     np.array(spec["center_N"]), np.array(spec["center_r"]),
                     np.array(spec["scales"]), oriented=bool(spec["oriented"]),
                     inner=spec["inner"], trusted=spec["trusted"], reach=spec["reach"],
-                    unit=None if spec.get("unit_from_data") else spec.get("unit", DEFAULT_UNIT),
+                    unit=(spec.get("unit_rule", "data") if spec.get("unit_from_data")
+                          else spec.get("unit", DEFAULT_UNIT)),
                     isometric=cls.spec_isometric(spec), relative=bool(spec.get("relative", False)))
         if atlas.isometric and "warps" in spec:
             warps = [warp_from_dict(w) for w in spec["warps"]]
@@ -1040,6 +1063,11 @@ def object_unit(radius: float) -> float:
 #: The range of a unit of length (the service's bounds of ``unit`` too): a unit
 #: chosen from the data is clipped to it.
 MIN_UNIT, MAX_UNIT = 1e-6, 1e6
+#: How an atlas made with ``unit`` left to its data chooses it from a field's first
+#: samples (:attr:`Atlas.unit_rule`): ``"data"`` the geometry of the flats
+#: (:func:`data_unit`, what ``unit=None`` means), ``"fit"`` held-out validation on
+#: their values (:func:`flatserve.atlas_field.fitted_unit`).
+UNIT_RULES = ("data", "fit")
 #: A value row shared by at least this share of a batch's samples is a
 #: background (:func:`data_unit`): samples of a continuous function repeat no
 #: value exactly, rays that miss every object all carry the background's.

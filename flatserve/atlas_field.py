@@ -46,7 +46,7 @@ from .options import Order, Outside, choice
 from .triangulation import RWLock
 
 __all__ = ["ATLAS_MAGIC", "AtlasField", "AtlasPrepared", "AtlasQueryResult", "FIT_FACTORS",
-           "FittedUnit", "fitted_unit"]
+           "FIT_MIN_ROWS", "FittedUnit", "choose_unit", "fitted_unit"]
 
 ATLAS_MAGIC = b"FSATLAS\x00"
 _VERSION = 1
@@ -432,7 +432,7 @@ class AtlasField(FieldBase):
         # A unit still to be chosen is chosen here, from this (the first) batch.
         n = flats.n
         if self.atlas.unit_from_data and n:
-            self.settle_unit(data_unit(flats, values))
+            self.settle_unit(choose_unit(self.atlas, flats, values))
         unit = self.atlas.unit
         ro = self.atlas.route(flats, self.atlas.reach)
         work = [(c, rows) for c, rows in enumerate(ro.rows)
@@ -900,7 +900,7 @@ class FittedUnit(NamedTuple):
         The units tried (increasing; ``data_unit`` times ``factors``, and the
         steps beyond an end).
     errors : ndarray, shape (u,)
-        Their median absolute error on the held-out rows every candidate answered.
+        Their scores (``metric``) on the held-out rows every candidate answered.
     compared : int
         How many held-out rows that was.
     """
@@ -912,7 +912,8 @@ class FittedUnit(NamedTuple):
 
 
 def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
-                holdout: float = 0.25, max_rows: int = 4000, seed: int = 0) -> FittedUnit:
+                holdout: float = 0.25, max_rows: int = 4000, seed: int = 0,
+                metric: str = "rmse", margin: float = 0.05) -> FittedUnit:
     """The unit of length (:class:`~flatserve.atlas.Atlas` ``unit``) that interpolates
     these samples best, by held-out validation.
 
@@ -920,8 +921,11 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
     ``factors`` is tried (and, while the least error is at an end of them, up to
     :data:`FIT_EXTEND` more steps beyond it): a field over ``atlas.with_unit(u)`` is filled with a
     seeded ``1 - holdout`` share of the rows (at most ``max_rows`` in all) and
-    queried at the rest; the unit whose median absolute error (mean over
-    channels) on the held-out rows every candidate answered is least wins.  The
+    queried at the rest, and scored on the held-out rows every candidate
+    answered (``metric``).  Of the units whose score is within ``margin`` of the
+    least, the one nearest the geometry's wins: a grid whose scores differ by
+    less than the noise of a small held-out set (the light-field scenes: within
+    1 % from 1/4 to 2 times ``data_unit``) keeps the geometry's.  The
     unit balances turns against shifts (a shift of ``unit`` weighs as a turn of
     one radian); the best balance depends on how fast the values change along
     each, which the geometry cannot tell.  It costs ``len(factors)`` builds of
@@ -943,6 +947,12 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
     max_rows : int
         Rows used at most (a seeded subset of them).
     seed : int
+    metric : {"rmse", "median"}
+        The score of a unit: the root mean square of its held-out errors (mean
+        over channels; what a PSNR measures) or their median absolute value.
+    margin : float
+        Share in [0, 1): scores within ``(1 + margin)`` times the least count as
+        equal (the nearest to the geometry's unit wins among them).
 
     Returns
     -------
@@ -983,14 +993,29 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
         raise InvalidInputError(f"flats: fitting a unit needs at least 30 rows to build and "
                                 f"10 to hold out, got {train.size} and {test.size} of {n}",
                                 "flats")
-    base = data_unit(flats.take(train), vals[train])
+    base = data_unit(flats, vals)  # every row's geometry: kept when the fit cannot tell
+    exact = 1e-12 * max(float(np.abs(vals).max()), 1e-300)  # errors at round-off: ties
     tried: dict[float, np.ndarray] = {}
+    if not (isinstance(margin, (int, float)) and 0 <= margin < 1):
+        raise InvalidInputError(f"margin: expected a share in [0, 1), got {margin!r}", "margin")
+    if metric not in ("rmse", "median"):
+        raise InvalidInputError(f"metric: expected 'rmse' or 'median', got {metric!r}", "metric")
 
     def errors_of(u: float) -> None:
         fld = AtlasField(atlas.with_unit(u), channels=vals.shape[1])
         fld.add(flats.take(train), vals[train])
         got = np.asarray(fld.query(flats.take(test)).values)
-        tried[u] = np.abs(got - vals[test]).mean(axis=1)
+        tried[u] = (np.square(got - vals[test]) if metric == "rmse"
+                    else np.abs(got - vals[test])).mean(axis=1)
+
+    def score(errs: np.ndarray) -> np.ndarray:
+        return np.sqrt(errs.mean(axis=1)) if metric == "rmse" else np.median(errs, axis=1)
+
+    def least(units: np.ndarray, sc: np.ndarray) -> int:
+        # of the units within `margin` of the least error, the one nearest the
+        # geometry's (ties: e.g. every candidate exact on the held-out rows)
+        near = np.flatnonzero(sc <= sc.min() * (1 + margin) + exact)
+        return int(near[np.abs(np.log(units[near] / base)).argmin()])
 
     for u in np.unique(np.clip(base * fac, MIN_UNIT, MAX_UNIT)):
         errors_of(float(u))
@@ -1001,7 +1026,7 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
         if not both.any():
             raise InvalidInputError("flats: no held-out row was answered by every candidate "
                                     "unit (too few samples, or too spread out)", "flats")
-        best = int(np.median(errs[:, both], axis=1).argmin())
+        best = least(units, score(errs[:, both]))
         if units.size < 2 or 0 < best < units.size - 1:
             break
         step = units[-1] / units[-2] if best else units[0] / units[1]
@@ -1012,5 +1037,54 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
     units = np.array(sorted(tried))
     errs = np.stack([tried[u] for u in units])
     both = np.isfinite(errs).all(axis=0)
-    med = np.median(errs[:, both], axis=1)
-    return FittedUnit(float(units[int(med.argmin())]), units, med, int(both.sum()))
+    sc = score(errs[:, both])
+    return FittedUnit(float(units[least(units, sc)]), units, sc, int(both.sum()))
+
+
+#: The fewest rows a first batch needs for ``unit="fit"`` (:func:`choose_unit`):
+#: :func:`fitted_unit` builds on 3/4 of them and holds out the rest.
+FIT_MIN_ROWS = 200
+
+
+def choose_unit(atlas: Atlas, flats: Flats, values) -> float:
+    """The unit of length a field over ``atlas`` takes from its first batch, by the
+    atlas's :attr:`~flatserve.atlas.Atlas.unit_rule`.
+
+    ``"data"``: :func:`flatserve.atlas.data_unit` (the geometry of the flats).
+    ``"fit"``: :func:`fitted_unit` (held-out validation on the values; its
+    defaults: at most 4,000 rows, seeded), or ``data_unit`` when the batch has
+    fewer than :data:`FIT_MIN_ROWS` rows or no held-out row was answered by every
+    candidate.  Deterministic: the same batch gives the same unit (a writer
+    stores it with the batch; a replica or a restart takes it from there).
+
+    Parameters
+    ----------
+    atlas : Atlas
+        With ``unit_from_data`` (a unit still to choose).
+    flats : Flats
+        ``n`` flats of the atlas's kind.
+    values : (n, C) array_like
+        Their values (finite).
+
+    Returns
+    -------
+    float
+
+    Example
+    -------
+    >>> import numpy as np, flatserve
+    >>> from flatserve.atlas import Atlas, data_unit
+    >>> rng = np.random.default_rng(0)
+    >>> f = flatserve.Flats.from_rays(rng.uniform(-1, 1, (100, 3)), rng.normal(size=(100, 3)))
+    >>> v = rng.normal(size=(100, 1))
+    >>> choose_unit(Atlas.covering(1, 3, unit=None), f, v) == data_unit(f, v)
+    True
+    """
+    if atlas.unit_rule != "fit" or flats.n < FIT_MIN_ROWS:
+        return data_unit(flats, values)
+    try:
+        return fitted_unit(atlas, flats, values).unit
+    except InvalidInputError as exc:
+        if exc.argument != "flats":  # (bad values are the caller's: raised)
+            raise
+        return data_unit(flats, values)

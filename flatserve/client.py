@@ -273,7 +273,7 @@ class Client:
     # -- fields -------------------------------------------------------------
     def create_field(self, name: str, *, k: int = 1, d: int = 3, channels: int = 1,
                      basis: dict | None = None, oriented: bool | None = None,
-                     roundtrip_tol: float | None = None, unit: float | None = None,
+                     roundtrip_tol: float | None = None, unit: float | str | None = None,
                      copies: int | None = None, tiles: int | str | None = None,
                      exist_ok: bool = False,
                      verbose: bool = False) -> dict:
@@ -291,7 +291,8 @@ class Client:
         Q.tolist(), "r": r.tolist()}``. An atlas for given flats: ``{"kind": "atlas",
         "atlas": "samples", "samples": {"origins": ..., "directions": ...}}``.
         ``unit``: an atlas's unit of length (the shift that counts as much as a turn
-        of one radian; for rays of an object about its half-size; default 1).
+        of one radian; for rays of an object about its half-size); left out or
+        ``"data"``: chosen from the first batch's flats, ``"fit"``: from its values.
         ``copies``: a server in cluster mode keeps that many copies of each shard,
         on different nodes (default 1). ``tiles``: a one-chart field's triangulation
         in that many tiles, built on the server's cores at once (default 1; ``"auto"``:

@@ -56,7 +56,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        help="the atlas's unit of length in world units: the shift of a ray that counts "
                             "as much as a turn of one radian (default 1/3: 2/3 of the scenes' radius 0.5, "
                             "flatserve.atlas.object_unit; 1: world units; data: chosen by the field from "
-                            "its first batch, flatserve.atlas.data_unit); the baseline is unchanged")
+                            "its first batch, flatserve.atlas.data_unit; fit: from its values, "
+                            "flatserve.atlas_field.fitted_unit); the baseline is unchanged")
     atlas.add_argument("--reach", type=float, default=None,
                        help="degrees: store samples in every chart whose centre is closer (default "
                             "the atlas's: 27 for the covering); wider helps sparse eyes, at the cost "
@@ -67,13 +68,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _unit(text: str):
-    """``--unit``: a length, or ``data`` (chosen from the first samples)."""
-    if text == "data":
+    """``--unit``: a length, ``data`` or ``fit`` (chosen from the first samples)."""
+    if text in ("data", "fit"):
         return text
     try:
         return float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a length or 'data', got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected a length, 'data' or 'fit', got {text!r}") \
+            from None
 
 
 def run(args: argparse.Namespace) -> int:

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atlas import Atlas, object_unit
+from ..atlas import UNIT_RULES, Atlas, object_unit
 from ..atlas_field import AtlasField
 from ..grassmann import ICOSAHEDRON_AXES
 from ..errors import InvalidInputError
@@ -178,7 +178,7 @@ def _with_reach(atlas: Atlas, reach: float | None) -> Atlas:
         return atlas
     out = Atlas(atlas.k, atlas.d, atlas.center_A, atlas.center_N, atlas.center_r, atlas.scales,
                 oriented=atlas.oriented, inner=atlas.inner, trusted=atlas.trusted, reach=reach,
-                unit=None if atlas.unit_from_data else atlas.unit, isometric=atlas.isometric,
+                unit=atlas.unit_setting, isometric=atlas.isometric,
                 relative=atlas.relative)
     out.info = dict(atlas.info)
     return out
@@ -225,7 +225,8 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         scenes' radius 0.5, they fill the unit box); 1: world units (the
         paper's chart); ``"data"``: chosen by the field from its first batch
         of samples (:func:`flatserve.atlas.data_unit`), as a field created
-        without ``unit`` does.
+        without ``unit`` does; ``"fit"``: chosen from the first batch's values
+        (:func:`flatserve.atlas_field.fitted_unit`).
     isometric : bool
         The atlas's charts warped to be isometric (:mod:`flatserve.warp`, the
         library's default); False: the paper's charts.
@@ -251,10 +252,10 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         raise InvalidInputError(f"atlas: expected one of {sorted(ATLASES)}, got {atlas!r}", "atlas")
     if unit is None:
         unit = SCENE_UNIT
-    if unit != "data" and not (isinstance(unit, (int, float)) and math.isfinite(unit)
-                               and unit > 0):
-        raise InvalidInputError(f"unit: expected a positive length or \"data\", got {unit!r}",
-                                "unit")
+    if unit not in UNIT_RULES and not (isinstance(unit, (int, float)) and math.isfinite(unit)
+                                       and unit > 0):
+        raise InvalidInputError(f"unit: expected a positive length, \"data\" or \"fit\", got "
+                                f"{unit!r}", "unit")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
@@ -272,8 +273,8 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
                                          None if unit == "data" else unit, isometric), reach),
                                      progress=bar)
     timings["field_build"] = stats.seconds
-    if unit == "data":
-        log(f"unit of length chosen from the first {min(n, BUILD_CHUNK):,} samples: "
+    if unit in UNIT_RULES:
+        log(f"unit of length chosen ({unit}) from the first {min(n, BUILD_CHUNK):,} samples: "
             f"{field.atlas.unit:.4f}")
     log(f"atlas field: {field.atlas.ncharts} charts, {stats.accepted:,} samples accepted, "
         f"{stats.rejected:,} rejected, {field.nstored:,} vertices over the charts "
@@ -329,7 +330,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     contact_sheet(out / "contact_sheet.png", sheet_rows, azimuths)
     result = {
         "scene": scene, "atlas_kind": atlas, "unit": field.atlas.unit,
-        "unit_from": "data" if unit == "data" else "given", "isometric": isometric, "samples": n, "eyes": neyes, "seed": seed, "width": width,
+        "unit_from": unit if unit in UNIT_RULES else "given", "isometric": isometric, "samples": n, "eyes": neyes, "seed": seed, "width": width,
         "supersample": supersample, "channels": channels,
         "eye_radius": ORBIT_EYE_RADIUS, "ball_radius": ORBIT_RADIUS,
         "atlas": {"charts": field.atlas.ncharts, "inner": field.atlas.inner,

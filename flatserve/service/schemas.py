@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from typing import Annotated, ClassVar, Literal, Optional, Union
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
+from pydantic import (BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError,
+                      field_validator, model_validator)
 
 from ..coordinates import REASONS
 from ..flats import FORMS, basis_size
@@ -270,8 +271,9 @@ class FieldCreate(_KD):
                           "orientation accepted). `{\"kind\": \"tangent_simplex\"}` or "
                           "explicit flats: one chart (the paper's set-up).")
     roundtrip_tol: Optional[float] = Field(None, gt=0, le=1.0, allow_inf_nan=False)
-    unit: Optional[float] = Field(
-        None, ge=1e-6, le=1e6, allow_inf_nan=False,
+    unit: Union[Annotated[float, Field(ge=1e-6, le=1e6, allow_inf_nan=False)],
+                Literal["data", "fit"], None] = Field(
+        None,
         description="Atlas fields: the unit of length of the charts, in the flats' units "
                     "(1e-6 to 1e6): the "
                     "shift of a flat that counts as much as a turn of one radian (at a chart's "
@@ -280,7 +282,23 @@ class FieldCreate(_KD):
                     "centre differ by a shift of z times their turn). Left out: chosen from "
                     "the field's first batch of samples and stored with it (the mean distance "
                     "of its flats from their least-squares centre, samples of a background "
-                    "value left out: flatserve.atlas.data_unit); describe gives it.")
+                    "value left out: flatserve.atlas.data_unit); `\"data\"` says so. "
+                    "`\"fit\"`: chosen among multiples of that (1/4 to 8, and beyond an "
+                    "end) by held-out validation on the first batch's values, which "
+                    "interpolates a smooth function 1.4-1.8x better when it changes faster "
+                    "along a turn than along a shift (flatserve.atlas_field.fitted_unit; "
+                    "docs/costs.md). It costs the first upload about a second for lines in "
+                    "R^3, a minute or more in R^4. Describe gives the unit chosen.")
+
+    @field_validator("unit", mode="wrap")
+    @classmethod
+    def _one_unit_error(cls, value, handler):
+        # one error at `unit`, not one per member of the union
+        try:
+            return handler(value)
+        except ValidationError:
+            raise ValueError(f"expected a length from 1e-6 to 1e6, \"data\" or \"fit\", got "
+                             f"{value!r}") from None
     copies: int = Field(
         1, ge=1, le=3,
         description="Cluster mode (`serve --ray`): copies of each shard, each on a different "
@@ -332,7 +350,8 @@ class AtlasInfo(BaseModel):
                          "to be chosen from the first batch of samples.")
     unit_from: str = Field("given", description="`given` (the create request's `unit`, or 1 "
                                                 "for fields stored before the choice from the "
-                                                "data) or `data` (chosen from the first batch).")
+                                                "data), `data` (chosen from the first batch's "
+                                                "flats) or `fit` (from its values).")
     relative: bool = Field(False, description="The radii are degrees beyond each flat's "
                                               "nearest centre (the create request's "
                                               "`basis.relative`, by default true in R^4 "

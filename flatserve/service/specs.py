@@ -172,6 +172,7 @@ def build_chart_basis(req, *, max_atlas_samples: int | None = None
     spec = CoveringAtlas() if req.basis is None else req.basis
     oriented = oriented_of(req)
     unit = getattr(req, "unit", None)
+    unit = None if unit == "data" else unit
     if unit is not None and not isinstance(spec, ATLAS_SPECS):
         raise InvalidInputError(
             f"unit: a single chart (basis kind {spec.kind!r}) has its own `scale`; `unit` is "
@@ -189,7 +190,7 @@ MAX_ATLAS_CENTERS = 1024
 
 
 def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
-                max_atlas_samples: int | None = None, unit: float | None = None) -> Atlas:
+                max_atlas_samples: int | None = None, unit: float | str | None = None) -> Atlas:
     """The :class:`flatserve.atlas.Atlas` of an atlas spec (errors name ``basis.<member>``).
 
     ``covering``: :meth:`Atlas.covering`. ``samples``: :meth:`Atlas.for_samples` of the
@@ -197,9 +198,9 @@ def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
     charts hold every one of them. ``centers``: :meth:`Atlas.from_centers`, refused
     (422) unless every orientation lies within a chart's trusted radius and every chart
     round-trips its domain. ``unit``: the charts' unit of length (the field's `unit`,
-    stored in the atlas: a restored field keeps it); None: chosen from the field's
-    first batch (:func:`flatserve.atlas.data_unit`; the upload room stores it with the
-    batch)."""
+    stored in the atlas: a restored field keeps it); None or ``"fit"``: chosen from the
+    field's first batch (:func:`flatserve.atlas_field.choose_unit`; the upload room
+    stores it with the batch)."""
     if isinstance(spec, CoveringAtlas):
         with _within("basis"):
             return Atlas.covering(k, d, oriented=oriented, unit=unit, reach=spec.reach,

@@ -169,9 +169,10 @@ def _settled(e: FieldEntry) -> dict:
     f, at = e.field, (spec.get("atlas") or None)
     if at is None or not at.get("unit_from_data") or getattr(f, "unit_pending", True):
         return spec
-    at = {k: v for k, v in at.items() if k not in ("unit_from_data", "warps")}
+    rule = at.get("unit_rule", "data")
+    at = {k: v for k, v in at.items() if k not in ("unit_from_data", "unit_rule", "warps")}
     at["unit"] = f.atlas.unit
-    at["info"] = {**at.get("info", {}), "unit_from": "data"}
+    at["info"] = {**at.get("info", {}), "unit_from": rule}
     return {**spec, "atlas": at}
 
 

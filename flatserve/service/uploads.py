@@ -31,7 +31,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ..atlas import data_unit
+from ..atlas_field import choose_unit
 from ..field import AddResult, PreparedBatch
 from ..flats import Flats
 from .applier import stored_flats
@@ -196,7 +196,7 @@ class UploadService:
         # bad input is refused here, before anything is stored; charting cannot fail
         # on validated input (each row gets a status)
         # a field whose unit of length comes from the data and that has inserted no batch
-        # here yet: this batch is charted in its own unit (data_unit of its rows), which
+        # here yet: this batch is charted in its own unit (choose_unit of its rows), which
         # is stored with it; the batch first in the log sets the field's unit everywhere
         # (applier.adopt_unit; a batch charted here in another unit is charted again
         # when applied). The field itself is not changed here.
@@ -204,7 +204,7 @@ class UploadService:
         target = e.field
         if getattr(e.field, "unit_from_data", False):
             e.field.prepare(flats, values, defer=True)  # validates (raises) first
-            unit = data_unit(flats, values)
+            unit = choose_unit(e.field.atlas, flats, values)  # (a fit: seconds, a thread)
             target, record = e.field.in_unit(unit), {UNIT_ARRAY: np.array([unit])}
         chart = target.prepare(flats, values, defer=True)
         packing = self._commits.submit(

@@ -595,7 +595,6 @@ def test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches(make_
     an import get it from storage, not by choosing again: with the estimator
     replaced by another answer meanwhile they still have the recorded unit."""
     import flatserve.atlas_field
-    import flatserve.service.uploads
     from flatserve.atlas import data_unit
 
     batches = []
@@ -626,8 +625,7 @@ def test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches(make_
     def other(*a, **kw):
         return 5.0
 
-    monkeypatch.setattr(flatserve.atlas_field, "data_unit", other)
-    monkeypatch.setattr(flatserve.service.uploads, "data_unit", other)
+    monkeypatch.setattr(flatserve.atlas_field, "data_unit", other)  # (the upload room's too)
     for snapshot in (False, True):  # restored from the log, then from a snapshot
         tc, c = started(make_app())
         try:
@@ -645,6 +643,47 @@ def test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches(make_
                 c.snapshot("auto")
         finally:
             tc.__exit__(None, None, None)
+
+
+def test_a_unit_fitted_to_the_first_batch_over_http(make_app, rng, monkeypatch):
+    """``unit: "fit"``: the field takes the library's fitted unit of its first batch
+    (not the geometry's), answers as the library's field, describes it as ``fit``
+    and keeps it after a restart (recorded with the batch: the fit replaced by
+    another answer meanwhile changes nothing); ``"data"`` is the default said
+    aloud; another word is a 422 naming ``unit``."""
+    import flatserve.atlas_field
+    from flatserve.atlas import data_unit
+
+    o, v = sphere_rays(rng, 1500, spread=2.0)
+    a = v / np.linalg.norm(v, axis=1, keepdims=True)
+    val = np.stack([np.cos(3 * a[:, 0]) * np.cos(2 * a[:, 1])] * C, axis=1)
+    probe = sphere_rays(rng, 300, spread=1.5)
+    lib = AtlasField(Atlas.covering(1, 3, oriented=True, unit="fit"), channels=C)
+    lib.add(Flats.from_rays(o, v), val)
+    u = lib.atlas.unit
+    assert u > 1.5 * data_unit(Flats.from_rays(o, v), val)
+    want = lib.query(Flats.from_rays(*probe))
+    tc, c = started(make_app())
+    try:
+        info = c.create_field("fit", channels=C, oriented=True, unit="fit")
+        assert info["atlas"]["unit"] is None and info["atlas"]["unit_from"] == "fit"
+        assert c.create_field("said", channels=C, unit="data")["atlas"]["unit_from"] == "data"
+        r = tc.post("/v1/fields", json={"name": "bad", "k": 1, "d": 3, "unit": "fitted"})
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "unit", r.text
+        c.upload_rays("fit", o, v, val)
+        got = c.describe("fit")["atlas"]
+        assert got["unit"] == u and got["unit_from"] == "fit"
+        same_answers(c, "fit", probe, want)
+    finally:
+        tc.__exit__(None, None, None)
+    monkeypatch.setattr(flatserve.atlas_field, "fitted_unit", lambda *a, **kw: 5.0)
+    tc, c = started(make_app())
+    try:
+        got = c.describe("fit")["atlas"]
+        assert got["unit"] == u and got["unit_from"] == "fit"
+        same_answers(c, "fit", probe, want)
+    finally:
+        tc.__exit__(None, None, None)
 
 
 def same_parametric(c, name, qA, qb, want):

@@ -20,10 +20,12 @@ seeded), and ``--queries`` held-out random flats. Measured:
    ``flatserve.atlas_field.fitted_unit`` chose from the samples (held out among
    them), against the 8 nearest samples as above and in the same unit (offsets
    over the unit in the chordal metric: the fair peer);
+   and the default atlas's median error by the query's angle from its nearest
+   centre (is it flat across where the charts answer?);
 2. ``--one-chart``: one chart (the default centre) holding the samples within
-   40 degrees of it, queried within 40 degrees, paper's against isometric, the
-   median error by the query's angle from the centre (is it flat across the
-   chart?).
+   ``--sample-deg`` (44, as far as an atlas stores them) degrees of it, queried
+   within 40 degrees, paper's against isometric, the median error by the
+   query's angle from the centre (is it flat across the chart?).
 
     .venv/bin/python benchmarks/accuracy_by_kind.py [--kinds 2,3 1,4 2,4] [--samples 3000]
     .venv/bin/python benchmarks/accuracy_by_kind.py --fit-unit --kinds 1,3 2,3 3,4 1,4 2,4
@@ -134,6 +136,7 @@ def atlas_case(k, d, n, nq, seed, fit=False):
               f"{np.median(err):.4f} | {np.median(knn[ins]):.4f} | "
               f"{np.median(err) / np.median(knn[ins]):.2f} (8-NN in the same unit: "
               f"{np.median(fair[ins]):.4f}, {np.median(err) / np.median(fair[ins]):.2f}) |")
+    by_angle(k, d, A, c, f, Aq, cq, fq, knn)
     both = got["paper"][0] & got["isometric"][0]
     only = got["paper"][0] & ~both
     print(f"on the {both.mean():.1%} of queries both answer: median error paper "
@@ -147,15 +150,50 @@ def atlas_case(k, d, n, nq, seed, fit=False):
           f"{np.median(got['relative'][1][both]):.4f}, 8-NN {np.median(knn[both]):.4f}")
 
 
-def one_chart_case(k, d, n, nq, seed, maxdeg=40.0):
+def by_angle(k, d, A, c, f, Aq, cq, fq, knn, width=5.0):
+    """The default atlas's median error (and the 8-NN's on the same queries) by the
+    query's angle from its nearest centre: is the error flat across where the
+    charts answer?"""
+    atlas = Atlas.covering(k, d)
+    fld = AtlasField(atlas, 1)
+    fld.add(Flats.from_parametric(A, c), f[:, None])
+    qf = Flats.from_parametric(Aq, cq)
+    res = fld.query(qf)
+    ins = np.asarray(res.inside)
+    e = np.abs(np.asarray(res.values)[:, 0] - fq)
+    ang = np.degrees(atlas.route(qf, atlas.trusted).nearest_angle)
+    edges = np.arange(0.0, ang.max() + width, width)
+    print(f"default atlas ({'relative' if atlas.relative else 'balls'}, "
+          f"{'isometric' if atlas.isometric else 'paper'} charts): median error by the "
+          "query's angle from its nearest centre (answered; 8-NN on the same)")
+    print("| degrees | " + " | ".join(f"{a:g}-{b:g}" for a, b in zip(edges, edges[1:]))
+          + " | last over first |")
+    print("|---" * len(edges) + "|---|")
+    meds, cells = [], []
+    for a, b in zip(edges, edges[1:]):
+        sel = ins & (ang >= a) & (ang < b)
+        meds.append(np.median(e[sel]) if sel.sum() >= 10 else np.nan)
+        cells.append(f"{meds[-1]:.4f} ({np.median(knn[sel]):.4f}, {sel.sum()})"
+                     if sel.sum() >= 10 else f"({sel.sum()} queries)")
+    ok = [m for m in meds if np.isfinite(m)]
+    print("| error | " + " | ".join(cells) + f" | {ok[-1] / ok[0]:.2f} |")
+
+
+def one_chart_case(k, d, n, nq, seed, maxdeg=40.0, sample_deg=44.0):
     Qc, rc = Basis.default_center(k, d)
     center = np.eye(d)[:, d - k:]
-    A, c, f, Aq, cq, fq = setup(k, d, n, nq, seed, center, maxdeg)
+    rng = np.random.default_rng(seed)
+    W = rng.normal(size=(d, d))
+    W, w = W + W.T, rng.normal(size=d)
+    A, c = random_flats(rng, n, k, d, center, sample_deg)
+    Aq, cq = random_flats(rng, nq, k, d, center, maxdeg)
+    f, fq = truth(A, c, W, w), truth(Aq, cq, W, w)
     ang = np.degrees(np.arccos(np.clip(
         np.linalg.svd(np.einsum("dk,ndj->nkj", center, Aq), compute_uv=False).min(axis=1), -1, 1)))
     basis = Basis.tangent_simplex(Qc, rc, k)
-    print(f"\none chart of {k}-flats in R^{d} (samples and queries within {maxdeg:g} degrees "
-          f"of its centre): median error by the query's angle from the centre")
+    print(f"\none chart of {k}-flats in R^{d} (samples within {sample_deg:g} degrees of its "
+          f"centre, queries within {maxdeg:g}): median error by the query's angle from the "
+          "centre")
     print("| chart | answered | " + " | ".join(f"{a}-{b} deg" for a, b in zip(BINS, BINS[1:]))
           + " | last bin over first |")
     print("|---" * (len(BINS) + 2) + "|")
@@ -178,13 +216,17 @@ def main() -> None:
     ap.add_argument("--queries", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--one-chart", action="store_true")
+    ap.add_argument("--sample-deg", type=float, default=44.0,
+                    help="--one-chart: samples within this angle of the centre (default 44, "
+                         "as far as an atlas stores them; queries within 40)")
     ap.add_argument("--fit-unit", action="store_true",
                     help="also the default atlas in a unit fitted to the samples")
     args = ap.parse_args()
     for kd in args.kinds:
         k, d = map(int, kd.split(","))
         if args.one_chart:
-            one_chart_case(k, d, args.samples, args.queries, args.seed)
+            one_chart_case(k, d, args.samples, args.queries, args.seed,
+                           sample_deg=args.sample_deg)
         else:
             atlas_case(k, d, args.samples, args.queries, args.seed, fit=args.fit_unit)
 

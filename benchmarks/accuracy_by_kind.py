@@ -104,10 +104,13 @@ def atlas_case(k, d, n, nq, seed, fit=False):
           "the same | ratio |")
     print("|---|---|---|---|---|---|---|---|")
     got = {}
+    default = Atlas.covering(k, d)
     for name, iso, rel in (("paper", False, False), ("isometric", True, False),
                            ("relative", False, True)):
         atlas = Atlas.covering(k, d, isometric=iso, relative=rel)
         fld = AtlasField(atlas, 1)
+        if (atlas.isometric, atlas.relative) == (default.isometric, default.relative):
+            got["default"] = fld
         t0 = time.perf_counter()
         fld.add(Flats.from_parametric(A, c), f[:, None])
         t = time.perf_counter() - t0
@@ -136,7 +139,7 @@ def atlas_case(k, d, n, nq, seed, fit=False):
               f"{np.median(err):.4f} | {np.median(knn[ins]):.4f} | "
               f"{np.median(err) / np.median(knn[ins]):.2f} (8-NN in the same unit: "
               f"{np.median(fair[ins]):.4f}, {np.median(err) / np.median(fair[ins]):.2f}) |")
-    by_angle(k, d, A, c, f, Aq, cq, fq, knn)
+    by_angle(got.pop("default"), Aq, cq, fq, knn)
     both = got["paper"][0] & got["isometric"][0]
     only = got["paper"][0] & ~both
     print(f"on the {both.mean():.1%} of queries both answer: median error paper "
@@ -150,13 +153,11 @@ def atlas_case(k, d, n, nq, seed, fit=False):
           f"{np.median(got['relative'][1][both]):.4f}, 8-NN {np.median(knn[both]):.4f}")
 
 
-def by_angle(k, d, A, c, f, Aq, cq, fq, knn, width=5.0):
+def by_angle(fld, Aq, cq, fq, knn, width=5.0):
     """The default atlas's median error (and the 8-NN's on the same queries) by the
     query's angle from its nearest centre: is the error flat across where the
-    charts answer?"""
-    atlas = Atlas.covering(k, d)
-    fld = AtlasField(atlas, 1)
-    fld.add(Flats.from_parametric(A, c), f[:, None])
+    charts answer? (``fld``: the default atlas's field, filled.)"""
+    atlas = fld.atlas
     qf = Flats.from_parametric(Aq, cq)
     res = fld.query(qf)
     ins = np.asarray(res.inside)
@@ -176,7 +177,8 @@ def by_angle(k, d, A, c, f, Aq, cq, fq, knn, width=5.0):
         cells.append(f"{meds[-1]:.4f} ({np.median(knn[sel]):.4f}, {sel.sum()})"
                      if sel.sum() >= 10 else f"({sel.sum()} queries)")
     ok = [m for m in meds if np.isfinite(m)]
-    print("| error | " + " | ".join(cells) + f" | {ok[-1] / ok[0]:.2f} |")
+    print("| error | " + " | ".join(cells)
+          + (f" | {ok[-1] / ok[0]:.2f} |" if ok else " | (no bin of 10 answered queries) |"))
 
 
 def one_chart_case(k, d, n, nq, seed, maxdeg=40.0, sample_deg=44.0):

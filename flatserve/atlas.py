@@ -278,9 +278,7 @@ class Atlas:
         inner = _in_units(inner, "inner")
         trusted = _in_units(trusted, "trusted")
         reach = _in_units(reach, "reach")
-        if isinstance(unit, str) and unit not in UNIT_RULES:
-            raise InvalidInputError(f"unit: expected a positive length or one of "
-                                    f"{', '.join(map(repr, UNIT_RULES))}, got {unit!r}", "unit")
+        _check_rule(unit)
         #: the unit is to be chosen from the field's first samples (:attr:`unit_rule`);
         #: until then the charts are built in :data:`DEFAULT_UNIT`
         self.unit_from_data = unit is None or isinstance(unit, str)
@@ -554,10 +552,10 @@ class Atlas:
             samples until each is within ``radius``.  The bisection uses at
             most ``max_scale_samples`` per chart.
         seed, refine : int
-        unit : float
+        unit : float or {"data", "fit"} or None
             The charts' unit of length (:class:`Atlas`; the bisection
             chooses each chart's scale in this unit, in :data:`DEFAULT_UNIT`
-            for None: from the first samples).
+            for a unit chosen from the first samples).
         isometric : bool, optional
             Warp the charts' points (:class:`Atlas`; default: lines in R^3).
 
@@ -572,6 +570,7 @@ class Atlas:
                                     f"{type(flats).__name__}", "flats")
         if flats.n < 1:
             raise InvalidInputError("flats: expected at least one sample", "flats")
+        provisional = _check_rule(unit)  # the scales' unit until a rule chooses
         radius = _in_units(radius, "radius")
         if not 0 < radius <= trusted:
             raise InvalidInputError(f"radius: expected 0 < radius <= trusted = {trusted:g}, "
@@ -649,8 +648,7 @@ class Atlas:
             sub = rows if rows.size <= max_scale_samples else rng.choice(
                 rows, max_scale_samples, replace=False)
             sel = select_scale(Q[sub], r[sub], lambda sc, Qc=Qc, rc=rc, a=a, n=n:
-                               _unit_simplex(Qc, rc, k, sc, (a, n),
-                                             DEFAULT_UNIT if unit is None else unit),
+                               _unit_simplex(Qc, rc, k, sc, (a, n), provisional),
                                fraction=fraction, lo=1e-3, hi=1e3)
             As.append(a)
             Ns.append(n)
@@ -710,7 +708,8 @@ class Atlas:
         """The same charts (centres, scales, radii, relative and isometric or not) in another unit
         of length: their tangent simplices rebuilt (:func:`_unit_simplex`), their
         warps calibrated again on first use; ``info["unit_from"]`` says
-        ``"data"`` when this atlas's unit was to be chosen from the data.
+        ``"data"`` or ``"fit"`` when this atlas's unit was to be chosen from the
+        data (:attr:`unit_rule`).
 
         Parameters
         ----------
@@ -976,7 +975,8 @@ class Atlas:
             None}, ...]}`` (``method``, ``covering_radius`` and
             ``max_sample_angle`` from ``info``, None where it has none;
             ``unit`` None while it is to be chosen from the first samples,
-            ``unit_from`` ``"data"`` then and once chosen, else ``"given"``).
+            ``unit_from`` its rule, ``"data"`` or ``"fit"``, then and once
+            chosen, else ``"given"``).
         """
         info = dict(spec.get("info", {}))
         rule = (spec.get("unit_rule", "data") if spec.get("unit_from_data")
@@ -1072,6 +1072,16 @@ UNIT_RULES = ("data", "fit")
 #: background (:func:`data_unit`): samples of a continuous function repeat no
 #: value exactly, rays that miss every object all carry the background's.
 BACKGROUND_SHARE = 0.05
+
+
+def _check_rule(unit) -> float:
+    """``unit`` as an atlas takes it: a word must be one of :data:`UNIT_RULES`; the
+    unit its charts have until the rule chooses (:data:`DEFAULT_UNIT`), or the
+    length itself (checked)."""
+    if isinstance(unit, str) and unit not in UNIT_RULES:
+        raise InvalidInputError(f"unit: expected a positive length or one of "
+                                f"{', '.join(map(repr, UNIT_RULES))}, got {unit!r}", "unit")
+    return DEFAULT_UNIT if unit is None or isinstance(unit, str) else _check_unit(unit)
 
 
 def _check_unit(unit) -> float:

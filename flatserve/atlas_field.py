@@ -36,7 +36,7 @@ import numpy as np
 
 from ._fieldbase import (FieldBase, corrupted, pack_header, part_key, read_header, read_part,
                          write_part)
-from .atlas import MAX_UNIT, MIN_UNIT, Atlas, data_unit
+from .atlas import MAX_UNIT, MIN_UNIT, UNIT_RULES, Atlas, data_unit
 from .coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
 from .errors import InvalidInputError, SnapshotError
 from .field import AddResult, Field, PreparedBatch, QueryResult, QueryRoute
@@ -272,7 +272,7 @@ class AtlasField(FieldBase):
             if not self._chooses_unit:
                 if if_empty:
                     return False
-                if self.atlas.info.get("unit_from") == "data":
+                if self.atlas.info.get("unit_from") in UNIT_RULES:
                     raise InvalidInputError(f"unit: the field's unit {self.atlas.unit:g} was "
                                             f"chosen from its first batch, which it holds; "
                                             f"{float(unit):g} cannot replace it", "unit")
@@ -895,7 +895,8 @@ class FittedUnit(NamedTuple):
     Attributes
     ----------
     unit : float
-        The candidate of least median held-out error.
+        The candidate chosen: of those whose score is within the margin of the
+        least, the nearest to ``data_unit``.
     candidates : ndarray, shape (u,)
         The units tried (increasing; ``data_unit`` times ``factors``, and the
         steps beyond an end).
@@ -924,13 +925,13 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
     queried at the rest, and scored on the held-out rows every candidate
     answered (``metric``).  Of the units whose score is within ``margin`` of the
     least, the one nearest the geometry's wins: a grid whose scores differ by
-    less than the noise of a small held-out set (the light-field scenes: within
-    1 % from 1/4 to 2 times ``data_unit``) keeps the geometry's.  The
+    less than the noise of a small held-out set (the light-field scenes: the
+    geometry's within 1-3 % of the least) keeps the geometry's.  The
     unit balances turns against shifts (a shift of ``unit`` weighs as a turn of
     one radian); the best balance depends on how fast the values change along
     each, which the geometry cannot tell.  It costs ``len(factors)`` builds of
     ``(1 - holdout) * min(n, max_rows)`` samples (lines in R^3, 3,000 samples:
-    about 2 s; lines in R^4: about two minutes).
+    about a second; lines and planes in R^4: half a minute or more).
 
     Parameters
     ----------
@@ -1026,7 +1027,7 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
         if not both.any():
             raise InvalidInputError("flats: no held-out row was answered by every candidate "
                                     "unit (too few samples, or too spread out)", "flats")
-        best = least(units, score(errs[:, both]))
+        best = int(score(errs[:, both]).argmin())  # (the margin: for the choice only)
         if units.size < 2 or 0 < best < units.size - 1:
             break
         step = units[-1] / units[-2] if best else units[0] / units[1]

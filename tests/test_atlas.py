@@ -866,3 +866,45 @@ def test_a_field_whose_unit_is_fit_takes_it_from_its_first_batch():
     assert choose_unit(at, small, val[:FIT_MIN_ROWS - 1]) == data_unit(small, None)
     with pytest.raises(InvalidInputError, match="unit"):
         Atlas.covering(1, 3, unit="fitted")
+
+
+def test_a_fitted_unit_steps_beyond_its_grid_while_the_least_score_is_at_an_end(monkeypatch):
+    """The grid is extended from the least score, not from the unit the margin
+    keeps: scores that fall slowly toward short units (each step 3 %, within the
+    5 % margin of its neighbour) are followed 3 steps past the grid's end, and
+    the choice is then the unit nearest the geometry's within the margin."""
+    import types
+
+    import flatserve.atlas_field as af
+
+    rng = np.random.default_rng(45)
+    f = Flats.from_rays(*random_rays(rng, 400))
+    vals = np.zeros(400)
+    base = data_unit(f, vals)
+
+    class Scored:  # a field whose every answer is off by a function of its unit
+        def __init__(self, atlas, channels):
+            self.u = atlas.unit
+
+        def add(self, flats, values):
+            pass
+
+        def query(self, flats):
+            return types.SimpleNamespace(
+                values=np.full((flats.n, 1), 1.0 + 0.03 * math.log2(self.u / base)))
+
+    monkeypatch.setattr(af, "AtlasField", Scored)
+    fit = af.fitted_unit(Atlas.covering(1, 3), f, vals)
+    assert np.isclose(fit.candidates.min(), base / 32)  # 1/4, then 1/8, 1/16, 1/32
+    assert np.isclose(fit.unit, base / 16)  # (0.88 within 5 % of 0.85, nearer the geometry)
+
+
+def test_an_atlas_for_samples_takes_a_unit_rule():
+    """``Atlas.for_samples(unit="fit")`` (the scales chosen in the default unit
+    until the rule chooses); another word is refused naming ``unit``."""
+    rng = np.random.default_rng(46)
+    f = Flats.from_rays(*random_rays(rng, 300))
+    at = Atlas.for_samples(f, unit="fit")
+    assert at.unit_from_data and at.unit_rule == "fit" and at.unit == DEFAULT_UNIT
+    with pytest.raises(InvalidInputError, match="unit"):
+        Atlas.for_samples(f, unit="fitted")

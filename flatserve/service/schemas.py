@@ -284,11 +284,12 @@ class FieldCreate(_KD):
                     "of its flats from their least-squares centre, samples of a background "
                     "value left out: flatserve.atlas.data_unit); `\"data\"` says so. "
                     "`\"fit\"`: chosen among multiples of that (1/4 to 8, and beyond an "
-                    "end) by held-out validation on the first batch's values, which "
-                    "interpolates a smooth function 1.4-1.8x better when it changes faster "
-                    "along a turn than along a shift (flatserve.atlas_field.fitted_unit; "
-                    "docs/costs.md). It costs the first upload about a second for lines in "
-                    "R^3, a minute or more in R^4. Describe gives the unit chosen.")
+                    "end) by held-out validation on the first batch's values: for a smooth "
+                    "function that changes faster along a turn than along a shift, 0.34-0.53x "
+                    "the error of the unit left out, up to R^3 and for hyperplanes in R^4 "
+                    "(flatserve.atlas_field.fitted_unit; docs/costs.md). It costs the first "
+                    "upload about a second up to R^3, half a minute or more in R^4. Describe "
+                    "gives the unit chosen.")
 
     @field_validator("unit", mode="wrap")
     @classmethod

@@ -8,7 +8,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from .._validate import as_array
-from ..atlas import Atlas
+from ..atlas import Atlas, data_unit
 from ..contract import new_field
 from ..basis import Basis
 from ..errors import InvalidInputError
@@ -238,7 +238,10 @@ def _check_rows(model, where: str, limit: int | None, setting: str | None) -> No
 def _require_charted(atlas: Atlas, flats: Flats) -> None:
     """Refuse (422, ``basis.samples``) a data-driven atlas that does not chart every
     flat it was built for: which rows, and why the first is not."""
-    prepared = new_field(1, atlas=atlas).prepare(flats, np.zeros(flats.n))
+    zeros = np.zeros(flats.n)
+    if atlas.unit_from_data:  # charted in the geometry's unit (no fit on made-up values)
+        atlas = atlas.with_unit(data_unit(flats, zeros))
+    prepared = new_field(1, atlas=atlas).prepare(flats, zeros)
     bad = prepared.rejected
     if bad.size:
         rows = ", ".join(str(i) for i in bad[:5].tolist()) + (", ..." if bad.size > 5 else "")

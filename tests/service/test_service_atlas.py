@@ -653,6 +653,7 @@ def test_a_unit_fitted_to_the_first_batch_over_http(make_app, rng, monkeypatch):
     aloud; another word is a 422 naming ``unit``."""
     import flatserve.atlas_field
     from flatserve.atlas import data_unit
+    from flatserve.atlas_field import FittedUnit
 
     o, v = sphere_rays(rng, 1500, spread=2.0)
     a = v / np.linalg.norm(v, axis=1, keepdims=True)
@@ -670,13 +671,22 @@ def test_a_unit_fitted_to_the_first_batch_over_http(make_app, rng, monkeypatch):
         assert c.create_field("said", channels=C, unit="data")["atlas"]["unit_from"] == "data"
         r = tc.post("/v1/fields", json={"name": "bad", "k": 1, "d": 3, "unit": "fitted"})
         assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "unit", r.text
+        # an atlas for given flats whose unit is fit: its charts checked in the
+        # geometry's unit at create, the unit fitted to the first batch
+        fs = c.create_field("fs", channels=C, oriented=True, unit="fit", basis={
+            "kind": "atlas", "atlas": "samples",
+            "samples": {"origins": o[:400].tolist(), "directions": v[:400].tolist()}})
+        assert fs["atlas"]["unit_from"] == "fit" and fs["atlas"]["unit"] is None
+        c.upload_rays("fs", o[:400], v[:400], val[:400])
+        assert c.describe("fs")["atlas"]["unit_from"] == "fit"
         c.upload_rays("fit", o, v, val)
         got = c.describe("fit")["atlas"]
         assert got["unit"] == u and got["unit_from"] == "fit"
         same_answers(c, "fit", probe, want)
     finally:
         tc.__exit__(None, None, None)
-    monkeypatch.setattr(flatserve.atlas_field, "fitted_unit", lambda *a, **kw: 5.0)
+    monkeypatch.setattr(flatserve.atlas_field, "fitted_unit", lambda *a, **kw: FittedUnit(
+        5.0, np.array([5.0]), np.array([0.0]), 1))  # (a restart that fitted again: unit 5)
     tc, c = started(make_app())
     try:
         got = c.describe("fit")["atlas"]

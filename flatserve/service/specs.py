@@ -203,7 +203,8 @@ def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
     stores it with the batch)."""
     if isinstance(spec, CoveringAtlas):
         with _within("basis"):
-            return Atlas.covering(k, d, oriented=oriented, unit=unit, reach=spec.reach,
+            return Atlas.covering(k, d, oriented=oriented, unit=unit, inner=spec.inner,
+                                  trusted=spec.trusted, reach=spec.reach,
                                   isometric=spec.isometric, relative=spec.relative)
     if isinstance(spec, SamplesAtlas):
         _check_rows(spec.samples, "basis.samples", max_atlas_samples,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import io
+import json
 
 import numpy as np
 import pytest
@@ -694,6 +695,41 @@ def test_a_unit_fitted_to_the_first_batch_over_http(make_app, rng, monkeypatch):
         same_answers(c, "fit", probe, want)
     finally:
         tc.__exit__(None, None, None)
+
+
+def test_a_covering_atlas_takes_its_radii_at_create(api, rng):
+    """``inner`` and ``trusted`` beside ``reach``: hyperplanes in R^4 with narrower
+    relative radii (1, 4, 9) store fewer copies than the default's (2, 6, 14) and
+    answer the library's atlas of those radii; radii out of order, or a trusted
+    radius the covering does not fit in, are 422s naming the radius."""
+    from flatserve.grassmann import haar_frames
+
+    tc, c = api
+    A = haar_frames(1500, 4, 3, rng)
+    b = rng.uniform(-1, 1, (1500, 4))
+    val = np.sin(3 * b[:, :1]) + A[:, :1, 0]
+    qA, qb = haar_frames(300, 4, 3, rng), rng.uniform(-1, 1, (300, 4))
+    lib = AtlasField(Atlas.covering(3, 4, relative=True, inner=1, trusted=4, reach=9),
+                     channels=1)
+    lib.add(Flats.from_parametric(A, b), val)
+    want = lib.query(Flats.from_parametric(qA, qb))
+    assert want.inside.mean() > 0.5
+    got = c.create_field("narrow", k=3, d=4, unit=1.0, basis={
+        "kind": "atlas", "atlas": "covering", "inner": 1, "trusted": 4, "reach": 9})["atlas"]
+    assert (got["inner"], got["trusted"], got["reach"], got["relative"]) == (1, 4, 9, True)
+    c.create_field("wide", k=3, d=4, unit=1.0)
+    for name in ("narrow", "wide"):
+        c.upload_parametric(name, A, b, val)
+    dup = [c.describe(n)["atlas"]["duplication"] for n in ("narrow", "wide")]
+    assert dup[0] < 0.85 * dup[1], dup
+    same_parametric(c, "narrow", qA, qb, want)
+    for radii, name in (({"inner": 5, "trusted": 4}, "trusted"),
+                        ({"trusted": 10, "relative": False}, "trusted"),
+                        ({"trusted": 50}, "trusted")):
+        r = tc.post("/v1/fields", json={"name": "bad", "k": 3, "d": 4, "basis": {
+            "kind": "atlas", "atlas": "covering", **radii}})
+        assert r.status_code == 422, (radii, r.text)
+        assert name in json.dumps(r.json()["detail"]), (radii, r.text)
 
 
 def same_parametric(c, name, qA, qb, want):

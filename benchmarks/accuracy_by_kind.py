@@ -86,11 +86,13 @@ def nearest(A, c, f, Aq, cq, n=8):
     return (f[idx] * wt).sum(axis=1) / wt.sum(axis=1)
 
 
-def setup(k, d, n, nq, seed, center=None, maxdeg=None):
+def setup(k, d, n, nq, seed, center=None, maxdeg=None, sample_deg=None):
+    """Samples (within ``sample_deg`` of ``center``, default ``maxdeg``) and queries
+    (within ``maxdeg``) with their true values."""
     rng = np.random.default_rng(seed)
     W = rng.normal(size=(d, d))
     W, w = W + W.T, rng.normal(size=d)
-    A, c = random_flats(rng, n, k, d, center, maxdeg)
+    A, c = random_flats(rng, n, k, d, center, maxdeg if sample_deg is None else sample_deg)
     Aq, cq = random_flats(rng, nq, k, d, center, maxdeg)
     return A, c, truth(A, c, W, w), Aq, cq, truth(Aq, cq, W, w)
 
@@ -184,12 +186,7 @@ def by_angle(fld, Aq, cq, fq, knn, width=5.0):
 def one_chart_case(k, d, n, nq, seed, maxdeg=40.0, sample_deg=44.0):
     Qc, rc = Basis.default_center(k, d)
     center = np.eye(d)[:, d - k:]
-    rng = np.random.default_rng(seed)
-    W = rng.normal(size=(d, d))
-    W, w = W + W.T, rng.normal(size=d)
-    A, c = random_flats(rng, n, k, d, center, sample_deg)
-    Aq, cq = random_flats(rng, nq, k, d, center, maxdeg)
-    f, fq = truth(A, c, W, w), truth(Aq, cq, W, w)
+    A, c, f, Aq, cq, fq = setup(k, d, n, nq, seed, center, maxdeg, sample_deg)
     ang = np.degrees(np.arccos(np.clip(
         np.linalg.svd(np.einsum("dk,ndj->nkj", center, Aq), compute_uv=False).min(axis=1), -1, 1)))
     basis = Basis.tangent_simplex(Qc, rc, k)

@@ -278,7 +278,7 @@ class Atlas:
         inner = _in_units(inner, "inner")
         trusted = _in_units(trusted, "trusted")
         reach = _in_units(reach, "reach")
-        _check_rule(unit)
+        provisional = _check_rule(unit)
         #: the unit is to be chosen from the field's first samples (:attr:`unit_rule`);
         #: until then the charts are built in :data:`DEFAULT_UNIT`
         self.unit_from_data = unit is None or isinstance(unit, str)
@@ -287,7 +287,7 @@ class Atlas:
         #: values, :func:`flatserve.atlas_field.fitted_unit`); ``"given"`` once it
         #: is a length
         self.unit_rule = ("data" if unit is None else unit) if self.unit_from_data else "given"
-        unit = DEFAULT_UNIT if self.unit_from_data else _check_unit(unit)
+        unit = provisional
         if not isinstance(relative, (bool, np.bool_)):
             raise InvalidInputError(f"relative: expected true or false, got {relative!r}",
                                     "relative")

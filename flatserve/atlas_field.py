@@ -982,6 +982,10 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
     if not 0.0 < float(holdout) < 1.0:
         raise InvalidInputError(f"holdout: expected a share in (0, 1), got {holdout!r}",
                                 "holdout")
+    if not (isinstance(margin, (int, float)) and 0 <= margin < 1):
+        raise InvalidInputError(f"margin: expected a share in [0, 1), got {margin!r}", "margin")
+    if metric not in ("rmse", "median"):
+        raise InvalidInputError(f"metric: expected 'rmse' or 'median', got {metric!r}", "metric")
     fac = np.asarray(factors, dtype=np.float64).reshape(-1)
     if fac.size == 0 or not (np.isfinite(fac) & (fac > 0)).all():
         raise InvalidInputError(f"factors: expected positive multiples, got {factors!r}",
@@ -997,10 +1001,6 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
     base = data_unit(flats, vals)  # every row's geometry: kept when the fit cannot tell
     exact = 1e-12 * max(float(np.abs(vals).max()), 1e-300)  # errors at round-off: ties
     tried: dict[float, np.ndarray] = {}
-    if not (isinstance(margin, (int, float)) and 0 <= margin < 1):
-        raise InvalidInputError(f"margin: expected a share in [0, 1), got {margin!r}", "margin")
-    if metric not in ("rmse", "median"):
-        raise InvalidInputError(f"metric: expected 'rmse' or 'median', got {metric!r}", "metric")
 
     def errors_of(u: float) -> None:
         fld = AtlasField(atlas.with_unit(u), channels=vals.shape[1])

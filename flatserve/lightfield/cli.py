@@ -69,7 +69,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _unit(text: str):
     """``--unit``: a length, ``data`` or ``fit`` (chosen from the first samples)."""
-    if text in ("data", "fit"):
+    from ..atlas import UNIT_RULES
+
+    if text in UNIT_RULES:
         return text
     try:
         return float(text)

@@ -123,6 +123,12 @@ class _AtlasSpec(_Strict):
                           "written before it; if both are given they must agree).")
 
 
+def _radius(ge: float | None = None, *, description: str):
+    """An optional radius in degrees below a chart's 45 (above 0, or at least ``ge``)."""
+    bound = {"gt": 0} if ge is None else {"ge": ge}
+    return Field(None, lt=45, allow_inf_nan=False, description=description, **bound)
+
+
 class CoveringAtlas(_AtlasSpec):
     """Centres chosen so that every orientation lies well inside some chart
     (:meth:`flatserve.atlas.Atlas.covering`): the default of a field without `basis`."""
@@ -130,13 +136,11 @@ class CoveringAtlas(_AtlasSpec):
     atlas: Literal["covering"] = Field(
         "covering", description="`covering`: every orientation of k-flats lies well inside "
                                 "some chart (Atlas.covering).")
-    inner: Optional[float] = Field(
-        None, ge=0, lt=45, allow_inf_nan=False,
-        description="Degrees: a chart's blending weight is 1 for flats whose centre is "
+    inner: Optional[float] = _radius(
+        0, description="Degrees: a chart's blending weight is 1 for flats whose centre is "
                     "closer (with `relative`: closer than the nearest centre's angle plus "
                     "this). Default: 12 (R^2, R^3), 2 with `relative`.")
-    trusted: Optional[float] = Field(
-        None, gt=0, lt=45, allow_inf_nan=False,
+    trusted: Optional[float] = _radius(
         description="Degrees: a chart answers no query farther (its weight falls to 0 "
                     "from `inner` to here; with `relative`, beyond the nearest centre's "
                     "angle). Default: 24 (R^2, R^3), 6 with `relative`. Planes in R^4 "
@@ -144,8 +148,7 @@ class CoveringAtlas(_AtlasSpec):
                     "`inner` 1, `trusted` 4, `reach` 9 store a sample 2.43 times instead "
                     "of 3.76, and answer 97.9 % of random queries at 12,000 samples (74 % "
                     "at 3,000; docs/costs.md).")
-    reach: Optional[float] = Field(
-        None, gt=0, lt=45, allow_inf_nan=False,
+    reach: Optional[float] = _radius(
         description="Degrees: samples are stored in every chart whose centre is closer (at "
                     "least the charts' `trusted`, below 45; with `relative`, closer than the "
                     "nearest centre's angle plus this). Default: 3 degrees beyond "

@@ -292,7 +292,8 @@ class Client:
         "atlas": "samples", "samples": {"origins": ..., "directions": ...}}``.
         ``unit``: an atlas's unit of length (the shift that counts as much as a turn
         of one radian; for rays of an object about its half-size); left out or
-        ``"data"``: chosen from the first batch's flats, ``"fit"``: from its values.
+        ``"fit"``: chosen from the first batch's values (held-out validation among
+        multiples of its flats' own unit), ``"data"``: from its flats alone.
         ``copies``: a server in cluster mode keeps that many copies of each shard,
         on different nodes (default 1). ``tiles``: a one-chart field's triangulation
         in that many tiles, built on the server's cores at once (default 1; ``"auto"``:

@@ -22,6 +22,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+from ..atlas_field import choose_unit
 from ..basis import Basis
 from ..field import AddResult, PreparedBatch
 from ..flats import Flats
@@ -386,6 +387,8 @@ class LogApplier:
             done = self.storage.batches(e.id, upto_position=upto)
             seq, pos = (done[-1].seq, done[-1].position) if done else (0, 0)
             e.field = self.home.field(e)
+            if done and getattr(e.field, "unit_pending", False):
+                self._first_unit(e, done[0])
             e.mark_indexed(seq, pos)
             e.mark_ready()
             log.info("field %r: its shards live in the cluster; at batch %d", e.name, seq)
@@ -394,6 +397,15 @@ class LogApplier:
         except Exception as exc:
             log.exception("field %r: restore failed", e.name)
             e.mark_failed(str(exc))
+
+    def _first_unit(self, e: FieldEntry, first) -> None:
+        """A remote field whose unit its first batch chooses takes the unit recorded
+        with that batch; a batch stored before a front recorded it: the unit each
+        shard worker chose from it (:func:`flatserve.atlas_field.choose_unit`)."""
+        arrays, values, unit = split_batch(self.storage.batch_arrays(e.id, first.seq))
+        if unit is None:
+            unit = choose_unit(e.field.atlas, stored_flats(e, first.form, arrays), values)
+        adopt_unit(e.field, unit)
 
     def rebuild(self, e: FieldEntry, upto: int, why: str) -> None:
         """Rebuild a field from storage up to log position ``upto`` (the follower's

@@ -11,6 +11,7 @@ from typing import Annotated, ClassVar, Literal, Optional, Union
 from pydantic import (BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError,
                       field_validator, model_validator)
 
+from ..atlas_field import FIT_MIN_ROWS
 from ..coordinates import REASONS
 from ..flats import FORMS, basis_size
 from ..options import Form
@@ -296,17 +297,21 @@ class FieldCreate(_KD):
                     "shift of a flat that counts as much as a turn of one radian (at a chart's "
                     "centre shifts and turns are then weighed alike). For rays of an object: "
                     "about its half-size (rays meeting on its surface at depth z from its "
-                    "centre differ by a shift of z times their turn). Left out: chosen from "
-                    "the field's first batch of samples and stored with it (the mean distance "
-                    "of its flats from their least-squares centre, samples of a background "
-                    "value left out: flatserve.atlas.data_unit); `\"data\"` says so. "
-                    "`\"fit\"`: chosen among multiples of that (1/4 to 8, and beyond an "
-                    "end) by held-out validation on the first batch's values: for a smooth "
-                    "function that changes faster along a turn than along a shift, 0.34-0.53x "
-                    "the error of the unit left out, up to R^3 and for hyperplanes in R^4 "
-                    "(flatserve.atlas_field.fitted_unit; docs/costs.md). It costs the first "
-                    "upload about a second up to R^3, half a minute or more in R^4. Describe "
-                    "gives the unit chosen.")
+                    "centre differ by a shift of z times their turn). Left out, or `\"fit\"`: "
+                    "chosen from the field's first batch of samples and stored with it, by "
+                    "held-out validation on its values among multiples of the geometry's "
+                    "unit (1/4 to 8, and beyond an end; of the units within 5 % of the "
+                    "least error, the one nearest the geometry's): "
+                    "flatserve.atlas_field.fitted_unit. For a smooth function that changes "
+                    "faster along a turn than along a shift, 0.34-0.53x the error of the "
+                    "geometry's unit up to R^3 and for hyperplanes in R^4 (docs/costs.md); "
+                    "on the light-field scenes it is the geometry's. It costs the first "
+                    "upload about a second up to R^3, half a minute or more for lines and "
+                    f"planes in R^4; a first batch of fewer than {FIT_MIN_ROWS} rows takes the "
+                    "geometry's. `\"data\"`: the geometry's unit, at no cost (the mean "
+                    "distance of the first batch's flats from their least-squares centre, "
+                    "samples of a background value left out: flatserve.atlas.data_unit). "
+                    "Describe gives the unit chosen.")
 
     @field_validator("unit", mode="wrap")
     @classmethod

@@ -171,18 +171,31 @@ def build_chart_basis(req, *, max_atlas_samples: int | None = None
     k, d = req.k, req.d
     spec = CoveringAtlas() if req.basis is None else req.basis
     oriented = oriented_of(req)
-    unit = getattr(req, "unit", None)
-    unit = None if unit == "data" else unit
-    if unit is not None and not isinstance(spec, ATLAS_SPECS):
+    given = getattr(req, "unit", None)
+    if given is not None and not isinstance(spec, ATLAS_SPECS):
         raise InvalidInputError(
             f"unit: a single chart (basis kind {spec.kind!r}) has its own `scale`; `unit` is "
             "an atlas's: leave `basis` out (a covering atlas) or give {\"kind\": \"atlas\", ...}",
             "unit")
     if isinstance(spec, ATLAS_SPECS):
         atlas = build_atlas(spec, k, d, oriented=oriented, max_atlas_samples=max_atlas_samples,
-                            unit=unit)
+                            unit=atlas_unit(given))
         return atlas.bases[0], _atlas_spec_dict(spec), atlas.to_dict()
     return build_basis(spec, k, d).require_full(), spec_dict(spec), None
+
+
+#: The rule of a field created without ``unit``: fitted to its first batch's values
+#: (:func:`flatserve.atlas_field.fitted_unit`; ``"data"``: its flats' geometry alone).
+DEFAULT_UNIT_RULE = "fit"
+
+
+def atlas_unit(given: float | str | None) -> float | str | None:
+    """The library's ``Atlas(unit=...)`` for a create request's ``unit``: a length as
+    given; left out, :data:`DEFAULT_UNIT_RULE`; ``"data"``: None
+    (:func:`flatserve.atlas.data_unit`)."""
+    if given is None:
+        return DEFAULT_UNIT_RULE
+    return None if given == "data" else given
 
 
 #: Most centres of an atlas given explicitly (``atlas: "centers"``).

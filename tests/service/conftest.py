@@ -47,7 +47,7 @@ class Kind:
     def reference(self, channels: int, k: int = 1, d: int = 3) -> "Field | AtlasField":
         """An empty library field built as the service builds this kind."""
         if self.atlas:
-            return AtlasField(Atlas.covering(k, d, unit=None), channels=channels)  # unit: data
+            return AtlasField(Atlas.covering(k, d, unit="fit"), channels=channels)  # unit: fit
         return Field(specs.build_basis(TangentSimplexBasis(**self.basis), k, d),
                      channels=channels)
 

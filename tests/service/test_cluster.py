@@ -22,7 +22,9 @@ import pytest
 
 from flatserve.client import Client, ServiceError
 from flatserve.flats import Flats
+from flatserve.service.applier import adopt_unit
 from flatserve.service.backend import open_backend
+from flatserve.service.blobs import split_batch
 from flatserve.service.entry import FieldSpec
 from flatserve.service.routes_lightfield import CameraSpec, render_frame
 from flatserve.service.settings import Settings
@@ -90,12 +92,23 @@ def oracle(url, name: str, upto: int | None = None):
         fld = spec.new_field(Basis(row.basis["Q"], row.basis["r"], spec.k))
         pos = 0
         for b in st.batches(row.id, upto_position=upto):
-            arrays = dict(st.batch_arrays(row.id, b.seq))
-            values = arrays.pop("values")
+            arrays, values, unit = split_batch(st.batch_arrays(row.id, b.seq))
+            adopt_unit(fld, unit)  # (the unit the front chose from the first batch)
             fld.insert_prepared(fld.prepare(Flats.from_arrays(arrays, k=spec.k, d=spec.d), values),
                                 slice_rows=Settings().insert_slice_rows)
             pos = b.position
         return fld, pos
+    finally:
+        st.close()
+
+
+def recorded_unit(url: str, name: str) -> float | None:
+    """The unit of length stored with the first batch of field ``name`` (None: none)."""
+    st = open_backend(Settings(database_url=url), follower=True)
+    try:
+        row = next(r for r in st.state()[1] if r.name == name)
+        first = st.batches(row.id)[0]
+        return split_batch(st.batch_arrays(row.id, first.seq))[2]
     finally:
         st.close()
 
@@ -206,6 +219,10 @@ def test_snapshot_written_in_parts_by_the_shards_and_a_cluster_restarted_from_th
             assert 0 < snap2["written"] < snap["written"] / 3, (snap, snap2)
             o, d = sphere_rays(rng, 1000)  # after the snapshot: replayed from the log
             c.upload_rays("f", o, d, rng.uniform(size=(1000, 2)))
+            unit = c.describe("f")["atlas"]["unit"]
+        # the front chose the unit from the first batch and stored it with it (the
+        # shard workers took it from there)
+        assert unit is not None and recorded_unit(pg_url, "f") == unit
         assert_same(pg_url, a, "f", probe)
     # the whole cluster (every node, every front) is gone; a new one starts from the log
     with contextlib.ExitStack() as stack:
@@ -215,7 +232,9 @@ def test_snapshot_written_in_parts_by_the_shards_and_a_cluster_restarted_from_th
         b = fr.start()
         assert_same(pg_url, b, "f", probe)
         with Client(b.url, retries=0) as c:  # each shard loaded its own parts, then the log
-            groups = c.describe("f")["shard_groups"]
+            got = c.describe("f")
+            groups = got["shard_groups"]
+            assert got["atlas"]["unit"] == unit  # (a front restarted: the recorded unit)
         assert len(groups) == 4 and all(
             g["restored_from"] == "snapshot after batch 4" for g in groups), groups
 

@@ -641,12 +641,12 @@ def test_status_tells_empty_charts_from_unreachable_flats(api, rng, kind):
     if kind == "one-chart":
         basis, ref = {"kind": "tangent_simplex"}, Field(specs.build_basis(None, 1, 3), C)
     elif kind == "default-atlas":
-        basis, ref = None, AtlasField(Atlas.covering(1, 3, unit=None), channels=C)
+        basis, ref = None, AtlasField(Atlas.covering(1, 3, unit="fit"), channels=C)
     else:
         o, v = near_z.arrays["origins"], near_z.arrays["directions"]
         basis = {"kind": "atlas", "atlas": "samples",
                  "samples": {"origins": o.tolist(), "directions": v.tolist()}}
-        ref = AtlasField(Atlas.for_samples(near_z, unit=None), channels=C)
+        ref = AtlasField(Atlas.for_samples(near_z, unit="fit"), channels=C)
     c.create_field("st", channels=C, basis=basis)
     qo, qv = map(np.concatenate, zip(_near(rng, 150, [0, 0, 1], 10),
                                      _near(rng, 150, [1, 0, 0], 10)))  # near z; near x

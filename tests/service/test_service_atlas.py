@@ -66,7 +66,7 @@ def test_covering_atlas_field_accepts_every_orientation_and_restores(make_app, r
     batches = [sphere_rays(rng, 700) for _ in range(4)]
     batches = [(o, v, line_values(o, v)) for o, v in batches]
     probe = sphere_rays(rng, 400, spread=0.5)
-    ref = AtlasField(Atlas.covering(1, 3, unit=None), channels=C)  # (no unit: from the data)
+    ref = AtlasField(Atlas.covering(1, 3, unit="fit"), channels=C)  # (no unit: fitted)
 
     tc, c = started(make_app())
     try:
@@ -296,7 +296,7 @@ def test_samples_atlas_charts_where_the_flats_are(make_app, rng):
     o = rng.uniform(-2, 2, (n, 3)) + [5, 0, 0]
     val = np.c_[o[:, 1], v[:, 2]]
     flats = Flats.from_rays(o, v)
-    ref = AtlasField(Atlas.for_samples(flats, unit=None), channels=C)
+    ref = AtlasField(Atlas.for_samples(flats, unit="fit"), channels=C)
     assert ref.atlas.ncharts > 1
     A, b = v[:, :, None], o
     tc, c = started(make_app(max_atlas_samples=n))
@@ -471,8 +471,8 @@ def test_unit_of_length_is_validated_stored_and_restored(make_app, rng):
         info = c.create_field("u", channels=C, oriented=True, unit=0.4)  # no basis
         assert info["atlas"]["unit"] == 0.4 and len(info["charts"]) == 32
         assert info["atlas"]["unit_from"] == "given"
-        dflt = c.create_field("one", channels=C)["atlas"]  # the default: from the data
-        assert dflt["unit"] is None and dflt["unit_from"] == "data"
+        dflt = c.create_field("one", channels=C)["atlas"]  # the default: fitted to the first batch
+        assert dflt["unit"] is None and dflt["unit_from"] == "fit"
         c.upload_rays("u", o, v, val)
         same_answers(c, "u", probe, want)
         for body, words in (({"unit": 0}, ()), ({"unit": -1.0}, ()), ({"unit": "x"}, ()),
@@ -499,7 +499,7 @@ def test_reach_of_a_covering_atlas_is_validated_stored_and_restored(make_app, rn
     o, v = sphere_rays(rng, 1500, spread=0.5)
     val = line_values(o, v)
     probe = sphere_rays(rng, 300, spread=0.4)
-    ref = AtlasField(Atlas.covering(1, 3, oriented=True, reach=35.0, unit=None), channels=C)
+    ref = AtlasField(Atlas.covering(1, 3, oriented=True, reach=35.0, unit="fit"), channels=C)
     ref.add(Flats.from_rays(o, v), val)
     want = ref.query(Flats.from_rays(*probe))
     tc, c = started(make_app())
@@ -546,7 +546,7 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
     probe = sphere_rays(rng, 300, spread=0.4)
     paper = AtlasField(Atlas.covering(1, 3, oriented=True, isometric=False), channels=C)
     paper.add(Flats.from_rays(o, v), val)
-    iso = AtlasField(Atlas.covering(1, 3, oriented=True, unit=None), channels=C)
+    iso = AtlasField(Atlas.covering(1, 3, oriented=True, unit="fit"), channels=C)
     iso.add(Flats.from_rays(o, v), val)
     want_paper = paper.query(Flats.from_rays(*probe))
     assert not np.allclose(iso.query(Flats.from_rays(*probe)).values, want_paper.values,
@@ -562,7 +562,7 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
     (spec,) = db.execute("SELECT spec FROM fields WHERE name = 'old'").fetchone()
     spec = json.loads(spec)
     del spec["atlas"]["isometric"]  # as an earlier version stored it (unit 1 then)
-    del spec["atlas"]["unit_from_data"]
+    del spec["atlas"]["unit_from_data"], spec["atlas"]["unit_rule"]
     db.execute("UPDATE fields SET spec = ? WHERE name = 'old'", (json.dumps(spec),))
     db.commit()
     db.close()
@@ -575,8 +575,9 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
 
 
 def test_a_first_batch_of_one_flat_gives_the_default_unit_and_later_batches_keep_it(api, rng):
-    """One flat has no spread: data_unit is 1 (DEFAULT_UNIT), taken from the first
-    batch (inserted through this replica's own hand-over) and kept by the next."""
+    """One flat has no spread and is too few to fit a unit to: data_unit is 1
+    (DEFAULT_UNIT), taken from the first batch (inserted through this replica's own
+    hand-over) and kept by the next; the rule is still described as ``fit``."""
     from flatserve.atlas import DEFAULT_UNIT
 
     tc, c = api
@@ -586,12 +587,12 @@ def test_a_first_batch_of_one_flat_gives_the_default_unit_and_later_batches_keep
     o, v = sphere_rays(rng, 2000, spread=3.0)
     assert c.upload_rays("one", o, v, line_values(o, v))["accepted"] == 2000
     got = c.describe("one")["atlas"]
-    assert got["unit"] == DEFAULT_UNIT and got["unit_from"] == "data"
+    assert got["unit"] == DEFAULT_UNIT and got["unit_from"] == "fit"
 
 
 def test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches(make_app, rng,
                                                                          monkeypatch):
-    """A field created without ``unit`` takes data_unit of its first batch; the unit
+    """A field created with ``unit: "data"`` takes data_unit of its first batch; the unit
     is stored with the batches, so a restart (from the log, then from a snapshot) and
     an import get it from storage, not by choosing again: with the estimator
     replaced by another answer meanwhile they still have the recorded unit."""
@@ -612,7 +613,7 @@ def test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches(make_
     want = ref.query(Flats.from_rays(*probe))
     tc, c = started(make_app())
     try:
-        info = c.create_field("auto", channels=C, oriented=True)
+        info = c.create_field("auto", channels=C, oriented=True, unit="data")
         assert info["atlas"]["unit"] is None and info["atlas"]["unit_from"] == "data"
         for o, v, val in batches:
             c.upload_rays("auto", o, v, val)
@@ -636,7 +637,7 @@ def test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches(make_
                 c.import_field("copy", export)
                 assert c.describe("copy")["atlas"]["unit"] == u
                 same_answers(c, "copy", probe, want)
-                fresh = c.create_field("fresh", channels=C, oriented=True)["atlas"]
+                fresh = c.create_field("fresh", channels=C, oriented=True, unit="data")["atlas"]
                 assert fresh["unit"] is None
                 c.upload_rays("fresh", *batches[0])
                 assert c.describe("fresh")["atlas"]["unit"] == 5.0  # the estimator's answer
@@ -650,8 +651,9 @@ def test_a_unit_fitted_to_the_first_batch_over_http(make_app, rng, monkeypatch):
     """``unit: "fit"``: the field takes the library's fitted unit of its first batch
     (not the geometry's), answers as the library's field, describes it as ``fit``
     and keeps it after a restart (recorded with the batch: the fit replaced by
-    another answer meanwhile changes nothing); ``"data"`` is the default said
-    aloud; another word is a 422 naming ``unit``."""
+    another answer meanwhile changes nothing); a field created without ``unit``
+    does the same; ``"data"`` takes the geometry's unit; another word is a 422
+    naming ``unit``."""
     import flatserve.atlas_field
     from flatserve.atlas import data_unit
     from flatserve.atlas_field import FittedUnit
@@ -670,6 +672,8 @@ def test_a_unit_fitted_to_the_first_batch_over_http(make_app, rng, monkeypatch):
         info = c.create_field("fit", channels=C, oriented=True, unit="fit")
         assert info["atlas"]["unit"] is None and info["atlas"]["unit_from"] == "fit"
         assert c.create_field("said", channels=C, unit="data")["atlas"]["unit_from"] == "data"
+        left = c.create_field("left", channels=C, oriented=True)["atlas"]  # unit left out
+        assert left["unit"] is None and left["unit_from"] == "fit"
         r = tc.post("/v1/fields", json={"name": "bad", "k": 1, "d": 3, "unit": "fitted"})
         assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "unit", r.text
         # an atlas for given flats whose unit is fit: its charts checked in the
@@ -684,6 +688,11 @@ def test_a_unit_fitted_to_the_first_batch_over_http(make_app, rng, monkeypatch):
         got = c.describe("fit")["atlas"]
         assert got["unit"] == u and got["unit_from"] == "fit"
         same_answers(c, "fit", probe, want)
+        c.upload_rays("left", o, v, val)
+        assert c.describe("left")["atlas"] == got
+        same_answers(c, "left", probe, want)
+        c.upload_rays("said", o, v, val)
+        assert c.describe("said")["atlas"]["unit"] == data_unit(Flats.from_rays(o, v), val)
     finally:
         tc.__exit__(None, None, None)
     monkeypatch.setattr(flatserve.atlas_field, "fitted_unit", lambda *a, **kw: FittedUnit(

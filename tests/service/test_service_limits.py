@@ -248,7 +248,7 @@ def test_failed_insert_after_the_commit_is_a_503_and_the_retry_gets_the_batch(
 
     tc, c = started(make_app())
     try:
-        c.create_field("f", channels=1)
+        c.create_field("f", channels=1, unit="data")  # (no fit: its fields insert too)
         o, v = paper_rays(rng, 300)
         real, calls = Field.insert_prepared, []
 

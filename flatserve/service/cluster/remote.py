@@ -68,8 +68,11 @@ class _Lazy:
     """A batch's decisions, charted on first use (an upload's response needs them;
     the follower's hand-over of another front's batch never does)."""
 
-    def __init__(self, chart: Callable[[], Any], nrows: int) -> None:
+    def __init__(self, chart: Callable[[], Any], nrows: int, unit: float | None = None) -> None:
         self._chart, self.nrows, self._done = chart, nrows, None
+        #: the unit of length the batch is charted in, when it is to become the
+        #: field's (the applier's :func:`~flatserve.service.applier.adopt_unit`)
+        self.unit = unit
 
     @property
     def decided(self) -> bool:
@@ -91,6 +94,23 @@ class _Lazy:
     @property
     def reasons(self) -> list:
         return self._get().reasons
+
+
+def _lazy_prepare(shape, flats: Flats, values, defer: bool, only, unit: float | None):
+    chart = shape.prepare(flats, values, defer=True, only=only)
+    lazy = _Lazy(chart, len(flats), unit)
+    return (lambda: lazy) if defer else lazy
+
+
+class _InUnit:
+    """A remote field's definition in another unit of length: it charts a batch's
+    decisions only (:meth:`RemoteField.in_unit`)."""
+
+    def __init__(self, shape, unit: float) -> None:
+        self._shape, self.unit = shape, unit
+
+    def prepare(self, flats: Flats, values, *, defer: bool = False, only=None):
+        return _lazy_prepare(self._shape, flats, values, defer, only, self.unit)
 
 
 class RemoteField:
@@ -167,12 +187,44 @@ class RemoteField:
     def copies(self, flats: Flats) -> float:
         return self._shape.copies(flats)
 
+    # -- the unit of length of a field whose first batch chooses it -----------------------
+    # The upload room chooses it once, here, and stores it with the batch; the shard
+    # workers and the applier take it from there (applier.adopt_unit), so no shard
+    # chooses it again, and a front restarted takes it from the first stored batch.
+    @property
+    def atlas(self):
+        """The definition's atlas (atlas fields; AttributeError otherwise), in the unit
+        the field took."""
+        return self._shape.atlas
+
+    @property
+    def unit_pending(self) -> bool:
+        """The field's unit is still to be taken from its first batch."""
+        return bool(getattr(self._shape, "unit_pending", False))
+
+    #: (the upload room's test) a batch charted now may set the field's unit: the
+    #: definition has none yet (the front's definition holds no samples: unlike
+    #: an AtlasField's, its unit is fixed by the first batch in the log)
+    unit_from_data = unit_pending
+
+    def settle_unit(self, unit: float, *, if_empty: bool = False) -> bool:
+        """Take ``unit`` (recorded with the field's first batch) while the field has
+        none; a field that has one keeps it and returns False."""
+        if not self.unit_pending:
+            return False
+        return self._shape.settle_unit(unit, if_empty=if_empty)
+
+    def in_unit(self, unit: float):
+        """This field, or one that charts a batch's decisions in ``unit``
+        (:meth:`flatserve.atlas_field.AtlasField.in_unit`; its prepared batches
+        carry the unit)."""
+        shape = self._shape.in_unit(unit)
+        return self if shape is self._shape else _InUnit(shape, float(unit))
+
     # -- writes: the workers follow the log ------------------------------------------------
     def prepare(self, flats: Flats, values, *, defer: bool = False, only=None):
         """Validate now; chart (for the decisions) when they are first read."""
-        chart = self._shape.prepare(flats, values, defer=True, only=only)
-        lazy = _Lazy(chart, len(flats))
-        return (lambda: lazy) if defer else lazy
+        return _lazy_prepare(self._shape, flats, values, defer, only, None)
 
     def insert_prepared(self, batch, *, slice_rows: int | None = None) -> AddResult:
         """The batch's decisions (the shard workers insert it from the log)."""

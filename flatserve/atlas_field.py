@@ -40,13 +40,13 @@ from .atlas import MAX_UNIT, MIN_UNIT, UNIT_RULES, Atlas, data_unit
 from .coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
 from .errors import InvalidInputError, SnapshotError
 from .field import AddResult, Field, PreparedBatch, QueryResult, QueryRoute
-from .flats import Flats
+from .flats import Flats, basis_size
 from .grassmann import bump
 from .options import Order, Outside, choice
 from .triangulation import RWLock
 
 __all__ = ["ATLAS_MAGIC", "AtlasField", "AtlasPrepared", "AtlasQueryResult", "FIT_FACTORS",
-           "FIT_MIN_ROWS", "FittedUnit", "choose_unit", "fitted_unit"]
+           "FIT_MIN_ROWS", "FittedUnit", "choose_unit", "fit_max_rows", "fitted_unit"]
 
 ATLAS_MAGIC = b"FSATLAS\x00"
 _VERSION = 1
@@ -889,6 +889,25 @@ FIT_FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 FIT_EXTEND = 3
 
 
+def fit_max_rows(k: int, d: int) -> int:
+    """The rows :func:`fitted_unit` uses at most for k-flats in R^d: 4,000 while a
+    chart's triangulation has at most 4 dimensions (``basis_size(k, d) - 1``: up
+    to R^3, and hyperplanes in R^4), 2,000 up to 6 (lines and planes in R^4),
+    1,000 beyond.
+
+    A fit builds 6-9 fields of 3/4 of its rows, and a sample's cells grow fast
+    with the dimension (about 20 cells a vertex in 4 dimensions, 300-430 in 6:
+    docs/costs.md). Lines in R^4, 3,000 samples: 4,000 rows took 97 s on a
+    loaded machine and chose 3.81, 2,000 rows 26 s and 1.90, whose fields'
+    errors were 0.57 and 0.59 times the 8 nearest samples'.
+
+    >>> fit_max_rows(1, 3), fit_max_rows(2, 4), fit_max_rows(3, 5)
+    (4000, 2000, 1000)
+    """
+    dim = basis_size(k, d) - 1
+    return 4000 if dim <= 4 else 2000 if dim <= 6 else 1000
+
+
 class FittedUnit(NamedTuple):
     """What :func:`fitted_unit` chose, and why.
 
@@ -913,7 +932,7 @@ class FittedUnit(NamedTuple):
 
 
 def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
-                holdout: float = 0.25, max_rows: int = 4000, seed: int = 0,
+                holdout: float = 0.25, max_rows: int | None = None, seed: int = 0,
                 metric: str = "rmse", margin: float = 0.05) -> FittedUnit:
     """The unit of length (:class:`~flatserve.atlas.Atlas` ``unit``) that interpolates
     these samples best, by held-out validation.
@@ -931,7 +950,7 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
     one radian); the best balance depends on how fast the values change along
     each, which the geometry cannot tell.  It costs ``len(factors)`` builds of
     ``(1 - holdout) * min(n, max_rows)`` samples (lines in R^3, 3,000 samples:
-    about a second; lines and planes in R^4: half a minute or more).
+    about a second; lines and planes in R^4, 2,000 rows: 15-30 s).
 
     Parameters
     ----------
@@ -945,8 +964,9 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
         Multiples of ``data_unit`` to try (positive).
     holdout : float
         Share of the rows held out, in (0, 1).
-    max_rows : int
-        Rows used at most (a seeded subset of them).
+    max_rows : int, optional
+        Rows used at most (a seeded subset of them); default
+        :func:`fit_max_rows` of the atlas's kind.
     seed : int
     metric : {"rmse", "median"}
         The score of a unit: the root mean square of its held-out errors (mean
@@ -991,6 +1011,8 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
         raise InvalidInputError(f"factors: expected positive multiples, got {factors!r}",
                                 "factors")
     rng = np.random.default_rng(seed)
+    if max_rows is None:
+        max_rows = fit_max_rows(atlas.k, atlas.d)
     rows = rng.permutation(n)[:max(int(max_rows), 0)]
     test = np.sort(rows[:int(round(holdout * rows.size))])
     train = np.sort(rows[test.size:])
@@ -1053,7 +1075,7 @@ def choose_unit(atlas: Atlas, flats: Flats, values) -> float:
 
     ``"data"``: :func:`flatserve.atlas.data_unit` (the geometry of the flats).
     ``"fit"``: :func:`fitted_unit` (held-out validation on the values; its
-    defaults: at most 4,000 rows, seeded), or ``data_unit`` when the batch has
+    defaults: at most :func:`fit_max_rows` rows, seeded), or ``data_unit`` when the batch has
     fewer than :data:`FIT_MIN_ROWS` rows or no held-out row was answered by every
     candidate.  Deterministic: the same batch gives the same unit (a writer
     stores it with the batch; a replica or a restart takes it from there).

@@ -306,7 +306,7 @@ class FieldCreate(_KD):
                     "faster along a turn than along a shift, 0.34-0.53x the error of the "
                     "geometry's unit up to R^3 and for hyperplanes in R^4 (docs/costs.md); "
                     "on the light-field scenes it is the geometry's. It costs the first "
-                    "upload about a second up to R^3, half a minute or more for lines and "
+                    "upload about a second up to R^3, 20-30 s for lines and "
                     f"planes in R^4; a first batch of fewer than {FIT_MIN_ROWS} rows takes the "
                     "geometry's. `\"data\"`: the geometry's unit, at no cost (the mean "
                     "distance of the first batch's flats from their least-squares centre, "

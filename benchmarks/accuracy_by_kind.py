@@ -214,8 +214,9 @@ def one_chart_case(k, d, n, nq, seed, maxdeg=40.0, sample_deg=44.0, seeds=1):
             e = np.abs(np.asarray(res.values)[:, 0] - fq)
             errs[name].append(e)
             inside[name].append(ins)
-            med = [np.median(e[ins & (ang >= a) & (ang < b)]) for a, b in (BINS[:2], BINS[-2:])]
-            ratios[name].append(med[1] / med[0])
+            sel = [ins & (ang >= a) & (ang < b) for a, b in (BINS[:2], BINS[-2:])]
+            if all(s.any() for s in sel):  # (a function with no query in a bin: no ratio)
+                ratios[name].append(np.median(e[sel[1]]) / np.median(e[sel[0]]))
     ang = np.concatenate(angles)
     print(f"\none chart of {k}-flats in R^{d} (samples within {sample_deg:g} degrees of its "
           f"centre, queries within {maxdeg:g}; {seeds} function(s), seeds {seed}-"
@@ -229,7 +230,9 @@ def one_chart_case(k, d, n, nq, seed, maxdeg=40.0, sample_deg=44.0, seeds=1):
         med = [np.median(e[ins & (ang >= a) & (ang < b)]) for a, b in zip(BINS, BINS[1:])]
         r = np.array(ratios[name])
         print(f"| {name} | {ins.mean():.1%} | " + " | ".join(f"{m:.4f}" for m in med)
-              + f" | {med[-1] / med[0]:.2f} | {np.median(r):.2f} ({r.min():.2f}-{r.max():.2f}) |")
+              + f" | {med[-1] / med[0]:.2f} | "
+              + (f"{np.median(r):.2f} ({r.min():.2f}-{r.max():.2f}, {r.size}) |" if r.size
+                 else "(no function with queries in both bins) |"))
     print("| queries | | " + " | ".join(str(int(((ang >= a) & (ang < b)).sum()))
                                          for a, b in zip(BINS, BINS[1:])) + " | | |")
 

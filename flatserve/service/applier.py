@@ -64,6 +64,13 @@ def _unit_of(field) -> float | None:
     return getattr(getattr(field, "atlas", None), "unit", None)
 
 
+def decided(prepared) -> None:
+    """Chart a prepared batch's decisions now: a remote field's prepare charts them
+    when they are first read (:class:`~flatserve.service.cluster.remote.RemoteField`),
+    a local field's at once."""
+    _ = prepared.accepted  # (the first read charts them)
+
+
 def stored_flats(e: FieldEntry, form: str | None, arrays: dict) -> Flats:
     """The :class:`Flats` of a stored batch (its arrays by name; the form is
     inferred from the names when None)."""
@@ -204,6 +211,7 @@ class LogApplier:
             if self.stopping:
                 raise Stopped()
             t0 = time.perf_counter()
+            again = False
             if prepared is not None and getattr(prepared, "unit", None) is not None and \
                     prepared.unit != _unit_of(e.field):
                 # charted by the upload room in the unit stored with it: the field's first
@@ -211,15 +219,22 @@ class LogApplier:
                 # came first) is charted again in the field's unit
                 adopt_unit(e.field, prepared.unit)
                 if prepared.unit != _unit_of(e.field):
-                    prepared = None
+                    prepared, again = None, True
             if prepared is None:
                 try:
                     arrays = dict(self.storage.batch_arrays(e.id, entry.seq))
                 except FieldNotFoundError:
                     return None, None  # deleted meanwhile: its delete entry follows
                 arrays, values, unit = split_batch(arrays)
+                flats = stored_flats(e, None, arrays)
+                if unit is None and getattr(e.field, "unit_pending", False):
+                    # stored without its unit (by an older server) while the field has
+                    # none yet: the unit it chooses, as every shard worker does
+                    unit = choose_unit(e.field.atlas, flats, values)
                 adopt_unit(e.field, unit)
-                prepared = e.field.prepare(stored_flats(e, None, arrays), values)
+                prepared = e.field.prepare(flats, values)
+                if again:  # the upload that handed it over answers with these decisions
+                    decided(prepared)
             try:
                 with e.index_lock:
                     if e.deleted:

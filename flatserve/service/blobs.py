@@ -63,11 +63,12 @@ def content_hash(form: str, arrays: dict[str, np.ndarray]) -> str:
 
 #: The array that a batch of a field whose unit of length is chosen from the data
 #: carries beside its flats and ``values``: shape (1,), the unit its rows were
-#: charted in (the unit the field chose from its first batch,
-#: :func:`flatserve.atlas.data_unit`). It is stored with every batch of such a
-#: field, so the first stored batch records the unit for every replica, restart
+#: charted in (:func:`flatserve.atlas_field.choose_unit` of the batch). A replica or
+#: front stores it with every batch it charts while the field has no unit there
+#: yet, so the first stored batch records the unit for every replica, restart
 #: and shard (:func:`split_batch`, :func:`flatserve.service.applier.adopt_unit`);
-#: it is not part of the batch's content hash (what the client sent).
+#: a later batch's is ignored. It is not part of the batch's content hash (what
+#: the client sent).
 UNIT_ARRAY = "unit"
 
 

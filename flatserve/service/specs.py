@@ -9,6 +9,7 @@ import numpy as np
 
 from .._validate import as_array
 from ..atlas import Atlas, data_unit
+from ..atlas_field import default_unit_rule
 from ..contract import new_field
 from ..basis import Basis
 from ..errors import InvalidInputError
@@ -179,22 +180,17 @@ def build_chart_basis(req, *, max_atlas_samples: int | None = None
             "unit")
     if isinstance(spec, ATLAS_SPECS):
         atlas = build_atlas(spec, k, d, oriented=oriented, max_atlas_samples=max_atlas_samples,
-                            unit=atlas_unit(given))
+                            unit=atlas_unit(given, k, d))
         return atlas.bases[0], _atlas_spec_dict(spec), atlas.to_dict()
     return build_basis(spec, k, d).require_full(), spec_dict(spec), None
 
 
-#: The rule of a field created without ``unit``: fitted to its first batch's values
-#: (:func:`flatserve.atlas_field.fitted_unit`; ``"data"``: its flats' geometry alone).
-DEFAULT_UNIT_RULE = "fit"
-
-
-def atlas_unit(given: float | str | None) -> float | str | None:
+def atlas_unit(given: float | str | None, k: int, d: int) -> float | str | None:
     """The library's ``Atlas(unit=...)`` for a create request's ``unit``: a length as
-    given; left out, :data:`DEFAULT_UNIT_RULE`; ``"data"``: None
-    (:func:`flatserve.atlas.data_unit`)."""
+    given; left out, :func:`flatserve.atlas_field.default_unit_rule` of the kind
+    (``"fit"`` up to R^4); ``"data"``: None (:func:`flatserve.atlas.data_unit`)."""
     if given is None:
-        return DEFAULT_UNIT_RULE
+        given = default_unit_rule(k, d)
     return None if given == "data" else given
 
 

@@ -652,8 +652,8 @@ def test_a_unit_fitted_to_the_first_batch_over_http(make_app, rng, monkeypatch):
     (not the geometry's), answers as the library's field, describes it as ``fit``
     and keeps it after a restart (recorded with the batch: the fit replaced by
     another answer meanwhile changes nothing); a field created without ``unit``
-    does the same; ``"data"`` takes the geometry's unit; another word is a 422
-    naming ``unit``."""
+    does the same up to R^4, and takes the geometry's unit beyond; ``"data"``
+    takes the geometry's unit; another word is a 422 naming ``unit``."""
     import flatserve.atlas_field
     from flatserve.atlas import data_unit
     from flatserve.atlas_field import FittedUnit
@@ -674,6 +674,10 @@ def test_a_unit_fitted_to_the_first_batch_over_http(make_app, rng, monkeypatch):
         assert c.create_field("said", channels=C, unit="data")["atlas"]["unit_from"] == "data"
         left = c.create_field("left", channels=C, oriented=True)["atlas"]  # unit left out
         assert left["unit"] is None and left["unit_from"] == "fit"
+        # beyond 6 chart dimensions (lines in R^5: 8) a fit costs minutes: left out,
+        # the geometry's unit
+        assert c.create_field("r5", k=1, d=5)["atlas"]["unit_from"] == "data"
+        assert c.create_field("r5fit", k=1, d=5, unit="fit")["atlas"]["unit_from"] == "fit"
         r = tc.post("/v1/fields", json={"name": "bad", "k": 1, "d": 3, "unit": "fitted"})
         assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "unit", r.text
         # an atlas for given flats whose unit is fit: its charts checked in the

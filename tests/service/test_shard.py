@@ -156,3 +156,103 @@ def test_store_part_stores_once(tmp_path, request, backend):
         assert st.snapshot_parts(fid) == {"ab" * 16}
     finally:
         st.close()
+
+
+class _OneWorker:
+    """:class:`~flatserve.service.cluster.remote.ShardGroups` of one group holding every
+    chart of ``field`` (a library field), as a shard worker reports at batch ``seq``;
+    the parts it stores land in ``store``."""
+
+    def __init__(self, field, seq: int, store: dict):
+        self.field, self.seq, self.store = field, seq, store
+        self.charts = [tuple(range(len(field.shards)))]
+
+    def call(self, calls, timeout):
+        parts = []
+        for c, key, blob in self.field.chart_parts(self.charts[0]):
+            self.store[key] = blob
+            parts.append((c, key))
+        return {0: {"seq": self.seq, "parts": parts, "whole": None, "tiles": [],
+                    "unit": self.field.atlas.unit, "own": self.field.own_samples,
+                    "nrejected": self.field.nrejected, "stored": 0}}
+
+    def status(self):
+        return [None]  # (no report yet)
+
+
+def test_a_shard_restored_after_the_first_batch_keeps_its_unit_and_samples(rng):
+    """Two batches uploaded before the first was applied both record a unit (each
+    chosen from its own rows); the first in the log sets it. A snapshot in parts
+    after batch 1, written by the front's empty definition (which inserts nothing
+    and so would still take a unit), must leave the unit fixed: a shard restored from
+    it and given batch 2's unit keeps its samples and its unit (it rebuilt its
+    charts, emptied, in the second unit before the header said so)."""
+    import io
+
+    from flatserve.atlas import Atlas
+    from flatserve.atlas_field import AtlasField
+    from flatserve.service.applier import adopt_unit
+
+    def batch(n):
+        o, v = rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3))
+        return Flats.from_rays(o, v), np.sin(3 * o[:, :1]) + v[:, :1]
+
+    atlas = Atlas.covering(1, 3, unit="fit").to_dict()
+    (f1, v1), (f2, v2) = batch(600), batch(600)
+    u1, u2 = 0.5, 0.9  # recorded with batch 1 and batch 2
+    worker = AtlasField(Atlas.from_dict(atlas), channels=1)
+    adopt_unit(worker, u1)
+    worker.insert_prepared(worker.prepare(f1, v1))
+    store: dict = {}
+    front = RemoteField(AtlasField(Atlas.from_dict(atlas), channels=1),
+                        _OneWorker(worker, 1, store), lambda: 1, timeout=10.0)
+    adopt_unit(front, u1)  # the front's applier, batch 1
+    assert not front.unit_pending and front.atlas.unit == u1
+    buf = io.BytesIO()
+    front.write_parts(buf, "/nonexistent")
+    restored = AtlasField.from_bytes(buf.getvalue(), parts=store.__getitem__)
+    assert restored.atlas.unit == u1 and not restored.unit_from_data
+    for fld in (restored, worker):  # batch 2, its unit recorded (ShardWorker._apply)
+        adopt_unit(fld, u2)
+        fld.insert_prepared(fld.prepare(f2, v2))
+    assert restored.atlas.unit == worker.atlas.unit == u1
+    assert (restored.nsamples, restored.nstored) == (worker.nsamples, worker.nstored)
+    probe = batch(300)[0]
+    np.testing.assert_array_equal(restored.query(probe).values, worker.query(probe).values)
+    # a field that holds samples takes no other unit, whatever a snapshot said
+    assert worker.settle_unit(2.0, if_empty=True) is False and worker.atlas.unit == u1
+    # before the first batch the header leaves the unit open (the log's first batch sets it)
+    empty = AtlasField(Atlas.from_dict(atlas), channels=1)
+    buf = io.BytesIO()
+    RemoteField(AtlasField(Atlas.from_dict(atlas), channels=1), _OneWorker(empty, 0, store),
+                lambda: 0, timeout=10.0).write_parts(buf, "/nonexistent")
+    assert AtlasField.from_bytes(buf.getvalue(), parts=store.__getitem__).unit_from_data
+
+
+def test_a_remote_fields_decisions_are_charted_when_read(rng):
+    """A remote field's prepared batch charts its decisions on first read (the
+    applier reads them for a batch it charts again for an upload that waits):
+    the rows its definition rejects are reported, as a local field reports them."""
+    from flatserve.atlas import Atlas
+    from flatserve.atlas_field import AtlasField
+    from flatserve.service.applier import decided
+
+    n = 300
+    v = rng.normal(size=(n, 3)) * [0.2, 0.2, 1.0]
+    v[::3] = rng.normal(size=(n // 3 if n % 3 == 0 else n // 3 + 1, 3)) * [1.0, 1.0, 0.05]
+    o = rng.uniform(-1, 1, (n, 3))
+    near_z = Flats.from_rays(o[v[:, 2] ** 2 > v[:, 0] ** 2 + v[:, 1] ** 2],
+                             v[v[:, 2] ** 2 > v[:, 0] ** 2 + v[:, 1] ** 2])
+    atlas = Atlas.for_samples(near_z, unit=1.0)
+    flats, vals = Flats.from_rays(o, v), rng.uniform(size=(n, 1))
+    want = AtlasField(atlas, channels=1).prepare(flats, vals)
+    assert 0 < want.rejected.size < n  # (the rows far from z: no chart holds them)
+    front = RemoteField(AtlasField(atlas, channels=1), _OneWorker(AtlasField(atlas, 1), 1, {}),
+                        lambda: 1, timeout=10.0)
+    lazy = front.prepare(flats, vals)
+    assert front.insert_prepared(lazy).accepted == n  # undecided: every row reported
+    lazy = front.prepare(flats, vals)
+    decided(lazy)
+    got = front.insert_prepared(lazy)
+    assert got.accepted == want.accepted
+    np.testing.assert_array_equal(got.rejected, want.rejected)

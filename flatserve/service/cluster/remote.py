@@ -359,7 +359,10 @@ class RemoteField:
             raise NotReadyError(f"the shards of the field hold units {sorted(units)}; retry")
         if units:
             adopt_unit(self._shape, units.pop())
-        fh.write(self._shape.parts_header(keys, own=own, nrejected=got[0]["nrejected"]))
+        # (after a batch the unit is fixed: the header must not leave it open, as this
+        # empty field, which inserts nothing, would)
+        fh.write(self._shape.parts_header(keys, own=own, nrejected=got[0]["nrejected"],
+                                          unit_fixed=next(iter(seqs)) > 0))
         return keys
 
     def save_parts(self, path: str | os.PathLike, stage: str | os.PathLike,

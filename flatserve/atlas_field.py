@@ -896,6 +896,11 @@ FIT_FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 FIT_EXTEND = 3
 
 
+def _chart_dim(k: int, d: int) -> int:
+    """Dimensions of a chart's triangulation of k-flats in R^d (``m - 1``)."""
+    return basis_size(k, d) - 1
+
+
 #: The most dimensions of a chart's triangulation (``basis_size(k, d) - 1``) for which
 #: a unit left out is fitted to the values (:func:`default_unit_rule`).
 FIT_MAX_DIM = 6
@@ -913,7 +918,7 @@ def default_unit_rule(k: int, d: int) -> str:
     >>> default_unit_rule(1, 3), default_unit_rule(2, 4), default_unit_rule(1, 5)
     ('fit', 'fit', 'data')
     """
-    return "fit" if basis_size(k, d) - 1 <= FIT_MAX_DIM else "data"
+    return "fit" if _chart_dim(k, d) <= FIT_MAX_DIM else "data"
 
 
 def fit_max_rows(k: int, d: int) -> int:
@@ -931,7 +936,7 @@ def fit_max_rows(k: int, d: int) -> int:
     >>> fit_max_rows(1, 3), fit_max_rows(2, 4), fit_max_rows(3, 5)
     (4000, 2000, 1000)
     """
-    dim = basis_size(k, d) - 1
+    dim = _chart_dim(k, d)
     return 4000 if dim <= 4 else 2000 if dim <= 6 else 1000
 
 

@@ -56,6 +56,16 @@ def adopt_unit(field, unit: float | None) -> None:
         field.settle_unit(unit, if_empty=True)
 
 
+def batch_unit(field, flats: Flats, values, unit: float | None) -> float | None:
+    """The unit a stored batch gives a field whose unit is still to be chosen: the
+    one recorded with it (``unit``, :func:`.blobs.split_batch`), or for a batch
+    stored without one (by an older server) the one the field chooses from its
+    rows (:func:`flatserve.atlas_field.choose_unit`), as every shard worker does."""
+    if unit is None and getattr(field, "unit_pending", False):
+        return choose_unit(field.atlas, flats, values)
+    return unit
+
+
 def _unit_of(field) -> float | None:
     """An atlas field's unit of length; None while it is still to be chosen (or for a
     field without one)."""
@@ -227,11 +237,7 @@ class LogApplier:
                     return None, None  # deleted meanwhile: its delete entry follows
                 arrays, values, unit = split_batch(arrays)
                 flats = stored_flats(e, None, arrays)
-                if unit is None and getattr(e.field, "unit_pending", False):
-                    # stored without its unit (by an older server) while the field has
-                    # none yet: the unit it chooses, as every shard worker does
-                    unit = choose_unit(e.field.atlas, flats, values)
-                adopt_unit(e.field, unit)
+                adopt_unit(e.field, batch_unit(e.field, flats, values, unit))
                 prepared = e.field.prepare(flats, values)
                 if again:  # the upload that handed it over answers with these decisions
                     decided(prepared)
@@ -418,9 +424,8 @@ class LogApplier:
         with that batch; a batch stored before a front recorded it: the unit each
         shard worker chose from it (:func:`flatserve.atlas_field.choose_unit`)."""
         arrays, values, unit = split_batch(self.storage.batch_arrays(e.id, first.seq))
-        if unit is None:
-            unit = choose_unit(e.field.atlas, stored_flats(e, first.form, arrays), values)
-        adopt_unit(e.field, unit)
+        adopt_unit(e.field, batch_unit(e.field, stored_flats(e, first.form, arrays), values,
+                                       unit))
 
     def rebuild(self, e: FieldEntry, upto: int, why: str) -> None:
         """Rebuild a field from storage up to log position ``upto`` (the follower's

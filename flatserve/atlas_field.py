@@ -42,7 +42,7 @@ from .errors import InvalidInputError, SnapshotError
 from .field import AddResult, Field, PreparedBatch, QueryResult, QueryRoute
 from .flats import Flats, basis_size
 from .grassmann import bump
-from .options import Order, Outside, choice
+from .options import Interpolant, Order, Outside, choice
 from .triangulation import RWLock
 
 __all__ = ["ATLAS_MAGIC", "AtlasField", "AtlasPrepared", "AtlasQueryResult", "FIT_FACTORS",
@@ -532,7 +532,8 @@ class AtlasField(FieldBase):
     def query(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
               order: Order | str = Order.HILBERT,
               threads: int | None = None, return_weights: bool = False,
-              blocking: bool = True) -> "AtlasQueryResult | None":
+              blocking: bool = True,
+              interpolant: Interpolant | str = Interpolant.LINEAR) -> "AtlasQueryResult | None":
         """Interpolate at flats: every chart holding the query, blended.
 
         :meth:`route_query`, each chart's :meth:`Field.query` on its rows,
@@ -549,6 +550,8 @@ class AtlasField(FieldBase):
             (:class:`AtlasQueryResult`).
         blocking : bool
             False: return None at once instead of waiting for an insert in progress.
+        interpolant : {"linear", "gradient"}
+            Each chart's (:meth:`Field.query`).
 
         Returns
         -------
@@ -562,6 +565,7 @@ class AtlasField(FieldBase):
             inside its samples' hull.
         """
         outside, order = choice(outside, Outside, "outside"), choice(order, Order, "order")
+        interpolant = choice(interpolant, Interpolant, "interpolant")
         route = self.route_query(flats)
         if blocking:
             self._lock.acquire_read()
@@ -571,7 +575,7 @@ class AtlasField(FieldBase):
             work = [(c, flats.take(rows)) for c, rows in enumerate(route.rows)
                     if rows.size and self.fields[c].nsamples]
             got = self._query_shards(work, outside=outside, order=order, threads=threads,
-                                     return_weights=return_weights)
+                                     return_weights=return_weights, interpolant=interpolant)
             results: list = [None] * len(self.fields)
             for (c, _), res in zip(work, got):
                 results[c] = res
@@ -581,7 +585,8 @@ class AtlasField(FieldBase):
 
     def query_shards(self, work, *, outside: Outside | str = Outside.NAN,
                      order: Order | str = Order.HILBERT, threads: int | None = None,
-                     return_weights: bool = False, blocking: bool = True) -> list | None:
+                     return_weights: bool = False, blocking: bool = True,
+                     interpolant: Interpolant | str = Interpolant.LINEAR) -> list | None:
         """Each chart's answer on its own flats, seen at one moment (a shard's half of
         :meth:`query`: :meth:`route_query` and :meth:`blend` are the other).
 
@@ -589,7 +594,7 @@ class AtlasField(FieldBase):
         ----------
         work : list of (int, Flats)
             ``(chart, flats)`` pairs, each chart at most once.
-        outside, order, threads, return_weights, blocking
+        outside, order, threads, return_weights, blocking, interpolant
             As :meth:`query`.
 
         Returns
@@ -600,6 +605,7 @@ class AtlasField(FieldBase):
             is in. Under the field's read lock: every chart holds the same batches.
         """
         outside, order = choice(outside, Outside, "outside"), choice(order, Order, "order")
+        interpolant = choice(interpolant, Interpolant, "interpolant")
         if blocking:
             self._lock.acquire_read()
         elif not self._lock.try_acquire_read():
@@ -607,7 +613,8 @@ class AtlasField(FieldBase):
         try:
             asked = [(c, f) for c, f in work if self.fields[c].nsamples]
             got = iter(self._query_shards(asked, outside=outside, order=order, threads=threads,
-                                          return_weights=return_weights))
+                                          return_weights=return_weights,
+                                          interpolant=interpolant))
             return [next(got) if self.fields[c].nsamples else None for c, _ in work]
         finally:
             self._lock.release_read()

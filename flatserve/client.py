@@ -492,8 +492,12 @@ class Client:
     def query(self, name: str, flats: Flats | None = None, *, origins=None, directions=None,
               A=None, b=None, Q=None, r=None, points=None, weights: bool = False, outside: str = "nan",
               order: str = "hilbert", binary: bool = True,
-              min_position: int | None = None, batch_rows: int | None = None) -> QueryResult:
+              min_position: int | None = None, batch_rows: int | None = None,
+              interpolant: str = "linear") -> QueryResult:
         """Interpolate the field at a batch of flats (a :class:`Flats`, or arrays by name).
+
+        ``interpolant``: ``"linear"`` (the paper's) or ``"gradient"`` (slopes fitted
+        to each vertex's nearest samples: :meth:`flatserve.Field.query`).
 
         More flats than one request may carry (the server's ``max_batch_rows`` or body
         limits; or ``batch_rows``) are sent as several requests, answered in order.
@@ -509,6 +513,8 @@ class Client:
                                                 b=b, Q=Q, r=r, points=points))
         params = {"form": form, "outside": outside, "order": order,
                   "weights": "true" if weights else "false"}
+        if interpolant != "linear":
+            params["interpolant"] = str(interpolant)
         if min_position is not None:
             params["min_position"] = str(int(min_position))
         n = len(next(iter(arrays.values())))

@@ -54,7 +54,7 @@ from .errors import InvalidInputError, SnapshotError
 from .field import FIELD_MAGIC, AddResult, Field, QueryResult, QueryRoute
 from .flats import Flats
 from .grassmann import haar_frames
-from .options import Order, Outside
+from .options import Interpolant, Order, Outside
 
 __all__ = ["POINTER_MAGIC", "Prepared", "SampledField", "describe_definition", "expected_copies",
            "load_field", "new_field", "part_key", "part_pointer"]
@@ -174,9 +174,11 @@ class SampledField(Protocol):
     # -------------------------------------------------------------- readers
     def query(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
               order: Order | str = Order.HILBERT, threads: int | None = None,
-              return_weights: bool = False, blocking: bool = True) -> QueryResult | None:
+              return_weights: bool = False, blocking: bool = True,
+              interpolant: Interpolant | str = Interpolant.LINEAR) -> QueryResult | None:
         """Interpolate at ``q`` flats: values (q, C), inside (q,), status (q,);
-        None when not ``blocking`` and a writer is in."""
+        None when not ``blocking`` and a writer is in; ``interpolant`` as
+        :meth:`flatserve.field.Field.query`'s."""
         ...
 
     def describe(self) -> dict:

@@ -24,7 +24,8 @@ from .basis import Basis
 from .coordinates import NO_SAMPLES, OK, ROUNDTRIP_TOL, reason
 from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
-from .options import Order, Outside, choice
+from .gradient import slopes, taylor_blend
+from .options import Interpolant, Order, Outside, choice
 from .flats import Flats, check_batch
 from .tiles import TiledTriangulation, tile_setting
 from .triangulation import Triangulation
@@ -288,6 +289,7 @@ class Field(FieldBase):
                      else TiledTriangulation(basis.m - 1, self.tiles))
         self._nrejected = 0
         self._generation = 0
+        self._tree = None  # (k-d tree, points): the gradient interpolant's neighbours
 
     @property
     def generation(self) -> int:
@@ -460,6 +462,7 @@ class Field(FieldBase):
         threads: int | None = None,
         return_weights: bool = False,
         blocking: bool = True,
+        interpolant: Interpolant | str = Interpolant.LINEAR,
     ) -> "QueryResult | None":
         """Interpolate the field at flats.
 
@@ -482,6 +485,12 @@ class Field(FieldBase):
         blocking : bool
             False: return None at once instead of waiting for an insert in
             progress (callers on an event loop).
+        interpolant : {"linear", "gradient"}
+            "linear" (the paper's): the cell's values, barycentrically weighted.
+            "gradient": the cell's vertices' first-order Taylor expansions,
+            barycentrically weighted, with slopes fitted to each vertex's
+            nearest samples (:mod:`flatserve.gradient`); queries outside the
+            hull keep the linear answer (``outside="clamp"``).
 
         Returns
         -------
@@ -492,6 +501,7 @@ class Field(FieldBase):
             values are NaN, as outside the hull, but the flat is in the domain.
         """
         outside, order = choice(outside, Outside, "outside"), choice(order, Order, "order")
+        gradient = choice(interpolant, Interpolant, "interpolant") is Interpolant.GRADIENT
         ch = flats if isinstance(flats, Chart) else self.chart(flats, threads=threads)
         if ch.points.shape[1:] != (self.ndim,):
             raise InvalidInputError(f"flats: a chart of dimension {self.ndim} expected", "flats")
@@ -507,10 +517,12 @@ class Field(FieldBase):
             weights = np.full((n, D + 1), np.nan)
         if ch.points.shape[0] and self._tri.npoints > 0:
             got = self._tri.query(ch.points, outside=outside, order=order, threads=threads,
-                                  locate=return_weights, blocking=blocking)
+                                  locate=return_weights or gradient, blocking=blocking)
             if got is None:
                 return None
             v, ins, loc = got
+            if gradient:
+                v = self._taylor(ch.points, v, ins, loc)
             if allok:  # no scatter
                 values, inside = v, ins
             else:
@@ -525,6 +537,36 @@ class Field(FieldBase):
         if ok.any() and not inside[ok].all() and not _spans(self._tri, self.ndim):
             status = np.where(ok, np.int8(NO_SAMPLES), status).astype(np.int8)
         return QueryResult(values=values, inside=inside, status=status, ids=ids, weights=weights)
+
+    def _taylor(self, xq: np.ndarray, v: np.ndarray, inside: np.ndarray, loc) -> np.ndarray:
+        """The gradient interpolant's values where ``inside`` (:meth:`query`)."""
+        if not inside.any():
+            return v
+        ids, w = loc.ids[inside], loc.weights[inside]
+        # read after the query: samples are only added (ids stay), the tree follows them
+        tree, points = self._neighbour_tree()
+        values = self.values
+        used, at = np.unique(ids, return_inverse=True)
+        g = slopes(tree, points, values, used)[at.reshape(ids.shape)]
+        out = v.copy()
+        out[inside] = taylor_blend(points[ids], values[ids], g, w, xq[inside])
+        return out
+
+    def _neighbour_tree(self):
+        """A k-d tree over the samples' coordinates, kept until the next insert:
+        (tree, points)."""
+        points = self.points
+        kept = self._tree
+        if kept is not None and kept[1].shape[0] == points.shape[0]:
+            return kept
+        try:
+            from scipy.spatial import cKDTree
+        except ImportError:  # the library alone brings NumPy only
+            raise ImportError("interpolant 'gradient' needs SciPy: pip install "
+                              "'flatserve[gradient]'") from None
+        kept = (cKDTree(points), points)
+        self._tree = kept
+        return kept
 
     def query_rays(self, origins, directions, **kwargs) -> QueryResult:
         """``query(Flats.from_rays(origins, directions), **kwargs)``: lines, (q, d) each."""

@@ -16,7 +16,7 @@ from typing import TypeVar
 
 from .errors import InvalidInputError
 
-__all__ = ["Outside", "Order", "Form", "choice"]
+__all__ = ["Outside", "Order", "Interpolant", "Form", "choice"]
 
 
 class Outside(str, Enum):
@@ -38,6 +38,19 @@ class Order(str, Enum):
     HILBERT = "hilbert"
     #: the caller's order (best for coherent batches: scanlines of an image)
     GIVEN = "given"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+class Interpolant(str, Enum):
+    """How a query's value is made from its Delaunay cell (:mod:`flatserve.gradient`)."""
+
+    #: the paper's: the cell's values, barycentrically weighted (the default)
+    LINEAR = "linear"
+    #: the cell's vertices' first-order Taylor expansions, barycentrically weighted
+    #: (slopes fitted to each vertex's nearest samples)
+    GRADIENT = "gradient"
 
     def __str__(self) -> str:
         return self.value

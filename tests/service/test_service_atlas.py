@@ -21,7 +21,7 @@ from flatserve.errors import InvalidInputError
 from flatserve.service.status import LimitExceededError
 from flatserve.flats import Flats
 
-from .conftest import ONE_CHART, started
+from .conftest import ONE_CHART, SINGLE, add_rays, started
 
 C = 2
 #: A request written before the top-level ``oriented``: still accepted.
@@ -839,5 +839,74 @@ def test_a_relative_atlas_asked_for_at_create_answers_as_the_librarys(make_app, 
     try:
         assert c.describe("r")["atlas"]["relative"] is True
         same(c)
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_the_gradient_interpolant_over_http_answers_as_the_librarys(make_app, rng,
+                                                                    monkeypatch):
+    """``interpolant=gradient``: planes in R^3 in an atlas field and rays in a one-chart
+    field answer the library's ``query(interpolant="gradient")`` (.npy and JSON, a
+    large query and a small one, which is not answered on the event loop), not the
+    linear answer; an unknown interpolant is a 422 naming it."""
+    from flatserve.grassmann import haar_frames
+
+    A = haar_frames(1500, 3, 2, rng)
+    b = rng.uniform(-1, 1, (1500, 3))
+    val = np.sin(3 * b[:, :1]) + A[:, :1, 0]
+    qA, qb = haar_frames(300, 3, 2, rng), rng.uniform(-1, 1, (300, 3))
+    lib = AtlasField(Atlas.covering(2, 3).with_unit(1.0), channels=1)
+    lib.add(Flats.from_parametric(A, b), val)
+    want = lib.query(Flats.from_parametric(qA, qb), interpolant="gradient")
+    linear = lib.query(Flats.from_parametric(qA, qb))
+    assert want.inside.mean() > 0.8
+    assert np.abs(want.values - linear.values)[want.inside].max() > 1e-3
+    import asyncio
+
+    from flatserve.field import Field
+
+    on_loop = []
+
+    def watched(query):
+        def run(self, *a, **kw):  # a gradient query is never answered on the event loop
+            if kw.get("interpolant") == "gradient":
+                try:
+                    asyncio.get_running_loop()
+                    on_loop.append(True)
+                except RuntimeError:
+                    on_loop.append(False)
+            return query(self, *a, **kw)
+        return run
+
+    for cls in (Field, AtlasField):
+        monkeypatch.setattr(cls, "query", watched(cls.query))
+    tc, c = started(make_app())
+    try:
+        c.create_field("p", k=2, d=3, unit=1.0)
+        c.upload_parametric("p", A, b, val)
+        for rows in (slice(None), slice(0, 10)):
+            for binary in (True, False):
+                got = c.query_parametric("p", qA[rows], qb[rows], binary=binary,
+                                         interpolant="gradient")
+                np.testing.assert_array_equal(got.inside, want.inside[rows])
+                np.testing.assert_allclose(got.values, want.values[rows], rtol=0, atol=1e-12,
+                                           equal_nan=True)
+        assert on_loop and not any(on_loop), on_loop
+        with pytest.raises(ServiceError) as err:
+            c.query_parametric("p", qA, qb, interpolant="cubic")
+        assert err.value.status == 422 and "interpolant" in str(err.value.detail)
+        # one chart: rays, the library's one-chart field built as the service builds it
+        o, v = sphere_rays(rng, 3000, spread=0.5)
+        o, v = o[v[:, 2] > 0.5], v[v[:, 2] > 0.5]
+        c.create_field("one", channels=C, basis=ONE_CHART)
+        ref = SINGLE.reference(C)
+        add_rays(ref, o, v, line_values(o, v))
+        c.upload_rays("one", o, v, line_values(o, v))
+        qo, qv = o[:200] + rng.normal(0, 0.02, (200, 3)), v[:200]
+        want = ref.query(Flats.from_rays(qo, qv), interpolant="gradient")
+        assert want.inside.mean() > 0.5
+        got = c.query_rays("one", qo, qv, interpolant="gradient")
+        np.testing.assert_array_equal(got.inside, want.inside)
+        np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12, equal_nan=True)
     finally:
         tc.__exit__(None, None, None)

@@ -25,7 +25,7 @@ import numpy as np
 from ...contract import part_pointer
 from ...field import AddResult, QueryResult, QueryRoute
 from ...flats import Flats
-from ...options import Order, Outside
+from ...options import Interpolant, Order, Outside, choice
 from ..applier import adopt_unit
 from ..status import NotReadyError
 
@@ -243,7 +243,8 @@ class RemoteField:
     # -- reads ------------------------------------------------------------------------------
     def query(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
               order: Order | str = Order.HILBERT, threads: int | None = None,
-              return_weights: bool = False, blocking: bool = True) -> QueryResult | None:
+              return_weights: bool = False, blocking: bool = True,
+              interpolant: Interpolant | str = Interpolant.LINEAR) -> QueryResult | None:
         """Route, one call per shard group touched (each its charts' answers), blend.
 
         Not ``blocking``: None at once (an answer from other processes always
@@ -258,26 +259,31 @@ class RemoteField:
         """
         if not blocking:
             return None
-        route, calls = self._fan_out(flats, outside, order, threads, return_weights)
+        route, calls = self._fan_out(flats, outside, order, threads, return_weights, interpolant)
         return self._blend(route, calls, self.groups.call(calls, self.timeout + 5.0),
                            return_weights)
 
     async def query_async(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
                           order: Order | str = Order.HILBERT, threads: int | None = None,
-                          return_weights: bool = False) -> QueryResult:
+                          return_weights: bool = False,
+                          interpolant: Interpolant | str = Interpolant.LINEAR) -> QueryResult:
         """:meth:`query` with the shards' answers awaited on the event loop, for small
         queries: routing, the calls' submission and blending run on the loop (a
         fraction of a millisecond for a few rows); the same failover and errors."""
-        route, calls = self._fan_out(flats, outside, order, threads, return_weights)
+        route, calls = self._fan_out(flats, outside, order, threads, return_weights, interpolant)
         got = await self.groups.call_async(calls, self.timeout + 5.0)
         return self._blend(route, calls, got, return_weights)
 
-    def _fan_out(self, flats: Flats, outside, order, threads, return_weights):
+    def _fan_out(self, flats: Flats, outside, order, threads, return_weights, interpolant):
         """The query's route and its calls: per group touched, ``("query", (work, kw,
-        position, timeout))`` with ``work`` the ``(chart, flats)`` of its charts."""
+        position, timeout))`` with ``work`` the ``(chart, flats)`` of its charts (the
+        workers compute the gradient interpolant's slopes, beside their samples)."""
+        interpolant = choice(interpolant, Interpolant, "interpolant")
         route = self._shape.route_query(flats)
         kw = {"outside": outside, "order": order, "threads": threads,
               "return_weights": return_weights}
+        if interpolant is not Interpolant.LINEAR:  # (a worker of an older release: linear)
+            kw["interpolant"] = interpolant.value
         whole = len(route.rows) == 1
         per: dict[int, list] = {}
         for c, rows in enumerate(route.rows):

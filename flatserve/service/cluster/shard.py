@@ -293,7 +293,7 @@ class ShardWorker:
         work : list of (int, Flats)
             ``(chart, flats)`` pairs of this worker's charts.
         kw : dict
-            ``outside``, ``order``, ``threads``, ``return_weights``.
+            ``outside``, ``order``, ``threads``, ``return_weights``, ``interpolant``.
         at_position : int
         timeout : float
             Seconds to wait for ``at_position``.

@@ -1,0 +1,213 @@
+"""The gradient interpolant (flatserve.gradient, ``query(interpolant="gradient")``),
+checked against a second implementation of another kind (scipy's Delaunay cells,
+neighbours by sorting every distance, one least-squares solve per sample), against
+exact answers (affine values, the samples themselves), against the linear
+interpolant's error on a smooth function, and tiled against whole."""
+import numpy as np
+import pytest
+from scipy.spatial import Delaunay
+
+import flatserve
+from flatserve import Atlas, AtlasField, Basis, Field, Flats
+from flatserve.errors import InvalidInputError
+from flatserve.gradient import neighbours_for, slopes, taylor_blend
+from tests.test_tiles import _fig11_rays
+
+
+def _points_field(P, V):
+    d = P.shape[1]
+    field = Field(Basis.tangent_simplex(np.eye(d), np.zeros(d), 0), channels=V.shape[1])
+    assert field.add(Flats.from_points(P), V).accepted == len(P)
+    return field
+
+
+def _reference(P, V, q):
+    """Σ w_i (f_i + g_i·(x − x_i)) over scipy's Delaunay cell, each g_i one weighted
+    least-squares solve over the 2D+2 nearest samples found by sorting all distances."""
+    n, D = P.shape
+    K = 2 * D + 2
+    G = np.empty((n, V.shape[1], D))
+    for i in range(n):
+        dist = np.linalg.norm(P - P[i], axis=1)
+        nb = np.argsort(dist)[1:K + 1]
+        w = 1.0 / dist[nb]
+        G[i] = np.linalg.lstsq((P[nb] - P[i]) * w[:, None],
+                               (V[nb] - V[i]) * w[:, None], rcond=None)[0].T
+    tri = Delaunay(P)
+    s = tri.find_simplex(q)
+    out = np.full((len(q), V.shape[1]), np.nan)
+    for j in np.flatnonzero(s >= 0):
+        T = tri.transform[s[j]]
+        b = T[:D] @ (q[j] - T[D])
+        lam = np.r_[b, 1 - b.sum()]
+        ids = tri.simplices[s[j]]
+        out[j] = sum(lam[a] * (V[i] + G[i] @ (q[j] - P[i])) for a, i in enumerate(ids))
+    return out
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_a_points_field_answers_as_a_second_implementation(d):
+    rng = np.random.default_rng(40 + d)
+    P = rng.uniform(-1, 1, (300, d))
+    V = np.c_[np.sin(3 * P.sum(axis=1)), P[:, 0] ** 2 - P[:, -1]]
+    q = rng.uniform(-1.1, 1.1, (400, d))
+    ref = _reference(P, V, q)
+    inside = ~np.isnan(ref).any(axis=1)
+    assert 0 < inside.sum() < len(q)
+    out = _points_field(P, V).query(Flats.from_points(q), interpolant="gradient")
+    np.testing.assert_array_equal(out.inside, inside)
+    np.testing.assert_allclose(out.values[inside], ref[inside], rtol=0, atol=1e-9)
+    assert np.isnan(out.values[~inside]).all()
+    # and it is not the linear answer
+    lin = _points_field(P, V).query(Flats.from_points(q)).values
+    assert np.abs(lin[inside] - ref[inside]).max() > 1e-3
+
+
+def test_slopes_of_affine_values_are_exact_in_every_channel():
+    rng = np.random.default_rng(5)
+    from scipy.spatial import cKDTree
+
+    for D in (2, 4, 6):
+        X = rng.normal(size=(200, D))
+        M = rng.normal(size=(D, 3))
+        V = X @ M + rng.normal(size=3)
+        ids = rng.choice(200, 30, replace=False)
+        g = slopes(cKDTree(X), X, V, ids)
+        assert g.shape == (30, 3, D)
+        np.testing.assert_allclose(g, np.broadcast_to(M.T, g.shape), atol=1e-9)
+        # too few samples for a slope: the least-norm one, finite
+        g = slopes(cKDTree(X[:3]), X[:3], V[:3], np.arange(3))
+        assert np.isfinite(g).all()
+
+
+def test_taylor_blend_with_exact_slopes_is_exact_for_affine_values():
+    rng = np.random.default_rng(6)
+    D, q = 3, 20
+    M, c = rng.normal(size=(D, 2)), rng.normal(size=2)
+    xv = rng.normal(size=(q, D + 1, D))
+    w = rng.dirichlet(np.ones(D + 1), q)
+    xq = np.einsum("qj,qjd->qd", w, xv)
+    got = taylor_blend(xv, xv @ M + c, np.broadcast_to(M.T, (q, D + 1, 2, D)), w, xq)
+    np.testing.assert_allclose(got, xq @ M + c, atol=1e-12)
+
+
+def test_samples_and_affine_functions_of_the_chart_come_back():
+    """At a sample every weight but its own is 0; an affine function of the chart's
+    coordinates has exact slopes, so the blend is exact everywhere inside."""
+    basis = Basis.around_axis(axis=2, scale=0.01)
+    rng = np.random.default_rng(7)
+    eyes = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (3000, 3))
+    dirs = np.c_[rng.uniform(-1, 1, (3000, 2)), np.zeros(3000)] - eyes
+    field = Field(basis, channels=2)
+    ch = field.chart(Flats.from_rays(eyes, dirs))
+    eyes, dirs, x = eyes[ch.ok], dirs[ch.ok], ch.points
+    c = rng.normal(size=(x.shape[1], 2))
+    field.add(Flats.from_rays(eyes, dirs), x @ c + [0.5, -1.0])
+    back = field.query(Flats.from_rays(eyes[:500], dirs[:500]), interpolant="gradient")
+    np.testing.assert_allclose(back.values, x[:500] @ c + [0.5, -1.0], atol=1e-8)
+    qe = rng.uniform([-1, -1, -4.5], [1, 1, -1.5], (1000, 3))
+    qd = np.c_[rng.uniform(-1, 1, (1000, 2)), np.zeros(1000)] - qe
+    ch = field.chart(Flats.from_rays(qe, qd))
+    qe, qd, xq = qe[ch.ok], qd[ch.ok], ch.points
+    out = field.query(Flats.from_rays(qe, qd), interpolant="gradient")
+    assert out.inside.sum() > 500
+    np.testing.assert_allclose(out.values[out.inside], (xq @ c + [0.5, -1.0])[out.inside],
+                               atol=1e-8)
+
+
+def _smooth(A, c):
+    P = np.einsum("ndk,nek->nde", A, A)
+    return np.sin(2 * P[:, 0, 1] + P[:, 2, 2]) + np.cos(c @ [1.0, -0.5, 0.8])
+
+
+def test_an_atlas_field_is_closer_to_a_smooth_function():
+    """Planes in R^3: every chart's answer corrected by slopes; the median error
+    against the truth falls below the linear interpolant's, the same queries
+    answered (the interpolant changes values, not cells)."""
+    from flatserve.grassmann import haar_frames
+
+    rng = np.random.default_rng(8)
+
+    def flats(n):
+        A = haar_frames(n, 3, 2, rng)
+        p = rng.uniform(-1, 1, (n, 3))
+        return A, p - np.einsum("ndk,nek,ne->nd", A, A, p)
+
+    A, c = flats(3000)
+    Aq, cq = flats(1000)
+    field = AtlasField(Atlas.covering(2, 3), channels=1)
+    field.add(Flats.from_parametric(A, c), _smooth(A, c)[:, None])
+    truth = _smooth(Aq, cq)
+    lin = field.query(Flats.from_parametric(Aq, cq))
+    grad = field.query(Flats.from_parametric(Aq, cq), interpolant="gradient")
+    np.testing.assert_array_equal(lin.inside, grad.inside)
+    np.testing.assert_array_equal(lin.status, grad.status)
+    ins = lin.inside
+    assert ins.mean() > 0.9
+    e_lin = np.median(np.abs(lin.values[ins, 0] - truth[ins]))
+    e_grad = np.median(np.abs(grad.values[ins, 0] - truth[ins]))
+    assert e_grad < 0.9 * e_lin, (e_grad, e_lin)
+    # at the samples: their values
+    back = field.query(Flats.from_parametric(A[:200], c[:200]), interpolant="gradient")
+    np.testing.assert_allclose(back.values[:, 0], _smooth(A[:200], c[:200]), atol=1e-9)
+
+
+def test_outside_the_hull_keeps_the_linear_answer():
+    rng = np.random.default_rng(9)
+    P = rng.uniform(-1, 1, (200, 2))
+    V = np.sin(3 * P)
+    q = rng.uniform(-1.3, 1.3, (300, 2))
+    field = _points_field(P, V)
+    for outside in ("nan", "clamp"):
+        lin = field.query(Flats.from_points(q), outside=outside)
+        grad = field.query(Flats.from_points(q), outside=outside, interpolant="gradient")
+        out = ~lin.inside
+        assert out.any()
+        np.testing.assert_array_equal(grad.values[out], lin.values[out])
+        assert not np.allclose(grad.values[~out], lin.values[~out])
+
+
+def test_a_tiled_chart_answers_as_the_whole_one():
+    o, d, v = _fig11_rays(60, seed=2)
+    rng = np.random.default_rng(10)
+    pick = rng.choice(len(o), 300, replace=False)
+    qf = Flats.from_rays(o[pick] + rng.normal(0, 0.01, (300, 3)), d[pick])
+    basis = Basis.around_axis(axis=2, scale=0.01)
+    whole, tiled = Field(basis, channels=1), Field(basis, channels=1, tiles=2)
+    for f in (whole, tiled):
+        f.add(Flats.from_rays(o, d), v)
+    ref = whole.query(qf, interpolant="gradient")
+    got = tiled.query(qf, interpolant="gradient")
+    assert ref.inside.mean() > 0.5
+    np.testing.assert_array_equal(got.inside, ref.inside)
+    np.testing.assert_allclose(got.values, ref.values, rtol=0, atol=1e-9)
+    back = Field.from_bytes(tiled.to_bytes())
+    np.testing.assert_allclose(back.query(qf, interpolant="gradient").values, ref.values,
+                               rtol=0, atol=1e-9)
+
+
+def test_a_field_grown_between_queries_uses_its_new_samples():
+    rng = np.random.default_rng(11)
+    P = rng.uniform(-1, 1, (400, 2))
+    V = np.sin(3 * P[:, :1]) * P[:, 1:]
+    q = rng.uniform(-0.8, 0.8, (200, 2))
+    grown = _points_field(P[:200], V[:200])
+    grown.query(Flats.from_points(q), interpolant="gradient")  # a neighbour tree of 200
+    grown.add(Flats.from_points(P[200:]), V[200:])
+    fresh = _points_field(P, V)
+    np.testing.assert_allclose(  # (the same cells, built in another order)
+        grown.query(Flats.from_points(q), interpolant="gradient").values,
+        fresh.query(Flats.from_points(q), interpolant="gradient").values, rtol=0, atol=1e-12)
+
+
+def test_bad_choices_name_the_argument():
+    field = _points_field(np.random.default_rng(1).uniform(size=(10, 2)), np.ones((10, 1)))
+    with pytest.raises(InvalidInputError, match="interpolant: expected 'linear' or 'gradient'"):
+        field.query(Flats.from_points(np.zeros((1, 2))), interpolant="cubic")
+    with pytest.raises(InvalidInputError, match="interpolant"):
+        AtlasField(Atlas.covering(0, 2), 1).query(Flats.from_points(np.zeros((1, 2))),
+                                                  interpolant="cubic")
+    with pytest.raises(InvalidInputError, match="neighbours: an integer of at least"):
+        neighbours_for(6, 3)
+    assert neighbours_for(6) == 14 and neighbours_for(6, 6) == 6
+    assert flatserve.options.Interpolant("gradient") == "gradient"

@@ -19,7 +19,10 @@ seeded), and ``--queries`` held-out random flats. Measured:
    with ``--fit-unit`` also the default atlas in the unit
    ``flatserve.atlas_field.fitted_unit`` chose from the samples (held out among
    them), against the 8 nearest samples as above and in the same unit (offsets
-   over the unit in the chordal metric: the fair peer);
+   over the unit in the chordal metric: the fair peer); with ``--gradient`` as well
+   that field's answers by the gradient interpolant (``flatserve.gradient``: the
+   cell's vertices' Taylor expansions blended; the same cells, weights and
+   queries answered);
    and the default atlas's median error by the query's angle from its nearest
    centre (is it flat across where the charts answer?);
 2. ``--one-chart``: one chart (the default centre) holding the samples within
@@ -31,6 +34,7 @@ seeded), and ``--queries`` held-out random flats. Measured:
 
     .venv/bin/python benchmarks/accuracy_by_kind.py [--kinds 2,3 1,4 2,4] [--samples 3000]
     .venv/bin/python benchmarks/accuracy_by_kind.py --fit-unit --kinds 1,3 2,3 3,4 1,4 2,4
+    .venv/bin/python benchmarks/accuracy_by_kind.py --fit-unit --gradient --kinds 1,3 2,4
     .venv/bin/python benchmarks/accuracy_by_kind.py --one-chart --seeds 8 [--kinds 2,3 2,4]
 """
 from __future__ import annotations
@@ -99,7 +103,7 @@ def setup(k, d, n, nq, seed, center=None, maxdeg=None, sample_deg=None):
     return A, c, truth(A, c, W, w), Aq, cq, truth(Aq, cq, W, w)
 
 
-def atlas_case(k, d, n, nq, seed, fit=False):
+def atlas_case(k, d, n, nq, seed, fit=False, gradient=False):
     A, c, f, Aq, cq, fq = setup(k, d, n, nq, seed)
     knn = np.abs(nearest(A, c, f, Aq, cq) - fq)
     print(f"\n{k}-flats in R^{d}: {n:,} samples, {nq:,} queries; 8 nearest samples: median "
@@ -133,16 +137,20 @@ def atlas_case(k, d, n, nq, seed, fit=False):
         tf = time.perf_counter() - t0
         fld = AtlasField(atlas.with_unit(fu.unit), 1)
         fld.add(Flats.from_parametric(A, c), f[:, None])
-        res = fld.query(Flats.from_parametric(Aq, cq))
-        ins = np.asarray(res.inside)
-        err = np.abs(np.asarray(res.values)[:, 0] - fq)[ins]
         # the peer with offsets weighed alike (its chordal metric's offsets over the unit)
         fair = np.abs(nearest(A, c / fu.unit, f, Aq, cq / fu.unit) - fq)
-        print(f"| fitted unit {fu.unit:.3g} (of {', '.join(f'{u:.3g}' for u in fu.candidates)}; "
-              f"{tf:.1f} s) | {atlas.ncharts} | {fld.duplication:.2f} | | {ins.mean():.1%} | "
-              f"{np.median(err):.4f} | {np.median(knn[ins]):.4f} | "
-              f"{np.median(err) / np.median(knn[ins]):.2f} (8-NN in the same unit: "
-              f"{np.median(fair[ins]):.4f}, {np.median(err) / np.median(fair[ins]):.2f}) |")
+        for interpolant in ("linear", "gradient") if gradient else ("linear",):
+            t0 = time.perf_counter()
+            res = fld.query(Flats.from_parametric(Aq, cq), interpolant=interpolant)
+            tq = time.perf_counter() - t0
+            ins = np.asarray(res.inside)
+            err = np.abs(np.asarray(res.values)[:, 0] - fq)[ins]
+            print(f"| fitted unit {fu.unit:.3g} (of {', '.join(f'{u:.3g}' for u in fu.candidates)}; "
+                  f"{tf:.1f} s), {interpolant} (query {tq:.2f} s) | {atlas.ncharts} | "
+                  f"{fld.duplication:.2f} | | {ins.mean():.1%} | "
+                  f"{np.median(err):.4f} | {np.median(knn[ins]):.4f} | "
+                  f"{np.median(err) / np.median(knn[ins]):.2f} (8-NN in the same unit: "
+                  f"{np.median(fair[ins]):.4f}, {np.median(err) / np.median(fair[ins]):.2f}) |")
     by_angle(got.pop("default"), Aq, cq, fq, knn)
     both = got["paper"][0] & got["isometric"][0]
     only = got["paper"][0] & ~both
@@ -252,6 +260,8 @@ def main() -> None:
                          "--seed on)")
     ap.add_argument("--fit-unit", action="store_true",
                     help="also the default atlas in a unit fitted to the samples")
+    ap.add_argument("--gradient", action="store_true",
+                    help="--fit-unit: also that atlas's answers by the gradient interpolant")
     args = ap.parse_args()
     for kd in args.kinds:
         k, d = map(int, kd.split(","))
@@ -259,7 +269,8 @@ def main() -> None:
             one_chart_case(k, d, args.samples, args.queries, args.seed,
                            sample_deg=args.sample_deg, seeds=args.seeds)
         else:
-            atlas_case(k, d, args.samples, args.queries, args.seed, fit=args.fit_unit)
+            atlas_case(k, d, args.samples, args.queries, args.seed, fit=args.fit_unit,
+                       gradient=args.gradient)
 
 
 if __name__ == "__main__":

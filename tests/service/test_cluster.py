@@ -114,17 +114,19 @@ def recorded_unit(url: str, name: str) -> float | None:
 
 
 def assert_same(url: str, front: ServerProcess, name: str, probe, *, weights=False,
-                timeout: float = 120.0) -> None:
+                timeout: float = 120.0, interpolant: str = "linear") -> None:
     """The front's answer at the log's head equals the one-process field's, bit for bit:
     for ``probe`` (answered through the front's thread pool) and for small queries
-    of its first rays (routed and awaited on the front's event loop)."""
+    of its first rays (routed and awaited on the front's event loop); with
+    ``interpolant``, the shards' answers by it."""
     ref, head = oracle(url, name)
-    want = ref.query(Flats.from_rays(*probe), return_weights=weights)
+    want = ref.query(Flats.from_rays(*probe), return_weights=weights, interpolant=interpolant)
     end = time.monotonic() + timeout
     with Client(front.url, retries=0, timeout=120) as c:
         while True:
             try:
-                got = c.query_rays(name, *probe, weights=weights, min_position=head)
+                got = c.query_rays(name, *probe, weights=weights, min_position=head,
+                                   interpolant=interpolant)
                 break
             except ServiceError as exc:  # shards still restoring: 503, never a partial answer
                 assert exc.status == 503, exc
@@ -137,8 +139,10 @@ def assert_same(url: str, front: ServerProcess, name: str, probe, *, weights=Fal
         small = [(got, want)]
         for rows in (slice(0, 1), slice(1, 11), slice(11, 74)):
             o, d = probe[0][rows], probe[1][rows]
-            small.append((c.query_rays(name, o, d, weights=weights, min_position=head),
-                          ref.query(Flats.from_rays(o, d), return_weights=weights)))
+            small.append((c.query_rays(name, o, d, weights=weights, min_position=head,
+                                       interpolant=interpolant),
+                          ref.query(Flats.from_rays(o, d), return_weights=weights,
+                                    interpolant=interpolant)))
     for got, want in small:
         np.testing.assert_array_equal(got.inside, want.inside)
         np.testing.assert_array_equal(got.values, want.values)  # bit-identical
@@ -166,6 +170,9 @@ def test_a_three_node_cluster_answers_as_one_process(fronts, pg_url, rng):
         assert fill(c, rng, "atlas", batches=4, rows=2500)["ncharts"] == 16
     assert_same(pg_url, a, "atlas", probe)
     assert_same(pg_url, a, "one", paper_rays(rng, 2000), weights=True)
+    # the gradient interpolant: slopes computed by the shard workers, beside their charts
+    assert_same(pg_url, a, "atlas", probe, interpolant="gradient")
+    assert_same(pg_url, a, "one", paper_rays(rng, 2000), interpolant="gradient")
     # the one-chart field's 2 tiles each in an actor of its own, on different nodes
     with Client(a.url, retries=0) as c:
         end = time.monotonic() + 30

@@ -255,6 +255,34 @@ def test_cli_orbit(tmp_path, capsys):
     for unit in (0.0, -1.0, float("nan"), "mesh"):
         with pytest.raises(InvalidInputError, match="unit"):
             orbit_figure(tmp_path, n=10, unit=unit, log=lambda s: None, progress=False)
+    with pytest.raises(InvalidInputError, match="interpolant: expected 'linear' or 'gradient'"):
+        orbit_figure(tmp_path, n=10, interpolant="cubic", log=lambda s: None, progress=False)
+
+
+def test_views_by_the_gradient_interpolant(tmp_path):
+    """``--interpolant gradient``: the same field and baseline, ours rendered by the
+    gradient interpolant (recorded); its pixels are the field's gradient answers,
+    not the linear ones."""
+    import argparse
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    args = p.parse_args(["orbit", "--out", str(tmp_path / "g"), "--samples", "3000",
+                         "--width", "8", "--supersample", "1", "--no-one-chart",
+                         "--interpolant", "gradient"])
+    assert run(args) == 0
+    res = {k: orbit_figure(tmp_path / k, n=3000, width=8, supersample=1, one_chart=False,
+                           interpolant=k, log=lambda s: None, progress=False)
+           for k in ("linear", "gradient")}
+    assert res["gradient"]["interpolant"] == "gradient" and res["linear"]["interpolant"] == "linear"
+    saved = json.loads((tmp_path / "g" / "results.json").read_text())
+    assert [r["methods"]["ours"]["psnr"] for r in saved["views"]] == \
+        [r["methods"]["ours"]["psnr"] for r in res["gradient"]["views"]]
+    assert "the gradient interpolant" in (tmp_path / "g" / "results.md").read_text()
+    ours = {k: [r["methods"]["ours"]["psnr"] for r in v["views"]] for k, v in res.items()}
+    assert ours["gradient"] != ours["linear"]
+    assert [r["methods"]["baseline"]["psnr"] for r in res["gradient"]["views"]] == \
+        [r["methods"]["baseline"]["psnr"] for r in res["linear"]["views"]]
 
 
 def test_the_unit_from_the_data_is_chosen_by_the_first_chunk(tmp_path):

@@ -62,6 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        help="degrees: store samples in every chart whose centre is closer (default "
                             "the atlas's: 27 for the covering); wider helps sparse eyes, at the cost "
                             "of storing each sample in more charts")
+    orb.add_argument("--interpolant", choices=["linear", "gradient"], default="linear",
+                     help="ours: linear in each Delaunay cell (the paper's, default) or the cell's "
+                          "Taylor expansions with slopes fitted to the nearest samples "
+                          "(flatserve.gradient)")
     atlas.add_argument("--paper-charts", action="store_true",
                        help="the paper's tangent-simplex charts instead of the isometric ones "
                             "(flatserve.warp) in the atlas and the one-chart comparison")
@@ -106,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
                          supersample=args.supersample, channels=3 if args.rgb else 1,
                          scene=args.scene, atlas=args.atlas, unit=args.unit,
                          isometric=not args.paper_charts, reach=args.reach,
-                         one_chart=not args.no_one_chart)
+                         one_chart=not args.no_one_chart, interpolant=args.interpolant)
     try:
         make()
     except (InvalidInputError, FileNotFoundError) as exc:

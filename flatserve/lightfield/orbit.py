@@ -42,6 +42,7 @@ from ..atlas_field import AtlasField
 from ..grassmann import ICOSAHEDRON_AXES
 from ..errors import InvalidInputError
 from ..flats import Flats
+from ..options import Interpolant, choice
 from .baselines import TWO_SPHERE_K, TwoSphere
 from .camera import ORBIT_EYE_RADIUS, ORBIT_RADIUS, Camera
 from .figure import contact_sheet, fmt
@@ -193,7 +194,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
                  width: int = VIEW_WIDTH, supersample: int = 4, channels: int = 1,
                  scene: str = "bunny", atlas: str = "covering", unit: float | str | None = None,
                  isometric: bool = True, reach: float | None = None, one_chart: bool = True,
-                 log=print,
+                 interpolant: str = "linear", log=print,
                  progress: bool = True) -> dict:
     """Build the 360-degree light field and write the views, the contact sheet and the table.
 
@@ -237,6 +238,9 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     one_chart : bool
         Also render every view from a one-chart atlas centred on its axis
         (:func:`one_chart_atlas`, the same samples).
+    interpolant : {"linear", "gradient"}
+        How ours (and the one-chart comparison) interpolate
+        (:func:`flatserve.lightfield.render.render_field`).
     log, progress : callable(str), bool
         Where each step's line of text goes; whether a bar shows the field's
         build.
@@ -250,6 +254,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
         raise InvalidInputError(f"scene: expected one of {sorted(SCENES)}, got {scene!r}", "scene")
     if atlas not in ATLASES:
         raise InvalidInputError(f"atlas: expected one of {sorted(ATLASES)}, got {atlas!r}", "atlas")
+    interpolant = choice(interpolant, Interpolant, "interpolant")
     if unit is None:
         unit = SCENE_UNIT
     if unit not in UNIT_RULES and not (isinstance(unit, (int, float)) and math.isfinite(unit)
@@ -287,7 +292,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     views = orbit_views(width, supersample)
     for name, cam in views:
         truth = render_truth(sc, cam)
-        fr = render_field(field, cam, fill=sc.background)
+        fr = render_field(field, cam, fill=sc.background, interpolant=interpolant)
         o, d = cam.rays()
         t = time.perf_counter()
         v, ins = base(o, d)
@@ -305,7 +310,7 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
             single = AtlasField(one_chart_atlas(field.atlas, cam.rotation[:, 2]), channels)
             single.add(Flats.from_rays(samples.origins, samples.directions), values)
             build = time.perf_counter() - t
-            sfr = render_field(single, cam, fill=sc.background)
+            sfr = render_field(single, cam, fill=sc.background, interpolant=interpolant)
             row["one_chart"] = {**_scores(sfr.image, truth.image, sfr.covered & common),
                                 "coverage": float(sfr.covered.mean()), "seconds": sfr.seconds,
                                 "build_seconds": build, "samples": single.nsamples,
@@ -330,7 +335,9 @@ def orbit_figure(out, *, n: int = DEFAULT_SAMPLES, eyes: int | None = None, seed
     contact_sheet(out / "contact_sheet.png", sheet_rows, azimuths)
     result = {
         "scene": scene, "atlas_kind": atlas, "unit": field.atlas.unit,
-        "unit_from": unit if unit in UNIT_RULES else "given", "isometric": isometric, "samples": n, "eyes": neyes, "seed": seed, "width": width,
+        "unit_from": unit if unit in UNIT_RULES else "given", "isometric": isometric,
+        "interpolant": interpolant.value,
+        "samples": n, "eyes": neyes, "seed": seed, "width": width,
         "supersample": supersample, "channels": channels,
         "eye_radius": ORBIT_EYE_RADIUS, "ball_radius": ORBIT_RADIUS,
         "atlas": {"charts": field.atlas.ncharts, "inner": field.atlas.inner,
@@ -364,7 +371,8 @@ def _markdown(res: dict) -> str:
         f"{res['atlas']['inner']:g}°, 0 from {res['atlas']['trusted']:g}°; samples in every chart "
         f"closer than {res['atlas']['reach']:g}°), {res['nstored']:,} "
         f"vertices over the charts (duplication {res['duplication']:.2f}), {res['rejected']:,} "
-        f"samples rejected; lengths of our field in units of {res['unit']:g} (world: 1). "
+        f"samples rejected; lengths of our field in units of {res['unit']:g} (world: 1); "
+        f"the {res.get('interpolant', 'linear')} interpolant. "
         f"Baseline: the {res['baseline']['k']} nearest sample rays in the "
         f"two-sphere parameterisation (sphere of radius {res['baseline']['radius']:g}), weights "
         f"1/distance^{res['baseline']['power']:g}. Views {res['width']}², "

@@ -98,7 +98,8 @@ def frame_from_rays(camera: Camera, values: np.ndarray, inside: np.ndarray, fill
     return img, covered
 
 
-def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None) -> Frame:
+def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None,
+                 interpolant: str = "linear") -> Frame:
     """Render a camera's view from a light field.
 
     Parameters
@@ -113,6 +114,9 @@ def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None)
     threads : int, optional
         Threads for coordinates and locate + interpolate (default all cores
         for big frames); the image does not depend on it.
+    interpolant : {"linear", "gradient"}
+        The field's (:meth:`flatserve.Field.query`): the paper's, or the
+        cell's Taylor expansions with slopes fitted to the nearest samples.
 
     Returns
     -------
@@ -128,11 +132,13 @@ def render_field(field, camera: Camera, *, fill=0.0, threads: int | None = None)
     if not isinstance(field, Field):  # an atlas field (or any other of the contract):
         chart = None                    # each of its shards charts its own rays
         t1 = time.perf_counter()
-        res = field.query(rays.take(snake), order="given", threads=threads)
+        res = field.query(rays.take(snake), order="given", threads=threads,
+                          interpolant=interpolant)
     else:
         chart = field.chart(rays, threads=threads)
         t1 = time.perf_counter()
-        res = field.query(chart.take(snake), order="given", threads=threads)
+        res = field.query(chart.take(snake), order="given", threads=threads,
+                          interpolant=interpolant)
     values, inside = res.values[snake], res.inside[snake]  # the permutation is its own inverse
     t2 = time.perf_counter()
     img, covered = frame_from_rays(camera, values, inside, fill)

@@ -120,12 +120,31 @@ def test_render_npy_and_orbit(client):
     assert np.abs(arr[both] - arr2[both]).max() > 0.1
 
 
+def test_render_by_the_gradient_interpolant(client):
+    """``interpolant: gradient``: the library's render of the same field by it, bit for bit
+    (and not the linear frame)."""
+    from flatserve.lightfield.render import render_field
+
+    body = {"orbit": {"yaw": 25, "pitch": 10}, "focal": 4, "width": 24, "height": 24,
+            "supersample": 1, "format": "npy"}
+    got = {k: np.load(io.BytesIO(client.post("/v1/fields/bunny/render",
+                                             json={**body, "interpolant": k}).content))
+           for k in ("linear", "gradient")}
+    field = client.app.state.rooms.catalogue.get("bunny").field
+    cam = Camera.orbit(25, 10, 3.0, focal=4, width=24, height=24, supersample=1)
+    want = render_field(field, cam, fill=np.nan, interpolant="gradient").image.astype(np.float32)
+    np.testing.assert_array_equal(got["gradient"], want)
+    both = np.isfinite(got["linear"])
+    assert both.mean() > 0.8 and np.abs(got["gradient"] - got["linear"])[both].max() > 1e-4
+
+
 @pytest.mark.parametrize("body, status", [
     ({"supersample": 2}, 422),
     ({"width": 0}, 422),
     ({"eye": [0, 0]}, 422),
     ({"orbit": {"yaw": 0}, "eye": [0, 0, -3]}, 422),
     ({"width": 500, "height": 500, "supersample": 4}, 413),  # 1M rays > max_batch_rows
+    ({"interpolant": "cubic"}, 422),
 ])
 def test_render_rejects_bad_cameras(client, body, status):
     r = client.post("/v1/fields/bunny/render", json=body)

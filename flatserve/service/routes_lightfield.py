@@ -80,6 +80,9 @@ class CameraSpec(BaseModel):
     fill: Optional[float] = Field(None, allow_inf_nan=False,
                                   description="PNG value of pixels without any ray inside (default 0).")
     format: Optional[Literal["png", "npy"]] = Field(None, description="Overrides the Accept header.")
+    interpolant: Literal["linear", "gradient"] = Field(
+        "linear", description="As the query's: `linear` (the paper's) or `gradient` (the Delaunay "
+                              "cell's Taylor expansions, slopes fitted to the nearest samples).")
 
     def camera(self):
         from ..lightfield import Camera
@@ -97,7 +100,8 @@ class CameraSpec(BaseModel):
         return Camera(**kw)
 
 
-def render_frame(field, camera, fill: float = 0.0, fmt: str = "png") -> tuple[bytes, str, dict, float]:
+def render_frame(field, camera, fill: float = 0.0, fmt: str = "png",
+                 interpolant: str = "linear") -> tuple[bytes, str, dict, float]:
     """Render and encode one frame.
 
     Returns
@@ -113,7 +117,8 @@ def render_frame(field, camera, fill: float = 0.0, fmt: str = "png") -> tuple[by
     if field.k != 1 or field.d != 3:
         raise InvalidInputError(f"render needs a field of lines in R^3 (k=1, d=3), this one has "
                                 f"k={field.k}, d={field.d}", "name")
-    frame = render_field(field, camera, fill=np.nan if fmt == "npy" else fill)
+    frame = render_field(field, camera, fill=np.nan if fmt == "npy" else fill,
+                         interpolant=interpolant)
     t0 = time.perf_counter()
     if fmt == "npy":
         body = codec.npy_bytes(frame.image.astype(np.float32))
@@ -157,7 +162,8 @@ def render(e: ReadyField, camera: json_body(CameraSpec), settings: SettingsDep,
                            max_json=settings.max_json_answer_bytes,
                            max_binary=settings.max_answer_bytes, bytes_per_number=4)
     body, media, timings, coverage = render_frame(
-        e.field, cam, fill=0.0 if camera.fill is None else camera.fill, fmt=fmt)
+        e.field, cam, fill=0.0 if camera.fill is None else camera.fill, fmt=fmt,
+        interpolant=camera.interpolant)
     total = time.perf_counter() - t0
     return Response(body, media_type=media, headers={
         "Server-Timing": server_timing({**timings, "total": total}),

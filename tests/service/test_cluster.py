@@ -192,6 +192,12 @@ def test_a_three_node_cluster_answers_as_one_process(fronts, pg_url, rng):
                      json={"width": 24, "height": 20, "format": "npy"})
     assert got.status_code == 200, got.text
     assert got.content == want
+    want, *_ = render_frame(ref, CameraSpec(width=24, height=20).camera(), fill=0.0, fmt="npy",
+                            interpolant="gradient")
+    got = httpx.post(f"{a.url}/v1/fields/atlas/render", timeout=120,
+                     json={"width": 24, "height": 20, "format": "npy", "interpolant": "gradient"})
+    assert got.status_code == 200, got.text
+    assert got.content == want
     # a second front (stateless: nothing to load) answers the same
     b = fronts.start()
     assert_same(pg_url, b, "atlas", probe)

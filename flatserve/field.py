@@ -489,8 +489,9 @@ class Field(FieldBase):
             "linear" (the paper's): the cell's values, barycentrically weighted.
             "gradient": the cell's vertices' first-order Taylor expansions,
             barycentrically weighted, with slopes fitted to each vertex's
-            nearest samples (:mod:`flatserve.gradient`); queries outside the
-            hull keep the linear answer (``outside="clamp"``).
+            nearest samples and each expansion limited to the values near its
+            vertex (:mod:`flatserve.gradient`); queries outside the hull keep
+            the linear answer (``outside="clamp"``).
 
         Returns
         -------
@@ -547,9 +548,11 @@ class Field(FieldBase):
         tree, points = self._neighbour_tree()
         values = self.values
         used, at = np.unique(ids, return_inverse=True)
-        g = slopes(tree, points, values, used)[at.reshape(ids.shape)]
+        s = slopes(tree, points, values, used)
+        at = at.reshape(ids.shape)
         out = v.copy()
-        out[inside] = taylor_blend(points[ids], values[ids], g, w, xq[inside])
+        out[inside] = taylor_blend(points[ids], values[ids], s.slope[at], w, xq[inside],
+                                   s.low[at], s.high[at])
         return out
 
     def _neighbour_tree(self):

@@ -8,50 +8,76 @@ are wide and the error is large (docs/costs.md). The *gradient* interpolant
 keeps the cell and its weights but blends each vertex's first-order Taylor
 expansion instead of its value::
 
-    f(x) ~ sum_i w_i (f_i + g_i . (x - x_i))
+    f(x) ~ sum_i w_i T_i(x),   T_i(x) = f_i + g_i . (x - x_i)
 
-where ``g_i`` is the slope at sample ``i``, estimated by least squares over
-its nearest samples in the chart's coordinates (weighted by inverse
-distance). It is
+where ``g_i`` is the slope at sample ``i``, fitted by least squares to its
+``3 D + 2`` nearest samples in the chart's coordinates (weighted by inverse
+distance; :data:`GRADIENT_NEIGHBOURS`). Each ``T_i(x)`` is *limited* to the
+range of the values of sample ``i`` and those neighbours, widened to hold
+the linear answer ``sum_i w_i f_i``: where the values jump (an object's
+silhouette in a light field) a slope fitted across the jump would carry a
+vertex's value far past its neighbours' (unlimited, views of the bunny lost
+up to 30 dB; limited, they are at the linear interpolant's, +0.1 dB on
+average). The answer
 
-- the same value at every sample (``w`` is a vertex's indicator there);
-- continuous across cells (the weights are, and each Taylor term is smooth);
-- exact for a linear function (its slopes are estimated exactly);
-- not a convex combination of the samples' values: it may overshoot them
-  (sharp texture in a light field), where the linear interpolant cannot.
+- is the sample's value at a sample (``w`` is the vertex's indicator there);
+- is continuous across cells (the weights are, and each limited term is);
+- is exact for an affine function of the chart (its slopes are exact, and
+  every term equals the linear answer);
+- lies within the values of the cell's vertices and their neighbours (a
+  weighted mean of terms within them), but is not a weighted mean of the
+  cell's values: it may leave their range where the function curves.
 
-With exact slopes its error is ``+1/2 sum_i w_i (x_i - x)^T H (x_i - x)`` to
-second order, the linear interpolant's with the other sign; estimated slopes
-already carry part of the curvature, and the measured error is lower than
-the linear interpolant's by a quarter in 6 dimensions at 3,000 samples
-(``benchmarks/accuracy_by_kind.py --interpolant gradient``).
+Its error on smooth functions is a quarter to a half lower than the linear
+interpolant's (in 4 to 6 dimensions at 3,000 samples:
+``benchmarks/accuracy_by_kind.py --fit-unit --gradient``).
 
-Neighbours are found with scipy's k-d tree (the one dependency of the
-library besides NumPy), built over a chart's points once per state of the
-chart and kept until the next insert.
+Neighbours are found with scipy's k-d tree (the ``gradient`` extra), built
+over a chart's points once per state of the chart and kept until the next
+insert (:meth:`flatserve.field.Field.query`).
 
 >>> import numpy as np
->>> from flatserve.gradient import slopes, taylor_blend
+>>> from scipy.spatial import cKDTree
+>>> from flatserve.gradient import slopes
 >>> rng = np.random.default_rng(0)
 >>> X = rng.uniform(size=(50, 2)); F = (X @ [2.0, -1.0])[:, None] + 3
->>> from scipy.spatial import cKDTree
->>> G = slopes(cKDTree(X), X, F, np.arange(50))
->>> bool(np.allclose(G[:, 0], [2.0, -1.0]))
+>>> s = slopes(cKDTree(X), X, F, np.arange(50))
+>>> bool(np.allclose(s.slope[:, 0], [2.0, -1.0]))
 True
 """
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
 from .errors import InvalidInputError
 
-__all__ = ["GRADIENT_NEIGHBOURS", "neighbours_for", "slopes", "taylor_blend"]
+__all__ = ["GRADIENT_NEIGHBOURS", "GRADIENT_RCOND", "Slopes", "neighbours_for", "slopes",
+           "taylor_blend"]
 
-#: Nearest samples a slope is fitted to, per chart dimension D: ``2 D + 2``
-#: (the D unknowns over-determined twice; measured against ``4 D`` in
-#: 6 dimensions: 3-7 % lower error, the nearer samples describe the slope at
-#: the sample better).
-GRADIENT_NEIGHBOURS = 2
+#: Nearest samples a slope is fitted to, per chart dimension D: ``3 D + 2``.
+#: Measured (3,000 samples, a smooth function, fitted units; error over the
+#: 8 nearest samples'): ``2 D + 2`` is 5-15 % worse in 3-4 dimensions and up
+#: to 4 % better in 6; ``4 D + 2`` 5-10 % better in 3 dimensions and up to 5 %
+#: worse in 6 (docs/costs.md).
+GRADIENT_NEIGHBOURS = 3
+
+#: Singular values of a neighbourhood's (weighted) offsets below this share of
+#: the largest are dropped: its numerical rank (the limiter, not a cut, bounds
+#: the slopes of thin neighbourhoods).
+GRADIENT_RCOND = 1e-10
+
+
+class Slopes(NamedTuple):
+    """Per sample (:func:`slopes`): its slope and the range of its neighbourhood's values."""
+
+    #: (m, C, D) least-squares slopes
+    slope: np.ndarray
+    #: (m, C) least value of the sample and its neighbours
+    low: np.ndarray
+    #: (m, C) greatest value of the sample and its neighbours
+    high: np.ndarray
 
 
 def neighbours_for(ndim: int, neighbours: int | None = None) -> int:
@@ -69,7 +95,7 @@ def neighbours_for(ndim: int, neighbours: int | None = None) -> int:
 
 
 def slopes(tree, points: np.ndarray, values: np.ndarray, ids: np.ndarray, *,
-           neighbours: int | None = None) -> np.ndarray:
+           neighbours: int | None = None, rcond: float = GRADIENT_RCOND) -> Slopes:
     """Least-squares slopes of the values at some samples.
 
     Parameters
@@ -77,44 +103,50 @@ def slopes(tree, points: np.ndarray, values: np.ndarray, ids: np.ndarray, *,
     tree : scipy.spatial.cKDTree
         Over ``points``.
     points : ndarray, shape (n, D)
-        The chart's sample coordinates.
+        The chart's sample coordinates (distinct).
     values : ndarray, shape (n, C)
     ids : ndarray, shape (m,), int
-        The samples whose slopes are wanted (distinct).
+        The samples whose slopes are wanted.
     neighbours : int, optional
         Nearest samples fitted to (see :func:`neighbours_for`); fewer if the
         chart holds fewer.
+    rcond : float
+        Singular values below this share of the largest are dropped.
 
     Returns
     -------
-    ndarray, shape (m, C, D)
-        ``g`` minimising ``sum_j ((f_j - f_i) - g . (x_j - x_i))^2 / |x_j - x_i|^2``
-        over the neighbours ``j`` of sample ``i`` (a rank-deficient
-        neighbourhood gives the least-norm slope).
+    Slopes
+        ``slope`` minimising ``sum_j ((f_j - f_i) - g . (x_j - x_i))^2 / |x_j -
+        x_i|^2`` over the neighbours ``j`` of sample ``i`` (a rank-deficient
+        neighbourhood gives the least-norm slope), and the range of ``f_i``
+        and the ``f_j``.
     """
     n, D = points.shape
-    C = values.shape[1]
     m = len(ids)
-    out = np.zeros((m, C, D))
     K = min(neighbours_for(D, neighbours), n - 1)
+    own = values[ids]
     if m == 0 or K < 1:
-        return out
+        return Slopes(np.zeros((m, values.shape[1], D)), own, own)
     dist, nb = tree.query(points[ids], K + 1)
     dist, nb = dist[:, 1:], nb[:, 1:]  # the sample itself first (distinct points)
     wt = 1.0 / np.maximum(dist, np.finfo(float).tiny)
     dx = (points[nb] - points[ids][:, None, :]) * wt[..., None]   # (m, K, D)
-    df = (values[nb] - values[ids][:, None, :]) * wt[..., None]   # (m, K, C)
+    df = (values[nb] - own[:, None, :]) * wt[..., None]           # (m, K, C)
     # batched least squares through the SVD (stable for thin neighbourhoods)
     u, s, vt = np.linalg.svd(dx, full_matrices=False)             # (m,K,r) (m,r) (m,r,D)
-    cut = s > s[:, :1] * (max(K, D) * np.finfo(float).eps)
+    cut = s > s[:, :1] * max(rcond, max(K, D) * np.finfo(float).eps)
     inv = np.where(cut, 1.0 / np.where(cut, s, 1.0), 0.0)
     coef = np.einsum("mkr,mkc->mrc", u, df) * inv[..., None]      # (m, r, C)
-    return np.einsum("mrd,mrc->mcd", vt, coef)
+    near = values[nb]
+    return Slopes(np.einsum("mrd,mrc->mcd", vt, coef),
+                  np.minimum(own, near.min(axis=1)), np.maximum(own, near.max(axis=1)))
 
 
 def taylor_blend(xv: np.ndarray, fv: np.ndarray, gv: np.ndarray, weights: np.ndarray,
-                 xq: np.ndarray) -> np.ndarray:
-    """``sum_i w_i (f_i + g_i . (x - x_i))`` per query.
+                 xq: np.ndarray, low: np.ndarray | None = None,
+                 high: np.ndarray | None = None) -> np.ndarray:
+    """``sum_i w_i T_i(x)``, each vertex's Taylor term ``T_i(x) = f_i + g_i . (x - x_i)``
+    limited to ``[min(low_i, L), max(high_i, L)]`` with ``L = sum_i w_i f_i``.
 
     Parameters
     ----------
@@ -123,15 +155,21 @@ def taylor_blend(xv: np.ndarray, fv: np.ndarray, gv: np.ndarray, weights: np.nda
     fv : ndarray, shape (q, D+1, C)
         Their values.
     gv : ndarray, shape (q, D+1, C, D)
-        Their slopes (:func:`slopes`).
+        Their slopes (:attr:`Slopes.slope`).
     weights : ndarray, shape (q, D+1)
         The query's barycentric weights in its cell.
     xq : ndarray, shape (q, D)
         The queries' coordinates.
+    low, high : ndarray, shape (q, D+1, C), optional
+        The vertices' neighbourhood ranges (:attr:`Slopes.low`, ``high``);
+        None: the terms are not limited.
 
     Returns
     -------
     ndarray, shape (q, C)
     """
     term = fv + np.einsum("qjcd,qjd->qjc", gv, xq[:, None, :] - xv)
+    if low is not None:
+        lin = np.einsum("qj,qjc->qc", weights, fv)[:, None, :]
+        term = np.clip(term, np.minimum(low, lin), np.maximum(high, lin))
     return np.einsum("qj,qjc->qc", weights, term)

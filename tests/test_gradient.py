@@ -22,17 +22,21 @@ def _points_field(P, V):
 
 
 def _reference(P, V, q):
-    """Σ w_i (f_i + g_i·(x − x_i)) over scipy's Delaunay cell, each g_i one weighted
-    least-squares solve over the 2D+2 nearest samples found by sorting all distances."""
+    """Σ w_i T_i(x) over scipy's Delaunay cell, T_i(x) = f_i + g_i·(x − x_i) limited to
+    the range of f_i and its neighbours' values widened to the linear answer; each g_i one
+    weighted least-squares solve over the 3D+2 nearest samples found by sorting all
+    distances."""
     n, D = P.shape
-    K = 2 * D + 2
+    K = 3 * D + 2
     G = np.empty((n, V.shape[1], D))
+    lo, hi = np.empty_like(V), np.empty_like(V)
     for i in range(n):
         dist = np.linalg.norm(P - P[i], axis=1)
         nb = np.argsort(dist)[1:K + 1]
         w = 1.0 / dist[nb]
         G[i] = np.linalg.lstsq((P[nb] - P[i]) * w[:, None],
                                (V[nb] - V[i]) * w[:, None], rcond=None)[0].T
+        lo[i], hi[i] = V[np.r_[i, nb]].min(axis=0), V[np.r_[i, nb]].max(axis=0)
     tri = Delaunay(P)
     s = tri.find_simplex(q)
     out = np.full((len(q), V.shape[1]), np.nan)
@@ -41,7 +45,10 @@ def _reference(P, V, q):
         b = T[:D] @ (q[j] - T[D])
         lam = np.r_[b, 1 - b.sum()]
         ids = tri.simplices[s[j]]
-        out[j] = sum(lam[a] * (V[i] + G[i] @ (q[j] - P[i])) for a, i in enumerate(ids))
+        lin = lam @ V[ids]
+        out[j] = sum(lam[a] * np.clip(V[i] + G[i] @ (q[j] - P[i]), np.minimum(lo[i], lin),
+                                      np.maximum(hi[i], lin))
+                     for a, i in enumerate(ids))
     return out
 
 
@@ -72,12 +79,13 @@ def test_slopes_of_affine_values_are_exact_in_every_channel():
         M = rng.normal(size=(D, 3))
         V = X @ M + rng.normal(size=3)
         ids = rng.choice(200, 30, replace=False)
-        g = slopes(cKDTree(X), X, V, ids)
-        assert g.shape == (30, 3, D)
-        np.testing.assert_allclose(g, np.broadcast_to(M.T, g.shape), atol=1e-9)
+        s = slopes(cKDTree(X), X, V, ids)
+        assert s.slope.shape == (30, 3, D) and s.low.shape == s.high.shape == (30, 3)
+        np.testing.assert_allclose(s.slope, np.broadcast_to(M.T, s.slope.shape), atol=1e-9)
+        assert (s.low <= V[ids]).all() and (V[ids] <= s.high).all()
         # too few samples for a slope: the least-norm one, finite
-        g = slopes(cKDTree(X[:3]), X[:3], V[:3], np.arange(3))
-        assert np.isfinite(g).all()
+        s = slopes(cKDTree(X[:3]), X[:3], V[:3], np.arange(3))
+        assert np.isfinite(s.slope).all()
 
 
 def test_taylor_blend_with_exact_slopes_is_exact_for_affine_values():
@@ -209,5 +217,33 @@ def test_bad_choices_name_the_argument():
                                                   interpolant="cubic")
     with pytest.raises(InvalidInputError, match="neighbours: an integer of at least"):
         neighbours_for(6, 3)
-    assert neighbours_for(6) == 14 and neighbours_for(6, 6) == 6
+    assert neighbours_for(6) == 20 and neighbours_for(6, 6) == 6
     assert flatserve.options.Interpolant("gradient") == "gradient"
+
+
+def test_values_that_jump_are_not_overshot():
+    """A step across a line (an edge in an image): slopes fitted across it would carry a
+    vertex's value past its neighbours' (shown with the terms unlimited); limited, every
+    answer stays within the values 0 and 1, and away from the step it is the linear one."""
+    rng = np.random.default_rng(12)
+    P = rng.uniform(-1, 1, (600, 2))
+    V = (P[:, :1] + 0.3 * P[:, 1:] > 0).astype(float)
+    q = rng.uniform(-0.9, 0.9, (3000, 2))
+    field = _points_field(P, V)
+    out = field.query(Flats.from_points(q), interpolant="gradient", return_weights=True)
+    ins = out.inside
+    assert ins.mean() > 0.9
+    assert out.values[ins].min() >= 0.0 and out.values[ins].max() <= 1.0
+    # unlimited, the same slopes overshoot
+    from scipy.spatial import cKDTree
+
+    ids, w = out.ids[ins], out.weights[ins]
+    used, at = np.unique(ids, return_inverse=True)
+    s = slopes(cKDTree(field.points), field.points, field.values, used)
+    g = s.slope[at.reshape(ids.shape)]
+    free = taylor_blend(field.points[ids], field.values[ids], g, w, q[ins])
+    assert free.min() < -0.05 and free.max() > 1.05
+    # where every vertex's neighbourhood is on one side, the answer is its constant
+    far = np.abs(q[:, 0] + 0.3 * q[:, 1]) > 0.4
+    np.testing.assert_allclose(out.values[ins & far, 0], (q[ins & far, 0] + 0.3 * q[ins & far, 1] > 0),
+                               atol=1e-12)

@@ -65,11 +65,12 @@ class QueryParams(BaseModel):
         description="`linear` (the paper's): the Delaunay cell's values, barycentrically "
                     "weighted. `gradient`: the cell's vertices' first-order Taylor "
                     "expansions, barycentrically weighted, each slope fitted to the vertex's "
-                    "2D+2 nearest samples (D: the chart's dimension). Lower error on smooth "
-                    "functions (a quarter to a third in 6 dimensions at 3,000 samples: "
-                    "docs/costs.md), not a convex combination of the samples (it may "
-                    "overshoot them); queries outside the hull keep the linear answer. "
-                    "`weights` are the cell's either way.")
+                    "3D+2 nearest samples (D: the chart's dimension) and each expansion "
+                    "limited to the values near its vertex. Lower error on smooth functions "
+                    "(a quarter to a half in 4-6 dimensions at 3,000 samples: docs/costs.md); "
+                    "on light fields with sharp edges about the linear answer. The same "
+                    "cells: queries outside the hull keep the linear answer, and `weights` "
+                    "are the cell's either way.")
     weights: bool = Field(False, description="Also return sample ids and weights.")
     status: bool = Field(False, description="`.npy` answers: also a last column of status codes "
                                             "(rows `values | inside | status`; JSON and `.npz` "

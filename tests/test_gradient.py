@@ -247,3 +247,16 @@ def test_values_that_jump_are_not_overshot():
     far = np.abs(q[:, 0] + 0.3 * q[:, 1]) > 0.4
     np.testing.assert_allclose(out.values[ins & far, 0], (q[ins & far, 0] + 0.3 * q[ins & far, 1] > 0),
                                atol=1e-12)
+
+
+def test_without_scipy_the_gradient_interpolant_says_what_to_install(monkeypatch):
+    """The library needs NumPy only: without SciPy a linear query answers and a gradient
+    one names the extra that brings it."""
+    import sys
+
+    field = _points_field(np.random.default_rng(13).uniform(size=(20, 2)), np.ones((20, 1)))
+    monkeypatch.setitem(sys.modules, "scipy.spatial", None)  # import fails
+    q = Flats.from_points(np.full((1, 2), 0.5))
+    assert field.query(q).values.shape == (1, 1)
+    with pytest.raises(ImportError, match=r"flatserve\[gradient\]"):
+        field.query(q, interpolant="gradient")

@@ -17,7 +17,7 @@ range of the values of sample ``i`` and those neighbours, widened to hold
 the linear answer ``sum_i w_i f_i``: where the values jump (an object's
 silhouette in a light field) a slope fitted across the jump would carry a
 vertex's value far past its neighbours' (unlimited, views of the bunny lost
-up to 30 dB; limited, they are at the linear interpolant's, +0.1 dB on
+up to 40 dB; limited, they are at the linear interpolant's, +0.1 dB on
 average). The answer
 
 - is the sample's value at a sample (``w`` is the vertex's indicator there);

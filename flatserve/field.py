@@ -12,6 +12,7 @@ values at the vertices of its simplex.
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass
@@ -202,6 +203,17 @@ _VERSION_WARP = 2
 _VERSION_TILES = 3
 
 
+def _kd_tree():
+    """scipy's ``cKDTree`` (the gradient interpolant's neighbours), or an ImportError
+    naming the extra that brings it."""
+    try:
+        from scipy.spatial import cKDTree
+    except ImportError:  # the library alone brings NumPy only
+        raise ImportError("interpolant 'gradient' needs SciPy: pip install "
+                          "'flatserve[gradient]'") from None
+    return cKDTree
+
+
 class Field(FieldBase):
     """Values sampled on k-flats in R^d, interpolated piecewise linearly.
 
@@ -289,7 +301,8 @@ class Field(FieldBase):
                      else TiledTriangulation(basis.m - 1, self.tiles))
         self._nrejected = 0
         self._generation = 0
-        self._tree = None  # (k-d tree, points): the gradient interpolant's neighbours
+        #: (state, k-d tree, points, values) of the chart the last gradient query saw
+        self._tree = None
 
     @property
     def generation(self) -> int:
@@ -429,6 +442,7 @@ class Field(FieldBase):
             duplicates += int(self._tri.insert(batch.x[lo:lo + step],
                                                batch.values[lo:lo + step], **kw).n_duplicates)
             self._generation += 1
+        self._tree = None  # (its arrays and tree are another state's: not kept in memory)
         self._nrejected += int(batch.rejected.size)
         return AddResult(
             accepted=batch.accepted,
@@ -503,6 +517,8 @@ class Field(FieldBase):
         """
         outside, order = choice(outside, Outside, "outside"), choice(order, Order, "order")
         gradient = choice(interpolant, Interpolant, "interpolant") is Interpolant.GRADIENT
+        if gradient:
+            _kd_tree()  # (SciPy is there: said before any work)
         ch = flats if isinstance(flats, Chart) else self.chart(flats, threads=threads)
         if ch.points.shape[1:] != (self.ndim,):
             raise InvalidInputError(f"flats: a chart of dimension {self.ndim} expected", "flats")
@@ -517,13 +533,12 @@ class Field(FieldBase):
             ids = np.full((n, D + 1), -1, dtype=np.int64)
             weights = np.full((n, D + 1), np.nan)
         if ch.points.shape[0] and self._tri.npoints > 0:
+            then = functools.partial(self._taylor, ch.points, threads) if gradient else None
             got = self._tri.query(ch.points, outside=outside, order=order, threads=threads,
-                                  locate=return_weights or gradient, blocking=blocking)
+                                  locate=return_weights or gradient, blocking=blocking, then=then)
             if got is None:
                 return None
             v, ins, loc = got
-            if gradient:
-                v = self._taylor(ch.points, v, ins, loc)
             if allok:  # no scatter
                 values, inside = v, ins
             else:
@@ -539,37 +554,27 @@ class Field(FieldBase):
             status = np.where(ok, np.int8(NO_SAMPLES), status).astype(np.int8)
         return QueryResult(values=values, inside=inside, status=status, ids=ids, weights=weights)
 
-    def _taylor(self, xq: np.ndarray, v: np.ndarray, inside: np.ndarray, loc) -> np.ndarray:
-        """The gradient interpolant's values where ``inside`` (:meth:`query`)."""
+    def _taylor(self, xq: np.ndarray, threads: int | None, v: np.ndarray, inside: np.ndarray,
+                loc, held) -> np.ndarray:
+        """The gradient interpolant's values where ``inside``: the ``then`` of
+        :meth:`query`'s triangulation query, under its read lock (the cells, the
+        neighbours and the values of one state of the chart)."""
         if not inside.any():
             return v
+        kept = self._tree
+        if kept is None or kept[0] != held.state:  # a k-d tree per state of the chart
+            points, values = held.arrays()
+            kept = (held.state, _kd_tree()(points), points, values)
+            self._tree = kept
+        _, tree, points, values = kept
         ids, w = loc.ids[inside], loc.weights[inside]
-        # read after the query: samples are only added (ids stay), the tree follows them
-        tree, points = self._neighbour_tree()
-        values = self.values
         used, at = np.unique(ids, return_inverse=True)
-        s = slopes(tree, points, values, used)
+        s = slopes(tree, points, values, used, workers=-1 if threads is None else threads)
         at = at.reshape(ids.shape)
         out = v.copy()
         out[inside] = taylor_blend(points[ids], values[ids], s.slope[at], w, xq[inside],
                                    s.low[at], s.high[at])
         return out
-
-    def _neighbour_tree(self):
-        """A k-d tree over the samples' coordinates, kept until the next insert:
-        (tree, points)."""
-        points = self.points
-        kept = self._tree
-        if kept is not None and kept[1].shape[0] == points.shape[0]:
-            return kept
-        try:
-            from scipy.spatial import cKDTree
-        except ImportError:  # the library alone brings NumPy only
-            raise ImportError("interpolant 'gradient' needs SciPy: pip install "
-                              "'flatserve[gradient]'") from None
-        kept = (cKDTree(points), points)
-        self._tree = kept
-        return kept
 
     def query_rays(self, origins, directions, **kwargs) -> QueryResult:
         """``query(Flats.from_rays(origins, directions), **kwargs)``: lines, (q, d) each."""

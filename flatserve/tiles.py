@@ -66,7 +66,8 @@ from ._validate import as_array
 from .errors import InvalidInputError
 from .options import Order, Outside, choice
 from .parallel import shard_pool
-from .triangulation import InsertResult, LocateKind, Location, RWLock, Triangulation
+from .triangulation import (Held, InsertResult, LocateKind, Location, RWLock, Triangulation,
+                            fresh_state)
 
 __all__ = ["Tiling", "TiledTriangulation", "TileStats", "Tile", "TileHost", "hosting",
            "RETILE_SHARE", "AUTO_MIN_SAMPLES", "AUTO_MAX_TILES", "auto_tiles", "tile_setting"]
@@ -530,6 +531,7 @@ class TiledTriangulation:
         self._parts: list = [None] * T    # tile -> (triangulation, generation, key) of its part
         self._reset_boxes()
         self._n = 0
+        self._state = fresh_state()
         # seeds, generations and full flag of the inserts whose exchange has not run
         self._pending: tuple[list, list, bool] | None = None
         self._broken: str | None = None  # why an exchange failed
@@ -711,6 +713,7 @@ class TiledTriangulation:
                                     "values: this triangulation was built without values",
                                     "values")
         with self._lock.write(), self._breaking():
+            self._state = fresh_state()  # (whatever the insert changes)
             self._check_whole()
             if self.tiling is None:
                 if self._auto and self._n == 0:  # a first batch large enough: cut at once
@@ -981,9 +984,13 @@ class TiledTriangulation:
 
     # ------------------------------------------------------------------ queries
     def query(self, xi, outside: Outside | str = Outside.NAN, order: Order | str = Order.HILBERT,
-              threads: int | None = None, *, locate: bool = False, blocking: bool = True):
+              threads: int | None = None, *, locate: bool = False, blocking: bool = True,
+              then=None):
         """:meth:`flatserve.Triangulation.query` over the tiles: each query answered by
-        a tile that holds its cell exactly (see the module doc).
+        a tile that holds its cell exactly (see the module doc). ``then`` as there:
+        its :class:`~flatserve.triangulation.Held` arrays gather every tile's own
+        points and values (a copy of the chart; from other processes when the
+        tiles live there).
 
         Returns
         -------
@@ -999,7 +1006,10 @@ class TiledTriangulation:
         if not self._read_settled(blocking):
             return None
         try:
-            return self._query(q, outside, order, threads, locate)
+            out, inside, loc = self._query(q, outside, order, threads, locate)
+            if then is not None:
+                out = then(out, inside, loc, Held(self._state, self._gather))
+            return out, inside, loc
         finally:
             self._lock.release_read()
 
@@ -1224,6 +1234,7 @@ class TiledTriangulation:
         del got
         m = sum(len(g) for g, _ in owner)
         self._n = self._tiled_at = m
+        self._state = fresh_state()
         self._owner = np.full(m, -1, np.int64)
         self._local = np.full(m, -1, np.int64)
         for (g, t), loc in zip(owner, local):

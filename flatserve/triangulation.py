@@ -33,9 +33,11 @@ Thread safety
 """
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -44,7 +46,8 @@ from ._validate import as_array
 from .errors import InvalidInputError
 from .options import Order, Outside, choice
 
-__all__ = ["Triangulation", "InsertResult", "Location", "LocateKind", "RWLock"]
+__all__ = ["Triangulation", "InsertResult", "Location", "LocateKind", "RWLock", "Held",
+           "fresh_state"]
 
 
 #: Where a query landed (``Location.kind``): an :class:`enum.IntEnum` defined
@@ -75,6 +78,33 @@ class InsertResult:
     ids: np.ndarray
     n_new: int
     n_duplicates: int
+
+
+_STATES = itertools.count(1)
+
+
+def fresh_state() -> int:
+    """A triangulation's state after a change: unique across objects and time, so a
+    state never names two contents (:attr:`Held.state`)."""
+    return next(_STATES)
+
+
+@dataclass(frozen=True)
+class Held:
+    """What a triangulation held when a query was answered, readable by the query's
+    ``then`` (:meth:`Triangulation.query`) under the same read lock.
+
+    Attributes
+    ----------
+    state : int
+        Changes with every insert (unique: equal states, equal contents).
+    arrays : callable
+        ``() -> (points (n, D), values (n, C))``, row = sample id, read only;
+        valid while the lock is held (copies or views).
+    """
+
+    state: int
+    arrays: "Callable[[], tuple[np.ndarray, np.ndarray]]"
 
 
 @dataclass(frozen=True)
@@ -240,6 +270,7 @@ class Triangulation:
         self._init(_native.Triangulation(int(ndim)), None)
 
     def _init(self, core, values):
+        self._state = fresh_state()
         self._core = core
         self._ndim = int(core.ndim)
         self._lock = RWLock()
@@ -397,8 +428,16 @@ class Triangulation:
                 self._values_buf[uniq] = vals[last_rows]
             self._n = new_n
             self._simplices = None
+            self._state = fresh_state()
         ids.flags.writeable = False
         return InsertResult(ids=ids, n_new=n_new, n_duplicates=n - n_new)
+
+    def _held_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Points and values as they are (read-only views; under a lock)."""
+        n = self._n
+        p, v = self._points_buf[:n], self._values_buf[:n]
+        p.flags.writeable = v.flags.writeable = False
+        return p, v
 
     # ------------------------------------------------------------------ queries
     def _queries(self, xi, name="xi"):
@@ -494,7 +533,8 @@ class Triangulation:
         return out.reshape(lead + (vals.shape[1],)), inside.reshape(lead)
 
     def query(self, xi, outside: Outside | str = Outside.NAN, order: Order | str = Order.HILBERT,
-              threads: int | None = None, *, locate: bool = False, blocking: bool = True):
+              threads: int | None = None, *, locate: bool = False, blocking: bool = True,
+              then=None):
         """:meth:`interpolate` (and with ``locate`` :meth:`locate`) under one read lock,
         so both see the same triangulation.
 
@@ -507,6 +547,11 @@ class Triangulation:
         blocking : bool
             False: return None at once, instead of waiting, when an insert holds or
             awaits the lock (for callers that must never wait, an event loop).
+        then : callable, optional
+            ``then(values, inside, location, held) -> values``, run under the same
+            read lock (``held``: :class:`Held`): answers made from the samples
+            themselves (the gradient interpolant's slopes) see the triangulation
+            that answered.
 
         Returns
         -------
@@ -532,6 +577,8 @@ class Triangulation:
                 D1 = self._ndim + 1
                 loc = Location(ids=ids.reshape(lead + (D1,)), weights=w.reshape(lead + (D1,)),
                                kind=kind.reshape(lead), simplex=simplex.reshape(lead))
+            if then is not None:
+                out = then(out, inside, loc, Held(self._state, self._held_arrays))
         finally:
             self._lock.release_read()
         return out.reshape(lead + (vals.shape[1],)), inside.reshape(lead), loc

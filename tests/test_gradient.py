@@ -260,3 +260,70 @@ def test_without_scipy_the_gradient_interpolant_says_what_to_install(monkeypatch
     assert field.query(q).values.shape == (1, 1)
     with pytest.raises(ImportError, match=r"flatserve\[gradient\]"):
         field.query(q, interpolant="gradient")
+
+
+def test_neighbours_on_a_line_give_no_slope_across_it():
+    """60 samples on y = 0 and 6 off it, f = x + 2y: a vertex whose nearest samples all
+    lie on the line cannot see the slope across it; its term is the linear answer, so
+    the affine function is still exact."""
+    rng = np.random.default_rng(14)
+    P = np.r_[np.c_[np.linspace(-1, 1, 60), np.zeros(60)], rng.uniform(-1, 1, (6, 2))]
+    V = (P @ [1.0, 2.0])[:, None]
+    q = rng.uniform(-0.5, 0.5, (400, 2))
+    out = _points_field(P, V).query(Flats.from_points(q), interpolant="gradient")
+    assert out.inside.sum() > 100
+    np.testing.assert_allclose(out.values[out.inside, 0], q[out.inside] @ [1.0, 2.0], atol=1e-12)
+
+
+def test_new_values_of_the_same_samples_are_seen():
+    """Samples given again with other values (no new point): the next gradient query
+    uses the new values and their slopes, not the last query's."""
+    rng = np.random.default_rng(15)
+    P = rng.uniform(-1, 1, (300, 2))
+    q = rng.uniform(-0.7, 0.7, (200, 2))
+    field = _points_field(P, np.sin(3 * P[:, :1]))
+    field.query(Flats.from_points(q), interpolant="gradient")
+    field.add(Flats.from_points(P), np.cos(2 * P[:, 1:]))  # duplicates: values replaced
+    assert field.nsamples == 300
+    fresh = _points_field(P, np.cos(2 * P[:, 1:]))
+    np.testing.assert_allclose(
+        field.query(Flats.from_points(q), interpolant="gradient").values,
+        fresh.query(Flats.from_points(q), interpolant="gradient").values, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("tiles", [1, 2])
+def test_an_insert_waits_for_the_slopes_of_a_query(tiles, monkeypatch):
+    """The cells, the neighbours and the values of a gradient answer are one state of
+    the chart: an insert started while the slopes are computed waits for them (they run
+    under the query's read lock), and the answer is the state before it."""
+    import threading
+
+    rng = np.random.default_rng(16)
+    o, d, v = _fig11_rays(40, seed=3)
+    basis = Basis.around_axis(axis=2, scale=0.01)
+    field = Field(basis, channels=1, tiles=tiles)
+    field.add(Flats.from_rays(o[:1000], d[:1000]), v[:1000])
+    before = Field(basis, channels=1)
+    before.add(Flats.from_rays(o[:1000], d[:1000]), v[:1000])
+    pick = rng.choice(1000, 100, replace=False)
+    qf = Flats.from_rays(o[pick] + rng.normal(0, 0.01, (100, 3)), d[pick])
+    taylor = Field._taylor
+    seen = {}
+
+    def racing(self, *a):
+        if self is field and "insert" not in seen:
+            seen["insert"] = threading.Thread(
+                target=lambda: field.add(Flats.from_rays(o[1000:], d[1000:]), v[1000:]))
+            seen["insert"].start()
+            seen["insert"].join(0.5)
+            seen["waited"] = seen["insert"].is_alive()
+        return taylor(self, *a)
+
+    monkeypatch.setattr(Field, "_taylor", racing)
+    got = field.query(qf, interpolant="gradient")
+    seen["insert"].join()
+    assert seen["waited"]
+    assert field.nsamples > before.nsamples
+    want = before.query(qf, interpolant="gradient")
+    assert want.inside.mean() > 0.5
+    np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-9)

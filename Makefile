@@ -89,7 +89,7 @@ bench: build $(BIN)/.test-deps $(BIN)/.postgres $(BIN)/.bench-tools
 TOOLS := .venv-tools
 constraints:
 	test -x $(TOOLS)/bin/pip-compile || { $(PYTHON) -m venv $(TOOLS) && $(TOOLS)/bin/pip install pip-tools; }
-	{ $(PYTHON) scripts/requirements.py client service lightfield postgres cluster test; \
+	{ $(PYTHON) scripts/requirements.py client gradient service lightfield postgres cluster test; \
 	  echo "scikit-build-core>=0.10"; echo "nanobind==3.1.0"; } > $(TOOLS)/requirements.in
 	$(TOOLS)/bin/pip-compile --upgrade --quiet --strip-extras --allow-unsafe --no-header \
 	    --no-emit-index-url --no-emit-find-links -o $(TOOLS)/constraints.txt $(TOOLS)/requirements.in

@@ -263,6 +263,8 @@ def main() -> None:
     ap.add_argument("--gradient", action="store_true",
                     help="--fit-unit: also that atlas's answers by the gradient interpolant")
     args = ap.parse_args()
+    if args.gradient and not args.fit_unit:
+        ap.error("--gradient measures the fitted-unit atlas: give --fit-unit too")
     for kd in args.kinds:
         k, d = map(int, kd.split(","))
         if args.one_chart:

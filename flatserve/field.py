@@ -504,8 +504,10 @@ class Field(FieldBase):
             "gradient": the cell's vertices' first-order Taylor expansions,
             barycentrically weighted, with slopes fitted to each vertex's
             nearest samples and each expansion limited to the values near its
-            vertex (:mod:`flatserve.gradient`); queries outside the hull keep
-            the linear answer (``outside="clamp"``).
+            vertex (:mod:`flatserve.gradient`), computed under the query's read
+            lock from the same state of the chart; queries outside the hull
+            keep the linear answer (with ``outside="clamp"`` the answer may
+            jump at the hull).
 
         Returns
         -------

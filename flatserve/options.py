@@ -44,7 +44,7 @@ class Order(str, Enum):
 
 
 class Interpolant(str, Enum):
-    """How a query's value is made from its Delaunay cell (:mod:`flatserve.gradient`)."""
+    """How a query's value is made from its Delaunay cell."""
 
     #: the paper's: the cell's values, barycentrically weighted (the default)
     LINEAR = "linear"

@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ..options import Interpolant
+
 
 def _view_options(p: argparse.ArgumentParser, *, width: int, seed_of: str) -> None:
     """The options both figures share: where they go and how the views are rendered."""
@@ -62,7 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        help="degrees: store samples in every chart whose centre is closer (default "
                             "the atlas's: 27 for the covering); wider helps sparse eyes, at the cost "
                             "of storing each sample in more charts")
-    orb.add_argument("--interpolant", choices=["linear", "gradient"], default="linear",
+    orb.add_argument("--interpolant", choices=[m.value for m in Interpolant], default="linear",
                      help="ours: linear in each Delaunay cell (the paper's, default) or the cell's "
                           "Taylor expansions with slopes fitted to the nearest samples "
                           "(flatserve.gradient)")

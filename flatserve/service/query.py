@@ -126,8 +126,9 @@ class QueryService:
                            **kw) -> QueryResult | None:
         """A small query answered on the event loop (never waiting on it): at once by a
         field held here, None if an insert holds it (:meth:`query` with
-        ``blocking=False``); a field whose shards live in other processes (its
-        ``query_async``) routes and blends here and awaits their answers.
+        ``blocking=False``) or it asks for the gradient interpolant (whose slopes
+        may need a k-d tree built); a field whose shards live in other processes
+        (its ``query_async``) routes and blends here and awaits their answers.
 
         Raises
         ------
@@ -136,6 +137,8 @@ class QueryService:
         """
         query_async = getattr(e.field, "query_async", None)
         if query_async is None:
+            if kw.get("interpolant", Interpolant.LINEAR) is not Interpolant.LINEAR:
+                return None  # its first query after an insert builds a k-d tree: not here
             return self.query(e, flats, weights=weights, blocking=False, **kw)
         self._check(e, flats, weights, kw)
         return self._counted(e, await query_async(flats, return_weights=weights, **kw))
@@ -214,10 +217,7 @@ async def answer(queries: QueryService, name: str, params: QueryParams, body: by
         return out
 
     resp = None
-    # inline, unless an insert holds the field (the gradient interpolant may build a chart's
-    # neighbour tree: never on the loop, unless the shards do it in other processes)
-    if len(flats) < INLINE_ROWS and not params.wait and (
-            params.interpolant is Interpolant.LINEAR or hasattr(e.field, "query_async")):
+    if len(flats) < INLINE_ROWS and not params.wait:  # inline, unless an insert holds the field
         res = await queries.query_inline(e, flats, threads=1, **kw)
         if res is not None:
             resp = encode(res)

@@ -27,6 +27,7 @@ from fastapi.responses import FileResponse, HTMLResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..errors import InvalidInputError
+from ..options import Interpolant
 from .status import BatchTooLargeError
 from . import codec
 from .deps import FieldNamePath, NoBody, ReadAccess, ReadyField, SettingsDep, json_body, json_body_doc
@@ -80,9 +81,10 @@ class CameraSpec(BaseModel):
     fill: Optional[float] = Field(None, allow_inf_nan=False,
                                   description="PNG value of pixels without any ray inside (default 0).")
     format: Optional[Literal["png", "npy"]] = Field(None, description="Overrides the Accept header.")
-    interpolant: Literal["linear", "gradient"] = Field(
-        "linear", description="As the query's: `linear` (the paper's) or `gradient` (the Delaunay "
-                              "cell's Taylor expansions, slopes fitted to the nearest samples).")
+    interpolant: Interpolant = Field(
+        Interpolant.LINEAR, description="As the query's: `linear` (the paper's) or `gradient` "
+                                        "(the Delaunay cell's Taylor expansions, slopes fitted "
+                                        "to the nearest samples).")
 
     def camera(self):
         from ..lightfield import Camera
@@ -101,7 +103,8 @@ class CameraSpec(BaseModel):
 
 
 def render_frame(field, camera, fill: float = 0.0, fmt: str = "png",
-                 interpolant: str = "linear") -> tuple[bytes, str, dict, float]:
+                 interpolant: Interpolant | str = Interpolant.LINEAR
+                 ) -> tuple[bytes, str, dict, float]:
     """Render and encode one frame.
 
     Returns

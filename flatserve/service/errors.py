@@ -94,6 +94,9 @@ def _message(exc: BaseException) -> str:
     public = getattr(exc, "public", None)
     if public:
         return public
+    if isinstance(exc, MemoryError):
+        return ("out of memory: the server could not finish this request now (a write is "
+                "not stored); retry later, or with fewer rows at a time")
     if isinstance(exc, KeyError) and exc.args:
         return str(exc.args[0])
     return str(exc) or type(exc).__name__
@@ -103,7 +106,8 @@ def error_response(exc: BaseException) -> ORJSONResponse:
     status = status_of(exc)
     msg = _message(exc)
     headers = getattr(exc, "headers", None)
-    if (status == 503 and isinstance(exc, (st.NotReadyError, st.StorageUnavailableError))
+    if (status == 503 and isinstance(exc, (st.NotReadyError, st.StorageUnavailableError,
+                                           MemoryError))
             or status in (429, 507)):
         headers = {**(headers or {}), "Retry-After": "1"}
     if status == 422:
@@ -151,7 +155,7 @@ def install(app: FastAPI, routers=()) -> None:
                         request.method, request.url.path, exc)
         return error_response(exc)
 
-    for cls in (ApiError, FlatserveError, ValueError):
+    for cls in (ApiError, FlatserveError, ValueError, MemoryError):
         app.add_exception_handler(cls, _handle)
 
     async def _validation(request: Request, exc: RequestValidationError):

@@ -139,6 +139,7 @@ HTTP_STATUS: dict[type, int] = {
     StorageFullError: 507,
     StorageError: 503,
     SnapshotError: 503,
+    MemoryError: 503,  # this request did not fit in the server's memory now: nothing of it kept
 }
 
 _CLASS_OF_STATUS: dict[int, type] = {status: cls for cls, status in reversed(HTTP_STATUS.items())}

@@ -277,6 +277,43 @@ def test_failed_insert_after_the_commit_is_a_503_and_the_retry_gets_the_batch(
         tc.__exit__(None, None, None)
 
 
+def test_out_of_memory_before_the_commit_is_a_503_and_nothing_is_stored(
+        make_app, rng, monkeypatch):
+    """A MemoryError while an upload is charted (before its commit) or while a query
+    runs: a 503 with Retry-After that says so, not a 500; nothing of the upload is
+    stored, and the same request succeeds once memory is there."""
+    from flatserve.field import Field
+
+    tc, c = started(make_app())
+    try:
+        c.create_field("f", channels=1, unit="data")
+        o, v = paper_rays(rng, 300)
+        real_prepare, real_query = Field.prepare, Field.query
+
+        def no_memory(*a, **kw):
+            raise MemoryError()
+
+        body = {"origins": o.tolist(), "directions": v.tolist(),
+                "values": np.ones((300, 1)).tolist()}
+        monkeypatch.setattr(Field, "prepare", no_memory)
+        r = tc.post("/v1/fields/f/samples", headers={"Idempotency-Key": "m"}, json=body)
+        assert r.status_code == 503, r.text
+        assert "out of memory" in r.text and "not stored" in r.text
+        assert r.headers["retry-after"] == "1"
+        assert c.describe("f")["storage"]["batches"] == 0
+        monkeypatch.setattr(Field, "prepare", real_prepare)
+        r = tc.post("/v1/fields/f/samples", headers={"Idempotency-Key": "m"}, json=body)
+        assert r.status_code == 200 and not r.json()["replayed"], r.text
+        monkeypatch.setattr(Field, "query", no_memory)
+        r = tc.post("/v1/fields/f/query", json={"origins": o[:200].tolist(),
+                                                 "directions": v[:200].tolist()})
+        assert r.status_code == 503 and "out of memory" in r.text, r.text
+        monkeypatch.setattr(Field, "query", real_query)
+        assert c.query_rays("f", o[:200], v[:200]).inside.mean() > 0.5
+    finally:
+        tc.__exit__(None, None, None)
+
+
 def test_non_ascii_api_keys_work(make_app):
     tc, _ = started(make_app(api_key="clé-secrète", read_only_key="lecture"))
     try:

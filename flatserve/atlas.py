@@ -198,6 +198,25 @@ class Routing(NamedTuple):
     nearest_angle: np.ndarray
 
 
+def check_seam(atlas: "Atlas") -> "Atlas":
+    """``atlas``, if a relative one has a seam (``reach > trusted``): the neighbours of
+    the flats a chart answers, (reach - trusted) / 2 degrees, are in it. Checked
+    where a relative atlas is made (:meth:`Atlas.covering`), not where a stored
+    one is read (:meth:`Atlas.from_dict`: a field stored before keeps loading).
+
+    Raises
+    ------
+    InvalidInputError
+        Naming ``reach``.
+    """
+    if atlas.relative and not atlas.reach > atlas.trusted:
+        raise InvalidInputError(
+            f"reach: a relative atlas needs reach > trusted (its seam, (reach - trusted) / 2 "
+            f"degrees, holds the neighbours of the flats a chart answers), got "
+            f"trusted={atlas.trusted:g}, reach={atlas.reach:g}", "reach")
+    return atlas
+
+
 class Atlas:
     """Charts (tangent-simplex bases, Sec. 5.1) with angular domains.
 
@@ -221,7 +240,9 @@ class Atlas:
     oriented : bool
         Rays keep their direction (k = 1 only).
     inner, trusted, reach : float
-        Degrees, ``0 <= inner < trusted <= reach < 45`` (module docstring).
+        Degrees, ``0 <= inner < trusted <= reach < 45`` (module docstring); a
+        relative atlas made by :meth:`covering` needs ``reach > trusted``
+        (:func:`check_seam`).
     unit : float
         The unit of length of the charts (positive, in the flats' units): the
         shift of a flat that a chart weighs as much as a turn of one radian.
@@ -421,9 +442,10 @@ class Atlas:
             A, N = C, comp
         if oriented:
             A, N = np.concatenate([A, -A]), np.concatenate([N, N])
-        atlas = cls(k, d, A, N, np.zeros((A.shape[0], d)), np.full(A.shape[0], float(scale)),
-                    oriented=oriented, inner=inner, trusted=trusted, reach=reach, unit=unit,
-                    isometric=isometric, relative=relative)
+        atlas = check_seam(cls(k, d, A, N, np.zeros((A.shape[0], d)),
+                               np.full(A.shape[0], float(scale)), oriented=oriented, inner=inner,
+                               trusted=trusted, reach=reach, unit=unit, isometric=isometric,
+                               relative=relative))
         # the same centres, the same seeded measurement: measured once
         radius = cover_radius(k, d, bool(oriented), float(train_deg), int(seed), int(n_train),
                               int(check_n))

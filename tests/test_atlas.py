@@ -714,6 +714,11 @@ def test_a_relative_chart_holds_the_samples_around_every_query_it_answers(k, d):
     missing = sum(int((~np.isin(rows[near[rows]], stored.rows[c])).sum())
                   for c, rows in enumerate(narrow.route(q, narrow.trusted).rows))
     assert missing > 0
+    # and with none at all the atlas is refused, naming the radius
+    with pytest.raises(InvalidInputError, match="reach: a relative atlas needs reach > trusted"):
+        Atlas.covering(k, d, relative=True, reach=at.trusted)
+    # (one stored before the check still loads)
+    assert Atlas.from_dict({**at.to_dict(), "reach": at.trusted}).reach == at.trusted
 
 
 def test_a_relative_atlas_stores_fewer_copies_and_keeps_what_it_is():

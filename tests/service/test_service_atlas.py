@@ -738,7 +738,8 @@ def test_a_covering_atlas_takes_its_radii_at_create(api, rng):
     same_parametric(c, "narrow", qA, qb, want)
     for radii, name in (({"inner": 5, "trusted": 4}, "trusted"),
                         ({"trusted": 10, "relative": False}, "trusted"),
-                        ({"trusted": 50}, "trusted")):
+                        ({"trusted": 50}, "trusted"),
+                        ({"trusted": 8, "reach": 8}, "reach")):  # relative: no seam
         r = tc.post("/v1/fields", json={"name": "bad", "k": 3, "d": 4, "basis": {
             "kind": "atlas", "atlas": "covering", **radii}})
         assert r.status_code == 422, (radii, r.text)

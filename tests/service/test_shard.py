@@ -143,6 +143,55 @@ def test_shards_store_their_own_parts_and_restore_from_them(make_app, pg_url, rn
         tc.__exit__(None, None, None)
 
 
+def test_two_snapshots_of_a_worker_store_their_parts_one_after_the_other(
+        make_app, pg_url, rng, monkeypatch):
+    """Two fronts snapshot the same field at once: a worker serialises one call's
+    parts after the other (each holds the worker at its own position and counts its
+    own bytes; overlapping, the first's end released the second's hold)."""
+    import threading
+
+    from flatserve.atlas_field import AtlasField
+
+    settings = Settings(database_url=pg_url)
+    tc, c = started(make_app(database_url=pg_url))
+    storage = open_backend(settings)
+    workers = []
+    try:
+        c.create_field("f", channels=1)
+        o, d = _sphere(rng, 1500)
+        c.upload_rays("f", o, d, rng.uniform(size=(1500, 1)), wait=True)
+        row = next(r for r in storage.state()[1] if r.name == "f")
+        head = storage.head()
+        workers = _workers(settings, row, head, [(0, 1, 2, 3)])
+        (w,) = workers
+        real, seen = AtlasField.chart_parts, []
+
+        def slow(self, charts, known):
+            seen.append(("in", threading.get_ident()))
+            time.sleep(0.2)
+            seen.append(("out", threading.get_ident()))
+            return real(self, charts, known)
+
+        monkeypatch.setattr(AtlasField, "chart_parts", slow)
+        got = []
+        calls = [threading.Thread(target=lambda: got.append(w.parts(head, (), 30.0)))
+                 for _ in range(2)]
+        for t in calls:
+            t.start()
+        for t in calls:
+            t.join()
+        assert len(got) == 2 and got[0]["seq"] == got[1]["seq"] == 1
+        assert len(seen) == 16  # 2 calls x 4 charts, in and out
+        firsts = [tid for _, tid in seen[:8]]
+        assert len(set(firsts)) == 1, seen  # one call's 4 charts, then the other's
+        assert got[0]["stored"] > 0 and got[1]["stored"] == 0  # (a part is stored once)
+    finally:
+        for w in workers:
+            w.stop()
+        storage.close()
+        tc.__exit__(None, None, None)
+
+
 @pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
 def test_store_part_stores_once(tmp_path, request, backend):
     url = request.getfixturevalue("pg_url") if backend == "postgresql" else None

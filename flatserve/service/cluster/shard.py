@@ -115,6 +115,9 @@ class ShardWorker:
         self.restored_from: str | None = None
         self._cond = threading.Condition()
         self._hold: int | None = None
+        #: one snapshot's parts at a time: each holds the worker at its own position
+        #: and counts the bytes its tiles stored
+        self._parts_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="flatserve-shard", daemon=True)
         if start:
@@ -313,7 +316,8 @@ class ShardWorker:
         writes the snapshot); the worker is held there (it applies no later batch
         of its field) while it serialises. Charts are serialised and stored one
         at a time (memory: one chart's part), and those whose part is ``known``
-        (stored already) not at all.
+        (stored already) not at all. Calls run one at a time (a second waits up to
+        ``timeout`` for the first): each holds the worker at its own position.
 
         Returns
         -------
@@ -332,8 +336,20 @@ class ShardWorker:
         ShardAheadError
             The worker has applied a later batch of its field already.
         ShardUnavailableError
-            Not at ``position`` within ``timeout``.
+            Not at ``position`` within ``timeout``, or another call's parts still
+            being stored then.
         """
+        if not self._parts_lock.acquire(timeout=max(timeout, 0.0)):
+            raise ShardUnavailableError(
+                f"shard {list(self.charts)} of field {self.field_id}: another snapshot's parts "
+                f"were still being stored after {timeout:g} s; retry the snapshot")
+        try:
+            return self._parts(position, known, timeout)
+        finally:
+            self._parts_lock.release()
+
+    def _parts(self, position: int, known, timeout: float) -> dict:
+        """:meth:`parts`, one call at a time."""
         with self._cond:
             if self.position > position:
                 raise ShardAheadError(

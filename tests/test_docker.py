@@ -27,6 +27,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import socket
 import subprocess
 import time
 import uuid
@@ -116,14 +117,40 @@ def _free_gb() -> float:
     return shutil.disk_usage(root).free / 1e9
 
 
+#: The label on this suite's containers and volumes: ``host:pid`` of the run that made them.
+OWNER_LABEL = "flatserve-test.owner"
+OWNER = f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _abandoned(owner: str) -> bool:
+    """A container or volume of a run that is over: made by a process of this host that
+    is gone (or unlabelled: made before the label). Another live run's are kept."""
+    if not owner:
+        return True
+    host, _, pid = owner.rpartition(":")
+    if host != socket.gethostname() or not pid.isdigit():
+        return False  # another host's run (an engine shared between hosts): not ours to judge
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # alive, another user's
+        return False
+    return False
+
+
 def _clean_up(config) -> None:
-    """What earlier sessions left on the engine's disk: their containers and volumes
-    (a run that was killed), images no tag names any more (an earlier build of
-    ``IMAGE``), and, when space is short, the whole build cache. A disk that fills
-    across CI runs on one machine otherwise ends as ``no space left on device``."""
-    for kind, ls in (("container", ["ps", "-a", "-q", "--filter", "name=flatserve-test-"]),
-                     ("volume", ["volume", "ls", "-q", "--filter", "name=flatserve-test-"])):
-        ids = docker(*ls, check=False).stdout.split()
+    """What earlier sessions left on the engine's disk: the containers and volumes of
+    runs that are over (a run that was killed; a run still going on the same engine
+    keeps its own), images no tag names any more (an earlier build of ``IMAGE``),
+    and, when space is short, the whole build cache. A disk that fills across CI
+    runs on one machine otherwise ends as ``no space left on device``."""
+    label = '{{.Label "%s"}}' % OWNER_LABEL
+    for kind, ls in (("container", ["ps", "-a", "--format", "{{.ID}} " + label]),
+                     ("volume", ["volume", "ls", "--format", "{{.Name}} " + label])):
+        rows = docker(*ls, "--filter", "name=flatserve-test-", check=False).stdout.splitlines()
+        ids = [r.split(" ", 1)[0] for r in rows
+               if r.strip() and _abandoned(r.split(" ", 1)[1].strip() if " " in r else "")]
         if ids:
             docker(*(["rm", "-f", "-v"] if kind == "container" else ["volume", "rm", "-f"]), *ids,
                    check=False)
@@ -190,7 +217,7 @@ class Containers:
         self.tag = uuid.uuid4().hex[:10]
         self.volume = f"flatserve-test-{self.tag}"
         self.names: list[str] = []
-        docker("volume", "create", self.volume)
+        docker("volume", "create", "--label", f"{OWNER_LABEL}={OWNER}", self.volume)
 
     def run(self, port: int, api_key: str, env: dict | None = None, volume: bool = True) -> str:
         """A container on the host's network; ``volume=False``: no data volume of
@@ -200,7 +227,8 @@ class Containers:
         extra = [a for k, v in (env or {}).items() for a in ("-e", f"{k}={v}")]
         if volume:
             extra += ["-v", f"{self.volume}:/var/lib/flatserve"]
-        docker("run", "-d", "--name", name, "--network", "host",
+        docker("run", "-d", "--name", name, "--label", f"{OWNER_LABEL}={OWNER}",
+               "--network", "host",
                "-e", f"FLATSERVE_API_KEY={api_key}", "-e", f"FLATSERVE_PORT={port}",
                *extra, self.image)
         return name
@@ -211,7 +239,8 @@ class Containers:
         name = f"flatserve-test-{self.tag}-{len(self.names)}"
         self.names.append(name)
         extra = [a for k, v in env.items() for a in ("-e", f"{k}={v}")]
-        docker("run", "-d", "--init", "--name", name, "--network", "host",
+        docker("run", "-d", "--init", "--name", name, "--label", f"{OWNER_LABEL}={OWNER}",
+               "--network", "host",
                "--shm-size", shm_size, "-v", f"{self.volume}:/var/lib/flatserve", *options,
                *extra, self.image, *command)
         return name

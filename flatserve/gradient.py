@@ -64,10 +64,10 @@ __all__ = ["GRADIENT_NEIGHBOURS", "GRADIENT_RCOND", "Slopes", "neighbours_for", 
            "taylor_blend"]
 
 #: Nearest samples a slope is fitted to, per chart dimension D: ``3 D + 2``.
-#: Measured (3,000 samples, a smooth function, fitted units; error over the
-#: 8 nearest samples'): ``2 D + 2`` is 5-15 % worse in 3-4 dimensions and up
-#: to 4 % better in 6; ``4 D + 2`` 5-10 % better in 3 dimensions and up to 5 %
-#: worse in 6 (docs/costs.md).
+#: Measured (3,000 samples, a smooth function, fitted units, two seeds; error
+#: over the 8 nearest samples'): ``2 D + 2`` is 4-14 % worse in 3-4 dimensions
+#: and up to 4 % better in 6; ``4 D + 2`` 7 % better in 3 dimensions, from 8 %
+#: better to 4 % worse in 4, and up to 5 % worse in 6 (docs/costs.md).
 GRADIENT_NEIGHBOURS = 3
 
 #: Singular values of a neighbourhood's (weighted) offsets below this share of

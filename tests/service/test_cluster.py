@@ -408,6 +408,13 @@ def test_a_one_machine_cluster_on_sqlite(tmp_path, rng):
         assert len(parts) > 2
         heads = [p for p in parts if p.startswith(b"FSFIELD\0") and b'"parts": [' in p[:8192]]
         assert len(heads) == 1, "the field in tiles: one field file naming its tiles' parts"
+        # each shard actor holds a share of this machine's node:<address> resource, so
+        # that a node joining later from elsewhere (no access to this data directory)
+        # is given none (its tiles too: test_cluster_tiles.py)
+        from flatserve.service.cluster.ray_shards import PIN_SHARE
+
+        shares = pinned_shares(nodes.address)
+        assert len(shares) == 3 and set(shares.values()) == {PIN_SHARE}, shares
     # every process gone; a new front and new nodes on the same directory
     with contextlib.ExitStack() as stack:
         nodes = stack.enter_context(RayNodes(workers=1))
@@ -420,6 +427,25 @@ def test_a_one_machine_cluster_on_sqlite(tmp_path, rng):
             groups = c.describe("f")["shard_groups"] + c.describe("one")["shard_groups"]
         assert len(groups) == 3 and all(g["restored_from"] == "snapshot after batch 3"
                                         for g in groups), groups
+
+
+def pinned_shares(address: str) -> dict[str, float | None]:
+    """Per shard actor of the deployment (by name), the share of its machine's
+    ``node:<address>`` resource Ray assigned to it (asked inside the actor, from a
+    driver connected for the purpose)."""
+    import ray
+
+    ray.init(address=address, namespace="flatserve", log_to_driver=False)
+    try:
+        key = f"node:{ray.util.get_node_ip_address()}"
+        out = {}
+        for name in ray.util.list_named_actors():
+            got = ray.get(ray.get_actor(name).__ray_call__.remote(
+                lambda self: ray.get_runtime_context().get_assigned_resources()), timeout=60)
+            out[name] = got.get(key)
+        return out
+    finally:
+        ray.shutdown()
 
 
 def test_the_cluster_lost_while_running_503_then_a_front_restarted_on_the_new_cluster(

@@ -225,3 +225,51 @@ def test_a_lost_tile_is_a_503_and_marks_the_host(host, rng):
     with pytest.raises(ShardUnavailableError, match="lost"):
         tt.query(rng.uniform(size=(500, 3)))
     assert host.lost is not None
+
+
+def _assigned(actor) -> dict:
+    """The resources Ray assigned to the actor's process (asked inside it)."""
+    import ray
+
+    return ray.get(actor.__ray_call__.remote(
+        lambda self: ray.get_runtime_context().get_assigned_resources()), timeout=60)
+
+
+def test_on_sqlite_a_tile_stays_on_this_machines_nodes(cluster, rng):
+    """Cluster mode on SQLite (no database_url): each tile's actor holds a share of its
+    machine's ``node:<address>`` resource (which Ray gives only the nodes of that
+    address), so that a node joining later from another machine, which cannot read
+    this machine's data directory, is given none; with a database, no such share."""
+    import ray
+
+    from flatserve.service.cluster.ray_shards import PIN_SHARE
+
+    key = f"node:{ray.util.get_node_ip_address()}"
+    for url, share in ((None, PIN_SHARE), ("postgresql://flatserve@127.0.0.1:9/none", None)):
+        host = RayTileHost(Settings(ray_shard_memory=256 << 20, shard_threads=1,
+                                    database_url=url))
+        with hosting(host):
+            tt = TiledTriangulation(3, tiles=2)
+        tt.insert(rng.uniform(size=(2000, 3)), rng.uniform(size=(2000, 1)), settle=True)
+        actors = [t.actor for t in tt.tiles if t.actor is not None]
+        assert len(actors) == 2
+        for a in actors:
+            got = _assigned(a)
+            assert got.get(key) == share, (url, got)
+            assert got.get("memory") == 256 << 20, got
+
+
+def test_a_tile_no_node_has_room_for_is_lost_in_time_not_waited_for(cluster, rng):
+    """A tile's actor asking for more memory than any node has is never placed: the
+    insert that starts it fails within the start timeout (naming the setting) and
+    marks the host lost (its group restarts to try again), where its call would
+    have waited TILE_CALL_TIMEOUT_S (30 min) for room."""
+    host = RayTileHost(Settings(ray_shard_memory=64 << 30, shard_threads=1), start_timeout=5.0)
+    with hosting(host):
+        tt = TiledTriangulation(3, tiles=2)
+    t0 = time.monotonic()
+    with pytest.raises(ShardUnavailableError, match=r"not placed within 5 s.*"
+                                                    r"68719476736 bytes.*ray_shard_memory"):
+        tt.insert(rng.uniform(size=(500, 3)), rng.uniform(size=(500, 1)))
+    assert time.monotonic() - t0 < 60
+    assert host.lost is not None and "not placed" in host.lost

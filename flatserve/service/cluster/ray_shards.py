@@ -201,9 +201,31 @@ def log_tag(settings) -> str:
     return hashlib.sha256(where.encode()).hexdigest()[:8]
 
 
+#: the share of a node's ``node:<address>`` resource (Ray gives each node 1 of its
+#: own address's) an actor asks for to be placed on a node of that address
+PIN_SHARE = 0.001
+
+
+def machine_pin(ray, settings) -> dict[str, float]:
+    """The resources that keep an actor on this machine's nodes in cluster mode on
+    SQLite (its shard and tile workers read this machine's data directory): a
+    share of the ``node:<address>`` resource Ray gives every node of this
+    machine's address, so that a node that joins from elsewhere later holds none
+    of them. Empty with a ``database_url`` (every node reaches the database).
+
+    Called by a front (its own address) and by a shard actor for its tiles (the
+    shard's node, itself pinned to the front's machine).
+    """
+    if settings.database_url is not None:
+        return {}
+    return {f"node:{ray.util.get_node_ip_address()}": PIN_SHARE}
+
+
 def one_machine(ray, settings) -> None:
     """Cluster mode on SQLite: every node of the cluster is on this machine (the
     shard workers read the data directory this server holds, :class:`~.shard.ShardWorker`).
+    A node that joins from elsewhere later is not refused, but holds no actor of
+    this deployment's (:func:`machine_pin`).
 
     Raises
     ------
@@ -247,6 +269,8 @@ class RayCluster:
             settings = settings.model_copy(update={"data_dir": Path(settings.data_dir).resolve()})
             one_machine(ray, settings)
         self.settings = settings
+        #: resources each actor asks for beside its memory (SQLite: this machine's nodes)
+        self.pin = machine_pin(ray, settings)
         self.log_tag = log_tag(settings)
         self.address = settings.ray
         from ray.exceptions import (ActorUnavailableError, GetTimeoutError, RayActorError,
@@ -335,7 +359,9 @@ class RayGroups:
         self.charts = deal(ncharts, s.ray_shards)
         try:
             room = [n for n in cluster.ray.nodes() if n.get("Alive")
-                    and n.get("Resources", {}).get("memory", 0) >= s.ray_shard_memory]
+                    and n.get("Resources", {}).get("memory", 0) >= s.ray_shard_memory
+                    and all(n.get("Resources", {}).get(r, 0) >= v
+                            for r, v in cluster.pin.items())]
             if self.copies > len(room):
                 log.warning("field %d asks for %d copies of each shard but %d node(s) have room "
                             "for one (ray_shard_memory %d bytes): its shards wait for more nodes",
@@ -364,7 +390,8 @@ class RayGroups:
             pass
         mem = self.cluster.settings.ray_shard_memory
         try:
-            return placement_group([{"memory": mem}] * self.copies, strategy="STRICT_SPREAD",
+            return placement_group([{"memory": mem, **self.cluster.pin}] * self.copies,
+                                   strategy="STRICT_SPREAD",
                                    name=name, lifetime="detached")
         except Exception:  # made by another front meanwhile
             return get_placement_group(name)
@@ -375,6 +402,8 @@ class RayGroups:
             name=self._name(g, j), namespace=s.ray_namespace, lifetime="detached",
             get_if_exists=True, max_restarts=-1, max_task_retries=0,
             max_concurrency=ACTOR_CONCURRENCY, num_cpus=0, memory=s.ray_shard_memory)
+        if self.cluster.pin:  # (with copies, from its bundle, which holds as much)
+            opts["resources"] = dict(self.cluster.pin)
         if self.copies > 1:
             from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 

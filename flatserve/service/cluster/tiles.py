@@ -29,7 +29,11 @@ So a chart's memory and its inserts spread over as many nodes as it has tiles:
   :class:`~flatserve.service.status.ShardUnavailableError` (a query goes to the
   group's next copy), the host is marked :attr:`RayTileHost.lost`, and the
   group's actor ends itself so that Ray restarts it: it restores from the
-  snapshot and the log, with new tile actors.
+  snapshot and the log, with new tile actors;
+* a tile's actor that no node has room for (``ray_shard_memory`` of its
+  ``memory`` free; on SQLite, on this machine's nodes) is lost the same way once
+  it has not started within :data:`TILE_START_TIMEOUT_S` (the restarted group
+  tries again), instead of its calls waiting for room.
 """
 from __future__ import annotations
 
@@ -45,7 +49,7 @@ import numpy as np
 
 from ...tiles import Tile, TileHost
 from ..status import ShardUnavailableError
-from .ray_shards import task_cause
+from .ray_shards import machine_pin, task_cause
 
 log = logging.getLogger("flatserve.service.cluster")
 
@@ -54,6 +58,9 @@ log = logging.getLogger("flatserve.service.cluster")
 TILE_CALL_TIMEOUT_S = 1800.0
 #: seconds a query's call on a tile may take (a query's rows in one tile)
 QUERY_CALL_TIMEOUT_S = 300.0
+#: seconds a new tile's actor may take to be placed and to answer (a node with room
+#: found, its process started); beyond, no node has room for it and the tile is lost
+TILE_START_TIMEOUT_S = 120.0
 #: concurrent calls a tile's actor takes (queries read it at once; the group's
 #: worker never lets a query meet an insert or an exchange)
 TILE_CONCURRENCY = 16
@@ -251,6 +258,10 @@ class RayTileHost(TileHost):
         The field's storage, where each tile stores and reads its own snapshot
         part. Default: the parts pass through this process (a library's
         tiled triangulation, the tests').
+    start_timeout : float
+        Seconds a new tile's actor may take to be placed and to answer
+        (:data:`TILE_START_TIMEOUT_S`); one that is not is killed, and the tile
+        lost (:meth:`spawn`).
 
     Attributes
     ----------
@@ -261,15 +272,19 @@ class RayTileHost(TileHost):
         Bytes of snapshot parts the tiles stored themselves.
     """
 
-    def __init__(self, settings, parts: TileParts | None = None) -> None:
+    def __init__(self, settings, parts: TileParts | None = None, *,
+                 start_timeout: float = TILE_START_TIMEOUT_S) -> None:
         import ray
         from ray.exceptions import RayActorError, RayError, RayTaskError
 
         self.ray = ray
         self.settings = settings
         self.parts = parts
+        self.start_timeout = float(start_timeout)
         self.stored = 0
         self._remote = ray.remote(TileActor)
+        #: resources each tile's actor asks for beside its memory (SQLite: this machine)
+        self.pin = machine_pin(ray, settings)
         # every failure of Ray's (the actor dead or unreachable, its result lost, a
         # timeout) but a tile's own error (a task error) loses the tile
         self._lost_kinds = (RayError, ConnectionError)
@@ -281,12 +296,34 @@ class RayTileHost(TileHost):
         self._lock = threading.Lock()
 
     def spawn(self, ndim: int):
-        """A new, empty :class:`TileActor`."""
+        """A new, empty :class:`TileActor`, once it answers.
+
+        Raises
+        ------
+        ShardUnavailableError
+            It was not placed and answering within :attr:`start_timeout` (no node
+            has ``ray_shard_memory`` of its memory free, on SQLite no node of this
+            machine): the actor is killed and the host :attr:`lost`, so that the
+            group's actor ends and Ray restarts it, to try again, rather than its
+            calls wait for room for :data:`TILE_CALL_TIMEOUT_S`.
+        """
         s = self.settings
-        return self._remote.options(
+        actor = self._remote.options(
             num_cpus=0, memory=s.ray_shard_memory, max_restarts=0, max_task_retries=0,
             max_concurrency=TILE_CONCURRENCY, scheduling_strategy="SPREAD",
+            **({"resources": dict(self.pin)} if self.pin else {}),
         ).remote(ndim, s.shard_threads, self.parts)
+        ready, _ = self.ray.wait([actor.state.remote()], timeout=self.start_timeout)
+        if ready:  # (an actor that failed to start fails its first call)
+            return actor
+        with contextlib.suppress(Exception):
+            self.ray.kill(actor)
+        where = " of this machine's" if self.pin else ""
+        self.lost = (f"a tile's actor was not placed within {self.start_timeout:g} s: no node"
+                     f"{where} has {s.ray_shard_memory} bytes of its Ray memory resource free "
+                     f"(ray_shard_memory; ray start --memory)")
+        log.error("a tile of this shard could not start: %s", self.lost)
+        raise ShardUnavailableError(self.lost + "; the shard restarts to try again")
 
     def auto_tiles(self, nsamples: int) -> int:
         """``tiles="auto"`` on a cluster: one tile per ``ray_tile_samples`` samples (a

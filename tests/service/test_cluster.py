@@ -439,7 +439,7 @@ def pinned_shares(address: str) -> dict[str, float | None]:
     try:
         key = f"node:{ray.util.get_node_ip_address()}"
         out = {}
-        for name in ray.util.list_named_actors():
+        for name in (n for n in ray.util.list_named_actors() if n.startswith("field-")):
             got = ray.get(ray.get_actor(name).__ray_call__.remote(
                 lambda self: ray.get_runtime_context().get_assigned_resources()), timeout=60)
             out[name] = got.get(key)

@@ -273,3 +273,28 @@ def test_a_tile_no_node_has_room_for_is_lost_in_time_not_waited_for(cluster, rng
         tt.insert(rng.uniform(size=(500, 3)), rng.uniform(size=(500, 1)))
     assert time.monotonic() - t0 < 60
     assert host.lost is not None and "not placed" in host.lost
+
+
+def test_a_tile_waiting_for_memory_some_node_has_starts_once_it_is_freed(cluster):
+    """Every node's memory taken by other tiles: a new tile's actor that a node could
+    hold once freed is waited for past the start timeout (not lost), and starts
+    when a blocker ends."""
+    import threading
+
+    import ray
+
+    big = Settings(ray_shard_memory=3 << 30, shard_threads=1)  # one a node (4 GiB each)
+    blockers = [RayTileHost(big).spawn(3) for _ in range(3)]
+    host = RayTileHost(big, start_timeout=2.0)
+    got: dict = {}
+    t = threading.Thread(target=lambda: got.update(actor=host.spawn(3)))
+    t0 = time.monotonic()
+    t.start()
+    t.join(8.0)
+    assert t.is_alive() and host.lost is None  # past its start timeout, still waited for
+    ray.kill(blockers[0])
+    t.join(120)
+    assert not t.is_alive() and host.lost is None and got["actor"] is not None
+    assert time.monotonic() - t0 > 8.0
+    for a in (*blockers[1:], got["actor"]):
+        ray.kill(a)

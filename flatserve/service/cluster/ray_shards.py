@@ -99,8 +99,10 @@ class ShardActor:
     def status(self) -> dict:
         import ray
 
-        return {**self.worker.status(), "node": ray.get_runtime_context().get_node_id(),
-                "tiles": self._tiles_at}
+        st = self.worker.status()
+        if self.tiles.lost:  # (this actor ends, to be restarted: say why meanwhile)
+            st["error"] = f"restarting: {self.tiles.lost}"
+        return {**st, "node": ray.get_runtime_context().get_node_id(), "tiles": self._tiles_at}
 
 
 def task_cause(exc: Exception) -> Exception:
@@ -202,8 +204,9 @@ def log_tag(settings) -> str:
 
 
 #: the share of a node's ``node:<address>`` resource (Ray gives each node 1 of its
-#: own address's) an actor asks for to be placed on a node of that address
-PIN_SHARE = 0.001
+#: own address's) an actor asks for to be placed on a node of that address: Ray's
+#: resolution, so that it never limits how many actors a node holds (10,000)
+PIN_SHARE = 0.0001
 
 
 def machine_pin(ray, settings) -> dict[str, float]:

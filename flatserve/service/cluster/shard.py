@@ -201,6 +201,8 @@ class ShardWorker:
                 except StorageError:
                     raise
                 except Exception as exc:  # damaged: the log has every batch
+                    if getattr(self.tile_host, "lost", None):  # a tile lost, not the snapshot
+                        raise
                     log.warning("shard %s of field %d: snapshot unusable (%s); replaying the "
                                 "log", self.charts, self.field_id, exc)
                     fld = None

@@ -30,10 +30,12 @@ So a chart's memory and its inserts spread over as many nodes as it has tiles:
   group's next copy), the host is marked :attr:`RayTileHost.lost`, and the
   group's actor ends itself so that Ray restarts it: it restores from the
   snapshot and the log, with new tile actors;
-* a tile's actor that no node has room for (``ray_shard_memory`` of its
-  ``memory`` free; on SQLite, on this machine's nodes) is lost the same way once
-  it has not started within :data:`TILE_START_TIMEOUT_S` (the restarted group
-  tries again), instead of its calls waiting for room.
+* a tile's actor that no live node could hold (none has ``ray_shard_memory`` of
+  Ray ``memory``; on SQLite, none of this machine's address) is lost the same
+  way once it has not started within :data:`TILE_START_TIMEOUT_S` (the
+  restarted group tries again), instead of its calls waiting 30 minutes for
+  room; where some node could hold it once its memory is free, it is waited for
+  (:data:`TILE_CALL_TIMEOUT_S`).
 """
 from __future__ import annotations
 
@@ -59,7 +61,8 @@ TILE_CALL_TIMEOUT_S = 1800.0
 #: seconds a query's call on a tile may take (a query's rows in one tile)
 QUERY_CALL_TIMEOUT_S = 300.0
 #: seconds a new tile's actor may take to be placed and to answer (a node with room
-#: found, its process started); beyond, no node has room for it and the tile is lost
+#: found, its process started) before the nodes are asked whether any could ever hold
+#: it: none, and the tile is lost; some, and it is waited for up to TILE_CALL_TIMEOUT_S
 TILE_START_TIMEOUT_S = 120.0
 #: concurrent calls a tile's actor takes (queries read it at once; the group's
 #: worker never lets a query meet an insert or an exchange)
@@ -259,9 +262,9 @@ class RayTileHost(TileHost):
         part. Default: the parts pass through this process (a library's
         tiled triangulation, the tests').
     start_timeout : float
-        Seconds a new tile's actor may take to be placed and to answer
-        (:data:`TILE_START_TIMEOUT_S`); one that is not is killed, and the tile
-        lost (:meth:`spawn`).
+        Seconds a new tile's actor may take to be placed and to answer before
+        the nodes are asked whether any could hold it (:data:`TILE_START_TIMEOUT_S`,
+        :meth:`spawn`).
 
     Attributes
     ----------
@@ -301,11 +304,12 @@ class RayTileHost(TileHost):
         Raises
         ------
         ShardUnavailableError
-            It was not placed and answering within :attr:`start_timeout` (no node
-            has ``ray_shard_memory`` of its memory free, on SQLite no node of this
-            machine): the actor is killed and the host :attr:`lost`, so that the
-            group's actor ends and Ray restarts it, to try again, rather than its
-            calls wait for room for :data:`TILE_CALL_TIMEOUT_S`.
+            It did not answer within :attr:`start_timeout` and no live node (on
+            SQLite, of this machine's address) has ``ray_shard_memory`` of Ray
+            memory at all, so it never will be placed; or it did not answer
+            within :data:`TILE_CALL_TIMEOUT_S` (nodes with room busy, or its
+            start slow). The actor is killed and the host :attr:`lost`, so
+            that the group's actor ends and Ray restarts it, to try again.
         """
         s = self.settings
         actor = self._remote.options(
@@ -313,17 +317,42 @@ class RayTileHost(TileHost):
             max_concurrency=TILE_CONCURRENCY, scheduling_strategy="SPREAD",
             **({"resources": dict(self.pin)} if self.pin else {}),
         ).remote(ndim, s.shard_threads, self.parts)
-        ready, _ = self.ray.wait([actor.state.remote()], timeout=self.start_timeout)
+        where = " of this machine's address" if self.pin else ""
+        try:
+            ref = actor.state.remote()
+            ready, _ = self.ray.wait([ref], timeout=self.start_timeout)
+            if not ready and self._fits():  # room somewhere: placed once freed, or slow
+                log.warning("a tile's actor has not started within %g s (every node%s with "
+                            "%d bytes of Ray memory busy, or a slow start): waiting",
+                            self.start_timeout, where, s.ray_shard_memory)
+                ready, _ = self.ray.wait([ref], timeout=TILE_CALL_TIMEOUT_S)
+                why = (f"a tile's actor did not start within {TILE_CALL_TIMEOUT_S:g} s "
+                       f"(every node{where} with {s.ray_shard_memory} bytes of Ray memory "
+                       "busy, or a slow start)")
+            else:
+                why = (f"a tile's actor was not placed within {self.start_timeout:g} s: no "
+                       f"live node{where} has {s.ray_shard_memory} bytes of Ray memory "
+                       "(ray_shard_memory; ray start --memory)")
+        except self._lost_kinds as exc:  # the cluster itself failing
+            ready, why = [], f"a tile's actor could not start: {type(exc).__name__}: {exc}"
         if ready:  # (an actor that failed to start fails its first call)
             return actor
         with contextlib.suppress(Exception):
             self.ray.kill(actor)
-        where = " of this machine's" if self.pin else ""
-        self.lost = (f"a tile's actor was not placed within {self.start_timeout:g} s: no node"
-                     f"{where} has {s.ray_shard_memory} bytes of its Ray memory resource free "
-                     f"(ray_shard_memory; ray start --memory)")
-        log.error("a tile of this shard could not start: %s", self.lost)
-        raise ShardUnavailableError(self.lost + "; the shard restarts to try again")
+        self.lost = why
+        log.error("a tile of this shard could not start: %s", why)
+        raise ShardUnavailableError(why + "; the shard restarts to try again")
+
+    def _fits(self) -> bool:
+        """Some live node (with the pin's resources) has ``ray_shard_memory`` of Ray
+        memory in all: a tile's actor can be placed there once it is free."""
+        need = {"memory": self.settings.ray_shard_memory, **self.pin}
+        try:
+            nodes = self.ray.nodes()
+        except Exception:  # the cluster unreachable: nothing is known to fit
+            return False
+        return any(n.get("Alive") and all(n.get("Resources", {}).get(r, 0) >= v
+                                          for r, v in need.items()) for n in nodes)
 
     def auto_tiles(self, nsamples: int) -> int:
         """``tiles="auto"`` on a cluster: one tile per ``ray_tile_samples`` samples (a

@@ -117,8 +117,8 @@ class Settings(BaseSettings):
     out, blends). The log every shard follows is database_url's PostgreSQL, or, unset, the SQLite
     database of data_dir for a one-machine cluster (every Ray node on this machine: the shards
     read the directory this server holds; a node elsewhere is refused at start, and one that
-    joins later is given no shard or tile: they are kept on the nodes of this server's address). Needs the cluster extra (pip install
-    'flatserve[cluster]')."""
+    joins later is given no shard or tile: they are kept on the nodes of this server's
+    address). Needs the cluster extra (pip install 'flatserve[cluster]')."""
     ray_shards: int = Field(4, ge=1, le=1024)
     """Cluster mode: shard groups per field (an atlas field's charts divided among them; a one-chart
     field is one group). Each group is an actor per copy."""

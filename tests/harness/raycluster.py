@@ -69,3 +69,12 @@ class RayNodes:
 
     def __exit__(self, *exc) -> None:
         self.shutdown()
+
+
+def assigned_resources(actor, timeout: float = 60.0) -> dict:
+    """The resources Ray assigned to an actor's process (asked inside it, from a
+    driver connected to its cluster)."""
+    import ray
+
+    return ray.get(actor.__ray_call__.remote(
+        lambda self: ray.get_runtime_context().get_assigned_resources()), timeout=timeout)

@@ -29,7 +29,7 @@ from flatserve.service.entry import FieldSpec
 from flatserve.service.routes_lightfield import CameraSpec, render_frame
 from flatserve.service.settings import Settings
 from tests.harness.process import ServerProcess
-from tests.harness.raycluster import RayNodes
+from tests.harness.raycluster import RayNodes, assigned_resources
 
 from .conftest import ONE_CHART, paper_rays
 from .test_service_postgres import snapshot_soon
@@ -440,9 +440,7 @@ def pinned_shares(address: str) -> dict[str, float | None]:
         key = f"node:{ray.util.get_node_ip_address()}"
         out = {}
         for name in (n for n in ray.util.list_named_actors() if n.startswith("field-")):
-            got = ray.get(ray.get_actor(name).__ray_call__.remote(
-                lambda self: ray.get_runtime_context().get_assigned_resources()), timeout=60)
-            out[name] = got.get(key)
+            out[name] = assigned_resources(ray.get_actor(name)).get(key)
         return out
     finally:
         ray.shutdown()

@@ -23,7 +23,7 @@ from flatserve.service.settings import Settings
 from flatserve.service.status import ShardUnavailableError
 from flatserve.tiles import TiledTriangulation, hosting
 from flatserve.triangulation import Triangulation
-from tests.harness.raycluster import RayNodes
+from tests.harness.raycluster import RayNodes, assigned_resources
 
 
 @pytest.fixture(scope="module")
@@ -227,14 +227,6 @@ def test_a_lost_tile_is_a_503_and_marks_the_host(host, rng):
     assert host.lost is not None
 
 
-def _assigned(actor) -> dict:
-    """The resources Ray assigned to the actor's process (asked inside it)."""
-    import ray
-
-    return ray.get(actor.__ray_call__.remote(
-        lambda self: ray.get_runtime_context().get_assigned_resources()), timeout=60)
-
-
 def test_on_sqlite_a_tile_stays_on_this_machines_nodes(cluster, rng):
     """Cluster mode on SQLite (no database_url): each tile's actor holds a share of its
     machine's ``node:<address>`` resource (which Ray gives only the nodes of that
@@ -254,7 +246,7 @@ def test_on_sqlite_a_tile_stays_on_this_machines_nodes(cluster, rng):
         actors = [t.actor for t in tt.tiles if t.actor is not None]
         assert len(actors) == 2
         for a in actors:
-            got = _assigned(a)
+            got = assigned_resources(a)
             assert got.get(key) == share, (url, got)
             assert got.get("memory") == 256 << 20, got
 

@@ -224,6 +224,13 @@ def machine_pin(ray, settings) -> dict[str, float]:
     return {f"node:{ray.util.get_node_ip_address()}": PIN_SHARE}
 
 
+def nodes_with(ray, need: dict[str, float]) -> list[dict]:
+    """The live nodes of the cluster (``ray.nodes()``) whose resources, in all, hold
+    ``need`` (an actor asking for it can be placed there once they are free)."""
+    return [n for n in ray.nodes() if n.get("Alive")
+            and all(n.get("Resources", {}).get(r, 0) >= v for r, v in need.items())]
+
+
 def one_machine(ray, settings) -> None:
     """Cluster mode on SQLite: every node of the cluster is on this machine (the
     shard workers read the data directory this server holds, :class:`~.shard.ShardWorker`).
@@ -361,10 +368,7 @@ class RayGroups:
         s = cluster.settings
         self.charts = deal(ncharts, s.ray_shards)
         try:
-            room = [n for n in cluster.ray.nodes() if n.get("Alive")
-                    and n.get("Resources", {}).get("memory", 0) >= s.ray_shard_memory
-                    and all(n.get("Resources", {}).get(r, 0) >= v
-                            for r, v in cluster.pin.items())]
+            room = nodes_with(cluster.ray, {"memory": s.ray_shard_memory, **cluster.pin})
             if self.copies > len(room):
                 log.warning("field %d asks for %d copies of each shard but %d node(s) have room "
                             "for one (ray_shard_memory %d bytes): its shards wait for more nodes",

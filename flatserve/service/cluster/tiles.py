@@ -51,7 +51,7 @@ import numpy as np
 
 from ...tiles import Tile, TileHost
 from ..status import ShardUnavailableError
-from .ray_shards import machine_pin, task_cause
+from .ray_shards import machine_pin, nodes_with, task_cause
 
 log = logging.getLogger("flatserve.service.cluster")
 
@@ -346,13 +346,11 @@ class RayTileHost(TileHost):
     def _fits(self) -> bool:
         """Some live node (with the pin's resources) has ``ray_shard_memory`` of Ray
         memory in all: a tile's actor can be placed there once it is free."""
-        need = {"memory": self.settings.ray_shard_memory, **self.pin}
         try:
-            nodes = self.ray.nodes()
+            return bool(nodes_with(self.ray, {"memory": self.settings.ray_shard_memory,
+                                              **self.pin}))
         except Exception:  # the cluster unreachable: nothing is known to fit
             return False
-        return any(n.get("Alive") and all(n.get("Resources", {}).get(r, 0) >= v
-                                          for r, v in need.items()) for n in nodes)
 
     def auto_tiles(self, nsamples: int) -> int:
         """``tiles="auto"`` on a cluster: one tile per ``ray_tile_samples`` samples (a

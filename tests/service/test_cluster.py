@@ -41,12 +41,12 @@ def sphere_rays(rng, n):
     return rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
 
 
-def fill(c: Client, rng, atlas: str, *, batches: int, rows: int) -> dict:
-    """Create an atlas field ``atlas`` and a one-chart field "one" in 2 tiles (2
-    channels; its shard group holds both tiles, on its node's cores) and upload
-    ``batches`` batches of ``rows`` rays to each, waiting for every other one; the
-    atlas field's create answer."""
-    info = c.create_field(atlas, channels=2)
+def fill(c: Client, rng, atlas: str, *, batches: int, rows: int, copies: int = 1) -> dict:
+    """Create an atlas field ``atlas`` (``copies`` of each shard group) and a one-chart
+    field "one" in 2 tiles (2 channels; its shard group holds both tiles, on its node's
+    cores) and upload ``batches`` batches of ``rows`` rays to each, waiting for every
+    other one; the atlas field's create answer."""
+    info = c.create_field(atlas, channels=2, copies=copies)
     c.create_field("one", channels=2, basis=ONE_CHART, tiles=2)
     for i in range(batches):
         o, d = sphere_rays(rng, rows)
@@ -393,7 +393,7 @@ def test_a_one_machine_cluster_on_sqlite(tmp_path, rng):
                                               **opts))
         a.wait_ready(180)
         with Client(a.url, retries=0, timeout=120) as c:
-            fill(c, rng, "f", batches=3, rows=2000)
+            fill(c, rng, "f", batches=3, rows=2000, copies=2)  # a copy on each node
         assert_same(data, a, "f", probe)
         assert_same(data, a, "one", paper_rays(rng, 1000), weights=True)
         with Client(a.url, retries=0, timeout=120) as c:
@@ -408,13 +408,16 @@ def test_a_one_machine_cluster_on_sqlite(tmp_path, rng):
         assert len(parts) > 2
         heads = [p for p in parts if p.startswith(b"FSFIELD\0") and b'"parts": [' in p[:8192]]
         assert len(heads) == 1, "the field in tiles: one field file naming its tiles' parts"
-        # each shard actor holds a share of this machine's node:<address> resource, so
-        # that a node joining later from elsewhere (no access to this data directory)
-        # is given none (its tiles too: test_cluster_tiles.py)
+        # each shard actor (both copies of f's groups, placed by a placement group's
+        # bundles) holds a share of this machine's node:<address> resource, so that a
+        # node joining later from elsewhere (no access to this data directory) is
+        # given none (its tiles too: test_cluster_tiles.py)
         from flatserve.service.cluster.ray_shards import PIN_SHARE
 
         shares = pinned_shares(nodes.address)
-        assert len(shares) == 3 and set(shares.values()) == {PIN_SHARE}, shares
+        assert len(shares) == 5 and set(shares.values()) == {PIN_SHARE}, shares
+        with Client(a.url, retries=0) as c:
+            assert [g["live"] for g in c.describe("f")["shard_groups"]] == [2, 2]
     # every process gone; a new front and new nodes on the same directory
     with contextlib.ExitStack() as stack:
         nodes = stack.enter_context(RayNodes(workers=1))

@@ -25,7 +25,7 @@ from .basis import Basis
 from .coordinates import NO_SAMPLES, OK, ROUNDTRIP_TOL, reason
 from .embedding import embed
 from .errors import InvalidInputError, SnapshotError
-from .gradient import slopes, taylor_blend
+from .gradient import gradient_chunk, slopes, taylor_blend
 from .options import Interpolant, Order, Outside, choice
 from .flats import Flats, check_batch
 from .tiles import TiledTriangulation, tile_setting
@@ -569,13 +569,23 @@ class Field(FieldBase):
             kept = (held.state, _kd_tree()(points), points, values)
             self._tree = kept
         _, tree, points, values = kept
-        ids, w = loc.ids[inside], loc.weights[inside]
-        used, at = np.unique(ids, return_inverse=True)
-        s = slopes(tree, points, values, used, workers=-1 if threads is None else threads)
-        at = at.reshape(ids.shape)
+        rows = np.flatnonzero(inside)
+        # each row's cell vertices in increasing (global) id: the terms are summed in an
+        # order that does not depend on how a tile or a cluster listed the cell
+        ids, w = loc.ids[rows], loc.weights[rows]
+        o = np.argsort(ids, axis=1, kind="stable")
+        ids, w = np.take_along_axis(ids, o, axis=1), np.take_along_axis(w, o, axis=1)
         out = v.copy()
-        out[inside] = taylor_blend(points[ids], values[ids], s.slope[at], w, xq[inside],
-                                   s.low[at], s.high[at])
+        step = gradient_chunk(self.ndim, values.shape[1])
+        workers = -1 if threads is None else threads
+        for lo in range(0, rows.size, step):  # in chunks: memory bounded whatever the batch
+            ci, cw = ids[lo:lo + step], w[lo:lo + step]
+            used, at = np.unique(ci, return_inverse=True)
+            s = slopes(tree, points, values, used, workers=workers)
+            at = at.reshape(ci.shape)
+            out[rows[lo:lo + step]] = taylor_blend(points[ci], values[ci], s.slope[at], cw,
+                                                   xq[rows[lo:lo + step]], s.low[at],
+                                                   s.high[at])
         return out
 
     def query_rays(self, origins, directions, **kwargs) -> QueryResult:

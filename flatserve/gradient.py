@@ -60,8 +60,8 @@ import numpy as np
 
 from .errors import InvalidInputError
 
-__all__ = ["GRADIENT_NEIGHBOURS", "GRADIENT_RCOND", "Slopes", "neighbours_for", "slopes",
-           "taylor_blend"]
+__all__ = ["GRADIENT_CHUNK_BYTES", "GRADIENT_NEIGHBOURS", "GRADIENT_RCOND", "Slopes",
+           "gradient_chunk", "neighbours_for", "slopes", "taylor_blend"]
 
 #: Nearest samples a slope is fitted to, per chart dimension D: ``3 D + 2``.
 #: Measured (3,000 samples, a smooth function, fitted units, two seeds; error
@@ -74,6 +74,12 @@ GRADIENT_NEIGHBOURS = 3
 #: the largest are dropped: its numerical rank (the limiter, not a cut, bounds
 #: the slopes of thin neighbourhoods).
 GRADIENT_RCOND = 1e-10
+
+#: Working memory of one chunk of a gradient query (:func:`gradient_chunk`): the
+#: slopes and Taylor terms of a query row take about ``(D+1) (K (D+C) + C D)``
+#: floats, 48 KB in 4 dimensions with 64 channels, so a batch is answered in chunks
+#: and its memory stays bounded whatever its rows.
+GRADIENT_CHUNK_BYTES = 32 << 20
 
 
 class Slopes(NamedTuple):
@@ -99,6 +105,21 @@ def neighbours_for(ndim: int, neighbours: int | None = None) -> int:
             f"neighbours: an integer of at least the chart's dimension {ndim} expected, "
             f"got {neighbours!r}", "neighbours")
     return int(neighbours)
+
+
+def gradient_chunk(ndim: int, channels: int, *, neighbours: int | None = None,
+                   budget: int = GRADIENT_CHUNK_BYTES) -> int:
+    """Query rows of one chunk of a gradient query in ``ndim`` dimensions with
+    ``channels`` values: those whose slopes, neighbourhoods and Taylor terms
+    (about three copies of ``(D+1) (K (D+C) + C D)`` floats a row, ``K`` the
+    neighbours, :func:`neighbours_for`) fit in ``budget`` bytes; at least 1.
+
+    >>> gradient_chunk(4, 64)
+    219
+    """
+    K = neighbours_for(ndim, neighbours)
+    per_row = 8 * 3 * (ndim + 1) * (K * (ndim + channels) + channels * ndim + channels)
+    return max(1, int(budget) // per_row)
 
 
 def slopes(tree, points: np.ndarray, values: np.ndarray, ids: np.ndarray, *,
@@ -145,18 +166,23 @@ def slopes(tree, points: np.ndarray, values: np.ndarray, ids: np.ndarray, *,
     dist, nb = dist[:, 1:], nb[:, 1:]  # the sample itself first (distinct points)
     wt = 1.0 / np.maximum(dist, np.finfo(float).tiny)
     dx = (points[nb] - points[ids][:, None, :]) * wt[..., None]   # (m, K, D)
-    df = (values[nb] - own[:, None, :]) * wt[..., None]           # (m, K, C)
-    # batched least squares through the SVD (stable for thin neighbourhoods)
-    u, s, vt = np.linalg.svd(dx, full_matrices=False)             # (m,K,r) (m,r) (m,r,D)
-    cut = s > s[:, :1] * max(rcond, max(K, D) * np.finfo(float).eps)
-    inv = np.where(cut, 1.0 / np.where(cut, s, 1.0), 0.0)
-    coef = np.einsum("mkr,mkc->mrc", u, df) * inv[..., None]      # (m, r, C)
+    with np.errstate(over="ignore", invalid="ignore"):  # values near the float range
+        df = (values[nb] - own[:, None, :]) * wt[..., None]       # (m, K, C)
+        # batched least squares through the SVD (stable for thin neighbourhoods)
+        u, s, vt = np.linalg.svd(dx, full_matrices=False)         # (m,K,r) (m,r) (m,r,D)
+        cut = s > s[:, :1] * max(rcond, max(K, D) * np.finfo(float).eps)
+        inv = np.where(cut, 1.0 / np.where(cut, s, 1.0), 0.0)
+        coef = np.einsum("mkr,mkc->mrc", u, df) * inv[..., None]  # (m, r, C)
+        slope = np.einsum("mrd,mrc->mcd", vt, coef)
     near = values[nb]
     low = np.minimum(own, near.min(axis=1))
     high = np.maximum(own, near.max(axis=1))
-    thin = cut.sum(axis=1) < D  # no slope across the missing directions: the linear term
+    # no slope across the missing directions, nor one that overflowed (values near the
+    # float range): the linear term
+    thin = (cut.sum(axis=1) < D) | ~np.isfinite(slope).all(axis=(1, 2))
     low[thin], high[thin] = np.inf, -np.inf
-    return Slopes(np.einsum("mrd,mrc->mcd", vt, coef), low, high)
+    slope[thin] = 0.0
+    return Slopes(slope, low, high)
 
 
 def taylor_blend(xv: np.ndarray, fv: np.ndarray, gv: np.ndarray, weights: np.ndarray,
@@ -185,8 +211,11 @@ def taylor_blend(xv: np.ndarray, fv: np.ndarray, gv: np.ndarray, weights: np.nda
     -------
     ndarray, shape (q, C)
     """
-    term = fv + np.einsum("qjcd,qjd->qjc", gv, xq[:, None, :] - xv)
+    with np.errstate(over="ignore", invalid="ignore"):
+        term = fv + np.einsum("qjcd,qjd->qjc", gv, xq[:, None, :] - xv)
     if low is not None:
         lin = np.einsum("qj,qjc->qc", weights, fv)[:, None, :]
+        # a term that overflowed (values near the float range) is the linear answer
+        term = np.where(np.isfinite(term), term, lin)
         term = np.clip(term, np.minimum(low, lin), np.maximum(high, lin))
     return np.einsum("qj,qjc->qc", weights, term)

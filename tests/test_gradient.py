@@ -10,7 +10,8 @@ from scipy.spatial import Delaunay
 import flatserve
 from flatserve import Atlas, AtlasField, Basis, Field, Flats
 from flatserve.errors import InvalidInputError
-from flatserve.gradient import neighbours_for, slopes, taylor_blend
+from flatserve.gradient import (GRADIENT_CHUNK_BYTES, gradient_chunk, neighbours_for, slopes,
+                                taylor_blend)
 from tests.test_tiles import _fig11_rays
 
 
@@ -188,10 +189,11 @@ def test_a_tiled_chart_answers_as_the_whole_one():
     got = tiled.query(qf, interpolant="gradient")
     assert ref.inside.mean() > 0.5
     np.testing.assert_array_equal(got.inside, ref.inside)
-    np.testing.assert_allclose(got.values, ref.values, rtol=0, atol=1e-9)
+    # the same bits: the terms are summed in the order of the vertices' ids, not in
+    # the order a tile lists its cell's vertices
+    np.testing.assert_array_equal(got.values, ref.values)
     back = Field.from_bytes(tiled.to_bytes())
-    np.testing.assert_allclose(back.query(qf, interpolant="gradient").values, ref.values,
-                               rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(back.query(qf, interpolant="gradient").values, ref.values)
 
 
 def test_a_field_grown_between_queries_uses_its_new_samples():
@@ -327,3 +329,53 @@ def test_an_insert_waits_for_the_slopes_of_a_query(tiles, monkeypatch):
     want = before.query(qf, interpolant="gradient")
     assert want.inside.mean() > 0.5
     np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-9)
+
+
+def test_values_near_the_float_range_give_finite_answers_inside():
+    """A slope fitted across values near the float range overflows: that vertex keeps
+    the linear term, and the answer stays finite (not a missing value taken for
+    "outside the hull")."""
+    g = np.linspace(-1, 1, 9)
+    P = np.r_[np.stack(np.meshgrid(g, g), -1).reshape(-1, 2), [[1e-8, 0.0]]]
+    V = np.zeros((len(P), 1))
+    V[-1] = 1e300
+    field = _points_field(P, V)
+    q = Flats.from_points(np.array([[0.1, 0.05], [0.1, 0.1], [0.6, 0.6], [-0.3, 0.2]]))
+    with np.errstate(all="raise"):  # and no warning either
+        got = field.query(q, interpolant="gradient")
+    lin = field.query(q)
+    assert got.inside.all() and np.isfinite(got.values).all()
+    assert (got.values >= 0).all() and (got.values <= 1e300).all()
+    np.testing.assert_array_equal(got.values[2:], lin.values[2:])  # far from it: 0
+    V[-1] = -1.7e308  # and with differences that overflow too
+    got = _points_field(P, V).query(q, interpolant="gradient")
+    assert got.inside.all() and np.isfinite(got.values).all()
+
+
+def test_a_large_batch_is_answered_in_chunks_of_bounded_memory(monkeypatch):
+    import tracemalloc
+
+    import flatserve.field as field_module
+
+    rng = np.random.default_rng(11)
+    P = rng.uniform(-1, 1, (400, 3))
+    V = np.sin(P @ rng.normal(size=(3, 64)))  # 64 channels
+    field = _points_field(P, V)
+    X = rng.uniform(-0.9, 0.9, (20_000, 3))
+    q = Flats.from_points(X)
+    field.query(Flats.from_points(X[:10]), interpolant="gradient")  # the k-d tree, built once
+    tracemalloc.start()
+    try:
+        got = field.query(q, interpolant="gradient")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    answer = got.values.nbytes  # 10 MB; unchunked, the slopes took 60 times as much
+    assert got.inside.mean() > 0.9
+    assert peak < 3 * answer + 2 * GRADIENT_CHUNK_BYTES, (peak, answer)
+    assert gradient_chunk(3, 64) < 20_000  # (so it was answered in chunks)
+    # and chunks do not change the bits
+    monkeypatch.setattr(field_module, "gradient_chunk", lambda *a, **k: 7)
+    np.testing.assert_array_equal(field.query(Flats.from_points(X[:2000]),
+                                              interpolant="gradient").values,
+                                  got.values[:2000])

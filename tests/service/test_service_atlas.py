@@ -678,6 +678,8 @@ def test_a_unit_fitted_to_the_first_batch_over_http(make_app, rng, monkeypatch):
         # the geometry's unit
         assert c.create_field("r5", k=1, d=5)["atlas"]["unit_from"] == "data"
         assert c.create_field("r5fit", k=1, d=5, unit="fit")["atlas"]["unit_from"] == "fit"
+        # points: a uniform scale cannot change their cells, a fit only costs time
+        assert c.create_field("p6", k=0, d=6)["atlas"]["unit_from"] == "data"
         r = tc.post("/v1/fields", json={"name": "bad", "k": 1, "d": 3, "unit": "fitted"})
         assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "unit", r.text
         # an atlas for given flats whose unit is fit: its charts checked in the

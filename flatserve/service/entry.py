@@ -21,6 +21,7 @@ from typing import Optional
 from ..atlas import Atlas
 from ..basis import Basis
 from ..contract import SampledField, describe_definition, load_field, new_field
+from ..errors import InvalidInputError
 from ..tiles import tile_setting
 from .catalogue import FieldState
 from .status import FieldNotFoundError, StorageError
@@ -73,10 +74,22 @@ class FieldSpec:
 
     def new_field(self, basis: Basis) -> SampledField:
         """An empty field of this spec (:func:`flatserve.contract.new_field`: one chart
-        over ``basis``, or the spec's atlas, ``basis`` then being its chart 0's)."""
-        return new_field(self.channels, basis=None if self.atlas is not None else basis,
-                         atlas=None if self.atlas is None else Atlas.from_dict(self.atlas),
-                         roundtrip_tol=self.roundtrip_tol, tiles=self.tiles)
+        over ``basis``, or the spec's atlas, ``basis`` then being its chart 0's).
+
+        Raises
+        ------
+        InvalidInputError
+            The atlas or basis charts flats of another kind than ``k``, ``d`` (a
+            definition edited by hand, e.g. in an export's manifest).
+        """
+        field = new_field(self.channels, basis=None if self.atlas is not None else basis,
+                          atlas=None if self.atlas is None else Atlas.from_dict(self.atlas),
+                          roundtrip_tol=self.roundtrip_tol, tiles=self.tiles)
+        if (field.k, field.d) != (self.k, self.d):
+            what = "atlas" if self.atlas is not None else "basis"
+            raise InvalidInputError(f"{what}: charts {field.k}-flats in R^{field.d}, the "
+                                    f"field is defined for {self.k}-flats in R^{self.d}", what)
+        return field
 
     @staticmethod
     def load_field(path, parts=None) -> SampledField:

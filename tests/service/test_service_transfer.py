@@ -158,12 +158,16 @@ def test_a_body_that_is_not_an_export_is_a_4xx_naming_what(deployments, rng):
     a.create_field("f", channels=2, basis=ONE_CHART)
     _fill(a, "f", rng)
     good = a.export_field("f")
+    a.create_field("planes", k=2, d=4, channels=2)  # an atlas of 74 charts
 
     def rows(m, arrays):
         m["batches"][0]["rows"] += 1
 
     def spec(m, arrays):
         m["spec"]["channels"] = 1000
+
+    def kind(m, arrays):  # the atlas still charts planes
+        m["spec"]["k"] = 1
 
     def fmt(m, arrays):
         m["format"] = 99
@@ -176,6 +180,8 @@ def test_a_body_that_is_not_an_export_is_a_4xx_naming_what(deployments, rng):
         "rows": (_with_manifest(good, rows), 422, "rays_origins"),
         "spec": (_with_manifest(good, spec), 422, "definition cannot be read"),
         "format": (_with_manifest(good, fmt), 422, "format 99"),
+        "kind": (_with_manifest(a.export_field("planes"), kind), 422,
+                 "atlas: charts 2-flats in R^4, the field is defined for 1-flats in R^4"),
         "values": (_with_manifest(good, values), 422, "values: expected"),
         "not a zip": (b"hello, world", 422, "not a valid .npz"),
         "empty": (b"", 422, "empty body"),

@@ -30,7 +30,9 @@ def columns_to_buffer(cols: list[np.ndarray]) -> memoryview:
     """``.npy`` bytes of the array ``[c0 | c1 | ...]`` (columns side by side, each
     (n,) or (n, w); float32 if they all fit, else float64), written straight into
     one buffer: no concatenated copy and no second copy for the header."""
-    cols = [c.reshape(c.shape[0], -1) if c.ndim != 1 else c[:, None] for c in cols]
+    # (widths from the shapes, not -1: zero rows have a width too)
+    cols = [c.reshape(c.shape[0], math.prod(c.shape[1:])) if c.ndim != 1 else c[:, None]
+            for c in cols]
     n = cols[0].shape[0]
     width = sum(c.shape[1] for c in cols)
     dt = np.dtype(np.result_type(np.float32, *cols))

@@ -334,10 +334,13 @@ class Atlas:
         self.frames = N if use_normals(k, d) else A
         if isometric is None:
             isometric = (k, d) == (1, 3)
-        if not isinstance(isometric, (bool, np.bool_)) or (isometric and k < 1):
-            raise InvalidInputError(f"isometric: expected true or false (charts of flats with "
-                                    f"k >= 1), got {isometric!r} for {k}-flats in R^{d}",
+        if not isinstance(isometric, (bool, np.bool_)):
+            raise InvalidInputError(f"isometric: expected true or false, got {isometric!r}",
                                     "isometric")
+        if isometric and k < 1:
+            raise InvalidInputError(f"isometric: only charts of flats with k >= 1 are warped; "
+                                    f"a chart of points in R^{d} is isometric already (leave "
+                                    f"it out or false)", "isometric")
         self.isometric = bool(isometric)
         self._warps: list | None = None  # calibrated on first use (warps)
         self.bases = []

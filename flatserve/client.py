@@ -410,7 +410,7 @@ class Client:
             values = values[:, None]
         key = idempotency_key or uuid.uuid4().hex
         n = values.shape[0]
-        rows = n
+        rows = max(n, 1)  # (zero rows: one request, which the service refuses, 422)
         if n:
             width = values.shape[1] + sum(math.prod(a.shape[1:]) for a in arrays.values())
             if progress and batch_rows is None:

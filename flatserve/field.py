@@ -29,7 +29,7 @@ from .gradient import gradient_chunk, slopes, taylor_blend
 from .options import Interpolant, Order, Outside, choice
 from .flats import Flats, check_batch
 from .tiles import TiledTriangulation, tile_setting
-from .triangulation import Triangulation
+from .triangulation import MAX_NDIM, Triangulation
 from .warp import FlatWarp, LineWarp, warp_from_dict
 
 __all__ = ["FIELD_MAGIC", "Field", "AddResult", "Chart", "PreparedBatch", "QueryResult", "QueryRoute"]
@@ -297,6 +297,11 @@ class Field(FieldBase):
         #: tiles of the chart's triangulation (1: one triangulation; "auto": as many as
         #: :func:`flatserve.tiles.auto_tiles` gives, ``triangulation.ntiles`` now)
         self.tiles: int | str = tile_setting(tiles)
+        if not 2 <= basis.m - 1 <= MAX_NDIM:  # (the triangulation's bounds, said in k, d)
+            raise InvalidInputError(
+                f"d: {self.k}-flats in R^{self.d} make {basis.m - 1}-dimensional charts; a "
+                f"field's triangulation needs 2 to {MAX_NDIM} dimensions (basis_size(k, d) - 1)",
+                "d")
         self._tri = (Triangulation(basis.m - 1) if self.tiles == 1
                      else TiledTriangulation(basis.m - 1, self.tiles))
         self._nrejected = 0

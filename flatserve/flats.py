@@ -887,7 +887,8 @@ class Flats:
         for name, shape in shapes.items():
             x = arrays.get(name)
             if x is None:
-                raise InvalidInputError(_join(prefix, f"{name}: missing (form {form!r} needs "
+                said = getattr(form, "value", form)  # (a Form member: its value)
+                raise InvalidInputError(_join(prefix, f"{name}: missing (form {said!r} needs "
                                         f"{list(shapes)})"), _join(prefix, name))
             if isinstance(x, list) and not x and min_rows:  # [] has no shape to check
                 raise InvalidInputError(_join(prefix, f"{name}: expected at least one row, got 0"),

@@ -121,6 +121,11 @@ def test_bad_input_names_the_argument(basis):
         field.query_rays(bad, dirs)
     with pytest.raises(ValueError, match="channels"):
         Field(basis, channels=0)
+    # points on a line: 1-dimensional charts, which no triangulation here takes; said
+    # in the field's k, d (not the triangulation's ndim)
+    with pytest.raises(ValueError, match=r"d: 0-flats in R\^1 make 1-dimensional charts") as e:
+        Field(Basis.tangent_simplex(np.eye(1), np.zeros(1), 0), channels=1)
+    assert e.value.argument == "d"
 
 
 def test_deferred_prepare_validates_now_and_charts_later(basis):

@@ -113,6 +113,13 @@ def test_camera_rejects_bad_parameters():
         assert e.value.argument == arg
     with pytest.raises(InvalidInputError):
         paper_samples(0, np.random.default_rng(0))
+    # an eye or target so far out that the view direction overflows is named, not up
+    for kwargs, arg in [({"eye": [1e308, 0, 0]}, "eye"),
+                        ({"eye": [3, 0, 0], "target": [0, -1e200, 0]}, "target"),
+                        ({"eye": [0, 3, 0]}, "up")]:
+        with pytest.raises(InvalidInputError) as e:
+            Camera.look_at(**kwargs)
+        assert e.value.argument == arg
 
 
 def test_psnr_of_perfect_and_noisy_reconstructions():

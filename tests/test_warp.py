@@ -169,9 +169,11 @@ def test_a_warped_field_file_round_trips():
 def test_which_charts_take_which_warp():
     a = Atlas.covering(2, 4)
     # points have no warp; lines a LineWarp, other flats a FlatWarp
-    with pytest.raises(InvalidInputError, match="isometric: expected"):
+    with pytest.raises(InvalidInputError, match="isometric: only charts of flats with k >= 1"):
         Atlas(0, 3, np.zeros((1, 3, 0)), np.eye(3)[None], np.zeros((1, 3)), [1.0],
               isometric=True)
+    with pytest.raises(InvalidInputError, match="isometric: expected true or false, got 'yes'"):
+        Atlas(2, 4, a.center_A, a.center_N, a.center_r, a.scales, isometric="yes")
     assert isinstance(Atlas(2, 4, a.center_A, a.center_N, a.center_r, a.scales,
                             isometric=True).warps[0], FlatWarp)
     # lines in R^4 may be (opt in: below), R^3's are by default

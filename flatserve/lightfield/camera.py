@@ -20,6 +20,7 @@ import numpy as np
 
 from .._validate import as_array
 from ..errors import InvalidInputError
+from ..flats import MAX_ENTRY
 
 __all__ = [
     "Camera",
@@ -256,8 +257,10 @@ class Camera:
     @classmethod
     def look_at(cls, eye, target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), **kwargs) -> "Camera":
         """Camera at ``eye`` looking at ``target`` with image up near ``up``."""
-        eye = as_array(eye, "eye", (3,))
-        fwd = as_array(target, "target", (3,)) - eye
+        # (bounded like a flat's entries: a view direction that overflows would be
+        # taken for one parallel to ``up``)
+        eye = as_array(eye, "eye", (3,), max_abs=MAX_ENTRY)
+        fwd = as_array(target, "target", (3,), max_abs=MAX_ENTRY) - eye
         if not np.linalg.norm(fwd) > 0:
             raise InvalidInputError("target: must differ from eye", "target")
         fwd /= np.linalg.norm(fwd)

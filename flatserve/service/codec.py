@@ -137,6 +137,8 @@ def load_json(body: bytes) -> dict:
 
 
 _BOOLEAN = re.compile(rb"\b(true|false)\b")
+#: a member's name in a JSON body (``"points":``)
+_MEMBER = re.compile(rb'"(\w+)"\s*:')
 
 
 def check_json_size(body: bytes, limit: int) -> None:
@@ -184,8 +186,10 @@ def _check_json_members(raw: dict, body: bytes, *, upload: bool) -> None:
             raw[name] = _json_array(x, name)
     # no member of a batch is a boolean: one is in an array (a quick scan first)
     m = _BOOLEAN.search(body) if b"true" in body or b"false" in body else None
-    if m is not None:
-        raise InvalidInputError(f"body: {m.group(0).decode()} is not a number", "body")
+    if m is not None:  # in the member whose name comes last before it (arrays hold no strings)
+        keys = _MEMBER.findall(body, 0, m.start())
+        name = keys[-1].decode() if keys and keys[-1].decode() in raw else "body"
+        raise InvalidInputError(f"{name}: {m.group(0).decode()} is not a number", name)
 
 
 def _rows(raw: dict, form: str) -> int:
@@ -203,8 +207,9 @@ def split_columns(arr: np.ndarray, form: str, k: int, d: int, channels: int | No
         cols = " | ".join(f"{n} ({w})" for n, w in widths.items())
         if channels:
             cols += f" | values ({channels})"
+        said = getattr(form, "value", form)
         raise InvalidInputError(
-            f"body: form {form!r} needs a 2-D .npy of shape (n, {want}) = {cols}; got {arr.shape}",
+            f"body: form {said!r} needs a 2-D .npy of shape (n, {want}) = {cols}; got {arr.shape}",
             "body",
         )
     out, col = {}, 0

@@ -40,7 +40,7 @@ from .catalogue import FieldCatalogue
 from .entry import FieldEntry
 from .replica import Follower
 from .settings import Settings
-from .status import FieldNotFoundError, NotReadyError
+from .status import FieldNotFoundError, InvalidParameterError, NotReadyError
 
 #: queries with fewer rows run inline on the event loop (about 0.1-0.3 ms of CPU)
 INLINE_ROWS = 64
@@ -150,11 +150,12 @@ class QueryService:
         if e.deleted:
             raise FieldNotFoundError(f"no field named {e.name!r}")
         if weights and e.field.blends:
-            raise InvalidInputError(
-                f"weights: field {e.name!r} is an atlas field: its answers blend several "
-                "charts, whose sample ids and weights the service does not return; a field "
-                "created with basis {\"kind\": \"tangent_simplex\"} (one chart) returns them",
-                "weights")
+            n = len(e.field.shards)
+            raise InvalidParameterError(
+                f"weights: field {e.name!r} is an atlas field ({n} chart{'s' * (n != 1)}): "
+                "its answers are blends over its charts, whose sample ids and weights the "
+                "service does not return; a field created with basis {\"kind\": "
+                "\"tangent_simplex\"} (no atlas) returns them", "weights")
 
     def _counted(self, e: FieldEntry, res: QueryResult | None) -> QueryResult | None:
         if res is not None and self.metrics is not None:

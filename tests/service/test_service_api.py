@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 from flatserve import flats
 from flatserve.atlas import Atlas
 from flatserve.atlas_field import AtlasField
-from flatserve.client import Client
+from flatserve.client import Client, ServiceError
 from flatserve.coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK
 from flatserve.field import Field
 from flatserve.service.status import FieldExistsError as ConflictError
@@ -238,6 +238,10 @@ def test_idempotency_key(api, rng):
     (b'{"origins": [[0,0,0]], "directions": [[0,0,1]], "values": [["x"]]}', "application/json", 422,
      "values"),
     (b'{"A": [[0,0,0]]}', "application/json", 422, "A"),
+    (b'{"origins": [[0,0,0]], "directions": [[true,0,1]], "values": [[1]]}',
+     "application/json", 422, "directions"),
+    (b'{"origins": [[0,0,0]], "directions": [[0,0,1]], "values": [[false]]}',
+     "application/json", 422, "values"),
     (b"not json", "application/json", 422, "body"),
     (b"[1, 2]", "application/json", 422, "body"),
     (b"\x93NUMPY garbage", "application/x-npy", 422, "body"),
@@ -562,6 +566,13 @@ def test_zero_row_batches_are_422_in_every_encoding(api, encoding, path):
                     headers={"Content-Type": "application/x-npz"})
     assert r.status_code == 422, r.text
     assert r.json()["detail"][0]["loc"][-1] == "origins" and "at least one row" in r.text
+    if encoding == "npy":  # the client sends zero rows as they are: the same 422
+        with pytest.raises(ServiceError) as err:
+            if up:
+                c.upload_rays("f", z, z, np.zeros((0, 1)))
+            else:
+                c.query_rays("f", z, z)
+        assert err.value.status == 422 and "at least one row" in str(err.value)
     assert c.describe("f")["storage"]["batches"] == 0
 
 

@@ -1047,7 +1047,7 @@ class Atlas:
                     inner=spec["inner"], trusted=spec["trusted"], reach=spec["reach"],
                     unit=(spec.get("unit_rule", "data") if spec.get("unit_from_data")
                           else spec.get("unit", DEFAULT_UNIT)),
-                    isometric=cls.spec_isometric(spec), relative=bool(spec.get("relative", False)))
+                    isometric=cls.spec_isometric(spec), relative=spec.get("relative", False))
         if atlas.isometric and "warps" in spec:
             warps = [warp_from_dict(w) for w in spec["warps"]]
             if len(warps) != atlas.ncharts:

@@ -169,16 +169,22 @@ def _json_array(x: list, name: str) -> np.ndarray:
     return a
 
 
+def _check_members(names, *, upload: bool, json: bool) -> None:
+    """A batch holds a form's arrays (and ``values`` for uploads; in JSON also
+    ``form``), nothing else: a misspelt or foreign member is refused, not ignored."""
+    arrays = {n for names_ in FORMS.values() for n in names_} | ({"values"} if upload else set())
+    allowed = arrays | ({"form"} if json else set())
+    for name in names:
+        if name not in allowed:
+            raise InvalidInputError(f"{name}: unknown member; a batch has "
+                                    + ("form, " if json else "")
+                                    + ", ".join(sorted(arrays)), name)
+
+
 def _check_json_members(raw: dict, body: bytes, *, upload: bool) -> None:
     """A JSON batch holds ``form``, one form's arrays (and ``values`` for uploads),
     nothing else; arrays hold numbers only (no strings, no booleans)."""
-    allowed = {"form", *(n for names in FORMS.values() for n in names)}
-    if upload:
-        allowed.add("values")
-    for name in raw:
-        if name not in allowed:
-            raise InvalidInputError(f"{name}: unknown member; a batch has form, "
-                                    + ", ".join(sorted(allowed - {"form"})), name)
+    _check_members(raw, upload=upload, json=True)
     if raw.get("form") is not None and not isinstance(raw["form"], str):
         raise InvalidInputError("form: expected a string", "form")
     for name, x in raw.items():
@@ -265,6 +271,7 @@ def decode(body: bytes, content_type: str | None, form: str | None, *, k: int, d
         extra = raw
     elif kind == "npz":
         raw = load_npz(body, max_bytes=max_bytes, max_rows=max_rows)
+        _check_members(raw, upload=channels is not None, json=False)
     else:
         if form is None:
             form = {1: "rays", 0: "points"}.get(k)

@@ -288,7 +288,11 @@ class FieldCreate(_KD):
         None, description="Default: a covering atlas (`{\"kind\": \"atlas\"}`: every "
                           "orientation accepted). `{\"kind\": \"tangent_simplex\"}` or "
                           "explicit flats: one chart (the paper's set-up).")
-    roundtrip_tol: Optional[float] = Field(None, gt=0, le=1.0, allow_inf_nan=False)
+    roundtrip_tol: Optional[float] = Field(
+        None, ge=1e-12, le=1.0, allow_inf_nan=False,
+        description="Largest residual of a flat's coordinates' round trip for it to be "
+                    "accepted (default 1e-6); below 1e-12 rounding alone would refuse "
+                    "flats.")
     unit: Union[Annotated[float, Field(ge=1e-6, le=1e6, allow_inf_nan=False)],
                 Literal["data", "fit"], None] = Field(
         None,

@@ -546,6 +546,30 @@ def test_npz_arrays_of_non_real_dtype_are_422(api, rng):
     assert r.status_code == 422 and "origins" in r.text
 
 
+def test_a_roundtrip_tol_rounding_alone_would_fail_is_422(api):
+    tc, c = api
+    for tol in (1e-300, 1e-13, 0.0):
+        r = tc.post("/v1/fields", json={"name": "t", "roundtrip_tol": tol})
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "roundtrip_tol"
+    assert c.create_field("t", roundtrip_tol=1e-12)["name"] == "t"
+
+
+@pytest.mark.parametrize("path", ["samples", "query"])
+def test_npz_members_no_form_has_are_422_naming_them(api, rng, path):
+    """As in JSON: a misspelt or foreign array is refused, not ignored."""
+    tc, c = api
+    c.create_field("f", channels=1)
+    o, v = rng.normal(size=(4, 3)), rng.normal(size=(4, 3))
+    extra = {"values": np.zeros((4, 1))} if path == "samples" else {}
+    for bad in ("value", "weights"):
+        r = tc.post(f"/v1/fields/f/{path}", content=npz(origins=o, directions=v, **extra,
+                                                         **{bad: np.zeros((4, 1))}),
+                    headers={"Content-Type": "application/x-npz"})
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == bad, r.text
+        assert "unknown member" in r.text
+    assert c.describe("f")["storage"]["batches"] == 0
+
+
 @pytest.mark.parametrize("encoding", ["json", "npy", "npz"])
 @pytest.mark.parametrize("path", ["samples", "query"])
 def test_zero_row_batches_are_422_in_every_encoding(api, encoding, path):

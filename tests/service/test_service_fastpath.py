@@ -52,7 +52,7 @@ def test_same_answers_as_the_route(served, rng, n, params):
     if status == 200:
         assert "query;dur=" in fast.headers["server-timing"]
     else:
-        assert fast.json()["detail"][0]["loc"] == ["body", "weights"]
+        assert fast.json()["detail"][0]["loc"] == ["query", "weights"]
     hdr = {"Content-Type": "application/x-npy", "Accept": "application/x-npy"}
     fast = tc.post(url, params=params, content=_npy(np.c_[o, v]), headers=hdr)
     slow = tc.post(url, params={**params, **ROUTE}, content=_npy(np.c_[o, v]), headers=hdr)

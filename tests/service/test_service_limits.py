@@ -96,8 +96,8 @@ def test_repeated_key_headers_are_refused(make_app):
     ({"origins": [[0, 0, -3]], "directions": [[0, 0, 1]], "Q": [np.eye(3).tolist()]}, "body"),
     ({"origins": [[0, 0, -3]], "directions": [[0, 0, 1]], "extra": 1}, "extra"),
     ({"origins": [["0", 0, -3]], "directions": [[0, 0, 1]]}, "origins"),
-    ({"origins": [[True, 0, -3]], "directions": [[0, 0, 1]]}, "body"),
-    ({"origins": [[0.5, 0, -3]], "directions": [[0, False, 1]]}, "body"),
+    ({"origins": [[True, 0, -3]], "directions": [[0, 0, 1]]}, "origins"),
+    ({"origins": [[0.5, 0, -3]], "directions": [[0, False, 1]]}, "directions"),
 ])
 def test_ambiguous_json_bodies_are_422(api, body, member):
     tc, c = api

@@ -169,6 +169,9 @@ def test_a_body_that_is_not_an_export_is_a_4xx_naming_what(deployments, rng):
     def kind(m, arrays):  # the atlas still charts planes
         m["spec"]["k"] = 1
 
+    def relative(m, arrays):  # a flag that is not one
+        m["spec"]["atlas"]["relative"] = "yes"
+
     def fmt(m, arrays):
         m["format"] = 99
 
@@ -182,6 +185,8 @@ def test_a_body_that_is_not_an_export_is_a_4xx_naming_what(deployments, rng):
         "format": (_with_manifest(good, fmt), 422, "format 99"),
         "kind": (_with_manifest(a.export_field("planes"), kind), 422,
                  "atlas: charts 2-flats in R^4, the field is defined for 1-flats in R^4"),
+        "relative": (_with_manifest(a.export_field("planes"), relative), 422,
+                     "relative: expected true or false, got 'yes'"),
         "values": (_with_manifest(good, values), 422, "values: expected"),
         "not a zip": (b"hello, world", 422, "not a valid .npz"),
         "empty": (b"", 422, "empty body"),

@@ -580,17 +580,25 @@ class Field(FieldBase):
         ids, w = loc.ids[rows], loc.weights[rows]
         o = np.argsort(ids, axis=1, kind="stable")
         ids, w = np.take_along_axis(ids, o, axis=1), np.take_along_axis(w, o, axis=1)
-        out = v.copy()
+        used, at = np.unique(ids, return_inverse=True)
+        at = at.reshape(ids.shape)
+        # each vertex's slope once per batch; the fits in chunks of vertices and the
+        # terms in chunks of rows, so memory grows with the vertices' slopes, not with
+        # the batch's rows x (D+1) x C x D (GRADIENT_CHUNK_BYTES)
         step = gradient_chunk(self.ndim, values.shape[1])
+        vstep = step * (self.ndim + 1)
         workers = -1 if threads is None else threads
-        for lo in range(0, rows.size, step):  # in chunks: memory bounded whatever the batch
-            ci, cw = ids[lo:lo + step], w[lo:lo + step]
-            used, at = np.unique(ci, return_inverse=True)
-            s = slopes(tree, points, values, used, workers=workers)
-            at = at.reshape(ci.shape)
-            out[rows[lo:lo + step]] = taylor_blend(points[ci], values[ci], s.slope[at], cw,
-                                                   xq[rows[lo:lo + step]], s.low[at],
-                                                   s.high[at])
+        fits = [slopes(tree, points, values, used[i:i + vstep], workers=workers)
+                for i in range(0, used.size, vstep)]
+        slope = np.concatenate([f.slope for f in fits])
+        low = np.concatenate([f.low for f in fits])
+        high = np.concatenate([f.high for f in fits])
+        out = v.copy()
+        for lo in range(0, rows.size, step):
+            part = slice(lo, lo + step)
+            ci, ca = ids[part], at[part]
+            out[rows[part]] = taylor_blend(points[ci], values[ci], slope[ca], w[part],
+                                           xq[rows[part]], low[ca], high[ca])
         return out
 
     def query_rays(self, origins, directions, **kwargs) -> QueryResult:

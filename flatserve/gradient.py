@@ -152,9 +152,11 @@ def slopes(tree, points: np.ndarray, values: np.ndarray, ids: np.ndarray, *,
     -------
     Slopes
         ``slope`` minimising ``sum_j ((f_j - f_i) - g . (x_j - x_i))^2 / |x_j -
-        x_i|^2`` over the neighbours ``j`` of sample ``i`` (a rank-deficient
-        neighbourhood gives the least-norm slope), and the range of ``f_i``
-        and the ``f_j`` (empty where the neighbourhood is rank-deficient).
+        x_i|^2`` over the neighbours ``j`` of sample ``i``, and the range of
+        ``f_i`` and the ``f_j``. Where the neighbourhood is rank-deficient
+        (every channel), or a channel's slope overflows (values near the float
+        range), the slope is 0 and the range empty: :func:`taylor_blend` then
+        keeps the linear answer.
     """
     n, D = points.shape
     m = len(ids)
@@ -177,11 +179,14 @@ def slopes(tree, points: np.ndarray, values: np.ndarray, ids: np.ndarray, *,
     near = values[nb]
     low = np.minimum(own, near.min(axis=1))
     high = np.maximum(own, near.max(axis=1))
-    # no slope across the missing directions, nor one that overflowed (values near the
-    # float range): the linear term
-    thin = (cut.sum(axis=1) < D) | ~np.isfinite(slope).all(axis=(1, 2))
+    # no slope across the missing directions: the linear term in every channel; nor in
+    # a channel whose slope overflowed (values near the float range)
+    thin = cut.sum(axis=1) < D
     low[thin], high[thin] = np.inf, -np.inf
     slope[thin] = 0.0
+    bad = ~np.isfinite(slope).all(axis=2)  # (m, C)
+    low[bad], high[bad] = np.inf, -np.inf
+    slope[bad] = 0.0
     return Slopes(slope, low, high)
 
 
@@ -211,11 +216,13 @@ def taylor_blend(xv: np.ndarray, fv: np.ndarray, gv: np.ndarray, weights: np.nda
     -------
     ndarray, shape (q, C)
     """
+    if low is None:  # not limited: an overflow shows
+        return np.einsum("qj,qjc->qc", weights,
+                         fv + np.einsum("qjcd,qjd->qjc", gv, xq[:, None, :] - xv))
     with np.errstate(over="ignore", invalid="ignore"):
         term = fv + np.einsum("qjcd,qjd->qjc", gv, xq[:, None, :] - xv)
-    if low is not None:
-        lin = np.einsum("qj,qjc->qc", weights, fv)[:, None, :]
-        # a term that overflowed (values near the float range) is the linear answer
-        term = np.where(np.isfinite(term), term, lin)
-        term = np.clip(term, np.minimum(low, lin), np.maximum(high, lin))
+    lin = np.einsum("qj,qjc->qc", weights, fv)[:, None, :]
+    # a term that overflowed (values near the float range) is the linear answer
+    term = np.where(np.isfinite(term), term, lin)
+    term = np.clip(term, np.minimum(low, lin), np.maximum(high, lin))
     return np.einsum("qj,qjc->qc", weights, term)

@@ -84,9 +84,12 @@ def test_slopes_of_affine_values_are_exact_in_every_channel():
         assert s.slope.shape == (30, 3, D) and s.low.shape == s.high.shape == (30, 3)
         np.testing.assert_allclose(s.slope, np.broadcast_to(M.T, s.slope.shape), atol=1e-9)
         assert (s.low <= V[ids]).all() and (V[ids] <= s.high).all()
-        # too few samples for a slope: the least-norm one, finite
+        # few samples: finite slopes; where they do not span D directions, none (0)
+        # and an empty range (the linear term)
         s = slopes(cKDTree(X[:3]), X[:3], V[:3], np.arange(3))
         assert np.isfinite(s.slope).all()
+        if D > 2:
+            assert (s.slope == 0).all() and (s.low > s.high).all()
 
 
 def test_taylor_blend_with_exact_slopes_is_exact_for_affine_values():
@@ -350,6 +353,13 @@ def test_values_near_the_float_range_give_finite_answers_inside():
     V[-1] = -1.7e308  # and with differences that overflow too
     got = _points_field(P, V).query(q, interpolant="gradient")
     assert got.inside.all() and np.isfinite(got.values).all()
+    # a channel that overflows keeps its slopes out of the others': a smooth second
+    # channel is answered as it is alone
+    W = np.c_[V[:, 0], np.sin(2 * P[:, 0]) + P[:, 1]]
+    both = _points_field(P, W).query(q, interpolant="gradient").values
+    alone = _points_field(P, W[:, 1:]).query(q, interpolant="gradient").values
+    np.testing.assert_allclose(both[:, 1], alone[:, 0], rtol=1e-12, atol=0)
+    assert np.abs(alone - _points_field(P, W[:, 1:]).query(q).values).max() > 1e-6
 
 
 def test_a_large_batch_is_answered_in_chunks_of_bounded_memory(monkeypatch):

@@ -289,10 +289,10 @@ class FieldCreate(_KD):
                           "orientation accepted). `{\"kind\": \"tangent_simplex\"}` or "
                           "explicit flats: one chart (the paper's set-up).")
     roundtrip_tol: Optional[float] = Field(
-        None, ge=1e-12, le=1.0, allow_inf_nan=False,
+        None, ge=1e-15, le=1.0, allow_inf_nan=False,
         description="Largest residual of a flat's coordinates' round trip for it to be "
-                    "accepted (default 1e-6); below 1e-12 rounding alone would refuse "
-                    "flats.")
+                    "accepted (default 1e-6; at least 1e-15: the residuals of rounding "
+                    "alone are about 1e-14).")
     unit: Union[Annotated[float, Field(ge=1e-6, le=1e6, allow_inf_nan=False)],
                 Literal["data", "fit"], None] = Field(
         None,
@@ -302,7 +302,7 @@ class FieldCreate(_KD):
                     "centre shifts and turns are then weighed alike). For rays of an object: "
                     "about its half-size (rays meeting on its surface at depth z from its "
                     "centre differ by a shift of z times their turn). `\"fit\"` (the default "
-                    "up to R^4: a chart of at most 6 dimensions): chosen from the field's "
+                    "up to R^4, a chart of at most 6 dimensions, but for points): chosen from the field's "
                     "first batch of samples and stored with it, by held-out validation on "
                     "its values among multiples of the geometry's unit (1/4 to 8, and "
                     "beyond an end; of the units within 5 % of the least error, the one "

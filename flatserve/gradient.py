@@ -54,6 +54,7 @@ True
 """
 from __future__ import annotations
 
+import contextlib
 from typing import NamedTuple
 
 import numpy as np
@@ -179,12 +180,9 @@ def slopes(tree, points: np.ndarray, values: np.ndarray, ids: np.ndarray, *,
     near = values[nb]
     low = np.minimum(own, near.min(axis=1))
     high = np.maximum(own, near.max(axis=1))
-    # no slope across the missing directions: the linear term in every channel; nor in
-    # a channel whose slope overflowed (values near the float range)
-    thin = cut.sum(axis=1) < D
-    low[thin], high[thin] = np.inf, -np.inf
-    slope[thin] = 0.0
-    bad = ~np.isfinite(slope).all(axis=2)  # (m, C)
+    # no slope across the missing directions (every channel), nor in a channel whose
+    # slope overflowed (values near the float range): the linear term
+    bad = (cut.sum(axis=1) < D)[:, None] | ~np.isfinite(slope).all(axis=2)  # (m, C)
     low[bad], high[bad] = np.inf, -np.inf
     slope[bad] = 0.0
     return Slopes(slope, low, high)
@@ -216,13 +214,12 @@ def taylor_blend(xv: np.ndarray, fv: np.ndarray, gv: np.ndarray, weights: np.nda
     -------
     ndarray, shape (q, C)
     """
-    if low is None:  # not limited: an overflow shows
-        return np.einsum("qj,qjc->qc", weights,
-                         fv + np.einsum("qjcd,qjd->qjc", gv, xq[:, None, :] - xv))
-    with np.errstate(over="ignore", invalid="ignore"):
+    limited = low is not None  # (not limited: an overflow shows)
+    with np.errstate(over="ignore", invalid="ignore") if limited else contextlib.nullcontext():
         term = fv + np.einsum("qjcd,qjd->qjc", gv, xq[:, None, :] - xv)
-    lin = np.einsum("qj,qjc->qc", weights, fv)[:, None, :]
-    # a term that overflowed (values near the float range) is the linear answer
-    term = np.where(np.isfinite(term), term, lin)
-    term = np.clip(term, np.minimum(low, lin), np.maximum(high, lin))
+    if limited:
+        lin = np.einsum("qj,qjc->qc", weights, fv)[:, None, :]
+        # a term that overflowed (values near the float range) is the linear answer
+        term = np.where(np.isfinite(term), term, lin)
+        term = np.clip(term, np.minimum(low, lin), np.maximum(high, lin))
     return np.einsum("qj,qjc->qc", weights, term)

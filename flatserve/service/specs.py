@@ -188,7 +188,8 @@ def build_chart_basis(req, *, max_atlas_samples: int | None = None
 def atlas_unit(given: float | str | None, k: int, d: int) -> float | str | None:
     """The library's ``Atlas(unit=...)`` for a create request's ``unit``: a length as
     given; left out, :func:`flatserve.atlas_field.default_unit_rule` of the kind
-    (``"fit"`` up to R^4, but for points); ``"data"``: None (:func:`flatserve.atlas.data_unit`)."""
+    (``"fit"`` up to R^4, but for points); ``"data"``: None
+    (:func:`flatserve.atlas.data_unit`)."""
     if given is None:
         given = default_unit_rule(k, d)
     return None if given == "data" else given

@@ -33,9 +33,26 @@ answers it.  Covering atlases are relative from R^4 on
 (:data:`RELATIVE_FROM_D`).  A chart then holds its Voronoi region of the
 orientations and a seam around it, not a ball as wide as the covering radius
 plus margins: a sample of lines or hyperplanes in R^4 is stored about 2.4
-times instead of 4.1, of planes in R^4 3.7 times instead of 7.3
-(``docs/costs.md``), and each query is answered near its charts' centres;
+times instead of 4.1, of planes in R^4 3.8 times instead of 7.3 (less with a
+dense seam, below; ``docs/costs.md``), and each query is answered near its
+charts' centres;
 1 % of random queries fall outside the samples' hulls where balls answer all.
+
+A relative atlas may also narrow its seam as its charts fill (``dense_reach``,
+``dense_after``): a chart that holds ``dense_after`` samples as their nearest
+chart (its *own* samples) stores the flats that come later only up to
+``dense_reach`` (< ``reach``) degrees beyond their nearest centre's angle. A
+sparse chart needs the wide seam (in 6 dimensions about 100 samples of a chart
+leave much of its share outside their hull unless it holds many of its
+neighbours' samples too); a dense one does not, and the samples it stored
+while sparse keep its hull wide. Which charts store a flat then depends on
+the field's samples before its batch (each chart's own count at the batch's
+start, whatever its slices), so a field's log, replayed in order, stores every
+sample where it was stored first. The default for planes in R^4
+(:data:`DENSE_COVERS`): 59 charts, 9 degrees after 25 own samples: 2.96 copies
+and 98 % of random queries answered at 3,000 samples, 2.49 copies and 100 % at
+12,000, about 2.3 for large fields, where the 74 charts of the plain relative
+atlas store 3.76 at any size (``docs/costs.md``).
 
 Coverage is a question of orientation only (offsets do not matter: the chart
 is equivariant under translations), so a *covering* atlas
@@ -153,11 +170,23 @@ RELATIVE_BLOCK = 16_384
 RELATIVE_RADII = (2.0, 6.0, 14.0)
 #: Covering atlases are relative by default from this dimension of the space on:
 #: in R^4 a sample of lines or hyperplanes is stored about 2.4 times instead of 4.1,
-#: of planes 3.7 instead of 7.3, built 2-4 times faster, at about the same median
+#: of planes 3.8 instead of 7.3 (2.4-2.9 with :data:`DENSE_COVERS`), built 2-4 times faster, at about the same median
 #: error on the queries both answer (``docs/costs.md``), where about 1 % of random
 #: queries fall outside the samples' hulls (balls: none); in R^3 they store more
 #: (1.96 against 1.75) for the same error.
 RELATIVE_FROM_D = 4
+#: Relative covering atlases that narrow their seam once their charts fill
+#: (:class:`Atlas` ``dense_reach``, ``dense_after``), by kind ``(k, d)``: the
+#: greedy cover's ``train_deg`` (fewer, larger charts: more samples each, so
+#: their hulls are fuller), ``dense_reach`` (degrees) and ``dense_after`` (own
+#: samples per chart). Planes in R^4 (``docs/costs.md``): 59 charts (covering
+#: radius 38.6 degrees, below the relative charts' answer of 40 less its
+#: margin), stored 3.42 times with the radii 2/6/14 alone and 2.30 with 2/6/9
+#: alone; with 9 after 25: 2.96 copies and 98.0 % of random queries answered at
+#: 3,000 samples (2/6/9 alone: 83.7 %), 2.49 and 100 % at 12,000 (74 charts at
+#: 2/6/14: 3.76, 98.9 % and 3.78, 100 %). Lines and hyperplanes in R^4 are
+#: stored 2.4-2.5 times without it.
+DENSE_COVERS = {(2, 4): (37.6, 9.0, 25)}
 #: Largest extra angle a covering must keep below ``trusted`` (degrees): the
 #: margin the checks of :meth:`Atlas.covering` require.
 COVER_MARGIN_DEG = 1.0
@@ -196,6 +225,32 @@ class Routing(NamedTuple):
     angles: list
     nearest: np.ndarray
     nearest_angle: np.ndarray
+
+
+def _check_dense(dense_reach, dense_after, relative: bool, trusted: float, reach: float):
+    """``(dense_reach, dense_after)`` as an :class:`Atlas` takes them (both None, or
+    both checked), or an error naming the one at fault."""
+    if dense_reach is None and dense_after is None:
+        return None, None
+    name = "dense_reach" if dense_reach is not None else "dense_after"
+    if not relative:
+        raise InvalidInputError(f"{name}: only a relative atlas narrows its seam (its radii "
+                                f"are measured from each flat's nearest centre)", name)
+    if dense_reach is None or dense_after is None:
+        other = "dense_after" if dense_reach is not None else "dense_reach"
+        raise InvalidInputError(f"{other}: expected with {name} (a chart narrows its seam to "
+                                "dense_reach once it holds dense_after own samples)", other)
+    dense_reach = _in_units(dense_reach, "dense_reach")
+    if not trusted < dense_reach <= reach:
+        raise InvalidInputError(
+            f"dense_reach: need trusted < dense_reach <= reach (a dense chart still holds a "
+            f"seam beyond what it answers), got trusted={trusted:g}, "
+            f"dense_reach={dense_reach:g}, reach={reach:g}", "dense_reach")
+    if isinstance(dense_after, (bool, np.bool_)) or not isinstance(
+            dense_after, (int, np.integer)) or dense_after < 0:
+        raise InvalidInputError(f"dense_after: expected a count of samples (an integer >= 0), "
+                                f"got {dense_after!r}", "dense_after")
+    return dense_reach, int(dense_after)
 
 
 def check_seam(atlas: "Atlas") -> "Atlas":
@@ -264,6 +319,15 @@ class Atlas:
     relative : bool
         Measure ``inner``, ``trusted`` and ``reach`` from each flat's nearest
         centre's angle (module docstring); default False: from the centre.
+    dense_reach : float, optional
+        Degrees, ``trusted < dense_reach <= reach``, relative atlases only:
+        a chart holding ``dense_after`` own samples stores later flats only
+        this far beyond their nearest centre's angle (module docstring).
+        Default None: always ``reach``.
+    dense_after : int, optional
+        Own samples (flats it is the nearest chart of) from which a chart is
+        dense; given with ``dense_reach`` (both or neither). 0: from the
+        start (as ``reach = dense_reach``).
     isometric : bool, optional
         Warp each chart's points so that it measures turns and shifts
         everywhere as at its centre (:mod:`flatserve.warp`: lines by
@@ -290,7 +354,8 @@ class Atlas:
                  oriented: bool = False, inner: float = INNER_DEG,
                  trusted: float = TRUSTED_DEG, reach: float = REACH_DEG,
                  unit: float | str | None = DEFAULT_UNIT, isometric: bool | None = None,
-                 relative: bool = False):
+                 relative: bool = False, dense_reach: float | None = None,
+                 dense_after: int | None = None):
         d = int(d)
         k = _flats.check_k(k, d)
         if oriented and k != 1:
@@ -319,6 +384,8 @@ class Atlas:
             raise InvalidInputError(
                 f"{bad}: need 0 <= inner < trusted <= reach < {CHART_LIMIT_DEG:g} degrees, got "
                 f"inner={inner:g}, trusted={trusted:g}, reach={reach:g}", bad)
+        self.dense_reach, self.dense_after = _check_dense(dense_reach, dense_after, relative,
+                                                          trusted, reach)
         r = np.ascontiguousarray(np.asarray(center_r, dtype=np.float64).reshape(-1, d))
         c = r.shape[0]  # (not from center_A: points, k = 0, have empty frames)
         A = np.ascontiguousarray(np.asarray(center_A, dtype=np.float64).reshape(c, d, k))
@@ -357,10 +424,12 @@ class Atlas:
     @classmethod
     def covering(cls, k: int, d: int, *, oriented: bool = False, scale: float = DEFAULT_SCALE,
                  inner: float | None = None, trusted: float | None = None,
-                 reach: float | None = None, train_deg: float = COVER_TRAIN_DEG,
+                 reach: float | None = None, train_deg: float | None = None,
                  seed: int = 0, check_n: int = COVER_CHECK_N,
                  n_train: int = COVER_TRAIN_N, unit: float | str | None = DEFAULT_UNIT,
-                 isometric: bool | None = None, relative: bool | None = None) -> "Atlas":
+                 isometric: bool | None = None, relative: bool | None = None,
+                 dense_reach: float | None = None,
+                 dense_after: int | None = None) -> "Atlas":
         """An atlas whose charts hold every k-flat of R^d, centres through the origin.
 
         Centres.  A chart is accurate near its centre only: its embedding
@@ -401,8 +470,10 @@ class Atlas:
             Degrees (module docstring); default :data:`COVER_RADII_3D` for
             d = 3, else :data:`INNER_DEG`, :data:`TRUSTED_DEG`,
             :data:`REACH_DEG`.
-        train_deg : float
-            Radius of the greedy cover on the training sample.
+        train_deg : float, optional
+            Radius of the greedy cover on the training sample. Default
+            :data:`COVER_TRAIN_DEG`; a relative atlas of a kind in
+            :data:`DENSE_COVERS`, that table's.
         seed : int
         check_n, n_train : int
         unit : float
@@ -414,6 +485,10 @@ class Atlas:
             radii :data:`RELATIVE_RADII`). Default: from d =
             :data:`RELATIVE_FROM_D` on. The covering radius must then be
             below ``RELATIVE_ANSWER_DEG - COVER_MARGIN_DEG``.
+        dense_reach, dense_after : optional
+            A relative atlas's narrower seam once a chart fills (:class:`Atlas`).
+            Default: :data:`DENSE_COVERS` for its kind when none of ``inner``,
+            ``trusted``, ``reach`` is given, else none.
 
         Returns
         -------
@@ -432,6 +507,14 @@ class Atlas:
             relative = d >= RELATIVE_FROM_D
         radii = RELATIVE_RADII if relative else COVER_RADII_3D if d == 3 else \
             (INNER_DEG, TRUSTED_DEG, REACH_DEG)
+        dense = DENSE_COVERS.get((k, d)) if relative and not oriented else None
+        if dense is not None and train_deg is None:
+            train_deg = dense[0]
+        if dense is not None and (inner, trusted, reach, dense_reach, dense_after) == \
+                (None,) * 5:
+            dense_reach, dense_after = dense[1:]
+        if train_deg is None:
+            train_deg = COVER_TRAIN_DEG
         inner, trusted, reach = (radii[i] if v is None else v
                                  for i, v in enumerate((inner, trusted, reach)))
         C = cover_frames(k, d, float(train_deg), int(seed), int(n_train))
@@ -448,7 +531,8 @@ class Atlas:
         atlas = check_seam(cls(k, d, A, N, np.zeros((A.shape[0], d)),
                                np.full(A.shape[0], float(scale)), oriented=oriented, inner=inner,
                                trusted=trusted, reach=reach, unit=unit, isometric=isometric,
-                               relative=relative))
+                               relative=relative, dense_reach=dense_reach,
+                               dense_after=dense_after))
         # the same centres, the same seeded measurement: measured once
         radius = cover_radius(k, d, bool(oriented), float(train_deg), int(seed), int(n_train),
                               int(check_n))
@@ -748,7 +832,8 @@ class Atlas:
         out = Atlas(self.k, self.d, self.center_A, self.center_N, self.center_r, self.scales,
                     oriented=self.oriented, inner=self.inner, trusted=self.trusted,
                     reach=self.reach, unit=unit, isometric=self.isometric,
-                    relative=self.relative)
+                    relative=self.relative, dense_reach=self.dense_reach,
+                    dense_after=self.dense_after)
         out.info = {**self.info, **({"unit_from": self.unit_rule} if self.unit_from_data else {})}
         return out
 
@@ -995,7 +1080,7 @@ class Atlas:
         -------
         dict
             ``{"atlas": {"method", "oriented", "inner", "trusted", "reach",
-            "relative", "unit", "unit_from", "isometric", "covering_radius", "max_sample_angle",
+            "relative", "dense_reach", "dense_after", "unit", "unit_from", "isometric", "covering_radius", "max_sample_angle",
             "info"}, "charts": [{"center": {"A", "r"}, "scale", "samples":
             None}, ...]}`` (``method``, ``covering_radius`` and
             ``max_sample_angle`` from ``info``, None where it has none;
@@ -1010,6 +1095,8 @@ class Atlas:
             "atlas": {"method": info.get("method"), "oriented": bool(spec["oriented"]),
                       "inner": spec["inner"], "trusted": spec["trusted"],
                       "reach": spec["reach"], "relative": bool(spec.get("relative", False)),
+                      "dense_reach": spec.get("dense_reach"),
+                      "dense_after": spec.get("dense_after"),
                       "unit": None if spec.get("unit_from_data") else spec.get("unit",
                                                                                DEFAULT_UNIT),
                       "unit_from": rule,
@@ -1033,6 +1120,8 @@ class Atlas:
                 **({"unit_from_data": True} if self.unit_from_data else {}),
                 **({"unit_rule": self.unit_rule} if self.unit_rule == "fit" else {}),
                 "isometric": self.isometric, **({"relative": True} if self.relative else {}),
+                **({"dense_reach": self.dense_reach, "dense_after": self.dense_after}
+                   if self.dense_reach is not None else {}),
                 **({"warps": [w.to_dict() for w in self.warps]} if self.isometric else {}),
                 "center_A": self.center_A.tolist(), "center_N": self.center_N.tolist(),
                 "center_r": self.center_r.tolist(), "scales": self.scales.tolist(),
@@ -1047,7 +1136,8 @@ class Atlas:
                     inner=spec["inner"], trusted=spec["trusted"], reach=spec["reach"],
                     unit=(spec.get("unit_rule", "data") if spec.get("unit_from_data")
                           else spec.get("unit", DEFAULT_UNIT)),
-                    isometric=cls.spec_isometric(spec), relative=spec.get("relative", False))
+                    isometric=cls.spec_isometric(spec), relative=spec.get("relative", False),
+                    dense_reach=spec.get("dense_reach"), dense_after=spec.get("dense_after"))
         if atlas.isometric and "warps" in spec:
             warps = [warp_from_dict(w) for w in spec["warps"]]
             if len(warps) != atlas.ncharts:

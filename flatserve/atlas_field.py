@@ -65,12 +65,15 @@ class AtlasPrepared:
     each chart's :class:`~flatserve.field.PreparedBatch` parts.
 
     ``parts[i]`` is None when chart ``i`` holds no accepted row of the
-    ``nrows``, else the pair ``(own, shared)`` its Field's ``prepare`` made:
-    the rows whose nearest centre is this chart's, and those nearer to
+    ``nrows``, else the triple ``(own, shared, outer)`` its Field's ``prepare``
+    made: the rows whose nearest centre is this chart's, those nearer to
     another centre (the overlap: inserted so that the chart covers its
-    blending domain). ``accepted_rows`` (int64) were accepted by at least one
-    chart; ``rejected`` (int64) by none, one of ``reasons`` each (the first
-    chart's).
+    blending domain), and of those the ones beyond the atlas's
+    ``dense_reach`` (empty without it), which :meth:`AtlasField.insert_prepared`
+    inserts only while the chart is sparse: ``outer_ranks[i]`` (int64, one per
+    ``outer`` row) counts the chart's ``own`` rows before each in the batch.
+    ``accepted_rows`` (int64) were accepted by at least one chart; ``rejected``
+    (int64) by none, one of ``reasons`` each (the first chart's).
     """
 
     nrows: int
@@ -81,6 +84,7 @@ class AtlasPrepared:
     #: the atlas's unit of length the batch was charted in (:meth:`AtlasField.insert_prepared`
     #: refuses it in a field whose unit has changed since: a unit chosen from the data)
     unit: float = 1.0
+    outer_ranks: tuple = ()
 
     @property
     def accepted(self) -> int:
@@ -309,10 +313,11 @@ class AtlasField(FieldBase):
         return tuple(self.fields)
 
     def route(self, flats: Flats) -> list[np.ndarray]:
-        """Per chart, the rows it stores: those closer than ``atlas.reach`` to its centre.
+        """Per chart, the rows it may store: those closer than ``atlas.reach`` to its centre.
 
         A pure function of the atlas (a row's charts do not depend on its
-        batch).
+        batch); with a ``dense_reach``, a chart that is dense when the batch is
+        inserted stores those within ``dense_reach`` only.
 
         Returns
         -------
@@ -322,14 +327,47 @@ class AtlasField(FieldBase):
         return self.atlas.route(flats, self.atlas.reach, nearest=False).rows
 
     def copies(self, flats: Flats) -> float:
-        """How many charts would store each of these rows on average.
+        """How many charts would store each of these rows on average, now.
 
         ``sum(len(r) for r in route(flats)) / n`` (before round-trip
         rejections; 0.0 for no rows), counted without the angles
-        (:meth:`flatserve.atlas.Atlas.held`).
+        (:meth:`flatserve.atlas.Atlas.held`); with a ``dense_reach``, the charts
+        that are dense already count the rows within it only.
         """
-        n = self.atlas.check_flats(flats).n
-        return float(self.atlas.held(flats, self.atlas.reach).sum()) / n if n else 0.0
+        at = self.atlas
+        n = at.check_flats(flats).n
+        if not n:
+            return 0.0
+        held = at.held(flats, at.reach)
+        if at.dense_reach is not None:
+            with self._lock.read():
+                dense = ~np.asarray(self._sparse())
+            if dense.any():
+                held[dense] = at.held(flats, at.dense_reach)[dense]
+        return float(held.sum()) / n
+
+    def _while_sparse(self, c: int, three: tuple, ranks) -> tuple:
+        """Chart ``c``'s ``(own, shared, outer)`` parts of a batch with ``outer`` cut to
+        the rows before which it holds fewer than ``dense_after`` own samples
+        (:meth:`insert_prepared`; under the writer lock)."""
+        own, shared, outer = three
+        at = self.atlas
+        if not outer.accepted or at.dense_reach is None or self._own is None:
+            return three
+        keep = self._own[c] + ranks < at.dense_after
+        if keep.all():
+            return three
+        return own, shared, PreparedBatch(int(keep.sum()), outer.x[keep], outer.values[keep],
+                                          _NO_ROWS, [])
+
+    def _sparse(self) -> list[bool]:
+        """Per chart, whether it still stores its seam beyond ``dense_reach`` (fewer
+        than ``dense_after`` own samples; every chart without a ``dense_reach``, or
+        when the own samples are not known: a field read from an older file)."""
+        at = self.atlas
+        if at.dense_reach is None or self._own is None:
+            return [True] * len(self.fields)
+        return [own < at.dense_after for own in self._own]
 
     def route_query(self, flats: Flats) -> QueryRoute:
         """Per chart, the queries closer than ``atlas.trusted`` to its centre, and
@@ -443,6 +481,8 @@ class AtlasField(FieldBase):
         taken = np.zeros(n, dtype=bool)
         first_reason: dict[int, str] = {}
         parts: list = [None] * len(self.fields)
+        dense = self.atlas.dense_reach
+        ranks: list = [None] * len(self.fields)
         for (c, rows), pb in zip(work, prepared):
             okm = np.ones(rows.size, dtype=bool)
             okm[pb.rejected] = False
@@ -451,9 +491,12 @@ class AtlasField(FieldBase):
             acc = rows[okm]
             taken[acc] = True
             mine = ro.nearest[acc] == c
-            parts[c] = (PreparedBatch(int(mine.sum()), pb.x[mine], pb.values[mine], _NO_ROWS, []),
-                        PreparedBatch(int((~mine).sum()), pb.x[~mine], pb.values[~mine],
-                                      _NO_ROWS, []))
+            # the seam beyond dense_reach: stored only while the chart is sparse
+            outer = np.zeros(acc.size, dtype=bool) if dense is None else \
+                ro.angles[c][okm] - ro.nearest_angle[acc] > math.radians(dense)
+            parts[c] = tuple(PreparedBatch(int(m.sum()), pb.x[m], pb.values[m], _NO_ROWS, [])
+                             for m in (mine, ~mine & ~outer, outer))
+            ranks[c] = np.searchsorted(acc[mine], acc[outer]).astype(np.int64)
         if only is not None:  # the decisions of the charts not asked are unknown: only the
             # rows no chart's domain holds are known to be rejected
             held = np.zeros(n, dtype=bool)
@@ -467,13 +510,19 @@ class AtlasField(FieldBase):
             f"from the nearest centre (chart {int(ro.nearest[i])}), charts reach {reach:g}"))
             for i in rejected.tolist()]
         return AtlasPrepared(n, tuple(parts), np.flatnonzero(taken).astype(np.int64), rejected,
-                             reasons, unit)
+                             reasons, unit, tuple(ranks))
 
     def insert_prepared(self, batch: AtlasPrepared, *,
                         slice_rows: int | None = None) -> AddResult:
         """Insert a :meth:`prepare`-d batch into its charts (a writer).
 
-        Each chart's parts go to that chart's :meth:`Field.insert_prepared`.
+        Each chart's parts go to that chart's :meth:`Field.insert_prepared`; of a
+        chart's ``outer`` part (its seam beyond the atlas's ``dense_reach``) the
+        rows before which the chart holds fewer than ``dense_after`` own samples
+        (those it held at the batch's start and its own rows of the batch before
+        the row): which charts store a sample depends on the samples before it,
+        not on how they were cut into batches or slices (but for duplicates), so
+        a log replayed in order stores each sample where it was stored first.
 
         Parameters
         ----------
@@ -506,8 +555,9 @@ class AtlasField(FieldBase):
                                         "prepare it again", "batch")
             if not self.atlas.unit_from_data:
                 self._chooses_unit = False  # the first batch inserted fixes the unit
-        parts = [(c, p, own) for c, pair in enumerate(batch.parts) if pair is not None
-                 for p, own in zip(pair, (True, False)) if p.accepted]
+            parts = [(c, p, own) for c, three in enumerate(batch.parts) if three is not None
+                     for p, own in zip(self._while_sparse(c, three, batch.outer_ranks[c]),
+                                       (True, False, False)) if p.accepted]
         groups = [parts] if slice_rows is None or not parts else _slices(parts, slice_rows)
         duplicates = 0
         for i, group in enumerate(groups):

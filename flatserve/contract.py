@@ -335,8 +335,9 @@ def expected_copies(field: SampledField, n: int = EXPECTED_COPIES_N, seed: int =
     ``field.copies`` of ``n`` random flats of its kind (Haar-random orientations, seeded;
     lines as rays of directions uniform on the sphere, as an oriented atlas takes them).
 
-    1.0 for a one-chart field; for the default covering atlases about 1.75 in R^3, 4.1 for
-    lines in R^4, 7.3 for planes in R^4, 12.6 for 3-flats in R^5 (``docs/costs.md``).
+    1.0 for a one-chart field; for the default covering atlases about 1.75 in R^3, 2.4 for
+    lines in R^4, 3.4 for planes in R^4 (an empty field: its charts narrow their seam
+    once they fill, to about 2.3), 7.3 for 3-flats in R^5 (``docs/costs.md``).
     Offsets do not matter: a shard holds a flat by its orientation.
     """
     k, d = field.k, field.d

@@ -708,6 +708,19 @@ def test_a_relative_chart_holds_the_samples_around_every_query_it_answers(k, d):
         assert np.isin(rows, stored.rows[c]).all(), c
         checked += rows.size
     assert checked > q.n  # queries answered by more than one chart were checked
+    if at.dense_reach is not None:  # a dense chart's narrower seam: (dense_reach - trusted) / 2
+        half = math.radians((at.dense_reach - at.trusted) / 2)
+        B = np.linalg.qr(A + rng.normal(scale=0.008, size=A.shape))[0]
+        s = Flats.from_parametric(B, rng.uniform(-1, 1, (q.n, d)))
+        stored = at.route(s, at.dense_reach)
+        close = np.array([max_principal_angle(A[i:i + 1], B[i:i + 1])[0, 0]
+                          for i in range(q.n)]) <= half
+        assert close.mean() > 0.5
+        for c in range(at.ncharts):
+            rows = asked.rows[c]
+            rows = rows[close[rows]
+                        & (aq[rows, c] + half < math.radians(RELATIVE_LIMIT_DEG) - 1e-9)]
+            assert np.isin(rows, stored.rows[c]).all(), c
     # without the seam (reach just past trusted) some of those neighbours are missing
     narrow = Atlas.covering(k, d, relative=True, reach=at.trusted + 0.5)
     stored = narrow.route(s, narrow.reach)
@@ -718,7 +731,8 @@ def test_a_relative_chart_holds_the_samples_around_every_query_it_answers(k, d):
     with pytest.raises(InvalidInputError, match="reach: a relative atlas needs reach > trusted"):
         Atlas.covering(k, d, relative=True, reach=at.trusted)
     # (one stored before the check still loads)
-    assert Atlas.from_dict({**at.to_dict(), "reach": at.trusted}).reach == at.trusted
+    assert Atlas.from_dict({**at.to_dict(), "reach": at.trusted, "dense_reach": None,
+                            "dense_after": None}).reach == at.trusted
 
 
 def test_a_relative_atlas_stores_fewer_copies_and_keeps_what_it_is():
@@ -740,6 +754,91 @@ def test_a_relative_atlas_stores_fewer_copies_and_keeps_what_it_is():
     assert Atlas.describe_spec(at.to_dict())["atlas"]["relative"] is True
     with pytest.raises(InvalidInputError, match="relative"):
         Atlas(1, 3, at.center_A[:1, :3], None, np.zeros((1, 3)), [1.0], relative="yes")
+
+
+def expected_dense_counts(at, flats):
+    """Per chart, how many samples a dense-seam atlas stores of ``flats`` inserted in
+    order, counted apart from the field: every row within ``dense_reach`` of its
+    nearest centre's angle, and a row beyond it only while fewer than ``dense_after``
+    rows before it had this chart as their nearest."""
+    ro = at.route(flats, at.reach)
+    counts = []
+    for c, (rows, ang) in enumerate(zip(ro.rows, ro.angles)):
+        own_before = np.cumsum(ro.nearest[rows] == c) - (ro.nearest[rows] == c)
+        beyond = np.degrees(ang - ro.nearest_angle[rows]) > at.dense_reach
+        counts.append(int((~beyond | (own_before < at.dense_after)).sum()))
+    return counts
+
+
+def test_a_dense_chart_narrows_its_seam_whatever_the_batches():
+    """Planes in R^4 (the default: a dense chart's seam narrows to 9 degrees after 25
+    own samples): each chart stores what an independent count of the rows in order
+    says; the same samples in other batches, in slices, or through a file in the
+    middle are stored alike and answer bit for bit; fewer copies than the seam of
+    14 alone on the same charts, more than 9 alone."""
+    rng = np.random.default_rng(41)
+    at = Atlas.covering(2, 4)
+    assert (at.ncharts, at.dense_reach, at.dense_after, at.reach) == (59, 9.0, 25, 14.0)
+    f = random_flats(rng, 2500, 2, 4, 1.0)
+    val = np.sin(f.quadrics()[1][:, :1] * 2.0)
+    q = random_flats(rng, 400, 2, 4, 1.0)
+    whole = AtlasField(at, 1)
+    whole.add(f, val)
+    stored = [g.nsamples for g in whole.fields]
+    assert stored == expected_dense_counts(at, f)
+    wide = at.held(f, at.reach).sum()
+    narrow = at.held(f, at.dense_reach).sum()
+    assert narrow < sum(stored) < wide, (narrow, sum(stored), wide)
+    want = whole.query(q)
+    assert want.inside.mean() > 0.9
+    cuts = [0, 1, 40, 41, 700, 1900, 2500]
+    parts = AtlasField(at, 1)
+    for lo, hi in zip(cuts, cuts[1:]):
+        rows = np.arange(lo, hi)
+        parts.insert_prepared(parts.prepare(f.take(rows), val[rows]), slice_rows=97)
+        if hi == 700:  # through a file: the charts' own counts go with it
+            parts = AtlasField.from_bytes(parts.to_bytes())
+    assert [g.nsamples for g in parts.fields] == stored
+    got = parts.query(q)
+    np.testing.assert_array_equal(got.values, want.values)
+    # dense from the start: the seam of 9 alone; never dense: the seam of 14
+    for after, radius in ((0, at.dense_reach), (10**6, at.reach)):
+        other = AtlasField(Atlas.from_dict({**at.to_dict(), "dense_after": after}), 1)
+        other.add(f, val)
+        assert other.nrejected == 0 and other.nstored == at.held(f, radius).sum()
+        assert other.copies(f) == at.held(f, radius).sum() / f.n
+
+
+def test_a_dense_seam_is_checked_and_kept():
+    """dense_reach and dense_after: both or neither, a relative atlas only,
+    trusted < dense_reach <= reach, a count; kept by to_dict, with_unit and
+    describe; defaults for planes in R^4 only, and not with radii given."""
+    at = Atlas.covering(2, 4)
+    back = Atlas.from_dict(at.to_dict())
+    assert (back.dense_reach, back.dense_after) == (9.0, 25)
+    assert at.with_unit(2.0).dense_after == 25
+    desc = Atlas.describe_spec(at.to_dict())["atlas"]
+    assert (desc["dense_reach"], desc["dense_after"]) == (9.0, 25)
+    assert Atlas.covering(1, 4).dense_reach is None
+    assert Atlas.covering(2, 4, reach=12).dense_reach is None
+    assert Atlas.covering(2, 4, relative=False).dense_reach is None
+    assert Atlas.covering(2, 4, relative=False).ncharts != at.ncharts  # its own cover
+    assert Atlas.describe_spec(Atlas.covering(1, 4).to_dict())["atlas"]["dense_reach"] is None
+    spec = at.to_dict()
+    for change, name, words in (
+            ({"relative": False}, "dense_reach", "only a relative atlas"),
+            ({"dense_after": None}, "dense_after", "expected with dense_reach"),
+            ({"dense_reach": None}, "dense_reach", "expected with dense_after"),
+            ({"dense_reach": 6.0}, "dense_reach", "trusted < dense_reach <= reach"),
+            ({"dense_reach": 15.0}, "dense_reach", "trusted < dense_reach <= reach"),
+            ({"dense_after": -1}, "dense_after", "an integer >= 0"),
+            ({"dense_after": True}, "dense_after", "an integer >= 0"),
+            ({"dense_after": 2.5}, "dense_after", "an integer >= 0")):
+        with pytest.raises(InvalidInputError, match=words) as err:
+            Atlas.from_dict({**spec, **change})
+        assert err.value.argument == name, (change, err.value.argument)
+    with pytest.raises(InvalidInputError, match="dense_reach"):
+        Atlas.covering(1, 3, dense_reach=20, dense_after=5)
 
 
 def test_a_relative_field_file_answers_the_same(tmp_path):

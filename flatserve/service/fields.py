@@ -143,6 +143,7 @@ def _atlas_info(d: dict) -> AtlasInfo | None:
                      trusted=at["trusted"], reach=at["reach"], unit=at["unit"],
                      unit_from=at["unit_from"],
                      relative=bool(at.get("relative")), isometric=bool(at.get("isometric")),
+                     dense_reach=at.get("dense_reach"), dense_after=at.get("dense_after"),
                      covering_radius=info.get("covering_radius_deg"),
                      max_sample_angle=info.get("max_sample_angle_deg"),
                      nstored=d["nstored"], duplication=d["duplication"])

@@ -144,11 +144,7 @@ class CoveringAtlas(_AtlasSpec):
     trusted: Optional[float] = _radius(
         description="Degrees: a chart answers no query farther (its weight falls to 0 "
                     "from `inner` to here; with `relative`, beyond the nearest centre's "
-                    "angle). Default: 24 (R^2, R^3), 6 with `relative`. Planes in R^4 "
-                    "expected to hold tens of thousands of samples: `relative` with "
-                    "`inner` 1, `trusted` 4, `reach` 9 store a sample 2.43 times instead "
-                    "of 3.76, and answer 97.9 % of random queries at 12,000 samples (74 % "
-                    "at 3,000; docs/costs.md).")
+                    "angle). Default: 24 (R^2, R^3), 6 with `relative`.")
     reach: Optional[float] = _radius(
         description="Degrees: samples are stored in every chart whose centre is closer (at "
                     "least the charts' `trusted`, below 45; with `relative`, closer than the "
@@ -161,11 +157,23 @@ class CoveringAtlas(_AtlasSpec):
         None, description="Measure the charts' radii (`reach` included) from each flat's "
                            "nearest centre: a chart holds its share of the orientations and "
                            "a seam around it, so a sample is stored about 2.4 times (lines, "
-                           "hyperplanes in R^4) or 3.7 (planes in R^4) instead of 4.1 or 7.3 "
-                           "(radii 2, 6, 14 degrees beyond the nearest centre), at about "
-                           "the same error; about 1 % of random queries fall outside the "
-                           "samples' hulls (docs/costs.md). Default (null): true in R^4 "
-                           "and beyond, false in R^2 and R^3.")
+                           "hyperplanes in R^4) instead of 4.1 (radii 2, 6, 14 degrees beyond "
+                           "the nearest centre), at about the same error; about 1 % of random "
+                           "queries fall outside the samples' hulls (docs/costs.md). Default "
+                           "(null): true in R^4 and beyond, false in R^2 and R^3.")
+    dense_reach: Optional[float] = _radius(
+        description="With `relative`: degrees beyond each flat's nearest centre to which a "
+                    "chart holding `dense_after` own samples (those it is the nearest chart "
+                    "of) narrows its seam: it stores later samples only this far (above "
+                    "`trusted`, at most `reach`). A sparse chart needs the wide seam for its "
+                    "samples' hull to hold its share, a dense one does not. Default: planes "
+                    "in R^4 with none of the radii given, 9 after 25 (59 charts: a sample "
+                    "stored 2.9 times at 3,000 samples, 2.5 at 12,000, where the seam of 14 "
+                    "stores it 3.8 times; docs/costs.md); otherwise none.")
+    dense_after: Optional[int] = Field(
+        None, ge=0, le=1_000_000_000,
+        description="With `dense_reach`: the own samples from which a chart narrows its "
+                    "seam (0: from the start).")
     isometric: Optional[bool] = Field(
         None, description="Warp the charts' points so that each chart measures turns and "
                           "shifts everywhere as at its centre (flatserve.warp: lines, and "
@@ -385,6 +393,13 @@ class AtlasInfo(BaseModel):
                                               "nearest centre (the create request's "
                                               "`basis.relative`, by default true in R^4 "
                                               "and beyond).")
+    dense_reach: Optional[float] = Field(
+        None, description="Degrees beyond each flat's nearest centre: a chart holding "
+                          "`dense_after` own samples stores later samples only this far "
+                          "(null: always `reach`; by default planes in R^4: 9).")
+    dense_after: Optional[int] = Field(
+        None, description="Own samples (those it is the nearest chart of) from which a chart "
+                          "narrows its seam to `dense_reach` (by default planes in R^4: 25).")
     isometric: bool = Field(False, description="The charts' points are warped to measure turns "
                                                "and shifts everywhere as at their centres "
                                                "(by default lines in R^3, created since this "

@@ -215,6 +215,7 @@ def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
         with _within("basis"):
             return Atlas.covering(k, d, oriented=oriented, unit=unit, inner=spec.inner,
                                   trusted=spec.trusted, reach=spec.reach,
+                                  dense_reach=spec.dense_reach, dense_after=spec.dense_after,
                                   isometric=spec.isometric, relative=spec.relative)
     if isinstance(spec, SamplesAtlas):
         _check_rows(spec.samples, "basis.samples", max_atlas_samples,

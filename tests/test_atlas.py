@@ -801,6 +801,16 @@ def test_a_dense_chart_narrows_its_seam_whatever_the_batches():
     assert [g.nsamples for g in parts.fields] == stored
     got = parts.query(q)
     np.testing.assert_array_equal(got.values, want.values)
+    # shards (a shard worker prepares and inserts its charts only, following the
+    # batches): each stores its charts' samples as the whole field does
+    halves = (set(range(0, at.ncharts, 2)), set(range(1, at.ncharts, 2)))
+    for only in halves:
+        shard = AtlasField(at, 1)
+        for lo, hi in zip(cuts, cuts[1:]):
+            rows = np.arange(lo, hi)
+            shard.insert_prepared(shard.prepare(f.take(rows), val[rows], only=only))
+        assert [shard.fields[c].nsamples for c in sorted(only)] == \
+            [stored[c] for c in sorted(only)]
     # dense from the start: the seam of 9 alone; never dense: the seam of 14
     for after, radius in ((0, at.dense_reach), (10**6, at.reach)):
         other = AtlasField(Atlas.from_dict({**at.to_dict(), "dense_after": after}), 1)

@@ -49,10 +49,10 @@ while sparse keep its hull wide. Which charts store a flat then depends on
 the field's samples before its batch (each chart's own count at the batch's
 start, whatever its slices), so a field's log, replayed in order, stores every
 sample where it was stored first. The default for planes in R^4
-(:data:`DENSE_COVERS`): 59 charts, 9 degrees after 25 own samples: 2.96 copies
-and 98 % of random queries answered at 3,000 samples, 2.49 copies and 100 % at
-12,000, about 2.3 for large fields, where the 74 charts of the plain relative
-atlas store 3.76 at any size (``docs/costs.md``).
+(:data:`DENSE_COVERS`): 59 charts, 9 degrees after 25 own samples: 2.85 copies
+and 97.4 % of random queries answered at 3,000 samples, 2.44 copies and 99.9 %
+at 12,000, about 2.3 for large fields, where the 74 charts of the plain
+relative atlas store 3.76-3.78 (``docs/costs.md``).
 
 Coverage is a question of orientation only (offsets do not matter: the chart
 is equivariant under translations), so a *covering* atlas
@@ -170,8 +170,8 @@ RELATIVE_BLOCK = 16_384
 RELATIVE_RADII = (2.0, 6.0, 14.0)
 #: Covering atlases are relative by default from this dimension of the space on:
 #: in R^4 a sample of lines or hyperplanes is stored about 2.4 times instead of 4.1,
-#: of planes 3.8 instead of 7.3 (2.4-2.9 with :data:`DENSE_COVERS`), built 2-4 times faster, at about the same median
-#: error on the queries both answer (``docs/costs.md``), where about 1 % of random
+#: of planes 3.8 instead of 7.3 (2.4-2.9 with :data:`DENSE_COVERS`), built 2-4 times
+#: faster, at about the same median error on the queries both answer (``docs/costs.md``), where about 1 % of random
 #: queries fall outside the samples' hulls (balls: none); in R^3 they store more
 #: (1.96 against 1.75) for the same error.
 RELATIVE_FROM_D = 4
@@ -181,11 +181,13 @@ RELATIVE_FROM_D = 4
 #: their hulls are fuller), ``dense_reach`` (degrees) and ``dense_after`` (own
 #: samples per chart). Planes in R^4 (``docs/costs.md``): 59 charts (covering
 #: radius 38.6 degrees, below the relative charts' answer of 40 less its
-#: margin), stored 3.42 times with the radii 2/6/14 alone and 2.30 with 2/6/9
-#: alone; with 9 after 25: 2.96 copies and 98.0 % of random queries answered at
-#: 3,000 samples (2/6/9 alone: 83.7 %), 2.49 and 100 % at 12,000 (74 charts at
+#: margin), stored 3.42 times with the radii 2/6/14 alone and 2.31 with 2/6/9
+#: alone; with 9 after 25: 2.85 copies and 97.4 % of random queries answered at
+#: 3,000 samples (2/6/9 alone: 83.7 %), 2.44 and 99.9 % at 12,000 (74 charts at
 #: 2/6/14: 3.76, 98.9 % and 3.78, 100 %). Lines and hyperplanes in R^4 are
-#: stored 2.4-2.5 times without it.
+#: stored 2.4-2.5 times without it. The kind's relative covers take its
+#: ``train_deg`` whatever their radii (``train_deg=COVER_TRAIN_DEG``: the 74
+#: charts); the dense seam is the default only with no radius given.
 DENSE_COVERS = {(2, 4): (37.6, 9.0, 25)}
 #: Largest extra angle a covering must keep below ``trusted`` (degrees): the
 #: margin the checks of :meth:`Atlas.covering` require.
@@ -488,7 +490,8 @@ class Atlas:
         dense_reach, dense_after : optional
             A relative atlas's narrower seam once a chart fills (:class:`Atlas`).
             Default: :data:`DENSE_COVERS` for its kind when none of ``inner``,
-            ``trusted``, ``reach`` is given, else none.
+            ``trusted``, ``reach`` is given, else none (so ``reach=14``, the
+            default, keeps the plain seam of 14 degrees).
 
         Returns
         -------
@@ -1080,8 +1083,8 @@ class Atlas:
         -------
         dict
             ``{"atlas": {"method", "oriented", "inner", "trusted", "reach",
-            "relative", "dense_reach", "dense_after", "unit", "unit_from", "isometric", "covering_radius", "max_sample_angle",
-            "info"}, "charts": [{"center": {"A", "r"}, "scale", "samples":
+            "relative", "dense_reach", "dense_after", "unit", "unit_from", "isometric",
+            "covering_radius", "max_sample_angle", "info"}, "charts": [{"center": {"A", "r"}, "scale", "samples":
             None}, ...]}`` (``method``, ``covering_radius`` and
             ``max_sample_angle`` from ``info``, None where it has none;
             ``unit`` None while it is to be chosen from the first samples,

@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import math
 import struct
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Collection, NamedTuple, Sequence
@@ -194,6 +195,9 @@ class AtlasField(FieldBase):
         #: restored from a file that did not record them
         self._own: list[int] | None = [0] * len(self.fields)
         self._lock = RWLock()
+        #: writers one batch at a time, whole (its slices let readers in, not another
+        #: writer): a dense seam's decisions count the samples of the batches before
+        self._writing = threading.Lock()
         #: per chart, (its generation, the key of its part) when a part was last
         #: written or read: unchanged since, it need not be made again
         self._parts: list[tuple[int, str] | None] = [None] * len(self.fields)
@@ -316,8 +320,8 @@ class AtlasField(FieldBase):
         """Per chart, the rows it may store: those closer than ``atlas.reach`` to its centre.
 
         A pure function of the atlas (a row's charts do not depend on its
-        batch); with a ``dense_reach``, a chart that is dense when the batch is
-        inserted stores those within ``dense_reach`` only.
+        batch); with a ``dense_reach``, a chart that is dense before a row
+        (:meth:`insert_prepared`) stores it only within ``dense_reach``.
 
         Returns
         -------
@@ -326,13 +330,22 @@ class AtlasField(FieldBase):
         """
         return self.atlas.route(flats, self.atlas.reach, nearest=False).rows
 
-    def copies(self, flats: Flats) -> float:
+    def copies(self, flats: Flats, *, own: Sequence[int | None] | None = None) -> float:
         """How many charts would store each of these rows on average, now.
 
         ``sum(len(r) for r in route(flats)) / n`` (before round-trip
         rejections; 0.0 for no rows), counted without the angles
         (:meth:`flatserve.atlas.Atlas.held`); with a ``dense_reach``, the charts
-        that are dense already count the rows within it only.
+        that are dense already count the rows within it only (an estimate: the
+        charts' own samples are read without waiting for a writer).
+
+        Parameters
+        ----------
+        flats : Flats
+        own : sequence of (int or None), optional
+            Per chart, its own samples (None: not known, sparse) instead of this
+            field's: a field whose charts are held elsewhere
+            (:class:`flatserve.service.cluster.remote.RemoteField`).
         """
         at = self.atlas
         n = at.check_flats(flats).n
@@ -340,8 +353,7 @@ class AtlasField(FieldBase):
             return 0.0
         held = at.held(flats, at.reach)
         if at.dense_reach is not None:
-            with self._lock.read():
-                dense = ~np.asarray(self._sparse())
+            dense = ~np.asarray(self._sparse(own), dtype=bool)
             if dense.any():
                 held[dense] = at.held(flats, at.dense_reach)[dense]
         return float(held.sum()) / n
@@ -360,14 +372,16 @@ class AtlasField(FieldBase):
         return own, shared, PreparedBatch(int(keep.sum()), outer.x[keep], outer.values[keep],
                                           _NO_ROWS, [])
 
-    def _sparse(self) -> list[bool]:
+    def _sparse(self, own: Sequence[int | None] | None = None) -> list[bool]:
         """Per chart, whether it still stores its seam beyond ``dense_reach`` (fewer
         than ``dense_after`` own samples; every chart without a ``dense_reach``, or
-        when the own samples are not known: a field read from an older file)."""
+        whose own samples are not known: a field read from an older file). ``own``:
+        per chart its own samples (None: not known) instead of this field's."""
         at = self.atlas
-        if at.dense_reach is None or self._own is None:
+        own = self._own if own is None else own
+        if at.dense_reach is None or own is None:
             return [True] * len(self.fields)
-        return [own < at.dense_after for own in self._own]
+        return [o is None or o < at.dense_after for o in list(own)]
 
     def route_query(self, flats: Flats) -> QueryRoute:
         """Per chart, the queries closer than ``atlas.trusted`` to its centre, and
@@ -541,42 +555,45 @@ class AtlasField(FieldBase):
             ``duplicates`` counts rows that coincided with a sample already in
             their nearest chart; ``nsamples`` the distinct samples afterwards.
         """
-        if not isinstance(batch, AtlasPrepared) or len(batch.parts) != len(self.fields):
+        if not isinstance(batch, AtlasPrepared) or len(batch.parts) != len(self.fields) \
+                or len(batch.outer_ranks) != len(self.fields):
             raise InvalidInputError("batch: expected an AtlasPrepared made by this field",
                                     "batch")
         slice_rows = self._slice_rows(slice_rows)
-        with self._lock.write():  # (settle_unit takes it too)
-            if batch.accepted and self.atlas.unit_from_data:
-                raise InvalidInputError(f"batch: charted in the unit {batch.unit:g}; the "
-                                        "field has not taken a unit yet (settle_unit)", "batch")
-            if batch.accepted and batch.unit != self.atlas.unit:
-                raise InvalidInputError(f"batch: charted in the unit {batch.unit:g}, the "
-                                        f"field's is {self.atlas.unit:g} (chosen since): "
-                                        "prepare it again", "batch")
-            if not self.atlas.unit_from_data:
-                self._chooses_unit = False  # the first batch inserted fixes the unit
-            parts = [(c, p, own) for c, three in enumerate(batch.parts) if three is not None
-                     for p, own in zip(self._while_sparse(c, three, batch.outer_ranks[c]),
-                                       (True, False, False)) if p.accepted]
-        groups = [parts] if slice_rows is None or not parts else _slices(parts, slice_rows)
-        duplicates = 0
-        for i, group in enumerate(groups):
-            with self._lock.write():  # a whole batch, or one slice
-                work = _by_shard(group)
-                done = self._over_shards(
-                    lambda f, ps: [(f.insert_prepared(p), own) for p, own in ps], work)
-                for (c, _), rs in zip(work, list(done)):
-                    for res, own in rs:
-                        if own:  # a sample counts once, in its nearest chart
-                            duplicates += res.duplicates
-                            self._nsamples += res.accepted - res.duplicates
-                            if self._own is not None:
-                                self._own[c] += res.accepted - res.duplicates
-                if i == len(groups) - 1:
-                    self._nrejected += int(batch.rejected.size)
-        return AddResult(accepted=batch.accepted, rejected=batch.rejected,
-                         reasons=batch.reasons, duplicates=duplicates,
-                         nsamples=self._nsamples)
+        with self._writing:  # one writer's batch at a time
+            with self._lock.write():  # (settle_unit takes it too)
+                if batch.accepted and self.atlas.unit_from_data:
+                    raise InvalidInputError(f"batch: charted in the unit {batch.unit:g}; the "
+                                            "field has not taken a unit yet (settle_unit)",
+                                            "batch")
+                if batch.accepted and batch.unit != self.atlas.unit:
+                    raise InvalidInputError(f"batch: charted in the unit {batch.unit:g}, the "
+                                            f"field's is {self.atlas.unit:g} (chosen since): "
+                                            "prepare it again", "batch")
+                if not self.atlas.unit_from_data:
+                    self._chooses_unit = False  # the first batch inserted fixes the unit
+                parts = [(c, p, own) for c, three in enumerate(batch.parts) if three is not None
+                         for p, own in zip(self._while_sparse(c, three, batch.outer_ranks[c]),
+                                           (True, False, False)) if p.accepted]
+            groups = [parts] if slice_rows is None or not parts else _slices(parts, slice_rows)
+            duplicates = 0
+            for i, group in enumerate(groups):
+                with self._lock.write():  # a whole batch, or one slice
+                    work = _by_shard(group)
+                    done = self._over_shards(
+                        lambda f, ps: [(f.insert_prepared(p), own) for p, own in ps], work)
+                    for (c, _), rs in zip(work, list(done)):
+                        for res, own in rs:
+                            if own:  # a sample counts once, in its nearest chart
+                                duplicates += res.duplicates
+                                self._nsamples += res.accepted - res.duplicates
+                                if self._own is not None:
+                                    self._own[c] += res.accepted - res.duplicates
+                    if i == len(groups) - 1:
+                        self._nrejected += int(batch.rejected.size)
+            return AddResult(accepted=batch.accepted, rejected=batch.rejected,
+                             reasons=batch.reasons, duplicates=duplicates,
+                             nsamples=self._nsamples)
 
     # --------------------------------------------------------------- readers
     def query(self, flats: Flats, *, outside: Outside | str = Outside.NAN,

@@ -169,7 +169,8 @@ class CoveringAtlas(_AtlasSpec):
                     "samples' hull to hold its share, a dense one does not. Default: planes "
                     "in R^4 with none of the radii given, 9 after 25 (59 charts: a sample "
                     "stored 2.9 times at 3,000 samples, 2.4 at 12,000, where the seam of 14 "
-                    "stores it 3.8 times; docs/costs.md); otherwise none.")
+                    "stores it 3.8 times; docs/costs.md); otherwise none. Give `reach` (14, "
+                    "the default) for the plain seam.")
     dense_after: Optional[int] = Field(
         None, ge=0, le=1_000_000_000,
         description="With `dense_reach`: the own samples from which a chart narrows its "

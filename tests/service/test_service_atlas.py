@@ -749,40 +749,56 @@ def test_a_covering_atlas_takes_its_radii_at_create(api, rng):
         assert name in json.dumps(r.json()["detail"]), (radii, r.text)
 
 
-def test_a_dense_seam_is_taken_at_create_described_and_validated(api, rng):
+def test_a_dense_seam_is_taken_at_create_described_and_validated(make_app, rng):
     """Planes in R^4 by default narrow a dense chart's seam (9 degrees after 25 own
-    samples; 59 charts), described and stored as the library's atlas stores them;
-    ``dense_reach``/``dense_after`` given at create are kept; bad ones are 422s
-    naming them."""
+    samples; 59 charts), described, and stored as the library's atlas stores them,
+    across a snapshot and a restart between two uploads; ``dense_reach`` and
+    ``dense_after`` given at create are kept; bad ones are 422s naming them."""
+    import time
+
     from flatserve.grassmann import haar_frames
 
-    tc, c = api
     A, b = haar_frames(1200, 4, 2, rng), rng.uniform(-1, 1, (1200, 4))
     val = np.sin(3 * b[:, :1]) + A[:, :1, 0]
     qA, qb = haar_frames(300, 4, 2, rng), rng.uniform(-1, 1, (300, 4))
     lib = AtlasField(Atlas.covering(2, 4, unit=1.0), channels=1)
     lib.add(Flats.from_parametric(A, b), val)
     want = lib.query(Flats.from_parametric(qA, qb))
-    got = c.create_field("planes", k=2, d=4, unit=1.0)["atlas"]
-    assert (got["dense_reach"], got["dense_after"], got["relative"]) == (9.0, 25, True)
-    c.upload_parametric("planes", A, b, val)
-    info = c.describe("planes")
-    assert len(info["charts"]) == 59 and info["atlas"]["nstored"] == lib.nstored
-    same_parametric(c, "planes", qA, qb, want)
-    mine = c.create_field("mine", k=3, d=4, unit=1.0, basis={
-        "kind": "atlas", "atlas": "covering", "dense_reach": 8, "dense_after": 3})["atlas"]
-    assert (mine["dense_reach"], mine["dense_after"]) == (8.0, 3)
-    assert c.create_field("lines", k=1, d=4)["atlas"]["dense_reach"] is None
-    for given, name in (({"dense_reach": 8}, "dense_after"),
-                        ({"dense_after": 3}, "dense_reach"),
-                        ({"dense_reach": 5, "dense_after": 3}, "dense_reach"),
-                        ({"dense_reach": 8, "dense_after": -1}, "dense_after"),
-                        ({"dense_reach": 8, "dense_after": "3"}, "dense_after"),
-                        ({"dense_reach": 8, "dense_after": 3, "relative": False}, "dense_reach")):
-        r = tc.post("/v1/fields", json={"name": "bad", "k": 3, "d": 4, "basis": {
-            "kind": "atlas", "atlas": "covering", **given}})
-        assert r.status_code == 422, (given, r.text)
-        assert name in json.dumps(r.json()["detail"]), (given, r.text)
+    tc, c = started(make_app(snapshot_every=500))
+    try:
+        got = c.create_field("planes", k=2, d=4, unit=1.0)["atlas"]
+        assert (got["dense_reach"], got["dense_after"], got["relative"]) == (9.0, 25, True)
+        c.upload_parametric("planes", A[:700], b[:700], val[:700])
+        end = time.monotonic() + 60
+        while c.describe("planes")["storage"]["snapshot_batch"] < 1:  # the first snapshot
+            assert time.monotonic() < end, "no snapshot written"
+            time.sleep(0.2)
+    finally:
+        tc.__exit__(None, None, None)
+    tc, c = started(make_app())
+    try:
+        c.upload_parametric("planes", A[700:], b[700:], val[700:])
+        info = c.describe("planes", verbose=True)
+        assert len(info["charts"]) == 59 and info["atlas"]["nstored"] == lib.nstored
+        assert [ch["samples"] for ch in info["charts"]] == [f.nsamples for f in lib.fields]
+        same_parametric(c, "planes", qA, qb, want)
+        mine = c.create_field("mine", k=3, d=4, unit=1.0, basis={
+            "kind": "atlas", "atlas": "covering", "dense_reach": 8, "dense_after": 3})["atlas"]
+        assert (mine["dense_reach"], mine["dense_after"]) == (8.0, 3)
+        assert c.create_field("lines", k=1, d=4)["atlas"]["dense_reach"] is None
+        for given, name in (({"dense_reach": 8}, "dense_after"),
+                            ({"dense_after": 3}, "dense_reach"),
+                            ({"dense_reach": 5, "dense_after": 3}, "dense_reach"),
+                            ({"dense_reach": 8, "dense_after": -1}, "dense_after"),
+                            ({"dense_reach": 8, "dense_after": "3"}, "dense_after"),
+                            ({"dense_reach": 8, "dense_after": 3, "relative": False},
+                             "dense_reach")):
+            r = tc.post("/v1/fields", json={"name": "bad", "k": 3, "d": 4, "basis": {
+                "kind": "atlas", "atlas": "covering", **given}})
+            assert r.status_code == 422, (given, r.text)
+            assert name in json.dumps(r.json()["detail"]), (given, r.text)
+    finally:
+        tc.__exit__(None, None, None)
 
 
 def same_parametric(c, name, qA, qb, want):

@@ -158,7 +158,7 @@ def test_a_body_that_is_not_an_export_is_a_4xx_naming_what(deployments, rng):
     a.create_field("f", channels=2, basis=ONE_CHART)
     _fill(a, "f", rng)
     good = a.export_field("f")
-    a.create_field("planes", k=2, d=4, channels=2)  # an atlas of 74 charts
+    a.create_field("planes", k=2, d=4, channels=2)  # an atlas of 59 charts
 
     def rows(m, arrays):
         m["batches"][0]["rows"] += 1

@@ -305,3 +305,56 @@ def test_a_remote_fields_decisions_are_charted_when_read(rng):
     got = front.insert_prepared(lazy)
     assert got.accepted == want.accepted
     np.testing.assert_array_equal(got.rejected, want.rejected)
+
+
+def test_shard_workers_narrow_a_dense_seam_as_the_server_does(make_app, pg_url, rng):
+    """Planes in R^4 (a dense seam: a chart narrows after 25 own samples) in two
+    batches: workers following the log store each of their charts' samples as the
+    server does, a worker restored from the snapshot between the batches as well,
+    and the front's copies of a batch (the upload guard's) are the server's, judged
+    by the charts' own samples the workers report."""
+    from flatserve.grassmann import haar_frames
+
+    settings = Settings(database_url=pg_url)
+    tc, c = started(make_app(database_url=pg_url))
+    storage = open_backend(settings)
+    workers = []
+    try:
+        c.create_field("p", k=2, d=4, channels=1, unit=1.0)
+        A, b = haar_frames(1600, 4, 2, rng), rng.uniform(-1, 1, (1600, 4))
+        val = np.sin(2 * b[:, :1])
+        c.upload_parametric("p", A[:900], b[:900], val[:900], wait=True)
+        row = next(r for r in storage.state()[1] if r.name == "p")
+        groups = [tuple(range(g, 59, 2)) for g in range(2)]
+        workers = _workers(settings, row, storage.head(), groups)
+        remote = _remote(storage, row, storage.head(), workers)
+        _snapshot(storage, row, remote)
+        for w in workers:
+            w.stop()
+        c.upload_parametric("p", A[900:], b[900:], val[900:], wait=True)
+        row, head = storage.field(row.id), storage.head()
+        workers = _workers(settings, row, head, groups)
+        assert all(w.restored_from.startswith("snapshot") for w in workers)
+        remote = _remote(storage, row, head, workers)
+        info = c.describe("p", verbose=True)
+        per_chart = [ch["samples"] for ch in info["charts"]]
+        got = [0] * 59
+        for w in workers:
+            st = w.status()
+            for ch, n in zip(st["charts"], st["chart_samples"]):
+                got[ch] = n
+        assert got == per_chart and sum(per_chart) == info["atlas"]["nstored"]
+        # the one-process field of the same batches, and the front's copies of a new
+        # batch: judged by the charts' own samples (the workers' reports), not all sparse
+        lib = FieldSpec.from_dict(row.spec).new_field(Basis(row.basis["Q"], row.basis["r"], 2))
+        fresh = FieldSpec.from_dict(row.spec).new_field(Basis(row.basis["Q"], row.basis["r"], 2))
+        for rows in (slice(0, 900), slice(900, 1600)):
+            lib.add(Flats.from_parametric(A[rows], b[rows]), val[rows])
+        assert [f.nsamples for f in lib.shards] == per_chart
+        probe = Flats.from_parametric(haar_frames(2000, 4, 2, rng), np.zeros((2000, 4)))
+        assert remote.copies(probe) == lib.copies(probe) < fresh.copies(probe)
+    finally:
+        for w in workers:
+            w.stop()
+        storage.close()
+        tc.__exit__(None, None, None)

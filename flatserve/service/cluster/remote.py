@@ -185,7 +185,16 @@ class RemoteField:
         return self._shape.blend(route, results, return_weights=return_weights)
 
     def copies(self, flats: Flats) -> float:
-        return self._shape.copies(flats)
+        """The definition's copies of ``flats``, with a dense seam's charts judged by
+        their own samples as their shards last reported them (a chart whose shard
+        has not reported counts as sparse: more copies, the safe side)."""
+        if getattr(getattr(self._shape, "atlas", None), "dense_reach", None) is None:
+            return self._shape.copies(flats)
+        own: list[int | None] = [None] * len(self._shape.shards)
+        for s in self._statuses():
+            for c, n in zip(s["charts"], s.get("chart_own", ())):
+                own[c] = n
+        return self._shape.copies(flats, own=own)
 
     # -- the unit of length of a field whose first batch chooses it -----------------------
     # The upload room chooses it once, here, and stores it with the batch; the shard

@@ -416,5 +416,8 @@ class ShardWorker:
             "nrejected": int(fld.nrejected) if fld is not None else 0,
             "chart_samples": [int(fld.shards[c].nsamples) for c in self.charts]
             if fld is not None else [0] * len(self.charts),
+            # per chart, its own samples (a dense seam's charts narrow after enough)
+            "chart_own": [int(own[c]) for c in self.charts] if own is not None
+            else [None] * len(self.charts),
             "restored_from": self.restored_from, "rss": rss_bytes(), "pid": os.getpid(),
         }

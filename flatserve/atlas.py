@@ -46,9 +46,10 @@ sparse chart needs the wide seam (in 6 dimensions about 100 samples of a chart
 leave much of its share outside their hull unless it holds many of its
 neighbours' samples too); a dense one does not, and the samples it stored
 while sparse keep its hull wide. Which charts store a flat then depends on
-the field's samples before its batch (each chart's own count at the batch's
-start, whatever its slices), so a field's log, replayed in order, stores every
-sample where it was stored first. The default for planes in R^4
+the samples before it (each chart's own count at its batch's start plus its
+own rows of the batch before it), not on how they were cut into batches or
+slices, so a field's log, replayed in order, stores every sample where it was
+stored first. The default for planes in R^4
 (:data:`DENSE_COVERS`): 59 charts, 9 degrees after 25 own samples: 2.85 copies
 and 97.4 % of random queries answered at 3,000 samples, 2.44 copies and 99.9 %
 at 12,000, about 2.3 for large fields, where the 74 charts of the plain
@@ -171,9 +172,9 @@ RELATIVE_RADII = (2.0, 6.0, 14.0)
 #: Covering atlases are relative by default from this dimension of the space on:
 #: in R^4 a sample of lines or hyperplanes is stored about 2.4 times instead of 4.1,
 #: of planes 3.8 instead of 7.3 (2.4-2.9 with :data:`DENSE_COVERS`), built 2-4 times
-#: faster, at about the same median error on the queries both answer (``docs/costs.md``), where about 1 % of random
-#: queries fall outside the samples' hulls (balls: none); in R^3 they store more
-#: (1.96 against 1.75) for the same error.
+#: faster, at about the same median error on the queries both answer
+#: (``docs/costs.md``), where about 1 % of random queries fall outside the samples'
+#: hulls (balls: none); in R^3 they store more (1.96 against 1.75) for the same error.
 RELATIVE_FROM_D = 4
 #: Relative covering atlases that narrow their seam once their charts fill
 #: (:class:`Atlas` ``dense_reach``, ``dense_after``), by kind ``(k, d)``: the
@@ -1084,8 +1085,8 @@ class Atlas:
         dict
             ``{"atlas": {"method", "oriented", "inner", "trusted", "reach",
             "relative", "dense_reach", "dense_after", "unit", "unit_from", "isometric",
-            "covering_radius", "max_sample_angle", "info"}, "charts": [{"center": {"A", "r"}, "scale", "samples":
-            None}, ...]}`` (``method``, ``covering_radius`` and
+            "covering_radius", "max_sample_angle", "info"}, "charts": [{"center":
+            {"A", "r"}, "scale", "samples": None}, ...]}`` (``method``, ``covering_radius`` and
             ``max_sample_angle`` from ``info``, None where it has none;
             ``unit`` None while it is to be chosen from the first samples,
             ``unit_from`` its rule, ``"data"`` or ``"fit"``, then and once

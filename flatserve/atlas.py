@@ -1007,6 +1007,16 @@ class Atlas:
         return [bump(a - ro.nearest_angle[r], inner, trusted) * bump(a, taper, top)
                 for r, a in zip(ro.rows, ro.angles)]
 
+    def beyond_dense(self, ro: Routing, c: int) -> np.ndarray:
+        """(len(ro.rows[c]),) bool: which of chart ``c``'s rows of ``ro`` (a
+        :meth:`route` with ``nearest``) lie beyond ``dense_reach`` of their nearest
+        centre's angle, the seam a dense chart no longer stores (all False without
+        a ``dense_reach``)."""
+        rows = ro.rows[c]
+        if self.dense_reach is None:
+            return np.zeros(rows.size, dtype=bool)
+        return ro.angles[c] - ro.nearest_angle[rows] > math.radians(self.dense_reach)
+
     def held(self, flats: Flats, radius: float) -> np.ndarray:
         """Per chart, how many flats are closer than ``radius`` (degrees) to its centre.
 

@@ -351,12 +351,12 @@ class AtlasField(FieldBase):
         n = at.check_flats(flats).n
         if not n:
             return 0.0
-        held = at.held(flats, at.reach)
-        if at.dense_reach is not None:
-            dense = ~np.asarray(self._sparse(own), dtype=bool)
-            if dense.any():
-                held[dense] = at.held(flats, at.dense_reach)[dense]
-        return float(held.sum()) / n
+        if at.dense_reach is None:
+            return float(at.held(flats, at.reach).sum()) / n
+        ro = at.route(flats, at.reach)  # (one routing: a dense chart's rows are a subset)
+        held = sum(r.size if sparse else r.size - int(at.beyond_dense(ro, c).sum())
+                   for c, (r, sparse) in enumerate(zip(ro.rows, self._sparse(own))))
+        return float(held) / n
 
     def _while_sparse(self, c: int, three: tuple, ranks) -> tuple:
         """Chart ``c``'s ``(own, shared, outer)`` parts of a batch with ``outer`` cut to
@@ -495,7 +495,6 @@ class AtlasField(FieldBase):
         taken = np.zeros(n, dtype=bool)
         first_reason: dict[int, str] = {}
         parts: list = [None] * len(self.fields)
-        dense = self.atlas.dense_reach
         ranks: list = [None] * len(self.fields)
         for (c, rows), pb in zip(work, prepared):
             okm = np.ones(rows.size, dtype=bool)
@@ -506,8 +505,7 @@ class AtlasField(FieldBase):
             taken[acc] = True
             mine = ro.nearest[acc] == c
             # the seam beyond dense_reach: stored only while the chart is sparse
-            outer = np.zeros(acc.size, dtype=bool) if dense is None else \
-                ro.angles[c][okm] - ro.nearest_angle[acc] > math.radians(dense)
+            outer = self.atlas.beyond_dense(ro, c)[okm]
             parts[c] = tuple(PreparedBatch(int(m.sum()), pb.x[m], pb.values[m], _NO_ROWS, [])
                              for m in (mine, ~mine & ~outer, outer))
             ranks[c] = np.searchsorted(acc[mine], acc[outer]).astype(np.int64)

@@ -188,7 +188,7 @@ class RemoteField:
         """The definition's copies of ``flats``, with a dense seam's charts judged by
         their own samples as their shards last reported them (a chart whose shard
         has not reported counts as sparse: more copies, the safe side)."""
-        if getattr(getattr(self._shape, "atlas", None), "dense_reach", None) is None:
+        if not self.blends:  # one chart: nothing to judge
             return self._shape.copies(flats)
         own: list[int | None] = [None] * len(self._shape.shards)
         for s in self._statuses():

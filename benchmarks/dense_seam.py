@@ -1,12 +1,16 @@
-"""Planes in R^4: the relative atlas whose charts narrow their seam once dense (the
-default: 59 charts, 9 degrees after 25 own samples) against the plain relative atlas
-it replaced (74 charts, seam of 14 degrees at any size), from the same run.
+"""Planes in R^4: the relative atlas whose charts keep a net of their outer seam (the
+default: 59 charts, every sample up to 7 degrees beyond its nearest centre's angle, beyond
+that only samples farther than 1 in the chart's coordinates from every sample before them)
+against the two it replaced, from the same run: the seam narrowed to 9 degrees once a chart
+holds 25 own samples (59 charts), and the plain relative atlas (74 charts, seam of 14 at
+any size).
 
 For each ``--samples`` count: random planes and held-out random queries with a smooth
-known function (``accuracy_by_kind.py``'s, seed 1, unit 1), both atlases filled with
-the same samples in one batch (the stored copies do not depend on the batches: tested),
-and per atlas the copies per sample, the build time, the share of queries answered, the
-median error over the 8 nearest samples' on the same queries; then the ratios.
+known function (``accuracy_by_kind.py``'s, seed 1, unit 1), every atlas filled with the
+same samples in one batch (the stored copies do not depend on the batches: tested), and
+per atlas the copies per sample, the build time, the share of queries answered, the
+median error over the 8 nearest samples' on the same queries; then the net's ratios to
+the others.
 
     .venv/bin/python benchmarks/dense_seam.py [--samples 3000 12000] [--kind 2,4]
 """
@@ -37,23 +41,25 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
     k, d = map(int, args.kind.split(","))
-    dense = Atlas.covering(k, d)
-    plain = Atlas.covering(k, d, relative=True, train_deg=COVER_TRAIN_DEG, reach=dense.reach)
-    print(f"{k}-flats in R^{d}; dense seam: {dense.ncharts} charts, radii {dense.inner:g}/"
-          f"{dense.trusted:g}/{dense.reach:g}, {dense.dense_reach} after {dense.dense_after} own "
+    net = Atlas.covering(k, d)
+    step = Atlas.covering(k, d, relative=True, inner=net.inner, trusted=net.trusted,
+                          reach=net.reach, dense_reach=9.0, dense_after=25)
+    plain = Atlas.covering(k, d, relative=True, train_deg=COVER_TRAIN_DEG, reach=net.reach)
+    print(f"{k}-flats in R^{d}; net: {net.ncharts} charts, radii {net.inner:g}/{net.trusted:g}/"
+          f"{net.reach:g}, beyond {net.dense_reach} a net of spacing {net.seam_spacing}; "
+          f"step: {step.ncharts} charts, {step.dense_reach} after {step.dense_after} own "
           f"samples; plain: {plain.ncharts} charts, radii {plain.inner:g}/{plain.trusted:g}/"
           f"{plain.reach:g}")
-    print("| samples | plain: copies, build, answered, error ÷ 8-NN | dense seam: copies, "
-          "build, answered, error ÷ 8-NN | copies dense/plain | error dense/plain |")
-    print("|---|---|---|---|---|")
+    print("| samples | plain: copies, build, answered, error ÷ 8-NN | step | net | copies "
+          "net/plain, net/step | error net/plain, net/step |")
+    print("|---|---|---|---|---|---|")
     for n in args.samples:
         A, c, f, Aq, cq, fq = setup(k, d, n, args.queries, args.seed)
         knn = np.abs(nearest(A, c, f, Aq, cq) - fq)
-        p = measure(plain, A, c, f, Aq, cq, fq, knn)
-        q = measure(dense, A, c, f, Aq, cq, fq, knn)
+        p, s, q = (measure(a, A, c, f, Aq, cq, fq, knn) for a in (plain, step, net))
         cell = "{:.2f}, {:.1f} s, {:.1%}, {:.3f}".format
-        print(f"| {n:,} | {cell(*p)} | {cell(*q)} | {q[0] / p[0]:.2f} | {q[3] / p[3]:.2f} |",
-              flush=True)
+        print(f"| {n:,} | {cell(*p)} | {cell(*s)} | {cell(*q)} | {q[0] / p[0]:.2f}, "
+              f"{q[0] / s[0]:.2f} | {q[3] / p[3]:.2f}, {q[3] / s[3]:.2f} |", flush=True)
 
 
 if __name__ == "__main__":

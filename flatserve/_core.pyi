@@ -72,6 +72,11 @@ class Triangulation:
 
     def locate(self, xi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], hilbert: bool = True, threads: int = 0) -> tuple[NDArray[numpy.int64], NDArray[numpy.float64], NDArray[numpy.int8], NDArray[numpy.int64]]: ...
 
+    def within(self, xi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], radius: float, threads: int = 0) -> NDArray[numpy.uint8]:
+        """
+        Per row of xi, 1 if some vertex lies within radius of it (Euclidean, inclusive), else 0.
+        """
+
     def interpolate(self, xi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], values: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], clamp: bool = False, hilbert: bool = True, threads: int = 0) -> tuple[NDArray[numpy.float64], NDArray[numpy.bool_]]: ...
 
     def interpolate_owned(self, xi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], values: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], own: Annotated[NDArray[numpy.uint8], dict(shape=(None,), order='C', device='cpu', writable=False)], clamp: bool = False, hilbert: bool = True, threads: int = 0) -> tuple[NDArray[numpy.float64], NDArray[numpy.bool_], NDArray[numpy.int64]]:
@@ -127,3 +132,5 @@ class CoordinateStatus(enum.IntEnum):
     NO_SAMPLES = 4
 
 def coordinates_rays3(Qb: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], rb: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], origins: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], directions: Annotated[NDArray[numpy.float64], dict(order='C', device='cpu', writable=False)], roundtrip_tol: float, rcond: float, gap_tol: float, pinv_rcond: float, threads: int = 0) -> tuple[NDArray[numpy.float64], NDArray[numpy.int8], NDArray[numpy.float64]]: ...
+
+def seam_net(cand: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], cand_at: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)], base: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], base_at: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)], radius: float, hit: Annotated[NDArray[numpy.uint8], dict(shape=(None,), order='C', device='cpu', writable=False)], threads: int = 0) -> NDArray[numpy.uint8]: ...

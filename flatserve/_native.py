@@ -20,6 +20,9 @@ EIGEN_VERSION: str = _core.eigen_version
 Triangulation = _core.Triangulation
 #: Where a query landed (an IntEnum: compares with the int8 ``kind`` arrays).
 LocateKind = _core.LocateKind
+#: Which candidates lie farther than a radius from every point before them
+#: (native/net.hpp; the Python face is flatserve.triangulation.seam_net).
+seam_net = _core.seam_net
 # ---- /triangulation ----
 
 # ---- coordinates ----

@@ -34,26 +34,29 @@ answers it.  Covering atlases are relative from R^4 on
 orientations and a seam around it, not a ball as wide as the covering radius
 plus margins: a sample of lines or hyperplanes in R^4 is stored about 2.4
 times instead of 4.1, of planes in R^4 3.8 times instead of 7.3 (less with a
-dense seam, below; ``docs/costs.md``), and each query is answered near its
+thinner seam, below; ``docs/costs.md``), and each query is answered near its
 charts' centres;
 1 % of random queries fall outside the samples' hulls where balls answer all.
 
-A relative atlas may also narrow its seam as its charts fill (``dense_reach``,
-``dense_after``): a chart that holds ``dense_after`` samples as their nearest
-chart (its *own* samples) stores the flats that come later only up to
-``dense_reach`` (< ``reach``) degrees beyond their nearest centre's angle. A
-sparse chart needs the wide seam (in 6 dimensions about 100 samples of a chart
-leave much of its share outside their hull unless it holds many of its
-neighbours' samples too); a dense one does not, and the samples it stored
-while sparse keep its hull wide. Which charts store a flat then depends on
-the samples before it (each chart's own count at its batch's start plus its
-own rows of the batch before it), not on how they were cut into batches or
-slices, so a field's log, replayed in order, stores every sample where it was
-stored first. The default for planes in R^4
-(:data:`DENSE_COVERS`): 59 charts, 9 degrees after 25 own samples: 2.85 copies
-and 97.4 % of random queries answered at 3,000 samples, 2.44 copies and 99.9 %
-at 12,000, about 2.3 for large fields, where the 74 charts of the plain
-relative atlas store 3.76-3.78 (``docs/costs.md``).
+A relative atlas may also thin its seam beyond ``dense_reach`` (< ``reach``)
+degrees past a flat's nearest centre's angle. With ``seam_spacing`` a chart
+stores such a flat only if none of the samples it holds, or that came before
+the flat, lies within ``seam_spacing`` of it in the chart's coordinates (at
+scale 1): its outer seam is a *net*, as wide as before (the samples' hull
+still reaches past the chart's own share, which in 6 dimensions needs the
+seam of 14 degrees at ~100 samples a chart) but no denser than the spacing,
+so the outer seam's samples stop growing as the field fills. With
+``dense_after`` a chart that holds that many samples as their nearest chart
+(its *own* samples) stores nothing beyond ``dense_reach`` any more (the
+samples it stored while sparse stay and keep its hull wide). Either way which
+charts store a flat depends on the samples before it (the chart's samples at
+its batch's start and the rows of the batch before it), not on how they were
+cut into batches or slices, so a field's log, replayed in order, stores every
+sample where it was stored first. The default for planes in R^4
+(:data:`DENSE_COVERS`): 59 charts, a net of spacing 1 beyond 7 degrees: 2.41
+copies and 98.9 % of random queries answered at 3,000 samples, 2.28 and
+100 % at 12,000, where the 74 charts of the plain relative atlas store
+3.76-3.78 and answer as many (``docs/costs.md``).
 
 Coverage is a question of orientation only (offsets do not matter: the chart
 is equivariant under translations), so a *covering* atlas
@@ -171,25 +174,27 @@ RELATIVE_BLOCK = 16_384
 RELATIVE_RADII = (2.0, 6.0, 14.0)
 #: Covering atlases are relative by default from this dimension of the space on:
 #: in R^4 a sample of lines or hyperplanes is stored about 2.4 times instead of 4.1,
-#: of planes 3.8 instead of 7.3 (2.4-2.9 with :data:`DENSE_COVERS`), built 2-4 times
+#: of planes 3.8 instead of 7.3 (2.3-2.4 with :data:`DENSE_COVERS`), built 2-4 times
 #: faster, at about the same median error on the queries both answer
 #: (``docs/costs.md``), where about 1 % of random queries fall outside the samples'
 #: hulls (balls: none); in R^3 they store more (1.96 against 1.75) for the same error.
 RELATIVE_FROM_D = 4
-#: Relative covering atlases that narrow their seam once their charts fill
-#: (:class:`Atlas` ``dense_reach``, ``dense_after``), by kind ``(k, d)``: the
-#: greedy cover's ``train_deg`` (fewer, larger charts: more samples each, so
-#: their hulls are fuller), ``dense_reach`` (degrees) and ``dense_after`` (own
-#: samples per chart). Planes in R^4 (``docs/costs.md``): 59 charts (covering
-#: radius 38.6 degrees, below the relative charts' answer of 40 less its
-#: margin), stored 3.42 times with the radii 2/6/14 alone and 2.31 with 2/6/9
-#: alone; with 9 after 25: 2.85 copies and 97.4 % of random queries answered at
-#: 3,000 samples (2/6/9 alone: 83.7 %), 2.44 and 99.9 % at 12,000 (74 charts at
-#: 2/6/14: 3.76, 98.9 % and 3.78, 100 %). Lines and hyperplanes in R^4 are
-#: stored 2.4-2.5 times without it. The kind's relative covers take its
-#: ``train_deg`` whatever their radii (``train_deg=COVER_TRAIN_DEG``: the 74
-#: charts); the dense seam is the default only with no radius given.
-DENSE_COVERS = {(2, 4): (37.6, 9.0, 25)}
+#: Relative covering atlases that thin their seam (:class:`Atlas` ``dense_reach``,
+#: ``dense_after``, ``seam_spacing``), by kind ``(k, d)``: the greedy cover's
+#: ``train_deg`` (fewer, larger charts: more samples each, so their hulls are
+#: fuller), ``dense_reach`` (degrees), ``dense_after`` (own samples per chart, or
+#: None) and ``seam_spacing`` (chart coordinates at scale 1, or None). Planes in
+#: R^4 (``docs/costs.md``, ``benchmarks/dense_seam.py``): 59 charts (covering
+#: radius 38.6 degrees, below the relative charts' answer of 40 less its margin),
+#: stored 3.42 times with the radii 2/6/14 alone; with a net of spacing 1 beyond
+#: 7: 2.41 copies and 98.9 % of random queries answered at 3,000 samples, 2.28
+#: and 100 % at 12,000 (74 charts at 2/6/14: 3.76, 98.9 % and 3.78, 100 %; the
+#: seam narrowed to 9 after 25 own samples, the default before: 2.85, 97.4 % and
+#: 2.44, 99.9 %). Lines and hyperplanes in R^4 are stored 2.4-2.5 times without
+#: it. The kind's relative covers take its ``train_deg`` whatever their radii
+#: (``train_deg=COVER_TRAIN_DEG``: the 74 charts); the thinner seam is the
+#: default only with no radius given.
+DENSE_COVERS = {(2, 4): (37.6, 7.0, None, 1.0)}
 #: Largest extra angle a covering must keep below ``trusted`` (degrees): the
 #: margin the checks of :meth:`Atlas.covering` require.
 COVER_MARGIN_DEG = 1.0
@@ -230,30 +235,42 @@ class Routing(NamedTuple):
     nearest_angle: np.ndarray
 
 
-def _check_dense(dense_reach, dense_after, relative: bool, trusted: float, reach: float):
-    """``(dense_reach, dense_after)`` as an :class:`Atlas` takes them (both None, or
-    both checked), or an error naming the one at fault."""
-    if dense_reach is None and dense_after is None:
-        return None, None
-    name = "dense_reach" if dense_reach is not None else "dense_after"
+def _check_dense(dense_reach, dense_after, seam_spacing, relative: bool, trusted: float,
+                 reach: float):
+    """``(dense_reach, dense_after, seam_spacing)`` as an :class:`Atlas` takes them (all
+    None, or ``dense_reach`` with one or both of the others, checked), or an error naming
+    the one at fault."""
+    if dense_reach is None and dense_after is None and seam_spacing is None:
+        return None, None, None
+    name = "dense_reach" if dense_reach is not None else \
+        "dense_after" if dense_after is not None else "seam_spacing"
     if not relative:
         raise InvalidInputError(f"{name}: only a relative atlas narrows its seam (its radii "
                                 f"are measured from each flat's nearest centre)", name)
-    if dense_reach is None or dense_after is None:
-        other = "dense_after" if dense_reach is not None else "dense_reach"
-        raise InvalidInputError(f"{other}: expected with {name} (a chart narrows its seam to "
-                                "dense_reach once it holds dense_after own samples)", other)
+    if dense_reach is None:
+        raise InvalidInputError(f"dense_reach: expected with {name} (a chart thins or drops "
+                                "its seam beyond dense_reach)", "dense_reach")
+    if dense_after is None and seam_spacing is None:
+        raise InvalidInputError("dense_after: expected dense_after or seam_spacing with "
+                                "dense_reach (what a chart does beyond dense_reach)",
+                                "dense_after")
     dense_reach = _in_units(dense_reach, "dense_reach")
     if not trusted < dense_reach <= reach:
         raise InvalidInputError(
             f"dense_reach: need trusted < dense_reach <= reach (a dense chart still holds a "
             f"seam beyond what it answers), got trusted={trusted:g}, "
             f"dense_reach={dense_reach:g}, reach={reach:g}", "dense_reach")
-    if isinstance(dense_after, (bool, np.bool_)) or not isinstance(
-            dense_after, (int, np.integer)) or dense_after < 0:
+    if dense_after is not None and (isinstance(dense_after, (bool, np.bool_)) or not isinstance(
+            dense_after, (int, np.integer)) or dense_after < 0):
         raise InvalidInputError(f"dense_after: expected a count of samples (an integer >= 0), "
                                 f"got {dense_after!r}", "dense_after")
-    return dense_reach, int(dense_after)
+    if seam_spacing is not None and (isinstance(seam_spacing, (bool, np.bool_)) or not isinstance(
+            seam_spacing, (int, float, np.integer, np.floating))
+            or not math.isfinite(seam_spacing) or seam_spacing <= 0):
+        raise InvalidInputError(f"seam_spacing: expected a distance in chart coordinates "
+                                f"(finite, > 0), got {seam_spacing!r}", "seam_spacing")
+    return (dense_reach, None if dense_after is None else int(dense_after),
+            None if seam_spacing is None else float(seam_spacing))
 
 
 def check_seam(atlas: "Atlas") -> "Atlas":
@@ -329,8 +346,16 @@ class Atlas:
         Default None: always ``reach``.
     dense_after : int, optional
         Own samples (flats it is the nearest chart of) from which a chart is
-        dense; given with ``dense_reach`` (both or neither). 0: from the
-        start (as ``reach = dense_reach``).
+        dense and stores nothing beyond ``dense_reach``. 0: from the start (as
+        ``reach = dense_reach``). Default None: never.
+    seam_spacing : float, optional
+        Beyond ``dense_reach`` a chart stores a flat only if none of the
+        samples it holds or that came before the flat lies within this
+        distance of it in the chart's coordinates at scale 1 (its
+        triangulation's points, :attr:`flatserve.field.Field.points`, times
+        its scale: :data:`DEFAULT_SCALE`): a net of its outer seam (module
+        docstring). Default None: every flat up to ``reach``.
+        ``dense_reach`` comes with ``dense_after``, ``seam_spacing`` or both.
     isometric : bool, optional
         Warp each chart's points so that it measures turns and shifts
         everywhere as at its centre (:mod:`flatserve.warp`: lines by
@@ -358,7 +383,7 @@ class Atlas:
                  trusted: float = TRUSTED_DEG, reach: float = REACH_DEG,
                  unit: float | str | None = DEFAULT_UNIT, isometric: bool | None = None,
                  relative: bool = False, dense_reach: float | None = None,
-                 dense_after: int | None = None):
+                 dense_after: int | None = None, seam_spacing: float | None = None):
         d = int(d)
         k = _flats.check_k(k, d)
         if oriented and k != 1:
@@ -387,8 +412,8 @@ class Atlas:
             raise InvalidInputError(
                 f"{bad}: need 0 <= inner < trusted <= reach < {CHART_LIMIT_DEG:g} degrees, got "
                 f"inner={inner:g}, trusted={trusted:g}, reach={reach:g}", bad)
-        self.dense_reach, self.dense_after = _check_dense(dense_reach, dense_after, relative,
-                                                          trusted, reach)
+        self.dense_reach, self.dense_after, self.seam_spacing = _check_dense(
+            dense_reach, dense_after, seam_spacing, relative, trusted, reach)
         r = np.ascontiguousarray(np.asarray(center_r, dtype=np.float64).reshape(-1, d))
         c = r.shape[0]  # (not from center_A: points, k = 0, have empty frames)
         A = np.ascontiguousarray(np.asarray(center_A, dtype=np.float64).reshape(c, d, k))
@@ -432,7 +457,8 @@ class Atlas:
                  n_train: int = COVER_TRAIN_N, unit: float | str | None = DEFAULT_UNIT,
                  isometric: bool | None = None, relative: bool | None = None,
                  dense_reach: float | None = None,
-                 dense_after: int | None = None) -> "Atlas":
+                 dense_after: int | None = None,
+                 seam_spacing: float | None = None) -> "Atlas":
         """An atlas whose charts hold every k-flat of R^d, centres through the origin.
 
         Centres.  A chart is accurate near its centre only: its embedding
@@ -488,8 +514,8 @@ class Atlas:
             radii :data:`RELATIVE_RADII`). Default: from d =
             :data:`RELATIVE_FROM_D` on. The covering radius must then be
             below ``RELATIVE_ANSWER_DEG - COVER_MARGIN_DEG``.
-        dense_reach, dense_after : optional
-            A relative atlas's narrower seam once a chart fills (:class:`Atlas`).
+        dense_reach, dense_after, seam_spacing : optional
+            A relative atlas's thinner or narrower seam (:class:`Atlas`).
             Default: :data:`DENSE_COVERS` for its kind when none of ``inner``,
             ``trusted``, ``reach`` is given, else none (so ``reach=14``, the
             default, keeps the plain seam of 14 degrees).
@@ -514,9 +540,9 @@ class Atlas:
         dense = DENSE_COVERS.get((k, d)) if relative and not oriented else None
         if dense is not None and train_deg is None:
             train_deg = dense[0]
-        if dense is not None and (inner, trusted, reach, dense_reach, dense_after) == \
-                (None,) * 5:
-            dense_reach, dense_after = dense[1:]
+        if dense is not None and (inner, trusted, reach, dense_reach, dense_after,
+                                  seam_spacing) == (None,) * 6:
+            dense_reach, dense_after, seam_spacing = dense[1:]
         if train_deg is None:
             train_deg = COVER_TRAIN_DEG
         inner, trusted, reach = (radii[i] if v is None else v
@@ -536,7 +562,7 @@ class Atlas:
                                np.full(A.shape[0], float(scale)), oriented=oriented, inner=inner,
                                trusted=trusted, reach=reach, unit=unit, isometric=isometric,
                                relative=relative, dense_reach=dense_reach,
-                               dense_after=dense_after))
+                               dense_after=dense_after, seam_spacing=seam_spacing))
         # the same centres, the same seeded measurement: measured once
         radius = cover_radius(k, d, bool(oriented), float(train_deg), int(seed), int(n_train),
                               int(check_n))
@@ -817,7 +843,7 @@ class Atlas:
                 f"degrees and {distance:g} from the centre) do not round-trip (largest "
                 f"residual {worst:.3g})")
 
-    def with_unit(self, unit: float) -> "Atlas":
+    def with_unit(self, unit: float, *, net: bool = True) -> "Atlas":
         """The same charts (centres, scales, radii, relative and isometric or not) in another unit
         of length: their tangent simplices rebuilt (:func:`_unit_simplex`), their
         warps calibrated again on first use; ``info["unit_from"]`` says
@@ -828,6 +854,11 @@ class Atlas:
         ----------
         unit : float
             Positive, in the flats' units.
+        net : bool
+            Keep the net of the outer seam (``seam_spacing``). False: every flat
+            up to ``dense_reach`` and, while sparse (``dense_after``), ``reach``
+            (:func:`flatserve.atlas_field.fitted_unit`'s trial fields: a net in
+            the charts' coordinates thins more in a longer unit).
 
         Returns
         -------
@@ -836,10 +867,19 @@ class Atlas:
         out = Atlas(self.k, self.d, self.center_A, self.center_N, self.center_r, self.scales,
                     oriented=self.oriented, inner=self.inner, trusted=self.trusted,
                     reach=self.reach, unit=unit, isometric=self.isometric,
-                    relative=self.relative, dense_reach=self.dense_reach,
-                    dense_after=self.dense_after)
+                    relative=self.relative, **self._seam(net))
         out.info = {**self.info, **({"unit_from": self.unit_rule} if self.unit_from_data else {})}
         return out
+
+    def _seam(self, net: bool = True) -> dict:
+        """``dense_reach``, ``dense_after`` and ``seam_spacing`` as keywords (``net``
+        False: without ``seam_spacing``, and without ``dense_reach`` if nothing else
+        is done beyond it)."""
+        if net or self.seam_spacing is None:
+            return {"dense_reach": self.dense_reach, "dense_after": self.dense_after,
+                    "seam_spacing": self.seam_spacing}
+        return {"dense_reach": None if self.dense_after is None else self.dense_reach,
+                "dense_after": self.dense_after, "seam_spacing": None}
 
     @property
     def unit_setting(self) -> float | str | None:
@@ -1094,7 +1134,8 @@ class Atlas:
         -------
         dict
             ``{"atlas": {"method", "oriented", "inner", "trusted", "reach",
-            "relative", "dense_reach", "dense_after", "unit", "unit_from", "isometric",
+            "relative", "dense_reach", "dense_after", "seam_spacing", "unit", "unit_from",
+            "isometric",
             "covering_radius", "max_sample_angle", "info"}, "charts": [{"center":
             {"A", "r"}, "scale", "samples": None}, ...]}`` (``method``, ``covering_radius`` and
             ``max_sample_angle`` from ``info``, None where it has none;
@@ -1111,6 +1152,7 @@ class Atlas:
                       "reach": spec["reach"], "relative": bool(spec.get("relative", False)),
                       "dense_reach": spec.get("dense_reach"),
                       "dense_after": spec.get("dense_after"),
+                      "seam_spacing": spec.get("seam_spacing"),
                       "unit": None if spec.get("unit_from_data") else spec.get("unit",
                                                                                DEFAULT_UNIT),
                       "unit_from": rule,
@@ -1136,6 +1178,7 @@ class Atlas:
                 "isometric": self.isometric, **({"relative": True} if self.relative else {}),
                 **({"dense_reach": self.dense_reach, "dense_after": self.dense_after}
                    if self.dense_reach is not None else {}),
+                **({"seam_spacing": self.seam_spacing} if self.seam_spacing is not None else {}),
                 **({"warps": [w.to_dict() for w in self.warps]} if self.isometric else {}),
                 "center_A": self.center_A.tolist(), "center_N": self.center_N.tolist(),
                 "center_r": self.center_r.tolist(), "scales": self.scales.tolist(),
@@ -1151,7 +1194,8 @@ class Atlas:
                     unit=(spec.get("unit_rule", "data") if spec.get("unit_from_data")
                           else spec.get("unit", DEFAULT_UNIT)),
                     isometric=cls.spec_isometric(spec), relative=spec.get("relative", False),
-                    dense_reach=spec.get("dense_reach"), dense_after=spec.get("dense_after"))
+                    dense_reach=spec.get("dense_reach"), dense_after=spec.get("dense_after"),
+                    seam_spacing=spec.get("seam_spacing"))
         if atlas.isometric and "warps" in spec:
             warps = [warp_from_dict(w) for w in spec["warps"]]
             if len(warps) != atlas.ncharts:

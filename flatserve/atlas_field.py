@@ -44,7 +44,7 @@ from .field import AddResult, Field, PreparedBatch, QueryResult, QueryRoute
 from .flats import Flats, basis_size
 from .grassmann import bump
 from .options import Interpolant, Order, Outside, choice
-from .triangulation import RWLock
+from .triangulation import RWLock, seam_net
 
 __all__ = ["ATLAS_MAGIC", "AtlasField", "AtlasPrepared", "AtlasQueryResult", "FIT_FACTORS",
            "FIT_MAX_DIM", "FIT_MIN_ROWS", "FittedUnit", "choose_unit", "default_unit_rule",
@@ -71,8 +71,9 @@ class AtlasPrepared:
     another centre (the overlap: inserted so that the chart covers its
     blending domain), and of those the ones beyond the atlas's
     ``dense_reach`` (empty without it), which :meth:`AtlasField.insert_prepared`
-    inserts only while the chart is sparse: ``outer_ranks[i]`` (int64, one per
-    ``outer`` row) counts the chart's ``own`` rows before each in the batch.
+    inserts only while the chart is sparse (``dense_after``) and where its net
+    has room (``seam_spacing``): ``rows[i]`` is the triple of the parts' rows
+    in the batch (int64, increasing), which says what came before each.
     ``accepted_rows`` (int64) were accepted by at least one chart; ``rejected``
     (int64) by none, one of ``reasons`` each (the first chart's).
     """
@@ -85,7 +86,7 @@ class AtlasPrepared:
     #: the atlas's unit of length the batch was charted in (:meth:`AtlasField.insert_prepared`
     #: refuses it in a field whose unit has changed since: a unit chosen from the data)
     unit: float = 1.0
-    outer_ranks: tuple = ()
+    rows: tuple = ()
 
     @property
     def accepted(self) -> int:
@@ -196,7 +197,7 @@ class AtlasField(FieldBase):
         self._own: list[int] | None = [0] * len(self.fields)
         self._lock = RWLock()
         #: writers one batch at a time, whole (its slices let readers in, not another
-        #: writer): a dense seam's decisions count the samples of the batches before
+        #: writer): a thinner seam's decisions count the samples of the batches before
         self._writing = threading.Lock()
         #: per chart, (its generation, the key of its part) when a part was last
         #: written or read: unchanged since, it need not be made again
@@ -358,15 +359,32 @@ class AtlasField(FieldBase):
                    for c, (r, sparse) in enumerate(zip(ro.rows, self._sparse(own))))
         return float(held) / n
 
-    def _while_sparse(self, c: int, three: tuple, ranks) -> tuple:
-        """Chart ``c``'s ``(own, shared, outer)`` parts of a batch with ``outer`` cut to
-        the rows before which it holds fewer than ``dense_after`` own samples
-        (:meth:`insert_prepared`; under the writer lock)."""
+    def _outer_kept(self, c: int, f, three: tuple, rows: tuple) -> tuple:
+        """Chart ``c``'s ``(own, shared, outer)`` parts of a batch (its Field ``f``)
+        with ``outer`` cut to the rows before which the chart holds fewer than
+        ``dense_after`` own samples, and of those (``seam_spacing``) to the ones
+        that no sample it holds, no row of ``own`` or ``shared`` before it and no
+        kept ``outer`` row before it lies within ``seam_spacing`` of in the chart's
+        coordinates at scale 1 (:func:`flatserve.triangulation.seam_net`). Depends on the
+        samples before each row, not on how they were cut into batches or slices
+        (:meth:`insert_prepared`; under the writer mutex: the chart does not change)."""
         own, shared, outer = three
         at = self.atlas
-        if not outer.accepted or at.dense_reach is None or self._own is None:
+        if not outer.accepted or at.dense_reach is None:
             return three
-        keep = self._own[c] + ranks < at.dense_after
+        r_own, r_shared, r_outer = rows
+        keep = np.ones(outer.accepted, dtype=bool)
+        if at.dense_after is not None and self._own is not None:
+            keep = self._own[c] + np.searchsorted(r_own, r_outer) < at.dense_after
+        if at.seam_spacing is not None and keep.any():
+            idx = np.flatnonzero(keep)
+            x = np.ascontiguousarray(outer.x[idx])
+            base_at = np.concatenate([r_own, r_shared])
+            order = np.argsort(base_at, kind="stable")
+            base = np.concatenate([own.x, shared.x])[order]
+            radius = at.seam_spacing / float(at.scales[c])  # (points scale as 1 / scale)
+            keep[idx] = seam_net(x, r_outer[idx], base, base_at[order], radius,
+                                 f.within(x, radius))
         if keep.all():
             return three
         return own, shared, PreparedBatch(int(keep.sum()), outer.x[keep], outer.values[keep],
@@ -379,7 +397,7 @@ class AtlasField(FieldBase):
         per chart its own samples (None: not known) instead of this field's."""
         at = self.atlas
         own = self._own if own is None else own
-        if at.dense_reach is None or own is None:
+        if at.dense_after is None or own is None:
             return [True] * len(self.fields)
         return [o is None or o < at.dense_after for o in list(own)]
 
@@ -495,7 +513,7 @@ class AtlasField(FieldBase):
         taken = np.zeros(n, dtype=bool)
         first_reason: dict[int, str] = {}
         parts: list = [None] * len(self.fields)
-        ranks: list = [None] * len(self.fields)
+        part_rows: list = [None] * len(self.fields)
         for (c, rows), pb in zip(work, prepared):
             okm = np.ones(rows.size, dtype=bool)
             okm[pb.rejected] = False
@@ -508,7 +526,7 @@ class AtlasField(FieldBase):
             outer = self.atlas.beyond_dense(ro, c)[okm]
             parts[c] = tuple(PreparedBatch(int(m.sum()), pb.x[m], pb.values[m], _NO_ROWS, [])
                              for m in (mine, ~mine & ~outer, outer))
-            ranks[c] = np.searchsorted(acc[mine], acc[outer]).astype(np.int64)
+            part_rows[c] = tuple(acc[m].astype(np.int64) for m in (mine, ~mine & ~outer, outer))
         if only is not None:  # the decisions of the charts not asked are unknown: only the
             # rows no chart's domain holds are known to be rejected
             held = np.zeros(n, dtype=bool)
@@ -522,7 +540,7 @@ class AtlasField(FieldBase):
             f"from the nearest centre (chart {int(ro.nearest[i])}), charts reach {reach:g}"))
             for i in rejected.tolist()]
         return AtlasPrepared(n, tuple(parts), np.flatnonzero(taken).astype(np.int64), rejected,
-                             reasons, unit, tuple(ranks))
+                             reasons, unit, tuple(part_rows))
 
     def insert_prepared(self, batch: AtlasPrepared, *,
                         slice_rows: int | None = None) -> AddResult:
@@ -554,7 +572,7 @@ class AtlasField(FieldBase):
             their nearest chart; ``nsamples`` the distinct samples afterwards.
         """
         if not isinstance(batch, AtlasPrepared) or len(batch.parts) != len(self.fields) \
-                or len(batch.outer_ranks) != len(self.fields):
+                or len(batch.rows) != len(self.fields):
             raise InvalidInputError("batch: expected an AtlasPrepared made by this field",
                                     "batch")
         slice_rows = self._slice_rows(slice_rows)
@@ -570,9 +588,14 @@ class AtlasField(FieldBase):
                                             "prepare it again", "batch")
                 if not self.atlas.unit_from_data:
                     self._chooses_unit = False  # the first batch inserted fixes the unit
-                parts = [(c, p, own) for c, three in enumerate(batch.parts) if three is not None
-                         for p, own in zip(self._while_sparse(c, three, batch.outer_ranks[c]),
-                                           (True, False, False)) if p.accepted]
+            # what each chart keeps of its outer seam: read from the charts as they are
+            # (no other writer while this one holds the mutex), readers still in
+            work = [(c, (c, three, batch.rows[c])) for c, three in enumerate(batch.parts)
+                    if three is not None]
+            kept = self._over_shards(lambda f, item: self._outer_kept(item[0], f, *item[1:]),
+                                     work)
+            parts = [(c, p, own) for (c, _), three in zip(work, list(kept))
+                     for p, own in zip(three, (True, False, False)) if p.accepted]
             groups = [parts] if slice_rows is None or not parts else _slices(parts, slice_rows)
             duplicates = 0
             for i, group in enumerate(groups):
@@ -1048,7 +1071,8 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
 
     ``data_unit(flats, values)`` (the geometry of the flats alone) times each of
     ``factors`` is tried (and, while the least error is at an end of them, up to
-    :data:`FIT_EXTEND` more steps beyond it): a field over ``atlas.with_unit(u)`` is filled with a
+    :data:`FIT_EXTEND` more steps beyond it): a field over ``atlas.with_unit(u, net=False)``
+    (without the net of the outer seam, whose thinning depends on the unit) is filled with a
     seeded ``1 - holdout`` share of the rows (at most ``max_rows`` in all) and
     queried at the rest, and scored on the held-out rows every candidate
     answered (``metric``).  Of the units whose score is within ``margin`` of the
@@ -1134,7 +1158,7 @@ def fitted_unit(atlas: Atlas, flats: Flats, values, *, factors=FIT_FACTORS,
     tried: dict[float, np.ndarray] = {}
 
     def errors_of(u: float) -> None:
-        fld = AtlasField(atlas.with_unit(u), channels=vals.shape[1])
+        fld = AtlasField(atlas.with_unit(u, net=False), channels=vals.shape[1])
         fld.add(flats.take(train), vals[train])
         got = np.asarray(fld.query(flats.take(test)).values)
         tried[u] = (np.square(got - vals[test]) if metric == "rmse"

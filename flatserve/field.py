@@ -341,6 +341,24 @@ class Field(FieldBase):
         """(nsamples, D) embedded coordinates of the samples, in sample-id order."""
         return self._tri.points
 
+    def within(self, x, radius: float) -> np.ndarray:
+        """Whether some sample's point lies within ``radius`` of each row of ``x``.
+
+        Parameters
+        ----------
+        x : (n, D) array_like
+            Points in the chart's coordinates (:attr:`points`' space; a
+            :meth:`prepare`-d batch's ``x``).
+        radius : float
+            Euclidean distance there, finite and >= 0 (inclusive).
+
+        Returns
+        -------
+        (n,) bool
+            (:meth:`flatserve.Triangulation.within`.)
+        """
+        return self._tri.within(x, radius)
+
     @property
     def values(self) -> np.ndarray:
         """(nsamples, C) values of the samples, in sample-id order."""

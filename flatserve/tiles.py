@@ -67,7 +67,7 @@ from .errors import InvalidInputError
 from .options import Order, Outside, choice
 from .parallel import shard_pool
 from .triangulation import (Held, InsertResult, LocateKind, Location, RWLock, Triangulation,
-                            fresh_state)
+                            check_radius, fresh_state)
 
 __all__ = ["Tiling", "TiledTriangulation", "TileStats", "Tile", "TileHost", "hosting",
            "RETILE_SHARE", "AUTO_MIN_SAMPLES", "AUTO_MAX_TILES", "auto_tiles", "tile_setting"]
@@ -350,6 +350,10 @@ class Tile:
 
     def locate(self, q, order, threads) -> Location:
         return self.tri.locate(q, order=order, threads=threads)
+
+    def within(self, q, radius: float, threads) -> np.ndarray:
+        """:meth:`flatserve.Triangulation.within` of its points (own and halo)."""
+        return self.tri.within(q, radius, threads=threads)
 
     def count_cells(self) -> int:
         """:meth:`flatserve.Triangulation.count_cells` of its own vertices."""
@@ -1012,6 +1016,21 @@ class TiledTriangulation:
             return out, inside, loc
         finally:
             self._lock.release_read()
+
+    def within(self, xi, radius: float, threads: int | None = None) -> np.ndarray:
+        """:meth:`flatserve.Triangulation.within` over the tiles (a halo vertex is a
+        sample too): (n,) bool."""
+        q = as_array(xi, "xi", (None, self._ndim))
+        radius = check_radius(radius)
+        out = np.zeros(len(q), dtype=bool)
+        with self._lock.read():
+            for t in range(self._ntiles):
+                todo = np.flatnonzero(~out)
+                if not todo.size:
+                    break
+                if self._tiles[t].npoints:
+                    out[todo] = self._tiles[t].within(q[todo], radius, threads)
+        return out
 
     def interpolate(self, xi, outside: Outside | str = Outside.NAN,
                     order: Order | str = Order.HILBERT, threads: int | None = None):

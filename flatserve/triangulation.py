@@ -449,6 +449,40 @@ class Triangulation:
         flat = as_array(np.reshape(arr, (-1, self._ndim)), name, (None, self._ndim))
         return flat, lead
 
+    def within(self, xi, radius: float, threads: int | None = None) -> np.ndarray:
+        """Whether some sample lies within ``radius`` of each query.
+
+        Every sample is scanned until one is found (no cell is used: the answer
+        depends on the samples only, not on how they were inserted).
+
+        Parameters
+        ----------
+        xi : array_like, shape (..., D)
+            Query points.
+        radius : float
+            Euclidean distance, finite and >= 0 (inclusive).
+        threads : int, optional
+            Worker threads (default: all cores). Answers do not depend on it.
+
+        Returns
+        -------
+        ndarray of bool, shape (...,)
+
+        Example
+        -------
+        >>> import numpy as np, flatserve
+        >>> t = flatserve.Triangulation(2)
+        >>> _ = t.insert(np.eye(3, 2))
+        >>> t.within([[0.9, 0.0], [0.5, 0.5]], 0.2).tolist()
+        [True, False]
+        """
+        q, lead = self._queries(xi)
+        r = check_radius(radius)
+        th = _threads_arg(threads)
+        with _Reading(self._lock):
+            hit = self._core.within(q, r, th)
+        return hit.astype(bool).reshape(lead)
+
     def locate(self, xi, order: Order | str = Order.HILBERT, threads: int | None = None) -> Location:
         """Locate queries: containing cell, barycentric weights, kind.
 
@@ -756,6 +790,69 @@ class Triangulation:
         self = cls.__new__(cls)
         self._init(core, values)
         return self
+
+
+def check_radius(radius, name: str = "radius") -> float:
+    """``radius`` as a float: a finite real number >= 0, else InvalidInputError."""
+    if isinstance(radius, bool) or not isinstance(radius, (int, float, np.integer, np.floating)) \
+            or not np.isfinite(radius) or radius < 0:
+        raise InvalidInputError(f"{name}: expected a finite distance >= 0, got {radius!r}", name)
+    return float(radius)
+
+
+def seam_net(cand, cand_at, base, base_at, radius: float, hit=None,
+             threads: int | None = None) -> np.ndarray:
+    """Which points of a stream lie farther than ``radius`` from every point before them.
+
+    Candidate ``i`` comes at position ``cand_at[i]``, base point ``j`` at
+    ``base_at[j]`` (both increasing; a base point at the same position as a
+    candidate comes after it). Candidate ``i`` is kept unless ``hit[i]`` (it
+    is known to be near an earlier point, e.g. :meth:`Triangulation.within` of
+    the points before the stream), a base point before it or a kept candidate
+    before it lies within ``radius`` (Euclidean, inclusive, summed as
+    :meth:`Triangulation.within` sums it): the kept candidates are a net of
+    the candidates that the base does not already cover, decided in order, so
+    a stream cut anywhere into pieces (each piece's base and kept candidates
+    joining the points before the next) keeps the same candidates.
+
+    Parameters
+    ----------
+    cand : (m, D) array_like
+    cand_at : (m,) int64 array_like
+    base : (b, D) array_like
+    base_at : (b,) int64 array_like
+    radius : float
+    hit : (m,) bool array_like, optional
+    threads : int, optional
+
+    Returns
+    -------
+    keep : (m,) bool
+
+    Example
+    -------
+    >>> import numpy as np
+    >>> from flatserve.triangulation import seam_net
+    >>> x = np.array([[0.0], [0.5], [2.0], [2.1]])
+    >>> seam_net(x, [0, 2, 3, 5], np.array([[1.9]]), [4], 1.0).tolist()
+    [True, False, True, False]
+    """
+    c = as_array(cand, "cand", (None, None))
+    m, D = c.shape
+    b = as_array(base, "base", (None, D)) if np.size(base) else np.empty((0, D))
+    ca = np.ascontiguousarray(cand_at, dtype=np.int64).reshape(-1)
+    ba = np.ascontiguousarray(base_at, dtype=np.int64).reshape(-1)
+    if ca.size != m or ba.size != b.shape[0]:
+        raise InvalidInputError(f"cand_at, base_at: expected ({m},) and ({b.shape[0]},), got "
+                                f"{ca.shape} and {ba.shape}", "cand_at")
+    if (np.diff(ca) <= 0).any() or (np.diff(ba) <= 0).any():
+        raise InvalidInputError("cand_at, base_at: expected increasing positions", "cand_at")
+    h = np.zeros(m, np.uint8) if hit is None else np.ascontiguousarray(hit, dtype=np.uint8)
+    if h.shape != (m,):
+        raise InvalidInputError(f"hit: expected shape ({m},), got {h.shape}", "hit")
+    keep = _native.seam_net(c, ca, np.ascontiguousarray(b, dtype=np.float64), ba,
+                            check_radius(radius), h, _threads_arg(threads))
+    return keep.astype(bool)
 
 
 def _grow(buf: np.ndarray, n: int) -> np.ndarray:

@@ -144,6 +144,20 @@ void bind_triangulation(nb::module_& m) {
                                     simplex.release());
            },
            nb::arg("xi"), nb::arg("hilbert") = true, nb::arg("threads") = 0)
+      .def("within",
+           [](const PyTriangulation& s, CArr2 q, double radius, int threads) {
+             check_cols(q, s.t->dimension(), "xi");
+             const std::size_t n = q.shape(0);
+             OutArray<std::uint8_t> out({n});
+             {
+               nb::gil_scoped_release r;
+               s.t->within(q.data(), n, radius, threads, out.data);
+             }
+             return out.release();
+           },
+           nb::arg("xi"), nb::arg("radius"), nb::arg("threads") = 0,
+           "Per row of xi, 1 if some vertex lies within radius of it (Euclidean, "
+           "inclusive), else 0.")
       .def("interpolate",
            [](const PyTriangulation& s, CArr2 q, CArr2 values, bool clamp, bool hilbert,
               int threads) {
@@ -406,6 +420,34 @@ void bind_coordinates(nb::module_& m) {
 }  // namespace
 // ---- /coordinates ----
 
+// ---- net ----
+// flatserve.triangulation.seam_net; the loop is in net.hpp.
+#include "net.hpp"
+
+namespace {
+void bind_net(nb::module_& m) {
+  m.def("seam_net",
+        [](CArr2 cand, I64Arr1 cand_at, CArr2 base, I64Arr1 base_at, double radius,
+           U8Arr1 hit, int threads) {
+          const std::size_t n = cand.shape(0), b = base.shape(0);
+          const int D = static_cast<int>(cand.shape(1));
+          if (cand_at.shape(0) != n || hit.shape(0) != n || base_at.shape(0) != b ||
+              (b && static_cast<int>(base.shape(1)) != D))
+            throw std::invalid_argument("seam_net: mismatched shapes");
+          OutArray<std::uint8_t> keep({n});
+          {
+            nb::gil_scoped_release unlocked;
+            flatserve::seam_net(cand.data(), cand_at.data(), n, base.data(), base_at.data(), b,
+                                D, radius, hit.data(), keep.data, threads);
+          }
+          return keep.release();
+        },
+        nb::arg("cand"), nb::arg("cand_at"), nb::arg("base"), nb::arg("base_at"),
+        nb::arg("radius"), nb::arg("hit"), nb::arg("threads") = 0);
+}
+}  // namespace
+// ---- /net ----
+
 NB_MODULE(_core, m) {
   m.doc() =
       "flatserve's private native core (CGAL dD Delaunay, AABB ray casting, coordinates of "
@@ -418,4 +460,5 @@ NB_MODULE(_core, m) {
   bind_triangulation(m);
   bind_raycast(m);
   bind_coordinates(m);
+  bind_net(m);
 }

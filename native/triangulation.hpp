@@ -112,6 +112,12 @@ class TriangulationBase {
   virtual void locate(const double* q, std::size_t n, bool hilbert, int threads,
                       std::int64_t* ids, double* w, std::int8_t* kind,
                       std::int64_t* simplex) const = 0;
+  // q: n x D. out[i] = 1 if some vertex lies within `radius` of query i
+  // (squared Euclidean distance <= radius^2, summed in coordinate order), else
+  // 0: every vertex is scanned until one is found (the answer depends on the
+  // vertices only, not on the cells or the order they came in).
+  virtual void within(const double* q, std::size_t n, double radius, int threads,
+                      std::uint8_t* out) const = 0;
   // values: nvalues x C (row = sample id). out: n x C; inside: n. The sum runs
   // over the cell's vertices in lexicographic order of their points (as the
   // weights are computed: locate_one), so any triangulation holding the same

@@ -271,6 +271,31 @@ class Triangulation final : public TriangulationBase {
                    });
   }
 
+  void within(const double* q, std::size_t n, double radius, int threads,
+              std::uint8_t* out) const override {
+    const int D = D_;
+    const double r2 = radius * radius;
+    run_chunks(n, threads, [&](std::size_t b, std::size_t e) {
+      for (std::size_t i = b; i < e; ++i) {
+        const double* qc = q + i * D;
+        std::uint8_t hit = 0;
+        for (const Vertex_handle& v : by_id_) {
+          const Point& p = v->point();
+          double t = 0;
+          for (int k = 0; k < D; ++k) {
+            const double u = p[k] - qc[k];
+            t += u * u;
+          }
+          if (t <= r2) {
+            hit = 1;
+            break;
+          }
+        }
+        out[i] = hit;
+      }
+    });
+  }
+
   void interpolate(const double* q, std::size_t n, const double* values, std::size_t nvalues,
                    std::size_t C, bool clamp, bool hilbert, int threads, double* out,
                    std::uint8_t* inside, const std::uint8_t* own,

@@ -710,9 +710,9 @@ def test_a_relative_chart_holds_the_samples_around_every_query_it_answers(k, d):
     assert checked > q.n  # queries answered by more than one chart were checked
     if at.dense_reach is not None:  # a dense chart's narrower seam: (dense_reach - trusted) / 2
         half = math.radians((at.dense_reach - at.trusted) / 2)
-        B = np.linalg.qr(A + rng.normal(scale=0.008, size=A.shape))[0]
-        s = Flats.from_parametric(B, rng.uniform(-1, 1, (q.n, d)))
-        stored = at.route(s, at.dense_reach)
+        B = np.linalg.qr(A + rng.normal(scale=0.4 * half, size=A.shape))[0]
+        s2 = Flats.from_parametric(B, rng.uniform(-1, 1, (q.n, d)))
+        stored = at.route(s2, at.dense_reach)
         close = np.array([max_principal_angle(A[i:i + 1], B[i:i + 1])[0, 0]
                           for i in range(q.n)]) <= half
         assert close.mean() > 0.5
@@ -732,7 +732,7 @@ def test_a_relative_chart_holds_the_samples_around_every_query_it_answers(k, d):
         Atlas.covering(k, d, relative=True, reach=at.trusted)
     # (one stored before the check still loads)
     assert Atlas.from_dict({**at.to_dict(), "reach": at.trusted, "dense_reach": None,
-                            "dense_after": None}).reach == at.trusted
+                            "dense_after": None, "seam_spacing": None}).reach == at.trusted
 
 
 def test_a_relative_atlas_stores_fewer_copies_and_keeps_what_it_is():
@@ -771,22 +771,56 @@ def expected_dense_counts(at, flats):
     return counts
 
 
-def test_a_dense_chart_narrows_its_seam_whatever_the_batches():
-    """Planes in R^4 (the default: a dense chart's seam narrows to 9 degrees after 25
-    own samples): each chart stores what an independent count of the rows in order
-    says; the same samples in other batches, in slices, or through a file in the
-    middle are stored alike and answer bit for bit; fewer copies than the seam of
-    14 alone on the same charts, more than 9 alone."""
+def expected_net_counts(at, flats):
+    """Per chart, how many samples an atlas with a net of its outer seam stores of
+    ``flats`` inserted in order, counted apart from the field (the rows one by one,
+    a plain loop): every row within ``dense_reach`` of its nearest centre's angle,
+    and a row beyond it only if no row the chart stored before it lies within
+    ``seam_spacing / scale`` of it in the chart's coordinates."""
+    ro = at.route(flats, at.reach)
+    counts = []
+    for c, (rows, ang) in enumerate(zip(ro.rows, ro.angles)):
+        x = at.chart_field(c).chart(flats.take(rows)).points
+        beyond = np.degrees(ang - ro.nearest_angle[rows]) > at.dense_reach
+        radius = at.seam_spacing / at.scales[c]
+        held: list = []
+        for i in range(rows.size):
+            if beyond[i] and held and \
+                    np.sqrt(((np.array(held) - x[i]) ** 2).sum(axis=1)).min() <= radius:
+                continue
+            held.append(x[i])
+        counts.append(len(held))
+    return counts
+
+
+SEAMS = {
+    # the default for planes in R^4: every sample up to 7 degrees, beyond that a net
+    "net": (dict(), expected_net_counts),
+    # a user's choice: the seam narrowed to 9 once a chart holds 25 own samples
+    "dense": (dict(relative=True, inner=2.0, trusted=6.0, reach=14.0, dense_reach=9.0,
+                   dense_after=25), expected_dense_counts),
+}
+
+
+@pytest.mark.parametrize("seam", sorted(SEAMS))
+def test_a_thinner_seam_is_stored_alike_whatever_the_batches(seam):
+    """Planes in R^4, a net of the outer seam (the default) or a seam narrowed once
+    dense: each chart stores what an independent count of the rows in order says;
+    the same samples in other batches, in slices, or through a file in the middle
+    are stored alike and answer bit for bit, as are a shard worker's charts; fewer
+    copies than the seam of 14 alone on the same charts, more than ``dense_reach``
+    alone."""
     rng = np.random.default_rng(41)
-    at = Atlas.covering(2, 4)
-    assert (at.ncharts, at.dense_reach, at.dense_after, at.reach) == (59, 9.0, 25, 14.0)
+    kw, expected = SEAMS[seam]
+    at = Atlas.covering(2, 4, **kw)
+    assert (at.ncharts, at.reach) == (59, 14.0)
     f = random_flats(rng, 2500, 2, 4, 1.0)
     val = np.sin(f.quadrics()[1][:, :1] * 2.0)
     q = random_flats(rng, 400, 2, 4, 1.0)
     whole = AtlasField(at, 1)
     whole.add(f, val)
     stored = [g.nsamples for g in whole.fields]
-    assert stored == expected_dense_counts(at, f)
+    assert stored == expected(at, f)
     wide = at.held(f, at.reach).sum()
     narrow = at.held(f, at.dense_reach).sum()
     assert narrow < sum(stored) < wide, (narrow, sum(stored), wide)
@@ -797,7 +831,7 @@ def test_a_dense_chart_narrows_its_seam_whatever_the_batches():
     for lo, hi in zip(cuts, cuts[1:]):
         rows = np.arange(lo, hi)
         parts.insert_prepared(parts.prepare(f.take(rows), val[rows]), slice_rows=97)
-        if hi == 700:  # through a file: the charts' own counts go with it
+        if hi == 700:  # through a file: what the charts hold goes with it
             parts = AtlasField.from_bytes(parts.to_bytes())
     assert [g.nsamples for g in parts.fields] == stored
     got = parts.query(q)
@@ -815,44 +849,93 @@ def test_a_dense_chart_narrows_its_seam_whatever_the_batches():
                 shard = AtlasField.from_bytes(shard.to_bytes(), only=only)
         assert [shard.fields[c].nsamples for c in sorted(only)] == \
             [stored[c] for c in sorted(only)]
-    # dense from the start: the seam of 9 alone; never dense: the seam of 14
-    for after, radius in ((0, at.dense_reach), (10**6, at.reach)):
-        other = AtlasField(Atlas.from_dict({**at.to_dict(), "dense_after": after}), 1)
-        other.add(f, val)
-        assert other.nrejected == 0 and other.nstored == at.held(f, radius).sum()
-        assert other.copies(f) == at.held(f, radius).sum() / f.n
+    if seam == "dense":  # dense from the start: the seam of 9 alone; never: 14
+        for after, radius in ((0, at.dense_reach), (10**6, at.reach)):
+            other = AtlasField(Atlas.from_dict({**at.to_dict(), "dense_after": after}), 1)
+            other.add(f, val)
+            assert other.nrejected == 0 and other.nstored == at.held(f, radius).sum()
+            assert other.copies(f) == at.held(f, radius).sum() / f.n
+    else:  # the upload guard's count: every row up to reach (the net is not known ahead)
+        assert whole.copies(f) == wide / f.n
 
 
-def test_a_dense_seam_is_checked_and_kept():
-    """dense_reach and dense_after: both or neither, a relative atlas only,
-    trusted < dense_reach <= reach, a count; kept by to_dict, with_unit and
-    describe; defaults for planes in R^4 only, and not with radii given."""
+def test_a_net_leaves_a_stored_sample_near_every_sample_it_drops():
+    """What the net of a chart's outer seam promises: every flat in the chart's domain
+    that it did not store has a stored sample within ``seam_spacing`` (divided by the
+    chart's scale) in the chart's coordinates, and no two stored flats beyond
+    ``dense_reach`` are that close (the stored ones before it did not cover it);
+    any scale stores the same rows."""
+    rng = np.random.default_rng(43)
+    f = random_flats(rng, 1500, 2, 4, 1.0)
+    val = np.cos(f.quadrics()[1][:, :1])
+    counts = []
+    for scale in (1.0, 0.05):
+        at = Atlas.covering(2, 4, scale=scale)
+        fld = AtlasField(at, 1)
+        fld.add(f, val)
+        counts.append([g.nsamples for g in fld.fields])
+        ro = at.route(f, at.reach)
+        for c in range(0, at.ncharts, 7):
+            rows = ro.rows[c]
+            x = at.chart_field(c).chart(f.take(rows)).points
+            held = fld.fields[c].points
+            radius = at.seam_spacing / scale
+            dist = np.sqrt(((x[:, None, :] - held[None]) ** 2).sum(axis=-1))
+            assert (dist.min(axis=1) <= radius).all()  # stored (0) or covered
+            beyond = np.degrees(ro.angles[c] - ro.nearest_angle[rows]) > at.dense_reach
+            outer = x[beyond & (dist.min(axis=1) == 0)]
+            gaps = np.sqrt(((outer[:, None] - outer[None]) ** 2).sum(axis=-1))
+            assert (gaps[~np.eye(len(outer), dtype=bool)] > radius).all()
+    assert counts[0] == counts[1]
+
+
+def test_a_thinner_seam_is_checked_and_kept():
+    """dense_reach with dense_after, seam_spacing or both, a relative atlas only,
+    trusted < dense_reach <= reach, a count, a distance; kept by to_dict, with_unit
+    (without the net on request) and describe; defaults for planes in R^4 only, and
+    not with radii given."""
     at = Atlas.covering(2, 4)
+    assert (at.dense_reach, at.dense_after, at.seam_spacing) == (7.0, None, 1.0)
     back = Atlas.from_dict(at.to_dict())
-    assert (back.dense_reach, back.dense_after) == (9.0, 25)
-    assert at.with_unit(2.0).dense_after == 25
+    assert (back.dense_reach, back.dense_after, back.seam_spacing) == (7.0, None, 1.0)
+    assert at.with_unit(2.0).seam_spacing == 1.0
+    plain = at.with_unit(2.0, net=False)
+    assert (plain.dense_reach, plain.dense_after, plain.seam_spacing) == (None, None, None)
+    both = Atlas.from_dict({**at.to_dict(), "dense_after": 25})
+    assert (both.with_unit(2.0, net=False).dense_reach, both.dense_after) == (7.0, 25)
     desc = Atlas.describe_spec(at.to_dict())["atlas"]
-    assert (desc["dense_reach"], desc["dense_after"]) == (9.0, 25)
+    assert (desc["dense_reach"], desc["dense_after"], desc["seam_spacing"]) == (7.0, None, 1.0)
     assert Atlas.covering(1, 4).dense_reach is None
     assert Atlas.covering(2, 4, reach=12).dense_reach is None
     assert Atlas.covering(2, 4, relative=False).dense_reach is None
     assert Atlas.covering(2, 4, relative=False).ncharts != at.ncharts  # its own cover
-    assert Atlas.describe_spec(Atlas.covering(1, 4).to_dict())["atlas"]["dense_reach"] is None
+    described = Atlas.describe_spec(Atlas.covering(1, 4).to_dict())["atlas"]
+    assert (described["dense_reach"], described["seam_spacing"]) == (None, None)
     spec = at.to_dict()
     for change, name, words in (
             ({"relative": False}, "dense_reach", "only a relative atlas"),
-            ({"dense_after": None}, "dense_after", "expected with dense_reach"),
-            ({"dense_reach": None}, "dense_reach", "expected with dense_after"),
+            ({"seam_spacing": None}, "dense_after", "dense_after or seam_spacing"),
+            ({"dense_reach": None}, "dense_reach", "expected with seam_spacing"),
+            ({"dense_reach": None, "seam_spacing": None, "dense_after": 3}, "dense_reach",
+             "expected with dense_after"),
             ({"dense_reach": 6.0}, "dense_reach", "trusted < dense_reach <= reach"),
             ({"dense_reach": 15.0}, "dense_reach", "trusted < dense_reach <= reach"),
             ({"dense_after": -1}, "dense_after", "an integer >= 0"),
             ({"dense_after": True}, "dense_after", "an integer >= 0"),
-            ({"dense_after": 2.5}, "dense_after", "an integer >= 0")):
+            ({"dense_after": 2.5}, "dense_after", "an integer >= 0"),
+            ({"seam_spacing": 0}, "seam_spacing", "finite, > 0"),
+            ({"seam_spacing": -1.0}, "seam_spacing", "finite, > 0"),
+            ({"seam_spacing": float("nan")}, "seam_spacing", "finite, > 0"),
+            ({"seam_spacing": float("inf")}, "seam_spacing", "finite, > 0"),
+            ({"seam_spacing": True}, "seam_spacing", "finite, > 0"),
+            ({"seam_spacing": "1"}, "seam_spacing", "finite, > 0")):
         with pytest.raises(InvalidInputError, match=words) as err:
             Atlas.from_dict({**spec, **change})
         assert err.value.argument == name, (change, err.value.argument)
     with pytest.raises(InvalidInputError, match="dense_reach"):
         Atlas.covering(1, 3, dense_reach=20, dense_after=5)
+    with pytest.raises(InvalidInputError, match="seam_spacing"):
+        Atlas.covering(1, 3, seam_spacing=1.0)
 
 
 def test_a_relative_field_file_answers_the_same(tmp_path):

@@ -496,3 +496,17 @@ def test_an_insert_that_raises_the_dimension_makes_every_cell_new():
     v1, in1 = tt.query(q)[:2]
     assert in0.all() and np.array_equal(in0, in1)
     assert np.array_equal(v0, v1, equal_nan=True)
+
+
+def test_within_over_tiles_is_the_unsplit_triangulations():
+    rng = np.random.default_rng(71)
+    pts = rng.normal(size=(3000, 3))
+    tri, tt = Triangulation(3), TiledTriangulation(3, 4)
+    tri.insert(pts)
+    tt.insert(pts)
+    q = rng.normal(size=(2000, 3)) * 1.3
+    for radius in (0.05, 0.1, 0.3):
+        np.testing.assert_array_equal(tt.within(q, radius), tri.within(q, radius))
+    assert 0.1 < tt.within(q, 0.1).mean() < 0.9
+    with pytest.raises(InvalidInputError, match="radius"):
+        tt.within(q, -1)

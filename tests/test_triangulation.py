@@ -8,7 +8,7 @@ import pytest
 
 from flatserve import _native
 from flatserve.errors import InvalidInputError, SnapshotError
-from flatserve.triangulation import LocateKind, Triangulation
+from flatserve.triangulation import LocateKind, Triangulation, seam_net
 
 scipy_spatial = pytest.importorskip("scipy.spatial")
 scipy_interp = pytest.importorskip("scipy.interpolate")
@@ -616,3 +616,84 @@ def test_insert_in_slices_gives_the_same_triangulation():
     np.testing.assert_allclose(a.query(q).values, b.query(q).values, atol=1e-12, equal_nan=True)
     with pytest.raises(ValueError, match="slice_rows"):
         b.insert_prepared(b.prepare(flats, vals), slice_rows=0)
+
+
+# ---------------------------------------------------------------- within, seam_net
+@pytest.mark.parametrize("D", [2, 4, 6])
+def test_within_is_a_brute_force_distance_test(D):
+    """``within`` against every pairwise distance (numpy), inside and outside the hull,
+    at a radius that splits the queries; the same answer on any number of threads;
+    empty and lower-dimensional triangulations answer too."""
+    rng = np.random.default_rng(60 + D)
+    P = rng.normal(size=(400, D))
+    t = Triangulation(D)
+    t.insert(P)
+    Q = np.concatenate([rng.normal(size=(300, D)) * 1.5, P[:20]])
+    dist = np.sqrt(((Q[:, None] - P[None]) ** 2).sum(axis=-1)).min(axis=1)
+    radius = float(np.median(dist))
+    got = t.within(Q, radius)
+    np.testing.assert_array_equal(got, dist <= radius)
+    assert 0.3 < got.mean() < 0.7
+    np.testing.assert_array_equal(t.within(Q, radius, threads=1), got)
+    assert t.within(Q, 0.0)[-20:].all()  # the samples themselves
+    assert t.within(Q.reshape(2, -1, D), radius).shape == (2, len(Q) // 2)
+    empty = Triangulation(D)
+    assert not empty.within(Q, 10.0).any()
+    flat = Triangulation(D)
+    flat.insert(np.eye(D)[:2])  # lower-dimensional: no cell yet
+    q = np.stack([np.eye(D)[0] * 1.1, np.eye(D)[1] * 1.1, -np.eye(D)[0]])
+    np.testing.assert_array_equal(flat.within(q, 0.15), [True, True, False])
+
+
+def test_within_and_seam_net_name_bad_input():
+    t = Triangulation(3)
+    t.insert(np.eye(3))
+    for radius in (-1.0, float("nan"), float("inf"), True, "1", None):
+        with pytest.raises(InvalidInputError, match="radius") as err:
+            t.within(np.zeros((1, 3)), radius)
+        assert err.value.argument == "radius"
+    with pytest.raises(InvalidInputError, match="xi"):
+        t.within(np.zeros((1, 2)), 1.0)
+    with pytest.raises(InvalidInputError, match="xi"):
+        t.within([[np.nan, 0, 0]], 1.0)
+    x = np.zeros((2, 3))
+    for args, name in (((x, [0], x, [1, 2], 1.0), "cand_at"),
+                       ((x, [1, 0], x, [2, 3], 1.0), "cand_at"),
+                       ((x, [0, 1], np.zeros((2, 2)), [2, 3], 1.0), "base"),
+                       ((x, [0, 1], x, [2, 3], -1.0), "radius")):
+        with pytest.raises(InvalidInputError) as err:
+            seam_net(*args)
+        assert err.value.argument == name, args
+    with pytest.raises(InvalidInputError, match="hit"):
+        seam_net(x, [0, 1], x, [2, 3], 1.0, hit=[0])
+
+
+def test_seam_net_is_the_sequential_net_and_does_not_depend_on_cuts():
+    """``seam_net`` against a plain loop over a stream of base points (always kept)
+    and candidates (kept if no point kept before lies within the radius); the
+    stream cut in pieces, each piece's kept points inserted into a triangulation
+    whose ``within`` is the next piece's ``hit``, keeps the same candidates."""
+    rng = np.random.default_rng(65)
+    n, D, radius = 600, 3, 0.5
+    X = rng.normal(size=(n, D))
+    cand = rng.random(n) < 0.6
+    kept, want = [], []
+    for i in range(n):
+        ok = not cand[i] or not kept or \
+            np.sqrt(((np.array(kept) - X[i]) ** 2).sum(axis=1)).min() > radius
+        if cand[i]:
+            want.append(ok)
+        if ok:
+            kept.append(X[i])
+    pos = np.arange(n)
+    got = seam_net(X[cand], pos[cand], X[~cand], pos[~cand], radius)
+    np.testing.assert_array_equal(got, want)
+    assert 0.1 < np.mean(want) < 0.9
+    t = Triangulation(D)
+    pieces = []
+    for lo, hi in ((0, 7), (7, 8), (8, 250), (250, 600)):
+        c, b = pos[lo:hi][cand[lo:hi]], pos[lo:hi][~cand[lo:hi]]
+        keep = seam_net(X[c], c, X[b], b, radius, hit=t.within(X[c], radius), threads=1)
+        pieces.append(keep)
+        t.insert(np.concatenate([X[b], X[c][keep]]))
+    np.testing.assert_array_equal(np.concatenate(pieces), want)

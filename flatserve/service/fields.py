@@ -144,6 +144,7 @@ def _atlas_info(d: dict) -> AtlasInfo | None:
                      unit_from=at["unit_from"],
                      relative=bool(at.get("relative")), isometric=bool(at.get("isometric")),
                      dense_reach=at.get("dense_reach"), dense_after=at.get("dense_after"),
+                     seam_spacing=at.get("seam_spacing"),
                      covering_radius=info.get("covering_radius_deg"),
                      max_sample_angle=info.get("max_sample_angle_deg"),
                      nstored=d["nstored"], duplication=d["duplication"])

@@ -162,19 +162,25 @@ class CoveringAtlas(_AtlasSpec):
                            "queries fall outside the samples' hulls (docs/costs.md). Default "
                            "(null): true in R^4 and beyond, false in R^2 and R^3.")
     dense_reach: Optional[float] = _radius(
-        description="With `relative`: degrees beyond each flat's nearest centre to which a "
-                    "chart holding `dense_after` own samples (those it is the nearest chart "
-                    "of) narrows its seam: it stores later samples only this far (above "
-                    "`trusted`, at most `reach`). A sparse chart needs the wide seam for its "
-                    "samples' hull to hold its share, a dense one does not. Default: planes "
-                    "in R^4 with none of the radii given, 9 after 25 (59 charts: a sample "
-                    "stored 2.9 times at 3,000 samples, 2.4 at 12,000, where the seam of 14 "
+        description="With `relative`: degrees beyond each flat's nearest centre from which "
+                    "a chart thins its seam (`seam_spacing`) or, once it holds `dense_after` "
+                    "own samples (those it is the nearest chart of), stores nothing more "
+                    "(above `trusted`, at most `reach`). Default: planes in R^4 with none of "
+                    "the radii given, 7 with a `seam_spacing` of 1 (59 charts: a sample "
+                    "stored 2.4 times at 3,000 samples, 2.3 at 12,000, where the seam of 14 "
                     "stores it 3.8 times; docs/costs.md); otherwise none. Give `reach` (14, "
                     "the default) for the plain seam.")
     dense_after: Optional[int] = Field(
         None, ge=0, le=1_000_000_000,
-        description="With `dense_reach`: the own samples from which a chart narrows its "
-                    "seam (0: from the start).")
+        description="With `dense_reach`: the own samples from which a chart stores nothing "
+                    "beyond `dense_reach` (0: from the start; null: never).")
+    seam_spacing: Optional[float] = Field(
+        None, gt=0, le=1e6, allow_inf_nan=False,
+        description="With `dense_reach`: beyond it, a chart stores a sample only if none of "
+                    "the samples before it that the chart holds lies within this distance "
+                    "of it in the chart's coordinates (at scale 1): a net of the outer seam, "
+                    "which keeps the samples' hull as wide for fewer copies (null: every "
+                    "sample up to `reach`).")
     isometric: Optional[bool] = Field(
         None, description="Warp the charts' points so that each chart measures turns and "
                           "shifts everywhere as at its centre (flatserve.warp: lines, and "
@@ -395,12 +401,17 @@ class AtlasInfo(BaseModel):
                                               "`basis.relative`, by default true in R^4 "
                                               "and beyond).")
     dense_reach: Optional[float] = Field(
-        None, description="Degrees beyond each flat's nearest centre: a chart holding "
-                          "`dense_after` own samples stores later samples only this far "
-                          "(null: always `reach`; by default planes in R^4: 9).")
+        None, description="Degrees beyond each flat's nearest centre from which a chart thins "
+                          "its seam (`seam_spacing`) or, once dense (`dense_after`), stores "
+                          "nothing more (null: every sample up to `reach`; by default planes "
+                          "in R^4: 7).")
     dense_after: Optional[int] = Field(
         None, description="Own samples (those it is the nearest chart of) from which a chart "
-                          "narrows its seam to `dense_reach` (by default planes in R^4: 25).")
+                          "stores nothing beyond `dense_reach` (null: never).")
+    seam_spacing: Optional[float] = Field(
+        None, description="Beyond `dense_reach` a chart stores a sample only if none it holds "
+                          "lies within this distance in its coordinates (null: no net; by "
+                          "default planes in R^4: 1).")
     isometric: bool = Field(False, description="The charts' points are warped to measure turns "
                                                "and shifts everywhere as at their centres "
                                                "(by default lines in R^3, created since this "

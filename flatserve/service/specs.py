@@ -216,6 +216,7 @@ def build_atlas(spec, k: int, d: int, *, oriented: bool = False,
             return Atlas.covering(k, d, oriented=oriented, unit=unit, inner=spec.inner,
                                   trusted=spec.trusted, reach=spec.reach,
                                   dense_reach=spec.dense_reach, dense_after=spec.dense_after,
+                                  seam_spacing=spec.seam_spacing,
                                   isometric=spec.isometric, relative=spec.relative)
     if isinstance(spec, SamplesAtlas):
         _check_rows(spec.samples, "basis.samples", max_atlas_samples,

@@ -749,11 +749,12 @@ def test_a_covering_atlas_takes_its_radii_at_create(api, rng):
         assert name in json.dumps(r.json()["detail"]), (radii, r.text)
 
 
-def test_a_dense_seam_is_taken_at_create_described_and_validated(make_app, rng):
-    """Planes in R^4 by default narrow a dense chart's seam (9 degrees after 25 own
-    samples; 59 charts), described, and stored as the library's atlas stores them,
-    across a snapshot and a restart between two uploads; ``dense_reach`` and
-    ``dense_after`` given at create are kept; bad ones are 422s naming them."""
+def test_a_thinner_seam_is_taken_at_create_described_and_validated(make_app, rng):
+    """Planes in R^4 by default keep a net of their outer seam (beyond 7 degrees, a
+    spacing of 1; 59 charts), described, and stored as the library's atlas stores
+    them, across a snapshot and a restart between two uploads; ``dense_reach``,
+    ``dense_after`` and ``seam_spacing`` given at create are kept; bad ones are 422s
+    naming them."""
     import time
 
     from flatserve.grassmann import haar_frames
@@ -767,7 +768,8 @@ def test_a_dense_seam_is_taken_at_create_described_and_validated(make_app, rng):
     tc, c = started(make_app(snapshot_every=500))
     try:
         got = c.create_field("planes", k=2, d=4, unit=1.0)["atlas"]
-        assert (got["dense_reach"], got["dense_after"], got["relative"]) == (9.0, 25, True)
+        assert (got["dense_reach"], got["dense_after"], got["seam_spacing"],
+                got["relative"]) == (7.0, None, 1.0, True)
         c.upload_parametric("planes", A[:700], b[:700], val[:700])
         end = time.monotonic() + 60
         while c.describe("planes")["storage"]["snapshot_batch"] < 1:  # the first snapshot
@@ -784,10 +786,19 @@ def test_a_dense_seam_is_taken_at_create_described_and_validated(make_app, rng):
         same_parametric(c, "planes", qA, qb, want)
         mine = c.create_field("mine", k=3, d=4, unit=1.0, basis={
             "kind": "atlas", "atlas": "covering", "dense_reach": 8, "dense_after": 3})["atlas"]
-        assert (mine["dense_reach"], mine["dense_after"]) == (8.0, 3)
+        assert (mine["dense_reach"], mine["dense_after"], mine["seam_spacing"]) == (8.0, 3, None)
+        net = c.create_field("net", k=3, d=4, unit=1.0, basis={
+            "kind": "atlas", "atlas": "covering", "dense_reach": 8, "seam_spacing": 0.5,
+            "dense_after": 40})["atlas"]
+        assert (net["dense_reach"], net["dense_after"], net["seam_spacing"]) == (8.0, 40, 0.5)
         assert c.create_field("lines", k=1, d=4)["atlas"]["dense_reach"] is None
         for given, name in (({"dense_reach": 8}, "dense_after"),
                             ({"dense_after": 3}, "dense_reach"),
+                            ({"seam_spacing": 1}, "dense_reach"),
+                            ({"dense_reach": 8, "seam_spacing": 0}, "seam_spacing"),
+                            ({"dense_reach": 8, "seam_spacing": -2}, "seam_spacing"),
+                            ({"dense_reach": 8, "seam_spacing": "x"}, "seam_spacing"),
+                            ({"dense_reach": 8, "seam_spacing": 1e9}, "seam_spacing"),
                             ({"dense_reach": 5, "dense_after": 3}, "dense_reach"),
                             ({"dense_reach": 8, "dense_after": -1}, "dense_after"),
                             ({"dense_reach": 8, "dense_after": "3"}, "dense_after"),

@@ -235,6 +235,11 @@ class RemoteTile:
     def locate(self, q, order, threads):
         return self._call("locate", q, order, threads, timeout=QUERY_CALL_TIMEOUT_S)
 
+    def within(self, q, radius, threads):
+        if self._actor is None:
+            return np.zeros(len(q), dtype=bool)
+        return self._call("within", q, radius, threads, timeout=QUERY_CALL_TIMEOUT_S)
+
     def count_cells(self) -> int:
         return self._call("count_cells") if self._actor is not None else 0
 

@@ -204,7 +204,8 @@ COVER_CHECK_N = 200_000
 
 
 def _in_units(deg, name):
-    if not (isinstance(deg, (int, float, np.floating, np.integer)) and math.isfinite(deg)):
+    if isinstance(deg, (bool, np.bool_)) or not (
+            isinstance(deg, (int, float, np.floating, np.integer)) and math.isfinite(deg)):
         raise InvalidInputError(f"{name}: expected an angle in degrees, got {deg!r}", name)
     return float(deg)
 

@@ -920,6 +920,8 @@ def test_a_thinner_seam_is_checked_and_kept():
              "expected with dense_after"),
             ({"dense_reach": 6.0}, "dense_reach", "trusted < dense_reach <= reach"),
             ({"dense_reach": 15.0}, "dense_reach", "trusted < dense_reach <= reach"),
+            ({"dense_reach": True}, "dense_reach", "an angle in degrees"),
+            ({"inner": True}, "inner", "an angle in degrees"),
             ({"dense_after": -1}, "dense_after", "an integer >= 0"),
             ({"dense_after": True}, "dense_after", "an integer >= 0"),
             ({"dense_after": 2.5}, "dense_after", "an integer >= 0"),

@@ -96,6 +96,7 @@ from .field import Field
 from .flats import Flats
 from .grassmann import (bump, complement, cos2_max_angle, cover_frames, cover_radius,
                         covering_radius, max_principal_angle, orientation_frames, use_normals)
+from .triangulation import check_radius
 from .warp import FlatWarp, LineWarp, warp_from_dict
 
 __all__ = [
@@ -265,9 +266,7 @@ def _check_dense(dense_reach, dense_after, seam_spacing, relative: bool, trusted
             dense_after, (int, np.integer)) or dense_after < 0):
         raise InvalidInputError(f"dense_after: expected a count of samples (an integer >= 0), "
                                 f"got {dense_after!r}", "dense_after")
-    if seam_spacing is not None and (isinstance(seam_spacing, (bool, np.bool_)) or not isinstance(
-            seam_spacing, (int, float, np.integer, np.floating))
-            or not math.isfinite(seam_spacing) or seam_spacing <= 0):
+    if seam_spacing is not None and check_radius(seam_spacing, "seam_spacing") <= 0:
         raise InvalidInputError(f"seam_spacing: expected a distance in chart coordinates "
                                 f"(finite, > 0), got {seam_spacing!r}", "seam_spacing")
     return (dense_reach, None if dense_after is None else int(dense_after),
@@ -355,7 +354,11 @@ class Atlas:
         distance of it in the chart's coordinates at scale 1 (its
         triangulation's points, :attr:`flatserve.field.Field.points`, times
         its scale: :data:`DEFAULT_SCALE`): a net of its outer seam (module
-        docstring). Default None: every flat up to ``reach``.
+        docstring). There a shift of one ``unit`` weighs as a turn of one
+        radian: the spacing thins as measured in a unit matched to the
+        offsets' spread (``unit=None`` or ``"fit"``); in a unit far shorter it
+        thins little, far longer it thins more and answers fewer queries
+        (``docs/costs.md``). Default None: every flat up to ``reach``.
         ``dense_reach`` comes with ``dense_after``, ``seam_spacing`` or both.
     isometric : bool, optional
         Warp each chart's points so that it measures turns and shifts

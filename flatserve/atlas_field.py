@@ -321,8 +321,9 @@ class AtlasField(FieldBase):
         """Per chart, the rows it may store: those closer than ``atlas.reach`` to its centre.
 
         A pure function of the atlas (a row's charts do not depend on its
-        batch); with a ``dense_reach``, a chart that is dense before a row
-        (:meth:`insert_prepared`) stores it only within ``dense_reach``.
+        batch); with a ``dense_reach``, a chart stores a row beyond it only while
+        sparse (``dense_after``) and where its net has room (``seam_spacing``:
+        :meth:`insert_prepared`).
 
         Returns
         -------
@@ -392,7 +393,7 @@ class AtlasField(FieldBase):
 
     def _sparse(self, own: Sequence[int | None] | None = None) -> list[bool]:
         """Per chart, whether it still stores its seam beyond ``dense_reach`` (fewer
-        than ``dense_after`` own samples; every chart without a ``dense_reach``, or
+        than ``dense_after`` own samples; every chart without a ``dense_after``, or
         whose own samples are not known: a field read from an older file). ``own``:
         per chart its own samples (None: not known) instead of this field's."""
         at = self.atlas
@@ -550,7 +551,8 @@ class AtlasField(FieldBase):
         chart's ``outer`` part (its seam beyond the atlas's ``dense_reach``) the
         rows before which the chart holds fewer than ``dense_after`` own samples
         (those it held at the batch's start and its own rows of the batch before
-        the row): which charts store a sample depends on the samples before it,
+        the row), and of those, with a ``seam_spacing``, the ones no sample before
+        them covers (:meth:`_outer_kept`): which charts store a sample depends on the samples before it,
         not on how they were cut into batches or slices (but for duplicates), so
         a log replayed in order stores each sample where it was stored first.
 

@@ -1019,8 +1019,13 @@ class TiledTriangulation:
 
     def within(self, xi, radius: float, threads: int | None = None) -> np.ndarray:
         """:meth:`flatserve.Triangulation.within` over the tiles (a halo vertex is a
-        sample too): (n,) bool."""
-        q = as_array(xi, "xi", (None, self._ndim))
+        sample too): xi (..., D), bool (...,)."""
+        arr = np.asarray(xi, dtype=np.float64) if not isinstance(xi, np.ndarray) else xi
+        if arr.ndim == 0 or arr.shape[-1] != self._ndim:
+            raise InvalidInputError(f"xi: expected shape (..., {self._ndim}), got "
+                                    f"{np.shape(arr)}", "xi")
+        lead = arr.shape[:-1]
+        q = as_array(arr.reshape(-1, self._ndim), "xi", (None, self._ndim))
         radius = check_radius(radius)
         out = np.zeros(len(q), dtype=bool)
         with self._lock.read():
@@ -1030,7 +1035,7 @@ class TiledTriangulation:
                     break
                 if self._tiles[t].npoints:
                     out[todo] = self._tiles[t].within(q[todo], radius, threads)
-        return out
+        return out.reshape(lead)
 
     def interpolate(self, xi, outside: Outside | str = Outside.NAN,
                     order: Order | str = Order.HILBERT, threads: int | None = None):

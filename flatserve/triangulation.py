@@ -34,6 +34,7 @@ Thread safety
 from __future__ import annotations
 
 import itertools
+import math
 import os
 import threading
 from dataclasses import dataclass
@@ -794,10 +795,30 @@ class Triangulation:
 
 def check_radius(radius, name: str = "radius") -> float:
     """``radius`` as a float: a finite real number >= 0, else InvalidInputError."""
-    if isinstance(radius, bool) or not isinstance(radius, (int, float, np.integer, np.floating)) \
-            or not np.isfinite(radius) or radius < 0:
+    try:
+        r = float(radius) if isinstance(radius, (int, float, np.integer, np.floating)) \
+            and not isinstance(radius, (bool, np.bool_)) else math.nan
+    except OverflowError:
+        r = math.inf
+    if not math.isfinite(r) or r < 0:
         raise InvalidInputError(f"{name}: expected a finite distance >= 0, got {radius!r}", name)
-    return float(radius)
+    return r
+
+
+def _positions(at, name: str, n: int) -> np.ndarray:
+    """``at`` as an (n,) int64 array of increasing positions, else InvalidInputError."""
+    a = np.asarray(at)
+    if a.size == 0:
+        a = a.astype(np.int64)
+    if a.dtype.kind not in "iu" or a.shape != (n,):
+        raise InvalidInputError(f"{name}: expected ({n},) integer positions, got "
+                                f"{a.dtype} {a.shape}", name)
+    if a.dtype.kind == "u" and a.size and a.max() > np.iinfo(np.int64).max:
+        raise InvalidInputError(f"{name}: positions beyond int64", name)
+    a = np.ascontiguousarray(a, dtype=np.int64)
+    if (np.diff(a) <= 0).any():
+        raise InvalidInputError(f"{name}: expected increasing positions", name)
+    return a
 
 
 def seam_net(cand, cand_at, base, base_at, radius: float, hit=None,
@@ -822,7 +843,7 @@ def seam_net(cand, cand_at, base, base_at, radius: float, hit=None,
     base : (b, D) array_like
     base_at : (b,) int64 array_like
     radius : float
-    hit : (m,) bool array_like, optional
+    hit : (m,) bool ndarray, optional
     threads : int, optional
 
     Returns
@@ -840,16 +861,12 @@ def seam_net(cand, cand_at, base, base_at, radius: float, hit=None,
     c = as_array(cand, "cand", (None, None))
     m, D = c.shape
     b = as_array(base, "base", (None, D)) if np.size(base) else np.empty((0, D))
-    ca = np.ascontiguousarray(cand_at, dtype=np.int64).reshape(-1)
-    ba = np.ascontiguousarray(base_at, dtype=np.int64).reshape(-1)
-    if ca.size != m or ba.size != b.shape[0]:
-        raise InvalidInputError(f"cand_at, base_at: expected ({m},) and ({b.shape[0]},), got "
-                                f"{ca.shape} and {ba.shape}", "cand_at")
-    if (np.diff(ca) <= 0).any() or (np.diff(ba) <= 0).any():
-        raise InvalidInputError("cand_at, base_at: expected increasing positions", "cand_at")
-    h = np.zeros(m, np.uint8) if hit is None else np.ascontiguousarray(hit, dtype=np.uint8)
-    if h.shape != (m,):
-        raise InvalidInputError(f"hit: expected shape ({m},), got {h.shape}", "hit")
+    ca = _positions(cand_at, "cand_at", m)
+    ba = _positions(base_at, "base_at", b.shape[0])
+    h = np.zeros(m, np.bool_) if hit is None else np.asarray(hit)
+    if h.dtype != np.bool_ or h.shape != (m,):
+        raise InvalidInputError(f"hit: expected ({m},) bool, got {h.dtype} {h.shape}", "hit")
+    h = np.ascontiguousarray(h.view(np.uint8))
     keep = _native.seam_net(c, ca, np.ascontiguousarray(b, dtype=np.float64), ba,
                             check_radius(radius), h, _threads_arg(threads))
     return keep.astype(bool)

@@ -775,18 +775,22 @@ def expected_net_counts(at, flats):
     """Per chart, how many samples an atlas with a net of its outer seam stores of
     ``flats`` inserted in order, counted apart from the field (the rows one by one,
     a plain loop): every row within ``dense_reach`` of its nearest centre's angle,
-    and a row beyond it only if no row the chart stored before it lies within
-    ``seam_spacing / scale`` of it in the chart's coordinates."""
+    and a row beyond it only while fewer than ``dense_after`` rows before it had
+    this chart as their nearest (if given) and if no row the chart stored before
+    it lies within ``seam_spacing / scale`` of it in the chart's coordinates."""
     ro = at.route(flats, at.reach)
     counts = []
     for c, (rows, ang) in enumerate(zip(ro.rows, ro.angles)):
         x = at.chart_field(c).chart(flats.take(rows)).points
         beyond = np.degrees(ang - ro.nearest_angle[rows]) > at.dense_reach
         radius = at.seam_spacing / at.scales[c]
+        own = 0
         held: list = []
         for i in range(rows.size):
-            if beyond[i] and held and \
-                    np.sqrt(((np.array(held) - x[i]) ** 2).sum(axis=1)).min() <= radius:
+            dense = at.dense_after is not None and own >= at.dense_after
+            own += int(ro.nearest[rows[i]] == c)
+            if beyond[i] and (dense or held and np.sqrt(
+                    ((np.array(held) - x[i]) ** 2).sum(axis=1)).min() <= radius):
                 continue
             held.append(x[i])
         counts.append(len(held))
@@ -799,6 +803,9 @@ SEAMS = {
     # a user's choice: the seam narrowed to 9 once a chart holds 25 own samples
     "dense": (dict(relative=True, inner=2.0, trusted=6.0, reach=14.0, dense_reach=9.0,
                    dense_after=25), expected_dense_counts),
+    # both: a net beyond 7 while a chart holds fewer than 30 own samples, then nothing
+    "both": (dict(relative=True, inner=2.0, trusted=6.0, reach=14.0, dense_reach=7.0,
+                  dense_after=30, seam_spacing=0.8), expected_net_counts),
 }
 
 
@@ -855,8 +862,13 @@ def test_a_thinner_seam_is_stored_alike_whatever_the_batches(seam):
             other.add(f, val)
             assert other.nrejected == 0 and other.nstored == at.held(f, radius).sum()
             assert other.copies(f) == at.held(f, radius).sum() / f.n
-    else:  # the upload guard's count: every row up to reach (the net is not known ahead)
-        assert whole.copies(f) == wide / f.n
+    elif seam == "net":  # the upload guard's count: every row up to reach (the net is
+        assert whole.copies(f) == wide / f.n  # not known ahead)
+    else:  # both: fewer than either alone
+        for alone in ({"dense_after": None}, {"seam_spacing": None}):
+            other = AtlasField(Atlas.from_dict({**at.to_dict(), **alone}), 1)
+            other.add(f, val)
+            assert other.nstored > whole.nstored, alone
 
 
 def test_a_net_leaves_a_stored_sample_near_every_sample_it_drops():
@@ -887,6 +899,28 @@ def test_a_net_leaves_a_stored_sample_near_every_sample_it_drops():
             gaps = np.sqrt(((outer[:, None] - outer[None]) ** 2).sum(axis=-1))
             assert (gaps[~np.eye(len(outer), dtype=bool)] > radius).all()
     assert counts[0] == counts[1]
+
+
+def test_a_fitted_unit_is_tried_without_the_net():
+    """``fitted_unit`` on an atlas with a net of its outer seam scores its units on
+    fields without it (the net, in the charts' coordinates, would thin more in a
+    longer unit): the same units and scores as on the atlas without the net."""
+    from flatserve.atlas_field import fitted_unit
+
+    rng = np.random.default_rng(44)
+    f = random_flats(rng, 700, 2, 4, 1.0)
+    val = np.sin(2 * f.quadrics()[1][:, 0]) + f.quadrics()[0][:, 0, 1]
+    at = Atlas.covering(2, 4, dense_reach=7.0, seam_spacing=0.5, inner=2.0, trusted=6.0,
+                        reach=14.0, relative=True)
+    plain = Atlas.covering(2, 4, inner=2.0, trusted=6.0, reach=14.0, relative=True)
+    got, want = (fitted_unit(a, f, val, factors=(0.5, 2.0), max_rows=700) for a in (at, plain))
+    assert got.unit == want.unit
+    np.testing.assert_array_equal(got.errors, want.errors)
+    # (a field with the net in a unit would store other samples: the net is not idle here)
+    nets = [AtlasField(at.with_unit(u), 1) for u in got.candidates[:2]]
+    for n in nets:
+        n.add(f, val)
+    assert nets[0].nstored != nets[1].nstored
 
 
 def test_a_thinner_seam_is_checked_and_kept():
@@ -926,11 +960,12 @@ def test_a_thinner_seam_is_checked_and_kept():
             ({"dense_after": True}, "dense_after", "an integer >= 0"),
             ({"dense_after": 2.5}, "dense_after", "an integer >= 0"),
             ({"seam_spacing": 0}, "seam_spacing", "finite, > 0"),
-            ({"seam_spacing": -1.0}, "seam_spacing", "finite, > 0"),
-            ({"seam_spacing": float("nan")}, "seam_spacing", "finite, > 0"),
-            ({"seam_spacing": float("inf")}, "seam_spacing", "finite, > 0"),
-            ({"seam_spacing": True}, "seam_spacing", "finite, > 0"),
-            ({"seam_spacing": "1"}, "seam_spacing", "finite, > 0")):
+            ({"seam_spacing": -1.0}, "seam_spacing", "finite"),
+            ({"seam_spacing": float("nan")}, "seam_spacing", "finite"),
+            ({"seam_spacing": float("inf")}, "seam_spacing", "finite"),
+            ({"seam_spacing": 10**400}, "seam_spacing", "finite"),
+            ({"seam_spacing": True}, "seam_spacing", "finite"),
+            ({"seam_spacing": "1"}, "seam_spacing", "finite")):
         with pytest.raises(InvalidInputError, match=words) as err:
             Atlas.from_dict({**spec, **change})
         assert err.value.argument == name, (change, err.value.argument)

@@ -508,5 +508,6 @@ def test_within_over_tiles_is_the_unsplit_triangulations():
     for radius in (0.05, 0.1, 0.3):
         np.testing.assert_array_equal(tt.within(q, radius), tri.within(q, radius))
     assert 0.1 < tt.within(q, 0.1).mean() < 0.9
+    assert tt.within(q.reshape(2, -1, 3), 0.1).shape == (2, 1000)
     with pytest.raises(InvalidInputError, match="radius"):
         tt.within(q, -1)

@@ -648,7 +648,7 @@ def test_within_is_a_brute_force_distance_test(D):
 def test_within_and_seam_net_name_bad_input():
     t = Triangulation(3)
     t.insert(np.eye(3))
-    for radius in (-1.0, float("nan"), float("inf"), True, "1", None):
+    for radius in (-1.0, float("nan"), float("inf"), 10**400, True, "1", None):
         with pytest.raises(InvalidInputError, match="radius") as err:
             t.within(np.zeros((1, 3)), radius)
         assert err.value.argument == "radius"
@@ -660,12 +660,18 @@ def test_within_and_seam_net_name_bad_input():
     for args, name in (((x, [0], x, [1, 2], 1.0), "cand_at"),
                        ((x, [1, 0], x, [2, 3], 1.0), "cand_at"),
                        ((x, [0, 1], np.zeros((2, 2)), [2, 3], 1.0), "base"),
-                       ((x, [0, 1], x, [2, 3], -1.0), "radius")):
+                       ((x, [0, 1], x, [2, 3], -1.0), "radius"),
+                       ((x, [0.2, 0.7], x, [2, 3], 1.0), "cand_at"),
+                       ((x, [0, 1], x, [np.nan, 3], 1.0), "base_at"),
+                       ((x, [0, 1], x, [3, 2], 1.0), "base_at"),
+                       ((x, [0, 1], x, [2], 1.0), "base_at"),
+                       ((x, [0, 1], x, ["a", "b"], 1.0), "base_at")):
         with pytest.raises(InvalidInputError) as err:
             seam_net(*args)
         assert err.value.argument == name, args
-    with pytest.raises(InvalidInputError, match="hit"):
-        seam_net(x, [0, 1], x, [2, 3], 1.0, hit=[0])
+    for hit in ([False], [0.5, 0.5], [-1, 0]):
+        with pytest.raises(InvalidInputError, match="hit"):
+            seam_net(x, [0, 1], x, [2, 3], 1.0, hit=hit)
 
 
 def test_seam_net_is_the_sequential_net_and_does_not_depend_on_cuts():

@@ -324,6 +324,20 @@ def test_a_node_killed_during_uploads_and_queries_loses_nothing(fronts, nodes, p
     assert_same(pg_url, a, "f", probe, timeout=240)
 
 
+def tiles_reported(c, name, n, timeout=120.0, **unless):
+    """The field's one shard group once its status reports ``n`` tiles, none of them
+    with a value of ``unless`` (``pid=..``, ``node=..``): describe shows a group's last
+    report, which follows a start or a restart by a poll."""
+    end = time.monotonic() + timeout
+    while True:
+        (group,) = c.describe(name)["shard_groups"]
+        tiles = group.get("tiles") or []
+        if len(tiles) == n and not any(t[k] == v for t in tiles for k, v in unless.items()):
+            return group
+        assert time.monotonic() < end, group
+        time.sleep(0.5)
+
+
 def test_a_tile_lost_with_its_process_or_its_node_its_group_restores_itself(fronts, nodes, pg_url, rng):
     """A tile cannot be rebuilt alone (its halo came from the exchange): its group's
     actor ends and Ray restarts it, with new tiles, from the log."""
@@ -335,15 +349,13 @@ def test_a_tile_lost_with_its_process_or_its_node_its_group_restores_itself(fron
             o, d = paper_rays(rng, 2000)
             c.upload_rays("one", o, d, rng.uniform(size=(2000, 2)), wait=True)
         assert_same(pg_url, a, "one", probe, weights=True)
-        (group,) = c.describe("one")["shard_groups"]
+        group = tiles_reported(c, "one", 2)
         # a tile's process dies: its group ends itself and is restarted, with new tiles
         os.kill(group["tiles"][1]["pid"], signal.SIGKILL)
         o, d = paper_rays(rng, 1000)  # an upload meanwhile: stored, applied once back
         c.upload_rays("one", o, d, rng.uniform(size=(1000, 2)))
         assert_same(pg_url, a, "one", probe, weights=True, timeout=240)
-        (again,) = c.describe("one")["shard_groups"]
-        assert len(again["tiles"]) == 2 and group["tiles"][1]["pid"] not in {
-            t["pid"] for t in again["tiles"]}, again
+        again = tiles_reported(c, "one", 2, pid=group["tiles"][1]["pid"])
         # a node holding a tile dies
         on = {t["node"] for t in again["tiles"]}
         victim = next(w for w in nodes.workers if w.node_id in on)
@@ -352,8 +364,7 @@ def test_a_tile_lost_with_its_process_or_its_node_its_group_restores_itself(fron
         o, d = paper_rays(rng, 1000)
         c.upload_rays("one", o, d, rng.uniform(size=(1000, 2)))
         assert_same(pg_url, a, "one", probe, weights=True, timeout=240)
-        (group,) = c.describe("one")["shard_groups"]
-    assert len(group["tiles"]) == 2 and victim.node_id not in {t["node"] for t in group["tiles"]}
+        group = tiles_reported(c, "one", 2, node=victim.node_id)
     assert group["restored_from"] == "the log", group
 
 

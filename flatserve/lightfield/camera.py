@@ -24,6 +24,8 @@ from ..flats import MAX_ENTRY
 
 __all__ = [
     "Camera",
+    "PinholeCamera",
+    "resolve_supersamples",
     "RaySamples",
     "paper_samples",
     "sphere_samples",
@@ -36,6 +38,7 @@ __all__ = [
     "DEFAULT_FOCAL",
     "DEFAULT_SUPERSAMPLE",
     "ORTHONORMAL_TOL",
+    "RIGID_TOL",
     "ORBIT_EYE_RADIUS",
     "ORBIT_RADIUS",
 ]
@@ -52,6 +55,11 @@ DEFAULT_FOCAL = 3.0
 DEFAULT_SUPERSAMPLE = 4
 #: How far from orthonormal a camera rotation may be.
 ORTHONORMAL_TOL = 1e-6
+#: How far from a rigid transform a pose read from a file may be (rotation
+#: part from orthonormal, last row from (0, 0, 0, 1), a quaternion's norm from
+#: 1): poses written in single precision or rounded to a few digits pass, and
+#: are then projected onto the nearest rotation.
+RIGID_TOL = 1e-4
 #: 360-degree sampling (:func:`sphere_samples`): eyes on the sphere of this
 #: radius about the origin (the distance of the default camera) ...
 ORBIT_EYE_RADIUS = 3.0
@@ -212,6 +220,67 @@ def rotation_about(axis, degrees: float) -> np.ndarray:
     return np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * (K @ K)
 
 
+def _check_rotation(R, name: str) -> np.ndarray:
+    """``R`` as a (3, 3) float64 proper rotation (orthonormal within
+    :data:`ORTHONORMAL_TOL`, det +1), else :class:`InvalidInputError` naming ``name``."""
+    R = as_array(R, name, (3, 3))
+    if np.abs(R).max() > 1 + ORTHONORMAL_TOL or not np.allclose(R.T @ R, np.eye(3), atol=ORTHONORMAL_TOL) or np.linalg.det(R) < 0:
+        raise InvalidInputError(f"{name}: expected a proper rotation matrix (orthonormal, det +1)", name)
+    return R
+
+
+def _check_raster(width, height, supersample) -> None:
+    """Positive integer ``width`` and ``height``; ``supersample`` a square number."""
+    for name, v in (("width", width), ("height", height)):
+        if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1):
+            raise InvalidInputError(f"{name}: expected a positive integer, got {v!r}", name)
+    s = supersample
+    if not (isinstance(s, (int, np.integer)) and not isinstance(s, bool) and s >= 1 and math.isqrt(int(s)) ** 2 == s):
+        raise InvalidInputError(f"supersample: expected a square number of rays per pixel (1, 4, 9, ...), got {s!r}", "supersample")
+
+
+def resolve_supersamples(values, width: int, height: int, side: int, weights=None) -> np.ndarray:
+    """Average the supersamples of a ``height`` x ``width`` image into pixels.
+
+    The rays are in scanline order over the fine raster of ``height * side``
+    rows and ``width * side`` columns (:meth:`Camera.rays`,
+    :meth:`PinholeCamera.rays`); pixel ``(i, j)`` averages the ``side`` x
+    ``side`` block of fine pixels ``(i*side + a, j*side + b)``.
+
+    Parameters
+    ----------
+    values : (height*side * width*side, C) float
+        One row per ray.
+    width, height : int
+        Image size in pixels.
+    side : int
+        Supersamples per pixel side.
+    weights : (height*side * width*side,) float, optional
+        Per-ray weights (e.g. 0 for rays without a value); pixels whose
+        weights sum to zero become NaN.
+
+    Returns
+    -------
+    (height, width, C) float64
+
+    Examples
+    --------
+    >>> resolve_supersamples(np.arange(4.0)[:, None], 1, 1, 2)[0, 0]
+    array([1.5])
+    """
+    s = side
+    values = np.asarray(values, dtype=np.float64)
+    C = values.shape[1]
+    v = values.reshape(height, s, width, s, C)
+    if weights is None:
+        return v.mean(axis=(1, 3))
+    w = np.asarray(weights, dtype=np.float64).reshape(height, s, width, s, 1)
+    num = (np.where(w > 0, v, 0.0) * w).sum(axis=(1, 3))
+    den = w.sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera.
@@ -239,19 +308,10 @@ class Camera:
     def __post_init__(self):
         object.__setattr__(self, "eye", as_array(self.eye, "eye", (3,)))
         R = np.eye(3) if self.rotation is None else self.rotation
-        R = as_array(R, "rotation", (3, 3))
-        if np.abs(R).max() > 1 + ORTHONORMAL_TOL or not np.allclose(R.T @ R, np.eye(3), atol=ORTHONORMAL_TOL) or np.linalg.det(R) < 0:
-            raise InvalidInputError("rotation: expected a proper rotation matrix (orthonormal, det +1)", "rotation")
-        object.__setattr__(self, "rotation", R)
+        object.__setattr__(self, "rotation", _check_rotation(R, "rotation"))
         if not (np.isfinite(self.focal) and self.focal > 0):
             raise InvalidInputError(f"focal: expected a positive number, got {self.focal!r}", "focal")
-        for name in ("width", "height"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, np.integer)) and v >= 1):
-                raise InvalidInputError(f"{name}: expected a positive integer, got {v!r}", name)
-        s = self.supersample
-        if not (isinstance(s, (int, np.integer)) and s >= 1 and math.isqrt(int(s)) ** 2 == s):
-            raise InvalidInputError(f"supersample: expected a square number of rays per pixel (1, 4, 9, ...), got {s!r}", "supersample")
+        _check_raster(self.width, self.height, self.supersample)
 
     # ---------------------------------------------------------- construction
     @classmethod
@@ -342,19 +402,425 @@ class Camera:
         -------
         (H, W, C) float64
         """
-        s = self.side
-        values = np.asarray(values, dtype=np.float64)
-        C = values.shape[1]
-        v = values.reshape(self.height, s, self.width, s, C)
-        if weights is None:
-            return v.mean(axis=(1, 3))
-        w = np.asarray(weights, dtype=np.float64).reshape(self.height, s, self.width, s, 1)
-        num = (np.where(w > 0, v, 0.0) * w).sum(axis=(1, 3))
-        den = w.sum(axis=(1, 3))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+        return resolve_supersamples(values, self.width, self.height, self.side, weights)
 
     def to_dict(self) -> dict:
         """JSON-ready description."""
         return {"eye": self.eye.tolist(), "rotation": self.rotation.tolist(), "focal": float(self.focal),
                 "width": int(self.width), "height": int(self.height), "supersample": int(self.supersample)}
+
+
+def _positive(value, name: str) -> float:
+    """``value`` as a finite positive float, else :class:`InvalidInputError` naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InvalidInputError(f"{name}: expected a positive number, got {value!r}", name)
+    v = float(value)
+    if not (math.isfinite(v) and v > 0):
+        raise InvalidInputError(f"{name}: expected a positive number, got {value!r}", name)
+    return v
+
+
+def _finite(value, name: str) -> float:
+    """``value`` as a finite float, else :class:`InvalidInputError` naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InvalidInputError(f"{name}: expected a finite number, got {value!r}", name)
+    v = float(value)
+    if not math.isfinite(v):
+        raise InvalidInputError(f"{name}: expected a finite number, got {value!r}", name)
+    return v
+
+
+def _nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest to ``M`` in the Frobenius norm (polar decomposition)."""
+    U, _, Vt = np.linalg.svd(M)
+    return U @ Vt
+
+
+def _quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of the unit quaternion ``q = (w, x, y, z)`` (COLMAP's ``qvec2rotmat``)."""
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _matrix_quaternion(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(w, x, y, z)``, ``w >= 0``, of the rotation ``R``.
+
+    Shepperd's method: the largest of ``4w^2, 4x^2, 4y^2, 4z^2`` (read off the
+    trace and the diagonal) is divided into the others, so no square root of a
+    small number is taken.
+    """
+    t = np.trace(R)
+    cands = np.array([t, R[0, 0], R[1, 1], R[2, 2]])
+    k = int(np.argmax(cands))
+    if k == 0:
+        r = math.sqrt(1.0 + t) * 2  # 4w
+        q = np.array([r / 4, (R[2, 1] - R[1, 2]) / r, (R[0, 2] - R[2, 0]) / r, (R[1, 0] - R[0, 1]) / r])
+    elif k == 1:
+        r = math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2  # 4x
+        q = np.array([(R[2, 1] - R[1, 2]) / r, r / 4, (R[0, 1] + R[1, 0]) / r, (R[0, 2] + R[2, 0]) / r])
+    elif k == 2:
+        r = math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2  # 4y
+        q = np.array([(R[0, 2] - R[2, 0]) / r, (R[0, 1] + R[1, 0]) / r, r / 4, (R[1, 2] + R[2, 1]) / r])
+    else:
+        r = math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2  # 4z
+        q = np.array([(R[1, 0] - R[0, 1]) / r, (R[0, 2] + R[2, 0]) / r, (R[1, 2] + R[2, 1]) / r, r / 4])
+    q /= np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+#: NeRF's camera axes (x right, y up, looking down -z) from OpenCV's (x right,
+#: y down, looking down +z): negate the second and third columns.
+_GL_FROM_CV = np.array([1.0, -1.0, -1.0])
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """A real camera: a pinhole with intrinsics in pixels (OpenCV's convention).
+
+    Conventions: ``rotation`` maps camera to world coordinates; its columns
+    are, in world coordinates, image right (+x, the pixel column ``i``
+    grows), image down (+y, the pixel row ``j`` grows) and forward (the
+    viewing direction, +z). Image position ``(x, y)`` (in pixels, from the
+    top-left corner of the image) looks along ``rotation @ ((x - cx) / fx,
+    (y - cy) / fy, 1)``; pixel ``(i, j)`` (column, row) covers ``[i, i+1) x
+    [j, j+1)`` and has its centre at ``(i + 1/2, j + 1/2)``, as in COLMAP and
+    NeRF. These are COLMAP's camera axes; NeRF's ``transform_matrix`` uses
+    OpenGL's (y up, looking down -z) and is converted by :meth:`from_nerf` and
+    :meth:`to_nerf`.
+
+    Parameters
+    ----------
+    eye : (3,) float
+        Centre of projection, world coordinates.
+    rotation : (3, 3) float
+        Camera to world; a proper rotation (orthonormal within
+        :data:`ORTHONORMAL_TOL`, det +1).
+    fx, fy : float
+        Focal lengths in pixels (> 0).
+    cx, cy : float
+        Principal point in pixels (from the top-left corner of the image).
+    width, height : int
+        Resolution in pixels.
+    supersample : int
+        Rays per pixel, a square number (4 = a 2 x 2 grid in each pixel).
+
+    Examples
+    --------
+    >>> cam = PinholeCamera(eye=(0, 0, -3), rotation=np.eye(3), fx=100, fy=100, cx=32, cy=24,
+    ...                     width=64, height=48)
+    >>> origins, directions = cam.rays()
+    >>> directions.shape
+    (3072, 3)
+    >>> back = PinholeCamera.from_nerf(**cam.to_nerf_arguments())
+    >>> bool(np.allclose(back.rays()[1], directions, atol=1e-12))
+    True
+    """
+
+    eye: np.ndarray
+    rotation: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    supersample: int = 1
+
+    def __post_init__(self):
+        object.__setattr__(self, "eye", as_array(self.eye, "eye", (3,)))
+        object.__setattr__(self, "rotation", _check_rotation(self.rotation, "rotation"))
+        for name in ("fx", "fy"):
+            object.__setattr__(self, name, _positive(getattr(self, name), name))
+        for name in ("cx", "cy"):
+            object.__setattr__(self, name, _finite(getattr(self, name), name))
+        _check_raster(self.width, self.height, self.supersample)
+        for name in ("width", "height", "supersample"):
+            object.__setattr__(self, name, int(getattr(self, name)))
+
+    # ---------------------------------------------------------- construction
+    @classmethod
+    def from_nerf(cls, transform_matrix, *, width: int, height: int, camera_angle_x: float | None = None,
+                  fl_x: float | None = None, fl_y: float | None = None, cx: float | None = None,
+                  cy: float | None = None, supersample: int = 1, rigid_tol: float = RIGID_TOL) -> "PinholeCamera":
+        """A camera from a NeRF / instant-ngp frame.
+
+        Parameters
+        ----------
+        transform_matrix : (4, 4) or (3, 4) float
+            Camera to world in OpenGL's camera axes (x right, y up, looking
+            down -z). A rigid transform within ``rigid_tol`` (last row
+            (0, 0, 0, 1), rotation part orthonormal, det +1); the rotation part
+            is projected onto the nearest rotation.
+        width, height : int
+            Image size in pixels (``w``, ``h``).
+        camera_angle_x : float, optional
+            Horizontal field of view in radians: ``fx = width / 2 / tan(camera_angle_x / 2)``.
+        fl_x, fl_y : float, optional
+            Focal lengths in pixels; ``fl_x`` takes precedence over
+            ``camera_angle_x`` (one of the two is needed); ``fl_y`` defaults to
+            ``fx``.
+        cx, cy : float, optional
+            Principal point in pixels; default the image centre.
+        supersample : int
+            Rays per pixel.
+        rigid_tol : float
+            Tolerance of the rigidity checks (:data:`RIGID_TOL`).
+
+        Returns
+        -------
+        PinholeCamera
+
+        Raises
+        ------
+        InvalidInputError
+            Naming ``transform_matrix`` (and how far from rigid it is),
+            ``camera_angle_x`` (no focal length given) or the bad intrinsic.
+        """
+        _check_raster(width, height, supersample)
+        M = as_array(transform_matrix, "transform_matrix", (None, 4))
+        if M.shape[0] not in (3, 4):
+            raise InvalidInputError(f"transform_matrix: expected shape (4, 4) or (3, 4), got {M.shape}",
+                                    "transform_matrix")
+        if M.shape[0] == 4:
+            off = float(np.abs(M[3] - [0.0, 0.0, 0.0, 1.0]).max())
+            if off > rigid_tol:
+                raise InvalidInputError(f"transform_matrix: not a rigid transform (last row {M[3].tolist()}, "
+                                        f"off (0, 0, 0, 1) by {off:.3g} > {rigid_tol:g})", "transform_matrix")
+        R = _rigid_rotation(M[:3, :3], "transform_matrix", rigid_tol)
+        if fl_x is not None:
+            fx = _positive(fl_x, "fl_x")
+        elif camera_angle_x is not None:
+            angle = _positive(camera_angle_x, "camera_angle_x")
+            if not angle < math.pi:
+                raise InvalidInputError(f"camera_angle_x: expected a field of view in (0, pi) radians, "
+                                        f"got {camera_angle_x!r}", "camera_angle_x")
+            fx = 0.5 * width / math.tan(angle / 2)
+        else:
+            raise InvalidInputError("camera_angle_x: no focal length (give camera_angle_x or fl_x)",
+                                    "camera_angle_x")
+        fy = fx if fl_y is None else _positive(fl_y, "fl_y")
+        return cls(eye=M[:3, 3], rotation=R * _GL_FROM_CV, fx=fx, fy=fy,
+                   cx=width / 2 if cx is None else cx, cy=height / 2 if cy is None else cy,
+                   width=width, height=height, supersample=supersample)
+
+    @classmethod
+    def look_at(cls, eye, target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), **kwargs) -> "PinholeCamera":
+        """Camera at ``eye`` looking at ``target``, the top of its image toward ``up``.
+
+        ``kwargs`` are the other fields (``fx``, ``fy``, ``cx``, ``cy``,
+        ``width``, ``height``, ``supersample``).
+        """
+        eye = as_array(eye, "eye", (3,), max_abs=MAX_ENTRY)
+        fwd = as_array(target, "target", (3,), max_abs=MAX_ENTRY) - eye
+        if not np.linalg.norm(fwd) > 0:
+            raise InvalidInputError("target: must differ from eye", "target")
+        fwd /= np.linalg.norm(fwd)
+        right = np.cross(fwd, as_array(up, "up", (3,)))
+        if not np.linalg.norm(right) > 1e-12:
+            raise InvalidInputError("up: must not be parallel to the viewing direction", "up")
+        right /= np.linalg.norm(right)
+        down = np.cross(fwd, right)
+        return cls(eye=eye, rotation=np.stack([right, down, fwd], axis=1), **kwargs)
+
+    @classmethod
+    def from_colmap(cls, qvec, tvec, *, width: int, height: int, fx: float, fy: float, cx: float, cy: float,
+                    supersample: int = 1, rigid_tol: float = RIGID_TOL) -> "PinholeCamera":
+        """A camera from a COLMAP image (world to camera) and a pinhole camera.
+
+        Parameters
+        ----------
+        qvec : (4,) float
+            ``(qw, qx, qy, qz)``, the rotation ``R`` of world to camera
+            coordinates, ``x_cam = R x_world + t``; its norm within
+            ``rigid_tol`` of 1 (it is normalised).
+        tvec : (3,) float
+            ``t``.
+        width, height : int
+            Image size in pixels.
+        fx, fy, cx, cy : float
+            PINHOLE parameters in pixels.
+        supersample : int
+            Rays per pixel.
+        rigid_tol : float
+            Tolerance of the quaternion's norm (:data:`RIGID_TOL`).
+
+        Returns
+        -------
+        PinholeCamera
+            ``eye = -R^T t``, ``rotation = R^T``.
+        """
+        q = as_array(qvec, "qvec", (4,))
+        t = as_array(tvec, "tvec", (3,))
+        norm = float(np.linalg.norm(q))
+        if not abs(norm - 1.0) <= rigid_tol:
+            raise InvalidInputError(f"qvec: expected a unit quaternion, its norm {norm:.6g} is off 1 by "
+                                    f"{abs(norm - 1.0):.3g} > {rigid_tol:g}", "qvec")
+        R = _quaternion_matrix(q / norm)
+        return cls(eye=-R.T @ t, rotation=R.T.copy(), fx=fx, fy=fy, cx=cx, cy=cy,
+                   width=width, height=height, supersample=supersample)
+
+    def to_nerf(self) -> dict:
+        """NeRF / instant-ngp description (:meth:`from_nerf` reads it back).
+
+        Returns
+        -------
+        dict
+            ``transform_matrix`` (4 x 4 nested list, camera to world, OpenGL
+            axes), ``fl_x``, ``fl_y``, ``cx``, ``cy`` (pixels), ``w``, ``h``.
+        """
+        M = np.eye(4)
+        M[:3, :3] = self.rotation * _GL_FROM_CV
+        M[:3, 3] = self.eye
+        return {"transform_matrix": M.tolist(), "fl_x": self.fx, "fl_y": self.fy, "cx": self.cx,
+                "cy": self.cy, "w": self.width, "h": self.height}
+
+    def to_nerf_arguments(self) -> dict:
+        """Keyword arguments of :meth:`from_nerf` giving this camera back."""
+        d = self.to_nerf()
+        return {"transform_matrix": d["transform_matrix"], "width": d["w"], "height": d["h"],
+                "fl_x": d["fl_x"], "fl_y": d["fl_y"], "cx": d["cx"], "cy": d["cy"],
+                "supersample": self.supersample}
+
+    def to_colmap(self) -> dict:
+        """COLMAP description (:meth:`from_colmap` reads it back).
+
+        Returns
+        -------
+        dict
+            ``qvec`` ``(qw, qx, qy, qz)`` with ``qw >= 0`` and ``tvec`` (lists,
+            world to camera), PINHOLE ``fx``, ``fy``, ``cx``, ``cy``, and
+            ``width``, ``height``.
+        """
+        R = self.rotation.T
+        return {"qvec": _matrix_quaternion(R).tolist(), "tvec": (-R @ self.eye).tolist(),
+                "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
+                "width": self.width, "height": self.height}
+
+    def scaled(self, width: int, height: int) -> "PinholeCamera":
+        """The same pose and field of view at another resolution.
+
+        ``fx`` and ``cx`` scale by ``width / self.width``, ``fy`` and ``cy`` by
+        ``height / self.height``.
+        """
+        _check_raster(width, height, self.supersample)
+        sx, sy = width / self.width, height / self.height
+        return replace(self, fx=self.fx * sx, cx=self.cx * sx, fy=self.fy * sy, cy=self.cy * sy,
+                       width=int(width), height=int(height))
+
+    def with_(self, **changes) -> "PinholeCamera":
+        """A copy with some parameters changed."""
+        return replace(self, **changes)
+
+    # ------------------------------------------------------------------ rays
+    @property
+    def side(self) -> int:
+        """Supersamples per pixel side (sqrt of ``supersample``)."""
+        return math.isqrt(self.supersample)
+
+    @property
+    def nrays(self) -> int:
+        """Rays of :meth:`rays`: ``width * height * supersample``."""
+        return self.width * self.height * self.supersample
+
+    def grid_rays(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """Rays through a grid of image positions, in scanline order.
+
+        Parameters
+        ----------
+        x : (m,) float
+            Image positions along a row, in pixels (pixel column ``i`` has its
+            centre at ``i + 1/2``).
+        y : (n,) float
+            Image positions down a column (pixel row ``j`` at ``j + 1/2``).
+
+        Returns
+        -------
+        origins : (n*m, 3) float64
+            The eye, repeated.
+        directions : (n*m, 3) float64
+            Unit directions; row ``k`` looks through ``(x[k % m], y[k // m])``.
+
+        Examples
+        --------
+        >>> cam = PinholeCamera(eye=(0, 0, 0), rotation=np.eye(3), fx=2, fy=2, cx=2, cy=2,
+        ...                     width=4, height=4)
+        >>> cam.grid_rays([2.0], [2.0])[1]
+        array([[0., 0., 1.]])
+        """
+        x = as_array(x, "x", (None,))
+        y = as_array(y, "y", (None,))
+        u = (x - self.cx) / self.fx
+        v = (y - self.cy) / self.fy
+        # R orthonormal: |R (u, v, 1)| = sqrt(u^2 + v^2 + 1); separable per row/column
+        inv = 1.0 / np.sqrt(v[:, None] ** 2 + (u[None, :] ** 2 + 1.0))  # (n, m)
+        right, down, fwd = self.rotation.T  # columns of R
+        d = np.empty((y.size, x.size, 3))
+        for c in range(3):
+            np.multiply(np.add.outer(v * down[c], u * right[c]) + fwd[c], inv, out=d[:, :, c])
+        o = np.empty((y.size * x.size, 3))
+        o[:] = self.eye
+        return o, d.reshape(-1, 3)
+
+    def rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rays of all supersamples in scanline order over the fine raster.
+
+        Fine pixel ``(a, b)`` of pixel ``(i, j)`` (column, row) looks through
+        image position ``(i + (a + 1/2) / s, j + (b + 1/2) / s)``, ``s`` the
+        :attr:`side`.
+
+        Returns
+        -------
+        origins : (H*s * W*s, 3) float64
+            The eye, repeated.
+        directions : (H*s * W*s, 3) float64
+            Unit directions; row ``k`` is fine pixel ``divmod(k, W*s)`` (row,
+            column), row 0 of the image at the top.
+        """
+        s = self.side
+        return self.grid_rays((np.arange(self.width * s) + 0.5) / s, (np.arange(self.height * s) + 0.5) / s)
+
+    def resolve(self, values: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """Average supersamples into pixels (:func:`resolve_supersamples`).
+
+        Parameters
+        ----------
+        values : (H*s * W*s, C) float
+            One row per ray of :meth:`rays`.
+        weights : (H*s * W*s,) float, optional
+            Per-ray weights; pixels whose weights sum to zero become NaN.
+
+        Returns
+        -------
+        (H, W, C) float64
+        """
+        return resolve_supersamples(values, self.width, self.height, self.side, weights)
+
+    def to_dict(self) -> dict:
+        """JSON-ready description (the constructor's arguments)."""
+        return {"eye": self.eye.tolist(), "rotation": self.rotation.tolist(), "fx": self.fx, "fy": self.fy,
+                "cx": self.cx, "cy": self.cy, "width": self.width, "height": self.height,
+                "supersample": self.supersample}
+
+
+def _rigid_rotation(M: np.ndarray, name: str, tol: float) -> np.ndarray:
+    """The rotation nearest to the (3, 3) ``M``, if ``M`` is one within ``tol``.
+
+    Raises
+    ------
+    InvalidInputError
+        Naming ``name`` and how far ``M^T M`` is from the identity, or the
+        sign of the determinant.
+    """
+    off = float(np.abs(M.T @ M - np.eye(3)).max())
+    if off > tol:
+        raise InvalidInputError(f"{name}: not a rigid transform (rotation part not orthonormal: "
+                                f"|R^T R - I| = {off:.3g} > {tol:g}; scaled or sheared?)", name)
+    det = float(np.linalg.det(M))
+    if det < 0:
+        raise InvalidInputError(f"{name}: not a rigid transform (rotation part is a reflection, det {det:.3g})",
+                                name)
+    return _nearest_rotation(M)

@@ -16,20 +16,12 @@ namespace flatserve {
 // (increasing); hit[i] != 0: candidate i is known to be near an earlier point
 // (the triangulation's: Triangulation::within). keep[i] = 1 iff hit[i] == 0,
 // no base point with base_at[j] < cand_at[i] and no kept candidate before i
-// lies within radius (squared distance summed in coordinate order, as
-// Triangulation::within sums it), else 0.
+// lies within radius (sq_dist, as Triangulation::within), else 0.
 inline void seam_net(const double* cand, const std::int64_t* cand_at, std::size_t m,
                      const double* base, const std::int64_t* base_at, std::size_t b, int D,
                      double radius, const std::uint8_t* hit, std::uint8_t* keep, int threads) {
   const double r2 = radius * radius;
-  auto near = [&](const double* p, const double* q) {
-    double t = 0;
-    for (int k = 0; k < D; ++k) {
-      const double u = p[k] - q[k];
-      t += u * u;
-    }
-    return t <= r2;
-  };
+  auto near = [&](const double* p, const double* q) { return sq_dist(p, q, D) <= r2; };
   // against the base points before each candidate (independent: in parallel)
   run_chunks(m, threads, [&](std::size_t lo, std::size_t hi) {
     for (std::size_t i = lo; i < hi; ++i) {

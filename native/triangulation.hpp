@@ -56,6 +56,19 @@ inline int default_threads() {
   return h ? static_cast<int>(h) : 1;
 }
 
+// Squared Euclidean distance of a point (anything indexable: a CGAL Point_d or
+// a row of doubles) to q, summed in coordinate order: Triangulation::within
+// and seam_net (net.hpp) decide alike because they share it.
+template <class P>
+inline double sq_dist(const P& p, const double* q, int D) {
+  double t = 0;
+  for (int k = 0; k < D; ++k) {
+    const double u = p[k] - q[k];
+    t += u * u;
+  }
+  return t;
+}
+
 // Runs body(begin, end) over [0, n) in fixed chunks of kChunk on `threads`
 // threads (<= 0: all cores). Exceptions are rethrown in the caller.
 template <class F>

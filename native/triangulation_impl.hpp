@@ -280,13 +280,7 @@ class Triangulation final : public TriangulationBase {
         const double* qc = q + i * D;
         std::uint8_t hit = 0;
         for (const Vertex_handle& v : by_id_) {
-          const Point& p = v->point();
-          double t = 0;
-          for (int k = 0; k < D; ++k) {
-            const double u = p[k] - qc[k];
-            t += u * u;
-          }
-          if (t <= r2) {
+          if (sq_dist(v->point(), qc, D) <= r2) {
             hit = 1;
             break;
           }

@@ -3,6 +3,18 @@
 * ``POST /v1/fields/{name}/render`` — body: a camera (JSON); response: the
   frame as PNG (default) or ``.npy`` (float32, (H, W, C), NaN where no ray
   has a value; ``Accept: application/x-npy`` or ``"format": "npy"``).
+  The camera is one of: ``orbit`` (the viewer's), ``eye`` (+ ``target``/``up``
+  or ``rotation``), or the pose of a captured frame in a capture's own
+  convention — ``nerf`` (a ``transforms.json`` frame: camera-to-world
+  ``transform_matrix`` in OpenGL axes, ``camera_angle_x`` or ``fl_x``/``fl_y``,
+  ``cx``/``cy``, ``w``/``h``) or ``colmap`` (an ``images.txt`` pose
+  ``qvec``/``tvec``, world-to-camera, with its ``cameras.txt`` ``model`` and
+  ``params``, or ``fx``/``fy``/``cx``/``cy``, and ``width``/``height``); see
+  :class:`flatserve.lightfield.camera.PinholeCamera`. A pose renders at the
+  frame's size unless the body's ``width``/``height`` are given: then its
+  intrinsics are scaled to that size (one of them given: the other keeps the
+  frame's aspect ratio). A bad pose is a 422 naming its member
+  (``nerf.transform_matrix``, ``colmap.params``, ...).
   Timing split in ``Server-Timing`` (rays, coordinates, locate, encode) and
   coverage in ``X-Coverage``. One-chart and atlas fields alike (the demo is an
   oriented covering atlas: the camera's rays keep their direction, and the
@@ -17,6 +29,7 @@ Owned by the light-field engineer; included by :func:`flatserve.service.app.crea
 from __future__ import annotations
 
 import io
+import math
 import time
 from pathlib import Path
 from typing import Annotated, Literal, Optional
@@ -27,6 +40,7 @@ from fastapi.responses import FileResponse, HTMLResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..errors import InvalidInputError
+from ..flats import MAX_ENTRY
 from ..options import Interpolant
 from .status import BatchTooLargeError
 from . import codec
@@ -35,7 +49,7 @@ from .errors import COMMON_RESPONSES, FIELD_RESPONSES
 from .logs import note
 from .query import server_timing
 
-__all__ = ["lightfield_api", "viewer", "CameraSpec", "render_frame"]
+__all__ = ["lightfield_api", "viewer", "CameraSpec", "NerfPose", "ColmapPose", "render_frame"]
 
 STATIC = Path(__file__).parent / "static"
 PNG = "image/png"
@@ -45,6 +59,17 @@ PNG_COMPRESS_LEVEL = 1
 MAX_SIDE = 2048
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+#: A number of a pose: finite (a JSON number; NaN and infinities refused).
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+#: Largest focal length or principal point coordinate of a pose, in pixels.
+MAX_PIXELS = 1e7
+Pixels = Annotated[float, Field(ge=-MAX_PIXELS, le=MAX_PIXELS, allow_inf_nan=False)]
+FocalPixels = Annotated[float, Field(gt=0, le=MAX_PIXELS, allow_inf_nan=False)]
+Side = Annotated[int, Field(ge=1, le=MAX_SIDE)]
+#: The camera members of a render body, one of which gives the camera.
+CAMERA_MEMBERS = ("orbit", "eye", "rotation", "nerf", "colmap")
+#: COLMAP camera models a render takes, with their ``params`` in cameras.txt order.
+COLMAP_PARAMS = {"PINHOLE": ("fx", "fy", "cx", "cy"), "SIMPLE_PINHOLE": ("f", "cx", "cy")}
 
 
 class OrbitSpec(BaseModel):
@@ -57,16 +82,118 @@ class OrbitSpec(BaseModel):
     distance: float = Field(3.0, gt=0, le=1e3, allow_inf_nan=False, description="Eye distance from the origin.")
 
 
+class NerfPose(BaseModel):
+    """A frame of a NeRF capture (``transforms.json``): camera-to-world, OpenGL axes
+    (x right, y up, looking along -z); see
+    :meth:`flatserve.lightfield.camera.PinholeCamera.from_nerf`."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+    transform_matrix: Annotated[list[Annotated[list[Finite], Field(min_length=4, max_length=4)]],
+                                Field(min_length=3, max_length=4)] = Field(
+        description="Camera-to-world: 4 rows of 4 (the last (0, 0, 0, 1)) or 3 rows of 4.")
+    camera_angle_x: Optional[float] = Field(None, gt=0, lt=math.pi, allow_inf_nan=False,
+                                            description="Horizontal field of view, radians.")
+    fl_x: Optional[FocalPixels] = Field(None, description="Focal length in pixels (instead of "
+                                                          "camera_angle_x).")
+    fl_y: Optional[FocalPixels] = Field(None, description="Vertical focal length (default fl_x).")
+    cx: Optional[Pixels] = Field(None, description="Principal point, pixels (default w / 2).")
+    cy: Optional[Pixels] = Field(None, description="Principal point, pixels (default h / 2).")
+    w: Side = Field(description="The frame's width in pixels.")
+    h: Side = Field(description="The frame's height in pixels.")
+
+
+class ColmapPose(BaseModel):
+    """A frame of a COLMAP capture: its ``images.txt`` pose (world-to-camera, OpenCV
+    axes) and its ``cameras.txt`` camera; see
+    :meth:`flatserve.lightfield.camera.PinholeCamera.from_colmap`."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+    qvec: Annotated[list[Finite], Field(min_length=4, max_length=4)] = Field(
+        description="Rotation world-to-camera as a unit quaternion (w, x, y, z).")
+    tvec: Annotated[list[Finite], Field(min_length=3, max_length=3)] = Field(
+        description="Translation world-to-camera.")
+    model: Literal["PINHOLE", "SIMPLE_PINHOLE"] = Field(
+        "PINHOLE", description="The cameras.txt model of `params`.")
+    params: Optional[Annotated[list[Pixels], Field(min_length=3, max_length=4)]] = Field(
+        None, description="As in cameras.txt: fx, fy, cx, cy (PINHOLE) or f, cx, cy "
+                          "(SIMPLE_PINHOLE); or give fx, fy, cx, cy.")
+    fx: Optional[FocalPixels] = None
+    fy: Optional[FocalPixels] = Field(None, description="Default fx (SIMPLE_PINHOLE: must not "
+                                                        "be given).")
+    cx: Optional[Pixels] = None
+    cy: Optional[Pixels] = None
+    width: Side = Field(description="The frame's width in pixels.")
+    height: Side = Field(description="The frame's height in pixels.")
+
+    def intrinsics(self) -> dict:
+        """``fx, fy, cx, cy`` from ``params`` or the members (422 naming the member)."""
+        names = COLMAP_PARAMS[self.model]
+        given = [k for k in ("fx", "fy", "cx", "cy") if getattr(self, k) is not None]
+        if self.params is not None:
+            if given:
+                raise InvalidInputError(f"colmap.{given[0]}: give params or fx, fy, cx, cy, "
+                                        "not both", f"colmap.{given[0]}")
+            if len(self.params) != len(names):
+                raise InvalidInputError(
+                    f"colmap.params: a {self.model} camera has {len(names)} params "
+                    f"({', '.join(names)}), got {len(self.params)}", "colmap.params")
+            p = dict(zip(names, self.params))
+            if "f" in p:
+                p["fx"] = p["fy"] = p.pop("f")
+            if not (p["fx"] > 0 and p["fy"] > 0):
+                raise InvalidInputError("colmap.params: focal lengths must be positive",
+                                        "colmap.params")
+            return p
+        for k in ("fx", "cx", "cy"):
+            if getattr(self, k) is None:
+                raise InvalidInputError(f"colmap.{k}: missing (give params, or fx, fy, cx, cy)",
+                                        f"colmap.{k}")
+        if self.model == "SIMPLE_PINHOLE" and self.fy is not None:
+            raise InvalidInputError("colmap.fy: a SIMPLE_PINHOLE camera has one focal length "
+                                    "(fx)", "colmap.fy")
+        return {"fx": self.fx, "fy": self.fx if self.fy is None else self.fy,
+                "cx": self.cx, "cy": self.cy}
+
+
+#: What the library calls a pose's parts (:class:`PinholeCamera`'s arguments), by
+#: the name of the request member that gave them.
+_NERF_NAMES = {"width": "w", "height": "h", "rotation": "transform_matrix",
+               "eye": "transform_matrix", "fx": "fl_x", "fy": "fl_y"}
+_COLMAP_NAMES = {"rotation": "qvec", "eye": "tvec"}
+
+
+def _pose_error(exc: InvalidInputError, member: str, names: dict[str, str],
+                own: tuple[str, ...]) -> InvalidInputError:
+    """The library's error about a pose, named by its place in the body
+    (``transform_matrix`` -> ``nerf.transform_matrix``)."""
+    arg = exc.argument or ""
+    msg = str(exc)
+    name = names.get(arg, arg)
+    if arg and msg.startswith(f"{arg}:"):
+        msg = msg[len(arg) + 1:].lstrip()
+    if arg == "supersample":
+        return InvalidInputError(f"supersample: {msg}", "supersample")
+    path = f"{member}.{name}" if name in own else member
+    return InvalidInputError(f"{path}: {msg}", path)
+
+
 class CameraSpec(BaseModel):
     """A pinhole camera (see :class:`flatserve.lightfield.Camera`).
 
-    Give either ``orbit`` or ``eye`` (+ ``target``/``up``, or ``rotation``);
-    nothing: the default camera at (0, 0, -3) looking along +z.
+    Give one camera: ``orbit``, ``eye`` (+ ``target``/``up``, or ``rotation``),
+    ``nerf`` or ``colmap`` (a captured frame's pose and intrinsics,
+    :class:`flatserve.lightfield.camera.PinholeCamera`); nothing: the default
+    camera at (0, 0, -3) looking along +z.
     """
 
     # strict: a boolean for a number ("fill": false) is a 422, as in the other bodies
     model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra={"examples": [
-        {"orbit": {"yaw": 30.0, "pitch": 10.0, "distance": 3.0}, "width": 64, "height": 64}]})
+        {"orbit": {"yaw": 30.0, "pitch": 10.0, "distance": 3.0}, "width": 64, "height": 64},
+        {"nerf": {"transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]],
+                  "camera_angle_x": 0.6911, "w": 64, "h": 48}, "supersample": 1},
+        {"colmap": {"qvec": [1, 0, 0, 0], "tvec": [0, 0, 3], "model": "PINHOLE",
+                    "params": [90.0, 90.0, 32.0, 24.0], "width": 64, "height": 48},
+         "width": 32, "height": 24, "format": "npy"}]})
     orbit: Optional[OrbitSpec] = None
     eye: Optional[Vec3] = None
     target: Optional[Vec3] = Field(None, description="Point looked at (default the origin).")
@@ -75,8 +202,13 @@ class CameraSpec(BaseModel):
         None, description="Rows of a rotation matrix whose columns are right, up, forward.")
     focal: float = Field(3.0, gt=0, le=1e3, allow_inf_nan=False,
                          description="Image-plane distance in half image widths.")
-    width: int = Field(250, ge=1, le=MAX_SIDE)
-    height: int = Field(250, ge=1, le=MAX_SIDE)
+    nerf: Optional[NerfPose] = Field(None, description="A NeRF frame's pose (transforms.json).")
+    colmap: Optional[ColmapPose] = Field(None, description="A COLMAP frame's pose (images.txt, "
+                                                           "cameras.txt).")
+    width: int = Field(250, ge=1, le=MAX_SIDE, description="Pixels; of a pose: its frame's "
+                                                            "width unless given.")
+    height: int = Field(250, ge=1, le=MAX_SIDE, description="Pixels; of a pose: its frame's "
+                                                             "height unless given.")
     supersample: Literal[1, 4, 9, 16] = Field(4, description="Rays per pixel.")
     fill: Optional[float] = Field(None, allow_inf_nan=False,
                                   description="PNG value of pixels without any ray inside (default 0).")
@@ -87,12 +219,28 @@ class CameraSpec(BaseModel):
                                         "to the nearest samples).")
 
     def camera(self):
+        """The camera (:class:`~flatserve.lightfield.Camera` or, of a pose,
+        :class:`~flatserve.lightfield.camera.PinholeCamera`); 422 naming the
+        member that conflicts or is wrong."""
         from ..lightfield import Camera
 
+        given = [k for k in CAMERA_MEMBERS if getattr(self, k) is not None]
+        pose = [k for k in given if k in ("nerf", "colmap")]
+        if pose:
+            if len(given) > 1:
+                other = next(k for k in given if k != pose[0])
+                raise InvalidInputError(f"camera: give one camera: {pose[0]} and {other} were "
+                                        f"both given", pose[-1] if len(pose) > 1 else pose[0])
+            for k in ("focal", "target", "up"):
+                if k in self.model_fields_set:
+                    raise InvalidInputError(f"{k}: not with a {pose[0]} pose (its intrinsics "
+                                            f"and orientation are the pose's)", k)
+            return self._pose_camera()
         kw = dict(focal=self.focal, width=self.width, height=self.height, supersample=self.supersample)
         if self.orbit is not None:
             if self.eye is not None or self.rotation is not None:
-                raise InvalidInputError("camera: give orbit or eye/rotation, not both", "orbit")
+                raise InvalidInputError("camera: give one camera: orbit or eye/rotation, "
+                                        "not both", "orbit")
             return Camera.orbit(self.orbit.yaw, self.orbit.pitch, self.orbit.distance, **kw)
         if self.rotation is not None:
             return Camera(eye=self.eye if self.eye is not None else (0.0, 0.0, -3.0),
@@ -100,6 +248,51 @@ class CameraSpec(BaseModel):
         if self.eye is not None:
             return Camera.look_at(self.eye, self.target or (0.0, 0.0, 0.0), self.up or (0.0, 1.0, 0.0), **kw)
         return Camera(**kw)
+
+    def _pose_camera(self):
+        """The :class:`PinholeCamera` of ``nerf`` or ``colmap``, at the body's size
+        if given."""
+        from ..lightfield.camera import PinholeCamera
+
+        if self.nerf is not None:
+            n = self.nerf
+            try:
+                cam = PinholeCamera.from_nerf(
+                    n.transform_matrix, width=n.w, height=n.h, camera_angle_x=n.camera_angle_x,
+                    fl_x=n.fl_x, fl_y=n.fl_y, cx=n.cx, cy=n.cy, supersample=self.supersample)
+            except InvalidInputError as exc:
+                raise _pose_error(exc, "nerf", _NERF_NAMES, tuple(NerfPose.model_fields)) from None
+        else:
+            c = self.colmap
+            k = c.intrinsics()
+            try:
+                cam = PinholeCamera.from_colmap(c.qvec, c.tvec, width=c.width, height=c.height,
+                                                **k, supersample=self.supersample)
+            except InvalidInputError as exc:
+                names = _COLMAP_NAMES if c.params is None else {
+                    **_COLMAP_NAMES, "fx": "params", "fy": "params", "cx": "params", "cy": "params"}
+                raise _pose_error(exc, "colmap", names, tuple(ColmapPose.model_fields)) from None
+        if not np.abs(cam.eye).max() <= MAX_ENTRY:  # as an eye's of look_at: rays that chart
+            where = "nerf.transform_matrix" if self.nerf is not None else "colmap.tvec"
+            raise InvalidInputError(f"{where}: the camera's centre {cam.eye.tolist()} is farther "
+                                    f"than {MAX_ENTRY:g} from the origin", where)
+        return self._sized(cam)
+
+    def _sized(self, cam):
+        """``cam`` scaled to the body's ``width``/``height`` when given (one of them:
+        the other keeps the frame's aspect ratio)."""
+        has_w, has_h = "width" in self.model_fields_set, "height" in self.model_fields_set
+        if not (has_w or has_h):
+            return cam
+        w = self.width if has_w else max(1, round(self.height * cam.width / cam.height))
+        h = self.height if has_h else max(1, round(self.width * cam.height / cam.width))
+        for name, v in (("width", w), ("height", h)):
+            if v > MAX_SIDE:
+                raise InvalidInputError(f"{name}: {v} pixels at the frame's aspect ratio; at most "
+                                        f"{MAX_SIDE}", name)
+        if (w, h) == (cam.width, cam.height):
+            return cam
+        return cam.scaled(w, h)
 
 
 def render_frame(field, camera, fill: float = 0.0, fmt: str = "png",
@@ -158,7 +351,10 @@ def render(e: ReadyField, camera: json_body(CameraSpec), settings: SettingsDep,
     cam = camera.camera()
     note(rows=cam.nrays)
     if cam.nrays > settings.max_batch_rows:
-        raise BatchTooLargeError(f"{cam.nrays} rays in one frame; the limit is {settings.max_batch_rows}")
+        raise BatchTooLargeError(f"{cam.nrays} rays in one frame ({cam.width} x {cam.height} pixels, "
+                                 f"{cam.supersample} rays per pixel); the limit is "
+                                 f"{settings.max_batch_rows}: give a smaller width/height or "
+                                 f"supersample")
     fmt = camera.format or ("npy" if accept and codec.NPY in accept else "png")
     if fmt == "npy":  # float32 (H, W, C): bounded before it is rendered
         codec.check_answer(cam.height * cam.width, e.spec.channels, "npy",

@@ -224,7 +224,8 @@ def _check_rotation(R, name: str) -> np.ndarray:
     """``R`` as a (3, 3) float64 proper rotation (orthonormal within
     :data:`ORTHONORMAL_TOL`, det +1), else :class:`InvalidInputError` naming ``name``."""
     R = as_array(R, name, (3, 3))
-    if np.abs(R).max() > 1 + ORTHONORMAL_TOL or not np.allclose(R.T @ R, np.eye(3), atol=ORTHONORMAL_TOL) or np.linalg.det(R) < 0:
+    if (np.abs(R).max() > 1 + ORTHONORMAL_TOL or not np.allclose(R.T @ R, np.eye(3), atol=ORTHONORMAL_TOL)
+            or np.linalg.det(R) < 0):
         raise InvalidInputError(f"{name}: expected a proper rotation matrix (orthonormal, det +1)", name)
     return R
 
@@ -235,8 +236,10 @@ def _check_raster(width, height, supersample) -> None:
         if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1):
             raise InvalidInputError(f"{name}: expected a positive integer, got {v!r}", name)
     s = supersample
-    if not (isinstance(s, (int, np.integer)) and not isinstance(s, bool) and s >= 1 and math.isqrt(int(s)) ** 2 == s):
-        raise InvalidInputError(f"supersample: expected a square number of rays per pixel (1, 4, 9, ...), got {s!r}", "supersample")
+    if not (isinstance(s, (int, np.integer)) and not isinstance(s, bool) and s >= 1
+            and math.isqrt(int(s)) ** 2 == s):
+        raise InvalidInputError(f"supersample: expected a square number of rays per pixel (1, 4, 9, ...), got {s!r}",
+                                "supersample")
 
 
 def resolve_supersamples(values, width: int, height: int, side: int, weights=None) -> np.ndarray:

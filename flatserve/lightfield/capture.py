@@ -34,7 +34,7 @@ import numpy as np
 
 from .._validate import as_array
 from ..errors import InvalidInputError
-from .camera import RIGID_TOL, PinholeCamera
+from .camera import PinholeCamera
 
 __all__ = [
     "BATCH_RAYS",
@@ -112,7 +112,11 @@ class CaptureError(InvalidInputError):
     def __init__(self, file, field: str, reason: str):
         self.file = Path(file)
         self.field = field
+        self.reason = reason
         super().__init__(f"{file}: {field}: {reason}", field)
+
+    def __reduce__(self):
+        return type(self), (self.file, self.field, self.reason)
 
 
 @dataclass(frozen=True)
@@ -287,9 +291,15 @@ def _png_header(path: Path) -> tuple[int, int] | None:
 
 
 def _is_deep_colour_png(path: Path) -> bool:
-    """A 16-bit RGB or RGBA PNG (Pillow reads only 8 bits of those)."""
+    """A 16-bit RGB, RGBA or grey-alpha PNG (Pillow reads only 8 bits of those)."""
     h = _png_header(path)
-    return h is not None and h[0] == 16 and h[1] in (2, 6)
+    return h is not None and h[0] == 16 and h[1] in (2, 4, 6)
+
+
+def _is_deep_grey_png(path: Path, mode: str) -> bool:
+    """A 16-bit grey PNG opened by Pillow as 32-bit integers (mode "I", as older Pillow versions do)."""
+    h = _png_header(path) if mode == "I" else None
+    return h is not None and h[0] == 16 and h[1] == 0
 
 
 def _image_info(path: Path) -> tuple[int, int, int]:
@@ -303,7 +313,7 @@ def _image_info(path: Path) -> tuple[int, int, int]:
             transparency = "transparency" in im.info
     except (OSError, ValueError, SyntaxError) as exc:
         raise CaptureError(path, "image", f"unreadable: {exc}") from None
-    if mode in _GREY_MODES:
+    if mode in _GREY_MODES or _is_deep_grey_png(path, mode):
         return width, height, 1
     if mode == "P":
         return width, height, 4 if transparency else 3
@@ -330,7 +340,12 @@ def read_image(path) -> np.ndarray:
     Raises
     ------
     CaptureError
-        The file is not an image Pillow reads, or its pixels are corrupt.
+        The file is missing, is not an image Pillow reads, or its pixels are
+        corrupt.
+
+    Notes
+    -----
+    Pixels are read in the order stored: an EXIF orientation tag is not applied.
     """
     from PIL import Image
 
@@ -340,8 +355,8 @@ def read_image(path) -> np.ndarray:
             return _read_png16(path)
         with Image.open(path) as im:
             mode = im.mode
-            if mode in _GREY_MODES:
-                scale = _GREY_MODES[mode]
+            if mode in _GREY_MODES or _is_deep_grey_png(path, mode):
+                scale = _GREY_MODES.get(mode, 65535.0)
                 a = np.asarray(im.convert("L") if mode == "1" else im)
                 return (a.astype(np.float64) / scale)[:, :, None]
             if mode == "P":
@@ -354,12 +369,20 @@ def read_image(path) -> np.ndarray:
             return np.asarray(im).astype(np.float64) / 255.0
     except CaptureError:
         raise
+    except FileNotFoundError:
+        raise CaptureError(path, "image", "missing") from None
     except (OSError, ValueError, SyntaxError, zlib.error, struct.error) as exc:
         raise CaptureError(path, "pixels", f"unreadable: {exc}") from None
 
 
 def _read_png16(path: Path) -> np.ndarray:
-    """Pixels of a non-interlaced 16-bit RGB or RGBA PNG, (H, W, C) in [0, 1]."""
+    """Pixels of a non-interlaced 16-bit RGB, RGBA or grey-alpha PNG, (H, W, 3 or 4) in [0, 1].
+
+    Pillow reads only the high byte of these. The scanlines are unfiltered
+    here along anti-diagonals ``row + column = const``: every PNG filter
+    predicts a pixel from its left, upper and upper-left neighbours, all on
+    earlier diagonals, so each diagonal is one vector operation.
+    """
     data = path.read_bytes()
     pos = len(_PNG_SIGNATURE)
     idat = []
@@ -381,48 +404,40 @@ def _read_png16(path: Path) -> np.ndarray:
     width, height, depth, colour, _, _, interlace = header
     if interlace:
         raise ValueError("interlaced 16-bit colour PNGs are not read; save it without interlacing")
-    C = 3 if colour == 2 else 4
+    C = {2: 3, 4: 2, 6: 4}[colour]
     bpp = 2 * C
-    stride = width * bpp
     raw = zlib.decompress(b"".join(idat))
-    if len(raw) != height * (stride + 1):
-        raise ValueError(f"PNG data of {len(raw)} bytes, expected {height * (stride + 1)}")
-    rows = np.frombuffer(raw, dtype=np.uint8).reshape(height, stride + 1)
-    out = np.empty((height, stride), dtype=np.uint8)
-    prev = np.zeros(stride, dtype=np.uint8)
-    for r in range(height):
-        kind, line = rows[r, 0], rows[r, 1:]
-        if kind == 0:
-            cur = line.copy()
-        elif kind == 1:  # sub: a running sum over pixels, byte by byte
-            cur = (np.cumsum(line.reshape(width, bpp).astype(np.int64), axis=0) % 256).astype(np.uint8).ravel()
-        elif kind == 2:  # up
-            cur = line + prev
-        elif kind in (3, 4):  # average, Paeth: pixel by pixel
-            cur = np.zeros(stride, dtype=np.int64)
-            up = prev.astype(np.int64)
-            filt = line.astype(np.int64)
-            left = np.zeros(bpp, dtype=np.int64)
-            upleft = np.zeros(bpp, dtype=np.int64)
-            for x in range(width):
-                sl = slice(x * bpp, (x + 1) * bpp)
-                b = up[sl]
-                if kind == 3:
-                    pred = (left + b) // 2
-                else:
-                    p = left + b - upleft
-                    pa, pb, pc = np.abs(p - left), np.abs(p - b), np.abs(p - upleft)
-                    pred = np.where((pa <= pb) & (pa <= pc), left, np.where(pb <= pc, b, upleft))
-                left = (filt[sl] + pred) % 256
-                cur[sl] = left
-                upleft = b
-            cur = cur.astype(np.uint8)
-        else:
-            raise ValueError(f"PNG row {r}: unknown filter type {kind}")
-        out[r] = cur
-        prev = cur
-    a = out.view(">u2").reshape(height, width, C)
-    return a.astype(np.float64) / 65535.0
+    if len(raw) < height * (width * bpp + 1):
+        raise ValueError(f"PNG data of {len(raw)} bytes, expected {height * (width * bpp + 1)}")
+    rows = np.frombuffer(raw, dtype=np.uint8, count=height * (width * bpp + 1)).reshape(height, width * bpp + 1)
+    kinds = rows[:, 0].astype(np.int64)
+    if kinds.max(initial=0) > 4:
+        raise ValueError(f"PNG row {int(np.argmax(kinds > 4))}: unknown filter type {int(kinds.max())}")
+    filt = rows[:, 1:].reshape(height, width, bpp).astype(np.int64)
+    if not kinds.any():  # no filtering
+        return _png16_values(filt, C)
+    rec = np.zeros((height + 1, width + 1, bpp), dtype=np.int64)  # a zero row above and column left
+    for d in range(height + width - 1):
+        r = np.arange(max(0, d - width + 1), min(height, d + 1))
+        x = d - r
+        a, b, c = rec[r + 1, x], rec[r, x + 1], rec[r, x]
+        k = kinds[r][:, None]
+        p = a + b - c
+        pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
+        paeth = np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
+        pred = np.select([k == 1, k == 2, k == 3, k == 4], [a, b, (a + b) // 2, paeth], 0)
+        rec[r + 1, x + 1] = (filt[r, x] + pred) & 0xFF
+    return _png16_values(rec[1:, 1:], C)
+
+
+def _png16_values(data: np.ndarray, C: int) -> np.ndarray:
+    """(H, W, 2C) big-endian bytes as (H, W, 3 or 4) floats in [0, 1]; grey and alpha as RGBA."""
+    H, W = data.shape[:2]
+    img = data.reshape(H, W, C, 2)
+    a = (img[..., 0] * 256 + img[..., 1]).astype(np.float64) / 65535.0
+    if C == 2:
+        a = np.concatenate([np.repeat(a[..., :1], 3, axis=2), a[..., 1:]], axis=2)
+    return a
 
 
 def _write_png16(path: Path, a: np.ndarray) -> None:
@@ -524,7 +539,7 @@ def _same_channels(frames_channels: list[tuple[Path, int]]) -> int:
 
 def _read_nerf(file: Path) -> Capture:
     try:
-        text = file.read_text(encoding="utf-8")
+        text = file.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise CaptureError(file, "file", f"unreadable: {exc}") from None
     try:
@@ -626,7 +641,7 @@ def _find_nerf_image(folder: Path, written: str, file: Path, where: str) -> Path
 def _data_lines(file: Path) -> list[tuple[int, str]]:
     """(line number, text) of a COLMAP text file, comments dropped, blank lines kept."""
     try:
-        text = file.read_text(encoding="utf-8")
+        text = file.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise CaptureError(file, "file", f"unreadable: {exc}") from None
     return [(n, line.strip()) for n, line in enumerate(text.splitlines(), start=1)

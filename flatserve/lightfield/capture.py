@@ -525,7 +525,7 @@ def _checked_image(path: Path, width: int | None, height: int | None, source: st
     w, h, c = _image_info(path)
     if width is not None and (w, h) != (width, height):
         raise CaptureError(path, "size", f"the image is {w}x{h} but {source} says {width}x{height} "
-                                         "(scaled images? give the model of the images read)")
+                                         "(images resized after the poses were made?)")
     return w, h, c
 
 

@@ -12,6 +12,11 @@ Example
 ...     res = c.query_rays("scene", origins2, directions2)
 ...     res.values, res.inside
 
+A light field's views and real captures (``flatserve[lightfield]`` for the latter):
+
+>>> img = c.render("scene", {"orbit": {"yaw": 30}, "width": 64, "height": 64})  # doctest: +SKIP
+>>> c.import_capture("room", "captures/room", stride=2)    # doctest: +SKIP
+
 Uploads and queries larger than the server's limits (``GET /v1/limits``:
 ``max_batch_rows``, ``max_body_bytes``, ``max_json_bytes``) are sent as several
 requests; each batch of an upload carries its own ``Idempotency-Key``
@@ -22,6 +27,8 @@ replays the others: nothing lost, nothing twice.
 from __future__ import annotations
 
 import functools
+import hashlib
+import importlib.util
 import io
 import math
 import time
@@ -40,6 +47,7 @@ from .flats import FORMS, Flats, infer_form
 
 NPY = "application/x-npy"
 NPZ = "application/x-npz"
+PNG = "image/png"
 
 #: Statuses after which an idempotent request is retried, waiting ``Retry-After``:
 #: 429 (a field's insert backlog is full), 503 (not ready, replica behind, database away)
@@ -585,6 +593,208 @@ class Client:
         return {kk: np.array(v, dtype=bool if kk == "ambiguous" else np.float64)
                 for kk, v in j.items()}
 
+    # -- light fields -------------------------------------------------------------
+    def render(self, name: str, camera=None, *, format: str = "npy", **spec):
+        """Render a camera's view of a light field (``POST /v1/fields/{name}/render``).
+
+        Parameters
+        ----------
+        name : str
+            A field of lines in R^3 (k = 1, d = 3).
+        camera : dict, PinholeCamera, Camera or None
+            A dict: the render body's camera members as the service takes them
+            (``{"orbit": {...}}``, ``{"eye": [...], "target": [...]}``,
+            ``{"nerf": {...}}``, ``{"colmap": {...}}``, with ``width``,
+            ``height``, ``supersample`` ...). A
+            :class:`~flatserve.lightfield.camera.PinholeCamera` is sent as its
+            COLMAP pose (:meth:`~flatserve.lightfield.camera.PinholeCamera.to_colmap`)
+            with its ``supersample``; a :class:`~flatserve.lightfield.Camera` as
+            its ``eye``, ``rotation``, ``focal``, ``width``, ``height`` and
+            ``supersample``. None: the service's default camera.
+        format : {"npy", "png"}
+            The answer's encoding.
+        **spec
+            More members of the body, over the camera's (``width``, ``height``,
+            ``supersample``, ``fill``, ``interpolant``).
+
+        Returns
+        -------
+        numpy.ndarray or bytes
+            ``"npy"``: float32 (H, W, C), NaN where no ray of a pixel has a value;
+            ``"png"``: the PNG file's bytes.
+
+        Raises
+        ------
+        InvalidInputError
+            A camera the service refuses (422; ``argument`` names the member,
+            e.g. ``transform_matrix`` of ``nerf``), or a ``format`` other than
+            the two.
+        """
+        if format not in ("npy", "png"):
+            raise InvalidInputError(f"format: expected 'npy' or 'png', got {format!r}", "format")
+        body = {**_camera_body(camera), **spec, "format": format}
+        resp = self._request(
+            "POST", f"/v1/fields/{name}/render",
+            content=orjson.dumps(body, option=orjson.OPT_SERIALIZE_NUMPY),
+            headers={"Content-Type": "application/json",
+                     "Accept": NPY if format == "npy" else PNG})
+        return _load_npy(resp.content) if format == "npy" else resp.content
+
+    def import_capture(self, name: str, path, *, format: str | None = None,
+                       stride: int | None = None, target_rays: int | None = None,
+                       holdout=(), batch_rays: int | None = None, progress: Progress = True,
+                       create: bool = True, **field_options) -> dict:
+        """Upload a real capture (posed photographs) as a light field: one ray per pixel.
+
+        Reads the capture (:func:`flatserve.lightfield.capture.read_capture`: a NeRF
+        ``transforms.json`` or a COLMAP text model beside its images), creates the
+        field (:func:`~flatserve.lightfield.capture.field_options`, updated by
+        ``field_options``; an existing field of the same kind is kept, so an
+        import resumes) and uploads the pixels' rays and colours in batches
+        (:func:`~flatserve.lightfield.capture.capture_batches`: one image at a
+        time, so memory is bounded by a batch, never the whole capture).
+
+        Each batch carries an Idempotency-Key derived from the field's name, the
+        capture's format, its frames' names and poses, ``stride``, the channels
+        and the batch size (``capture-<hash>.<batch>``): the same call repeated
+        after an interruption replays what was stored (the service answers
+        ``replayed``) and stores only the rest; nothing is stored twice.
+
+        Parameters
+        ----------
+        name : str
+            The field.
+        path : str or os.PathLike
+            The capture's directory (or its ``transforms.json``).
+        format : {"nerf", "colmap"}, optional
+            Default: found from the files.
+        stride : int, optional
+            Every ``stride``-th pixel of every ``stride``-th row (default 1).
+        target_rays : int, optional
+            Instead of ``stride``: the smallest stride giving at most this many rays.
+        holdout : iterable of str
+            Frames (by name) left out, e.g. to compare renders with them.
+        batch_rays : int, optional
+            Rays per batch (default: the capture module's ``BATCH_RAYS``, within the
+            server's ``max_batch_rows``). Part of the keys: resume with the same.
+        progress : bool or callable
+            True: a progress bar over the rays (tqdm, on stderr); a callable is
+            called as ``progress(rays_done, rays_total)`` after each batch.
+        create : bool
+            Create the field (False: it must exist).
+        **field_options
+            Keyword arguments of :meth:`create_field` over the capture's own
+            (``channels``, ``basis``, ``unit``, ``oriented`` ...).
+
+        Returns
+        -------
+        dict
+            ``field``, ``format``, ``frames`` (imported), ``stride``, ``rays``
+            (sent), ``stored`` (accepted by batches stored now), ``rejected`` (rows
+            refused by batches stored now), ``batches``, ``replayed`` (batches
+            stored before, by an earlier run), ``nsamples`` (the field's, after the
+            last batch) and ``key`` (the keys' stem).
+
+        Raises
+        ------
+        ImportError
+            Pillow is missing (``pip install 'flatserve[lightfield]'``).
+        flatserve.lightfield.capture.CaptureError
+            A bad capture, naming the file and the field.
+        InvalidInputError
+            ``stride`` and ``target_rays`` both given, or a bad one.
+        """
+        cap = _capture_module()
+        if stride is not None and target_rays is not None:
+            raise InvalidInputError("stride: give stride or target_rays, not both", "stride")
+        for arg, v in (("stride", stride), ("target_rays", target_rays),
+                       ("batch_rays", batch_rays)):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
+                                  or v < 1):
+                raise InvalidInputError(f"{arg}: expected a positive integer, got {v!r}", arg)
+        capture = cap.read_capture(path, format=format)
+        if isinstance(holdout, str):
+            holdout = (holdout,)
+        holdout = tuple(holdout)
+        if holdout:
+            try:
+                capture = capture.without(holdout)
+            except InvalidInputError as exc:  # names unknown, or every frame held out
+                raise InvalidInputError(f"holdout: {str(exc).removeprefix('names: ')}",
+                                        "holdout") from None
+        if target_rays is not None:
+            stride = capture.stride_for(int(target_rays))
+        stride = int(stride or 1)
+        options = {**cap.field_options(capture), **field_options}
+        channels = int(options.get("channels", capture.channels))
+        if create:
+            self.create_field(name, exist_ok=True, **options)
+        if batch_rays is None:  # one request a batch: replays are counted per batch
+            batch_rays = min(cap.BATCH_RAYS, self._rows_per_request(6 + channels, True,
+                                                                    cap.BATCH_RAYS, None))
+        key = capture_key(name, capture, stride=stride, channels=channels,
+                          batch_rays=int(batch_rays))
+        total = capture.nrays(stride)
+        out = {"field": name, "format": capture.format, "frames": len(capture.frames),
+               "stride": stride, "rays": 0, "stored": 0, "rejected": 0, "batches": 0,
+               "replayed": 0, "nsamples": None, "key": key}
+        with _progress_of(progress, total, name, unit="rays", verb="import") as tick:
+            for batch in cap.capture_batches(capture, stride=stride, channels=channels,
+                                             batch_rays=int(batch_rays)):
+                rep = self.upload(name, batch.values, origins=batch.origins,
+                                  directions=batch.directions,
+                                  idempotency_key=f"{key}.{batch.index}")
+                n = int(batch.values.shape[0])
+                out["rays"] += n
+                out["batches"] += 1
+                if rep.get("replayed"):
+                    out["replayed"] += 1
+                else:
+                    out["stored"] += int(rep["accepted"])
+                    out["rejected"] += len(rep["rejected"])
+                out["nsamples"] = rep.get("nsamples")
+                tick(out["rays"])
+        return out
+
+
+def _camera_body(camera) -> dict:
+    """The camera members of a render body (see :meth:`Client.render`)."""
+    if camera is None:
+        return {}
+    if isinstance(camera, dict):
+        return dict(camera)
+    if hasattr(camera, "to_colmap"):  # a PinholeCamera: its pose in COLMAP's convention
+        return {"colmap": camera.to_colmap(), "supersample": int(camera.supersample)}
+    if hasattr(camera, "focal") and hasattr(camera, "to_dict"):  # a lightfield.Camera
+        return camera.to_dict()
+    raise InvalidInputError(f"camera: expected a dict, a PinholeCamera or a Camera, got "
+                            f"{type(camera).__name__}", "camera")
+
+
+def _capture_module():
+    """:mod:`flatserve.lightfield.capture`, imported when a capture is read (Pillow is in
+    the lightfield extra, not the client's)."""
+    if importlib.util.find_spec("PIL") is None:
+        raise ImportError("reading a capture's images needs Pillow: pip install "
+                          "'flatserve[lightfield]'")
+    from .lightfield import capture
+
+    return capture
+
+
+def capture_key(name: str, capture, *, stride: int, channels: int, batch_rays: int) -> str:
+    """The stem of the Idempotency-Keys of a capture's import (:meth:`Client.import_capture`):
+    ``capture-`` and 24 hex digits of a SHA-256 of the field's name, the capture's
+    format, its frames' names and poses, ``stride``, ``channels`` and ``batch_rays``;
+    batch ``i`` is sent under ``<stem>.<i>``. Not the images' pixels: a frame
+    whose image changed under the same key is refused by the service (its
+    content differs), never stored twice."""
+    doc = {"field": name, "format": capture.format, "stride": int(stride),
+           "channels": int(channels), "batch_rays": int(batch_rays),
+           "frames": [[f.name, f.camera.to_dict()] for f in capture.frames]}
+    digest = hashlib.sha256(orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY)).hexdigest()
+    return f"capture-{digest[:24]}"
+
 
 class _Reports:
     """The report of an upload sent as several batches (see :meth:`Client.upload`)."""
@@ -618,8 +828,10 @@ class _progress_of:
     """``with _progress_of(progress, total, name) as tick``: ``tick(rows_done)`` after
     each batch updates a tqdm bar (``progress=True``) or calls ``progress``."""
 
-    def __init__(self, progress: Progress, total: int, name: str):
+    def __init__(self, progress: Progress, total: int, name: str, *, unit: str = "rows",
+                 verb: str = "upload"):
         self.progress, self.total, self.name = progress, total, name
+        self.unit, self.verb = unit, verb
         self.bar = None
 
     def __enter__(self) -> Callable[[int], None]:
@@ -629,8 +841,8 @@ class _progress_of:
             except ImportError:
                 raise ImportError("progress=True needs tqdm: pip install tqdm (the client "
                                   "extra has it), or pass a callable") from None
-            self.bar = tqdm(total=self.total, unit="rows", unit_scale=True,
-                            desc=f"upload {self.name}")
+            self.bar = tqdm(total=self.total, unit=self.unit, unit_scale=True,
+                            desc=f"{self.verb} {self.name}")
             return lambda done: self.bar.update(done - self.bar.n)
         if callable(self.progress):
             return lambda done: self.progress(done, self.total)

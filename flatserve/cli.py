@@ -94,7 +94,7 @@ def _serve_run(args: argparse.Namespace) -> int:
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None],
                           Callable[[argparse.Namespace], int]]] = {
     "experiment": ("reproduce the paper's Sec. 4.3 experiment", _experiment_args, _experiment_run),
-    "lightfield": ("light fields: the paper's Fig. 11 (bunny) and a 360-degree light field", _lightfield_args, _lightfield_run),
+    "lightfield": ("light fields: the paper's Fig. 11 (bunny), a 360-degree light field, and real captures imported into a service", _lightfield_args, _lightfield_run),
     "serve": ("run the HTTP service (options also from FLATSERVE_* variables)", _serve_args, _serve_run),
 }
 

@@ -3,10 +3,19 @@
 $ flatserve lightfield paper-figure --out figs/            # quick (300^2 samples)
 $ flatserve lightfield paper-figure --out figs/ --full     # the paper's 1000^2
 $ flatserve lightfield orbit --out figs360/                # 360 degrees: eyes all around
+$ flatserve lightfield import captures/lego --url http://127.0.0.1:8000 --field lego --stride 2
+
+``import`` uploads a real capture (a NeRF ``transforms.json`` or a COLMAP text
+model beside its images) to a running service (:meth:`flatserve.client.Client.import_capture`);
+run again after an interruption, the same command stores only what is missing.
+Its key is ``--api-key`` or ``FLATSERVE_API_KEY`` (the server's variable).
+Exit status 2 on a bad capture or a refused request (one line naming the file
+or the request and the field), 0 once every batch is stored.
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from ..options import Interpolant
@@ -71,6 +80,96 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     atlas.add_argument("--paper-charts", action="store_true",
                        help="the paper's tangent-simplex charts instead of the isometric ones "
                             "(flatserve.warp) in the atlas and the one-chart comparison")
+    _import_arguments(sub)
+
+
+#: The environment variable of ``import``'s default ``--api-key`` (the server reads
+#: its read-write key from it too).
+API_KEY_ENV = "FLATSERVE_API_KEY"
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return v
+
+
+def _import_arguments(sub) -> None:
+    imp = sub.add_parser("import", help="upload a real capture (NeRF transforms.json or COLMAP "
+                                        "text model + images) to a service as a light field",
+                         description="Read a capture (posed photographs), create the field and "
+                                     "upload one ray per pixel with its colour, in batches whose "
+                                     "idempotency keys follow from the capture: the same command "
+                                     "run again after an interruption stores only what is missing.")
+    imp.add_argument("dir", metavar="DIR", help="the capture's directory (or its transforms.json)")
+    imp.add_argument("--url", required=True, help="the service, e.g. http://127.0.0.1:8000")
+    imp.add_argument("--field", required=True, help="name of the field to create or resume")
+    imp.add_argument("--format", choices=["nerf", "colmap"], default=None,
+                     help="the capture's format (default: found from the files)")
+    rays = imp.add_mutually_exclusive_group()
+    rays.add_argument("--stride", type=_positive_int, default=None,
+                      help="every N-th pixel of every N-th row (default 1)")
+    rays.add_argument("--target-rays", type=_positive_int, default=None,
+                      help="the smallest stride giving at most this many rays")
+    imp.add_argument("--holdout", nargs="+", action="extend", default=[], metavar="NAME",
+                     help="frames left out (by name), e.g. to compare renders with them "
+                          "(repeatable)")
+    imp.add_argument("--api-key", default=None,
+                     help=f"the service's read-write key (default ${API_KEY_ENV})")
+    imp.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _run_import(args: argparse.Namespace) -> int:
+    """``flatserve lightfield import``: 0 once stored, 2 with one line on a bad capture
+    or a refused request."""
+    import httpx
+
+    from ..client import Client, ServiceError
+    from ..errors import FlatserveError
+
+    command = "flatserve lightfield import"
+    key = args.api_key if args.api_key is not None else os.environ.get(API_KEY_ENV) or None
+    try:
+        with Client(args.url, api_key=key) as c:
+            rep = c.import_capture(args.field, args.dir, format=args.format, stride=args.stride,
+                                   target_rays=args.target_rays, holdout=args.holdout,
+                                   progress=not args.no_progress)
+            held = rep["nsamples"]
+            if held is None:  # no batch (no rays): the field as it is
+                held = c.describe(args.field)["nsamples"]
+    except ServiceError as exc:  # a refused request: the service's words
+        print(f"{command}: {args.url} refused field {args.field!r}: {_one_line(exc)}",
+              file=sys.stderr)
+        return 2
+    except (FlatserveError, ValueError, OSError, ImportError) as exc:  # a bad capture
+        print(f"{command}: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except httpx.HTTPError as exc:
+        print(f"{command}: {args.url}: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    print(f"{command}: {rep['frames']} frames of {args.dir} ({rep['format']}, stride "
+          f"{rep['stride']}) into field {rep['field']!r} at {args.url}: {rep['rays']:,} rays in "
+          f"{rep['batches']} batches, {rep['stored']:,} stored now, {rep['replayed']} "
+          f"batches stored before, {rep['rejected']:,} refused; the field holds {held:,} samples")
+    return 0
+
+
+def _one_line(exc: BaseException) -> str:
+    """An error as one line: a service's 422 as ``member: message``."""
+    detail = getattr(exc, "detail", None)
+    if isinstance(detail, list) and detail and isinstance(detail[0], dict):
+        d = detail[0]
+        loc = [str(x) for x in d.get("loc", ()) if x != "body"]
+        msg = str(d.get("msg", ""))
+        text = f"HTTP {getattr(exc, 'status', 422)}: " + (
+            msg if not loc or msg.startswith(".".join(loc)) else f"{'.'.join(loc)}: {msg}")
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
 
 
 def _unit(text: str):
@@ -90,6 +189,8 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InvalidInputError
     from .figure import DEFAULT_N, FULL_N, paper_figure
 
+    if args.lightfield_command == "import":
+        return _run_import(args)
     command = f"flatserve lightfield {args.lightfield_command}"
     if args.lightfield_command == "paper-figure":
         n = args.n if args.n is not None else (FULL_N if args.full else DEFAULT_N)

@@ -71,6 +71,77 @@ def test_without_a_key_the_page_asks_for_it(server, browser):
     assert not form.is_displayed() and browser.find_element("id", "status").text == ""
 
 
+def test_a_pose_in_the_url_renders_that_camera_and_stays(server, browser):
+    """``?camera=`` (a NeRF pose, with the key in the fragment): the first frame is the
+    pose's, scaled to 250 pixels on its longer side, pixel for pixel the service's PNG of
+    that body; the page says the camera is fixed, and a drag renders nothing new."""
+    import io
+    import json
+    import time
+    from urllib.parse import quote
+
+    from PIL import Image
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    from flatserve.lightfield.camera import PinholeCamera
+
+    cam = PinholeCamera(eye=(0.2, 0.1, -3.0), rotation=np.eye(3), fx=40.0, fy=40.0, cx=16.0,
+                        cy=12.0, width=32, height=24)
+    pose = {"nerf": cam.to_nerf()}
+    browser.get(f"{server}/viewer/lf?camera={quote(json.dumps(pose))}#key={READ_KEY}")
+    _wait(lambda: _renders(browser) >= 1, "the pose's frame")
+    img = browser.find_element("id", "frame")
+    assert img.get_attribute("data-camera") == "nerf"
+    assert browser.find_element("id", "status").text == ""
+    assert "camera=" in browser.current_url and READ_KEY not in browser.current_url
+    note = browser.find_element("id", "pose-note")
+    assert note.is_displayed() and "fixed" in note.text and "nerf" in note.text
+    assert not browser.find_element("id", "hint").is_displayed()
+    w, h, px = browser.execute_script(_READ_FRAME_JS)
+    assert (w, h) == (250, 188)  # 32 x 24 at 250 on the longer side
+    with Client(server, api_key=READ_KEY) as c:
+        png = c.render("lf", {**pose, "width": 250, "height": 188, "supersample": 4},
+                       format="png")
+    want = np.asarray(Image.open(io.BytesIO(png)).convert("L"))
+    np.testing.assert_array_equal(np.asarray(px, np.uint8).reshape(h, w), want)
+    # the camera stays: a drag, the wheel and a double click render nothing
+    n = _renders(browser)
+    stage = browser.find_element("id", "stage")
+    ActionChains(browser).move_to_element(stage).click_and_hold().move_by_offset(80, 20) \
+        .release().double_click(stage).perform()
+    time.sleep(1.0)
+    assert _renders(browser) == n and img.get_attribute("data-camera") == "nerf"
+    assert "pose" in browser.find_element("id", "camera").text
+
+
+def test_a_camera_the_page_cannot_read_is_said_and_not_rendered(server, browser):
+    browser.get(f"{server}/viewer/lf?camera=%7Bnot-json#key={READ_KEY}")
+    _wait(lambda: "camera in the URL" in browser.find_element("id", "status").text,
+          "the page's complaint")
+    assert _renders(browser) == 0
+    # a pose the service refuses: its 422, naming the member
+    bad = '{"colmap": {"qvec": [2, 0, 0, 0], "tvec": [0, 0, 3], "params": [40, 40, 16, 12], ' \
+          '"width": 32, "height": 24}}'
+    from urllib.parse import quote
+
+    browser.get(f"{server}/viewer/lf?camera={quote(bad)}#key={READ_KEY}")
+    _wait(lambda: "422" in browser.find_element("id", "status").text, "the refusal")
+    assert "qvec" in browser.find_element("id", "status").text and _renders(browser) == 0
+
+
+# the displayed frame's size and red channel, read through a canvas in the page
+_READ_FRAME_JS = """
+const img = document.getElementById('frame');
+const c = document.createElement('canvas');
+c.width = img.naturalWidth; c.height = img.naturalHeight;
+const g = c.getContext('2d'); g.drawImage(img, 0, 0);
+const d = g.getImageData(0, 0, c.width, c.height).data;
+const out = [];
+for (let i = 0; i < d.length; i += 4) out.push(d[i]);
+return [c.width, c.height, out];
+"""
+
+
 def test_the_start_up_line_says_how_without_a_key():
     url = viewer_url("127.0.0.1", 8000, "bunny")
     assert viewer_key_hint(Settings(), url) == ""

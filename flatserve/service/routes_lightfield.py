@@ -22,7 +22,14 @@
   query, so its ``coordinates`` are counted in ``locate``.
 * ``GET /viewer/{name}`` — a static page (HTML + JS, no build step): drag to
   orbit the eye (all the way round), wheel for the focal length; it shows each
-  frame and its render time.
+  frame and its render time. ``/viewer/{name}?camera=<JSON>`` (URL-encoded)
+  shows a captured frame's view instead: the JSON holds the ``nerf`` or
+  ``colmap`` member of a render body (and optionally its ``width``,
+  ``height``, ``supersample``, ``interpolant``; without a size the frame is
+  scaled to 250 pixels on its longer side). That camera stays fixed — its
+  intrinsics are the capture's, which the orbit cannot keep — and the page
+  says so: dragging, the wheel and the keys do nothing until the page is
+  opened without ``?camera=``. A ``#key=`` fragment works alongside.
 
 Owned by the light-field engineer; included by :func:`flatserve.service.app.create_app`.
 """

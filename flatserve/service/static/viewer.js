@@ -2,6 +2,11 @@
 // Camera: eye on a sphere around the origin (yaw, pitch, distance), focal length.
 // Each change POSTs the camera to /v1/fields/{name}/render and shows the PNG.
 // While dragging, frames use 1 ray per pixel; at rest, 4 (the paper's 4x).
+// ?camera=<URL-encoded JSON>: a captured frame's pose instead, {"nerf": {...}} or
+// {"colmap": {...}} as the render body takes them (and optionally width, height,
+// supersample, interpolant); without a size the frame is scaled to SIZE pixels on its
+// longer side. That camera stays fixed (its intrinsics are the capture's, which the
+// orbit cannot keep): drag, wheel and keys do nothing, and the page says so.
 (function () {
   "use strict";
   const parts = location.pathname.split("/").filter(Boolean);
@@ -29,6 +34,38 @@
   const SIZE = 250;                                     // frame resolution (shown at 2x)
   const RETRY_MS = 2000;                                // while the field is not there yet
 
+  // the URL's pose (null: orbit), or why it cannot be used
+  const POSE_KINDS = ["nerf", "colmap"];
+  let pose = null, poseError = null;
+  const cameraParam = new URLSearchParams(location.search).get("camera");
+  if (cameraParam !== null) {
+    try {
+      const j = JSON.parse(cameraParam);
+      if (!j || typeof j !== "object" || Array.isArray(j)) throw new Error("expected a JSON object");
+      const kinds = POSE_KINDS.filter((k) => k in j);
+      if (kinds.length !== 1) throw new Error('expected one of "nerf" or "colmap"');
+      pose = j;
+    } catch (err) {
+      poseError = "camera in the URL (?camera=): " + err.message;
+    }
+  }
+  const poseKind = pose ? POSE_KINDS.find((k) => k in pose) : null;
+
+  // The render body of the URL's pose: its members as given, the frame scaled to SIZE
+  // pixels on its longer side unless the JSON gives width or height.
+  function poseBody(supersample) {
+    const body = Object.assign({}, pose, { supersample: supersample, format: "png" });
+    const f = pose[poseKind] || {};
+    const w = poseKind === "nerf" ? f.w : f.width, h = poseKind === "nerf" ? f.h : f.height;
+    if (!("width" in pose) && !("height" in pose) && Number.isInteger(w) && Number.isInteger(h) &&
+        w > 0 && h > 0) {
+      const scale = SIZE / Math.max(w, h);
+      body.width = Math.max(1, Math.round(w * scale));
+      body.height = Math.max(1, Math.round(h * scale));
+    }
+    return body;
+  }
+
   const cam = Object.assign({}, DEFAULT);
   const img = document.getElementById("frame");
   const stage = document.getElementById("stage");
@@ -53,6 +90,7 @@
   const clampPitch = (p) => Math.max(-LIMITS.pitch, Math.min(LIMITS.pitch, p));
 
   function request(supersample) {
+    if (pose) supersample = Number.isInteger(pose.supersample) ? pose.supersample : 4;
     pending = { supersample: supersample, cam: Object.assign({}, cam) };
     if (!inFlight && !waitingForKey) pump();
   }
@@ -61,7 +99,7 @@
     if (!pending) return;
     const job = pending; pending = null; inFlight = true;
     $("busy").hidden = false;
-    const body = {
+    const body = pose ? poseBody(job.supersample) : {
       orbit: { yaw: job.cam.yaw, pitch: job.cam.pitch, distance: job.cam.distance },
       focal: job.cam.focal, width: SIZE, height: SIZE, supersample: job.supersample, format: "png",
     };
@@ -102,16 +140,26 @@
       renders += 1;
       img.dataset.renders = String(renders);
       img.dataset.supersample = String(job.supersample);
-      img.dataset.yaw = String(job.cam.yaw);            // the camera of the frame shown
-      img.dataset.pitch = String(job.cam.pitch);
-      $("render-time").textContent = ms.toFixed(0) + " ms round trip (" + (SIZE * SIZE * job.supersample).toLocaleString() +
+      img.dataset.camera = poseKind || "orbit";          // the camera of the frame shown
+      if (!pose) {
+        img.dataset.yaw = String(job.cam.yaw);
+        img.dataset.pitch = String(job.cam.pitch);
+      } else {  // shown at its aspect ratio, the longer side filling the stage
+        const big = Math.max(img.naturalWidth, img.naturalHeight);
+        img.style.width = (500 * img.naturalWidth / big) + "px";
+        img.style.height = (500 * img.naturalHeight / big) + "px";
+      }
+      const rays = img.naturalWidth * img.naturalHeight * job.supersample;
+      $("render-time").textContent = ms.toFixed(0) + " ms round trip (" + rays.toLocaleString() +
         " rays, " + job.supersample + " per pixel)";
       $("server-timing").textContent = (resp.headers.get("Server-Timing") || "")
         .split(",").map((s) => s.trim().replace(";dur=", " ") + " ms").join(", ");
       const cov = parseFloat(resp.headers.get("X-Coverage") || "NaN");
       $("coverage").textContent = isNaN(cov) ? "–" : (100 * cov).toFixed(1) + " % of pixels inside the samples";
-      $("camera").textContent = "yaw " + job.cam.yaw.toFixed(1) + "°, pitch " + job.cam.pitch.toFixed(1) +
-        "°, distance " + job.cam.distance.toFixed(2) + ", focal " + job.cam.focal.toFixed(2);
+      $("camera").textContent = pose
+        ? "the " + poseKind + " pose from the URL, " + img.naturalWidth + " x " + img.naturalHeight + " pixels (fixed)"
+        : "yaw " + job.cam.yaw.toFixed(1) + "°, pitch " + job.cam.pitch.toFixed(1) +
+          "°, distance " + job.cam.distance.toFixed(2) + ", focal " + job.cam.focal.toFixed(2);
       $("status").textContent = "";
     } catch (err) {
       $("status").textContent = "render failed: " + err.message;
@@ -125,6 +173,7 @@
   // drag: orbit the eye
   let drag = null;
   stage.addEventListener("pointerdown", (ev) => {
+    if (pose) return;                                   // a fixed camera
     drag = { x: ev.clientX, y: ev.clientY, yaw: cam.yaw, pitch: cam.pitch };
     stage.setPointerCapture(ev.pointerId);
     stage.classList.add("dragging");
@@ -148,6 +197,7 @@
   // wheel: focal length (zoom)
   let wheelTimer = null;
   stage.addEventListener("wheel", (ev) => {
+    if (pose) return;
     ev.preventDefault();
     const f = ev.deltaY > 0 ? 1 / WHEEL_STEP : WHEEL_STEP;
     cam.focal = Math.max(LIMITS.focalMin, Math.min(LIMITS.focalMax, cam.focal * f));
@@ -156,10 +206,11 @@
     wheelTimer = setTimeout(() => request(4), 250);
   }, { passive: false });
 
-  stage.addEventListener("dblclick", () => { Object.assign(cam, DEFAULT); request(4); });
+  stage.addEventListener("dblclick", () => { if (!pose) { Object.assign(cam, DEFAULT); request(4); } });
 
   // keyboard: arrows orbit, +/- zoom
   stage.addEventListener("keydown", (ev) => {
+    if (pose) return;
     const step = 5;
     if (ev.key === "ArrowLeft") cam.yaw = wrapYaw(cam.yaw + step);
     else if (ev.key === "ArrowRight") cam.yaw = wrapYaw(cam.yaw - step);
@@ -172,5 +223,18 @@
     request(4);
   });
 
-  request(4);
+  if (poseError) {
+    $("status").textContent = poseError;               // nothing rendered: the URL asked for a pose
+    $("camera").textContent = "none (the URL's camera could not be read)";
+  } else {
+    if (pose) {
+      $("hint").hidden = true;
+      $("pose-note").hidden = false;
+      $("pose-note").textContent = "Camera fixed: the " + poseKind + " pose given in the URL (?camera=), " +
+        "with the capture's own intrinsics; drag and wheel do nothing. Open the page without " +
+        "?camera= to orbit.";
+      stage.style.cursor = "default";
+    }
+    request(4);
+  }
 })();

@@ -1,0 +1,511 @@
+"""Real captures over HTTP: ``Client.import_capture``, ``flatserve lightfield import`` and
+renders by a captured frame's pose (``nerf`` / ``colmap`` members of the render body).
+
+A forward-facing rig of 12 pinhole cameras (32 x 24 pixels, eyes on a 4 x 3 grid in
+the plane z = -3, each looking at the origin) photographs the blocks scene: each
+pixel's value is the ground-truth shade of the ray through its centre. The rig is
+written as a NeRF capture and as a COLMAP capture (16-bit PNGs), one frame held out,
+and imported into a real server (uvicorn on a loopback port, a temporary data dir):
+the NeRF capture by the client, the COLMAP capture by the command line. Oracles: the
+capture's rays read by the library (:func:`~flatserve.lightfield.capture.capture_rays`)
+are what the field stores; the held-out view rendered over HTTP is the library's
+:func:`~flatserve.lightfield.render.render_field` of a library field of those rays,
+the same from either format and either pose convention, and closer to the mesh's
+ground truth than the nearest captured photograph.
+"""
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+
+import httpx
+import numpy as np
+import pytest
+
+from flatserve.atlas import Atlas
+from flatserve.atlas_field import AtlasField
+from flatserve.cli import main as cli_main
+from flatserve.client import Client
+from flatserve.errors import InvalidInputError
+from flatserve.flats import Flats
+from flatserve.lightfield.camera import PinholeCamera
+from flatserve.lightfield.capture import CaptureError, capture_rays, read_capture, write_colmap, write_nerf
+from flatserve.lightfield.quality import psnr
+from flatserve.lightfield.render import render_field, render_truth
+from flatserve.lightfield.sampling import blocks_scene
+from flatserve.service import Settings, create_app
+from tests.harness.browser import serving
+from tests.harness.process import free_port
+
+#: The rig: eyes at (x, y, EYE_Z) looking at the origin, frames numbered row by row.
+RIG_X = (-0.6, -0.2, 0.2, 0.6)
+RIG_Y = (-0.4, 0.0, 0.4)
+EYE_Z = -3.0
+WIDTH, HEIGHT, FOCAL = 32, 24, 60.0
+#: The frame held out of both imports (eye (-0.2, 0, -3)) and rendered from the fields.
+HELD = "frame_0005"
+#: The held-out render beats the nearest captured photograph (the best one view can
+#: do) by at least this (measured: 2.3 dB).
+NEAREST_MARGIN_DB = 1.0
+#: Rays per batch of the interrupted import, at stride 2 (2 frames of 192 rays a batch).
+RESUME_BATCH = 400
+WAIT_S = 60.0
+
+
+def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """Camera-to-world rotation of OpenCV's axes (right, down, forward) at ``eye``."""
+    eye = np.asarray(eye, np.float64)
+    fwd = np.asarray(target, np.float64) - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(-np.asarray(up, np.float64), fwd)
+    right /= np.linalg.norm(right)
+    return np.stack([right, np.cross(fwd, right), fwd], axis=1)
+
+
+def rig_camera(x: float, y: float, **kw) -> PinholeCamera:
+    eye = (x, y, EYE_Z)
+    return PinholeCamera(eye=eye, rotation=look_at(eye), fx=FOCAL, fy=FOCAL, cx=WIDTH / 2,
+                         cy=HEIGHT / 2, width=WIDTH, height=HEIGHT, **kw)
+
+
+RIG = [rig_camera(x, y) for y in RIG_Y for x in RIG_X]
+NAMES = [f"frame_{k:04d}" for k in range(len(RIG))]
+HELD_CAMERA = RIG[NAMES.index(HELD)]
+
+
+def photograph(scene, cam: PinholeCamera) -> np.ndarray:
+    """(H, W, C): the shade of the ray through each pixel's centre (the capture's image)."""
+    o, d = cam.rays()
+    return scene.shade(o, d).reshape(cam.height, cam.width, -1)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return blocks_scene(1)
+
+
+@pytest.fixture(scope="module")
+def captures(tmp_path_factory, scene):
+    """``{"nerf": dir, "colmap": dir}`` of the rig (16-bit PNGs) and its images."""
+    root = tmp_path_factory.mktemp("captures")
+    images = [photograph(scene, cam) for cam in RIG]
+    write_nerf(root / "nerf", RIG, images, names=NAMES, bits=16)
+    write_colmap(root / "colmap", RIG, images, names=NAMES, bits=16)
+    return {"nerf": root / "nerf", "colmap": root / "colmap", "images": images}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    """The URL of a real server (uvicorn in a thread) on a temporary data dir, and its app."""
+    port = free_port()
+    app = create_app(Settings(data_dir=tmp_path_factory.mktemp("import") / "data",
+                              snapshot_every=0, port=port))
+    with serving(app, port, WAIT_S) as url:
+        with Client(url, retries=0) as c:
+            c.wait_ready(WAIT_S)
+        yield url, app
+
+
+@pytest.fixture(scope="module")
+def client(server):
+    with Client(server[0], retries=0) as c:
+        yield c
+
+
+def cli_command(url: str, capture, field: str, *args: str) -> list[str]:
+    """``flatserve lightfield import`` of ``capture`` into ``field`` in another process."""
+    return [sys.executable, "-m", "flatserve.cli", "lightfield", "import", str(capture),
+            "--url", url, "--field", field, "--holdout", HELD, "--no-progress", *args]
+
+
+@pytest.fixture(scope="module")
+def imported(server, captures, client):
+    """The NeRF capture imported by the client into ``nerf`` while the command line (in
+    another process) imports the COLMAP capture into ``colmap``, both without the
+    held-out frame: the client's report and the command's exit status and output."""
+    url, _ = server
+    cli = subprocess.Popen(cli_command(url, captures["colmap"], "colmap"), text=True,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        report = client.import_capture("nerf", captures["nerf"], holdout=[HELD], progress=False)
+        out, err = cli.communicate(timeout=120)
+    finally:
+        if cli.poll() is None:
+            cli.kill()
+            cli.wait()
+    return {"nerf": report, "cli": (cli.returncode, out, err)}
+
+
+def export_arrays(client, name) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(client.export_field(name)), allow_pickle=False) as z:
+        return {k: z[k] for k in ("rays_origins", "rays_directions", "values")}
+
+
+def training(captures, fmt):
+    return read_capture(captures[fmt]).without([HELD])
+
+
+# -- imports ------------------------------------------------------------------------------
+def test_the_client_stores_every_ray_of_the_capture(imported, captures, client):
+    cap = training(captures, "nerf")
+    n = cap.nrays()
+    assert n == (len(RIG) - 1) * WIDTH * HEIGHT
+    rep = imported["nerf"]
+    assert rep["field"] == "nerf" and rep["format"] == "nerf" and rep["stride"] == 1
+    assert rep["frames"] == len(RIG) - 1
+    assert rep["rays"] == rep["stored"] == rep["nsamples"] == n
+    assert rep["replayed"] == 0 and rep["rejected"] == 0 and rep["batches"] >= 1
+    assert rep["key"].startswith("capture-")
+    info = client.describe("nerf")
+    assert info["nsamples"] == n and info["channels"] == 1
+    # the stored rays are the library's reading of the capture, bit for bit, in order
+    o, d, v = capture_rays(cap)
+    got = export_arrays(client, "nerf")
+    np.testing.assert_array_equal(got["rays_origins"], o)
+    np.testing.assert_array_equal(got["rays_directions"], d)
+    np.testing.assert_array_equal(got["values"], v)
+    # and the pixels are the photographs' (16 bits: within half a step of 1/65535)
+    truth = np.concatenate([img.reshape(-1, 1) for name, img in zip(NAMES, captures["images"])
+                            if name != HELD])
+    assert np.abs(got["values"] - truth).max() <= 0.5 / 65535 + 1e-12
+
+
+def test_the_command_line_imports_and_prints_one_line(imported, captures, client):
+    status, out, err = imported["cli"]
+    assert status == 0, err
+    n = training(captures, "colmap").nrays()
+    lines = out.strip().splitlines()
+    assert len(lines) == 1, out
+    assert f"{len(RIG) - 1} frames" in lines[0] and "(colmap, stride 1)" in lines[0]
+    assert f"{n:,} rays" in lines[0] and f"{n:,} stored now" in lines[0]
+    assert "0 batches stored before" in lines[0] and f"holds {n:,} samples" in lines[0]
+    assert client.describe("colmap")["nsamples"] == n
+
+
+def test_the_same_command_again_stores_nothing(imported, server, captures, client, capsys):
+    """The keys do not depend on the process: run again (here, in this one) every batch
+    is replayed, nothing stored twice."""
+    url, _ = server
+    n = training(captures, "colmap").nrays()
+    status = cli_main(cli_command(url, captures["colmap"], "colmap")[3:])
+    out = capsys.readouterr()
+    assert status == 0, out.err
+    assert "0 stored now" in out.out and f"holds {n:,} samples" in out.out
+    assert client.describe("colmap")["nsamples"] == n
+    rep = client.import_capture("nerf", captures["nerf"], holdout=[HELD], progress=False)
+    assert rep["replayed"] == rep["batches"] and rep["stored"] == 0 and rep["nsamples"] == n
+
+
+def test_either_format_stores_the_same_rays(imported, client):
+    a, b = export_arrays(client, "nerf"), export_arrays(client, "colmap")
+    # a pose read from a NeRF matrix or a COLMAP quaternion: the same rotation up to rounding
+    np.testing.assert_allclose(a["rays_origins"], b["rays_origins"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a["rays_directions"], b["rays_directions"], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(a["values"], b["values"])
+
+
+def test_an_interrupted_import_resumes_without_storing_twice(server, captures, client):
+    cap = training(captures, "nerf")
+    n = cap.nrays(2)
+    per_batch = 2 * (WIDTH // 2) * (HEIGHT // 2)
+    nbatches = -(-(len(RIG) - 1) // 2)
+    ticks = []
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_two(done, total):
+        ticks.append((done, total))
+        if len(ticks) == 2:
+            raise Stop
+
+    kw = dict(stride=2, holdout=[HELD], batch_rays=RESUME_BATCH)
+    with pytest.raises(Stop):
+        client.import_capture("resumed", captures["nerf"], progress=stop_after_two, **kw)
+    assert ticks == [(per_batch, n), (2 * per_batch, n)]
+    assert client.describe("resumed")["nsamples"] == 2 * per_batch
+    seen = []
+    rep = client.import_capture("resumed", captures["nerf"],
+                                progress=lambda done, total: seen.append(done), **kw)
+    assert rep["batches"] == nbatches and rep["replayed"] == 2
+    assert rep["stored"] == n - 2 * per_batch and rep["rays"] == n
+    assert seen[-1] == n and seen == sorted(seen)
+    assert client.describe("resumed")["nsamples"] == n == rep["nsamples"]
+    # once more: all replayed
+    again = client.import_capture("resumed", captures["nerf"], progress=False, **kw)
+    assert again["replayed"] == nbatches and again["stored"] == 0
+    assert client.describe("resumed")["nsamples"] == n
+    assert [b["rows"] for b in client.batches("resumed")] == \
+        [per_batch] * (nbatches - 1) + [n - (nbatches - 1) * per_batch]
+
+
+def test_target_rays_picks_the_stride(server, captures, client):
+    cap = training(captures, "nerf")
+    rep = client.import_capture("target", captures["nerf"], holdout=[HELD], progress=False,
+                                target_rays=cap.nrays(3))
+    assert rep["stride"] == 3 and rep["rays"] == cap.nrays(3)
+    assert client.describe("target")["nsamples"] == cap.nrays(3)
+    with pytest.raises(InvalidInputError) as exc:
+        client.import_capture("target", captures["nerf"], stride=2, target_rays=100)
+    assert exc.value.argument == "stride"
+    with pytest.raises(InvalidInputError) as exc:
+        client.import_capture("target", captures["nerf"], holdout=["no_such_frame"])
+    assert exc.value.argument == "holdout" and "no_such_frame" in str(exc.value)
+
+
+# -- renders by pose -------------------------------------------------------------------------
+def render_pair(client):
+    """The held-out view from the NeRF field by its NeRF pose, from the COLMAP field by
+    its COLMAP pose."""
+    a = client.render("nerf", {"nerf": HELD_CAMERA.to_nerf(), "supersample": 1})
+    b = client.render("colmap", {"colmap": HELD_CAMERA.to_colmap(), "supersample": 1})
+    return a, b
+
+
+def test_the_held_out_view_is_the_same_from_either_format(imported, client):
+    a, b = render_pair(client)
+    assert a.shape == (HEIGHT, WIDTH, 1) and a.dtype == np.float32
+    assert np.isfinite(a).mean() > 0.95
+    np.testing.assert_array_equal(a, b)
+    # a PinholeCamera (sent as its COLMAP pose), and the pose as cameras.txt params
+    np.testing.assert_array_equal(client.render("nerf", HELD_CAMERA), a)
+    c = HELD_CAMERA.to_colmap()
+    body = {"colmap": {"qvec": c["qvec"], "tvec": c["tvec"], "model": "SIMPLE_PINHOLE",
+                       "params": [c["fx"], c["cx"], c["cy"]], "width": c["width"],
+                       "height": c["height"]}, "supersample": 1}
+    np.testing.assert_array_equal(client.render("colmap", body), b)
+
+
+def test_the_held_out_view_is_the_library_render(imported, server, captures, client):
+    """The library is the oracle: a field of the capture's rays (the service's default
+    kind, the covering atlas, in the unit the service fitted to the capture's one batch)."""
+    o, d, v = capture_rays(training(captures, "nerf"))
+    unit = client.describe("nerf")["atlas"]["unit"]  # fitted to the first (and only) batch
+    ref = AtlasField(Atlas.covering(1, 3, unit=unit), channels=1)
+    ref.add(Flats.from_rays(o, d), v)
+    assert imported["nerf"]["batches"] == 1
+    for ss in (1, 4):
+        want = render_field(ref, HELD_CAMERA.with_(supersample=ss), fill=np.nan).image
+        got = client.render("nerf", {"nerf": HELD_CAMERA.to_nerf(), "supersample": ss})
+        np.testing.assert_array_equal(got, want.astype(np.float32))
+
+
+def test_the_held_out_view_beats_the_nearest_photograph(imported, scene, captures, client):
+    a, _ = render_pair(client)
+    truth = render_truth(scene, HELD_CAMERA).image[..., 0]
+    covered = np.isfinite(a[..., 0])
+    ours = psnr(np.where(covered, a[..., 0], 0.0), truth)
+    nearest = min((k for k in range(len(RIG)) if NAMES[k] != HELD),
+                  key=lambda k: np.linalg.norm(RIG[k].eye - HELD_CAMERA.eye))
+    baseline = psnr(captures["images"][nearest][..., 0], truth)
+    constant = psnr(np.full_like(truth, truth.mean()), truth)
+    assert baseline > constant  # the baseline is a fair one
+    assert ours > baseline + NEAREST_MARGIN_DB, (ours, baseline)
+
+
+def test_render_takes_a_library_camera(imported, client):
+    """A :class:`flatserve.lightfield.Camera` is sent as its eye, rotation, focal, size."""
+    from flatserve.lightfield import Camera
+
+    cam = Camera.look_at((0.1, 0.0, -3.0), focal=4.0, width=20, height=16, supersample=1)
+    got = client.render("nerf", cam)
+    assert got.shape == (16, 20, 1) and np.isfinite(got).mean() > 0.5
+    body = {"eye": cam.eye.tolist(), "rotation": cam.rotation.tolist(), "focal": 4.0,
+            "width": 20, "height": 16, "supersample": 1}
+    np.testing.assert_array_equal(client.render("nerf", body), got)
+
+
+def test_a_pose_renders_at_the_size_asked(imported, client):
+    half = HELD_CAMERA.scaled(WIDTH // 2, HEIGHT // 2)
+    want = client.render("nerf", half)
+    assert want.shape == (HEIGHT // 2, WIDTH // 2, 1)
+    pose = {"nerf": HELD_CAMERA.to_nerf(), "supersample": 1}
+    np.testing.assert_array_equal(client.render("nerf", pose, width=WIDTH // 2,
+                                                height=HEIGHT // 2), want)
+    # one side given: the other keeps the frame's aspect ratio
+    np.testing.assert_array_equal(client.render("nerf", pose, width=WIDTH // 2), want)
+    np.testing.assert_array_equal(client.render("nerf", pose, height=HEIGHT // 2), want)
+    png = client.render("nerf", pose, format="png")
+    assert png.startswith(b"\x89PNG")
+    from PIL import Image
+
+    assert Image.open(io.BytesIO(png)).size == (WIDTH, HEIGHT)
+
+
+NERF = HELD_CAMERA.to_nerf()
+COLMAP = HELD_CAMERA.to_colmap()
+SCALED = [[2.0, 0, 0, 0], [0, 2.0, 0, 0], [0, 0, 2.0, 3.0], [0, 0, 0, 1.0]]
+
+
+def _nerf(**kw):
+    return {"nerf": {**NERF, **kw}}
+
+
+def _colmap(**kw):
+    return {"colmap": {**COLMAP, **kw}}
+
+
+@pytest.mark.parametrize("body, loc", [
+    (_nerf(transform_matrix=SCALED), ["nerf", "transform_matrix"]),
+    (_nerf(transform_matrix=[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 1, 1]]),
+     ["nerf", "transform_matrix"]),
+    (_nerf(transform_matrix=[[1, 0, 0], [0, 1, 0], [0, 0, 1]]), ["nerf", "transform_matrix"]),
+    (_nerf(transform_matrix=[[-1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3]]),
+     ["nerf", "transform_matrix"]),
+    ({"nerf": {"transform_matrix": NERF["transform_matrix"], "w": 4, "h": 4}},
+     ["nerf", "camera_angle_x"]),
+    (_nerf(camera_angle_x=True), ["nerf", "camera_angle_x"]),
+    (_nerf(fl_x=-1.0), ["nerf", "fl_x"]),
+    (_nerf(w=0), ["nerf", "w"]),
+    (_nerf(k1=0.1), ["nerf", "k1"]),
+    (_nerf(transform_matrix=[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1e200]]),
+     ["nerf", "transform_matrix"]),
+    (_colmap(qvec=[2.0, 0, 0, 0]), ["colmap", "qvec"]),
+    (_colmap(tvec=[0, 0]), ["colmap", "tvec"]),
+    ({"colmap": {"qvec": COLMAP["qvec"], "tvec": COLMAP["tvec"], "params": [60.0, 16.0, 12.0],
+                 "width": 32, "height": 24}}, ["colmap", "params"]),
+    ({"colmap": {"qvec": COLMAP["qvec"], "tvec": COLMAP["tvec"], "params": [-60.0, 60.0, 16, 12],
+                 "width": 32, "height": 24}}, ["colmap", "params"]),
+    (_colmap(params=[60.0, 60.0, 16.0, 12.0]), ["colmap", "fx"]),
+    (_colmap(model="SIMPLE_PINHOLE"), ["colmap", "fy"]),
+    (_colmap(model="OPENCV"), ["colmap", "model"]),
+    ({"colmap": {k: v for k, v in COLMAP.items() if k != "cx"}}, ["colmap", "cx"]),
+    ({**_colmap(), "orbit": {"yaw": 10.0}}, ["colmap"]),
+    ({**_nerf(), **_colmap()}, ["colmap"]),
+    ({**_nerf(), "eye": [0, 0, -3]}, ["nerf"]),
+    ({**_colmap(), "focal": 3.0}, ["focal"]),
+    ({**_colmap(), "target": [0, 0, 0]}, ["target"]),
+    ({**_colmap(width=2, height=64), "width": 2048}, ["height"]),
+    ({**_colmap(), "supersample": 2}, ["supersample"]),
+])
+def test_a_bad_pose_is_a_422_naming_the_member(server, body, loc):
+    r = httpx.post(f"{server[0]}/v1/fields/nerf/render", json=body, timeout=WAIT_S)
+    assert r.status_code == 422, r.text
+    got = r.json()["detail"][0]["loc"]
+    assert got[0] == "body" and got[1:1 + len(loc)] == loc, got
+
+
+def test_the_client_names_a_bad_pose(imported, client):
+    with pytest.raises(InvalidInputError) as exc:
+        client.render("nerf", _nerf(transform_matrix=SCALED))
+    assert exc.value.argument == "transform_matrix" and "nerf.transform_matrix" in str(exc.value)
+    with pytest.raises(InvalidInputError) as exc:
+        client.render("nerf", HELD_CAMERA, format="jpeg")
+    assert exc.value.argument == "format"
+
+
+def test_a_pose_too_large_is_413(server):
+    from flatserve.service.routes_lightfield import MAX_SIDE
+
+    r = httpx.post(f"{server[0]}/v1/fields/nerf/render",
+                   json=_colmap(width=MAX_SIDE, height=MAX_SIDE), timeout=WAIT_S)
+    assert r.status_code == 413 and "rays in one frame" in r.json()["detail"]
+
+
+# -- bad captures and refusals ------------------------------------------------------------------
+def _cli(argv, capsys) -> tuple[int, str, str]:
+    status = cli_main(argv)
+    out = capsys.readouterr()
+    return status, out.out, out.err
+
+
+def test_a_bad_capture_exits_2_naming_the_file_and_the_field(server, scene, tmp_path, capsys,
+                                                             client):
+    import json
+
+    url, _ = server
+    cams, images = RIG[:3], [photograph(scene, cam) for cam in RIG[:3]]
+    nerf = write_nerf(tmp_path / "nerf", cams, images, bits=8)
+    doc = json.loads(nerf.read_text())
+    doc["frames"][1]["transform_matrix"] = SCALED
+    nerf.write_text(json.dumps(doc))
+    status, out, err = _cli(["lightfield", "import", str(tmp_path / "nerf"), "--url", url,
+                             "--field", "bad-nerf", "--no-progress"], capsys)
+    assert status == 2 and out == ""
+    assert len(err.strip().splitlines()) == 1
+    assert "transforms.json" in err and "frames[1].transform_matrix" in err
+    with pytest.raises(CaptureError) as exc:
+        client.import_capture("bad-nerf", tmp_path / "nerf", progress=False)
+    assert exc.value.file == nerf and exc.value.field == "frames[1].transform_matrix"
+    # a lens with distortion (COLMAP), an image whose size is not its camera's
+    model = write_colmap(tmp_path / "colmap", cams, images, bits=8, model="OPENCV") / "cameras.txt"
+    text = model.read_text()
+    assert text.count(" 0.0 0.0 0.0 0.0\n") == 1  # one camera, no distortion: give it some
+    model.write_text(text.replace(" 0.0 0.0 0.0 0.0\n", " 0.1 0.0 0.0 0.0\n"))
+    status, _, err = _cli(["lightfield", "import", str(tmp_path / "colmap"), "--url", url,
+                           "--field", "bad-colmap", "--format", "colmap", "--no-progress"], capsys)
+    assert status == 2 and "cameras.txt" in err and "line" in err and "distortion" in err
+    from PIL import Image
+
+    write_nerf(tmp_path / "small", cams, images, bits=8)
+    Image.new("L", (WIDTH // 2, HEIGHT)).save(tmp_path / "small" / "frame_0002.png")
+    status, _, err = _cli(["lightfield", "import", str(tmp_path / "small"), "--url", url,
+                           "--field", "bad-size", "--no-progress"], capsys)
+    assert status == 2 and "frame_0002.png" in err and "size" in err
+    names = {f["name"] for f in client.list_fields()}
+    assert not {"bad-nerf", "bad-colmap"} & names  # refused before the field was made
+    # nothing there at all
+    status, _, err = _cli(["lightfield", "import", str(tmp_path / "nowhere"), "--url", url,
+                           "--field", "none", "--no-progress"], capsys)
+    assert status == 2 and "nowhere" in err
+
+
+def test_a_refused_request_exits_2_naming_the_field(server, captures, client, capsys):
+    url, _ = server
+    client.create_field("rgb", channels=3)
+    status, out, err = _cli(["lightfield", "import", str(captures["nerf"]), "--url", url,
+                             "--field", "rgb", "--no-progress"], capsys)
+    assert status == 2 and out == ""
+    assert len(err.strip().splitlines()) == 1
+    assert "'rgb'" in err and "409" in err and "channels" in err
+    assert client.describe("rgb")["nsamples"] == 0
+    status, _, err = _cli(["lightfield", "import", str(captures["nerf"]), "--url", url,
+                           "--field", "no/such", "--no-progress"], capsys)
+    assert status == 2 and "'no/such'" in err
+    # an argument error is argparse's (2 too)
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["lightfield", "import", str(captures["nerf"]), "--url", url, "--field", "x",
+                  "--stride", "2", "--target-rays", "100"])
+    assert exc.value.code == 2
+    capsys.readouterr()
+
+
+def test_the_key_of_the_command_line_comes_from_the_environment(tmp_path, captures, monkeypatch,
+                                                               capsys):
+    key = "import-key-0123456789"
+    port = free_port()
+    app = create_app(Settings(data_dir=tmp_path / "data", snapshot_every=0, port=port,
+                              api_key=key))
+    argv = ["lightfield", "import", str(captures["nerf"]), "--field", "keyed", "--stride", "4",
+            "--no-progress"]
+    with serving(app, port, WAIT_S) as url:
+        monkeypatch.delenv("FLATSERVE_API_KEY", raising=False)
+        status, _, err = _cli([*argv, "--url", url], capsys)
+        assert status == 2 and "401" in err and "'keyed'" in err
+        monkeypatch.setenv("FLATSERVE_API_KEY", key)
+        status, out, err = _cli([*argv, "--url", url], capsys)
+        assert status == 0, err
+        monkeypatch.setenv("FLATSERVE_API_KEY", "wrong")
+        status, out, err = _cli([*argv, "--url", url, "--api-key", key], capsys)
+        assert status == 0 and "0 stored now" in out, err
+
+
+def test_import_without_pillow_says_which_extra(monkeypatch, captures, client):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "PIL" else real(name, *a))
+    with pytest.raises(ImportError, match=r"pip install 'flatserve\[lightfield\]'"):
+        client.import_capture("x", captures["nerf"])
+
+
+def test_the_viewer_reads_a_pose_from_its_url(server):
+    """The page and its script (the browser test drives them): a ``?camera=`` pose
+    leaves the page as it is, and the script reads it."""
+    url, _ = server
+    page = httpx.get(f"{url}/viewer/nerf", params={"camera": '{"nerf": {}}'}, timeout=WAIT_S)
+    assert page.status_code == 200 and 'id="pose-note"' in page.text
+    js = httpx.get(f"{url}/viewer/assets/viewer.js", timeout=WAIT_S).text
+    assert 'get("camera")' in js and "poseBody" in js

@@ -23,7 +23,6 @@ import httpx
 import numpy as np
 import pytest
 
-from flatserve.atlas import Atlas
 from flatserve.atlas_field import AtlasField
 from flatserve.cli import main as cli_main
 from flatserve.client import Client
@@ -33,6 +32,7 @@ from flatserve.lightfield.camera import PinholeCamera
 from flatserve.lightfield.capture import CaptureError, capture_rays, read_capture, write_colmap, write_nerf
 from flatserve.lightfield.quality import psnr
 from flatserve.lightfield.render import render_field, render_truth
+from flatserve.lightfield.rig import capture_atlas, rig_unit
 from flatserve.lightfield.sampling import blocks_scene
 from flatserve.service import Settings, create_app
 from tests.harness.browser import serving
@@ -278,11 +278,12 @@ def test_the_held_out_view_is_the_same_from_either_format(imported, client):
 
 
 def test_the_held_out_view_is_the_library_render(imported, server, captures, client):
-    """The library is the oracle: a field of the capture's rays (the service's default
-    kind, the covering atlas, in the unit the service fitted to the capture's one batch)."""
-    o, d, v = capture_rays(training(captures, "nerf"))
-    unit = client.describe("nerf")["atlas"]["unit"]  # fitted to the first (and only) batch
-    ref = AtlasField(Atlas.covering(1, 3, unit=unit), channels=1)
+    """The library is the oracle: a field of the capture's rays over the library's atlas
+    for the capture (the importer's choices, flatserve.lightfield.rig)."""
+    cap = training(captures, "nerf")
+    o, d, v = capture_rays(cap)
+    assert client.describe("nerf")["atlas"]["unit"] == rig_unit(cap.cameras)
+    ref = AtlasField(capture_atlas(cap.cameras), channels=1)
     ref.add(Flats.from_rays(o, d), v)
     assert imported["nerf"]["batches"] == 1
     for ss in (1, 4):

@@ -189,6 +189,11 @@ class Capture:
             raise InvalidInputError(f"channels: expected 1, 3 or 4, got {self.channels!r}", "channels")
 
     @property
+    def cameras(self) -> tuple[PinholeCamera, ...]:
+        """The frames' cameras, in order."""
+        return tuple(f.camera for f in self.frames)
+
+    @property
     def names(self) -> tuple[str, ...]:
         """The frames' names, in order."""
         return tuple(f.name for f in self.frames)
@@ -980,12 +985,19 @@ def capture_rays(capture: Capture, *, stride: int = 1, target_rays: int | None =
 def field_options(capture: Capture) -> dict:
     """Keyword arguments of ``create_field`` for a field that will hold this capture.
 
+    The choices that won on captures (``docs/capture-results.md``): an oriented
+    atlas with charts where the capture's rays are, through the point its
+    cameras look at, in the unit that weighs a pixel's shift as a camera's
+    turn (:func:`flatserve.lightfield.rig.field_spec`).
+
     Returns
     -------
     dict
-        ``{"channels": C}``.
+        ``channels``, ``oriented``, ``basis``, ``unit``.
     """
-    return {"channels": capture.channels}
+    from .rig import field_spec
+
+    return field_spec(capture.cameras, capture.channels)
 
 
 # ---------------------------------------------------------------- writing

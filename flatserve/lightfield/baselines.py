@@ -7,6 +7,9 @@
 * :class:`NearestEmbedded`: the value of the nearest sample in the embedded
   basis coordinates (the same points the field triangulates), via
   :class:`scipy.spatial.cKDTree`.
+* :class:`TwoPlaneNearest`: the two-plane parameterisation's ``k`` nearest
+  sample rays, inverse-distance weighted (the classic baseline of
+  forward-facing captures).
 * :class:`TwoSphere`: for unstructured 360-degree data, the two-sphere
   parameterisation (a ray is its entry and exit points on a bounding sphere,
   6 numbers; a ray and its reverse swap them, so it is oriented), the ``k``
@@ -25,7 +28,7 @@ from .._validate import as_array
 from ..errors import InvalidInputError
 from .camera import DEFAULT_EYE, ORBIT_RADIUS
 
-__all__ = ["TwoPlane", "NearestEmbedded", "TwoSphere", "two_sphere_coordinates", "PARALLEL_TOL",
+__all__ = ["TwoPlane", "TwoPlaneNearest", "NearestEmbedded", "TwoSphere", "two_sphere_coordinates", "PARALLEL_TOL",
            "TWO_PLANE_Z", "TWO_SPHERE_K", "IDW_POWER"]
 
 #: The two planes: the sampling screen (z = 0) and the plane through the
@@ -274,16 +277,83 @@ class TwoSphere:
             The ray meets the sphere.
         """
         x = two_sphere_coordinates(origins, directions, self.center, self.radius)
-        ok = np.isfinite(x).all(axis=1)
-        C = self.values.shape[1]
-        out = np.full((x.shape[0], C), np.nan)
-        if ok.any():
-            dist, idx = self._tree.query(x[ok], k=self.k, workers=workers)
-            dist, idx = dist.reshape(-1, self.k), idx.reshape(-1, self.k)
-            exact = dist[:, 0] == 0
-            with np.errstate(divide="ignore"):
-                w = 1.0 / dist ** self.power
-            w[exact] = 0.0
-            w[exact, 0] = 1.0
-            out[ok] = np.einsum("qk,qkc->qc", w, self.values[idx]) / w.sum(axis=1)[:, None]
-        return out, ok
+        return _idw(self._tree, x, self.values, self.k, self.power, workers)
+
+
+def _idw(tree, x, values, k: int, power: float, workers: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` nearest samples of ``tree`` to each finite row of ``x``, inverse-distance
+    weighted (``1 / dist**power``; a sample at distance 0 gives its own value).
+
+    Returns values (q, C), NaN for rows of ``x`` that are not finite, and which rows are."""
+    ok = np.isfinite(x).all(axis=1)
+    C = values.shape[1]
+    out = np.full((x.shape[0], C), np.nan)
+    if ok.any():
+        dist, idx = tree.query(x[ok], k=k, workers=workers)
+        dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
+        exact = dist[:, 0] == 0
+        with np.errstate(divide="ignore"):
+            w = 1.0 / dist ** power
+        w[exact] = 0.0
+        w[exact, 0] = 1.0
+        out[ok] = np.einsum("qk,qkc->qc", w, values[idx]) / w.sum(axis=1)[:, None]
+    return out, ok
+
+
+class TwoPlaneNearest:
+    """The classic two-plane light field: the ``k`` nearest sample rays, inverse-distance weighted.
+
+    A ray is its points ``(u, v)`` on the camera plane and ``(s, t)`` on the
+    focal plane (:func:`two_plane_coordinates`, planes ``z = const``); a query
+    ray's value is ``sum_i w_i v_i / sum_i w_i`` over its ``k`` nearest samples
+    in R^4, ``w_i = 1 / dist_i**power`` (a sample at distance 0 gives its own
+    value). The baseline of forward-facing captures
+    (``flatserve lightfield capture-figure``: ``k`` and the focal plane chosen
+    in its favour).
+
+    Parameters
+    ----------
+    origins, directions : (n, 3) float
+        Sample rays (at least ``k`` must cross the planes).
+    values : (n, C) float, or (n,)
+    planes : (float, float)
+        z of the camera plane and of the focal plane.
+    k : int
+    power : float
+
+    Attributes
+    ----------
+    build_seconds : float
+        Time of the k-d tree.
+    nsamples : int
+        Samples that cross the planes.
+    """
+
+    def __init__(self, origins, directions, values, planes=TWO_PLANE_Z[::-1], k: int = 4,
+                 power: float = IDW_POWER):
+        from scipy.spatial import cKDTree
+
+        x = two_plane_coordinates(origins, directions, planes)
+        v = np.asarray(values, dtype=np.float64)
+        v = as_array(v[:, None] if v.ndim == 1 else v, "values", (x.shape[0], None))
+        if not (isinstance(k, (int, np.integer)) and k >= 1):
+            raise InvalidInputError(f"k: expected a positive integer, got {k!r}", "k")
+        if not (np.isfinite(power) and power > 0):
+            raise InvalidInputError(f"power: expected a positive number, got {power!r}", "power")
+        keep = np.isfinite(x).all(axis=1)
+        if keep.sum() < k:
+            raise InvalidInputError(f"origins: need at least k = {k} rays that cross the planes, "
+                                    f"got {int(keep.sum())}", "origins")
+        self.planes = tuple(float(z) for z in planes)
+        self.k, self.power = int(k), float(power)
+        self.values = v[keep]
+        t0 = time.perf_counter()
+        self._tree = cKDTree(x[keep])
+        self.build_seconds = time.perf_counter() - t0
+        self.nsamples = int(keep.sum())
+
+    def __call__(self, origins, directions, workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Interpolate rays: values (q, C), NaN for rays parallel to the planes, and
+        ``inside`` (q,) bool (the ray crosses them)."""
+        x = two_plane_coordinates(origins, directions, self.planes)
+        return _idw(self._tree, x, self.values, self.k, self.power, workers)

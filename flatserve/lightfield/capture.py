@@ -11,6 +11,8 @@ as its value.
 
 Images are read with Pillow: grey (8- and 16-bit), RGB and RGBA, PNG (8- and
 16-bit) and JPEG; values are floats in [0, 1] (8-bit / 255, 16-bit / 65535).
+16-bit RGB, RGBA and grey-alpha PNGs, of which Pillow keeps only the high byte,
+are read and written with pypng.
 
 >>> cap = read_capture("scene")                               # doctest: +SKIP
 >>> cap.format, len(cap.frames), cap.channels                  # doctest: +SKIP
@@ -74,6 +76,8 @@ _GREY_MODES = {"1": 255.0, "L": 255.0, "I;16": 65535.0, "I;16L": 65535.0, "I;16B
 _CONVERT_MODES = {"RGB": "RGB", "RGBA": "RGBA", "LA": "RGBA", "PA": "RGBA", "La": "RGBA", "RGBa": "RGBA",
                   "CMYK": "RGB", "YCbCr": "RGB", "LAB": "RGB", "HSV": "RGB", "RGBX": "RGB"}
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# (bit depth, colour type) of 16-bit RGB, grey-alpha and RGBA PNGs: read with pypng.
+_DEEP_COLOUR_PNG = {(16, 2), (16, 4), (16, 6)}
 
 # COLMAP camera models: parameter names; the pinhole ones first.
 _COLMAP_MODELS = {
@@ -295,16 +299,19 @@ def _png_header(path: Path) -> tuple[int, int] | None:
     return head[24], head[25]
 
 
-def _is_deep_colour_png(path: Path) -> bool:
-    """A 16-bit RGB, RGBA or grey-alpha PNG (Pillow reads only 8 bits of those)."""
-    h = _png_header(path)
-    return h is not None and h[0] == 16 and h[1] in (2, 4, 6)
-
-
 def _is_deep_grey_png(path: Path, mode: str) -> bool:
     """A 16-bit grey PNG opened by Pillow as 32-bit integers (mode "I", as older Pillow versions do)."""
-    h = _png_header(path) if mode == "I" else None
-    return h is not None and h[0] == 16 and h[1] == 0
+    return mode == "I" and _png_header(path) == (16, 0)
+
+
+def _pypng():
+    """The ``png`` module (pypng), with the extra to install when it is missing."""
+    try:
+        import png
+    except ImportError:
+        raise ImportError("16-bit colour PNGs are read and written with pypng: "
+                          "pip install 'flatserve[lightfield]'") from None
+    return png
 
 
 def _image_info(path: Path) -> tuple[int, int, int]:
@@ -356,8 +363,8 @@ def read_image(path) -> np.ndarray:
 
     path = Path(path)
     try:
-        if _is_deep_colour_png(path):
-            return _read_png16(path)
+        if _png_header(path) in _DEEP_COLOUR_PNG:
+            return _read_deep_png(path)
         with Image.open(path) as im:
             mode = im.mode
             if mode in _GREY_MODES or _is_deep_grey_png(path, mode):
@@ -380,84 +387,23 @@ def read_image(path) -> np.ndarray:
         raise CaptureError(path, "pixels", f"unreadable: {exc}") from None
 
 
-def _read_png16(path: Path) -> np.ndarray:
-    """Pixels of a non-interlaced 16-bit RGB, RGBA or grey-alpha PNG, (H, W, 3 or 4) in [0, 1].
+def _read_deep_png(path: Path) -> np.ndarray:
+    """Pixels of a 16-bit RGB, RGBA or grey-alpha PNG, (H, W, 3 or 4) in [0, 1]; grey and alpha as RGBA.
 
-    Pillow reads only the high byte of these. The scanlines are unfiltered
-    here along anti-diagonals ``row + column = const``: every PNG filter
-    predicts a pixel from its left, upper and upper-left neighbours, all on
-    earlier diagonals, so each diagonal is one vector operation.
+    The samples as stored (pypng's ``read``, not ``asDirect``: no alpha
+    channel made from ``tRNS``, no rescaling by ``sBIT``), as Pillow reads
+    the other images and as :func:`_image_info` counts the channels.
     """
-    data = path.read_bytes()
-    pos = len(_PNG_SIGNATURE)
-    idat = []
-    header = None
-    while pos + 8 <= len(data):
-        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
-        chunk = data[pos + 8:pos + 8 + length]
-        if len(chunk) != length:
-            raise ValueError("truncated PNG chunk")
-        if kind == b"IHDR":
-            header = struct.unpack(">IIBBBBB", chunk)
-        elif kind == b"IDAT":
-            idat.append(chunk)
-        elif kind == b"IEND":
-            break
-        pos += 12 + length
-    if header is None:
-        raise ValueError("PNG without IHDR")
-    width, height, depth, colour, _, _, interlace = header
-    if interlace:
-        raise ValueError("interlaced 16-bit colour PNGs are not read; save it without interlacing")
-    C = {2: 3, 4: 2, 6: 4}[colour]
-    bpp = 2 * C
-    raw = zlib.decompress(b"".join(idat))
-    if len(raw) < height * (width * bpp + 1):
-        raise ValueError(f"PNG data of {len(raw)} bytes, expected {height * (width * bpp + 1)}")
-    rows = np.frombuffer(raw, dtype=np.uint8, count=height * (width * bpp + 1)).reshape(height, width * bpp + 1)
-    kinds = rows[:, 0].astype(np.int64)
-    if kinds.max(initial=0) > 4:
-        raise ValueError(f"PNG row {int(np.argmax(kinds > 4))}: unknown filter type {int(kinds.max())}")
-    filt = rows[:, 1:].reshape(height, width, bpp).astype(np.int64)
-    if not kinds.any():  # no filtering
-        return _png16_values(filt, C)
-    rec = np.zeros((height + 1, width + 1, bpp), dtype=np.int64)  # a zero row above and column left
-    for d in range(height + width - 1):
-        r = np.arange(max(0, d - width + 1), min(height, d + 1))
-        x = d - r
-        a, b, c = rec[r + 1, x], rec[r, x + 1], rec[r, x]
-        k = kinds[r][:, None]
-        p = a + b - c
-        pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
-        paeth = np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
-        pred = np.select([k == 1, k == 2, k == 3, k == 4], [a, b, (a + b) // 2, paeth], 0)
-        rec[r + 1, x + 1] = (filt[r, x] + pred) & 0xFF
-    return _png16_values(rec[1:, 1:], C)
-
-
-def _png16_values(data: np.ndarray, C: int) -> np.ndarray:
-    """(H, W, 2C) big-endian bytes as (H, W, 3 or 4) floats in [0, 1]; grey and alpha as RGBA."""
-    H, W = data.shape[:2]
-    img = data.reshape(H, W, C, 2)
-    a = (img[..., 0] * 256 + img[..., 1]).astype(np.float64) / 65535.0
-    if C == 2:
+    png = _pypng()
+    try:
+        width, height, rows, info = png.Reader(filename=str(path)).read()
+        samples = np.asarray(list(rows), dtype=np.uint16).reshape(height, width, info["planes"])
+    except png.Error as exc:
+        raise ValueError(str(exc)) from None
+    a = samples.astype(np.float64) / 65535.0
+    if info["greyscale"]:
         a = np.concatenate([np.repeat(a[..., :1], 3, axis=2), a[..., 1:]], axis=2)
     return a
-
-
-def _write_png16(path: Path, a: np.ndarray) -> None:
-    """Write (H, W, 3 or 4) uint16 as a 16-bit PNG (no filtering)."""
-    H, W, C = a.shape
-    body = np.empty((H, 1 + W * C * 2), dtype=np.uint8)
-    body[:, 0] = 0
-    body[:, 1:] = np.ascontiguousarray(a.astype(">u2")).view(np.uint8).reshape(H, W * C * 2)
-
-    def chunk(kind: bytes, payload: bytes) -> bytes:
-        return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", zlib.crc32(kind + payload))
-
-    ihdr = struct.pack(">IIBBBBB", W, H, 16, 2 if C == 3 else 6, 0, 0, 0)
-    path.write_bytes(_PNG_SIGNATURE + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(body.tobytes(), 6))
-                     + chunk(b"IEND", b""))
 
 
 def _write_image(path: Path, image: np.ndarray, bits: int) -> None:
@@ -469,7 +415,9 @@ def _write_image(path: Path, image: np.ndarray, bits: int) -> None:
     top = 255 if bits == 8 else 65535
     q = np.rint(image * top).astype(np.uint8 if bits == 8 else np.uint16)
     if bits == 16 and C > 1:
-        _write_png16(path, q)
+        writer = _pypng().Writer(q.shape[1], q.shape[0], bitdepth=16, greyscale=False, alpha=C == 4)
+        with open(path, "wb") as fh:
+            writer.write(fh, q.reshape(q.shape[0], -1).tolist())
         return
     im = Image.fromarray(q[:, :, 0] if C == 1 else q)
     if path.suffix.lower() in (".jpg", ".jpeg"):

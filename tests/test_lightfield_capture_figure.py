@@ -39,3 +39,31 @@ def test_the_rigs_look_at_the_scene_and_hold_out_other_cameras(rig):
     with pytest.raises(InvalidInputError) as exc:
         synthetic_rig("ring")
     assert exc.value.argument == "rig"
+
+
+def test_the_two_plane_baseline_is_idw_of_the_k_nearest_rays():
+    """Against a brute-force oracle: all distances in R^4, the k smallest, 1/d^2 weights."""
+    from flatserve.lightfield.baselines import IDW_POWER, TwoPlaneNearest, two_plane_coordinates
+
+    rng = np.random.default_rng(5)
+    o = np.c_[rng.uniform(-1, 1, (1500, 2)), np.full(1500, -3.0)]
+    d = np.c_[rng.uniform(-0.3, 0.3, (1500, 2)), np.ones(1500)]
+    v = rng.uniform(size=(1500, 3))
+    planes, k = (-3.0, -0.2), 6
+    base = TwoPlaneNearest(o, d, v, planes=planes, k=k)
+    qo = np.c_[rng.uniform(-1, 1, (200, 2)), np.full(200, -3.0)]
+    qd = np.c_[rng.uniform(-0.3, 0.3, (200, 2)), np.ones(200)]
+    got, inside = base(qo, qd)
+    assert inside.all()
+    X, Y = two_plane_coordinates(o, d, planes), two_plane_coordinates(qo, qd, planes)
+    D = np.linalg.norm(Y[:, None, :] - X[None, :, :], axis=2)
+    nn = np.argsort(D, axis=1)[:, :k]
+    w = 1 / np.take_along_axis(D, nn, axis=1) ** IDW_POWER
+    np.testing.assert_allclose(got, np.einsum("qk,qkc->qc", w, v[nn]) / w.sum(axis=1, keepdims=True),
+                               rtol=1e-10)
+    np.testing.assert_array_equal(base(o[:20], d[:20])[0], v[:20])  # a sample gives its own value
+    par, ins = base(np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]]))  # parallel to the planes
+    assert np.isnan(par).all() and not ins.any()
+    with pytest.raises(InvalidInputError) as exc:
+        TwoPlaneNearest(o, d, v, k=0)
+    assert exc.value.argument == "k"

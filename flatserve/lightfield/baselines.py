@@ -171,6 +171,55 @@ class NearestEmbedded:
         return self.values[idx]
 
 
+class _NearestRays:
+    """The ``k`` nearest sample rays in some parameterisation, inverse-distance weighted."""
+
+    def _build(self, x: np.ndarray, values, k, power, what: str) -> None:
+        """A k-d tree over the samples' parameters ``x`` (n, p); NaN rows (rays that do not
+        ``what``) are left out."""
+        from scipy.spatial import cKDTree
+
+        v = np.asarray(values, dtype=np.float64)
+        v = as_array(v[:, None] if v.ndim == 1 else v, "values", (x.shape[0], None))
+        if not (isinstance(k, (int, np.integer)) and k >= 1):
+            raise InvalidInputError(f"k: expected a positive integer, got {k!r}", "k")
+        if not (np.isfinite(power) and power > 0):
+            raise InvalidInputError(f"power: expected a positive number, got {power!r}", "power")
+        keep = np.isfinite(x).all(axis=1)
+        if keep.sum() < k:
+            raise InvalidInputError(f"origins: need at least k = {k} rays that {what}, "
+                                    f"got {int(keep.sum())}", "origins")
+        self.k, self.power = int(k), float(power)
+        self.values = v[keep]
+        t0 = time.perf_counter()
+        self._tree = cKDTree(x[keep])
+        self.build_seconds = time.perf_counter() - t0
+        self.nsamples = int(keep.sum())
+
+    def _answer(self, x: np.ndarray, workers: int) -> tuple[np.ndarray, np.ndarray]:
+        return _idw(self._tree, x, self.values, self.k, self.power, workers)
+
+
+def _idw(tree, x, values, k: int, power: float, workers: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` nearest samples of ``tree`` to each finite row of ``x``, inverse-distance
+    weighted (``1 / dist**power``; a sample at distance 0 gives its own value).
+
+    Returns values (q, C), NaN for rows of ``x`` that are not finite, and which rows are."""
+    ok = np.isfinite(x).all(axis=1)
+    C = values.shape[1]
+    out = np.full((x.shape[0], C), np.nan)
+    if ok.any():
+        dist, idx = tree.query(x[ok], k=k, workers=workers)
+        dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
+        exact = dist[:, 0] == 0
+        with np.errstate(divide="ignore"):
+            w = 1.0 / dist ** power
+        w[exact] = 0.0
+        w[exact, 0] = 1.0
+        out[ok] = np.einsum("qk,qkc->qc", w, values[idx]) / w.sum(axis=1)[:, None]
+    return out, ok
+
+
 def two_sphere_coordinates(origins, directions, center=(0.0, 0.0, 0.0),
                            radius: float = ORBIT_RADIUS) -> np.ndarray:
     """Two-sphere parameters of rays: entry and exit points on a sphere.
@@ -208,7 +257,7 @@ def two_sphere_coordinates(origins, directions, center=(0.0, 0.0, 0.0),
     return out
 
 
-class TwoSphere:
+class TwoSphere(_NearestRays):
     """k nearest sample rays in the two-sphere parameterisation, inverse-distance weighted.
 
     A query ray's value is ``sum_i w_i v_i / sum_i w_i`` over its ``k``
@@ -239,26 +288,10 @@ class TwoSphere:
 
     def __init__(self, origins, directions, values, center=(0.0, 0.0, 0.0),
                  radius: float = ORBIT_RADIUS, k: int = TWO_SPHERE_K, power: float = IDW_POWER):
-        from scipy.spatial import cKDTree
-
         x = two_sphere_coordinates(origins, directions, center, radius)
-        v = np.asarray(values, dtype=np.float64)
-        v = as_array(v[:, None] if v.ndim == 1 else v, "values", (x.shape[0], None))
-        if not (isinstance(k, (int, np.integer)) and k >= 1):
-            raise InvalidInputError(f"k: expected a positive integer, got {k!r}", "k")
-        if not (np.isfinite(power) and power > 0):
-            raise InvalidInputError(f"power: expected a positive number, got {power!r}", "power")
-        keep = np.isfinite(x).all(axis=1)
-        if keep.sum() < k:
-            raise InvalidInputError(f"origins: need at least k = {k} rays that meet the sphere, "
-                                    f"got {int(keep.sum())}", "origins")
         self.center = np.asarray(center, dtype=np.float64)
-        self.radius, self.k, self.power = float(radius), int(k), float(power)
-        self.values = v[keep]
-        t0 = time.perf_counter()
-        self._tree = cKDTree(x[keep])
-        self.build_seconds = time.perf_counter() - t0
-        self.nsamples = int(keep.sum())
+        self.radius = float(radius)
+        self._build(x, values, k, power, "meet the sphere")
 
     def __call__(self, origins, directions, workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Interpolate rays.
@@ -276,31 +309,11 @@ class TwoSphere:
         inside : (q,) bool
             The ray meets the sphere.
         """
-        x = two_sphere_coordinates(origins, directions, self.center, self.radius)
-        return _idw(self._tree, x, self.values, self.k, self.power, workers)
+        return self._answer(two_sphere_coordinates(origins, directions, self.center, self.radius),
+                            workers)
 
 
-def _idw(tree, x, values, k: int, power: float, workers: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``k`` nearest samples of ``tree`` to each finite row of ``x``, inverse-distance
-    weighted (``1 / dist**power``; a sample at distance 0 gives its own value).
-
-    Returns values (q, C), NaN for rows of ``x`` that are not finite, and which rows are."""
-    ok = np.isfinite(x).all(axis=1)
-    C = values.shape[1]
-    out = np.full((x.shape[0], C), np.nan)
-    if ok.any():
-        dist, idx = tree.query(x[ok], k=k, workers=workers)
-        dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
-        exact = dist[:, 0] == 0
-        with np.errstate(divide="ignore"):
-            w = 1.0 / dist ** power
-        w[exact] = 0.0
-        w[exact, 0] = 1.0
-        out[ok] = np.einsum("qk,qkc->qc", w, values[idx]) / w.sum(axis=1)[:, None]
-    return out, ok
-
-
-class TwoPlaneNearest:
+class TwoPlaneNearest(_NearestRays):
     """The classic two-plane light field: the ``k`` nearest sample rays, inverse-distance weighted.
 
     A ray is its points ``(u, v)`` on the camera plane and ``(s, t)`` on the
@@ -331,29 +344,11 @@ class TwoPlaneNearest:
 
     def __init__(self, origins, directions, values, planes=TWO_PLANE_Z[::-1], k: int = 4,
                  power: float = IDW_POWER):
-        from scipy.spatial import cKDTree
-
         x = two_plane_coordinates(origins, directions, planes)
-        v = np.asarray(values, dtype=np.float64)
-        v = as_array(v[:, None] if v.ndim == 1 else v, "values", (x.shape[0], None))
-        if not (isinstance(k, (int, np.integer)) and k >= 1):
-            raise InvalidInputError(f"k: expected a positive integer, got {k!r}", "k")
-        if not (np.isfinite(power) and power > 0):
-            raise InvalidInputError(f"power: expected a positive number, got {power!r}", "power")
-        keep = np.isfinite(x).all(axis=1)
-        if keep.sum() < k:
-            raise InvalidInputError(f"origins: need at least k = {k} rays that cross the planes, "
-                                    f"got {int(keep.sum())}", "origins")
         self.planes = tuple(float(z) for z in planes)
-        self.k, self.power = int(k), float(power)
-        self.values = v[keep]
-        t0 = time.perf_counter()
-        self._tree = cKDTree(x[keep])
-        self.build_seconds = time.perf_counter() - t0
-        self.nsamples = int(keep.sum())
+        self._build(x, values, k, power, "cross the planes")
 
     def __call__(self, origins, directions, workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Interpolate rays: values (q, C), NaN for rays parallel to the planes, and
         ``inside`` (q,) bool (the ray crosses them)."""
-        x = two_plane_coordinates(origins, directions, self.planes)
-        return _idw(self._tree, x, self.values, self.k, self.power, workers)
+        return self._answer(two_plane_coordinates(origins, directions, self.planes), workers)

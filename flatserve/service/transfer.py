@@ -50,6 +50,10 @@ EXPORT_FORMAT = 1
 MANIFEST = "manifest"
 #: Most stored batches one export may list
 MAX_EXPORT_BATCHES = 1_000_000
+#: Deepest nesting of a manifest's JSON (an export's is at most 6 levels deep): deeper
+#: is a 422, whatever the depth at which the parser's RecursionError (about 1000
+#: levels, less on a deeper stack) or a later step's recursion would fail
+MAX_MANIFEST_DEPTH = 32
 
 
 def _member(form: str, name: str) -> str:
@@ -180,6 +184,35 @@ def _bad(msg: str) -> InvalidInputError:
     return InvalidInputError(f"body: {msg}", "body")
 
 
+def _depth(obj, limit: int) -> int:
+    """How deeply JSON value ``obj`` nests (``[]`` is 1, a scalar 0), counted
+    without recursion up to ``limit + 1``."""
+    deepest, todo = 0, [(obj, 1)]
+    while todo and deepest <= limit:
+        x, d = todo.pop()
+        if isinstance(x, (dict, list)):
+            deepest = max(deepest, d)
+            todo.extend((v, d + 1) for v in (x.values() if isinstance(x, dict) else x))
+    return deepest
+
+
+def _manifest(raw: bytes):
+    """The manifest's JSON value; 422 at ``["body", "manifest"]`` when its bytes are
+    not JSON or nest deeper than :data:`MAX_MANIFEST_DEPTH`."""
+    too_deep = InvalidInputError(
+        f"manifest: not an export's manifest: JSON nested more than {MAX_MANIFEST_DEPTH} "
+        "levels deep", MANIFEST)
+    try:
+        manifest = json.loads(raw)
+    except RecursionError:
+        raise too_deep from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InvalidInputError(f"manifest: not JSON: {exc}"[:300], MANIFEST) from None
+    if _depth(manifest, MAX_MANIFEST_DEPTH) > MAX_MANIFEST_DEPTH:
+        raise too_deep
+    return manifest
+
+
 def _read(body: bytes) -> tuple[dict, FieldSpec, Basis, _Batches]:
     """The manifest, definition, basis and batches of an export file, every part
     checked against the others before anything is stored."""
@@ -187,10 +220,7 @@ def _read(body: bytes) -> tuple[dict, FieldSpec, Basis, _Batches]:
     if MANIFEST not in arrays:
         raise _bad("not a flatserve export (no `manifest` member); make one with "
                    "GET /v1/fields/{name}/export")
-    try:
-        manifest = json.loads(bytes(np.asarray(arrays[MANIFEST], np.uint8)))
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise _bad(f"manifest: not JSON: {exc}") from None
+    manifest = _manifest(bytes(np.asarray(arrays[MANIFEST], np.uint8)))
     if not isinstance(manifest, dict) or manifest.get("format") != EXPORT_FORMAT:
         raise _bad(f"manifest: format {manifest.get('format') if isinstance(manifest, dict) else None!r}"
                    f"; this server reads format {EXPORT_FORMAT}")

@@ -4,6 +4,7 @@ connection) can go on with its next request."""
 from __future__ import annotations
 
 import http.client
+import io
 import time
 import warnings
 
@@ -132,6 +133,58 @@ def test_real_server_keeps_the_connection_after_hostile_bodies(tmp_path, rng):
                 assert connection != "close" and conn.sock is sock, (case, target)
         status, text, _ = post("/v1/fields/f/query", npy(np.c_[paper_rays(rng, 3)]), NPY)
         assert status == 200 and conn.sock is sock, text
+        conn.close()
+
+
+#: every route that reads a JSON body
+JSON_TARGETS = ["/v1/fields", "/v1/fields/f/samples", "/v1/fields/f/query",
+                "/v1/fields/f/query?order=given&order=given", "/v1/math/coordinates",
+                "/v1/math/project", "/v1/fields/f/render"]
+
+
+def test_real_server_answers_deeply_nested_json_with_a_422_and_keeps_the_connection(
+        tmp_path, rng):
+    """JSON nested 100,000 levels deep, as a body of every JSON route and as an
+    import's manifest (read by the standard library's parser, whose RecursionError was
+    a 500 that closed the connection): a 422 each, naming the manifest for the import,
+    on ONE keep-alive connection that then serves a valid query."""
+    with Server(tmp_path / "data", tmp_path / "server.log") as srv:
+        srv.wait_ready()
+        conn = http.client.HTTPConnection("127.0.0.1", srv.port, timeout=30)
+
+        def request(method, path, body=None, ctype="application/json"):
+            conn.request(method, path, body=body,
+                         headers={"Content-Type": ctype} if body is not None else {})
+            resp = conn.getresponse()
+            return resp.status, resp.read(), resp.getheader("connection")
+
+        status, text, _ = request("POST", "/v1/fields",
+                                  b'{"name": "f", "k": 1, "d": 3, "channels": 1}')
+        assert status == 201, text
+        o, v = paper_rays(rng, 30)
+        status, text, _ = request("POST", "/v1/fields/f/samples", npy(np.c_[o, v, np.ones(30)]),
+                                  NPY)
+        assert status == 200, text
+        status, export, _ = request("GET", "/v1/fields/f/export")
+        assert status == 200, export
+        sock = conn.sock
+        deep = b"[" * 100_000 + b"]" * 100_000
+        with np.load(io.BytesIO(export), allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        arrays["manifest"] = np.frombuffer(deep, np.uint8)
+        status, text, connection = request("POST", "/v1/fields/g/import", npz(**arrays), NPZ)
+        assert status == 422 and b'"loc":["body","manifest"]' in text, (status, text)
+        assert connection != "close" and conn.sock is sock
+        for target in JSON_TARGETS:
+            for body in (deep, b'{"origins": ' + deep + b', "directions": [[0, 0, 1]]}'):
+                status, text, connection = request("POST", target, body)
+                assert status == 422, (target, status, text[:300])
+                assert connection != "close" and conn.sock is sock, target
+        status, text, _ = request("POST", "/v1/fields/f/query", npy(np.c_[paper_rays(rng, 3)]),
+                                  NPY)
+        assert status == 200 and conn.sock is sock, text
+        status, text, _ = request("GET", "/v1/fields")
+        assert status == 200 and b'"g"' not in text, text  # the refused import made nothing
         conn.close()
 
 

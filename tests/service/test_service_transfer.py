@@ -199,3 +199,46 @@ def test_a_body_that_is_not_an_export_is_a_4xx_naming_what(deployments, rng):
     assert [f["name"] for f in b.list_fields()] == []  # nothing was created
     with pytest.raises(InvalidInputError):
         b.import_field("-bad", good)  # not a field name
+
+
+def _with_raw_manifest(data: bytes, raw: bytes) -> bytes:
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["manifest"] = np.frombuffer(raw, np.uint8)
+    return _npz(**arrays)
+
+
+def test_a_deeply_nested_or_unparseable_manifest_is_a_422_naming_it(deployments, rng):
+    """Nesting past any export's (the JSON parser's RecursionError beyond ~1000 levels,
+    or under it a structure later steps would recurse into) and bytes that are not JSON
+    are a 422 at ``["body", "manifest"]``, never a 500; nothing is created and the
+    connection goes on serving."""
+    (_, a), (tb, b) = deployments
+    a.create_field("f", channels=2, basis=ONE_CHART)
+    _fill(a, "f", rng)
+    good = a.export_field("f")
+    with np.load(io.BytesIO(good), allow_pickle=False) as z:
+        text = bytes(z["manifest"]).decode()
+
+    def nested(depth: int) -> str:
+        return "[" * depth + "]" * depth
+
+    cases = {
+        "whole": (nested(100_000).encode(), "nested"),
+        "in spec": (text.replace('"spec": {', f'"spec": {{"x": {nested(100_000)}, ', 1).encode(),
+                    "nested"),
+        "in batches": (text.replace('"batches": [', f'"batches": [{nested(500)}, ', 1).encode(),
+                       "nested"),
+        "objects": (("{" + '"a": {' * 5000 + "}" * 5001).encode(), "nested"),
+        "not JSON": (b'{"format": 1,', "not JSON"),
+        "not UTF-8": (b'{"field": "\xff"}', "not JSON"),
+    }
+    for case, (raw, words) in cases.items():
+        r = tb.post("/v1/fields/x/import", content=_with_raw_manifest(good, raw),
+                    headers={"Content-Type": NPZ})
+        assert r.status_code == 422, (case, r.status_code, r.text[:300])
+        err = r.json()["detail"][0]
+        assert err["loc"] == ["body", "manifest"] and words in err["msg"], (case, err)
+        assert err["msg"].startswith("manifest: ") and len(err["msg"]) < 300, (case, err)
+    assert [f["name"] for f in b.list_fields()] == []  # nothing was created
+    assert b.import_field("x", good)["batches"] == 4  # the same connection serves on

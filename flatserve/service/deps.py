@@ -174,17 +174,19 @@ OnceIdempotencyKey = Depends(once_idempotency_key)
 
 
 def presented_key(headers) -> Optional[str]:
-    """The API key of a request (raw ASGI headers): header ``api-key``, else
+    """The API key of a request (raw ASGI headers): header ``api-key`` or
     ``Authorization: Bearer``; None when neither. Repeated headers are refused
-    (400, :func:`single_headers`)."""
+    (400, :func:`single_headers`), and so are two different keys in the two (400:
+    neither is taken over the other, as a read-only key beside the read-write one
+    must not write); the same key in both is that key."""
     found = single_headers(headers, (b"api-key", b"authorization"))
-    key = found.get(b"api-key")
-    if key:
-        return key.decode("latin-1")
     scheme, _, cred = found.get(b"authorization", b"").decode("latin-1").partition(" ")
-    if scheme.lower() == "bearer" and cred.strip():
-        return cred.strip()
-    return None
+    bearer = cred.strip() if scheme.lower() == "bearer" and cred.strip() else None
+    key = found.get(b"api-key", b"").decode("latin-1") or None
+    if key is not None and bearer is not None and key != bearer:
+        raise ApiError(400, "two different API keys: the `api-key` header and "
+                            "`Authorization: Bearer`; send one key, in one of them")
+    return key if key is not None else bearer
 
 
 def _eq(a: str, secret) -> bool:

@@ -42,7 +42,9 @@ class ErrorBody(BaseModel):
 # Documented on every route (OpenAPI); 422 is FastAPI's HTTPValidationError.
 #: what flatserve.service.guard refuses on every route (forged cross-site requests)
 GUARD_RESPONSES: dict[int | str, dict] = {
-    400: {"model": ErrorBody, "description": "A header that must be sent once is repeated."},
+    400: {"model": ErrorBody, "description": "A header that must be sent once is repeated, "
+                                             "or `api-key` and `Authorization: Bearer` "
+                                             "carry different keys."},
     403: {"model": ErrorBody, "description": "A cross-origin request from an origin not "
                                              "allowed (or the read-only key for a write)."},
     415: {"model": ErrorBody, "description": "A Content-Type this route does not take."},

@@ -92,6 +92,36 @@ def test_repeated_key_headers_are_refused(make_app):
         tc.__exit__(None, None, None)
 
 
+
+def test_two_different_keys_are_refused_the_same_in_both_accepted(make_app):
+    """``api-key`` and ``Authorization: Bearer`` with different keys are a 400 naming
+    both headers, on every route (the read-only Bearer beside the read-write
+    ``api-key`` wrote); the same key in both, or ``api-key`` beside an
+    ``Authorization`` of another scheme, is that key."""
+    tc, c = started(make_app(api_key="rw", read_only_key="ro"))
+
+    def keys(api_key, bearer):
+        return {"api-key": api_key, "Authorization": f"Bearer {bearer}"}
+
+    try:
+        for path, method in (("/v1/fields", tc.get), ("/v1/fields/x/query", tc.post),
+                             ("/v1/fields/x/render", tc.post), ("/v1/fields", tc.post)):
+            for headers in (keys("rw", "ro"), keys("ro", "rw"), keys("rw", "wrong")):
+                r = method(path, headers=headers)
+                assert r.status_code == 400, (path, headers, r.status_code, r.text)
+                assert "api-key" in r.text and "Authorization" in r.text, r.text
+        spec = {"name": "f", "k": 1, "d": 3, "channels": 1}
+        assert tc.post("/v1/fields", json=spec, headers=keys("rw", "ro")).status_code == 400
+        assert tc.post("/v1/fields", json=spec, headers=keys("rw", "rw")).status_code == 201
+        assert tc.get("/v1/fields", headers=keys("ro", "ro")).json()["fields"][0]["name"] == "f"
+        assert tc.post("/v1/fields", json={**spec, "name": "g"},
+                       headers=keys("ro", "ro")).status_code == 403
+        r = tc.post("/v1/fields", json={**spec, "name": "g"},
+                    headers={"api-key": "rw", "Authorization": "Basic dXNlcjpwdw=="})
+        assert r.status_code == 201, r.text
+    finally:
+        tc.__exit__(None, None, None)
+
 @pytest.mark.parametrize("body, member", [
     ({"origins": [[0, 0, -3]], "directions": [[0, 0, 1]], "Q": [np.eye(3).tolist()]}, "body"),
     ({"origins": [[0, 0, -3]], "directions": [[0, 0, 1]], "extra": 1}, "extra"),

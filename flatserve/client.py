@@ -676,8 +676,9 @@ class Client:
         holdout : iterable of str
             Frames (by name) left out, e.g. to compare renders with them.
         batch_rays : int, optional
-            Rays per batch (default: the capture module's ``BATCH_RAYS``, within the
-            server's ``max_batch_rows``). Part of the keys: resume with the same.
+            Rays per batch (default: the capture module's ``BATCH_RAYS``; a batch more
+            than a request may carry is sent in parts, as :meth:`upload` does). Part of
+            the keys: resume with the same.
         progress : bool or callable
             True: a progress bar over the rays (tqdm, on stderr); a callable is
             called as ``progress(rays_done, rays_total)`` after each batch.
@@ -730,9 +731,8 @@ class Client:
         channels = int(options.get("channels", capture.channels))
         if create:
             self.create_field(name, exist_ok=True, **options)
-        if batch_rays is None:  # one request a batch: replays are counted per batch
-            batch_rays = min(cap.BATCH_RAYS, self._rows_per_request(6 + channels, True,
-                                                                    cap.BATCH_RAYS, None))
+        if batch_rays is None:  # fixed, not the server's limits: the keys must not change
+            batch_rays = cap.BATCH_RAYS  # (a batch too large for a request is split by upload)
         key = capture_key(name, capture, stride=stride, channels=channels,
                           batch_rays=int(batch_rays))
         total = capture.nrays(stride)

@@ -396,6 +396,26 @@ def test_the_client_names_a_bad_pose(imported, client):
     assert exc.value.argument == "format"
 
 
+def test_a_photographs_pose_renders_at_a_size_given(imported, server):
+    """A frame larger than a render may be (a 4032 x 3024 photograph) renders at the body's
+    size; without one it is a 422 naming the side and saying what to do."""
+    from flatserve.service.routes_lightfield import MAX_SIDE
+
+    big = HELD_CAMERA.scaled(4032, 3024)
+    small = HELD_CAMERA.scaled(40, 30).to_colmap()
+    r = httpx.post(f"{server[0]}/v1/fields/nerf/render", timeout=WAIT_S,
+                   json={"colmap": big.to_colmap(), "width": 40, "supersample": 1, "format": "npy"})
+    want = httpx.post(f"{server[0]}/v1/fields/nerf/render", timeout=WAIT_S,
+                      json={"colmap": small, "supersample": 1, "format": "npy"})
+    assert r.status_code == want.status_code == 200, r.text
+    np.testing.assert_allclose(np.load(io.BytesIO(r.content)), np.load(io.BytesIO(want.content)),
+                               atol=1e-6, equal_nan=True)
+    r = httpx.post(f"{server[0]}/v1/fields/nerf/render", json={"colmap": big.to_colmap()},
+                   timeout=WAIT_S)
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "width"
+    assert str(MAX_SIDE) in r.text and "smaller width or height" in r.text
+
+
 def test_a_pose_too_large_is_413(server):
     from flatserve.service.routes_lightfield import MAX_SIDE
 

@@ -91,3 +91,23 @@ def test_either_format_of_a_capture_gets_the_same_spec():
     spec = field_spec(cams, 3)
     assert spec["channels"] == 3 and spec["oriented"] is True and spec["unit"] == rig_unit(cams)
     assert spec["basis"]["atlas"] == "samples"
+
+
+def test_nearly_parallel_cameras_leave_the_unit_to_the_data():
+    """A forward-facing rig of parallel cameras with pose noise: the point their axes
+    nearly meet is anywhere (noise of 1e-3 radians put it behind them), so no rig unit."""
+    rng = np.random.default_rng(6)
+    for noise in (0.0, 1e-4, 1e-3):  # radians
+        cams = [cam((x, y, -3.0), (x + 3 * noise * rng.normal(), y + 3 * noise * rng.normal(), 0.0))
+                for x in np.linspace(-0.7, 0.7, 8) for y in np.linspace(-0.4, 0.4, 5)]
+        assert rig_unit(cams) is None, noise
+        assert field_spec(cams, 1)["unit"] == "data"
+    # toed in by a few degrees: the centre is where they look
+    toed = [cam((x, y, -3.0), (0, 0, 0)) for x in (-0.7, 0.0, 0.7) for y in (-0.4, 0.4)]
+    assert rig_unit(toed) is not None
+
+
+def test_a_centre_behind_a_camera_gives_no_unit():
+    # two cameras looking away from each other: their axes meet behind both
+    cams = [cam((-1.0, 0.0, 0.0), (-2.0, 0.0, 0.3)), cam((1.0, 0.0, 0.0), (2.0, 0.0, 0.3))]
+    assert rig_unit(cams) is None

@@ -864,7 +864,10 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
     first = 0
 
     def flush(end: int) -> RayBatch:
+        # the frames' arrays are let go before the batch is handed over (held once)
+        nonlocal pending, pending_rays
         o, d, v = (np.concatenate([p[i] for p in pending]) for i in range(3))
+        pending, pending_rays = [], 0
         return RayBatch(origins=o, directions=d, values=v, frames=(first, end), index=index)
 
     for k, frame in enumerate(capture.frames):
@@ -874,19 +877,22 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
         if pending and pending_rays + n > batch_rays:
             yield flush(k)
             index += 1
-            pending, pending_rays = [], 0
-        o, d, v = _frame_rays(frame, stride, want, capture.channels, bg)
+        rays = _frame_rays(frame, stride, want, capture.channels, bg)
         if n > batch_rays:
+            o, d, v = rays
+            del rays
             pieces = -(-n // batch_rays)
             cuts = [n * p // pieces for p in range(pieces + 1)]
             for a, b in zip(cuts[:-1], cuts[1:]):
                 yield RayBatch(origins=o[a:b], directions=d[a:b], values=v[a:b], frames=(k, k + 1), index=index)
                 index += 1
+            del o, d, v
             continue
         if not pending:
             first = k
-        pending.append((o, d, v))
+        pending.append(rays)
         pending_rays += n
+        del rays
     if pending:
         yield flush(len(capture.frames))
 

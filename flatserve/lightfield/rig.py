@@ -34,7 +34,7 @@ import numpy as np
 from ..errors import InvalidInputError
 from .camera import PinholeCamera
 
-__all__ = ["PROBE_SIDE", "ATLAS_RADIUS_DEG", "DIGITS", "rig_center", "rig_unit", "probe_rays", "capture_atlas",
+__all__ = ["PROBE_SIDE", "ATLAS_RADIUS_DEG", "DIGITS", "PARALLEL_DEG", "rig_center", "rig_unit", "probe_rays", "capture_atlas",
            "field_spec"]
 
 #: Rays per image side that :func:`probe_rays` takes (4 x 4 per camera, the
@@ -43,6 +43,12 @@ PROBE_SIDE = 4
 #: Degrees: every probe ray is this close to a chart's centre
 #: (:meth:`flatserve.atlas.Atlas.for_samples` ``radius``).
 ATLAS_RADIUS_DEG = 30.0
+#: Degrees: cameras whose optical axes are all closer than this to their mean
+#: direction look at no point that the poses determine (a forward-facing rig of
+#: nearly parallel cameras: pose noise of 1e-3 radians moved :func:`rig_center`
+#: from the scene to behind the cameras); :func:`rig_unit` then leaves the unit
+#: to the data.
+PARALLEL_DEG = 1.0
 #: Significant digits the rig's choices are rounded to (:func:`rig_unit`, and
 #: :func:`probe_rays`' coordinates): the same capture read from either format
 #: (poses that differ by rounding) gets the same atlas, bit for bit, and so the
@@ -113,8 +119,9 @@ def rig_unit(cameras: Sequence[PinholeCamera], center=None) -> float | None:
     ``median(p) / median(t)``: in it the two steps weigh alike, so that the
     triangulation's cells join rays of neighbouring photographs rather than
     stretch along one. On the rigs of ``docs/capture-results.md`` it chose
-    0.31 (forward-facing, 40 cameras) and 0.07 (62 cameras all around), where
-    0.2-0.4 and 0.06-0.12 were the best measured.
+    0.34 (forward-facing, 40 cameras) and 0.063 (62 cameras all around), where
+    units from 0.05 to 0.4, and from 0.03 to 0.3, were within 0.15 and 0.3 dB
+    of the best measured.
 
     Parameters
     ----------
@@ -126,13 +133,25 @@ def rig_unit(cameras: Sequence[PinholeCamera], center=None) -> float | None:
     -------
     float or None
         None when there is no turn to measure (one camera, or all eyes in one
-        direction from the centre): then the field's own rule chooses.
+        direction from the centre), when the cameras are nearly parallel
+        (within :data:`PARALLEL_DEG` of their mean direction: their centre is
+        not determined by the poses) or the centre is behind a camera: then the
+        field's own rule chooses (``"data"``).
     """
     cams = _cameras(cameras)
-    c = rig_center(cams) if center is None else np.asarray(center, dtype=np.float64)
+    f = np.stack([cam.rotation[:, 2] for cam in cams])
+    if center is None:
+        # the axes' mean squared sine to their mean direction: the conditioning of rig_center
+        spread = np.linalg.eigvalsh(np.eye(3) - (f.T @ f) / len(cams))[0]
+        if spread < math.sin(math.radians(PARALLEL_DEG)) ** 2:
+            return None
+        c = rig_center(cams)
+    else:
+        c = np.asarray(center, dtype=np.float64)
     e = np.stack([cam.eye for cam in cams]) - c
     dist = np.linalg.norm(e, axis=1)
-    if len(cams) < 2 or not (dist > 0).all():
+    # a centre behind a camera is not what the rig looks at
+    if len(cams) < 2 or not (dist > 0).all() or (np.einsum("ij,ij->i", -e, f) <= 0).any():
         return None
     u = e / dist[:, None]
     cos = np.clip(u @ u.T, -1.0, 1.0)
@@ -186,11 +205,9 @@ def capture_atlas(cameras: Sequence[PinholeCamera]):
     from ..atlas import Atlas
     from ..flats import Flats
 
-    cams = _cameras(cameras)
-    o, d = probe_rays(cams)
-    unit = rig_unit(cams)
+    o, d, unit = _choices(cameras)
     return Atlas.for_samples(Flats.from_rays(o, d), oriented=True, radius=ATLAS_RADIUS_DEG,
-                             unit="data" if unit is None else unit)
+                             unit=unit)
 
 
 def field_spec(cameras: Sequence[PinholeCamera], channels: int) -> dict:
@@ -204,10 +221,16 @@ def field_spec(cameras: Sequence[PinholeCamera], channels: int) -> dict:
         rays, ``{"kind": "atlas", "atlas": "samples", ...}``) and ``unit``
         (:func:`rig_unit`, or ``"data"``).
     """
-    cams = _cameras(cameras)
-    o, d = probe_rays(cams)
-    unit = rig_unit(cams)
+    o, d, unit = _choices(cameras)
     return {"channels": int(channels), "oriented": True,
             "basis": {"kind": "atlas", "atlas": "samples", "radius": ATLAS_RADIUS_DEG,
                       "samples": {"origins": o.tolist(), "directions": d.tolist()}},
-            "unit": "data" if unit is None else unit}
+            "unit": unit}
+
+
+def _choices(cameras):
+    """The probe rays and the unit (or ``"data"``) of a capture's field."""
+    cams = _cameras(cameras)
+    o, d = probe_rays(cams)
+    unit = rig_unit(cams)
+    return o, d, "data" if unit is None else unit

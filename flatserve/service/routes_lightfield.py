@@ -72,7 +72,10 @@ Finite = Annotated[float, Field(allow_inf_nan=False)]
 MAX_PIXELS = 1e7
 Pixels = Annotated[float, Field(ge=-MAX_PIXELS, le=MAX_PIXELS, allow_inf_nan=False)]
 FocalPixels = Annotated[float, Field(gt=0, le=MAX_PIXELS, allow_inf_nan=False)]
-Side = Annotated[int, Field(ge=1, le=MAX_SIDE)]
+#: Largest side of a pose's own frame (a photograph's): rendered at the body's
+#: ``width``/``height`` when larger than :data:`MAX_SIDE`.
+MAX_POSE_SIDE = 100_000
+Side = Annotated[int, Field(ge=1, le=MAX_POSE_SIDE)]
 #: The camera members of a render body, one of which gives the camera.
 CAMERA_MEMBERS = ("orbit", "eye", "rotation", "nerf", "colmap")
 #: COLMAP camera models a render takes, with their ``params`` in cameras.txt order.
@@ -287,16 +290,18 @@ class CameraSpec(BaseModel):
 
     def _sized(self, cam):
         """``cam`` scaled to the body's ``width``/``height`` when given (one of them:
-        the other keeps the frame's aspect ratio)."""
+        the other keeps the frame's aspect ratio); the rendered size at most
+        :data:`MAX_SIDE` (a photograph's frame may be larger: give a size)."""
         has_w, has_h = "width" in self.model_fields_set, "height" in self.model_fields_set
-        if not (has_w or has_h):
-            return cam
-        w = self.width if has_w else max(1, round(self.height * cam.width / cam.height))
-        h = self.height if has_h else max(1, round(self.width * cam.height / cam.width))
+        w = self.width if has_w else (cam.width if not has_h else
+                                      max(1, round(self.height * cam.width / cam.height)))
+        h = self.height if has_h else (cam.height if not has_w else
+                                       max(1, round(self.width * cam.height / cam.width)))
+        how = "at the frame's aspect ratio" if has_w or has_h else "the frame's"
         for name, v in (("width", w), ("height", h)):
             if v > MAX_SIDE:
-                raise InvalidInputError(f"{name}: {v} pixels at the frame's aspect ratio; at most "
-                                        f"{MAX_SIDE}", name)
+                raise InvalidInputError(f"{name}: {v} pixels ({how}); at most {MAX_SIDE}: give "
+                                        f"a smaller width or height", name)
         if (w, h) == (cam.width, cam.height):
             return cam
         return cam.scaled(w, h)

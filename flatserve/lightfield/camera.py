@@ -284,8 +284,41 @@ def resolve_supersamples(values, width: int, height: int, side: int, weights=Non
         return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
 
 
+class _Raster:
+    """What a camera's raster of supersamples gives both kinds of camera: ``width``,
+    ``height`` and ``supersample`` (rays per pixel, a square number) are the
+    subclass's fields."""
+
+    @property
+    def side(self) -> int:
+        """Supersamples per pixel side (sqrt of ``supersample``)."""
+        return math.isqrt(int(self.supersample))
+
+    @property
+    def nrays(self) -> int:
+        """Rays of :meth:`rays`: ``width * height * supersample``."""
+        return self.width * self.height * self.supersample
+
+    def resolve(self, values: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """Average supersamples into pixels (:func:`resolve_supersamples`).
+
+        Parameters
+        ----------
+        values : (H*s * W*s, C) float
+            One row per ray of :meth:`rays`.
+        weights : (H*s * W*s,) float, optional
+            Per-ray weights (e.g. 0 for rays without a value); pixels whose
+            weights sum to zero become NaN.
+
+        Returns
+        -------
+        (H, W, C) float64
+        """
+        return resolve_supersamples(values, self.width, self.height, self.side, weights)
+
+
 @dataclass(frozen=True)
-class Camera:
+class Camera(_Raster):
     """A pinhole camera.
 
     Parameters
@@ -355,15 +388,6 @@ class Camera:
         return replace(self, **changes)
 
     # ------------------------------------------------------------------ rays
-    @property
-    def side(self) -> int:
-        """Supersamples per pixel side (sqrt of ``supersample``)."""
-        return math.isqrt(int(self.supersample))
-
-    @property
-    def nrays(self) -> int:
-        return self.width * self.height * self.supersample
-
     def rays(self) -> tuple[np.ndarray, np.ndarray]:
         """Rays of all supersamples in scanline order over the fine raster.
 
@@ -389,23 +413,6 @@ class Camera:
         o = np.empty((H * W, 3))
         o[:] = self.eye
         return o, d.reshape(H * W, 3)
-
-    def resolve(self, values: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-        """Average supersamples into pixels.
-
-        Parameters
-        ----------
-        values : (H*s * W*s, C) float
-            One row per ray of :meth:`rays`.
-        weights : (H*s * W*s,) float, optional
-            Per-ray weights (e.g. 0 for rays without a value); pixels whose
-            weights sum to zero become NaN.
-
-        Returns
-        -------
-        (H, W, C) float64
-        """
-        return resolve_supersamples(values, self.width, self.height, self.side, weights)
 
     def to_dict(self) -> dict:
         """JSON-ready description."""
@@ -481,7 +488,7 @@ _GL_FROM_CV = np.array([1.0, -1.0, -1.0])
 
 
 @dataclass(frozen=True)
-class PinholeCamera:
+class PinholeCamera(_Raster):
     """A real camera: a pinhole with intrinsics in pixels (OpenCV's convention).
 
     Conventions: ``rotation`` maps camera to world coordinates; its columns
@@ -719,16 +726,6 @@ class PinholeCamera:
         return replace(self, **changes)
 
     # ------------------------------------------------------------------ rays
-    @property
-    def side(self) -> int:
-        """Supersamples per pixel side (sqrt of ``supersample``)."""
-        return math.isqrt(self.supersample)
-
-    @property
-    def nrays(self) -> int:
-        """Rays of :meth:`rays`: ``width * height * supersample``."""
-        return self.width * self.height * self.supersample
-
     def grid_rays(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """Rays through a grid of image positions, in scanline order.
 
@@ -785,22 +782,6 @@ class PinholeCamera:
         """
         s = self.side
         return self.grid_rays((np.arange(self.width * s) + 0.5) / s, (np.arange(self.height * s) + 0.5) / s)
-
-    def resolve(self, values: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-        """Average supersamples into pixels (:func:`resolve_supersamples`).
-
-        Parameters
-        ----------
-        values : (H*s * W*s, C) float
-            One row per ray of :meth:`rays`.
-        weights : (H*s * W*s,) float, optional
-            Per-ray weights; pixels whose weights sum to zero become NaN.
-
-        Returns
-        -------
-        (H, W, C) float64
-        """
-        return resolve_supersamples(values, self.width, self.height, self.side, weights)
 
     def to_dict(self) -> dict:
         """JSON-ready description (the constructor's arguments)."""

@@ -643,8 +643,9 @@ class Client:
 
     def import_capture(self, name: str, path, *, format: str | None = None,
                        stride: int | None = None, target_rays: int | None = None,
-                       holdout=(), batch_rays: int | None = None, progress: Progress = True,
-                       create: bool = True, **field_options) -> dict:
+                       holdout=(), background=0.0, batch_rays: int | None = None,
+                       progress: Progress = True, create: bool = True,
+                       **field_options) -> dict:
         """Upload a real capture (posed photographs) as a light field: one ray per pixel.
 
         Reads the capture (:func:`flatserve.lightfield.capture.read_capture`: a NeRF
@@ -675,6 +676,11 @@ class Client:
             Instead of ``stride``: the smallest stride giving at most this many rays.
         holdout : iterable of str
             Frames (by name) left out, e.g. to compare renders with them.
+        background : float or (3,) float
+            Grey level or RGB colour in [0, 1] behind transparent pixels, when
+            RGBA images are imported into a field of fewer channels (``channels=3``
+            or 1; :func:`~flatserve.lightfield.capture.capture_batches`). Part of
+            the keys when not 0.
         batch_rays : int, optional
             Rays per batch (default: the capture module's ``BATCH_RAYS``; a batch more
             than a request may carry is sent in parts, as :meth:`upload` does). Part of
@@ -714,6 +720,7 @@ class Client:
             if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
                                   or v < 1):
                 raise InvalidInputError(f"{arg}: expected a positive integer, got {v!r}", arg)
+        cap.check_background(background)
         capture = cap.read_capture(path, format=format)
         if isinstance(holdout, str):
             holdout = (holdout,)
@@ -734,14 +741,14 @@ class Client:
         if batch_rays is None:  # fixed, not the server's limits: the keys must not change
             batch_rays = cap.BATCH_RAYS  # (a batch too large for a request is split by upload)
         key = capture_key(name, capture, stride=stride, channels=channels,
-                          batch_rays=int(batch_rays))
+                          batch_rays=int(batch_rays), background=background)
         total = capture.nrays(stride)
         out = {"field": name, "format": capture.format, "frames": len(capture.frames),
                "stride": stride, "rays": 0, "stored": 0, "rejected": 0, "batches": 0,
                "replayed": 0, "nsamples": None, "key": key}
         with _progress_of(progress, total, name, unit="rays", verb="import") as tick:
             for batch in cap.capture_batches(capture, stride=stride, channels=channels,
-                                             batch_rays=int(batch_rays)):
+                                             background=background, batch_rays=int(batch_rays)):
                 rep = self.upload(name, batch.values, origins=batch.origins,
                                   directions=batch.directions,
                                   idempotency_key=f"{key}.{batch.index}")
@@ -790,16 +797,21 @@ def _capture_module():
     return capture
 
 
-def capture_key(name: str, capture, *, stride: int, channels: int, batch_rays: int) -> str:
+def capture_key(name: str, capture, *, stride: int, channels: int, batch_rays: int,
+                background=0.0) -> str:
     """The stem of the Idempotency-Keys of a capture's import (:meth:`Client.import_capture`):
     ``capture-`` and 24 hex digits of a SHA-256 of the field's name, the capture's
-    format, its frames' names and poses, ``stride``, ``channels`` and ``batch_rays``;
+    format, its frames' names and poses, ``stride``, ``channels``, ``batch_rays``
+    and ``background`` when it is not 0 (it changes RGBA pixels' values);
     batch ``i`` is sent under ``<stem>.<i>``. Not the images' pixels: a frame
     whose image changed under the same key is refused by the service (its
     content differs), never stored twice."""
     doc = {"field": name, "format": capture.format, "stride": int(stride),
            "channels": int(channels), "batch_rays": int(batch_rays),
            "frames": [[f.name, f.camera.to_dict()] for f in capture.frames]}
+    bg = _capture_module().check_background(background)
+    if np.any(bg != 0):
+        doc["background"] = bg.tolist()
     digest = hashlib.sha256(orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY)).hexdigest()
     return f"capture-{digest[:24]}"
 

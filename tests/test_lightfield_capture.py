@@ -441,10 +441,21 @@ def small_capture(tmp_path, sizes, seed=13) -> tuple[Capture, list[np.ndarray]]:
 
 
 def test_stride_and_target_rays(tmp_path):
-    cap, _ = small_capture(tmp_path, [(17, 11), (9, 14), (30, 3), (1, 1)])
+    cap, images = small_capture(tmp_path, [(17, 11), (9, 14), (30, 3), (1, 1)])
     for s in range(1, 35):
         o, d, v = capture_rays(cap, stride=s)
         assert len(o) == len(d) == len(v) == cap.nrays(s)
+        # every frame keeps a ray however long the stride (a side shorter than half
+        # the stride keeps its middle pixel), each with its own pixel's value
+        for name, im in zip(cap.names, images):
+            one = cap.take(name)
+            assert one.nrays(s) >= 1
+            ov, dv, vv = capture_rays(one, stride=s)
+            H, W = im.shape[:2]
+            rows = np.arange(min(s // 2, (H - 1) // 2), H, s)
+            cols = np.arange(min(s // 2, (W - 1) // 2), W, s)
+            np.testing.assert_allclose(vv, im[rows[:, None], cols[None, :]].reshape(len(vv), -1),
+                                       atol=0.5 / 255 + 1e-12)  # 8-bit PNGs
     assert cap.nrays(1) == 17 * 11 + 9 * 14 + 30 * 3 + 1
     for target in [4, 5, 50, 100, 300, 400, cap.nrays(1), 10 ** 6]:
         s = cap.stride_for(target)

@@ -254,6 +254,35 @@ def test_target_rays_picks_the_stride(server, captures, client):
     assert exc.value.argument == "holdout" and "no_such_frame" in str(exc.value)
 
 
+def test_rgba_imported_as_rgb_over_a_background(server, client, tmp_path):
+    """RGBA photographs imported into an RGB field: each stored value is its pixel
+    composited over the background asked; the background is part of the keys (a second
+    import over another background is another set of batches, not a replay); a bad
+    background is refused before the field is created."""
+    rng = np.random.default_rng(37)
+    cams = RIG[:4]
+    images = [rng.random((cam.height, cam.width, 4)) for cam in cams]
+    write_nerf(tmp_path, cams, images, names=NAMES[:4], bits=16)
+    bg = np.array([0.2, 0.5, 0.9])
+    rep = client.import_capture("rgba", tmp_path, channels=3, background=bg.tolist(),
+                                target_rays=64, progress=False)
+    cap = read_capture(tmp_path)
+    o, d, v = capture_rays(cap, stride=rep["stride"])  # RGBA as read
+    want = v[:, :3] * v[:, 3:] + bg * (1 - v[:, 3:])
+    got = export_arrays(client, "rgba")
+    np.testing.assert_allclose(got["rays_origins"], o, atol=1e-12)
+    np.testing.assert_allclose(got["values"], want, atol=1e-12)
+    other = client.import_capture("rgba", tmp_path, channels=3, background=0.0,
+                                  target_rays=64, progress=False)
+    assert other["key"] != rep["key"] and other["replayed"] == 0
+    for bad in ("white", [0.1, 0.2], 1.5, True):
+        with pytest.raises(InvalidInputError) as exc:
+            client.import_capture("rgba-bad", tmp_path, channels=3, background=bad,
+                                  progress=False)
+        assert exc.value.argument == "background"
+    assert "rgba-bad" not in [f["name"] for f in client.list_fields()]
+
+
 # -- renders by pose -------------------------------------------------------------------------
 def render_pair(client):
     """The held-out view from the NeRF field by its NeRF pose, from the COLMAP field by
@@ -327,6 +356,9 @@ def test_a_pose_renders_at_the_size_asked(imported, client):
     # one side given: the other keeps the frame's aspect ratio
     np.testing.assert_array_equal(client.render("nerf", pose, width=WIDTH // 2), want)
     np.testing.assert_array_equal(client.render("nerf", pose, height=HEIGHT // 2), want)
+    # a frame's size written as whole floats ("w": 800.0, as some writers do) is that size
+    floats = {"nerf": {**pose["nerf"], "w": float(WIDTH), "h": float(HEIGHT)}, "supersample": 1}
+    np.testing.assert_array_equal(client.render("nerf", floats, width=WIDTH // 2), want)
     png = client.render("nerf", pose, format="png")
     assert png.startswith(b"\x89PNG")
     from PIL import Image
@@ -359,6 +391,9 @@ def _colmap(**kw):
     (_nerf(camera_angle_x=True), ["nerf", "camera_angle_x"]),
     (_nerf(fl_x=-1.0), ["nerf", "fl_x"]),
     (_nerf(w=0), ["nerf", "w"]),
+    (_nerf(w=32.5), ["nerf", "w"]),
+    (_nerf(h=True), ["nerf", "h"]),
+    (_colmap(width=24.25), ["colmap", "width"]),
     (_nerf(k1=0.1), ["nerf", "k1"]),
     (_nerf(transform_matrix=[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1e200]]),
      ["nerf", "transform_matrix"]),

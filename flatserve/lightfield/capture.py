@@ -48,6 +48,7 @@ __all__ = [
     "RayBatch",
     "capture_batches",
     "capture_rays",
+    "check_background",
     "field_options",
     "read_capture",
     "read_image",
@@ -144,10 +145,15 @@ class CaptureFrame:
     camera: PinholeCamera
 
 
+def _stride_first(n: int, stride: int) -> int:
+    """The first pixel kept along a side of ``n`` pixels at ``stride``: ``stride // 2``,
+    or the side's middle pixel when the side is shorter (every frame keeps a ray)."""
+    return min(stride // 2, (n - 1) // 2)
+
+
 def _stride_count(n: int, stride: int) -> int:
-    """How many of ``0 .. n-1`` are ``stride // 2`` modulo ``stride``."""
-    first = stride // 2
-    return 0 if first >= n else (n - first + stride - 1) // stride
+    """How many pixels of a side of ``n`` are kept at ``stride`` (at least one)."""
+    return (n - _stride_first(n, stride) + stride - 1) // stride
 
 
 def _check_stride(stride) -> int:
@@ -203,7 +209,8 @@ class Capture:
         return tuple(f.name for f in self.frames)
 
     def nrays(self, stride: int = 1) -> int:
-        """Rays of the capture at ``stride``: pixels ``(i, j)`` with ``i = j = stride // 2 (mod stride)``.
+        """Rays of the capture at ``stride``: pixels ``(i, j)`` with ``i = j = stride // 2 (mod stride)``
+        (a side shorter than that keeps its middle pixel: every frame gives a ray).
 
         Parameters
         ----------
@@ -233,7 +240,7 @@ class Capture:
                 or target_rays < len(self.frames):
             raise InvalidInputError(f"target_rays: expected an integer >= the number of frames "
                                     f"({len(self.frames)}), got {target_rays!r}", "target_rays")
-        # nrays is non-increasing in the stride; a stride beyond twice every side keeps nothing
+        # nrays is non-increasing in the stride; beyond twice every side, one ray a frame
         lo, hi = 1, 2 * max(max(f.camera.width, f.camera.height) for f in self.frames) + 2
         while lo < hi:
             mid = (lo + hi) // 2
@@ -788,14 +795,33 @@ def _check_options(capture: Capture, channels, background) -> tuple[int, np.ndar
         channels = capture.channels
     elif isinstance(channels, bool) or channels not in _CHANNELS:
         raise InvalidInputError(f"channels: expected 1, 3, 4 or None, got {channels!r}", "channels")
-    bg = np.asarray(background, dtype=np.float64) if not isinstance(background, bool) else None
+    return int(channels), check_background(background)
+
+
+def check_background(background) -> np.ndarray:
+    """``background`` (a grey level or an RGB colour in [0, 1]) as a (3,) RGB colour.
+
+    Raises
+    ------
+    InvalidInputError
+        Naming ``background``: not a number or three, or outside [0, 1].
+
+    Examples
+    --------
+    >>> check_background(0.5).tolist()
+    [0.5, 0.5, 0.5]
+    """
+    try:
+        bg = None if isinstance(background, bool) else np.asarray(background, dtype=np.float64)
+    except (TypeError, ValueError):
+        bg = None
     if bg is None or bg.shape not in ((), (1,), (3,)):
-        raise InvalidInputError(f"background: expected a grey level or an RGB colour in [0, 1], got {background!r}",
-                                "background")
+        raise InvalidInputError(f"background: expected a grey level or an RGB colour in [0, 1], got "
+                                f"{background!r}"[:300], "background")
     bg = as_array(np.broadcast_to(bg.reshape(-1), (3,)), "background", (3,))
     if not (np.all(bg >= 0) and np.all(bg <= 1)):
         raise InvalidInputError(f"background: expected values in [0, 1], got {background!r}", "background")
-    return int(channels), bg
+    return bg
 
 
 def _frame_rays(frame: CaptureFrame, stride: int, channels: int, capture_channels: int,
@@ -808,11 +834,10 @@ def _frame_rays(frame: CaptureFrame, stride: int, channels: int, capture_channel
         raise CaptureError(frame.image, "size", f"the image is {W}x{H}, its camera {cam.width}x{cam.height}")
     if C != capture_channels:
         raise CaptureError(frame.image, "channels", f"{C} channel(s), the capture's images have {capture_channels}")
-    first = stride // 2
-    cols = np.arange(first, W, stride)
-    rows = np.arange(first, H, stride)
+    cols = np.arange(_stride_first(W, stride), W, stride)
+    rows = np.arange(_stride_first(H, stride), H, stride)
     o, d = cam.grid_rays(cols + 0.5, rows + 0.5)
-    values = img[first::stride, first::stride].reshape(-1, C)
+    values = img[rows[:, None], cols[None, :]].reshape(-1, C)
     return o, d, _convert(values, channels, background)
 
 
@@ -821,7 +846,8 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
     """Stream a capture as batches of rays and values, reading one image at a time.
 
     The rays are those of the pixels ``(i, j)`` (column, row) with ``i = j =
-    stride // 2 (mod stride)``, each through its pixel's centre with the
+    stride // 2 (mod stride)`` (:meth:`Capture.nrays`: every frame gives at least
+    one), each through its pixel's centre with the
     pixel's own value, frame by frame in the capture's order, each frame in
     scanline order. Whole frames are gathered into a batch while it holds at
     most ``batch_rays`` rays; a frame with more rays than that is split into
@@ -872,8 +898,6 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
 
     for k, frame in enumerate(capture.frames):
         n = _stride_count(frame.camera.width, stride) * _stride_count(frame.camera.height, stride)
-        if n == 0:
-            continue
         if pending and pending_rays + n > batch_rays:
             yield flush(k)
             index += 1

@@ -44,7 +44,7 @@ from typing import Annotated, Literal, Optional
 import numpy as np
 from fastapi import APIRouter, Header, Response
 from fastapi.responses import FileResponse, HTMLResponse
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from ..errors import InvalidInputError
 from ..flats import MAX_ENTRY
@@ -75,7 +75,16 @@ FocalPixels = Annotated[float, Field(gt=0, le=MAX_PIXELS, allow_inf_nan=False)]
 #: Largest side of a pose's own frame (a photograph's): rendered at the body's
 #: ``width``/``height`` when larger than :data:`MAX_SIDE`.
 MAX_POSE_SIDE = 100_000
-Side = Annotated[int, Field(ge=1, le=MAX_POSE_SIDE)]
+
+
+def _integral(v):
+    """A whole number written as a float (``"w": 800.0``, as some NeRF writers do) as
+    the integer it is (JSON Schema's ``integer`` holds it too); anything else as
+    given, for the strict check to judge."""
+    return int(v) if isinstance(v, float) and v.is_integer() else v
+
+
+Side = Annotated[int, BeforeValidator(_integral), Field(ge=1, le=MAX_POSE_SIDE)]
 #: The camera members of a render body, one of which gives the camera.
 CAMERA_MEMBERS = ("orbit", "eye", "rotation", "nerf", "colmap")
 #: COLMAP camera models a render takes, with their ``params`` in cameras.txt order.

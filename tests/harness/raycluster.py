@@ -78,3 +78,41 @@ def assigned_resources(actor, timeout: float = 60.0) -> dict:
 
     return ray.get(actor.__ray_call__.remote(
         lambda self: ray.get_runtime_context().get_assigned_resources()), timeout=timeout)
+
+
+def unbuilt_checkout(tmp) -> tuple[dict[str, str], "os.PathLike"]:
+    """A front's setting of the README: flatserve installed (a wheel, its extension
+    built) and started from inside a source checkout that has no built extension.
+
+    Returns the environment for the Ray nodes and the front (the installed package
+    first on ``PYTHONPATH``) and the checkout's directory (the front's working
+    directory). The installed package is a copy of the one this process imports,
+    with its extension; the checkout a copy of its Python sources only. This
+    repository's own install is editable: its import finder sends ``flatserve``
+    to the source tree whatever ``sys.path`` says, except in a process whose
+    ``SKBUILD_EDITABLE_SKIP`` names its build directory (scikit-build-core's rule
+    for builds): set here, so that imports follow ``sys.path`` as they do for a
+    wheel.
+    """
+    import shutil
+    import sys
+    from pathlib import Path
+
+    import flatserve
+    import flatserve._core as core
+
+    tmp = Path(tmp)
+    src = Path(flatserve.__file__).parent
+    skip = shutil.ignore_patterns("__pycache__", "_core*.so", "_core*.pyd")
+    installed, checkout = tmp / "site", tmp / "checkout"
+    shutil.copytree(src, installed / "flatserve", ignore=skip)
+    shutil.copy2(core.__file__, installed / "flatserve")
+    shutil.copytree(src, checkout / "flatserve", ignore=skip)
+    (checkout / "pyproject.toml").write_text("[project]\nname = \"flatserve\"\n")
+    env = {"PYTHONPATH": os.pathsep.join(
+        [str(installed), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    builds = [f.path for f in sys.meta_path
+              if type(f).__name__ == "ScikitBuildRedirectingFinder" and getattr(f, "path", None)]
+    if builds:
+        env["SKBUILD_EDITABLE_SKIP"] = os.pathsep.join(builds)
+    return env, checkout

@@ -29,7 +29,7 @@ from flatserve.service.entry import FieldSpec
 from flatserve.service.routes_lightfield import CameraSpec, render_frame
 from flatserve.service.settings import Settings
 from tests.harness.process import ServerProcess
-from tests.harness.raycluster import RayNodes, assigned_resources
+from tests.harness.raycluster import RayNodes, assigned_resources, unbuilt_checkout
 
 from .conftest import ONE_CHART, paper_rays
 from .test_service_postgres import snapshot_soon
@@ -441,6 +441,36 @@ def test_a_one_machine_cluster_on_sqlite(tmp_path, rng):
             groups = c.describe("f")["shard_groups"] + c.describe("one")["shard_groups"]
         assert len(groups) == 3 and all(g["restored_from"] == "snapshot after batch 3"
                                         for g in groups), groups
+
+
+def test_a_front_started_inside_an_unbuilt_checkout_its_shards_import_the_installed_package(
+        tmp_path, rng, monkeypatch):
+    """The README's way: installed, then ``flatserve serve --ray`` from inside the clone
+    (no built extension there). Ray puts a driver's working directory first on its
+    workers' ``sys.path``: the shard actors must import the installed package all
+    the same, not the checkout (``cannot import name '_core'``, every query 503)."""
+    import sys
+
+    env, checkout = unbuilt_checkout(tmp_path)
+    for k, v in env.items():  # (the nodes' workers and the front inherit it)
+        monkeypatch.setenv(k, v)
+    script = [os.path.join(os.path.dirname(sys.executable), "flatserve"), "serve"]
+    o, d = paper_rays(rng, 600)
+    with contextlib.ExitStack() as stack:
+        nodes = stack.enter_context(RayNodes(workers=0))
+        a = stack.enter_context(ServerProcess(
+            tmp_path / "data", tmp_path / "front.log", command=script, cwd=checkout,
+            ray=nodes.address, snapshot_every=0, ray_shards=1, ray_shard_memory=1 << 30,
+            read_wait_timeout=30))
+        a.wait_ready(180)
+        with Client(a.url, retries=0, timeout=120) as c:
+            c.create_field("one", channels=2, basis=ONE_CHART)
+            c.upload_rays("one", o, d, rng.uniform(size=(600, 2)), wait=True)
+            try:
+                got = c.query_rays("one", o[:40], d[:40])
+            except ServiceError as exc:
+                raise AssertionError(f"{exc}\n{(tmp_path / 'front.log').read_text()[-3000:]}")
+        assert got.inside.mean() > 0.9
 
 
 def pinned_shares(address: str) -> dict[str, float | None]:

@@ -161,6 +161,28 @@ def probe_address(address: str, timeout: float = PROBE_TIMEOUT_S) -> None:
                                     f"{exc}") from None
 
 
+def import_installed() -> None:
+    """Run first in every worker process of a front's job (Ray's
+    ``worker_process_setup_hook``, :data:`WORKER_ENV`): importing this module
+    imports ``flatserve`` and its extension from where the worker's interpreter
+    finds them, the installed package, before the worker runs its first task.
+
+    Ray puts the driver's working directory (and script directory) first on its
+    workers' ``sys.path`` when they take their first task; a front started inside a
+    source checkout would have its actors import the checkout, whose extension is
+    not built (``cannot import name '_core'``): every shard actor would die at
+    creation. Once imported here, ``flatserve`` stays the installed package in that
+    process whatever comes first on ``sys.path`` later.
+    """
+    from ... import _core  # noqa: F401  (the extension: fails here, named, if missing)
+
+
+#: the runtime environment of a front's Ray job: its shard and tile actors (tile
+#: actors inherit it from the shard actor that makes them) import the installed
+#: package whatever the front's working directory (:func:`import_installed`)
+WORKER_ENV = {"worker_process_setup_hook": f"{__name__}.import_installed"}
+
+
 def connect(settings) -> None:
     """Connect this process to the Ray cluster at ``settings.ray`` (once).
 
@@ -180,7 +202,7 @@ def connect(settings) -> None:
     probe_address(settings.ray)
     try:
         ray.init(address=settings.ray, namespace=settings.ray_namespace, log_to_driver=False,
-                 logging_level=logging.WARNING)
+                 logging_level=logging.WARNING, runtime_env=WORKER_ENV)
     except Exception as exc:
         raise ShardUnavailableError(
             f"ray: the Ray cluster at {settings.ray!r} cannot be reached: "

@@ -77,6 +77,9 @@ class Settings(BaseSettings):
     """Fewest samples a new field must be able to hold under max_simplices: a create of a kind
     whose estimate (max_simplices / (cells per sample of its triangulation dimension x the
     charts holding each sample)) is lower is refused (413) naming both settings (0: never)."""
+    max_import_batches: int = Field(100_000, ge=1)
+    """Most batches one import file (POST /v1/fields/{name}/import) may list (413): an import
+    checks them all, then stores them one by one within its one request."""
     max_atlas_samples: int = Field(100_000, ge=1)
     """Most flats given to build a data-driven atlas (`basis: {"kind": "atlas", "atlas":
     "samples"}`) when a field is created (413)."""

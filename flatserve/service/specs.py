@@ -6,6 +6,7 @@ from __future__ import annotations
 from contextlib import contextmanager
 
 import numpy as np
+from pydantic import ValidationError
 
 from .._validate import as_array
 from ..atlas import Atlas, data_unit
@@ -16,7 +17,7 @@ from ..errors import InvalidInputError
 from .status import BatchTooLargeError
 from ..flats import FORMS, Flats, form_shapes, infer_form
 from .entry import FieldSpec
-from .schemas import (ATLAS_SPECS, CenterFlat, CoveringAtlas, FlatsBasis,
+from .schemas import (ATLAS_SPECS, CenterFlat, CoveringAtlas, FieldCreate, FlatsBasis,
                       SamplesAtlas, TangentSimplexBasis)
 
 _NAMES = tuple(n for names in FORMS.values() for n in names)
@@ -148,13 +149,133 @@ def field_spec(req, *, max_atlas_samples: int | None = None) -> tuple[FieldSpec,
     ``field_spec(FieldCreate(name="bunny", channels=1, oriented=True))``.
     """
     basis, basis_spec, atlas = build_chart_basis(req, max_atlas_samples=max_atlas_samples)
-    if atlas is not None and req.tiles != 1:
-        raise InvalidInputError(
-            f"tiles: {req.tiles} tiles are for a field of one chart (basis "
-            "{\"kind\": \"tangent_simplex\"} or given flats); an atlas field's charts are "
-            "its shards already (leave tiles out)", "tiles")
+    _check_tiles(req.tiles, atlas is not None, "tiles")
     return FieldSpec(req.k, req.d, req.channels, basis_spec, req.roundtrip_tol, atlas,
                      req.copies, req.tiles), basis
+
+
+def _check_tiles(tiles, atlas: bool, where: str) -> None:
+    """Tiles other than 1 are for a field of one chart (a 422 naming ``where``)."""
+    if atlas and tiles != 1:
+        raise InvalidInputError(
+            f"{where}: {tiles} tiles are for a field of one chart (basis "
+            "{\"kind\": \"tangent_simplex\"} or given flats); an atlas field's charts are "
+            "its shards already (leave tiles out)", where)
+
+
+#: The members of a stored definition (:meth:`~.entry.FieldSpec.to_dict`) that a create
+#: request gives as they are: held to :class:`~.schemas.FieldCreate`'s constraints.
+_REQUEST_MEMBERS = ("k", "d", "channels", "roundtrip_tol", "copies", "tiles")
+
+
+def stored_spec(spec, Q, r, *, where: str = "spec", max_charts: int | None = None,
+                basis_names: tuple[str, str] = ("basis.Q", "basis.r")
+                ) -> tuple[FieldSpec, Basis]:
+    """A stored definition (:meth:`~.entry.FieldSpec.to_dict`, with its basis ``Q``, ``r``)
+    checked as a create checks its request, before any field is built from it: an
+    export file's manifest, a field's row in the log (a replica applying its create, a
+    restart restoring it). Nothing in it may be beyond what a create could have stored,
+    so that no definition can make a server build something unbounded or unanswerable
+    (``tiles`` 1-64 or ``"auto"``, ``copies`` 1-3, ``channels`` 1-64, ``k`` < ``d`` up
+    to :data:`~.schemas.MAX_D`, ...: :class:`~.schemas.FieldCreate` itself judges them).
+
+    Parameters
+    ----------
+    spec : object
+        The stored definition, as read from JSON.
+    Q, r : array_like
+        Its basis (chart 0's for an atlas): ``(m, d, d)`` and ``(m, d)``.
+    where : str
+        The path errors name (``"manifest.spec"`` for an export file's).
+    max_charts : int, optional
+        Most charts of an atlas (none: as stored).
+    basis_names : (str, str)
+        The paths errors about ``Q`` and ``r`` name.
+
+    Returns
+    -------
+    (FieldSpec, Basis)
+
+    Raises
+    ------
+    InvalidInputError
+        Naming the member (``<where>.tiles``, ``<where>.atlas``, ``basis_names``) and
+        what it must be. The field is not built (its atlas is read, not charted).
+    """
+    if not isinstance(spec, dict):
+        raise InvalidInputError(f"{where}: expected a JSON object, got {type(spec).__name__}",
+                                where)
+    for name in ("k", "d", "channels"):
+        if name not in spec:
+            raise InvalidInputError(f"{where}.{name}: missing", f"{where}.{name}")
+    atlas, basis_spec = spec.get("atlas"), spec.get("basis", {})
+    if atlas is not None and not isinstance(atlas, dict):
+        raise InvalidInputError(f"{where}.atlas: expected an object or null", f"{where}.atlas")
+    if not isinstance(basis_spec, dict):
+        raise InvalidInputError(f"{where}.basis: expected an object", f"{where}.basis")
+    given = {n: spec[n] for n in _REQUEST_MEMBERS if n in spec}
+    if atlas is not None:
+        given["oriented"] = atlas.get("oriented")
+    try:
+        req = FieldCreate.model_validate({"name": "stored", **given})
+    except ValidationError as exc:
+        raise _member_error(exc, where) from None
+    with _within(where):
+        oriented_of(req)  # (lines only)
+    _check_tiles(req.tiles, atlas is not None, f"{where}.tiles")
+    if atlas is not None:
+        _check_atlas(atlas, req.k, req.d, where, max_charts)
+    names = {"Q": basis_names[0], "r": basis_names[1]}
+    try:
+        basis = Basis(Q, r, req.k)
+        if basis.d != req.d:
+            raise InvalidInputError(f"Q: flats in R^{basis.d}, the field is defined in "
+                                    f"R^{req.d}", "Q")
+    except InvalidInputError as exc:
+        arg = names.get(exc.argument, basis_names[0])
+        msg = str(exc)
+        if exc.argument and msg.startswith(exc.argument + ":"):
+            msg = msg[len(exc.argument) + 1:].lstrip()
+        raise InvalidInputError(f"{arg}: {msg}", arg) from None
+    return FieldSpec(req.k, req.d, req.channels, dict(basis_spec), req.roundtrip_tol, atlas,
+                     req.copies, req.tiles), basis
+
+
+def _member_error(exc: ValidationError, where: str) -> InvalidInputError:
+    """The first member a :class:`~.schemas.FieldCreate` refused, as one 422 naming it
+    (the messages of each alternative of a union together) and the value given."""
+    errs = exc.errors()
+    loc = errs[0]["loc"][:1]
+    path = ".".join([where, *map(str, loc)])
+    msgs = dict.fromkeys(e["msg"].removeprefix("Value error, ") for e in errs
+                         if e["loc"][:1] == loc)
+    got = f", got {errs[0]['input']!r}"[:80] if loc else ""
+    return InvalidInputError(f"{path}: {' or '.join(msgs)}{got}", path)
+
+
+def _check_atlas(atlas: dict, k: int, d: int, where: str, max_charts: int | None) -> None:
+    """A stored atlas (:meth:`flatserve.atlas.Atlas.to_dict`) reads as an atlas of
+    ``k``-flats in R^d (at most ``max_charts`` charts), without being charted."""
+    path = f"{where}.atlas"
+    scales = atlas.get("scales")
+    n = len(scales) if isinstance(scales, list) else None
+    if n is None or n < 1:
+        raise InvalidInputError(f"{path}.scales: expected a list of one scale per chart",
+                                f"{path}.scales")
+    if max_charts is not None and n > max_charts:
+        raise InvalidInputError(f"{path}: {n} charts; at most {max_charts}", path)
+    ak, ad = atlas.get("k"), atlas.get("d")
+    if (ak, ad) != (k, d) or isinstance(ak, bool) or isinstance(ad, bool):
+        # (before it is read: its charts' sizes follow its own k and d)
+        raise InvalidInputError(f"{path}: charts {ak}-flats in R^{ad}, the field is defined "
+                                f"for {k}-flats in R^{d}", path)
+    try:
+        Atlas.from_dict(atlas)
+    except Exception as exc:  # a damaged or foreign atlas: say what failed
+        arg = getattr(exc, "argument", None)
+        where_ = f"{path}.{arg}" if arg else path
+        raise InvalidInputError(f"{path}: cannot be read: {type(exc).__name__}: {exc}"[:300],
+                                where_) from None
 
 
 def build_chart_basis(req, *, max_atlas_samples: int | None = None

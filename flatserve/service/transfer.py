@@ -19,37 +19,53 @@ order through the upload room, each under the Idempotency-Key
 and an import repeated after a failure stores only the batches still missing (an
 existing field is taken when its definition is the file's). The import rebuilds
 the triangulation from the batches (the cost of a restore without a snapshot).
+
+The whole file is checked before anything is stored (:func:`read_export`): the
+manifest's definition as a create checks its request (:func:`.specs.stored_spec`:
+the same limits, ``tiles`` 1-64, ``copies`` 1-3, ...), its ``format`` (exactly the
+integer 1), ``export_id`` (a short token), at most ``max_import_batches`` batches
+of their own ``seq`` and at most ``max_batch_rows`` rows, then every batch as its
+upload will check it, one at a time (a batch decoded at a time beside the file's
+arrays; the store pass decodes each again): a refused file leaves no field.
 """
 from __future__ import annotations
 
 import io
 import json
+import re
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 
+from .._validate import as_array
 from ..basis import Basis
 from ..errors import InvalidInputError
 from ..flats import FORMS, Flats
+from . import specs
 from .backend import LogBackend
 from .binary import load_npz
 from .catalogue import FieldCatalogue
 from .entry import FieldEntry, FieldSpec
 from .fields import FieldService
-from .schemas import MAX_D, ImportResult
-from .settings import Settings
+from .schemas import ImportResult
+from .settings import FIELD_NAME_PATTERN, Settings
 from .specs import MAX_ATLAS_CENTERS
-from .status import FieldExistsError, FieldNotFoundError
+from .status import (BatchTooLargeError, FieldExistsError, FieldNotFoundError,
+                     LimitExceededError)
 from .uploads import UploadService
 
-__all__ = ["EXPORT_FORMAT", "TransferService"]
+__all__ = ["EXPORT_FORMAT", "ExportPlan", "TransferService", "read_export"]
 
 #: The version of the export file's layout
 EXPORT_FORMAT = 1
 MANIFEST = "manifest"
-#: Most stored batches one export may list
-MAX_EXPORT_BATCHES = 1_000_000
+#: Longest ``export_id``: it goes into the Idempotency-Keys of the imported batches
+#: (``import-<export_id>.<seq>``), so it is a short token of letters, digits, ``_``, ``-``
+MAX_EXPORT_ID = 128
+EXPORT_ID = re.compile(rf"[A-Za-z0-9_-]{{1,{MAX_EXPORT_ID}}}")
 #: Deepest nesting of a manifest's JSON (an export's is at most 6 levels deep): deeper
 #: is a 422, whatever the depth at which the parser's RecursionError (about 1000
 #: levels, less on a deeper stack) or a later step's recursion would fail
@@ -109,32 +125,32 @@ class TransferService:
     def import_field(self, name: str, body: bytes) -> ImportResult:
         """Create field ``name`` from an export file and store its batches.
 
+        The whole file is checked before anything is stored (:func:`read_export`:
+        the definition as a create's, every batch as an upload's, against this
+        server's limits); a file refused leaves no field. Then the batches are stored
+        one at a time (a batch decoded at a time), each under its Idempotency-Key.
+
         Raises
         ------
         InvalidInputError
-            Not an export file, or one whose parts disagree (422, naming the part).
+            Not an export file, or one whose parts disagree or hold a batch an upload
+            refuses (422, naming the part).
+        LimitExceededError
+            More batches than ``max_import_batches``, or a batch of more rows than
+            ``max_batch_rows`` (413).
         FieldExistsError
             ``name`` exists with another definition (409).
         """
-        manifest, spec, basis, batches = _read(body)
-        e = self._field(name, spec, basis)
-        offsets = {form: 0 for form in FORMS}
-        voff = 0
+        plan = read_export(body, self.settings)
+        e = self._field(name, plan.spec, plan.basis)
         accepted = replayed = 0
         out = None
-        for b in batches:
-            form, n = b["form"], b["rows"]
-            arrays = {k: batches.arrays[_member(form, k)][offsets[form]:offsets[form] + n]
-                      for k in FORMS[form]}
-            values = batches.arrays["values"][voff:voff + n]
-            offsets[form] += n
-            voff += n
-            flats = Flats.from_arrays(arrays, k=spec.k, d=spec.d, form=form, min_rows=1)
-            out = self.uploads.upload(e, flats, np.ascontiguousarray(values),
-                                      f"import-{manifest['export_id']}.{b['seq']}", wait=True)
+        for b, flats, values in plan.each():
+            out = self.uploads.upload(e, flats, values, f"import-{plan.export_id}.{b['seq']}",
+                                      wait=True)
             accepted += out.accepted if not out.replayed else 0
             replayed += bool(out.replayed)
-        return ImportResult(name=name, source=manifest["field"], batches=len(batches),
+        return ImportResult(name=name, source=plan.source, batches=len(plan.batches),
                             replayed_batches=replayed, accepted=accepted,
                             nsamples=e.field.nsamples if e.field is not None else 0,
                             position=out.position if out is not None else 0)
@@ -158,10 +174,62 @@ class TransferService:
             return e
 
 
-class _Batches(list):
-    """The manifest's batches, with the file's arrays by member name."""
+@dataclass
+class ExportPlan:
+    """An export file read and checked whole (:func:`read_export`): what an import
+    stores, batch by batch (:meth:`each`)."""
 
+    #: the name of the exported field and the export's id (the key of its batches)
+    source: str
+    export_id: str
+    spec: FieldSpec
+    basis: Basis
+    #: the manifest's batches in order: ``{"seq", "form", "rows"}``
+    batches: list[dict]
+    #: the file's arrays by member name
     arrays: dict[str, np.ndarray]
+
+    def each(self) -> Iterator[tuple[dict, Flats, np.ndarray]]:
+        """``(batch, flats, values)`` of each batch in order, built when reached (a
+        batch at a time in memory beside the file's arrays).
+
+        Raises
+        ------
+        InvalidInputError
+            A batch's flats or values are not valid (naming the member, the batch and
+            its rows in the file).
+        """
+        offsets = {form: 0 for form in FORMS}
+        voff = 0
+        for i, b in enumerate(self.batches):
+            form, n = b["form"], b["rows"]
+            at = offsets[form]
+            arrays = {k: self.arrays[_member(form, k)][at:at + n] for k in FORMS[form]}
+            values = self.arrays["values"][voff:voff + n]
+            where = (f"batch {i} (seq {b['seq']}: rows {at}-{at + n - 1} of the {form} "
+                     f"arrays, {voff}-{voff + n - 1} of values)")
+            offsets[form] += n
+            voff += n
+            with _in_batch(where, form):
+                flats = Flats.from_arrays(arrays, k=self.spec.k, d=self.spec.d, form=form,
+                                          min_rows=1)
+                values = as_array(values, "values", (n, self.spec.channels))
+            yield b, flats, np.ascontiguousarray(values)
+
+
+@contextmanager
+def _in_batch(where: str, form: str):
+    """An error about a batch's array (``directions``, ``values``) as one naming the
+    file's member (``rays_directions``) and the batch."""
+    try:
+        yield
+    except InvalidInputError as exc:
+        arg = exc.argument or "body"
+        member = _member(form, arg) if arg in FORMS[form] else arg
+        msg = str(exc)
+        if msg.startswith(arg + ":"):
+            msg = msg[len(arg) + 1:].lstrip()
+        raise type(exc)(f"{member}: {where}: {msg}"[:500], member) from None
 
 
 def _settled(e: FieldEntry) -> dict:
@@ -213,43 +281,58 @@ def _manifest(raw: bytes):
     return manifest
 
 
-def _read(body: bytes) -> tuple[dict, FieldSpec, Basis, _Batches]:
-    """The manifest, definition, basis and batches of an export file, every part
-    checked against the others before anything is stored."""
+def read_export(body: bytes, settings: Settings) -> ExportPlan:
+    """An export file read and checked whole before anything is stored: the manifest
+    (``format`` exactly the integer :data:`EXPORT_FORMAT`, ``export_id`` a short token,
+    at most ``max_import_batches`` batches, each ``{seq, form, rows}`` with a ``seq``
+    of its own and at most ``max_batch_rows`` rows), the definition as a create
+    checks its request (:func:`.specs.stored_spec`) and built once, the members' rows
+    against the manifest, then every batch as an upload checks it (the field's
+    ``prepare``, which validates without charting), a batch at a time.
+
+    Raises
+    ------
+    InvalidInputError
+        422 naming the part (``manifest.<member>``, a member of the file).
+    LimitExceededError
+        413: more batches than ``max_import_batches``, or a batch of more rows than
+        ``max_batch_rows``.
+    """
     arrays = load_npz(body)
     if MANIFEST not in arrays:
         raise _bad("not a flatserve export (no `manifest` member); make one with "
                    "GET /v1/fields/{name}/export")
     manifest = _manifest(bytes(np.asarray(arrays[MANIFEST], np.uint8)))
-    if not isinstance(manifest, dict) or manifest.get("format") != EXPORT_FORMAT:
-        raise _bad(f"manifest: format {manifest.get('format') if isinstance(manifest, dict) else None!r}"
-                   f"; this server reads format {EXPORT_FORMAT}")
+    if not isinstance(manifest, dict):
+        raise InvalidInputError(f"manifest: expected a JSON object, got "
+                                f"{type(manifest).__name__}", MANIFEST)
+    fmt = manifest.get("format")
+    if type(fmt) is not int or fmt != EXPORT_FORMAT:  # (true is an int to Python)
+        raise InvalidInputError(f"manifest.format: format {fmt!r}"[:200] + "; this server "
+                                f"reads format {EXPORT_FORMAT}", "manifest.format")
+    source, export_id = manifest.get("field"), manifest.get("export_id")
+    if not (isinstance(source, str) and re.fullmatch(FIELD_NAME_PATTERN, source)):
+        raise InvalidInputError(f"manifest.field: expected the exported field's name, got "
+                                f"{source!r}"[:200], "manifest.field")
+    if not (isinstance(export_id, str) and EXPORT_ID.fullmatch(export_id)):
+        raise InvalidInputError(f"manifest.export_id: expected 1-{MAX_EXPORT_ID} letters, "
+                                f"digits, '_' or '-', got {export_id!r}"[:200],
+                                "manifest.export_id")
+    listed = _listed(manifest.get("batches"), settings)
+    spec, basis = specs.stored_spec(
+        manifest.get("spec"), arrays.get("basis_Q"), arrays.get("basis_r"),
+        where="manifest.spec", basis_names=("basis_Q", "basis_r"),
+        max_charts=max(MAX_ATLAS_CENTERS, settings.max_atlas_samples))
     try:
-        spec = FieldSpec.from_dict(manifest["spec"])
-        if not (0 <= spec.k < spec.d <= MAX_D and 1 <= spec.channels <= 64):
-            raise ValueError(f"k={spec.k}, d={spec.d}, channels={spec.channels} out of range")
-        if spec.atlas is not None and len(spec.atlas.get("scales", ())) > MAX_ATLAS_CENTERS:
-            raise ValueError(f"more than {MAX_ATLAS_CENTERS} charts")
-        Q = np.asarray(arrays["basis_Q"], np.float64)
-        r = np.asarray(arrays["basis_r"], np.float64)
-        basis = Basis(Q, r, spec.k)
-        spec.new_field(basis)  # the definition builds a field (an atlas from its centres)
+        probe = spec.new_field(basis)  # the definition builds a field (an atlas from its centres)
     except InvalidInputError:
         raise
     except Exception as exc:  # a damaged or foreign definition: say what failed
-        raise _bad(f"manifest: the field's definition cannot be read: "
-                   f"{type(exc).__name__}: {exc}") from None
-    listed = manifest.get("batches")
-    if not isinstance(listed, list) or len(listed) > MAX_EXPORT_BATCHES:
-        raise _bad("manifest: `batches` must be a list of the stored batches")
-    batches = _Batches()
+        raise InvalidInputError(f"manifest.spec: the field's definition cannot be built: "
+                                f"{type(exc).__name__}: {exc}"[:300], "manifest.spec") from None
     rows = {form: 0 for form in FORMS}
-    for i, b in enumerate(listed):
-        if not (isinstance(b, dict) and b.get("form") in FORMS and isinstance(b.get("rows"), int)
-                and b["rows"] >= 1 and isinstance(b.get("seq"), int)):
-            raise _bad(f"manifest: batch {i}: expected {{seq, form, rows >= 1}}, got {b!r}"[:300])
+    for b in listed:
         rows[b["form"]] += b["rows"]
-        batches.append(b)
     for form, n in rows.items():
         for name in FORMS[form]:
             member = _member(form, name)
@@ -261,5 +344,35 @@ def _read(body: bytes) -> tuple[dict, FieldSpec, Basis, _Batches]:
     if vals is None or vals.ndim != 2 or vals.shape != (total, spec.channels):
         raise _bad(f"values: expected ({total}, {spec.channels}), got "
                    f"{None if vals is None else vals.shape}")
-    batches.arrays = arrays
-    return manifest, spec, basis, batches
+    plan = ExportPlan(source, export_id, spec, basis, listed, arrays)
+    for i, (b, flats, values) in enumerate(plan.each()):  # as its upload will check it
+        with _in_batch(f"batch {i} (seq {b['seq']})", b["form"]):
+            probe.prepare(flats, values, defer=True)
+    return plan
+
+
+def _listed(listed, settings: Settings) -> list[dict]:
+    """The manifest's ``batches`` checked: a list of at most ``max_import_batches``
+    ``{seq, form, rows}`` (``seq`` >= 1 of its own, ``1 <= rows <= max_batch_rows``)."""
+    if not isinstance(listed, list):
+        raise InvalidInputError("manifest.batches: expected a list of the stored batches",
+                                "manifest.batches")
+    if len(listed) > settings.max_import_batches:
+        raise LimitExceededError(
+            f"manifest.batches: {len(listed):,} batches; an import stores at most "
+            f"{settings.max_import_batches:,} (FLATSERVE_MAX_IMPORT_BATCHES)")
+    seen: set[int] = set()
+    for i, b in enumerate(listed):
+        where = f"manifest.batches.{i}"
+        if not (isinstance(b, dict) and b.get("form") in FORMS
+                and all(type(b.get(n)) is int and b[n] >= 1 for n in ("seq", "rows"))):
+            raise InvalidInputError(f"{where}: expected {{seq >= 1, form (one of "
+                                    f"{', '.join(FORMS)}), rows >= 1}}, got {b!r}"[:300], where)
+        if b["rows"] > settings.max_batch_rows:
+            raise BatchTooLargeError(
+                f"{where}: {b['rows']:,} rows in one batch; the limit is "
+                f"{settings.max_batch_rows:,} (FLATSERVE_MAX_BATCH_ROWS)")
+        if b["seq"] in seen:
+            raise InvalidInputError(f"{where}: seq {b['seq']} is listed twice", where)
+        seen.add(b["seq"])
+    return [{"seq": b["seq"], "form": b["form"], "rows": b["rows"]} for b in listed]

@@ -181,7 +181,8 @@ def test_a_body_that_is_not_an_export_is_a_4xx_naming_what(deployments, rng):
     cases = {
         "no manifest": (_npz(values=np.zeros((2, 2))), 422, "not a flatserve export"),
         "rows": (_with_manifest(good, rows), 422, "rays_origins"),
-        "spec": (_with_manifest(good, spec), 422, "definition cannot be read"),
+        "spec": (_with_manifest(good, spec), 422, "manifest.spec.channels: Input should be "
+                 "less than or equal to 64, got 1000"),
         "format": (_with_manifest(good, fmt), 422, "format 99"),
         "kind": (_with_manifest(a.export_field("planes"), kind), 422,
                  "atlas: charts 2-flats in R^4, the field is defined for 1-flats in R^4"),
@@ -242,3 +243,140 @@ def test_a_deeply_nested_or_unparseable_manifest_is_a_422_naming_it(deployments,
         assert err["msg"].startswith("manifest: ") and len(err["msg"]) < 300, (case, err)
     assert [f["name"] for f in b.list_fields()] == []  # nothing was created
     assert b.import_field("x", good)["batches"] == 4  # the same connection serves on
+
+
+def _post(tc, name: str, body: bytes):
+    return tc.post(f"/v1/fields/{name}/import", content=body, headers={"Content-Type": NPZ})
+
+
+def _refused(tc, c, body: bytes, status: int, member: str, words: str = "") -> None:
+    """The import of ``body`` is refused with ``status``, naming ``member``, and leaves
+    no field and no batch (the target server holds no field before)."""
+    r = _post(tc, "x", body)
+    assert r.status_code == status, (member, r.status_code, r.text[:400])
+    detail = r.json()["detail"]
+    if status == 422:
+        assert detail[0]["loc"] == ["body", *member.split(".")], (member, detail)
+        detail = detail[0]["msg"]
+    assert detail.startswith(member) and words in detail, (member, detail)
+    assert c.list_fields() == [], member
+
+
+def test_a_manifest_is_held_to_the_create_and_upload_limits_before_anything_is_stored(
+        make_app, tmp_path, rng):
+    """``tiles``, ``copies``, ``channels``, ``k``/``d`` and ``oriented`` of the file's
+    definition get the limits a create request gets (``tiles`` 1-64 or "auto",
+    ``copies`` 1-3); ``format`` is the integer 1 (not ``true``), ``export_id`` a short
+    token (it goes into Idempotency-Keys), ``seq`` its batch's own, a batch at most
+    ``max_batch_rows`` rows and the file at most ``max_import_batches`` batches. Each
+    is refused naming the member, and nothing is stored."""
+    ta, a = started(make_app(data_dir=tmp_path / "a"))
+    tb, b = started(make_app(data_dir=tmp_path / "b", max_batch_rows=350,
+                             max_import_batches=3))
+    try:
+        a.create_field("f", channels=2, basis=ONE_CHART)
+        _fill(a, "f", rng)  # batches of 400, 300, 200 and 150 rows
+        good = a.export_field("f")
+        a.create_field("atlas", channels=2)
+        a.upload_rays("atlas", *paper_rays(rng, 100), rng.uniform(size=(100, 2)))
+        atlas = a.export_field("atlas")
+
+        def edit(data: bytes, **spec):
+            def change(m, arrays):
+                m["spec"].update(spec)
+            return _with_manifest(data, change)
+
+        def top(data: bytes, **members):
+            def change(m, arrays):
+                m.update(members)
+            return _with_manifest(data, change)
+
+        def drop_batches(m, arrays):  # the first two batches' rows, no longer listed
+            m["batches"] = m["batches"][2:]
+            for name in ("rays_origins", "rays_directions"):
+                arrays[name] = arrays[name][:0]
+            arrays["values"] = arrays["values"][700:]
+
+        small = _with_manifest(good, drop_batches)  # 200 + 150 rows
+
+        def twice(m, arrays):
+            m["batches"][1]["seq"] = m["batches"][0]["seq"]
+
+        spec = "manifest.spec"
+        cases = [
+            (edit(small, tiles=1000), 422, f"{spec}.tiles", "less than or equal to 64"),
+            (edit(small, tiles=10**7), 422, f"{spec}.tiles", "less than or equal to 64"),
+            (edit(small, tiles=0), 422, f"{spec}.tiles", "greater than or equal to 1"),
+            (edit(small, tiles="many"), 422, f"{spec}.tiles", "'auto'"),
+            (edit(small, copies=0), 422, f"{spec}.copies", "greater than or equal to 1"),
+            (edit(small, copies=-3), 422, f"{spec}.copies", "greater than or equal to 1"),
+            (edit(small, copies=1000), 422, f"{spec}.copies", "less than or equal to 3"),
+            (edit(small, copies=True), 422, f"{spec}.copies", "valid integer"),
+            (edit(small, channels=0), 422, f"{spec}.channels", "greater than or equal to 1"),
+            (edit(small, d=9), 422, f"{spec}.d", "less than or equal to 8"),
+            (edit(small, roundtrip_tol=0.0), 422, f"{spec}.roundtrip_tol", "greater than"),
+            (edit(atlas, tiles=2), 422, f"{spec}.tiles", "one chart"),
+            (_with_manifest(atlas, lambda m, _: m["spec"]["atlas"].update(oriented="yes")),
+             422, f"{spec}.oriented", "valid boolean"),
+            (top(small, format=True), 422, "manifest.format", "format True"),
+            (top(small, format=1.0), 422, "manifest.format", "format 1.0"),
+            (top(small, export_id="a" * 129), 422, "manifest.export_id", "1-128"),
+            (top(small, export_id="ab\r\nX-Evil: 1"), 422, "manifest.export_id", "1-128"),
+            (top(small, export_id={"a": 1}), 422, "manifest.export_id", "1-128"),
+            (top(small, export_id=""), 422, "manifest.export_id", "1-128"),
+            (top(small, field=["f"]), 422, "manifest.field", "name"),
+            (_with_manifest(small, twice), 422, "manifest.batches.1", "listed twice"),
+            (top(small, batches=[{"seq": True, "form": "flats", "rows": 200},
+                                 {"seq": 2, "form": "flats", "rows": 150}]),
+             422, "manifest.batches.0", "seq >= 1"),
+            (good, 413, "manifest.batches", "FLATSERVE_MAX_IMPORT_BATCHES"),  # 4 > 3
+        ]
+        for body, status, member, words in cases:
+            _refused(tb, b, body, status, member, words)
+        # 3 batches, the first of 400 rows > max_batch_rows
+        _refused(tb, b, _with_manifest(good, lambda m, arrays: m["batches"].pop()), 413,
+                 "manifest.batches.0", "FLATSERVE_MAX_BATCH_ROWS")
+        assert b.import_field("x", small)["batches"] == 2  # within every limit
+    finally:
+        tb.__exit__(None, None, None)
+        ta.__exit__(None, None, None)
+
+
+def test_a_bad_batch_anywhere_in_the_file_refuses_the_whole_import(deployments, rng):
+    """A NaN, a zero direction or a batch whose rows an upload refuses, in any batch
+    of the file (the last one too), is a 422 naming the file's member and the batch,
+    before the field is created or any batch stored; the file mended imports whole."""
+    (_, a), (tb, b) = deployments
+    a.create_field("f", channels=2, basis=ONE_CHART)
+    _fill(a, "f", rng)  # batches 0-3: rays 400, rays 300, parametric 200, flats 150
+    good = a.export_field("f")
+    a.create_field("rays", channels=2, oriented=True)
+    a.upload_rays("rays", *paper_rays(rng, 100), rng.uniform(size=(100, 2)))
+    a.upload_rays("rays", *paper_rays(rng, 100), rng.uniform(size=(100, 2)))
+    oriented = a.export_field("rays")
+
+    def put(member: str, row: int, value):
+        def change(m, arrays):
+            arrays[member] = arrays[member].copy()
+            arrays[member][row] = value
+        return change
+
+    def as_lines(m, arrays):  # the oriented field's second batch given as (A, b)
+        o, v = arrays["rays_origins"][100:], arrays["rays_directions"][100:]
+        A, bb = to_parametric(*Flats.from_rays(o, v).quadrics(), 1)
+        arrays["rays_origins"], arrays["rays_directions"] = (arrays["rays_origins"][:100],
+                                                             arrays["rays_directions"][:100])
+        arrays["parametric_A"], arrays["parametric_b"] = A, bb
+        m["batches"][1]["form"] = "parametric"
+
+    cases = [
+        (put("values", 1049, np.nan), "values", "batch 3 (seq 4"),
+        (put("rays_directions", 450, 0.0), "rays_directions", "batch 1 (seq 2"),
+        (put("parametric_A", 199, np.inf), "parametric_A", "batch 2 (seq 3"),
+        (put("flats_r", 149, np.nan), "flats_r", "batch 3 (seq 4"),
+    ]
+    for change, member, words in cases:
+        _refused(tb, b, _with_manifest(good, change), 422, member, words)
+    _refused(tb, b, _with_manifest(oriented, as_lines), 422, "parametric_A",
+             "batch 1 (seq 2): this atlas is oriented")
+    assert b.import_field("x", good)["nsamples"] == a.describe("f")["nsamples"]

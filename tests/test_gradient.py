@@ -12,7 +12,7 @@ from flatserve import Atlas, AtlasField, Basis, Field, Flats
 from flatserve.errors import InvalidInputError
 from flatserve.gradient import (GRADIENT_CHUNK_BYTES, gradient_chunk, neighbours_for, slopes,
                                 taylor_blend)
-from tests.test_tiles import _fig11_rays
+from tests.harness.fig11 import fig11_rays
 
 
 def _points_field(P, V):
@@ -180,7 +180,7 @@ def test_outside_the_hull_keeps_the_linear_answer():
 
 
 def test_a_tiled_chart_answers_as_the_whole_one():
-    o, d, v = _fig11_rays(60, seed=2)
+    o, d, v = fig11_rays(60, seed=2)
     rng = np.random.default_rng(10)
     pick = rng.choice(len(o), 300, replace=False)
     qf = Flats.from_rays(o[pick] + rng.normal(0, 0.01, (300, 3)), d[pick])
@@ -304,7 +304,7 @@ def test_an_insert_waits_for_the_slopes_of_a_query(tiles, monkeypatch):
     import threading
 
     rng = np.random.default_rng(16)
-    o, d, v = _fig11_rays(40, seed=3)
+    o, d, v = fig11_rays(40, seed=3)
     basis = Basis.around_axis(axis=2, scale=0.01)
     field = Field(basis, channels=1, tiles=tiles)
     field.add(Flats.from_rays(o[:1000], d[:1000]), v[:1000])

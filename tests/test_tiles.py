@@ -14,6 +14,7 @@ from flatserve.parallel import ShardPool
 from flatserve.tiles import TiledTriangulation, Tiling
 from flatserve.triangulation import Triangulation
 from tests.harness.cells import assert_same_cells
+from tests.harness.fig11 import fig11_rays
 
 
 def _cells(tri: Triangulation) -> set:
@@ -212,7 +213,7 @@ def test_auto_tiles_follow_the_points_and_the_threads(monkeypatch):
     assert tt.stats.retiled == 2
     with pytest.raises(InvalidInputError, match="auto"):
         TiledTriangulation(D, "many")
-    o, d, v = _fig11_rays(60, seed=3)  # 3,600 rays at once: 3 tiles
+    o, d, v = fig11_rays(60, seed=3)  # 3,600 rays at once: 3 tiles
     f = Field(Basis.around_axis(axis=2, scale=0.01), channels=1, tiles="auto")
     f.add(Flats.from_rays(o, d), v)
     assert f.triangulation.ntiles == 3 and f.triangulation.stats.retiled == 0  # cut at once
@@ -260,15 +261,6 @@ def test_unequal_tiles_are_cut_again():
     _same_answers(tt, tri, rng.random((3000, 2)))
 
 
-def _fig11_rays(n_side: int, seed: int):
-    """The paper's Fig. 11 sampling (n_side^2 rays of the bunny), in random order."""
-    from flatserve.lightfield.sampling import bunny_scene, sample_scene
-
-    samples, values = sample_scene(bunny_scene(), n_side, seed=seed)
-    perm = np.random.default_rng(seed).permutation(len(values))
-    return samples.origins[perm], samples.directions[perm], values[perm]
-
-
 def test_a_fields_chart_in_tiles_answers_as_the_unsplit_field():
     """The Fig. 11 field (one chart) split into 2, 4 and 8 tiles: every query the
     unsplit field's bits, after batches that cross tile borders too; and a tiled
@@ -277,7 +269,7 @@ def test_a_fields_chart_in_tiles_answers_as_the_unsplit_field():
     from flatserve.basis import Basis
     from flatserve.lightfield.camera import paper_samples
 
-    o, d, v = _fig11_rays(160, seed=1)  # 25,600 rays
+    o, d, v = fig11_rays(160, seed=1)  # 25,600 rays
     q = paper_samples(120, np.random.default_rng(9))
     qf = Flats.from_rays(q.origins, q.directions)
     basis = Basis.around_axis(axis=2, scale=0.01)
@@ -305,7 +297,7 @@ def test_a_damaged_tiled_field_file_is_refused():
     from flatserve.basis import Basis
     from flatserve.errors import SnapshotError
 
-    o, d, v = _fig11_rays(40, seed=2)
+    o, d, v = fig11_rays(40, seed=2)
     f = Field(Basis.around_axis(axis=2, scale=0.01), channels=1, tiles=2)
     f.add(Flats.from_rays(o, d), v)
     data = f.to_bytes()
@@ -332,7 +324,7 @@ def test_the_fig11_field_at_1m_rays_in_2_4_8_tiles():
     from flatserve.lightfield.camera import paper_samples
     from flatserve.lightfield.sampling import BASIS_SCALE
 
-    o, d, v = _fig11_rays(1000, seed=0)
+    o, d, v = fig11_rays(1000, seed=0)
     q = paper_samples(500, np.random.default_rng(1))
     qf = Flats.from_rays(q.origins, q.directions)
     basis = Basis.around_axis(axis=2, scale=BASIS_SCALE)
@@ -445,7 +437,7 @@ def test_a_tiled_fields_snapshot_in_parts_loads_and_checks_its_parts(tmp_path):
     from flatserve.contract import load_field
     from flatserve.errors import SnapshotError
 
-    o, d, v = _fig11_rays(60, seed=3)
+    o, d, v = fig11_rays(60, seed=3)
     f = Field(Basis.around_axis(axis=2, scale=0.01), channels=1, tiles=2)
     f.add(Flats.from_rays(o, d), v)
     stage = tmp_path / "parts"

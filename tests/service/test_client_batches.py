@@ -14,8 +14,8 @@ from fastapi.testclient import TestClient
 from flatserve.client import Client
 from flatserve.errors import InvalidInputError
 from flatserve.service.status import FieldExistsError, NotReadyError
-
-from .conftest import ONE_CHART, paper_rays, started
+from tests.harness.fields import ONE_CHART, paper_rays
+from tests.harness.service import started
 
 
 def _server(make_app, tmp_path, name, **settings):

@@ -31,8 +31,8 @@ from flatserve.service.settings import Settings
 from tests.harness.process import ServerProcess
 from tests.harness.raycluster import RayNodes, assigned_resources, unbuilt_checkout
 
-from .conftest import ONE_CHART, paper_rays
-from .test_service_postgres import snapshot_soon
+from tests.harness.fields import ONE_CHART, paper_rays
+from tests.harness.service import snapshot_soon
 
 
 

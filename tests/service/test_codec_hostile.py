@@ -17,12 +17,11 @@ from hypothesis import strategies as st
 
 from flatserve import _npy
 from flatserve.errors import InvalidInputError
-from flatserve.service.status import LimitExceededError
 from flatserve.service import binary
+from flatserve.service.status import LimitExceededError
 from flatserve.service.status import BatchTooLargeError, BodyTooLargeError
-
-from .hostile import (BZIP2, DEFLATED, STORED, Member, descr_header, npy, npy_header, npz,
-                      raw_zip, zeros_bomb)
+from tests.harness.hostile import (BZIP2, DEFLATED, STORED, Member, descr_header, npy,
+                                  npy_bodies, npy_header, npz, npz_bodies, raw_zip, zeros_bomb)
 
 ALLOWED = (InvalidInputError, LimitExceededError)
 MiB = 2**20
@@ -267,120 +266,7 @@ def test_npy_body_sent_as_npz():
         binary.load_npz(GOOD)
 
 
-# -- property-based fuzz ------------------------------------------------------------------
-REAL = ["<f8", "<f4", "<f2", ">f8", "|u1", "<i8", ">i2", "<u4"]
-OTHER = ["|b1", "<c16", "|O", "<U3", "|V8", "|S0", "<M8[s]", "<f16", 5, None, "", "garbage",
-         [("a", "<f8")], ("<f8", (2,))]
-DIMS = st.one_of(st.integers(0, 5), st.integers(0, 5), st.integers(-3, 2**70), st.booleans(),
-                 st.sampled_from([2**27, 2**31, 2**63 - 1, 2**64, -(2**63)]))
-SHAPES = st.one_of(st.lists(DIMS, max_size=6).map(tuple), st.lists(DIMS, max_size=6).map(tuple),
-                   st.lists(DIMS, max_size=3), st.integers(-3, 10), st.none(), st.text(max_size=5),
-                   st.tuples(st.floats(allow_nan=True), st.integers(0, 3)))
-FORTRAN = st.sampled_from([True, False, True, False, 0, 1, None, "x"])
-
-
-def rarely(draw, n: int = 4) -> bool:
-    """True about once in ``n`` draws."""
-    return draw(st.integers(0, n - 1)) == 0
-
-
-@st.composite
-def header_dicts(draw):
-    d = {"descr": draw(st.sampled_from(REAL) if not rarely(draw, 3) else
-                       st.sampled_from(OTHER) | st.text(max_size=6)),
-         "fortran_order": draw(FORTRAN), "shape": draw(SHAPES)}
-    if rarely(draw, 6):
-        d.pop(draw(st.sampled_from(sorted(d))))
-    if rarely(draw, 6):
-        d[draw(st.text(max_size=4))] = draw(st.integers())
-    return d
-
-
-@st.composite
-def npy_bodies(draw):
-    """An ``.npy``-ish body: a fuzzed header (dict, text or bytes), then data."""
-    kind = draw(st.sampled_from(["dict", "dict", "dict", "text", "real", "bytes"]))
-    if kind == "real":  # a real .npy, cut or padded anywhere
-        shape = tuple(draw(st.lists(st.integers(0, 4), max_size=4)))
-        body = npy(np.zeros(shape, draw(st.sampled_from(REAL))))
-        cut = draw(st.integers(0, len(body) + 8))
-        return body[:cut] + bytes(max(0, cut - len(body)))
-    if kind == "bytes":
-        return draw(st.binary(max_size=300))
-    version = draw(st.sampled_from([1, 2, 3, 0, 4]) if rarely(draw) else st.just(1))
-    length = None
-    if rarely(draw, 6):
-        length = draw(st.integers(0, 2**16 - 1 if version == 1 else 2**32 - 1))
-    d = draw(st.text(max_size=80)) if kind == "text" else draw(header_dicts())
-    head = npy_header(d, version, length)
-    exact = _exact_size(d)
-    if exact is not None and not rarely(draw, 3):  # data of the size the header declares
-        return head + bytes(exact)
-    if rarely(draw, 3):
-        return head + draw(st.binary(max_size=200))
-    return head + bytes(draw(st.sampled_from([0, 8, 16, 24, 48, 96, 4096])))
-
-
-def _exact_size(d) -> int | None:
-    """Data bytes a header dict declares, when that is small and computable."""
-    try:
-        n = int(np.prod([int(x) for x in d["shape"]])) * np.dtype(d["descr"]).itemsize
-    except Exception:  # noqa: BLE001 - any odd header: no exact size
-        return None
-    return n if 0 <= n <= 4096 else None
-
-
-VALID_NAMES = ["origins.npy", "directions.npy", "values.npy", "Q.npy", "r.npy"]
-ODD_NAMES = st.sampled_from(["x.txt", "d/", ".npy", "a/b.npy", "origins", "ä.npy", ""]) | st.text(
-    max_size=8)
-
-
-@st.composite
-def member_contents(draw):
-    kind = draw(st.sampled_from(["npy", "npy", "fuzz", "fuzz", "bytes", "nested", "huge"]))
-    if kind == "npy":
-        shape = tuple(draw(st.lists(st.integers(0, 5), max_size=3)))
-        return npy(np.ones(shape, draw(st.sampled_from(["<f8", "<f4", ">i4", "|u1", "|b1"]))))
-    if kind == "fuzz":
-        return draw(npy_bodies())
-    if kind == "bytes":
-        return draw(st.binary(max_size=200))
-    if kind == "nested":
-        return npz(draw(st.sampled_from([STORED, DEFLATED])), origins=np.zeros((2, 3)))
-    rows = draw(st.sampled_from([4, 2**20, 2**27, 2**40, 2**62]))
-    return descr_header((rows, 3)) + draw(st.binary(max_size=64))
-
-
-@st.composite
-def npz_bodies(draw):
-    """A zip of fuzzed members, sometimes with lying sizes/CRCs, flipped bytes or cut."""
-    members, names = [], draw(st.permutations(VALID_NAMES))
-    for i in range(draw(st.integers(0, 3))):
-        data = draw(member_contents())
-        name = names[i]
-        if rarely(draw, 8):
-            name = draw(ODD_NAMES | st.just(names[0]))  # odd or duplicate
-        m = Member(name, data, draw(st.sampled_from([STORED, DEFLATED])))
-        if rarely(draw, 12):
-            m.method, m.raw = BZIP2, data
-        if rarely(draw, 5):  # lie about the sizes or the CRC
-            m.file_size = draw(st.sampled_from([0, len(data) + 1, max(0, len(data) - 1),
-                                                2**31, 2**32 - 1]))
-        if rarely(draw, 8):
-            m.crc = draw(st.integers(0, 2**32 - 1))
-        if rarely(draw, 8):
-            m.compress_size = draw(st.integers(0, 2**32 - 1))
-        members.append(m)
-    body = bytearray(raw_zip(members))
-    if rarely(draw, 8):
-        for _ in range(draw(st.integers(1, 3))):  # flip bytes
-            if body:
-                body[draw(st.integers(0, len(body) - 1))] = draw(st.integers(0, 255))
-    if rarely(draw, 8):
-        body = body[:draw(st.integers(1, len(body) - 1))]  # never empty: b"" is tested apart
-    return bytes(body)
-
-
+# -- property-based fuzz (the strategies: tests/harness/hostile.py) ----------------------
 def assert_codec_judges(fn, body, **kw):
     """Only the two documented error families escape, and nothing big is allocated."""
     out, peak = peak_bytes(fn, body, **kw)

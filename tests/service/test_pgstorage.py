@@ -18,7 +18,7 @@ from flatserve.service.blobs import pack_arrays, unpack_arrays
 from flatserve.service.pgsnapshots import CHUNK_BYTES
 from flatserve.service.pgstorage import PostgresBackend, redact
 from flatserve.service.settings import Settings
-from .conftest import save_bytes
+from tests.harness.service import save_bytes
 
 BASIS = {"Q": np.eye(3)[None].repeat(5, 0), "r": np.zeros((5, 3))}
 

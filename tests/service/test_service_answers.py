@@ -13,9 +13,9 @@ import numpy as np
 
 from flatserve import flats as flats_mod
 from flatserve.service import codec
+from tests.harness.fields import SINGLE, paper_rays
 from tests.harness.process import ServerProcess
-
-from .conftest import SINGLE, paper_rays, running, started
+from tests.harness.service import running, started
 
 
 def _never(*a, **kw):  # pragma: no cover - the point is that it is not called

@@ -13,13 +13,12 @@ from flatserve.atlas import Atlas
 from flatserve.atlas_field import AtlasField
 from flatserve.client import Client, ServiceError
 from flatserve.coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK
+from flatserve.errors import InvalidInputError as InvalidError
 from flatserve.field import Field
+from flatserve.service import specs
 from flatserve.service.status import FieldExistsError as ConflictError
 from flatserve.service.status import FieldNotFoundError as NotFoundError
-from flatserve.errors import InvalidInputError as InvalidError
-from flatserve.service import specs
-
-from .conftest import KINDS, add_rays, paper_rays, query_rays
+from tests.harness.fields import KINDS, add_rays, paper_rays, query_rays
 
 C = 3
 

@@ -12,16 +12,15 @@ import json
 import numpy as np
 import pytest
 
-from flatserve.client import Client, ServiceError
-
 from flatserve.atlas import Atlas
 from flatserve.atlas_field import AtlasField
-from flatserve.grassmann import ICOSAHEDRON_AXES
+from flatserve.client import Client, ServiceError
 from flatserve.errors import InvalidInputError
-from flatserve.service.status import LimitExceededError
 from flatserve.flats import Flats
-
-from .conftest import ONE_CHART, SINGLE, add_rays, started
+from flatserve.grassmann import ICOSAHEDRON_AXES
+from flatserve.service.status import LimitExceededError
+from tests.harness.fields import ONE_CHART, SINGLE, add_rays
+from tests.harness.service import started
 
 C = 2
 #: A request written before the top-level ``oriented``: still accepted.

@@ -9,8 +9,8 @@ import time
 import numpy as np
 
 from flatserve.service import applier as applier_mod
-
-from .conftest import SINGLE, paper_rays, started
+from tests.harness.fields import SINGLE, paper_rays
+from tests.harness.service import started
 
 
 def _rays_body(o, v, values):

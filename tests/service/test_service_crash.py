@@ -13,52 +13,12 @@ import time
 import numpy as np
 
 from flatserve.client import Client
-from tests.harness.process import ServerProcess, free_port  # noqa: F401
-
-from .conftest import KINDS, add_rays, paper_rays, query_rays, upload_until_stopped
+from tests.harness.fields import KINDS, paper_rays
+from tests.harness.process import ServerProcess, free_port
+from tests.harness.service import upload_until_stopped, verify_stored
 
 ROUNDS = 5
 TIME_BUDGET_S = 150
-
-
-Server = ServerProcess  # a real server process (kill -9 in the with block's exit)
-
-
-def _verify(url, kind, sent, acked, probe):
-    name = str(kind)
-    with Client(url, retries=0) as c:
-        stored = c.batches(name)
-        keys = [b["idempotency_key"] for b in stored]
-        assert len(keys) == len(set(keys)), "a batch was stored twice"
-        assert [b["batch"] for b in stored] == sorted(b["batch"] for b in stored)
-        missing = set(acked) - set(keys)
-        assert not missing, f"acknowledged batches lost: {sorted(missing)}"
-        ref = kind.reference(1)
-        for b in stored:
-            o, v, val = sent[b["idempotency_key"]]
-            assert b["rows"] == len(o), "a batch was stored half"
-            res = add_rays(ref, o, v, val)
-            assert b["accepted"] == res.accepted
-            if b["idempotency_key"] in acked:
-                assert acked[b["idempotency_key"]]["accepted"] == res.accepted
-        info = c.describe(name, verbose=True)
-        assert info["nsamples"] == ref.nsamples
-        if kind.atlas:  # every chart restored: the same samples per chart
-            assert [ch["samples"] for ch in info["charts"]] == ref.samples_per_chart
-            assert info["nvertices"] == ref.nstored and info["nsimplex"] == ref.nsimplex
-        got = c.query_rays(name, *probe, weights=not kind.atlas)
-        want = query_rays(ref, *probe, return_weights=not kind.atlas)
-        np.testing.assert_array_equal(got.inside, want.inside)
-        if not kind.atlas:  # (an atlas field returns no simplices)
-            np.testing.assert_array_equal(got.ids, want.ids)
-        np.testing.assert_allclose(got.values, want.values, atol=1e-12, equal_nan=True)
-        # a retry of an acknowledged batch is recognised, not stored again
-        if acked:
-            key = sorted(acked)[0]
-            again = c.upload_rays(name, *sent[key], idempotency_key=key)
-            assert again["replayed"]
-            assert len(c.batches(name)) == len(stored)
-        return len(stored)
 
 
 def test_kill9_loses_nothing_acknowledged(tmp_path):
@@ -74,14 +34,14 @@ def test_kill9_loses_nothing_acknowledged(tmp_path):
         for rnd in range(ROUNDS):
             if time.monotonic() - t_start > TIME_BUDGET_S and rnd >= 2:
                 break
-            with Server(data, log, snapshot_every=3000) as srv:
+            with ServerProcess(data, log, snapshot_every=3000) as srv:
                 srv.wait_ready()
                 for kind in KINDS:
                     if rnd == 0:
                         with Client(srv.url) as c:
                             c.create_field(str(kind), channels=1, basis=kind.basis)
                     else:
-                        _verify(srv.url, kind, sent[str(kind)], acked[str(kind)], probe)
+                        verify_stored(srv.url, kind, sent[str(kind)], acked[str(kind)], probe)
                 stop = threading.Event()
                 ts = [threading.Thread(target=upload_until_stopped,
                                        args=(srv.url, str(kind), f"r{rnd}",
@@ -97,10 +57,10 @@ def test_kill9_loses_nothing_acknowledged(tmp_path):
                 for t in ts:
                     t.join(timeout=60)
             rounds += 1
-        with Server(data, log) as srv:
+        with ServerProcess(data, log) as srv:
             srv.wait_ready()
-            nstored = {str(kind): _verify(srv.url, kind, sent[str(kind)], acked[str(kind)],
-                                          probe) for kind in KINDS}
+            nstored = {str(kind): verify_stored(srv.url, kind, sent[str(kind)],
+                                                acked[str(kind)], probe) for kind in KINDS}
     except BaseException:
         sys.stderr.write(log.read_text(errors="replace")[-5000:])
         raise

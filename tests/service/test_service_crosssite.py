@@ -13,8 +13,7 @@ from fastapi.testclient import TestClient
 from flatserve.service import Settings
 from flatserve.service.guard import allowed_hosts, host_name
 from flatserve.service.supervisor import settings_env
-
-from .conftest import paper_rays
+from tests.harness.fields import paper_rays
 
 LOCAL = "http://127.0.0.1"
 CREATE = json.dumps({"name": "forged", "channels": 1}).encode()

@@ -19,9 +19,8 @@ import numpy as np
 import pytest
 
 from flatserve.client import Client
-
-from .conftest import paper_rays
-from .test_service_crash import Server, free_port
+from tests.harness.fields import paper_rays
+from tests.harness.process import ServerProcess, free_port
 
 DB = "flatserve.sqlite3"
 
@@ -33,7 +32,7 @@ def stored(tmp_path_factory):
     d = tmp_path_factory.mktemp("stored")
     rng = np.random.default_rng(5)
     probe = paper_rays(rng, 300)
-    with Server(d / "data", d / "server.log") as srv:
+    with ServerProcess(d / "data", d / "server.log") as srv:
         srv.wait_ready()
         with Client(srv.url) as c:
             c.create_field("f", channels=1)
@@ -101,7 +100,7 @@ def test_intact_copy_starts(stored, tmp_path):
     """The refusals above come from the damage, not from the copying."""
     data, probe, answers, batches = stored
     data = _copy(data, tmp_path / "data")
-    with Server(data, tmp_path / "server.log") as srv:
+    with ServerProcess(data, tmp_path / "server.log") as srv:
         srv.wait_ready()
         with Client(srv.url) as c:
             assert c.batches("f") == batches
@@ -117,7 +116,7 @@ def test_damaged_snapshot_is_replaced_by_the_batches(stored, tmp_path):
     raw[len(raw) // 2:len(raw) // 2 + 64] = bytes(64)  # damage inside: checksums catch it
     snaps[0].write_bytes(bytes(raw))
     log = tmp_path / "server.log"
-    with Server(data, log) as srv:
+    with ServerProcess(data, log) as srv:
         srv.wait_ready()
         with Client(srv.url) as c:
             assert c.describe("f")["state"] == "ready"

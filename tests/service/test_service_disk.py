@@ -14,9 +14,9 @@ import pytest
 
 from flatserve.service.status import DataDirInUseError
 from flatserve.service.storage import Storage
-
-from .conftest import assert_data_dir_refused, paper_rays, started
-from .test_service_crash import Server
+from tests.harness.fields import paper_rays
+from tests.harness.process import ServerProcess
+from tests.harness.service import assert_data_dir_refused, started
 
 
 def test_second_storage_on_a_data_dir_in_use_is_refused(tmp_path):
@@ -30,11 +30,11 @@ def test_second_storage_on_a_data_dir_in_use_is_refused(tmp_path):
 
 def test_second_server_on_a_data_dir_in_use_refuses_to_start(tmp_path):
     data = tmp_path / "data"
-    with Server(data, tmp_path / "a.log") as srv:
+    with ServerProcess(data, tmp_path / "a.log") as srv:
         srv.wait_ready()
         assert_data_dir_refused(data, srv.proc.pid)
     # killed (the Server context kills -9): the directory is free again
-    with Server(data, tmp_path / "b.log") as srv:
+    with ServerProcess(data, tmp_path / "b.log") as srv:
         srv.wait_ready()
 
 

@@ -10,8 +10,7 @@ from fastapi.testclient import TestClient
 
 from flatserve.client import Client
 from flatserve.service import query
-
-from .conftest import KINDS, paper_rays
+from tests.harness.fields import KINDS, paper_rays
 
 # an unknown query parameter makes the fast path pass the request on to FastAPI
 ROUTE = {"via": "fastapi"}

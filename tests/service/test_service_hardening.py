@@ -9,8 +9,8 @@ import pytest
 
 from flatserve.service import errors
 from flatserve.service.sqlrules import Failure, storage_failure
-
-from .conftest import paper_rays, started
+from tests.harness.fields import paper_rays
+from tests.harness.service import started
 
 LOCAL = "http://127.0.0.1"
 RO, RW = {"api-key": "ro"}, {"api-key": "rw"}

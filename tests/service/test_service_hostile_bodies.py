@@ -13,10 +13,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from .conftest import paper_rays
-from .hostile import DEFLATED, Member, descr_header, npy, npz, raw_zip, zeros_bomb
-from .test_codec_hostile import npy_bodies, npz_bodies
-from .test_service_crash import Server
+from tests.harness.fields import paper_rays
+from tests.harness.hostile import (DEFLATED, Member, descr_header, npy, npy_bodies, npz,
+                                  npz_bodies, raw_zip, zeros_bomb)
+from tests.harness.process import ServerProcess
 
 NPY, NPZ = "application/x-npy", "application/x-npz"
 
@@ -111,7 +111,7 @@ def test_fuzzed_binary_bodies_never_give_a_5xx(field, body, ctype, target):
 def test_real_server_keeps_the_connection_after_hostile_bodies(tmp_path, rng):
     """Against a real server: every hostile body gets its 4xx on ONE keep-alive
     connection, and that connection then serves a valid query."""
-    with Server(tmp_path / "data", tmp_path / "server.log") as srv:
+    with ServerProcess(tmp_path / "data", tmp_path / "server.log") as srv:
         srv.wait_ready()
         conn = http.client.HTTPConnection("127.0.0.1", srv.port, timeout=30)
 
@@ -148,7 +148,7 @@ def test_real_server_answers_deeply_nested_json_with_a_422_and_keeps_the_connect
     import's manifest (read by the standard library's parser, whose RecursionError was
     a 500 that closed the connection): a 422 each, naming the manifest for the import,
     on ONE keep-alive connection that then serves a valid query."""
-    with Server(tmp_path / "data", tmp_path / "server.log") as srv:
+    with ServerProcess(tmp_path / "data", tmp_path / "server.log") as srv:
         srv.wait_ready()
         conn = http.client.HTTPConnection("127.0.0.1", srv.port, timeout=30)
 

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from flatserve.service import applier as applier_mod
-
-from .conftest import KINDS, paper_rays, started
+from tests.harness.fields import KINDS, paper_rays
+from tests.harness.process import ServerProcess
+from tests.harness.service import started
 
 
 def _chunks(total: int, size: int = 65536):
@@ -196,9 +197,7 @@ def test_big_json_bodies_do_not_stall_the_event_loop(tmp_path, rng):
 
     import httpx
 
-    from .test_service_crash import Server
-
-    with Server(tmp_path / "data", tmp_path / "server.log") as srv:
+    with ServerProcess(tmp_path / "data", tmp_path / "server.log") as srv:
         srv.wait_ready()
         httpx.post(srv.url + "/v1/fields", json={"name": "f"}).raise_for_status()
         o, v = paper_rays(rng, 50_000)

@@ -15,9 +15,8 @@ from fastapi.testclient import TestClient
 
 from flatserve.service import logs
 from flatserve.service.server import add_arguments, settings_from_args
+from tests.harness.fields import ONE_CHART, paper_rays
 from tests.harness.process import ServerProcess
-
-from .conftest import ONE_CHART, paper_rays
 
 NPY = "application/x-npy"
 

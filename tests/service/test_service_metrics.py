@@ -11,9 +11,8 @@ import numpy as np
 from prometheus_client.parser import text_string_to_metric_families
 
 from flatserve.client import Client
+from tests.harness.fields import ONE_CHART, paper_rays
 from tests.harness.process import ServerProcess, children, kill9_and_await_restart
-
-from .conftest import ONE_CHART, paper_rays
 
 
 def _samples(text: str) -> dict[tuple, float]:

@@ -22,9 +22,9 @@ import pytest
 from flatserve.client import Client, ServiceError
 from flatserve.field import Field
 from flatserve.service import specs
+from tests.harness.fields import ONE_CHART, paper_rays
 from tests.harness.process import ServerProcess
-
-from .conftest import ONE_CHART, paper_rays
+from tests.harness.service import snapshot_soon
 
 FIELD = "pg"
 
@@ -337,7 +337,7 @@ def test_kill9_of_the_replica_writing_a_snapshot(replicas, rng, pg_url):
         with Client(b.url, retries=0) as c:
             book.upload(c, rng, f"after{rnd}", 500)
         with Client(b.url, retries=0) as c:
-            snapshot_soon(c)  # another replica writes the next one
+            snapshot_soon(c, name=FIELD)  # another replica writes the next one
         a = group.start()  # cleans up what the dead writer left (under the lease)
         with psycopg.connect(pg_url) as db:
             orphans = db.execute(
@@ -350,23 +350,6 @@ def test_kill9_of_the_replica_writing_a_snapshot(replicas, rng, pg_url):
         check_replicas(book, [a.url, b.url], probe)
     fresh = group.start()
     check_replicas(book, [fresh.url], probe)
-
-
-def snapshot_soon(c: Client, patience: float = 30.0, *, name: str = FIELD,
-                  interval: float = 0.05) -> dict:
-    """A snapshot of ``name`` through ``c``; 503 ("another replica is writing a
-    snapshot", or in cluster mode a shard catching up with the front's position) is
-    retried every ``interval`` seconds (here while PostgreSQL ends the killed
-    writer's session: milliseconds; the patience is far below the 300 s lease a row
-    alone would need)."""
-    end = time.monotonic() + patience
-    while True:
-        try:
-            return c.snapshot(name)
-        except ServiceError as exc:
-            if exc.status != 503 or time.monotonic() > end:
-                raise
-            time.sleep(interval)
 
 
 def _quiet(fn, *args):

@@ -17,16 +17,16 @@ import numpy as np
 import pytest
 
 from flatserve.client import Client
-from flatserve.service.status import FieldNotFoundError, NotReadyError
 from flatserve.field import Field
 from flatserve.service import specs
+from flatserve.service.backend import snapshot_lease
 from flatserve.service.blobs import content_hash, pack_arrays
-from tests.harness.process import ServerProcess, children, kill9_and_await_restart
+from flatserve.service.status import FieldNotFoundError, NotReadyError
 from flatserve.service.storage import DB_NAME, lock_data_dir
-
-from .conftest import (DEFAULT, KINDS, ONE_CHART, add_rays, assert_data_dir_refused, paper_rays,
-                       query_rays, started, upload_until_stopped)
-from .test_service_crash import _verify
+from tests.harness.fields import DEFAULT, KINDS, ONE_CHART, add_rays, paper_rays, query_rays
+from tests.harness.process import ServerProcess, children, kill9_and_await_restart
+from tests.harness.service import (assert_data_dir_refused, started, upload_until_stopped,
+                                   verify_stored)
 
 C = 2
 
@@ -211,8 +211,8 @@ def test_kill9_of_a_replica_during_uploads_loses_nothing(group):
         head = max(r["position"] for r in acked.values())
         with Client(a.url) as ca:
             ca.describe(str(DEFAULT), min_position=head)
-    nb = _verify(b.url, DEFAULT, sent, acked, probe)
-    na = _verify(a.url, DEFAULT, sent, acked, probe)
+    nb = verify_stored(b.url, DEFAULT, sent, acked, probe)
+    na = verify_stored(a.url, DEFAULT, sent, acked, probe)
     assert na == nb and acked
 
 
@@ -350,14 +350,15 @@ def test_one_snapshot_writer_at_a_time(make_app, rng):
         c.create_field("f")
         c.upload_rays("f", *paper_rays(rng, 300), np.ones(300))
         storage = tc.app.state.rooms.storage
+        lease = snapshot_lease(tc.app.state.rooms.catalogue.get("f").id)
         other = f"{socket.gethostname()}:{os.getpid()}:another-replica"  # alive: this pid
-        assert storage.acquire_lease("snapshot", other, 60)
+        assert storage.acquire_lease(lease, other, 60)
         r = tc.post("/v1/fields/f/snapshot")
         assert r.status_code == 503 and "another replica" in r.text and r.headers["retry-after"]
         assert c.describe("f")["storage"]["snapshot_batch"] == 0
-        storage.release_lease("snapshot", other)
+        storage.release_lease(lease, other)
         assert c.snapshot("f")["batch"] == 1
-        assert storage.acquire_lease("snapshot", other, 60)  # released after the write
+        assert storage.acquire_lease(lease, other, 60)  # released after the write
     finally:
         tc.__exit__(None, None, None)
 
@@ -381,12 +382,13 @@ def test_a_snapshot_whose_lease_is_taken_meanwhile_is_abandoned(make_app, rng, r
         storage = reg.storage
         write = storage.write_snapshot
         other = f"{socket.gethostname()}:{os.getpid()}:another-replica"  # alive: this pid
+        lease = snapshot_lease(reg.catalogue.get("f").id)
 
         def stolen_write(field_id, seq, position, save, check=None):
             def save_then_lose(path, stage):
                 keys = save(path, stage)
-                storage.release_lease("snapshot", reg.snapshots.owner)  # as if it had expired ...
-                assert storage.acquire_lease("snapshot", other, 60)  # ... and been taken
+                storage.release_lease(lease, reg.snapshots.owner)  # as if it had expired ...
+                assert storage.acquire_lease(lease, other, 60)  # ... and been taken
                 return keys
             return write(field_id, seq, position, save_then_lose, check)
 
@@ -396,7 +398,7 @@ def test_a_snapshot_whose_lease_is_taken_meanwhile_is_abandoned(make_app, rng, r
         assert c.describe("f")["storage"]["snapshot_batch"] == 0
         assert storage.clean_orphans() == 0  # nothing of it was left stored
         storage.write_snapshot = write
-        storage.release_lease("snapshot", other)
+        storage.release_lease(lease, other)
         assert c.snapshot("f")["batch"] == 1
     finally:
         tc.__exit__(None, None, None)

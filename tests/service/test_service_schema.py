@@ -21,7 +21,7 @@ from schemathesis.specs.openapi.checks import (content_type_conformance,
 from flatserve.client import Client
 from flatserve.service import Settings, create_app
 
-from .conftest import paper_rays
+from tests.harness.fields import paper_rays
 
 MAX_EXAMPLES = 25
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,

@@ -14,8 +14,7 @@ import httpx
 import pytest
 
 from flatserve.service.server import add_arguments, settings_from_args
-
-from .test_service_crash import Server
+from tests.harness.process import ServerProcess
 
 HEADER_TIMEOUT = 1.5
 BODY_TIMEOUT = 2.0
@@ -27,7 +26,7 @@ SLACK = 1.5
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     d = tmp_path_factory.mktemp("slow")
-    with Server(d / "data", d / "server.log", header_timeout=HEADER_TIMEOUT,
+    with ServerProcess(d / "data", d / "server.log", header_timeout=HEADER_TIMEOUT,
                 body_timeout=BODY_TIMEOUT, body_min_rate=BODY_MIN_RATE,
                 keepalive_timeout=KEEPALIVE, max_connections=0) as srv:
         srv.wait_ready()
@@ -203,7 +202,7 @@ def test_idle_keepalive_connection_is_closed(server):
 
 def test_connections_beyond_the_cap_get_503_admitted_ones_keep_working(tmp_path):
     cap = 4
-    with Server(tmp_path / "data", tmp_path / "server.log", max_connections=cap,
+    with ServerProcess(tmp_path / "data", tmp_path / "server.log", max_connections=cap,
                 header_timeout=30, keepalive_timeout=30) as srv:
         srv.wait_ready()
         a = http.client.HTTPConnection("127.0.0.1", srv.port, timeout=10)

@@ -13,7 +13,8 @@ from fastapi.testclient import TestClient
 from flatserve.client import Client
 from flatserve.flats import Flats
 
-from .conftest import KINDS, paper_rays, save_bytes, started as _started
+from tests.harness.fields import KINDS, paper_rays
+from tests.harness.service import save_bytes, started as _started
 
 with_kinds = pytest.mark.parametrize("kind", KINDS, ids=str)
 

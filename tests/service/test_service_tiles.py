@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 from tests.harness.cells import assert_same_cells
-
-from .conftest import SINGLE, add_rays, paper_rays, running
+from tests.harness.fields import SINGLE, add_rays, paper_rays
+from tests.harness.service import running
 
 
 def test_a_tiled_one_chart_field_answers_as_the_unsplit_one(make_app, rng):

@@ -11,13 +11,13 @@ from fastapi.testclient import TestClient
 
 from flatserve import flats
 from flatserve.client import Client
-from flatserve.service.status import NotReadyError
 from flatserve.field import Field
 from flatserve.service import applier as applier_mod
 from flatserve.service import rooms as rooms_mod
 from flatserve.service import specs
-
-from .conftest import DEFAULT, KINDS, add_rays, paper_rays, query_rays, started as _started
+from flatserve.service.status import NotReadyError
+from tests.harness.fields import DEFAULT, KINDS, add_rays, paper_rays, query_rays
+from tests.harness.service import started as _started
 
 C = 2
 with_kinds = pytest.mark.parametrize("kind", KINDS, ids=str)

@@ -24,7 +24,8 @@ from flatserve.service.cluster.shard import ShardWorker
 from flatserve.service.entry import FieldSpec
 from flatserve.service.settings import Settings
 
-from .conftest import ONE_CHART, paper_rays, started
+from tests.harness.fields import ONE_CHART, paper_rays
+from tests.harness.service import started
 
 
 class LocalGroups:
@@ -43,6 +44,14 @@ class LocalGroups:
 
     def placement(self):
         return []
+
+    def refresh(self):
+        pass
+
+    def applied(self, position, timeout):
+        got = self.call({g: ("applied", (position, timeout)) for g in range(len(self.workers))},
+                        timeout)
+        return [got[g] for g in range(len(self.workers))]
 
 
 def _sphere(rng, n):

@@ -10,7 +10,7 @@ from flatserve.service import sqlschema
 from flatserve.service import status as fe
 from flatserve.service.backend import KeyTakenError
 from flatserve.service.blobs import pack_arrays
-from .conftest import save_bytes
+from tests.harness.service import save_bytes
 
 BASIS = {"Q": np.eye(3)[None].repeat(5, 0), "r": np.zeros((5, 3))}
 

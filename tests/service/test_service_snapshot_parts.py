@@ -9,7 +9,8 @@ import pytest
 
 from tests.harness.charts import rays_in_one_chart
 
-from .conftest import paper_rays, started
+from tests.harness.fields import paper_rays
+from tests.harness.service import started
 
 BACKENDS = ["sqlite", "postgresql"]
 

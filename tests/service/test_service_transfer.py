@@ -14,7 +14,8 @@ from flatserve.errors import InvalidInputError
 from flatserve.flats import Flats, to_parametric
 from flatserve.service.status import FieldExistsError
 
-from .conftest import ONE_CHART, paper_rays, started
+from tests.harness.fields import ONE_CHART, paper_rays
+from tests.harness.service import started
 
 NPZ = "application/x-npz"
 

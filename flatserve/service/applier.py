@@ -23,7 +23,6 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 from ..atlas_field import choose_unit
-from ..basis import Basis
 from ..field import AddResult, PreparedBatch
 from ..flats import Flats
 from .backend import FieldRow, LogBackend, LogEntry, SnapshotGoneError
@@ -33,6 +32,7 @@ from .entry import FieldEntry, FieldSpec, SampledField
 from .homes import LocalHome
 from .settings import Settings
 from .snapshots import SnapshotWriter
+from .specs import stored_spec
 from .status import FieldNotFoundError, StorageError, StorageUnavailableError
 
 log = logging.getLogger("flatserve.service")
@@ -88,9 +88,18 @@ def stored_flats(e: FieldEntry, form: str | None, arrays: dict) -> Flats:
 
 
 def entry_of(row: FieldRow, state: FieldState = FieldState.LOADING) -> FieldEntry:
-    """The entry of a stored field's row (its field not built yet)."""
-    spec = FieldSpec.from_dict(row.spec)
-    basis = Basis(row.basis["Q"], row.basis["r"], spec.k)
+    """The entry of a stored field's row (its field not built yet), its definition
+    checked as a create's (:func:`.specs.stored_spec`) before anything is built
+    from it.
+
+    Raises
+    ------
+    InvalidInputError
+        The stored definition holds a value no create accepts (an entry written by
+        hand or by a faulty version): the caller registers :func:`failed_entry`.
+    """
+    basis = row.basis if isinstance(row.basis, dict) else {}
+    spec, basis = stored_spec(row.spec, basis.get("Q"), basis.get("r"))
     return FieldEntry(row.id, row.name, spec, basis, row.created, row.snapshot_file,
                       row.snapshot_seq, state=state, position=row.position,
                       snapshot_position=row.snapshot_position)
@@ -98,9 +107,11 @@ def entry_of(row: FieldRow, state: FieldState = FieldState.LOADING) -> FieldEntr
 
 def failed_entry(row: FieldRow, exc: Exception) -> FieldEntry:
     """A stored field whose entry cannot be built (:func:`entry_of` raised ``exc``):
-    ``FAILED``, no basis, its spec's sizes where readable (else 0)."""
+    ``FAILED``, no basis, its spec's sizes where readable (else 0) and nothing else
+    of it (nothing is built from it; its requests get a 503 naming ``exc``)."""
     try:
         spec = FieldSpec.from_dict(row.spec)
+        spec = FieldSpec(spec.k, spec.d, spec.channels, {})
     except Exception:
         spec = FieldSpec(0, 0, 0, {})
     return FieldEntry(row.id, row.name, spec, None, row.created, row.snapshot_file,
@@ -175,10 +186,16 @@ class LogApplier:
             row = self.storage.field(entry.field_id)
         except FieldNotFoundError:
             return  # deleted later in the log: its delete entry follows
-        e = entry_of(row, state=FieldState.READY)
         with self._lock:
             fld = self._built.pop(row.id, None)
-        e.field = self.home.field(e, fld)
+        try:
+            e = entry_of(row, state=FieldState.READY)
+            e.field = self.home.field(e, fld)
+        except (StorageError, Stopped):
+            raise
+        except Exception as exc:  # a definition no create makes: that field only fails
+            log.exception("field %r: its stored definition cannot be used", row.name)
+            e = failed_entry(row, exc)
         self.catalogue.put(e)
 
     def apply_delete(self, entry: LogEntry) -> None:

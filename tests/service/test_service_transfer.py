@@ -381,3 +381,56 @@ def test_a_bad_batch_anywhere_in_the_file_refuses_the_whole_import(deployments, 
     _refused(tb, b, _with_manifest(oriented, as_lines), 422, "parametric_A",
              "batch 1 (seq 2): this atlas is oriented")
     assert b.import_field("x", good)["nsamples"] == a.describe("f")["nsamples"]
+
+
+def test_a_stored_definition_beyond_the_create_limits_fails_its_field_only(make_app,
+                                                                           tmp_path, rng):
+    """A create entry in the log whose definition no create makes (written to the
+    storage directly, as a faulty version, an old import or a hand edit would:
+    ``copies`` 0, ``tiles`` 65, ``channels`` 0, tiles on an atlas, an atlas of other
+    flats than the field's) is never built: the follower applying it and a restart
+    restoring it mark that field failed naming the member (503 for its requests,
+    ``failed`` in the listing), the server starts, and the other fields serve on
+    (bit for bit); a failed field can be deleted."""
+    tc, c = started(make_app(data_dir=tmp_path / "d"))
+    c.create_field("good", channels=2, basis=ONE_CHART)
+    c.upload_rays("good", *paper_rays(rng, 400), rng.uniform(size=(400, 2)))
+    c.create_field("atlas", channels=2)
+    c.upload_rays("atlas", *paper_rays(rng, 400), rng.uniform(size=(400, 2)))
+    qo, qv = paper_rays(rng, 500)
+    want = {n: c.query_rays(n, qo, qv).values for n in ("good", "atlas")}
+    rooms = tc.app.state.rooms
+    one = rooms.storage.field(rooms.catalogue.get("good").id)
+    at = rooms.storage.field(rooms.catalogue.get("atlas").id)
+    bad = {
+        "copies0": (dict(one.spec, copies=0), one.basis, "spec.copies"),
+        "tiles65": (dict(one.spec, tiles=65), one.basis, "spec.tiles"),
+        "channels0": (dict(one.spec, channels=0), one.basis, "spec.channels"),
+        "tiled-atlas": (dict(at.spec, tiles=2), at.basis, "spec.tiles"),
+        "planes": (dict(at.spec, k=2), at.basis, "spec.atlas"),
+    }
+    for name, (spec, basis, _) in bad.items():
+        _, pos = rooms.storage.create_field(name, spec, basis)
+        assert rooms.follower.wait_applied(pos, 30)
+
+    def check(tc, c):
+        states = {f["name"]: f["state"] for f in c.list_fields()}
+        assert states == {"good": "ready", "atlas": "ready", **dict.fromkeys(bad, "failed")}
+        for name, (_, _, member) in bad.items():
+            for r in (tc.get(f"/v1/fields/{name}"),
+                      tc.post(f"/v1/fields/{name}/query",
+                              json={"origins": qo[:2].tolist(), "directions": qv[:2].tolist()})):
+                assert r.status_code == 503 and member in r.text, (name, r.status_code, r.text)
+        for name, values in want.items():
+            np.testing.assert_array_equal(c.query_rays(name, qo, qv).values, values)
+
+    check(tc, c)
+    tc.__exit__(None, None, None)
+    tc, c = started(make_app(data_dir=tmp_path / "d"))  # restored from the log
+    try:
+        check(tc, c)
+        c.upload_rays("good", *paper_rays(rng, 100), rng.uniform(size=(100, 2)))
+        c.delete_field("copies0")
+        assert "copies0" not in {f["name"] for f in c.list_fields()}
+    finally:
+        tc.__exit__(None, None, None)

@@ -74,7 +74,7 @@ LANES = {
     # browser: Debian's headless Chromium (tests/harness/browser.py)
     "test_lightfield_viewer.py": ("browser", "slow"),
     "test_lightfield_viewer_keys.py": ("browser",),
-    "service/test_service_docs.py::test_docs_render_every_operation_without_a_network": ("browser",),
+    "service/test_docs.py::test_docs_render_every_operation_without_a_network": ("browser",),
     # docker: the container image built and run (with PostgreSQL and Ray inside)
     "test_docker.py": ("docker", "slow"),
     # ray: a Ray cluster of several nodes on this machine (tests/harness/raycluster.py)
@@ -86,22 +86,22 @@ LANES = {
     # server: real server processes (tests/harness/process.py), kill -9, replicas
     "service/test_service_crash.py": ("server", "slow"),
     "service/test_service_damage.py": ("server",),
-    "service/test_service_slow_clients.py": ("server",),
-    "service/test_service_metrics.py": ("server",),
+    "service/test_connections.py": ("server",),
+    "service/test_metrics.py": ("server",),
     "service/test_soak_script.py": ("server",),
     "service/test_soak_script.py::test_short_soak_on_postgresql_with_two_replicas": ("postgres",),
     "test_lightfield_orbit_service.py": ("server", "slow"),
     "test_readme.py::test_readme_blocks_run_as_written_twice": ("server",),
     "service/test_service_answers.py::test_healthz_answers_within_a_second_during_worst_cases":
         ("server",),
-    "service/test_service_disk.py::test_second_server_on_a_data_dir_in_use_refuses_to_start":
+    "service/test_datadir.py::test_second_server_on_a_data_dir_in_use_refuses_to_start":
         ("server",),
     "service/test_service_hostile_bodies.py::test_real_server_keeps_the_connection_after_hostile_bodies":
         ("server",),
     "service/test_service_hostile_bodies.py::"
     "test_real_server_answers_deeply_nested_json_with_a_422_and_keeps_the_connection": ("server",),
     "service/test_service_limits.py::test_big_json_bodies_do_not_stall_the_event_loop": ("server",),
-    "service/test_service_logs.py::test_a_real_server_logs_json_only": ("server",),
+    "service/test_logs.py::test_a_real_server_logs_json_only": ("server",),
     "service/test_service_replicas.py::test_write_through_one_replica_read_through_the_other":
         ("server",),
     "service/test_service_replicas.py::test_replicas_at_the_same_position_answer_bit_identically":

@@ -44,6 +44,9 @@ from __future__ import annotations
 
 import abc
 import importlib
+import os
+import socket
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal, Sequence, TypeVar
@@ -55,8 +58,29 @@ T = TypeVar("T")
 #: the kinds of log entries
 EntryKind = Literal["create", "delete", "batch", "snapshot"]
 
-#: the lease a replica holds while it writes a snapshot (one writer at a time)
-SNAPSHOT_LEASE = "snapshot"
+#: seconds :meth:`LogBackend.clean_orphans` holds a field's snapshot lease
+CLEAN_LEASE_S = 60.0
+
+
+def snapshot_lease(field_id: int) -> str:
+    """The name of field ``field_id``'s snapshot lease: one writer of a field's
+    snapshots at a time across replicas, whatever the other fields' writers do
+    (field ids are never reused, so neither are these names).
+
+    Everything that removes snapshot data a field does not point at relies on
+    it: a snapshot's own pointing (the former snapshot, the parts it no longer
+    names), an abandoned snapshot's parts, and :meth:`LogBackend.clean_orphans`
+    for a field that exists; a field's data is the field's only (its names and
+    rows carry the field's id), so two fields' writers never touch each other's.
+    """
+    return f"snapshot:{int(field_id)}"
+
+
+def lease_owner(tag: str = "") -> str:
+    """A new lease owner ``"<hostname>:<pid>:<random>"`` (``tag`` appended to the
+    random part): the form :meth:`LogBackend.acquire_lease` expects, by which a
+    backend may tell a dead process of this host."""
+    return f"{socket.gethostname()}:{os.getpid()}:{tag}{uuid.uuid4().hex[:8]}"
 
 
 @dataclass(frozen=True)
@@ -479,7 +503,7 @@ class LogBackend(abc.ABC):
     def snapshot_parts(self, field_id: int) -> set[str]:
         """Keys of the snapshot parts stored for field ``field_id`` (a snapshot
         writer passes them to ``write_parts`` as known: not written again).
-        Stable while the caller holds :data:`SNAPSHOT_LEASE`."""
+        Stable while the caller holds the field's :func:`snapshot_lease`."""
 
     @abc.abstractmethod
     def store_part(self, field_id: int, key: str, data: bytes) -> int:
@@ -488,8 +512,8 @@ class LogBackend(abc.ABC):
         a field's shards and serialises them itself, so that the parts never
         travel through the snapshot's writer (who then names them among the
         keys ``save`` returns to :meth:`write_snapshot`). A part stored already
-        is kept as it is. The caller acts for a writer holding
-        :data:`SNAPSHOT_LEASE`; a part no snapshot comes to name is removed by
+        is kept as it is. The caller acts for a writer holding the field's
+        :func:`snapshot_lease`; a part no snapshot comes to name is removed by
         the field's next snapshot.
 
         Returns
@@ -501,18 +525,19 @@ class LogBackend(abc.ABC):
     @abc.abstractmethod
     def remove_parts(self, field_id: int, keys: Sequence[str]) -> None:
         """Remove these parts of field ``field_id`` (stored for a snapshot that was
-        abandoned, which no snapshot names). The caller holds
-        :data:`SNAPSHOT_LEASE`."""
+        abandoned, which no snapshot names). The caller holds the field's
+        :func:`snapshot_lease`."""
 
     @abc.abstractmethod
     def acquire_lease(self, name: str, owner: str, ttl: float) -> bool:
         """Take (or renew) the lease ``name`` for ``owner`` for ``ttl`` seconds:
         True if ``owner`` holds it now, False if another owner holds an
-        unexpired one. Used for :data:`SNAPSHOT_LEASE` (one snapshot writer at a
-        time, across replicas); a writer killed holding it blocks others until
-        it expires. Owners are ``"<hostname>:<pid>:<random>"``: a backend may
-        take over at once a lease whose owner is a dead process of this host
-        (the SQLite backend does)."""
+        unexpired one. Used for :func:`snapshot_lease` (one snapshot writer of a
+        field at a time, across replicas); a writer killed holding it blocks
+        others until it expires. Leases of different names are independent.
+        Owners are :func:`lease_owner`'s ``"<hostname>:<pid>:<random>"``: a
+        backend may take over at once a lease whose owner is a dead process of
+        this host (the SQLite backend does)."""
 
     @abc.abstractmethod
     def renew_lease(self, name: str, owner: str, ttl: float) -> bool:
@@ -525,10 +550,42 @@ class LogBackend(abc.ABC):
     def release_lease(self, name: str, owner: str) -> None:
         """Give the lease up if ``owner`` holds it."""
 
-    @abc.abstractmethod
     def clean_orphans(self) -> int:
         """Remove snapshot data no field points at (left by a writer that died);
-        the number removed. Called only while holding :data:`SNAPSHOT_LEASE`."""
+        the number removed. Safe while other writers run: the data of fields
+        that are gone (and what belongs to no field) goes at once, since no
+        writer can point a deleted field at anything; a live field's only under
+        its :func:`snapshot_lease`, taken here field by field under an owner of
+        its own (:data:`CLEAN_LEASE_S`): a field whose lease a writer holds is
+        left for the next clean-up.
+
+        Raises
+        ------
+        flatserve.service.status.StorageError
+        """
+        n = self._clean_orphans(None)
+        owner = lease_owner("clean-")
+        for field_id in sorted(self._orphan_fields()):
+            name = snapshot_lease(field_id)
+            if not self.acquire_lease(name, owner, CLEAN_LEASE_S):
+                continue
+            try:
+                n += self._clean_orphans(field_id)
+            finally:
+                self.release_lease(name, owner)
+        return n
+
+    @abc.abstractmethod
+    def _orphan_fields(self) -> set[int]:
+        """Ids of the stored fields that have snapshot data they do not point at
+        (a hint: :meth:`_clean_orphans` checks again under the field's lease)."""
+
+    @abc.abstractmethod
+    def _clean_orphans(self, field_id: int | None) -> int:
+        """Remove the snapshot data field ``field_id`` does not point at (the
+        caller holds its :func:`snapshot_lease`; its parts stay: its next
+        snapshot removes those no snapshot names); None: the data of fields that
+        are gone and what belongs to no field. The number removed."""
 
 
 #: backend class by URL scheme: "module:Class" (imported on first use, so a

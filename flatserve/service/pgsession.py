@@ -4,7 +4,9 @@ counterpart in the rulebook (:mod:`.sqlrules`), as mixins it inherits.
 
 * :class:`AdvisoryLeases`: a lease is a session-level advisory lock held on a
   connection of its own (it dies with its holder's connection); the ``leases``
-  row says who holds it, for people looking.
+  row says who holds it, for people looking. Each name is a lock of its own
+  (a snapshot lease per field: :func:`~.backend.snapshot_lease`), so a process
+  holding several holds a connection for each.
 * :class:`LogListener`: :meth:`~LogListener.wait_for_change` LISTENs on a
   connection of its own for the ``NOTIFY`` each append sends, and wakes for
   this process's own commits through a pipe.

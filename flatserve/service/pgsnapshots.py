@@ -153,7 +153,8 @@ def _copy_out(conn, name: str, path: Path | io.BytesIO) -> None:
 
 class ChunkedSnapshots:
     """:meth:`LogBackend.write_snapshot`, ``load_snapshot``, ``snapshot_parts``,
-    ``snapshot_bytes`` and ``clean_orphans`` of :class:`~.pgstorage.PostgresBackend`,
+    ``snapshot_bytes`` and the hooks of ``clean_orphans`` of
+    :class:`~.pgstorage.PostgresBackend`,
     with the rulebook's snapshot hooks (state: ``_stages``, a :class:`Stages`;
     statements through ``_run``). A snapshot's parts are ``snapshots`` rows of
     their own (``p<field id>-<key>``, each stored once), removed with their field
@@ -323,11 +324,26 @@ class ChunkedSnapshots:
             " FROM snapshots s WHERE s.name=%s", (file,)).fetchone(), tx=False)
         return 0 if r is None else int(r[0])
 
-    def clean_orphans(self) -> int:
-        """Remove the snapshots no field points at and the parts of fields that
-        are gone (left by a writer that died)."""
+    #: snapshot rows (not parts) that no field points at
+    _UNPOINTED = ("s.name NOT LIKE 'p%%' AND NOT EXISTS"
+                  " (SELECT 1 FROM fields f WHERE f.snapshot_file = s.name)")
+
+    def _orphan_fields(self) -> set[int]:
+        rows = self._run(lambda c: c.execute(
+            "SELECT DISTINCT s.field_id FROM snapshots s WHERE " + self._UNPOINTED +
+            " AND EXISTS (SELECT 1 FROM fields f WHERE f.id = s.field_id)").fetchall(),
+            tx=False)
+        return {int(r[0]) for r in rows}
+
+    def _clean_orphans(self, field_id: int | None) -> int:
+        """``field_id``: its snapshots it does not point at (a writer that died
+        between storing the data and pointing at it); None: every row of a
+        field that is gone. One statement, one view: a row of a live field's
+        writer is seen with its field (created before it)."""
+        if field_id is not None:
+            return self._run(lambda c: c.execute(
+                "DELETE FROM snapshots s WHERE s.field_id = %s AND " + self._UNPOINTED,
+                (field_id,)).rowcount)
         return self._run(lambda c: c.execute(
             "DELETE FROM snapshots s WHERE NOT EXISTS"
-            " (SELECT 1 FROM fields f WHERE f.snapshot_file = s.name)"
-            " AND NOT (s.name LIKE 'p%%' AND EXISTS"
-            " (SELECT 1 FROM fields f WHERE f.id = s.field_id))").rowcount)
+            " (SELECT 1 FROM fields f WHERE f.id = s.field_id)").rowcount)

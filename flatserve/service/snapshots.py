@@ -1,9 +1,11 @@
-"""The snapshot writer: a field's state written to storage under the snapshot lease.
+"""The snapshot writer: a field's state written to storage under its snapshot lease.
 
-One room for the snapshot protocol: the lease (one replica writes at a time;
+One room for the snapshot protocol: the field's lease
+(:func:`~.backend.snapshot_lease`: one writer of a field at a time, across
+replicas and within this one; writers of different fields run at once;
 renewed while a long snapshot is written; a writer whose lease lapsed abandons
-its snapshot, because the new holder's clean-up removes whatever no field points
-at), the field's lock (held from reading the field's log position until the
+its snapshot, because the new holder's clean-up removes whatever the field does
+not point at), the field's lock (held from reading the field's log position until the
 field is serialised, never during the database part), background snapshots
 every ``snapshot_every`` new samples, and the clean-up of data a dead writer
 left. Storage does the writing (:meth:`.backend.LogBackend.write_snapshot`).
@@ -11,17 +13,14 @@ left. Storage does the writing (:meth:`.backend.LogBackend.write_snapshot`).
 from __future__ import annotations
 
 import logging
-import os
-import socket
 import threading
 import time
-import uuid
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Iterator
 
 from .schemas import SnapshotResult
-from .backend import SNAPSHOT_LEASE, FieldRow, LogBackend
+from .backend import FieldRow, LogBackend, lease_owner, snapshot_lease
 from .catalogue import FieldState
 from .entry import FieldEntry
 from .settings import Settings
@@ -29,7 +28,7 @@ from .status import FieldNotFoundError, NotReadyError, StorageError
 
 log = logging.getLogger("flatserve.service")
 
-#: a replica that found the snapshot lease taken tries again after this many seconds
+#: a replica that found a field's snapshot lease taken tries again after this many seconds
 SNAPSHOT_RETRY_S = 10.0
 
 
@@ -41,7 +40,7 @@ class SnapshotWriter:
     settings : Settings
         ``snapshot_every``, ``snapshot_lease_seconds``.
     storage : LogBackend
-        Holds the snapshot lease, takes the file and points the field at it.
+        Holds the fields' snapshot leases, takes the file and points the field at it.
     metrics : Metrics, optional
         Counts the snapshots written per field.
     """
@@ -50,8 +49,11 @@ class SnapshotWriter:
         self.settings = settings
         self.storage = storage
         self.metrics = metrics
-        #: this replica's name in leases
-        self.owner = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
+        #: this replica's name in leases (one writer per field here: ``_writing``)
+        self.owner = lease_owner()
+        #: ids of the fields whose snapshot this replica writes now
+        self._writing: set[int] = set()
+        self._writing_lock = threading.Lock()
         self._bg = ThreadPoolExecutor(1, thread_name_prefix="flatserve-bg")
         self.closed = False
 
@@ -93,24 +95,44 @@ class SnapshotWriter:
 
     # -- the lease ----------------------------------------------------------------------------
     @contextmanager
-    def _lease(self, what: str) -> Iterator["_Held"]:
-        """Hold the snapshot lease, renewed in a thread, for the ``with`` block.
+    def _lease(self, e: FieldEntry) -> Iterator["_Held"]:
+        """Hold field ``e``'s snapshot lease, renewed in a thread, for the ``with``
+        block. Within this replica one writer per field (the lease's owner is
+        the replica's: a second writer would renew the first's lease, and the
+        first to finish would release it under the other).
 
         Raises
         ------
         NotReadyError
-            Another replica holds it.
+            Another writer (of this replica or another) holds it.
         """
+        what = f"field {e.name!r}"
+        with self._writing_lock:
+            if e.id in self._writing:
+                raise NotReadyError(f"a snapshot of {what} is being written by this replica; "
+                                    "retry later")
+            self._writing.add(e.id)
+        try:
+            with self._held(e.id, what) as held:
+                yield held
+        finally:
+            with self._writing_lock:
+                self._writing.discard(e.id)
+
+    @contextmanager
+    def _held(self, field_id: int, what: str) -> Iterator["_Held"]:
+        """:meth:`_lease` across replicas: the lease taken, renewed, released."""
         ttl = self.settings.snapshot_lease_seconds
-        if not self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, ttl):
-            raise NotReadyError("another replica is writing a snapshot; retry later")
-        held = _Held(self.storage, self.owner, ttl)
+        name = snapshot_lease(field_id)
+        if not self.storage.acquire_lease(name, self.owner, ttl):
+            raise NotReadyError(f"another replica is writing a snapshot of {what}; retry later")
+        held = _Held(self.storage, name, self.owner, ttl)
         renew = threading.Event()
 
         def renewer():  # keep the lease while a long snapshot is written
             while not renew.wait(ttl / 3):
                 try:
-                    if not self.storage.renew_lease(SNAPSHOT_LEASE, self.owner, ttl):
+                    if not self.storage.renew_lease(name, self.owner, ttl):
                         held.lost.set()
                         log.error("%s: the snapshot lease was taken by another replica while "
                                   "this one wrote; the snapshot is abandoned", what)
@@ -126,7 +148,7 @@ class SnapshotWriter:
             renew.set()
             th.join()
             try:
-                self.storage.release_lease(SNAPSHOT_LEASE, self.owner)
+                self.storage.release_lease(name, self.owner)
             except StorageError:  # pragma: no cover - it expires
                 pass
 
@@ -142,7 +164,7 @@ class SnapshotWriter:
             The field was deleted.
         """
         t0 = time.perf_counter()
-        with self._lease(f"field {e.name!r}") as lease:
+        with self._lease(e) as lease:
             if e.deleted:
                 raise FieldNotFoundError(f"no field named {e.name!r}")
             row = self.storage.field(e.id)  # (a read: outside the field's lock)
@@ -197,25 +219,15 @@ class SnapshotWriter:
                         "snapshot: %s", e.name, exc)
 
     def clean_orphans(self) -> None:
-        """Remove snapshot data left by a writer that died (under the snapshot lease:
-        never a snapshot another replica is writing)."""
-        try:
-            if not self.storage.acquire_lease(SNAPSHOT_LEASE, self.owner, 60.0):
-                return
-        except StorageError as exc:  # a full disk: nothing to clean now
-            log.warning("snapshot clean-up skipped: %s", exc)
-            return
+        """Remove snapshot data left by a writer that died (a live field's under the
+        field's lease: never a snapshot another writer is writing;
+        :meth:`~.backend.LogBackend.clean_orphans`). Best effort."""
         try:
             n = self.storage.clean_orphans()
             if n:
                 log.info("removed %d unreferenced snapshot file(s)", n)
         except (StorageError, OSError) as exc:  # best effort: the restore goes on
             log.warning("snapshot clean-up failed: %s", exc)
-        finally:
-            try:
-                self.storage.release_lease(SNAPSHOT_LEASE, self.owner)
-            except StorageError:  # pragma: no cover - it expires
-                pass
 
     def close(self) -> None:
         self.closed = True
@@ -223,10 +235,10 @@ class SnapshotWriter:
 
 
 class _Held:
-    """The snapshot lease while held: ``check`` raises once it was lost."""
+    """A field's snapshot lease while held: ``check`` raises once it was lost."""
 
-    def __init__(self, storage: LogBackend, owner: str, ttl: float) -> None:
-        self.storage, self.owner, self.ttl = storage, owner, ttl
+    def __init__(self, storage: LogBackend, name: str, owner: str, ttl: float) -> None:
+        self.storage, self.name, self.owner, self.ttl = storage, name, owner, ttl
         self.lost = threading.Event()
 
     def check(self, renew: bool = True) -> None:
@@ -234,7 +246,7 @@ class _Held:
         (``renew``: renewed now, a database round trip). Another replica's clean-up
         may remove what no field points at: a writer that lost it abandons."""
         if self.lost.is_set() or (renew and not self.storage.renew_lease(
-                SNAPSHOT_LEASE, self.owner, self.ttl)):
+                self.name, self.owner, self.ttl)):
             self.lost.set()
             raise NotReadyError("the snapshot lease was lost while writing (another replica "
                                 "may hold it); the snapshot is abandoned, retry later")

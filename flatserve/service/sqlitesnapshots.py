@@ -10,12 +10,16 @@ database points the field at the snapshot (:mod:`.sqlrules`); then the former
 snapshot file goes, then the field's parts the new one does not name.
 
 A reader of a snapshot replaced meanwhile finds its file gone and is told so
-(:class:`~.backend.SnapshotGoneError`: it reads the new one). The writers hold
-the snapshot lease (one at a time); their new parts wait in
-``snapshots/parts/.stage-<pid>-<thread>-<random>`` until moved into place, and
-:meth:`SnapshotFiles.clean_orphans` (under the lease) removes what a writer
-that died left there, the parts of fields that are gone and the snapshot files
-no field points at.
+(:class:`~.backend.SnapshotGoneError`: it reads the new one). A field's writer
+holds the field's snapshot lease (:func:`~.backend.snapshot_lease`: one writer
+of a field at a time; different fields' writers run at once). Every file a
+writer makes carries its field's id: the snapshot under
+``snapshots/.tmp-f<id>-s<seq>.snap-<pid>-<thread>``, new parts in
+``snapshots/parts/.stage-f<id>-<pid>-<thread>-<random>`` until moved into place
+(a part stored by itself: ``.stage-f<id>-<pid>-<random>-<key>``), so that
+:meth:`~.backend.LogBackend.clean_orphans` removes what a writer that died left
+of a field under that field's lease only, never another field's writer's files;
+the files of fields that are gone, and those of no field, at once.
 """
 from __future__ import annotations
 
@@ -37,8 +41,11 @@ log = logging.getLogger("flatserve.service")
 
 T = TypeVar("T")
 
-#: Prefix of a writer's directory of new parts under ``snapshots/parts``.
+#: Prefix of a writer's directory of new parts under ``snapshots/parts``
+#: (followed by ``f<field id>-``).
 STAGE_PREFIX = ".stage-"
+#: Prefix of a snapshot file being written (followed by its final name).
+TMP_PREFIX = ".tmp-"
 
 
 def part_name(field_id: int, key: str) -> str:
@@ -48,7 +55,7 @@ def part_name(field_id: int, key: str) -> str:
 
 class SnapshotFiles:
     """:meth:`LogBackend.write_snapshot`, ``load_snapshot``, ``snapshot_parts``,
-    ``snapshot_bytes`` and ``clean_orphans`` of
+    ``snapshot_bytes`` and the hooks of ``clean_orphans`` of
     :class:`~.storage.SQLiteBackend`, with the rulebook's snapshot hooks
     (state: ``snapshot_dir``, ``parts_dir``)."""
 
@@ -76,7 +83,8 @@ class SnapshotFiles:
         final = self.part_path(field_id, key)
         if final.is_file():
             return 0
-        tmp = self.parts_dir / f"{STAGE_PREFIX}{os.getpid()}-{uuid.uuid4().hex[:8]}-{key}"
+        tmp = self.parts_dir / (f"{STAGE_PREFIX}f{field_id}-{os.getpid()}-"
+                                f"{uuid.uuid4().hex[:8]}-{key}")
         try:
             with open(tmp, "wb") as out:
                 out.write(data)
@@ -106,8 +114,8 @@ class SnapshotFiles:
         name = f"f{field_id}-s{seq}.snap"
         final = self.snapshot_dir / name
         tag = f"{os.getpid()}-{threading.get_ident()}"
-        tmp = self.snapshot_dir / f".tmp-{name}-{tag}"
-        stage = self.parts_dir / f"{STAGE_PREFIX}{tag}-{uuid.uuid4().hex[:8]}"
+        tmp = self.snapshot_dir / f"{TMP_PREFIX}{name}-{tag}"
+        stage = self.parts_dir / f"{STAGE_PREFIX}f{field_id}-{tag}-{uuid.uuid4().hex[:8]}"
         try:
             stage.mkdir()
             keys = list(save(tmp, stage) or [])
@@ -199,28 +207,58 @@ class SnapshotFiles:
                 pass
         return size
 
-    def clean_orphans(self) -> int:
-        """Remove what no field points at (left by a writer that died): snapshot
-        files, staging directories, the parts of fields that are gone."""
-        fields = self.fields()
-        keep = {f.snapshot_file for f in fields if f.snapshot_file}
-        ids = {f.id for f in fields}
-        n = 0
+    def _leftovers(self) -> tuple[dict[int, list[Path]], list[Path]]:
+        """What no field points at: ``(by live field id, of no live field)``. The
+        files of a live field are its snapshot files but the one it points at,
+        a writer's temporary files and staging directories (never its parts: the
+        next snapshot removes those no snapshot names); of no live field, all
+        of a field that is gone (and files of no field). The directories are
+        listed before the fields are read: a writer's file listed belongs to a
+        field created before, so a field missing then was deleted (ids are
+        never reused)."""
+        found: list[tuple[int | None, Path, bool]] = []  # (field id, path, is a part)
         for p in self.snapshot_dir.iterdir():
-            if p.name not in keep and p.is_file():  # (never a directory mounted there)
-                p.unlink(missing_ok=True)
-                n += 1
+            if p.is_file() and not p.is_symlink():  # (never a directory mounted there)
+                found.append((_owner_id(p.name), p, False))
         for p in self.parts_dir.iterdir():
-            if p.name.startswith(STAGE_PREFIX) and p.is_dir() and not p.is_symlink():
+            if p.is_symlink():
+                continue
+            if p.name.startswith(STAGE_PREFIX) and (p.is_dir() or p.is_file()):
+                found.append((_owner_id(p.name), p, False))
+            elif p.is_file():
+                found.append((_field_id(p.name, prefix="p"), p, True))
+        pointed = {f.id: f.snapshot_file for f in self.fields()}
+        live: dict[int, list[Path]] = {}
+        gone: list[Path] = []
+        for fid, p, part in found:
+            if fid is None or fid not in pointed:
+                gone.append(p)
+            elif not part and p.name != pointed[fid]:
+                live.setdefault(fid, []).append(p)
+        return live, gone
+
+    def _orphan_fields(self) -> set[int]:
+        return set(self._leftovers()[0])
+
+    def _clean_orphans(self, field_id: int | None) -> int:
+        live, gone = self._leftovers()
+        doomed = gone if field_id is None else live.get(field_id, [])
+        for p in doomed:
+            if p.is_dir():
                 shutil.rmtree(p, ignore_errors=True)
-                n += 1
-            elif p.name.startswith(STAGE_PREFIX) and p.is_file():  # a store_part that died
+            else:
                 p.unlink(missing_ok=True)
-                n += 1
-            elif p.is_file() and _field_id(p.name, prefix="p") not in ids:
-                p.unlink(missing_ok=True)
-                n += 1
-        return n
+        return len(doomed)
+
+
+def _owner_id(name: str) -> int | None:
+    """The field id of a file in ``snapshots`` or a writer's staging entry
+    (``f<id>-s<seq>.snap``, ``.tmp-f<id>-...``, ``.stage-f<id>-...``); None: of
+    no field (one of an earlier version, or not flatserve's)."""
+    for prefix in (TMP_PREFIX, STAGE_PREFIX):
+        if name.startswith(prefix):
+            return _field_id(name[len(prefix):])
+    return _field_id(name)
 
 
 def _field_id(name: str, prefix: str = "f") -> int | None:

@@ -13,7 +13,8 @@ import psycopg
 import pytest
 
 from flatserve.service import status as fe
-from flatserve.service.backend import KeyTakenError, SnapshotGoneError, open_backend
+from flatserve.service.backend import (KeyTakenError, SnapshotGoneError, open_backend,
+                                       snapshot_lease)
 from flatserve.service.blobs import pack_arrays, unpack_arrays
 from flatserve.service.pgsnapshots import CHUNK_BYTES
 from flatserve.service.pgstorage import PostgresBackend, redact
@@ -371,31 +372,38 @@ def test_a_lapsed_lease_is_not_renewed_even_when_free_again(two, pg_url):
     that was removed is refused: the field keeps no dangling snapshot."""
     a, b = two
     fid, _ = a.create_field("f", {"k": 1}, BASIS)
-    assert a.acquire_lease("snapshot", "A", 300) and a.renew_lease("snapshot", "A", 300)
-    assert not a.renew_lease("snapshot", "B", 300) and not b.renew_lease("snapshot", "A", 300)
+    lease = snapshot_lease(fid)
+    assert a.acquire_lease(lease, "A", 300) and a.renew_lease(lease, "A", 300)
+    assert not a.renew_lease(lease, "B", 300) and not b.renew_lease(lease, "A", 300)
 
     def lose_it():
         with psycopg.connect(pg_url) as c:
             c.execute("SELECT pg_terminate_backend(pid) FROM pg_locks"
                       " WHERE locktype='advisory' AND granted")
         t0 = time.monotonic()
-        while not b.acquire_lease("snapshot", "B", 300):
+        while not b.acquire_lease(lease, "B", 300):  # free once PostgreSQL saw it end
             assert time.monotonic() - t0 < 30
             time.sleep(0.05)
+        b.release_lease(lease, "B")
         assert b.clean_orphans() == 1  # the writer's data, pointed at by no field
-        b.release_lease("snapshot", "B")
 
     def check():
         lose_it()
-        if not a.renew_lease("snapshot", "A", 300):
+        if not a.renew_lease(lease, "A", 300):
             raise RuntimeError("lease lapsed")
 
     with pytest.raises(RuntimeError, match="lapsed"):
         a.write_snapshot(fid, 0, 0, save_bytes(b"snap" * 100), check)
     assert a.field(fid).snapshot_file is None
     # without the check: the removed data is noticed in the pointing transaction
-    assert a.acquire_lease("snapshot", "A", 300)
+    assert a.acquire_lease(lease, "A", 300)
 
     with pytest.raises(fe.StorageError, match="removed before the field pointed"):
         a.write_snapshot(fid, 0, 0, save_bytes(b"snap" * 100), lose_it)
     assert a.field(fid).snapshot_file is None
+
+
+def test_clean_up_takes_each_fields_lease(two):
+    from .test_service_storage import check_clean_up_under_field_leases
+
+    check_clean_up_under_field_leases(two[0])

@@ -203,3 +203,132 @@ def test_parts_are_read_when_asked_and_a_replaced_snapshot_is_gone(make_app, rng
             storage.load_snapshot(new, late)
     finally:
         tc.__exit__(None, None, None)
+
+
+def _paused_in_check(storage, pause):
+    """``storage.write_snapshot`` with ``pause(field_id)`` run where the writer
+    checks its lease, just before the field would point at its stored data."""
+    write = storage.write_snapshot
+
+    def paused(field_id, seq, position, save, check=None):
+        def checked():
+            pause(field_id)
+            if check is not None:
+                check()
+        return write(field_id, seq, position, save, checked)
+
+    return write, paused
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_two_fields_snapshot_at_once_in_one_replica(make_app, rng, request, backend):
+    """Each field's writer holds its own lease: two fields' snapshots written at
+    once in one process both succeed, whichever finishes first (the first done
+    must not release the other's lease), round after round; each snapshot keeps
+    all of its parts (one field's clean-up never takes the other's)."""
+    import threading
+
+    from flatserve.contract import load_field
+
+    tc, c = started(make_app(**_opts(request, backend)))
+    try:
+        rooms = tc.app.state.rooms
+        names = ("a", "b")
+        for name in names:
+            c.create_field(name)
+        ids = {rooms.catalogue.get(n).id: n for n in names}
+        rows = dict.fromkeys(names, 0)
+        both_in, first_done = threading.Barrier(2, timeout=30), threading.Event()
+
+        def pause(field_id):  # both writers hold their lease here; "b" waits for "a"
+            both_in.wait()
+            if ids[field_id] == "b":
+                assert first_done.wait(30)
+
+        write, paused = _paused_in_check(rooms.storage, pause)
+        rooms.storage.write_snapshot = paused
+        for rnd in range(4):
+            for name in names:
+                n = int(rng.integers(300, 800))
+                c.upload_rays(name, *paper_rays(rng, n), rng.uniform(size=n))
+                rows[name] += n
+            both_in.reset()
+            first_done.clear()
+            got = {}
+
+            def snap(name):
+                got[name] = tc.post(f"/v1/fields/{name}/snapshot")
+                if name == "a":
+                    first_done.set()
+
+            threads = [threading.Thread(target=snap, args=(n,)) for n in names]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(60)
+            for name in names:
+                r = got[name]
+                assert r.status_code == 200, (rnd, name, r.text)
+                assert r.json()["batch"] == rnd + 1
+        rooms.storage.write_snapshot = write
+        for name in names:
+            e = rooms.catalogue.get(name)
+            row = rooms.storage.field(e.id)
+            assert row.snapshot_seq == 4
+            assert rooms.storage.load_snapshot(row, load_field).nsamples == rows[name]
+    finally:
+        tc.__exit__(None, None, None)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_clean_up_leaves_another_fields_snapshot_being_written(make_app, rng, request,
+                                                                  backend):
+    """A replica starting (its clean-up of what a dead writer left) while another
+    field's snapshot is on its way: the data not yet pointed at is that writer's,
+    under the field's lease, and stays; the snapshot is written. A dead writer's
+    data of a field nobody writes is removed."""
+    import threading
+
+    from flatserve.contract import load_field
+    from flatserve.service.snapshots import SnapshotWriter
+    from flatserve.service.status import StorageError
+
+    tc, c = started(make_app(**_opts(request, backend)))
+    try:
+        rooms = tc.app.state.rooms
+        c.create_field("f")
+        c.upload_rays("f", *paper_rays(rng, 2000), rng.uniform(size=2000))
+        fid = rooms.catalogue.get("f").id
+        inside, go = threading.Event(), threading.Event()
+
+        def pause(_field_id):
+            inside.set()
+            assert go.wait(30)
+
+        write, paused = _paused_in_check(rooms.storage, pause)
+        rooms.storage.write_snapshot = paused
+        got = {}
+        t = threading.Thread(target=lambda: got.setdefault("r", tc.post("/v1/fields/f/snapshot")))
+        t.start()
+        try:
+            assert inside.wait(30)
+            SnapshotWriter(rooms.settings, rooms.storage).clean_orphans()  # another replica's
+        finally:
+            go.set()
+            t.join(60)
+        rooms.storage.write_snapshot = write
+        assert got["r"].status_code == 200, got["r"].text
+        row = rooms.storage.field(fid)
+        assert rooms.storage.load_snapshot(row, load_field).nsamples == 2000
+        # data stored by no lease holder (a writer that died): the clean-up removes
+        # it, and pointing the field at it is refused
+        with pytest.raises(StorageError):
+            rooms.storage.write_snapshot(
+                fid, row.snapshot_seq + 1, row.snapshot_position,
+                lambda path, _stage: path.write_bytes(b"a dead writer's") and None,
+                check=SnapshotWriter(rooms.settings, rooms.storage).clean_orphans)
+        assert rooms.storage.field(fid).snapshot_file == row.snapshot_file
+        assert rooms.storage.load_snapshot(row, load_field).nsamples == 2000
+        assert rooms.storage.clean_orphans() == 0
+    finally:
+        tc.__exit__(None, None, None)

@@ -11,7 +11,7 @@ HOST   ?= 127.0.0.1
 PORT   ?= 8000
 DATA   ?= data
 
-.PHONY: run test build stub system-deps bench clean constraints
+.PHONY: run test test-fast build stub system-deps bench clean constraints
 
 # Every pip install of a dependency is pinned by constraints.txt (what CI tests is
 # what the image ships); `make constraints` refreshes it (pip-tools, in .venv-tools).
@@ -76,6 +76,14 @@ run: build
 # FLATSERVE_STRICT=1: a skipped test counts as failed (see tests/conftest.py).
 test: build $(BIN)/.test-deps $(BIN)/.browser $(BIN)/.docker $(BIN)/.postgres
 	FLATSERVE_STRICT=1 $(BIN)/python -m pytest -q tests
+
+# The fast lane: the library's and the service's in-process tests, none that needs
+# more than this interpreter (the lanes are pytest markers: pyproject.toml lists them,
+# tests/conftest.py gives them). It needs the build and the test extras only, none of
+# the Debian installs of the browser, Docker or PostgreSQL; `make test` runs every test.
+FAST := not (slow or server or postgres or ray or docker or browser)
+test-fast: build $(BIN)/.test-deps
+	FLATSERVE_STRICT=1 $(BIN)/python -m pytest -q -m "$(FAST)" tests
 
 # wrk: the load generator of benchmarks/bench_service.py and bench_replicas.py.
 $(BIN)/.bench-tools: scripts/install-system-deps.sh

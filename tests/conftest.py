@@ -64,7 +64,6 @@ def own_pg_cluster():
 #: fixture -> lane: a test that uses the fixture is in the lane.
 FIXTURE_LANES = {
     "pg_cluster": "postgres", "pg_url": "postgres", "own_pg_cluster": "postgres",
-    "docker_engine": "docker", "image": "docker", "containers": "docker",
 }
 
 #: Whole modules (``path``) or single tests (``path::function``), paths under tests/, and
@@ -96,8 +95,8 @@ LANES = {
         ("server",),
     "service/test_datadir.py::test_second_server_on_a_data_dir_in_use_refuses_to_start":
         ("server",),
-    "service/test_service_hostile_bodies.py::test_real_server_keeps_the_connection_after_hostile_bodies":
-        ("server",),
+    "service/test_service_hostile_bodies.py::"
+    "test_real_server_keeps_the_connection_after_hostile_bodies": ("server",),
     "service/test_service_hostile_bodies.py::"
     "test_real_server_answers_deeply_nested_json_with_a_422_and_keeps_the_connection": ("server",),
     "service/test_service_limits.py::test_big_json_bodies_do_not_stall_the_event_loop": ("server",),
@@ -139,7 +138,8 @@ def pytest_collection_modifyitems(config, items):
         name = getattr(item, "originalname", item.name)
         modules.setdefault(path, getattr(item, "module", None))
         lanes = table.get(path, set()) | table.get(f"{path}::{name}", set())
-        lanes.update(FIXTURE_LANES[f] for f in getattr(item, "fixturenames", ()) if f in FIXTURE_LANES)
+        fixtures = getattr(item, "fixturenames", ())
+        lanes.update(FIXTURE_LANES[f] for f in fixtures if f in FIXTURE_LANES)
         callspec = getattr(item, "callspec", None)
         if callspec is not None and callspec.params.get("backend") == "postgresql":
             lanes.add("postgres")

@@ -134,12 +134,15 @@ class UploadService:
         if prev.content_hash != chash:
             raise IdempotencyConflictError(
                 f"Idempotency-Key {idem_key!r} was used for a different batch")
+        more = {}
         if wait:  # a retry with wait=true answers once its batch is visible
             self.follower.await_applied(prev.position, f"batch {prev.seq} of {e.name!r}",
                                         self.settings.apply_wait_timeout)
+            if getattr(e.field, "nsamples_at", None) is not None:
+                more["nsamples"] = self._applied_everywhere(e, prev.position, 0)
         return self._stored_result(e, prev.seq, prev.form, prev.result).model_copy(
             update={"replayed": True, "indexed": prev.seq <= e.indexed_seq,
-                    "position": prev.position})
+                    "position": prev.position, **more})
 
     def _check_cost(self, e: FieldEntry, flats: Flats, pending: int) -> None:
         """Refuse an upload expected to make the field's triangulations larger than
@@ -261,9 +264,18 @@ class UploadService:
                 f"field {e.name!r}: batch {seq} is stored, but the field is not indexed on "
                 f"this replica now ({e.state}: {e.error}); it is restored from storage, which "
                 "indexes it: retry with the same Idempotency-Key for its response")
+        nsamples = self._applied_everywhere(e, pos, res.nsamples)
         timings["insert"] = time.perf_counter() - t2
-        return upload_result(seq, res, nsamples=res.nsamples, indexed=True, pending=0,
+        return upload_result(seq, res, nsamples=nsamples, indexed=True, pending=0,
                              position=pos)
+
+    def _applied_everywhere(self, e: FieldEntry, pos: int, nsamples: int) -> int:
+        """wait=true: the field's samples once the batch at ``pos`` is applied wherever
+        the field's shards live (cluster mode: every shard group asked, up to
+        ``apply_wait_timeout``; ShardUnavailableError, 503, if one is not there), else
+        ``nsamples`` (this process's field holds them)."""
+        counted = getattr(e.field, "nsamples_at", None)
+        return nsamples if counted is None else counted(pos, self.settings.apply_wait_timeout)
 
     def _store_result(self, e: FieldEntry, seq: int, out: UploadResult) -> None:
         """Store the complete response of an indexed batch (wait=true), durably, before

@@ -473,6 +473,58 @@ def test_a_front_started_inside_an_unbuilt_checkout_its_shards_import_the_instal
         assert got.inside.mean() > 0.9
 
 
+def test_copies_above_the_live_nodes_placed_as_far_as_they_go_and_answers_tell_the_truth(
+        tmp_path, rng):
+    """A field asking for 3 copies on a cluster of 2 nodes: each group is placed on both
+    (a copy a node; describe: ``copies`` 3, ``live`` 2) and answers, where a placement
+    group of 3 bundles would never be placed (503 forever). Before any copy is heard
+    from none is counted live. A ``wait=true`` upload is answered once every shard has
+    the batch, with the field's samples then; describe counts what the shards hold."""
+    data = tmp_path / "front1"
+    probe = sphere_rays(rng, 1000)
+    with contextlib.ExitStack() as stack:
+        nodes = stack.enter_context(RayNodes(workers=1))
+        a = stack.enter_context(ServerProcess(data, tmp_path / "front1.log", ray=nodes.address,
+                                              snapshot_every=0, ray_shards=2,
+                                              ray_shard_memory=1 << 30, read_wait_timeout=60))
+        a.wait_ready(180)
+        with Client(a.url, retries=0, timeout=180) as c:
+            c.create_field("f", channels=2, copies=3)
+            groups = c.describe("f")["shard_groups"]
+            assert all(g["copies"] == 3 for g in groups), groups
+            assert all(g["live"] == 0 or g["position"] is not None for g in groups), \
+                "copies counted live before any was heard from"
+            answers = []
+            for _ in range(3):
+                o, d = sphere_rays(rng, 1500)
+                answers.append(c.upload_rays("f", o, d, rng.uniform(size=(1500, 2)), wait=True))
+            got = c.describe("f")
+        for ans in answers:
+            want, _ = oracle(data, "f", upto=ans["position"])
+            assert ans["indexed"] and ans["nsamples"] == want.nsamples, (ans, want.nsamples)
+        assert got["nsamples"] == want.nsamples, (got["nsamples"], want.nsamples)
+        assert all(g["position"] >= answers[-1]["position"] for g in got["shard_groups"]), got
+        assert_same(data, a, "f", probe)
+        with Client(a.url, retries=0) as c:
+            end = time.monotonic() + 120
+            while True:
+                groups = c.describe("f")["shard_groups"]
+                if all(g["live"] == 2 for g in groups) or time.monotonic() > end:
+                    break
+                time.sleep(1)
+        assert [(g["copies"], g["live"]) for g in groups] == [(3, 2), (3, 2)], groups
+
+
+def test_a_group_is_placed_as_far_as_the_nodes_hold_its_copies():
+    """``copies`` as far as the live nodes hold them, never fewer than 1: a definition
+    stored with 0 (or fewer) copies never reaches the group's ordering as 0."""
+    from flatserve.service.cluster.ray_shards import placed_copies
+
+    assert [placed_copies(c, 3) for c in (1, 2, 3, 8, 1000)] == [1, 2, 3, 3, 3]
+    assert [placed_copies(c, 3) for c in (0, -3)] == [1, 1]
+    assert placed_copies(2, 0) == 1 and placed_copies(3, None) == 3
+
+
 def pinned_shares(address: str) -> dict[str, float | None]:
     """Per shard actor of the deployment (by name), the share of its machine's
     ``node:<address>`` resource Ray assigned to it (asked inside the actor, from a
@@ -512,8 +564,9 @@ def test_the_cluster_lost_while_running_503_then_a_front_restarted_on_the_new_cl
                     c.query_rays("f", probe[0][rows], probe[1][rows])
                 assert err.value.status == 503 and "no live copy" in str(err.value)
                 assert c.last_response.headers.get("retry-after")
-            o, d = sphere_rays(rng, 300)  # the log still takes uploads
-            acked = c.upload_rays("f", o, d, rng.uniform(size=(300, 2)))
+            o, d = sphere_rays(rng, 300)  # the log still takes uploads (wait=false: no
+            acked = c.upload_rays("f", o, d, rng.uniform(size=(300, 2)),  # shard has it)
+                                  wait=False)
         assert a.proc.wait(120) != 0  # for its supervisor to restart
         assert "cannot be reached: " in fr.logs()  # the front said why, meanwhile
     with contextlib.ExitStack() as stack:  # the cluster back (a new one), the front restarted

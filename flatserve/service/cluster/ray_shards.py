@@ -6,7 +6,8 @@ field's :class:`RayGroups` (a :class:`~.remote.ShardGroups`):
 
 * a field's charts are dealt round-robin into ``ray_shards`` groups (a
   one-chart field: one group); each group has ``copies`` actors (the field's
-  spec), named ``field-<log>-<id>-g<group>-c<copy>`` in ``ray_namespace``
+  spec) as far as the live nodes with room hold them, one a node
+  (:func:`placed_copies`: never more, never fewer than 1), named ``field-<log>-<id>-g<group>-c<copy>`` in ``ray_namespace``
   (``<log>``: :func:`log_tag`, the log's location), detached
   (they outlive the front that made them: any front finds them by name) and
   restarted by Ray wherever there is room when their node dies
@@ -28,7 +29,10 @@ field's :class:`RayGroups` (a :class:`~.remote.ShardGroups`):
   cores: four arguments and a list of results 1.8 ms a call, one blob each
   way 1.3 ms, a call of nothing 1.2 ms);
 * a thread asks every actor for its status each second
-  (:meth:`RayGroups.status` never waits for it).
+  (:meth:`RayGroups.status` never waits for it; a copy not heard from yet is
+  not counted live); :meth:`RayGroups.refresh` asks at once (describe), and
+  :meth:`RayGroups.applied` asks once a log position is applied (an upload
+  with ``wait=true``).
 """
 from __future__ import annotations
 
@@ -95,6 +99,12 @@ class ShardActor:
 
     def parts(self, position, known, timeout):
         return self.worker.parts(position, known, timeout)
+
+    def applied(self, position: int, timeout: float) -> dict:
+        """:meth:`status` once the worker has applied the log up to ``position``
+        (:meth:`~.shard.ShardWorker.applied`)."""
+        self.worker.applied(position, timeout)
+        return self.status()
 
     def status(self) -> dict:
         import ray
@@ -380,36 +390,78 @@ class RayCluster:
                 lost = True
 
 
+def placed_copies(asked: int, room: int | None) -> int:
+    """How many copies of a shard group a front places: the field's ``copies``
+    (``asked``) as far as the cluster's live nodes with room for one (``room``;
+    None: unknown, as asked) hold them, one a node, and never fewer than 1 (a
+    stored definition asking 0 or fewer still gets its one copy).
+
+    >>> placed_copies(3, 2), placed_copies(8, 3), placed_copies(0, 3), placed_copies(2, 0)
+    (2, 3, 1, 1)
+    """
+    n = max(1, int(asked))
+    return n if room is None else max(1, min(n, int(room)))
+
+
 class RayGroups:
-    """One field's shard groups on the cluster (a :class:`~.remote.ShardGroups`)."""
+    """One field's shard groups on the cluster (a :class:`~.remote.ShardGroups`).
+
+    A group has :func:`placed_copies` copies: the field's ``copies`` as far as the
+    live nodes with room hold them when its placement group is first made (every
+    front takes that count from the placement group then: the copies are
+    ``c0``-``c<n-1>`` everywhere). Describe's ``copies`` is the field's ``copies``
+    (what it asks) and ``live`` the copies that answered a status round or a call:
+    0 until one has (a copy is not counted live before it is heard from).
+    """
 
     def __init__(self, cluster: RayCluster, field_id: int, ncharts: int, copies: int) -> None:
         self.cluster = cluster
         self.field_id = field_id
-        self.copies = int(copies)
+        #: the copies the field's definition asks for (at least 1)
+        self.copies = max(1, int(copies))
         s = cluster.settings
         self.charts = deal(ncharts, s.ray_shards)
         try:
-            room = nodes_with(cluster.ray, {"memory": s.ray_shard_memory, **cluster.pin})
-            if self.copies > len(room):
-                log.warning("field %d asks for %d copies of each shard but %d node(s) have room "
-                            "for one (ray_shard_memory %d bytes): its shards wait for more nodes",
-                            field_id, self.copies, len(room), s.ray_shard_memory)
-        except Exception:  # pragma: no cover - informational only
-            pass
+            room: int | None = len(nodes_with(cluster.ray, {"memory": s.ray_shard_memory,
+                                                            **cluster.pin}))
+        except Exception:  # pragma: no cover - the cluster unreachable: as asked
+            room = None
+        placed = placed_copies(copies, room)
+        if int(copies) < 1:
+            log.error("field %d: its definition asks for %r copies of each shard; placing 1",
+                      field_id, copies)
+        elif placed < self.copies:
+            log.warning("field %d asks for %d copies of each shard but %d live node(s) have "
+                        "room for one (ray_shard_memory %d bytes): %d placed (describe's "
+                        "shard_groups say how many are live)", field_id, self.copies, room,
+                        s.ray_shard_memory, placed)
         self._status: list[dict | None] = [None] * len(self.charts)
-        #: per group, per copy: believed alive (the last call or status answered)
-        self._alive = [[True] * self.copies for _ in self.charts]
         self._next = [0] * len(self.charts)
-        self.actors = [[self._actor(g, j) for j in range(self.copies)]
-                       for g in range(len(self.charts))]
+        self.actors = [self._copies(g, placed) for g in range(len(self.charts))]
+        #: per group, per copy: True (its last status or call answered, ready), False
+        #: (it did not), None (not heard from yet: unknown, not counted live)
+        self._alive: list[list[bool | None]] = [[None] * len(a) for a in self.actors]
 
     def _name(self, g: int, j: int | None = None) -> str:
         base = f"field-{self.cluster.log_tag}-{self.field_id}-g{g}"
         return base if j is None else f"{base}-c{j}"
 
-    def _placement(self, g: int):
-        """The group's placement group: its copies on different nodes."""
+    def _copies(self, g: int, placed: int) -> list:
+        """Group ``g``'s actors: ``placed`` of them, or as many as its placement group
+        (made by any front, earlier) has bundles; a field asking for several copies
+        has one, even when one copy is placed now."""
+        if self.copies == 1:
+            return [self._actor(g, 0, None)]
+        pg = self._placement(g, placed)
+        try:
+            n = max(1, int(pg.bundle_count))
+        except Exception:  # pragma: no cover - the cluster unreachable: as made here
+            n = placed
+        return [self._actor(g, j, pg) for j in range(n)]
+
+    def _placement(self, g: int, n: int):
+        """The group's placement group (``n`` bundles if made here): its copies on
+        different nodes."""
         from ray.util import get_placement_group, placement_group
 
         name = self._name(g)
@@ -419,13 +471,13 @@ class RayGroups:
             pass
         mem = self.cluster.settings.ray_shard_memory
         try:
-            return placement_group([{"memory": mem, **self.cluster.pin}] * self.copies,
+            return placement_group([{"memory": mem, **self.cluster.pin}] * n,
                                    strategy="STRICT_SPREAD",
                                    name=name, lifetime="detached")
         except Exception:  # made by another front meanwhile
             return get_placement_group(name)
 
-    def _actor(self, g: int, j: int):
+    def _actor(self, g: int, j: int, pg):
         s = self.cluster.settings
         opts: dict[str, Any] = dict(
             name=self._name(g, j), namespace=s.ray_namespace, lifetime="detached",
@@ -433,11 +485,11 @@ class RayGroups:
             max_concurrency=ACTOR_CONCURRENCY, num_cpus=0, memory=s.ray_shard_memory)
         if self.cluster.pin:  # (with copies, from its bundle, which holds as much)
             opts["resources"] = dict(self.cluster.pin)
-        if self.copies > 1:
+        if pg is not None:
             from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
             opts["scheduling_strategy"] = PlacementGroupSchedulingStrategy(
-                self._placement(g), placement_group_bundle_index=j)
+                pg, placement_group_bundle_index=j)
         else:
             opts["scheduling_strategy"] = "SPREAD"
         return self.cluster._remote.options(**opts).remote(s, self.field_id, self.charts[g])
@@ -446,24 +498,34 @@ class RayGroups:
         return list(self._status)
 
     def placement(self) -> list[dict]:
-        """Per group: its charts, copies, the copies live at the last status round, and
-        the most advanced copy's log position, samples, memory and restore source."""
+        """Per group: its charts, the copies the field asks for, the copies live (heard
+        from, ready: a copy not heard from yet is not counted), and the most advanced
+        copy's log position, samples, memory and restore source as it last reported
+        them (none yet: None)."""
         out = []
         for g, charts in enumerate(self.charts):
             st = self._status[g] or {}
             out.append({"charts": list(charts), "copies": self.copies,
-                        "live": int(sum(self._alive[g])), "position": st.get("through"),
+                        "live": sum(a is True for a in self._alive[g]),
+                        "position": st.get("through"),
                         "samples": st.get("nsamples"), "memory": st.get("rss"),
                         "node": st.get("node"), "restored_from": st.get("restored_from"),
                         "tiles": st.get("tiles") or None})
         return out
 
-    def refresh(self) -> None:
-        """Ask every actor for its status (one round, at most ~2 s)."""
+    def _note(self, g: int, st: dict) -> None:
+        """A copy of group ``g`` reported ``st``: the group's report unless an earlier
+        one was further on in the log."""
+        old = self._status[g]
+        if old is None or st["through"] >= old["through"]:
+            self._status[g] = st
+
+    def refresh(self, timeout: float = 2.0) -> None:
+        """Ask every actor for its status (one round, at most ``timeout`` s)."""
         ray = self.cluster.ray
         refs = {(g, j): a.status.remote() for g, copies in enumerate(self.actors)
                 for j, a in enumerate(copies)}
-        ready, _ = ray.wait(list(refs.values()), num_returns=len(refs), timeout=2.0)
+        ready, _ = ray.wait(list(refs.values()), num_returns=len(refs), timeout=timeout)
         ready = set(ready)
         best: list[dict | None] = [None] * len(self.charts)
         for (g, j), ref in refs.items():
@@ -479,6 +541,22 @@ class RayGroups:
         for g, st in enumerate(best):
             if st is not None:
                 self._status[g] = st
+
+    def applied(self, position: int, timeout: float) -> list[dict]:
+        """Per group, the status of a copy once it has applied the log up to
+        ``position`` (asked now, one live copy of each group, with failover; each
+        group's report afterwards).
+
+        Raises
+        ------
+        ShardUnavailableError
+            A group has no copy there within ``timeout`` (restoring, behind, none live).
+        """
+        got = self.call({g: ("applied", (position, timeout)) for g in range(len(self.charts))},
+                        timeout + 5.0)
+        for g, st in got.items():
+            self._note(g, st)
+        return [got[g] for g in range(len(self.charts))]
 
     def call(self, calls: dict[int, tuple[str, tuple]], timeout: float) -> dict[int, Any]:
         """``{group: (method, args)}`` on one live copy of each group, waited for on this
@@ -528,17 +606,19 @@ class RayGroups:
             raise
 
     def _order(self, g: int) -> list[int]:
-        """The copies of group ``g``, those believed alive first, in rotation."""
-        n = self.copies
+        """The copies of group ``g`` in rotation: those heard from alive first, then
+        those not heard from yet, then those that failed."""
+        n = len(self.actors[g])
         start = self._next[g]
         self._next[g] = (start + 1) % n
         rot = [(start + i) % n for i in range(n)]
-        return sorted(rot, key=lambda j: not self._alive[g][j])
+        rank = {True: 0, None: 1, False: 2}
+        return sorted(rot, key=lambda j: rank[self._alive[g][j]])
 
     def _unavailable(self, g: int, last: dict[int, str]) -> ShardUnavailableError:
         return ShardUnavailableError(
             f"field {self.field_id}: shard group {g} (charts {list(self.charts[g])}) has no live "
-            f"copy of {self.copies} now ({last.get(g, 'no answer')}); its actors are restarted "
+            f"copy of {len(self.actors[g])} now ({last.get(g, 'no answer')}); its actors are restarted "
             "and restore themselves: retry shortly")
 
     def kill(self) -> None:
@@ -549,7 +629,7 @@ class RayGroups:
                     ray.kill(a, no_restart=True)
                 except Exception:
                     pass
-        if self.copies > 1:
+        if self.copies > 1:  # (a placement group per group: _copies)
             from ray.util import get_placement_group, remove_placement_group
 
             for g in range(len(self.charts)):

@@ -13,7 +13,10 @@ Writes are not sent anywhere: the shard workers follow the shared log
 themselves (:mod:`.shard`). So :meth:`RemoteField.insert_prepared` only
 reports the batch's decisions, and a query is answered once every shard it
 touches has applied the field's log position the front has seen (the entry's
-``indexed_position``): read-your-writes through any front.
+``indexed_position``): read-your-writes through any front. An upload with
+``wait=true`` is answered once every shard group has applied its batch, with
+the field's samples counted then (:meth:`RemoteField.nsamples_at`); describe
+asks the groups for their sizes first (:meth:`RemoteField.describe`).
 """
 from __future__ import annotations
 
@@ -27,7 +30,7 @@ from ...field import AddResult, QueryResult, QueryRoute
 from ...flats import Flats
 from ...options import Interpolant, Order, Outside, choice
 from ..applier import adopt_unit
-from ..status import NotReadyError
+from ..status import NotReadyError, ShardUnavailableError
 
 _NO_ROWS = np.empty(0, np.int64)
 
@@ -61,6 +64,18 @@ class ShardGroups(Protocol):
 
     def placement(self) -> list[dict]:
         """Per group what :meth:`RemoteField.describe` reports as ``placement``."""
+        ...
+
+    def refresh(self) -> None:
+        """Ask every copy for its status now (a round of a few seconds at most; a group
+        none of whose copies answers keeps its last report)."""
+        ...
+
+    def applied(self, position: int, timeout: float) -> list[dict]:
+        """Per group, the status of a copy once it has applied the log up to
+        ``position``, asked now (one live copy of each group, with failover). Raises
+        :class:`~flatserve.service.status.ShardUnavailableError` when a group has
+        no copy there within ``timeout``."""
         ...
 
 
@@ -147,7 +162,7 @@ class RemoteField:
         #: bytes of parts the groups stored for the last :meth:`write_parts`
         self.stored_bytes = 0
 
-    # -- sizes (the workers' last reports: never waits) -------------------------------------
+    # -- sizes (the workers' last reports: never waits; describe asks them first) ---------
     def _statuses(self) -> list[dict]:
         return [s for s in self.groups.status() if s is not None]
 
@@ -243,6 +258,27 @@ class RemoteField:
         return AddResult(accepted=batch.nrows, rejected=_NO_ROWS, reasons=[], duplicates=0,
                          nsamples=self.nsamples)
 
+    def nsamples_at(self, position: int, timeout: float) -> int:
+        """The field's samples once every shard group has applied the log up to
+        ``position``, asked of the groups now: an upload with ``wait=true`` is
+        answered with it (the batch at ``position`` is then in every shard that
+        holds its rows, and visible to queries through any front).
+
+        Raises
+        ------
+        ShardUnavailableError
+            A group has no copy at ``position`` within ``timeout`` (503: the batch
+            is stored; a retry with its Idempotency-Key answers once it is applied).
+        """
+        try:
+            got = self.groups.applied(position, timeout)
+        except ShardUnavailableError as exc:
+            raise ShardUnavailableError(
+                f"the batch at log position {position} is stored, but not every shard of the "
+                f"field has applied it ({exc}): retry with the same Idempotency-Key for its "
+                "response, or upload with wait=false") from None
+        return int(sum(s["nsamples"] for s in got))
+
     def add(self, flats: Flats, values) -> AddResult:
         return self.insert_prepared(self.prepare(flats, values))
 
@@ -311,9 +347,13 @@ class RemoteField:
         return self._shape.blend(route, results, return_weights=return_weights)
 
     def describe(self) -> dict:
-        """The contract's keys from the workers' last reports, and ``placement``:
-        per shard group its ``charts``, ``copies``, ``live`` copies, ``position``
-        (log), ``samples``, ``memory`` (bytes resident) and ``restored_from``."""
+        """The contract's keys counted from the workers' reports, asked now (a status
+        round of every copy first, :meth:`ShardGroups.refresh`: a group none of whose
+        copies answers keeps its last report), and ``placement``: per shard group its
+        ``charts``, ``copies`` (the field's), ``live`` copies (heard from, ready),
+        ``position`` (the log position its report counts: where its ``samples`` were
+        taken), ``samples``, ``memory`` (bytes resident) and ``restored_from``."""
+        self.groups.refresh()
         out = self._shape.describe()
         st = self._statuses()
         n, stored = self.nsamples, self.nstored

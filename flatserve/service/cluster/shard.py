@@ -17,7 +17,8 @@ field's one shard is chart 0). It needs no front:
    front routed to them, once it has applied the log position the front asks
    for), :meth:`ShardWorker.parts` (its charts' snapshot parts at one log
    position: a front assembles the field's snapshot from every group's), and
-   :meth:`ShardWorker.status`.
+   :meth:`ShardWorker.status` (now, or once it has applied a log position:
+   :meth:`ShardWorker.applied`).
 
 Where a worker lives (a Ray actor, :mod:`.ray_shards`; a thread in tests) is
 not this module's business.
@@ -310,6 +311,19 @@ class ShardWorker:
         """
         self._await(at_position, timeout, "a query")
         return self.field.query_shards(work, **kw)
+
+    def applied(self, position: int, timeout: float) -> dict:
+        """:meth:`status` once the log up to ``position`` is applied here (an upload
+        with ``wait=true`` is answered once every group has its batch: its samples
+        are then the field's).
+
+        Raises
+        ------
+        ShardUnavailableError
+            Not there within ``timeout`` (restoring, or behind), or failed.
+        """
+        self._await(position, timeout, "an upload")
+        return self.status()
 
     def parts(self, position: int, known, timeout: float) -> dict:
         """Store its charts' snapshot parts with exactly the field's batches up to

@@ -141,7 +141,7 @@ def _openapi(app: FastAPI):
                 for name, sub in js.pop("$defs", {}).items():
                     comps.setdefault(name, sub)
                 comps.setdefault(model.__name__, js)
-            app.openapi_schema = doc
+            app.openapi_schema = docs.hoist_defs(doc)
         return app.openapi_schema
 
     return openapi

@@ -1,6 +1,8 @@
 """``/docs`` (Swagger UI) and ``/redoc`` without a network: their scripts and styles
 are served by this server from the assets the ``fastapi-offline`` package ships
-(Swagger UI 5, ReDoc 2), under ``/docs/assets/``, never from a CDN."""
+(Swagger UI 5, ReDoc 2), under ``/docs/assets/``, never from a CDN; and
+:func:`hoist_defs`, which keeps the OpenAPI document they show free of dangling
+references."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -12,11 +14,46 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
-__all__ = ["ASSETS", "ASSETS_URL", "install"]
+__all__ = ["ASSETS", "ASSETS_URL", "COMPONENTS", "hoist_defs", "install"]
 
 #: The package's static files: swagger-ui-bundle.js, swagger-ui.css, redoc.standalone.js
 ASSETS = Path(fastapi_offline.__file__).parent / "static"
 ASSETS_URL = "/docs/assets"
+#: Where the OpenAPI document keeps its named schemas (a ``$ref`` prefix)
+COMPONENTS = "#/components/schemas/"
+#: The ``$ref`` prefix of a pydantic model's own definitions (``model_json_schema()``)
+_DEFS = "#/$defs/"
+
+
+def hoist_defs(doc: dict) -> dict:
+    """Move the ``$defs`` of the schemas embedded in an OpenAPI document (a
+    pydantic model's ``model_json_schema()`` given to a route's
+    ``openapi_extra``) to ``components/schemas`` and point their ``#/$defs/``
+    references there: resolved against the document's root, as OpenAPI does, such
+    a reference names nothing. A component of the same name already there is
+    kept (the same model). ``doc`` is changed in place and returned."""
+    found: dict[str, dict] = {}
+
+    def walk(node) -> None:
+        if isinstance(node, dict):
+            defs = node.pop("$defs", None) if isinstance(node.get("$defs"), dict) else None
+            ref = node.get("$ref")
+            if isinstance(ref, str) and ref.startswith(_DEFS):
+                node["$ref"] = COMPONENTS + ref[len(_DEFS):]
+            for value in node.values():
+                walk(value)
+            for name, sub in (defs or {}).items():
+                walk(sub)
+                found.setdefault(name, sub)
+        elif isinstance(node, list):
+            for value in node:
+                walk(value)
+
+    walk(doc)
+    comps = doc.setdefault("components", {}).setdefault("schemas", {})
+    for name, sub in found.items():
+        comps.setdefault(name, sub)
+    return doc
 
 
 def install(app: FastAPI) -> None:

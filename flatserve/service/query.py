@@ -39,6 +39,7 @@ from . import codec
 from .catalogue import FieldCatalogue
 from .entry import FieldEntry
 from .replica import Follower
+from .schemas import MIN_POSITION_DESCRIPTION
 from .settings import Settings
 from .status import FieldNotFoundError, InvalidParameterError, NotReadyError
 
@@ -78,13 +79,7 @@ class QueryParams(BaseModel):
     wait: bool = Field(False, description="First wait until every batch acknowledged so far, "
                                           "by any replica (also with wait=false), is indexed "
                                           "here.")
-    min_position: Optional[int] = Field(
-        None, ge=0,
-        description="Read-your-writes: answer only once this replica has applied the log "
-                    "position a write returned (`position` of an upload, or the "
-                    "`Flatserve-Position` header of any write), waiting up to "
-                    "`read_wait_timeout` seconds; then 503 with `Retry-After` (any replica "
-                    "answers it; one behind waits).")
+    min_position: Optional[int] = Field(None, ge=0, description=MIN_POSITION_DESCRIPTION)
 
 
 @dataclass

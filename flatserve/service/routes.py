@@ -25,19 +25,14 @@ from .errors import (BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, FIELD_WR
 from .logs import note
 from .query import QueryParams, answer, server_timing
 from .responses import model_body
-from .schemas import (BatchList, CoordinatesRequest, CoordinatesResult, FieldCreate,
-                      FieldInfo, FieldList, Health, ImportResult, Limits, ProjectRequest,
-                      ProjectResult, QueryBody, QueryResponse, SnapshotResult, UploadBody,
-                      UploadResult)
+from .schemas import (MIN_POSITION_DESCRIPTION, BatchList, CoordinatesRequest,
+                      CoordinatesResult, FieldCreate, FieldInfo, FieldList, Health,
+                      ImportResult, Limits, ProjectRequest, ProjectResult, QueryBody,
+                      QueryResponse, SnapshotResult, UploadBody, UploadResult)
 
 #: header carrying the log position of a write (uploads carry it in the body too)
 POSITION_HEADER = "Flatserve-Position"
-MinPositionQuery = Annotated[Optional[int], Query(
-    ge=0, description="Read-your-writes: answer only once this replica has applied the log "
-                      "position a write returned (`position` of an upload, or the "
-                      "`Flatserve-Position` header of any write), waiting up to "
-                      "`read_wait_timeout` seconds; then 503 with `Retry-After` (any replica "
-                      "answers it; one behind waits).")]
+MinPositionQuery = Annotated[Optional[int], Query(ge=0, description=MIN_POSITION_DESCRIPTION)]
 
 VerboseQuery = Annotated[bool, Query(
     description="Also the basis flats (`basis.Q`, `basis.r`) and, for an atlas, every chart "

@@ -21,6 +21,19 @@ from .settings import FIELD_NAME_PATTERN
 Vec = list[float]
 Mat = list[list[float]]
 Mats = list[list[list[float]]]
+#: A batch's per-row array, (n, W) or (n, a, b): every batch has at least one row.
+#: Said in the schema only (``minItems``); the service's decoder (:mod:`.codec`,
+#: :class:`flatserve.flats.Flats`) refuses an empty one, naming the array.
+Rows = Annotated[Mat, Field(json_schema_extra={"minItems": 1})]
+RowMats = Annotated[Mats, Field(json_schema_extra={"minItems": 1})]
+
+#: ``min_position`` of a read (a query parameter of describe and query)
+MIN_POSITION_DESCRIPTION = (
+    "Read-your-writes: answer only once this replica has applied the log position a write "
+    "returned (`position` of an upload, or the `Flatserve-Position` header of any write), "
+    "waiting up to `read_wait_timeout` seconds; then 503 with `Retry-After` (any replica "
+    "answers it; one behind waits). A position beyond the log's last one (describe's or "
+    "`/readyz`' `head`) was never returned by a write: 422.")
 FieldName = Annotated[str, Field(pattern=FIELD_NAME_PATTERN, description="Field name.")]
 
 MAX_D = 8
@@ -92,13 +105,13 @@ class FlatsModel(_OneForm):
     (k = 1) origins + directions (n,d), or (k = 0) points (n,d) (the forms of
     :class:`flatserve.flats.Flats`)."""
 
-    Q: Optional[Mats] = None
-    r: Optional[Mat] = None
-    A: Optional[Mats] = None
-    b: Optional[Mat] = None
-    origins: Optional[Mat] = None
-    directions: Optional[Mat] = None
-    points: Optional[Mat] = None
+    Q: Optional[RowMats] = None
+    r: Optional[Rows] = None
+    A: Optional[RowMats] = None
+    b: Optional[Rows] = None
+    origins: Optional[Rows] = None
+    directions: Optional[Rows] = None
+    points: Optional[Rows] = None
 
     _forms = {"Q+r": ("Q", "r"), "A+b": ("A", "b"), "origins+directions": ("origins", "directions"),
               "points": ("points",)}
@@ -354,7 +367,9 @@ class FieldCreate(_KD):
                     "(Tile & Merge), built on the server's cores at once, with the same answers "
                     "bit for bit. Default 1. \"auto\": one tile per core once the chart holds "
                     "enough samples to gain from it (flatserve.tiles.auto_tiles: from 20,000 "
-                    "samples). An atlas field's charts already use the cores.")
+                    "samples). Only for one chart: with an atlas basis (the default) "
+                    "anything but 1, \"auto\" included, is refused (422), since an atlas "
+                    "field's charts are its shards and already use the cores.")
 
 
 class BasisInfo(BaseModel):
@@ -583,7 +598,7 @@ class UploadBody(QueryBody):
 
     model_config = _example({**_EXAMPLE_RAYS, "values": [[0.5], [0.25]]})
 
-    values: Mat
+    values: Rows
 
 
 class QueryResponse(BaseModel):

@@ -104,3 +104,111 @@ def test_openapi_conformance_with_keys(case):
         headers["api-key"] = key
     case.headers = headers
     case.call_and_validate(checks=CHECKS)
+
+
+# -- the document itself -------------------------------------------------------------
+
+
+def _resolve(doc: dict, ref: str):
+    """The node a local ``$ref`` (a JSON pointer from the document's root) names;
+    KeyError if none."""
+    assert ref.startswith("#/"), ref
+    node = doc
+    for token in ref[2:].split("/"):
+        token = token.replace("~1", "/").replace("~0", "~")
+        if not isinstance(node, dict) or token not in node:
+            raise KeyError(ref)
+        node = node[token]
+    return node
+
+
+def _walk(node, where=""):
+    """Every (path, dict) of a JSON document."""
+    if isinstance(node, dict):
+        yield where, node
+        for k, v in node.items():
+            yield from _walk(v, f"{where}/{k}")
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from _walk(v, f"{where}/{i}")
+
+
+@pytest.mark.parametrize("served", [app, app_keys], ids=["open", "keys"])
+def test_every_reference_of_the_openapi_document_resolves(served):
+    """Every ``$ref`` of /openapi.json names a node of the document (a pydantic
+    model's own ``#/$defs/...`` would name nothing there), and no schema keeps
+    ``$defs`` of its own."""
+    with TestClient(served, base_url="http://testserver") as tc:
+        doc = tc.get("/openapi.json").json()
+    refs = [(where, node["$ref"]) for where, node in _walk(doc) if "$ref" in node]
+    assert refs
+    dangling = []
+    for where, ref in refs:
+        try:
+            _resolve(doc, ref)
+        except KeyError:
+            dangling.append((where, ref))
+    assert not dangling
+    assert not [where for where, node in _walk(doc) if "$defs" in node]
+
+
+# -- constraints the schema cannot state, described where it is read ------------------
+
+
+def _json_body(doc: dict, path: str) -> dict:
+    schema = doc["paths"][path]["post"]["requestBody"]["content"]["application/json"]["schema"]
+    return _resolve(doc, schema["$ref"]) if "$ref" in schema else schema
+
+
+def _array_schema(prop: dict) -> dict:
+    """The array member of an optional property's schema."""
+    return next(s for s in prop.get("anyOf", [prop]) if s.get("type") == "array")
+
+
+def test_what_the_schema_allows_but_the_service_refuses_is_stated(tmp_path):
+    """Each body the schema used to allow and the service refuses (422): an empty
+    batch is now outside the schema (``minItems``); tiles on an atlas and a
+    ``min_position`` beyond the log's head, which no schema can state, are in
+    their descriptions. Each is checked against what the service does."""
+    from tests.harness.service import started
+
+    tc, c = started(create_app(Settings(data_dir=tmp_path / "data", snapshot_every=0)))
+    try:
+        doc = tc.get("/openapi.json").json()
+        # every batch has at least one row: said by the schema of every body of flats
+        bodies = {"/v1/fields/{name}/samples": ("origins", "directions", "Q", "r", "A", "b",
+                                                "points", "values"),
+                  "/v1/fields/{name}/query": ("origins", "directions", "Q", "r", "A", "b",
+                                              "points")}
+        for path, arrays in bodies.items():
+            props = _json_body(doc, path)["properties"]
+            for name in arrays:
+                assert _array_schema(props[name]).get("minItems") == 1, (path, name)
+        flats = doc["components"]["schemas"]["FlatsModel"]["properties"]
+        assert all(_array_schema(flats[n]).get("minItems") == 1 for n in ("origins", "Q"))
+        c.create_field("one", basis={"kind": "tangent_simplex"})
+        empty = {"origins": [], "directions": []}
+        assert tc.post("/v1/fields/one/query", json=empty).status_code == 422
+        assert tc.post("/v1/fields/one/samples", json={**empty, "values": []}).status_code == 422
+        assert tc.post("/v1/math/coordinates", json={"flats": empty}).status_code == 422
+        # tiles: for one chart only, "auto" included
+        tiles = doc["components"]["schemas"]["FieldCreate"]["properties"]["tiles"]["description"]
+        assert "atlas" in tiles and "\"auto\" included" in tiles and "422" in tiles
+        r = tc.post("/v1/fields", json={"name": "atlas", "tiles": "auto"})
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "tiles"]
+        assert tc.post("/v1/fields", json={"name": "tiled", "tiles": "auto", "basis": {
+            "kind": "tangent_simplex"}}).status_code == 201
+        # min_position: beyond the head, never returned by a write
+        head = tc.get("/readyz").json()["head"]
+        for path, method in (("/v1/fields/{name}", "get"), ("/v1/fields/{name}/query", "post")):
+            params = doc["paths"][path][method]["parameters"]
+            desc = next(p for p in params if p["name"] == "min_position")["description"]
+            assert "beyond" in desc and "422" in desc, (path, desc)
+        assert tc.get("/v1/fields/one", params={"min_position": head}).status_code == 200
+        r = tc.get("/v1/fields/one", params={"min_position": head + 1})
+        assert r.status_code == 422 and "min_position" in r.text
+        r = tc.post("/v1/fields/one/query", params={"min_position": head + 1},
+                    json={"origins": [[0.0, 0.0, -3.0]], "directions": [[0.0, 0.0, 1.0]]})
+        assert r.status_code == 422 and "min_position" in r.text
+    finally:
+        tc.__exit__(None, None, None)

@@ -159,7 +159,8 @@ class SnapshotWriter:
         Raises
         ------
         NotReadyError
-            Another replica writes one, or the lease was lost while writing.
+            Another writer (of this replica or another) writes one of the field,
+            or the lease was lost while writing.
         FieldNotFoundError
             The field was deleted.
         """

@@ -332,3 +332,42 @@ def test_a_clean_up_leaves_another_fields_snapshot_being_written(make_app, rng, 
         assert rooms.storage.clean_orphans() == 0
     finally:
         tc.__exit__(None, None, None)
+
+
+def test_a_second_snapshot_of_a_field_in_the_same_replica_waits_its_turn(make_app, rng):
+    """The replica's writers share its lease owner, so a second writer of the same
+    field is refused before the lease (503 with Retry-After) instead of renewing
+    the first's lease and releasing it under it; the first is written."""
+    import threading
+
+    tc, c = started(make_app())
+    try:
+        rooms = tc.app.state.rooms
+        c.create_field("f")
+        c.upload_rays("f", *paper_rays(rng, 1000), rng.uniform(size=1000))
+        inside, go, calls = threading.Event(), threading.Event(), []
+
+        def pause(_field_id):  # the first writer waits here, holding the field's lease
+            calls.append(_field_id)
+            if len(calls) == 1:
+                inside.set()
+                assert go.wait(30)
+
+        write, paused = _paused_in_check(rooms.storage, pause)
+        rooms.storage.write_snapshot = paused
+        got = {}
+        t = threading.Thread(target=lambda: got.setdefault("r", tc.post("/v1/fields/f/snapshot")))
+        t.start()
+        try:
+            assert inside.wait(30)
+            second = tc.post("/v1/fields/f/snapshot")
+        finally:
+            go.set()
+            t.join(60)
+        rooms.storage.write_snapshot = write
+        assert second.status_code == 503 and "being written" in second.text, second.text
+        assert second.headers["retry-after"]
+        assert got["r"].status_code == 200, got["r"].text
+        assert c.describe("f")["storage"]["snapshot_batch"] == 1
+    finally:
+        tc.__exit__(None, None, None)

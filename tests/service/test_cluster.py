@@ -353,7 +353,7 @@ def test_a_tile_lost_with_its_process_or_its_node_its_group_restores_itself(fron
         # a tile's process dies: its group ends itself and is restarted, with new tiles
         os.kill(group["tiles"][1]["pid"], signal.SIGKILL)
         o, d = paper_rays(rng, 1000)  # an upload meanwhile: stored, applied once back
-        c.upload_rays("one", o, d, rng.uniform(size=(1000, 2)))
+        c.upload_rays("one", o, d, rng.uniform(size=(1000, 2)), wait=False)
         assert_same(pg_url, a, "one", probe, weights=True, timeout=240)
         again = tiles_reported(c, "one", 2, pid=group["tiles"][1]["pid"])
         # a node holding a tile dies
@@ -361,8 +361,8 @@ def test_a_tile_lost_with_its_process_or_its_node_its_group_restores_itself(fron
         victim = next(w for w in nodes.workers if w.node_id in on)
         nodes.kill(victim)
         nodes.add_worker()  # room for the restarted group and its tiles
-        o, d = paper_rays(rng, 1000)
-        c.upload_rays("one", o, d, rng.uniform(size=(1000, 2)))
+        o, d = paper_rays(rng, 1000)  # (wait=false: the group restarts meanwhile)
+        c.upload_rays("one", o, d, rng.uniform(size=(1000, 2)), wait=False)
         assert_same(pg_url, a, "one", probe, weights=True, timeout=240)
         group = tiles_reported(c, "one", 2, node=victim.node_id)
     assert group["restored_from"] == "the log", group

@@ -49,8 +49,8 @@ stub: build
 
 # The test extra, the PostgreSQL driver and Ray (the cluster extra), installed beside the package (no rebuild of the extension).
 $(BIN)/.test-deps: $(BIN)/.built pyproject.toml constraints.txt scripts/requirements.py
-	$(BIN)/python scripts/requirements.py --no-core test postgres cluster > $(BIN)/test-requirements.txt
-	@echo "==> the test extra, the PostgreSQL driver and Ray (cluster mode)"
+	$(BIN)/python scripts/requirements.py --no-core test postgres cluster docs > $(BIN)/test-requirements.txt
+	@echo "==> the test extra, the PostgreSQL driver, Ray (cluster mode) and the docs extra (MkDocs)"
 	$(BIN)/python -m pip install --progress-bar off $(PIN) -r $(BIN)/test-requirements.txt
 	touch $@
 
@@ -97,7 +97,7 @@ bench: build $(BIN)/.test-deps $(BIN)/.postgres $(BIN)/.bench-tools
 TOOLS := .venv-tools
 constraints:
 	test -x $(TOOLS)/bin/pip-compile || { $(PYTHON) -m venv $(TOOLS) && $(TOOLS)/bin/pip install pip-tools; }
-	{ $(PYTHON) scripts/requirements.py client gradient service lightfield postgres cluster test; \
+	{ $(PYTHON) scripts/requirements.py client gradient service lightfield postgres cluster test docs; \
 	  echo "scikit-build-core>=0.10"; echo "nanobind==3.1.0"; } > $(TOOLS)/requirements.in
 	$(TOOLS)/bin/pip-compile --upgrade --quiet --strip-extras --allow-unsafe --no-header \
 	    --no-emit-index-url --no-emit-find-links -o $(TOOLS)/constraints.txt $(TOOLS)/requirements.in

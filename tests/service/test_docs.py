@@ -1,6 +1,6 @@
 """The API documentation: ``/docs`` and ``/redoc`` from assets this server serves (no
 CDN), rendered in a headless Chromium that can reach nothing but the server; request
-examples for every body, valid requests one after another; every status the README
+examples for every body, valid requests one after another; every status the docs
 promises documented."""
 from __future__ import annotations
 
@@ -15,7 +15,8 @@ from flatserve.service.docs import ASSETS_URL
 from tests.harness.browser import chromium, serving, wait_for
 from tests.harness.process import free_port
 
-README = Path(__file__).resolve().parents[2] / "README.md"
+#: The page of the service's limits (its tables of what a client gets past each).
+LIMITS_PAGE = Path(__file__).resolve().parents[2] / "docs" / "service.md"
 #: No network but the server: every other host name fails to resolve.
 OFFLINE_FLAGS = ["--window-size=1200,900",
                  "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1"]
@@ -65,13 +66,13 @@ def test_every_body_has_an_example_and_the_examples_are_valid_requests(make_app)
         assert tc.get("/v1/fields/demo").json()["nsamples"] == 2
 
 
-#: The header rows of the README's tables of what a client gets past a limit
+#: The header rows of the limits page's tables of what a client gets past a limit
 LIMIT_TABLES = ("| setting (default) | past it |", "| setting | default | what |")
 
 
 def _readme_statuses() -> set[int]:
-    """The HTTP statuses of the README's tables of limits: their last cells."""
-    lines = README.read_text(encoding="utf-8").splitlines()
+    """The HTTP statuses of the limits page's tables: their last cells."""
+    lines = LIMITS_PAGE.read_text(encoding="utf-8").splitlines()
     out: set[int] = set()
     for header in LIMIT_TABLES:
         i = lines.index(header) + 2

@@ -91,6 +91,7 @@ LANES = {
     "service/test_soak_script.py::test_short_soak_on_postgresql_with_two_replicas": ("postgres",),
     "test_lightfield_orbit_service.py": ("server", "slow"),
     "test_readme.py::test_readme_blocks_run_as_written_twice": ("server",),
+    "test_docs_site.py::test_page_blocks_run_as_written_twice": ("server",),
     "service/test_service_answers.py::test_healthz_answers_within_a_second_during_worst_cases":
         ("server",),
     "service/test_datadir.py::test_second_server_on_a_data_dir_in_use_refuses_to_start":

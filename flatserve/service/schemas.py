@@ -478,8 +478,11 @@ class TileInfo(BaseModel):
 
 class ShardGroupInfo(BaseModel):
     charts: list[int] = Field(description="The charts this group of shards holds.")
-    copies: int = Field(description="Copies of the group (each in an actor on its own node).")
-    live: int = Field(description="Copies ready at the last status round (each second).")
+    copies: int = Field(description="Copies of the group the field asks for (each in an "
+                                    "actor on its own node, placed as far as the live nodes "
+                                    "with room hold them).")
+    live: int = Field(description="Copies heard from and ready at the last status round (each "
+                                  "second, and at each describe); 0 before any has reported.")
     position: Optional[int] = Field(None, description="Log position the most advanced copy "
                                                       "has applied.")
     samples: Optional[int] = Field(None, description="Distinct samples of its charts.")

@@ -138,8 +138,7 @@ class UploadService:
         if wait:  # a retry with wait=true answers once its batch is visible
             self.follower.await_applied(prev.position, f"batch {prev.seq} of {e.name!r}",
                                         self.settings.apply_wait_timeout)
-            if getattr(e.field, "nsamples_at", None) is not None:
-                more["nsamples"] = self._applied_everywhere(e, prev.position, 0)
+            more = self._applied_everywhere(e, prev.position)
         return self._stored_result(e, prev.seq, prev.form, prev.result).model_copy(
             update={"replayed": True, "indexed": prev.seq <= e.indexed_seq,
                     "position": prev.position, **more})
@@ -264,18 +263,19 @@ class UploadService:
                 f"field {e.name!r}: batch {seq} is stored, but the field is not indexed on "
                 f"this replica now ({e.state}: {e.error}); it is restored from storage, which "
                 "indexes it: retry with the same Idempotency-Key for its response")
-        nsamples = self._applied_everywhere(e, pos, res.nsamples)
+        counts = self._applied_everywhere(e, pos)
         timings["insert"] = time.perf_counter() - t2
-        return upload_result(seq, res, nsamples=nsamples, indexed=True, pending=0,
-                             position=pos)
+        return upload_result(seq, res, nsamples=res.nsamples, indexed=True, pending=0,
+                             position=pos).model_copy(update=counts)
 
-    def _applied_everywhere(self, e: FieldEntry, pos: int, nsamples: int) -> int:
-        """wait=true: the field's samples once the batch at ``pos`` is applied wherever
-        the field's shards live (cluster mode: every shard group asked, up to
-        ``apply_wait_timeout``; ShardUnavailableError, 503, if one is not there), else
-        ``nsamples`` (this process's field holds them)."""
-        counted = getattr(e.field, "nsamples_at", None)
-        return nsamples if counted is None else counted(pos, self.settings.apply_wait_timeout)
+    def _applied_everywhere(self, e: FieldEntry, pos: int) -> dict:
+        """wait=true: once the batch at ``pos`` is applied where the field's shards live
+        (cluster mode: every shard group asked, up to ``apply_wait_timeout``;
+        ShardUnavailableError, 503, if one is not there), the response's ``nsamples``
+        and ``duplicates`` counted there; {} when this process holds the field (its
+        insert counted them)."""
+        counted = getattr(e.field, "applied_counts", None)
+        return {} if counted is None else counted(pos, self.settings.apply_wait_timeout)
 
     def _store_result(self, e: FieldEntry, seq: int, out: UploadResult) -> None:
         """Store the complete response of an indexed batch (wait=true), durably, before

@@ -497,11 +497,16 @@ def test_copies_above_the_live_nodes_placed_as_far_as_they_go_and_answers_tell_t
             answers = []
             for _ in range(3):
                 o, d = sphere_rays(rng, 1500)
-                answers.append(c.upload_rays("f", o, d, rng.uniform(size=(1500, 2)), wait=True))
+                v = rng.uniform(size=(1500, 2))
+                answers.append(c.upload_rays("f", o, d, v, wait=True))
+            again = c.upload_rays("f", o, d, v, wait=True)  # every row a duplicate
+            answers.append(again)
             got = c.describe("f")
         for ans in answers:
             want, _ = oracle(data, "f", upto=ans["position"])
             assert ans["indexed"] and ans["nsamples"] == want.nsamples, (ans, want.nsamples)
+        assert [a["duplicates"] for a in answers] == [0, 0, 0, 1500], answers
+        assert again["accepted"] == 1500 and again["nsamples"] == answers[2]["nsamples"]
         assert got["nsamples"] == want.nsamples, (got["nsamples"], want.nsamples)
         assert all(g["position"] >= answers[-1]["position"] for g in got["shard_groups"]), got
         assert_same(data, a, "f", probe)

@@ -103,8 +103,8 @@ class ShardActor:
     def applied(self, position: int, timeout: float) -> dict:
         """:meth:`status` once the worker has applied the log up to ``position``
         (:meth:`~.shard.ShardWorker.applied`)."""
-        self.worker.applied(position, timeout)
-        return self.status()
+        got = self.worker.applied(position, timeout)
+        return {**self.status(), "duplicates": got["duplicates"]}
 
     def status(self) -> dict:
         import ray

@@ -15,7 +15,7 @@ reports the batch's decisions, and a query is answered once every shard it
 touches has applied the field's log position the front has seen (the entry's
 ``indexed_position``): read-your-writes through any front. An upload with
 ``wait=true`` is answered once every shard group has applied its batch, with
-the field's samples counted then (:meth:`RemoteField.nsamples_at`); describe
+the field's samples counted then (:meth:`RemoteField.applied_counts`); describe
 asks the groups for their sizes first (:meth:`RemoteField.describe`).
 """
 from __future__ import annotations
@@ -258,11 +258,13 @@ class RemoteField:
         return AddResult(accepted=batch.nrows, rejected=_NO_ROWS, reasons=[], duplicates=0,
                          nsamples=self.nsamples)
 
-    def nsamples_at(self, position: int, timeout: float) -> int:
-        """The field's samples once every shard group has applied the log up to
-        ``position``, asked of the groups now: an upload with ``wait=true`` is
-        answered with it (the batch at ``position`` is then in every shard that
-        holds its rows, and visible to queries through any front).
+    def applied_counts(self, position: int, timeout: float) -> dict:
+        """Once every shard group has applied the batch at log ``position`` (asked of
+        the groups now): the field's ``nsamples`` then and the batch's
+        ``duplicates`` (the groups' sum; None when a copy that answered restored
+        itself past the batch). An upload with ``wait=true`` is answered with them
+        (the batch is then in every shard that holds its rows, and visible to
+        queries through any front).
 
         Raises
         ------
@@ -277,7 +279,9 @@ class RemoteField:
                 f"the batch at log position {position} is stored, but not every shard of the "
                 f"field has applied it ({exc}): retry with the same Idempotency-Key for its "
                 "response, or upload with wait=false") from None
-        return int(sum(s["nsamples"] for s in got))
+        dups = [s.get("duplicates") for s in got]
+        return {"nsamples": int(sum(s["nsamples"] for s in got)),
+                "duplicates": None if None in dups else int(sum(dups))}
 
     def add(self, flats: Flats, values) -> AddResult:
         return self.insert_prepared(self.prepare(flats, values))

@@ -31,6 +31,7 @@ import os
 import tempfile
 import threading
 import time
+from collections import OrderedDict
 
 from ...basis import Basis
 from ...contract import load_field, part_key
@@ -51,6 +52,9 @@ READ_CHUNK = 256
 IDLE_WAIT_S = 1.0
 #: a restore that found the database unreachable tries again after this many seconds
 RETRY_S = 1.0
+#: batches whose duplicates a worker remembers (the latest applied; an upload with
+#: ``wait=true`` asks for its own at once)
+KEEP_DUPLICATES = 256
 
 
 class ShardAheadError(NotReadyError):
@@ -114,6 +118,9 @@ class ShardWorker:
         self.cells = 0
         self.error: str | None = None
         self.restored_from: str | None = None
+        #: per log position of a batch applied here (the latest :data:`KEEP_DUPLICATES`),
+        #: the rows of its charts' own that coincided with a sample already held
+        self._duplicates: OrderedDict[int, int] = OrderedDict()
         self._cond = threading.Condition()
         self._hold: int | None = None
         #: one snapshot's parts at a time: each holds the worker at its own position
@@ -261,10 +268,13 @@ class ShardWorker:
         t1 = time.perf_counter()
         prepared = self.field.prepare(flats, values, only=self.only)
         t2 = time.perf_counter()
-        self.field.insert_prepared(prepared, slice_rows=self.settings.insert_slice_rows)
+        res = self.field.insert_prepared(prepared, slice_rows=self.settings.insert_slice_rows)
         cells = int(self.field.nsimplex)
         with self._cond:
             self.seq, self.position, self.cells = en.seq, en.position, cells
+            self._duplicates[en.position] = int(res.duplicates)
+            while len(self._duplicates) > KEEP_DUPLICATES:
+                self._duplicates.popitem(last=False)
             self._cond.notify_all()
         log.debug("shard %s of field %d: batch %d (%d rows) applied: read %.3f s, prepare "
                   "%.3f s, insert %.3f s", self.charts, self.field_id, en.seq, en.nrows,
@@ -315,7 +325,10 @@ class ShardWorker:
     def applied(self, position: int, timeout: float) -> dict:
         """:meth:`status` once the log up to ``position`` is applied here (an upload
         with ``wait=true`` is answered once every group has its batch: its samples
-        are then the field's).
+        are then the field's), with ``duplicates``: the rows of the batch at
+        ``position`` that coincided with a sample already in their own chart here
+        (each row's own chart is in one group: the groups' sum is the field's),
+        None when this worker did not apply that batch itself (restored past it).
 
         Raises
         ------
@@ -323,7 +336,9 @@ class ShardWorker:
             Not there within ``timeout`` (restoring, or behind), or failed.
         """
         self._await(position, timeout, "an upload")
-        return self.status()
+        with self._cond:
+            dups = self._duplicates.get(position)
+        return {**self.status(), "duplicates": dups}
 
     def parts(self, position: int, known, timeout: float) -> dict:
         """Store its charts' snapshot parts with exactly the field's batches up to

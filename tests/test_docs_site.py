@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -73,6 +74,10 @@ def test_the_api_reference_is_written_from_the_docstrings(site):
         first = getattr(flatserve, name).__doc__.strip().splitlines()[0]
         assert f'id="flatserve.{name}"' in page, name
         assert first.split("``")[0].split("`")[0][:30] in page, (name, first)
+    # the docstrings' Sphinx roles are shown as the code they mark (scripts/docs_roles.py)
+    for ref in ("library", "client", "lightfield"):
+        html = (site / "reference" / ref / "index.html").read_text(encoding="utf-8")
+        assert not re.search(r":(func|class|mod|meth|attr|data|exc):<code>", html), ref
 
 
 def test_every_code_block_is_shell_or_python_and_run_unless_it_says_why():

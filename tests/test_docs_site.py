@@ -74,10 +74,12 @@ def test_the_api_reference_is_written_from_the_docstrings(site):
         first = getattr(flatserve, name).__doc__.strip().splitlines()[0]
         assert f'id="flatserve.{name}"' in page, name
         assert first.split("``")[0].split("`")[0][:30] in page, (name, first)
-    # the docstrings' Sphinx roles are shown as the code they mark (scripts/docs_roles.py)
+    # the docstrings' Sphinx roles are shown as the code they mark (scripts/docs_roles.py),
+    # their doctest lines as code, not as quotes (scripts/docs_doctest.py)
     for ref in ("library", "client", "lightfield"):
         html = (site / "reference" / ref / "index.html").read_text(encoding="utf-8")
         assert not re.search(r":(func|class|mod|meth|attr|data|exc):<code>", html), ref
+        assert "<blockquote>" not in html, ref
 
 
 def test_every_code_block_is_shell_or_python_and_run_unless_it_says_why():

@@ -7,7 +7,8 @@ field's :class:`RayGroups` (a :class:`~.remote.ShardGroups`):
 * a field's charts are dealt round-robin into ``ray_shards`` groups (a
   one-chart field: one group); each group has ``copies`` actors (the field's
   spec) as far as the live nodes with room hold them, one a node
-  (:func:`placed_copies`: never more, never fewer than 1), named ``field-<log>-<id>-g<group>-c<copy>`` in ``ray_namespace``
+  (:func:`placed_copies`: never more, never fewer than 1), named
+  ``field-<log>-<id>-g<group>-c<copy>`` in ``ray_namespace``
   (``<log>``: :func:`log_tag`, the log's location), detached
   (they outlive the front that made them: any front finds them by name) and
   restarted by Ray wherever there is room when their node dies
@@ -618,8 +619,8 @@ class RayGroups:
     def _unavailable(self, g: int, last: dict[int, str]) -> ShardUnavailableError:
         return ShardUnavailableError(
             f"field {self.field_id}: shard group {g} (charts {list(self.charts[g])}) has no live "
-            f"copy of {len(self.actors[g])} now ({last.get(g, 'no answer')}); its actors are restarted "
-            "and restore themselves: retry shortly")
+            f"copy of {len(self.actors[g])} now ({last.get(g, 'no answer')}); its actors are "
+            "restarted and restore themselves: retry shortly")
 
     def kill(self) -> None:
         ray = self.cluster.ray

@@ -82,7 +82,8 @@ def ingest(url: str, name: str, o, d, v, create: dict) -> tuple[float, float]:
         t0 = time.perf_counter()
         pos = 0
         for i in range(0, len(o), BATCH):
-            pos = c.upload_rays(name, o[i:i + BATCH], d[i:i + BATCH], v[i:i + BATCH])["position"]
+            pos = c.upload_rays(name, o[i:i + BATCH], d[i:i + BATCH], v[i:i + BATCH],
+                                wait=False)["position"]
         while True:
             try:
                 c.query_rays(name, o[:10], d[:10], min_position=pos)

@@ -26,7 +26,10 @@ the same limits, ``tiles`` 1-64, ``copies`` 1-3, ...), its ``format`` (exactly t
 integer 1), ``export_id`` (a short token), at most ``max_import_batches`` batches
 of their own ``seq`` and at most ``max_batch_rows`` rows, then every batch as its
 upload will check it, one at a time (a batch decoded at a time beside the file's
-arrays; the store pass decodes each again): a refused file leaves no field.
+arrays; the store pass decodes each again), and the cost of all its batches not yet
+stored at once as an upload's (:func:`.uploads.check_cost`, ``max_simplices``): a
+refused file leaves no field. The batches are then stored without a cost check of
+their own, which could refuse one part-way with an estimate measured meanwhile.
 """
 from __future__ import annotations
 
@@ -42,6 +45,7 @@ import numpy as np
 
 from .._validate import as_array
 from ..basis import Basis
+from ..contract import SampledField
 from ..errors import InvalidInputError
 from ..flats import FORMS, Flats
 from . import specs
@@ -55,7 +59,7 @@ from .settings import FIELD_NAME_PATTERN, Settings
 from .specs import MAX_ATLAS_CENTERS
 from .status import (BatchTooLargeError, FieldExistsError, FieldNotFoundError,
                      LimitExceededError)
-from .uploads import UploadService
+from .uploads import UploadService, check_cost
 
 __all__ = ["EXPORT_FORMAT", "ExportPlan", "TransferService", "read_export"]
 
@@ -138,16 +142,23 @@ class TransferService:
         LimitExceededError
             More batches than ``max_import_batches``, or a batch of more rows than
             ``max_batch_rows`` (413).
+        CostLimitError, CostPendingError
+            The batches not yet stored would make the field larger than
+            ``max_simplices`` cells (413; 429 when the field's samples waiting for
+            their insert make the difference): :func:`.uploads.check_cost`.
         FieldExistsError
             ``name`` exists with another definition (409).
         """
         plan = read_export(body, self.settings)
-        e = self._field(name, plan.spec, plan.basis)
+        e = self._existing(name, plan.spec, plan.basis)
+        self._check_cost(name, plan, e)
+        if e is None:
+            e = self._field(name, plan.spec, plan.basis)
         accepted = replayed = 0
         out = None
         for b, flats, values in plan.each():
-            out = self.uploads.upload(e, flats, values, f"import-{plan.export_id}.{b['seq']}",
-                                      wait=True)
+            out = self.uploads.upload(e, flats, values, plan.key(b), wait=True,
+                                      cost_checked=True)
             accepted += out.accepted if not out.replayed else 0
             replayed += bool(out.replayed)
         return ImportResult(name=name, source=plan.source, batches=len(plan.batches),
@@ -155,22 +166,57 @@ class TransferService:
                             nsamples=e.field.nsamples if e.field is not None else 0,
                             position=out.position if out is not None else 0)
 
+    def _check_cost(self, name: str, plan: "ExportPlan", e: FieldEntry | None) -> None:
+        """The cost guard of the upload (:func:`.uploads.check_cost`) for the file's
+        batches not yet stored in field ``e`` (all of them for a new field, ``None``),
+        at once, before any is stored."""
+        stored = set() if e is None else {b.idem_key for b in self.storage.batches(e.id)}
+        new = [(b["rows"], c) for b, c in zip(plan.batches, plan.copies)
+               if plan.key(b) not in stored]
+        rows = sum(n for n, _ in new)
+        if not rows:
+            return
+        copies = sum(n * c for n, c in new) / rows
+        if e is None:
+            check_cost(name, plan.field, (0, 0), 0, rows, copies, self.settings.max_simplices,
+                       what="this import")
+        else:
+            check_cost(name, e.field, e.complete_size, e.pending_counts()[1], rows, copies,
+                       self.settings.max_simplices, what="this import")
+
+    def _existing(self, name: str, spec: FieldSpec, basis: Basis) -> FieldEntry | None:
+        """The existing field ``name`` if its definition is the file's; None if there
+        is none.
+
+        Raises
+        ------
+        FieldExistsError
+            It exists with another definition (409).
+        NotReadyError, StorageError
+            It is loading, or failed (503).
+        """
+        try:
+            e = self.catalogue.get(name)
+        except FieldNotFoundError:
+            return None
+        same = (e.spec.to_dict() == json.loads(json.dumps(spec.to_dict()))
+                and np.array_equal(e.basis.Q, basis.Q) and np.array_equal(e.basis.r, basis.r))
+        if not same:
+            raise FieldExistsError(f"field {name!r} exists with another definition than "
+                                   "the file's: import under another name, or delete it "
+                                   "first")
+        return e
+
     def _field(self, name: str, spec: FieldSpec, basis: Basis) -> FieldEntry:
-        """The new field, or the existing one of that name if its definition is the file's."""
+        """The new field, or the existing one of that name if its definition is the
+        file's (created meanwhile)."""
         try:
             return self.fields.create(name, spec, basis)
         except FieldExistsError:
-            try:
-                e = self.catalogue.get(name)
-            except FieldNotFoundError:
+            e = self._existing(name, spec, basis)
+            if e is None:
                 raise FieldExistsError(f"field {name!r} exists (or the field limit is "
                                        "reached)") from None
-            same = (e.spec.to_dict() == json.loads(json.dumps(spec.to_dict()))
-                    and np.array_equal(e.basis.Q, basis.Q) and np.array_equal(e.basis.r, basis.r))
-            if not same:
-                raise FieldExistsError(f"field {name!r} exists with another definition than "
-                                       "the file's: import under another name, or delete it "
-                                       "first") from None
             return e
 
 
@@ -188,6 +234,14 @@ class ExportPlan:
     batches: list[dict]
     #: the file's arrays by member name
     arrays: dict[str, np.ndarray]
+    #: an empty field of the definition (built once, to check the batches)
+    field: SampledField
+    #: per batch, the charts holding each of its rows on average (the field's ``copies``)
+    copies: list[float]
+
+    def key(self, batch: dict) -> str:
+        """The Idempotency-Key under which ``batch`` (of :attr:`batches`) is stored."""
+        return f"import-{self.export_id}.{batch['seq']}"
 
     def each(self) -> Iterator[tuple[dict, Flats, np.ndarray]]:
         """``(batch, flats, values)`` of each batch in order, built when reached (a
@@ -344,10 +398,11 @@ def read_export(body: bytes, settings: Settings) -> ExportPlan:
     if vals is None or vals.ndim != 2 or vals.shape != (total, spec.channels):
         raise _bad(f"values: expected ({total}, {spec.channels}), got "
                    f"{None if vals is None else vals.shape}")
-    plan = ExportPlan(source, export_id, spec, basis, listed, arrays)
+    plan = ExportPlan(source, export_id, spec, basis, listed, arrays, probe, [])
     for i, (b, flats, values) in enumerate(plan.each()):  # as its upload will check it
         with _in_batch(f"batch {i} (seq {b['seq']})", b["form"]):
             probe.prepare(flats, values, defer=True)
+            plan.copies.append(probe.copies(flats))
     return plan
 
 

@@ -32,6 +32,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..atlas_field import choose_unit
+from ..contract import SampledField
 from ..field import AddResult, PreparedBatch
 from ..flats import Flats
 from .applier import stored_flats
@@ -61,6 +62,68 @@ def upload_result(seq: int, res: AddResult | PreparedBatch, *, nsamples: int, in
         replayed=False, position=int(position))
 
 
+def check_cost(name: str, field: SampledField, size: tuple[int, int], pending: int,
+               rows: int, copies: float, max_simplices: int, *,
+               what: str = "this upload") -> None:
+    """Refuse new rows expected to make a field's triangulations larger than
+    ``max_simplices`` cells in all: the cost guard of an upload (one batch) and of
+    an import (all its batches at once, before the first is stored).
+
+    The estimate is the field's size when it last held its batches whole (``size``:
+    :attr:`.FieldEntry.complete_size`, set by :meth:`.FieldEntry.mark_indexed`;
+    never a triangulation with a batch half inserted, whose cells per sample are far
+    from the final ones) plus the ``pending`` samples and the new ``rows``, times the
+    cells per sample measured then (:func:`.costs.cells_per_sample` below
+    :data:`.costs.COST_MIN_SAMPLES` samples; high-dimensional fields grow very fast:
+    200 samples in D = 8 make a million cells). A field of several shards stores a
+    sample once in every shard that holds it: the new rows are counted with their
+    ``copies`` (the field's ``copies`` of them: the mean over the rows).
+
+    Parameters
+    ----------
+    name : str
+        The field's name (for the message).
+    field : SampledField
+        The field, or an empty one of its definition (a field not created yet).
+    size : tuple of int
+        ``(samples, cells)`` when it last held its batches whole; ``(0, 0)`` for a
+        new field.
+    pending : int
+        Its samples acknowledged and not yet indexed.
+    rows, copies : int, float
+        The new rows and the charts holding each on average.
+    max_simplices : int
+    what : str
+        What brings the rows, for the message.
+
+    Raises
+    ------
+    CostLimitError
+        413: the rows cannot pass, now or later (the field holds too much already
+        with them, or they alone are too many).
+    CostPendingError
+        429 with ``Retry-After``: they would pass but for the ``pending`` samples
+        (acknowledged, not yet indexed): once they are in, the field is measured
+        again and duplicates among them drop out.
+    """
+    D = field.ndim
+    stored, cells = size
+    per = cells / stored if stored >= COST_MIN_SAMPLES else cells_per_sample(D)
+    total = stored + (pending + rows) * copies
+    expected = total * per
+    if expected <= max_simplices:
+        return
+    held = f" (x {copies:.2f} charts holding each)" if len(field.shards) > 1 else ""
+    msg = (f"field {name!r}: about {expected:,.0f} cells expected after {what} "
+           f"({total:,.0f} stored samples: {stored} + {pending + rows} new{held}; x "
+           f"{per:,.0f} cells per sample in dimension {D}); the limit is {max_simplices:,} "
+           "(FLATSERVE_MAX_SIMPLICES)")
+    if pending and (stored + rows * copies) * per <= max_simplices:
+        raise CostPendingError(f"{msg}, counting {pending} acknowledged samples not yet "
+                               "indexed: retry once they are (the field is measured again)")
+    raise CostLimitError(msg)
+
+
 class UploadService:
     """Uploads of sample batches (see the module doc).
 
@@ -88,11 +151,15 @@ class UploadService:
 
     # -- the upload ---------------------------------------------------------------------------
     def upload(self, e: FieldEntry, flats: Flats, values: np.ndarray, idem_key: str | None,
-               timings: dict | None = None, *, wait: bool = True) -> UploadResult:
+               timings: dict | None = None, *, wait: bool = True,
+               cost_checked: bool = False) -> UploadResult:
         """Durably store one batch and have it applied (see the module doc); returns
         the response. ``timings`` (if given) receives the seconds spent on hashing
         (``hash``), coordinates (``prepare``), the commit (``store``) and, with
-        ``wait``, the wait for the insert (``insert``)."""
+        ``wait``, the wait for the insert (``insert``). The batch is held to
+        ``max_simplices`` (:func:`check_cost`) unless ``cost_checked``: an import
+        checks the cost of all its batches at once, before it stores the first
+        (:mod:`.transfer`), so that it is refused whole or stored whole."""
         timings = {} if timings is None else timings
         t0 = time.perf_counter()
         stored = dict(flats.arrays, values=values)
@@ -105,7 +172,9 @@ class UploadService:
             prev = self.storage.find_batch(e.id, idem_key) if idem_key is not None else None
             if prev is None:
                 pending = e.pending_counts()[1]
-                self._check_cost(e, flats, pending)
+                if not cost_checked:
+                    check_cost(e.name, e.field, e.complete_size, pending, len(flats),
+                               e.field.copies(flats), self.settings.max_simplices)
                 if not wait and pending + len(flats) > self.settings.max_pending_samples:
                     raise BacklogFullError(
                         f"field {e.name!r}: {pending} acknowledged samples wait for their "
@@ -142,49 +211,6 @@ class UploadService:
         return self._stored_result(e, prev.seq, prev.form, prev.result).model_copy(
             update={"replayed": True, "indexed": prev.seq <= e.indexed_seq,
                     "position": prev.position, **more})
-
-    def _check_cost(self, e: FieldEntry, flats: Flats, pending: int) -> None:
-        """Refuse an upload expected to make the field's triangulations larger than
-        ``max_simplices`` cells in all.
-
-        The estimate is the field's size when it last held its batches whole
-        (``complete_size``, :meth:`.FieldEntry.mark_indexed`: never a triangulation
-        with a batch half inserted, whose cells per sample are far from the final
-        ones) plus the ``pending`` samples and the batch, times the cells per sample
-        measured then (:func:`.costs.cells_per_sample` below
-        :data:`.costs.COST_MIN_SAMPLES` samples; high-dimensional fields grow very fast: 200 samples in D = 8 make a
-        million cells). A field of several shards stores a sample once in every shard
-        that holds it: the new rows are counted with their copies (``copies``).
-
-        Raises
-        ------
-        CostLimitError
-            413: the upload cannot pass, now or later (the field holds too much already
-            with this batch, or the batch alone is too large).
-        CostPendingError
-            429 with ``Retry-After``: it would pass but for the ``pending`` samples
-            (acknowledged, not yet indexed): once they are in, the field is measured
-            again and duplicates among them drop out.
-        """
-        f = e.field
-        D, n = f.ndim, len(flats)
-        stored, cells = e.complete_size
-        copies = f.copies(flats)
-        per = cells / stored if stored >= COST_MIN_SAMPLES else cells_per_sample(D)
-        total = stored + (pending + n) * copies
-        expected = total * per
-        limit = self.settings.max_simplices
-        if expected <= limit:
-            return
-        held = f" (x {copies:.2f} charts holding each)" if len(f.shards) > 1 else ""
-        what = (f"field {e.name!r}: about {expected:,.0f} cells expected after this upload "
-                f"({total:,.0f} stored samples: {stored} + {pending + n} new{held}; x "
-                f"{per:,.0f} cells per sample in dimension {D}); the limit is {limit:,} "
-                "(FLATSERVE_MAX_SIMPLICES)")
-        if pending and (stored + n * copies) * per <= limit:
-            raise CostPendingError(f"{what}, counting {pending} acknowledged samples not yet "
-                                   "indexed: retry once they are (the field is measured again)")
-        raise CostLimitError(what)
 
     def _commit_and_chart(self, e, flats, values, idem_key, chash, stored, timings, *,
                           wait: bool) -> tuple[int, int, UploadResult]:

@@ -434,3 +434,48 @@ def test_a_stored_definition_beyond_the_create_limits_fails_its_field_only(make_
         assert "copies0" not in {f["name"] for f in c.list_fields()}
     finally:
         tc.__exit__(None, None, None)
+
+
+def test_an_import_past_the_cost_guard_is_refused_whole(make_app, tmp_path, rng, monkeypatch):
+    """``max_simplices`` judges all the file's batches at once, before any is stored, by
+    the upload's own estimate: a file whose first batches would pass alone but not the
+    whole is a 413 naming the field and leaves no field (it used to store the batches
+    before the one refused). A repeated import counts only the batches still missing."""
+    ta, a = started(make_app(data_dir=tmp_path / "a"))
+    # lines in R^3 on one chart: D = 4, 28 cells per sample below 1,000 samples;
+    # the file's 1,050 rows (400, 300, 200, 150) are ~29,400 cells, its first 2 ~19,600
+    tb, b = started(make_app(data_dir=tmp_path / "b", max_simplices=22_400,
+                             min_field_samples=0))
+    tc, c = started(make_app(data_dir=tmp_path / "c", max_simplices=30_000,
+                             min_field_samples=0))
+    try:
+        a.create_field("f", channels=2, basis=ONE_CHART)
+        _fill(a, "f", rng)
+        data = a.export_field("f")
+        r = _post(tb, "x", data)
+        assert r.status_code == 413, r.text
+        assert b.list_fields() == [], "a refused import left a field"
+        detail = r.json()["detail"]
+        assert detail.startswith("field 'x': ") and "after this import" in detail, detail
+        assert "1050 new" in detail and "FLATSERVE_MAX_SIMPLICES" in detail, detail
+        # under 30,000 the whole file passes (an import half stored, then repeated:
+        # 640 samples held + the 350 rows missing, not the 1,050 of the file)
+        uploads, calls = tc.app.state.rooms.uploads, []
+        real = uploads.upload
+
+        def dies_at_the_third(*args, **kw):
+            calls.append(1)
+            if len(calls) == 3:
+                raise OSError("the disk went away")
+            return real(*args, **kw)
+
+        monkeypatch.setattr(uploads, "upload", dies_at_the_third)
+        with pytest.raises(OSError):
+            c.import_field("x", data)
+        monkeypatch.setattr(uploads, "upload", real)
+        assert [x["rows"] for x in c.batches("x")] == [400, 300]
+        rep = c.import_field("x", data)
+        assert rep["replayed_batches"] == 2 and rep["nsamples"] == a.describe("f")["nsamples"]
+    finally:
+        for t in (tc, tb, ta):
+            t.__exit__(None, None, None)

@@ -22,18 +22,17 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-from ..atlas_field import choose_unit
 from ..field import AddResult, PreparedBatch
 from ..flats import Flats
 from .backend import FieldRow, LogBackend, LogEntry, SnapshotGoneError
 from .blobs import split_batch
 from .catalogue import FieldCatalogue, FieldState
 from .entry import FieldEntry, FieldSpec, SampledField
-from .homes import LocalHome
 from .settings import Settings
 from .snapshots import SnapshotWriter
 from .specs import stored_spec
 from .status import FieldNotFoundError, StorageError, StorageUnavailableError
+from .units import adopt_unit, batch_unit, unit_of
 
 log = logging.getLogger("flatserve.service")
 
@@ -44,34 +43,6 @@ RESTORE_RETRY_S = 1.0
 
 class Stopped(Exception):
     """The applier was asked to stop in the middle of an entry."""
-
-
-def adopt_unit(field, unit: float | None) -> None:
-    """The unit recorded with a stored batch (:func:`.blobs.split_batch`): a field
-    whose unit is chosen from the data and that has inserted no batch yet takes it
-    (:meth:`flatserve.atlas_field.AtlasField.settle_unit`), so that it charts its
-    first batch in the unit the replica that stored the batch chose, not one of
-    its own (a replica, a restart, a shard of a cluster). Other fields: nothing."""
-    if unit is not None and getattr(field, "unit_from_data", False):
-        field.settle_unit(unit, if_empty=True)
-
-
-def batch_unit(field, flats: Flats, values, unit: float | None) -> float | None:
-    """The unit a stored batch gives a field whose unit is still to be chosen: the
-    one recorded with it (``unit``, :func:`.blobs.split_batch`), or for a batch
-    stored without one (by an older server) the one the field chooses from its
-    rows (:func:`flatserve.atlas_field.choose_unit`), as every shard worker does."""
-    if unit is None and getattr(field, "unit_pending", False):
-        return choose_unit(field.atlas, flats, values)
-    return unit
-
-
-def _unit_of(field) -> float | None:
-    """An atlas field's unit of length; None while it is still to be chosen (or for a
-    field without one)."""
-    if getattr(field, "unit_pending", False):
-        return None
-    return getattr(getattr(field, "atlas", None), "unit", None)
 
 
 def decided(prepared) -> None:
@@ -130,15 +101,16 @@ class LogApplier:
         Where entries are registered.
     snapshots : SnapshotWriter
         Asked for a background snapshot after inserts (``snapshot_every``).
-    metrics : Metrics, optional
-    home : LocalHome or ClusterHome, optional
-        Where the fields' shards live (:mod:`.homes`; default this process).
+    metrics : Metrics or None
+    home : LocalHome or ClusterHome
+        Where the fields' shards live (:mod:`.homes`), chosen by the composition
+        root (:meth:`.rooms.Rooms.open`, :func:`.homes.open_home`).
     """
 
     def __init__(self, settings: Settings, storage: LogBackend, catalogue: FieldCatalogue,
-                 snapshots: SnapshotWriter, metrics=None, home=None) -> None:
+                 snapshots: SnapshotWriter, metrics, home) -> None:
         self.settings = settings
-        self.home = home if home is not None else LocalHome()
+        self.home = home
         self.storage = storage
         self.catalogue = catalogue
         self.snapshots = snapshots
@@ -240,12 +212,12 @@ class LogApplier:
             t0 = time.perf_counter()
             again = False
             if prepared is not None and getattr(prepared, "unit", None) is not None and \
-                    prepared.unit != _unit_of(e.field):
+                    prepared.unit != unit_of(e.field):
                 # charted by the upload room in the unit stored with it: the field's first
                 # batch sets the field's unit to it; a later one (another replica's batch
                 # came first) is charted again in the field's unit
                 adopt_unit(e.field, prepared.unit)
-                if prepared.unit != _unit_of(e.field):
+                if prepared.unit != unit_of(e.field):
                     prepared, again = None, True
             if prepared is None:
                 try:

@@ -93,7 +93,7 @@ def serve(settings: Settings | None = None, listen_fd: int | None = None) -> Non
         log.error("%s", exc)
         sys.exit(2)
     if settings.ray is not None:  # refuse at once when the cluster cannot be reached
-        from .cluster.ray_shards import connect
+        from .cluster.ray_env import connect
         from .status import ShardUnavailableError
 
         try:

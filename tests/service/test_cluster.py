@@ -22,7 +22,7 @@ import pytest
 
 from flatserve.client import Client, ServiceError
 from flatserve.flats import Flats
-from flatserve.service.applier import adopt_unit
+from flatserve.service.units import adopt_unit
 from flatserve.service.backend import open_backend
 from flatserve.service.blobs import split_batch
 from flatserve.service.entry import FieldSpec
@@ -423,7 +423,7 @@ def test_a_one_machine_cluster_on_sqlite(tmp_path, rng):
         # bundles) holds a share of this machine's node:<address> resource, so that a
         # node joining later from elsewhere (no access to this data directory) is
         # given none (its tiles too: test_cluster_tiles.py)
-        from flatserve.service.cluster.ray_shards import PIN_SHARE
+        from flatserve.service.cluster.ray_env import PIN_SHARE
 
         shares = pinned_shares(nodes.address)
         assert len(shares) == 5 and set(shares.values()) == {PIN_SHARE}, shares
@@ -588,7 +588,7 @@ def test_cluster_mode_on_sqlite_refuses_nodes_on_other_machines(tmp_path):
     elsewhere is named at start (checked against Ray's own list of nodes)."""
     from types import SimpleNamespace
 
-    from flatserve.service.cluster.ray_shards import one_machine
+    from flatserve.service.cluster.ray_env import one_machine
     from flatserve.service.status import ShardUnavailableError
 
     def fake(nodes):

@@ -234,7 +234,7 @@ def test_on_sqlite_a_tile_stays_on_this_machines_nodes(cluster, rng):
     this machine's data directory, is given none; with a database, no such share."""
     import ray
 
-    from flatserve.service.cluster.ray_shards import PIN_SHARE
+    from flatserve.service.cluster.ray_env import PIN_SHARE
 
     key = f"node:{ray.util.get_node_ip_address()}"
     for url, share in ((None, PIN_SHARE), ("postgresql://flatserve@127.0.0.1:9/none", None)):

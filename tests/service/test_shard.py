@@ -249,7 +249,7 @@ def test_a_shard_restored_after_the_first_batch_keeps_its_unit_and_samples(rng):
 
     from flatserve.atlas import Atlas
     from flatserve.atlas_field import AtlasField
-    from flatserve.service.applier import adopt_unit
+    from flatserve.service.units import adopt_unit
 
     def batch(n):
         o, v = rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3))

@@ -13,6 +13,7 @@ The server processes become stateless *fronts*: a field's entry holds a
 :class:`~.remote.RemoteField`, which implements the field contract by routing
 (a pure function of the field's definition), fanning out to one live copy of
 each shard group a request touches, and blending, exactly as the one-process
-field does; so the service's rooms are unchanged. Nothing here imports Ray
-but :mod:`.ray_shards`: the library and the one-machine service do not need it.
+field does; so the service's rooms are unchanged. Ray is imported only when a
+front connects or an actor runs (:mod:`.ray_env`, :mod:`.ray_shards`,
+:mod:`.tiles`): the library and the one-machine service do not need it.
 """

@@ -29,7 +29,7 @@ from ...contract import part_pointer
 from ...field import AddResult, QueryResult, QueryRoute
 from ...flats import Flats
 from ...options import Interpolant, Order, Outside, choice
-from ..applier import adopt_unit
+from ..units import adopt_unit
 from ..status import NotReadyError, ShardUnavailableError
 
 _NO_ROWS = np.empty(0, np.int64)
@@ -86,7 +86,7 @@ class _Lazy:
     def __init__(self, chart: Callable[[], Any], nrows: int, unit: float | None = None) -> None:
         self._chart, self.nrows, self._done = chart, nrows, None
         #: the unit of length the batch is charted in, when it is to become the
-        #: field's (the applier's :func:`~flatserve.service.applier.adopt_unit`)
+        #: field's (:func:`~flatserve.service.units.adopt_unit`)
         self.unit = unit
 
     @property
@@ -213,7 +213,7 @@ class RemoteField:
 
     # -- the unit of length of a field whose first batch chooses it -----------------------
     # The upload room chooses it once, here, and stores it with the batch; the shard
-    # workers and the applier take it from there (applier.adopt_unit), so no shard
+    # workers and the applier take it from there (units.adopt_unit), so no shard
     # chooses it again, and a front restarted takes it from the first stored batch.
     @property
     def atlas(self):

@@ -37,7 +37,7 @@ from ...basis import Basis
 from ...contract import load_field, part_key
 from ...flats import Flats
 from ...tiles import TileHost, hosting
-from ..applier import adopt_unit
+from ..units import adopt_unit
 from ..backend import LogBackend, SnapshotGoneError, open_backend
 from ..blobs import split_batch
 from ..entry import FieldSpec

@@ -51,7 +51,7 @@ import numpy as np
 
 from ...tiles import Tile, TileHost
 from ..status import ShardUnavailableError
-from .ray_shards import machine_pin, nodes_with, task_cause
+from .ray_env import machine_pin, node_cpus, nodes_with, task_cause
 
 log = logging.getLogger("flatserve.service.cluster")
 
@@ -118,7 +118,6 @@ class TileActor:
 
     def __init__(self, ndim: int, threads: int | None, parts: TileParts | None = None) -> None:
         from ...parallel import set_shard_threads
-        from .ray_shards import node_cpus  # (imported here: Ray's, on the node)
 
         set_shard_threads(threads or node_cpus())
         self.ndim = ndim

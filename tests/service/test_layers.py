@@ -1,0 +1,123 @@
+"""The package's layers: no module of ``flatserve`` imports, directly or through others,
+a module that imports it back (an import circle). Imports inside functions count: a
+circle closed by a late import is still two modules that each need the other.
+
+The graph is read from the source (``ast``), not from ``sys.modules``: nothing is
+imported, and an import that only runs in some process (a Ray actor's) counts too.
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import flatserve
+
+ROOT = Path(flatserve.__file__).resolve().parent
+
+
+def modules(root: Path = ROOT) -> dict[str, Path]:
+    """Every module of the package under ``root``, by dotted name (a package by its
+    ``__init__.py``)."""
+    out = {}
+    for path in sorted(root.rglob("*.py")):
+        parts = list(path.relative_to(root.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts.pop()
+        out[".".join(parts)] = path
+    return out
+
+
+def is_extension(package: Path, name: str) -> bool:
+    """``name`` in the package directory ``package`` is a compiled extension (or its stub)."""
+    return (package / f"{name}.pyi").exists() or any(package.glob(f"{name}.*.so"))
+
+
+def imports(name: str, path: Path, mods: dict[str, Path]) -> set[str]:
+    """The package's modules that module ``name`` (at ``path``) imports, anywhere in it."""
+    is_pkg = path.name == "__init__.py"
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names if a.name in mods)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = name.split(".") if is_pkg else name.split(".")[:-1]
+                base = base[:len(base) - (node.level - 1)]
+                src = ".".join(base + ([node.module] if node.module else []))
+            else:
+                src = node.module or ""
+            for a in node.names:
+                if f"{src}.{a.name}" in mods:  # a submodule
+                    out.add(f"{src}.{a.name}")
+                elif src in mods and not is_extension(mods[src].parent, a.name):
+                    out.add(src)  # a name of a module
+    out.discard(name)
+    return out
+
+
+def import_graph(root: Path = ROOT) -> dict[str, set[str]]:
+    """Module -> the package's modules it imports."""
+    mods = modules(root)
+    return {m: imports(m, p, mods) for m, p in mods.items()}
+
+
+def circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected groups of more than one module (Tarjan's, iterative):
+    each is at least one import circle."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+    for start in graph:
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on.add(start)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = len(index)
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(graph[w]))))
+                elif w in on:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                group = []
+                while True:
+                    w = stack.pop()
+                    on.discard(w)
+                    group.append(w)
+                    if w == v:
+                        break
+                if len(group) > 1:
+                    out.append(sorted(group))
+    return out
+
+
+def test_the_graph_sees_the_service_and_the_cluster_wing():
+    g = import_graph()
+    assert "flatserve.service.applier" in g["flatserve.service.replica"]
+    # a late import (inside a function) counts
+    assert "flatserve.service.cluster.fronts" in g["flatserve.service.homes"]
+    # the extension is not a module of the package: no edge to the package itself
+    assert "flatserve" not in g["flatserve._native"]
+
+
+def test_circles_are_found():
+    assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert circles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_circle_in_flatserve():
+    found = circles(import_graph())
+    assert found == [], "import circles: " + "; ".join(" <-> ".join(c) for c in found)

@@ -79,6 +79,7 @@ LANES = {
     # ray: a Ray cluster of several nodes on this machine (tests/harness/raycluster.py)
     "service/test_cluster.py": ("ray", "server", "slow"),
     "service/test_cluster_tiles.py": ("ray", "slow"),
+    "service/test_cluster_faults.py": ("ray", "server", "slow"),
     # postgres: tests that start PostgreSQL clusters of their own (not through a fixture)
     "service/test_pgcluster.py": ("postgres",),
     "service/test_service_postgres.py": ("postgres", "server", "slow"),

@@ -66,9 +66,9 @@ FIXTURE_LANES = {
     "pg_cluster": "postgres", "pg_url": "postgres", "own_pg_cluster": "postgres",
 }
 
-#: Whole modules (``path``) or single tests (``path::function``), paths under tests/, and
-#: their lanes. A path here that does not exist is a collection error (a renamed module
-#: would otherwise slip into the fast lane unseen).
+#: Whole modules (``path``) or single tests (``path::function``, every parameter of the
+#: function), paths under tests/, and their lanes. A module or test named here that does
+#: not exist is a collection error (a renamed one would otherwise slip into the fast lane).
 LANES = {
     # browser: Debian's headless Chromium (tests/harness/browser.py)
     "test_lightfield_viewer.py": ("browser", "slow"),
@@ -116,7 +116,89 @@ LANES = {
     "test_children_import_the_supervisors_installation_from_any_directory": ("server",),
     "service/test_service_replicas.py::test_a_restarted_replica_takes_connections_only_once_ready":
         ("server",),
+    # the docs site: a strict MkDocs build, and every page's blocks against a real server
+    "test_docs_site.py::test_the_site_builds_strictly_with_every_page": ("slow",),
+    "test_docs_site.py::test_the_http_reference_is_the_apps_schema": ("slow",),
+    "test_docs_site.py::test_the_api_reference_is_written_from_the_docstrings": ("slow",),
+    "test_docs_site.py::test_page_blocks_run_as_written_twice": ("server",),
 }
+
+#: slow: tests of more than about 5 s each on a loaded 2-core machine (``--durations``),
+#: as ``path`` or ``path::function`` (every parameter of the function).
+SLOW = [
+    # the library
+    "test_atlas.py::test_a_thinner_seam_is_stored_alike_whatever_the_batches",
+    "test_atlas.py::test_covering_atlas_charts_every_flat",
+    "test_atlas.py::test_planes_in_r4_field",
+    "test_atlas.py::test_a_relative_field_file_answers_the_same",
+    "test_atlas.py::test_a_net_leaves_a_stored_sample_near_every_sample_it_drops",
+    "test_atlas.py::test_oriented_rays_keep_their_direction",
+    "test_atlas.py::test_every_sample_accepted_and_reproduced",
+    "test_atlas.py::test_weights_recombine_the_values",
+    "test_atlas.py::test_a_fitted_unit_is_tried_without_the_net",
+    "test_atlas.py::test_held_counts_what_route_routes",
+    "test_atlas.py::test_a_flats_routing_does_not_depend_on_its_batch",
+    "test_atlas.py::test_a_unit_from_the_data_is_chosen_by_the_first_batch_and_kept",
+    "test_atlas_parts.py",
+    "test_atlas_query.py::test_query_equals_the_reference_bit_for_bit",
+    "test_atlas_query.py::test_query_equals_the_reference_in_given_order_and_threads",
+    "test_atlas_query.py::test_routing_equals_the_reference",
+    "test_atlas_query.py::test_status_says_why_a_row_has_no_value",
+    "test_contract.py::test_mypy_verifies_both_kinds_implement_the_protocol",
+    "test_parallel.py::"
+    "test_answers_snapshots_and_restores_are_the_same_bits_on_any_number_of_threads",
+    "test_parallel.py::"
+    "test_concurrent_queries_and_inserts_on_threads_match_the_sequential_field",
+    "test_tiles.py::test_the_fig11_field_at_1m_rays_in_2_4_8_tiles",
+    "test_tiles.py::test_a_fields_chart_in_tiles_answers_as_the_unsplit_field",
+    "test_tiles.py::test_auto_tiles_follow_the_points_and_the_threads",
+    "test_tiles.py::test_batches_across_tile_borders_and_duplicates",
+    "test_tiles.py::test_inserts_in_a_row_share_one_exchange",
+    # light fields: figures, orbits, captures imported over HTTP
+    "test_lightfield_capture_figure.py::"
+    "test_the_forward_rig_beats_the_two_plane_light_field_on_every_held_out_view",
+    "test_lightfield_import.py",
+    "test_lightfield_orbit.py::test_ours_beats_the_nearest_rays_baseline_on_every_view",
+    "test_lightfield_orbit.py::test_straddling_views_are_no_worse_than_inside_one_chart",
+    "test_lightfield_render.py::test_baselines_on_the_same_samples",
+    "test_lightfield_render.py::test_paper_figure_small",
+    # the service in-process
+    "service/test_client_batches.py::test_progress_callback_and_bar",
+    "service/test_docs.py::"
+    "test_every_body_has_an_example_and_the_examples_are_valid_requests",
+    "service/test_service_api.py::"
+    "test_status_tells_empty_charts_from_unreachable_flats",
+    "service/test_service_atlas.py::"
+    "test_a_relative_atlas_asked_for_at_create_answers_as_the_librarys",
+    "service/test_service_atlas.py::test_a_unit_fitted_to_the_first_batch_over_http",
+    "service/test_service_atlas.py::"
+    "test_reach_of_a_covering_atlas_is_validated_stored_and_restored",
+    "service/test_service_atlas.py::test_atlas_fields_for_other_dimensions",
+    "service/test_service_atlas.py::test_samples_atlas_charts_where_the_flats_are",
+    "service/test_service_atlas.py::"
+    "test_a_thinner_seam_is_taken_at_create_described_and_validated",
+    "service/test_service_atlas.py::test_unit_of_length_is_validated_stored_and_restored",
+    "service/test_service_atlas.py::"
+    "test_a_field_stored_before_isometric_charts_restores_as_it_was_built",
+    "service/test_service_cost.py::"
+    "test_a_batch_half_inserted_does_not_inflate_the_estimate",
+    "service/test_service_cost.py::"
+    "test_refusal_counting_pending_samples_is_429_and_413_only_when_it_cannot_pass",
+    "service/test_service_hardening.py::"
+    "test_flats_without_arrays_are_outside_the_schema_and_refused",
+    "service/test_service_limits.py::"
+    "test_reads_keep_flowing_while_a_big_wait_false_batch_is_indexed",
+    "service/test_service_replicas.py::"
+    "test_a_read_waits_a_bounded_time_for_a_position_then_503",
+    "service/test_service_storage.py::"
+    "test_replicas_opening_a_new_data_dir_at_once_all_open",
+    "service/test_service_tiles.py::"
+    "test_a_tiled_one_chart_field_answers_as_the_unsplit_one",
+    "service/test_service_wait.py::"
+    "test_wait_false_acknowledges_then_indexes_in_commit_order",
+    "service/test_service_wait.py::"
+    "test_a_committed_upload_waits_a_bounded_time_then_503_stored",
+]
 
 TESTS = os.path.dirname(os.path.abspath(__file__))
 
@@ -124,7 +206,7 @@ TESTS = os.path.dirname(os.path.abspath(__file__))
 def _lane_table() -> dict[str, set[str]]:
     """LANES by ``path`` and ``path::function``, every path checked to exist."""
     table: dict[str, set[str]] = {}
-    for key, lanes in LANES.items():
+    for key, lanes in [*LANES.items(), *((key, ("slow",)) for key in SLOW)]:
         path = key.split("::")[0]
         if not os.path.isfile(os.path.join(TESTS, path)):
             raise pytest.UsageError(f"tests/conftest.py LANES names {key!r}: no such module")

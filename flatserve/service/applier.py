@@ -21,6 +21,7 @@ import logging
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, TypeVar
 
 from ..field import AddResult, PreparedBatch
 from ..flats import Flats
@@ -41,8 +42,47 @@ PROGRESS_EVERY_S = 2.0
 RESTORE_RETRY_S = 1.0
 
 
+T = TypeVar("T")
+
+
 class Stopped(Exception):
     """The applier was asked to stop in the middle of an entry."""
+
+
+def until_reachable(attempt: Callable[[], T], stopping: Callable[[], bool],
+                    wait: Callable[[float], object], what: str,
+                    errors: tuple[type[Exception], ...] = (StorageUnavailableError,),
+                    on_retry: Callable[[Exception], object] | None = None) -> T:
+    """``attempt()``, tried again while the database is unreachable: the restore's
+    retry, one rule for every process that restores from the log (a replica's
+    applier, a shard worker, :mod:`.cluster.shard`).
+
+    Parameters
+    ----------
+    attempt : callable
+        The work; its result is returned.
+    stopping : callable
+        True once the caller is stopping: the last error is then raised.
+    wait : callable
+        Waits the given seconds (:data:`RESTORE_RETRY_S`) before the next try.
+    what : str
+        The warning's subject (``"field 'x': restore interrupted"``).
+    errors : tuple of exception types
+        Those that mean "unreachable, try again" (default
+        :class:`~.status.StorageUnavailableError`); any other is raised at once.
+    on_retry : callable, optional
+        Told of each such error before the wait.
+    """
+    while True:
+        try:
+            return attempt()
+        except errors as exc:
+            if stopping():
+                raise
+            log.warning("%s: %s; retrying in %g s", what, exc, RESTORE_RETRY_S)
+            if on_retry is not None:
+                on_retry(exc)
+            wait(RESTORE_RETRY_S)
 
 
 def decided(prepared) -> None:
@@ -269,15 +309,11 @@ class LogApplier:
     def restore_all(self) -> int | None:
         """Register every stored field (``LOADING``) and restore each to the log head
         read with them; that head (None if stopped first). Waits for the database."""
-        while True:
-            try:
-                head, rows = self.storage.state()
-                break
-            except StorageError as exc:  # unreachable: wait for it (never ready otherwise)
-                if self.stopping:
-                    return None
-                log.warning("restore: %s; retrying in %g s", exc, RESTORE_RETRY_S)
-                time.sleep(RESTORE_RETRY_S)
+        try:  # the database unreachable: wait for it (never ready otherwise)
+            head, rows = until_reachable(self.storage.state, lambda: self.stopping, time.sleep,
+                                         "restore", errors=(StorageError,))
+        except StorageError:  # (stopping)
+            return None
         self._restore_head = head
         self.snapshots.clean_orphans()
         entries = []
@@ -335,16 +371,12 @@ class LogApplier:
         False for a rebuild, which replays what it already counted)."""
         if upto is None:
             upto = self._restore_head
-        while True:
-            try:
-                return self._restore_once(e, row, upto, count)
-            except StorageUnavailableError as exc:
-                if self.stopping:
-                    e.mark_failed(str(exc))
-                    return
-                log.warning("field %r: restore interrupted (%s); retrying in %g s", e.name,
-                            exc, RESTORE_RETRY_S)
-                time.sleep(RESTORE_RETRY_S)
+        try:
+            until_reachable(lambda: self._restore_once(e, row, upto, count),
+                            lambda: self.stopping, time.sleep,
+                            f"field {e.name!r}: restore interrupted")
+        except StorageUnavailableError as exc:  # (stopping)
+            e.mark_failed(str(exc))
 
     def _restore_once(self, e: FieldEntry, row: FieldRow, upto: int, count: bool) -> None:
         t0 = time.perf_counter()

@@ -33,25 +33,21 @@ import threading
 import time
 from collections import OrderedDict
 
-from ...basis import Basis
 from ...contract import load_field, part_key
 from ...flats import Flats
 from ...tiles import TileHost, hosting
-from ..units import adopt_unit
+from ..applier import RESTORE_RETRY_S, entry_of, until_reachable
 from ..backend import LogBackend, SnapshotGoneError, open_backend
 from ..blobs import split_batch
+from ..catalogue import FieldState
 from ..entry import FieldSpec
+from ..replica import IDLE_WAIT_S, READ_CHUNK
 from ..status import (FieldNotFoundError, NotReadyError, ShardUnavailableError, StorageError,
                       StorageUnavailableError)
+from ..units import adopt_unit
 
 log = logging.getLogger("flatserve.service.shard")
 
-#: entries read from the log at a time
-READ_CHUNK = 256
-#: longest sleep between two looks at the log when nothing wakes the worker
-IDLE_WAIT_S = 1.0
-#: a restore that found the database unreachable tries again after this many seconds
-RETRY_S = 1.0
 #: batches whose duplicates a worker remembers (the latest applied; an upload with
 #: ``wait=true`` asks for its own at once)
 KEEP_DUPLICATES = 256
@@ -112,7 +108,9 @@ class ShardWorker:
         #: the field's last batch applied: its seq and log position
         self.seq = 0
         self.position = 0
-        self.state = "restoring"
+        #: ``LOADING`` (restoring), ``READY`` (following the log, answering) or
+        #: ``FAILED`` (``error`` says why: a defect, or the field was deleted)
+        self.state = FieldState.LOADING
         #: the field's cells after the last batch applied (counted then: a tiled
         #: field counts its tiles' cells under its lock, which an insert holds)
         self.cells = 0
@@ -154,41 +152,37 @@ class ShardWorker:
 
     # -- restore and follow ---------------------------------------------------------------
     def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                self._restore()
-                break
-            except FieldNotFoundError:
-                self._set_state("deleted", "the field was deleted")
-                return
-            except StorageError as exc:
-                log.warning("shard %s of field %d: restore: %s; retrying in %g s",
-                            self.charts, self.field_id, exc, RETRY_S)
-                self._set_state("restoring", str(exc))
-                self._stop.wait(RETRY_S)
-            except Exception as exc:  # a defect: say so, never answer from a half field
-                log.exception("shard %s of field %d: restore failed", self.charts, self.field_id)
-                self._set_state("failed", f"restore failed: {exc}")
-                return
-        self._set_state("ready", None)
+        what = f"shard {self.charts} of field {self.field_id}"
+        try:  # the database unreachable: tried again (queries wait)
+            until_reachable(self._restore, self._stop.is_set, self._stop.wait,
+                            f"{what}: restore", errors=(StorageError,),
+                            on_retry=lambda exc: self._set_state(FieldState.LOADING, str(exc)))
+        except FieldNotFoundError:
+            self._set_state(FieldState.FAILED, "the field was deleted")
+            return
+        except StorageError:  # (stopping)
+            return
+        except Exception as exc:  # a defect: say so, never answer from a half field
+            log.exception("%s: restore failed", what)
+            self._set_state(FieldState.FAILED, f"restore failed: {exc}")
+            return
+        self._set_state(FieldState.READY, None)
         while not self._stop.is_set():
             try:
                 if not self._follow_once():
                     self.storage.wait_for_change(IDLE_WAIT_S)
             except FieldNotFoundError:
-                self._set_state("deleted", "the field was deleted")
+                self._set_state(FieldState.FAILED, "the field was deleted")
                 return
             except StorageError as exc:  # the log unreachable: try again (queries wait)
-                log.warning("shard %s of field %d: following the log: %s", self.charts,
-                            self.field_id, exc)
-                self._stop.wait(RETRY_S)
+                log.warning("%s: following the log: %s", what, exc)
+                self._stop.wait(RESTORE_RETRY_S)
             except Exception as exc:
-                log.exception("shard %s of field %d: applying the log failed", self.charts,
-                              self.field_id)
-                self._set_state("failed", f"applying the log failed: {exc}")
+                log.exception("%s: applying the log failed", what)
+                self._set_state(FieldState.FAILED, f"applying the log failed: {exc}")
                 return
 
-    def _set_state(self, state: str, error: str | None) -> None:
+    def _set_state(self, state: FieldState, error: str | None) -> None:
         with self._cond:
             self.state, self.error = state, error
             self._cond.notify_all()
@@ -197,7 +191,10 @@ class ShardWorker:
         t0 = time.perf_counter()
         for _ in range(5):
             row = self.storage.field(self.field_id)
-            spec = FieldSpec.from_dict(row.spec)
+            # checked as a create's (a definition no create makes fails this worker
+            # with a named error, never a crash Ray would restart again and again)
+            e = entry_of(row)
+            spec = e.spec
             fld = None
             if row.snapshot_file:
                 try:
@@ -220,9 +217,8 @@ class ShardWorker:
         else:
             raise StorageUnavailableError("the field's snapshot kept being replaced")
         if fld is None:
-            basis = Basis(row.basis["Q"], row.basis["r"], spec.k)
             with hosting(self.tile_host):
-                fld = spec.new_field(basis)
+                fld = spec.new_field(e.basis)
             start, seq = row.position, 0
             self.restored_from = "the log"
         else:
@@ -286,14 +282,14 @@ class ShardWorker:
         end = time.monotonic() + timeout
         with self._cond:
             while True:
-                if self.state in ("failed", "deleted"):
+                if self.state is FieldState.FAILED:
                     raise ShardUnavailableError(f"shard {list(self.charts)} of field "
                                                 f"{self.field_id}: {self.error}")
-                if self.state == "ready" and self.through >= position:
+                if self.state is FieldState.READY and self.through >= position:
                     return
                 left = end - time.monotonic()
                 if left <= 0:
-                    where = "restoring" if self.state != "ready" else \
+                    where = "restoring" if self.state is not FieldState.READY else \
                         f"at log position {self.through}"
                     raise ShardUnavailableError(
                         f"shard {list(self.charts)} of field {self.field_id}: {what} needs log "
@@ -435,7 +431,7 @@ class ShardWorker:
         fld = self.field
         own = getattr(fld, "own_samples", None) if fld is not None else None
         return {
-            "field_id": self.field_id, "charts": list(self.charts), "state": self.state,
+            "field_id": self.field_id, "charts": list(self.charts), "state": self.state.value,
             "error": self.error, "through": self.through, "seq": self.seq,
             "position": self.position,
             "nsamples": (sum(own[c] for c in self.charts) if own is not None

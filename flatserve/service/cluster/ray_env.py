@@ -6,15 +6,39 @@ here: :func:`connect` (a front's connection, its runtime environment
 :data:`WORKER_ENV` and the fast probe of the head's address),
 :func:`machine_pin`, :func:`nodes_with` and :func:`one_machine` (where the
 actors of a deployment on SQLite may go), :func:`node_cpus` (an actor's
-threads) and :func:`task_cause`. Ray itself is imported inside each call
-(the ``cluster`` extra: the library and the one-machine service do not need
-it), so that a missing extra is a named error of :func:`connect`.
+threads, :func:`node_id`) and :func:`task_cause`. Ray itself is imported
+here only, on first use (:func:`ray_api`; the ``cluster`` extra: the library
+and the one-machine service do not need it), so that a missing extra is a
+named error of :func:`connect`.
 """
 from __future__ import annotations
 
 import logging
 
 from ..status import ShardUnavailableError
+
+
+def ray_api():
+    """Ray, with the parts of it the cluster wing calls (``ray.exceptions``,
+    ``ray.util``, ``ray.util.scheduling_strategies``): the one place the cluster
+    mode imports it, on first use (the ``cluster`` extra).
+
+    Raises
+    ------
+    ImportError
+        Ray is not installed (:func:`connect` names the extra).
+    """
+    import ray
+    import ray.exceptions
+    import ray.util
+    import ray.util.scheduling_strategies  # noqa: F401  (reached as ray.util....)
+
+    return ray
+
+
+def node_id() -> str:
+    """The id of the Ray node this process runs on."""
+    return ray_api().get_runtime_context().get_node_id()
 
 
 def task_cause(exc: Exception) -> Exception:
@@ -27,10 +51,8 @@ def node_cpus() -> int:
     """The CPUs of the Ray node this process runs on (its ``num_cpus``, not the
     machine's cores): the threads of a shard actor's pool, so that a node of one
     CPU inserts on one thread (at least 1)."""
-    import ray
-
-    me = ray.get_runtime_context().get_node_id()
-    for n in ray.nodes():
+    me = node_id()
+    for n in ray_api().nodes():
         if n.get("NodeID") == me:
             return max(1, int(n.get("Resources", {}).get("CPU", 1)))
     return 1
@@ -93,7 +115,7 @@ def connect(settings) -> None:
         Ray is not installed, or the cluster cannot be reached (naming the address).
     """
     try:
-        import ray
+        ray = ray_api()
     except ImportError as exc:
         raise ShardUnavailableError(
             "ray: cluster mode needs the cluster extra: pip install 'flatserve[cluster]' "

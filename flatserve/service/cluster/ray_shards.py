@@ -50,8 +50,8 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from ..status import NotReadyError, ShardUnavailableError
-from .ray_env import (connect, machine_pin, node_cpus, nodes_with, one_machine, probe_address,
-                      task_cause)
+from .ray_env import (connect, machine_pin, node_cpus, node_id, nodes_with, one_machine,
+                      probe_address, ray_api, task_cause)
 from .shard import ShardWorker
 
 log = logging.getLogger("flatserve.service.cluster")
@@ -111,12 +111,10 @@ class ShardActor:
         return {**self.status(), "duplicates": got["duplicates"]}
 
     def status(self) -> dict:
-        import ray
-
         st = self.worker.status()
         if self.tiles.lost:  # (this actor ends, to be restarted: say why meanwhile)
             st["error"] = f"restarting: {self.tiles.lost}"
-        return {**st, "node": ray.get_runtime_context().get_node_id(), "tiles": self._tiles_at}
+        return {**st, "node": node_id(), "tiles": self._tiles_at}
 
 
 def deal(ncharts: int, ngroups: int) -> list[tuple[int, ...]]:
@@ -165,7 +163,7 @@ class RayCluster:
 
     def __init__(self, settings) -> None:
         connect(settings)
-        import ray
+        ray = ray_api()
 
         self.ray = ray
         if settings.database_url is None:  # SQLite: the workers read this data directory
@@ -176,12 +174,10 @@ class RayCluster:
         self.pin = machine_pin(ray, settings)
         self.log_tag = log_tag(settings)
         self.address = settings.ray
-        from ray.exceptions import (ActorUnavailableError, GetTimeoutError, RayActorError,
-                                    RaySystemError, RayTaskError)
-
-        self._lost = (ActorUnavailableError, GetTimeoutError, RayActorError, RaySystemError,
-                      ConnectionError, asyncio.TimeoutError)
-        self._task_error = RayTaskError
+        rx = ray.exceptions
+        self._lost = (rx.ActorUnavailableError, rx.GetTimeoutError, rx.RayActorError,
+                      rx.RaySystemError, ConnectionError, asyncio.TimeoutError)
+        self._task_error = rx.RayTaskError
         self._remote = ray.remote(ShardActor)
         self._fields: dict[int, RayGroups] = {}
         self._lock = threading.Lock()
@@ -323,8 +319,8 @@ class RayGroups:
     def _placement(self, g: int, n: int):
         """The group's placement group (``n`` bundles if made here): its copies on
         different nodes."""
-        from ray.util import get_placement_group, placement_group
-
+        util = self.cluster.ray.util
+        get_placement_group, placement_group = util.get_placement_group, util.placement_group
         name = self._name(g)
         try:
             return get_placement_group(name)
@@ -347,9 +343,8 @@ class RayGroups:
         if self.cluster.pin:  # (with copies, from its bundle, which holds as much)
             opts["resources"] = dict(self.cluster.pin)
         if pg is not None:
-            from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
-
-            opts["scheduling_strategy"] = PlacementGroupSchedulingStrategy(
+            strategies = self.cluster.ray.util.scheduling_strategies
+            opts["scheduling_strategy"] = strategies.PlacementGroupSchedulingStrategy(
                 pg, placement_group_bundle_index=j)
         else:
             opts["scheduling_strategy"] = "SPREAD"
@@ -491,11 +486,10 @@ class RayGroups:
                 except Exception:
                     pass
         if self.copies > 1:  # (a placement group per group: _copies)
-            from ray.util import get_placement_group, remove_placement_group
-
+            util = ray.util
             for g in range(len(self.charts)):
                 try:
-                    remove_placement_group(get_placement_group(self._name(g)))
+                    util.remove_placement_group(util.get_placement_group(self._name(g)))
                 except Exception:
                     pass
 

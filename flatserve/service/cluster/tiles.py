@@ -51,7 +51,7 @@ import numpy as np
 
 from ...tiles import Tile, TileHost
 from ..status import ShardUnavailableError
-from .ray_env import machine_pin, node_cpus, nodes_with, task_cause
+from .ray_env import machine_pin, node_cpus, node_id, nodes_with, ray_api, task_cause
 
 log = logging.getLogger("flatserve.service.cluster")
 
@@ -151,11 +151,9 @@ class TileActor:
         return self.tile.insert(points, values, own), self.state()
 
     def node(self) -> dict:
-        import ray
-
         from .shard import rss_bytes
 
-        return {"node": ray.get_runtime_context().get_node_id(), "pid": os.getpid(),
+        return {"node": node_id(), "pid": os.getpid(),
                 "memory": rss_bytes(), "npoints": self.tile.npoints}
 
 
@@ -281,9 +279,8 @@ class RayTileHost(TileHost):
 
     def __init__(self, settings, parts: TileParts | None = None, *,
                  start_timeout: float = TILE_START_TIMEOUT_S) -> None:
-        import ray
-        from ray.exceptions import RayActorError, RayError, RayTaskError
-
+        ray = ray_api()
+        rx = ray.exceptions
         self.ray = ray
         self.settings = settings
         self.parts = parts
@@ -294,9 +291,9 @@ class RayTileHost(TileHost):
         self.pin = machine_pin(ray, settings)
         # every failure of Ray's (the actor dead or unreachable, its result lost, a
         # timeout) but a tile's own error (a task error) loses the tile
-        self._lost_kinds = (RayError, ConnectionError)
-        self._task_error = RayTaskError
-        self._dead = RayActorError
+        self._lost_kinds = (rx.RayError, ConnectionError)
+        self._task_error = rx.RayTaskError
+        self._dead = rx.RayActorError
         self.lost: str | None = None
         self._tiles: "weakref.WeakSet[RemoteTile]" = weakref.WeakSet()
         self._pool = ThreadPoolExecutor(MAX_TILES, thread_name_prefix="flatserve-tiles")

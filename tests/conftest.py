@@ -123,8 +123,8 @@ LANES = {
     "test_docs_site.py::test_page_blocks_run_as_written_twice": ("server",),
 }
 
-#: slow: tests of more than about 5 s each on a loaded 2-core machine (``--durations``),
-#: as ``path`` or ``path::function`` (every parameter of the function).
+#: slow: tests of more than about 2 s each on a loaded 2-core machine (``--durations`` of
+#: the fast lane), as ``path`` or ``path::function`` (every parameter of the function).
 SLOW = [
     # the library
     "test_atlas.py::test_a_thinner_seam_is_stored_alike_whatever_the_batches",
@@ -154,6 +154,20 @@ SLOW = [
     "test_tiles.py::test_auto_tiles_follow_the_points_and_the_threads",
     "test_tiles.py::test_batches_across_tile_borders_and_duplicates",
     "test_tiles.py::test_inserts_in_a_row_share_one_exchange",
+    "test_atlas.py::test_deep_inside_a_chart_equals_the_single_chart_field",
+    "test_atlas.py::test_a_relative_atlas_stores_fewer_copies_and_keeps_what_it_is",
+    "test_atlas.py::test_sliced_insert_equals_the_whole_insert",
+    "test_atlas.py::test_a_fitted_unit_follows_what_the_values_change_with",
+    "test_atlas.py::test_data_driven_atlas_rejects_with_a_reason",
+    "test_experiment.py::"
+    "test_every_case_recovers_every_coefficient_with_degenerate_bases_redrawn",
+    "test_gradient.py::test_a_points_field_answers_as_a_second_implementation",
+    "test_gradient.py::test_a_tiled_chart_answers_as_the_whole_one",
+    "test_tiles.py::test_answers_are_the_unsplit_triangulations_bits",
+    "test_triangulation.py::test_interpolation_matches_scipy",
+    "test_triangulation.py::test_snapshot_roundtrip_file",
+    "test_triangulation.py::test_located_queries_lie_in_their_simplex",
+    "test_warp.py::test_a_flat_warped_field_file_and_atlas_round_trip",
     # light fields: figures, orbits, captures imported over HTTP
     "test_lightfield_capture_figure.py::"
     "test_the_forward_rig_beats_the_two_plane_light_field_on_every_held_out_view",
@@ -162,6 +176,13 @@ SLOW = [
     "test_lightfield_orbit.py::test_straddling_views_are_no_worse_than_inside_one_chart",
     "test_lightfield_render.py::test_baselines_on_the_same_samples",
     "test_lightfield_render.py::test_paper_figure_small",
+    "test_lightfield_orbit.py::test_orbit_command_writes_sheet_and_table",
+    "test_lightfield_orbit.py::test_with_sparse_eyes",
+    "test_lightfield_orbit.py::test_views_by_the_gradient_interpolant",
+    "test_lightfield_orbit.py::test_cli_orbit_with_the_papers_charts",
+    "test_lightfield_orbit.py::test_inside_one_chart_the_atlas_answers_as_that_chart",
+    "test_lightfield_service.py::test_start_demo_field_in_the_background",
+    "test_lightfield_service.py::test_render_png_matches_ground_truth",
     # the service in-process
     "service/test_client_batches.py::test_progress_callback_and_bar",
     "service/test_docs.py::"
@@ -198,6 +219,28 @@ SLOW = [
     "test_wait_false_acknowledges_then_indexes_in_commit_order",
     "service/test_service_wait.py::"
     "test_a_committed_upload_waits_a_bounded_time_then_503_stored",
+    "service/test_codec_hostile.py::test_fuzz_npy",
+    "service/test_codec_hostile.py::test_fuzz_npz",
+    "service/test_codec_hostile.py::test_fuzz_strategies_reach_every_outcome",
+    "service/test_service_api.py::test_upload_forms_match_in_process_field",
+    "service/test_service_atlas.py::"
+    "test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches",
+    "service/test_service_atlas.py::"
+    "test_covering_atlas_field_accepts_every_orientation_and_restores",
+    "service/test_service_atlas.py::"
+    "test_a_first_batch_of_one_flat_gives_the_default_unit_and_later_batches_keep_it",
+    "service/test_service_atlas.py::test_cost_guard_counts_every_chart_holding_a_sample",
+    "service/test_service_atlas.py::test_render_an_oriented_atlas_field",
+    "service/test_service_cost.py::"
+    "test_a_kind_that_could_not_hold_min_field_samples_is_refused_at_create",
+    "service/test_service_schema.py::test_openapi_conformance",
+    "service/test_service_schema.py::test_openapi_conformance_with_keys",
+    "service/test_service_schema.py::test_what_the_schema_allows_but_the_service_refuses_is_stated",
+    "service/test_service_snapshot_parts.py",
+    "service/test_service_storage.py::test_delete_removes_batches_and_snapshot",
+    "service/test_service_storage.py::test_queries_never_see_half_a_batch",
+    "service/test_service_tiles.py::test_a_replayed_tiled_field_holds_the_same_bytes",
+    "service/test_service_wait.py::test_shutdown_leaves_pending_batches_to_the_replay",
 ]
 
 TESTS = os.path.dirname(os.path.abspath(__file__))

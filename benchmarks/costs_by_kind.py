@@ -48,7 +48,7 @@ def measure(k: int, d: int, n: int, seed: int = 0) -> dict:
     import numpy as np
 
     from flatserve import Flats
-    from flatserve.atlas import Atlas
+    from flatserve.atlas import DEFAULT_UNIT, Atlas
     from flatserve.contract import new_field
     from flatserve.grassmann import haar_frames
     from flatserve.service import specs
@@ -58,7 +58,7 @@ def measure(k: int, d: int, n: int, seed: int = 0) -> dict:
     if k == 0:
         field = new_field(1, basis=specs.build_basis(None, 0, d))
     else:
-        field = new_field(1, atlas=Atlas.covering(k, d))
+        field = new_field(1, atlas=Atlas.covering(k, d, unit=DEFAULT_UNIT))  # (unit 1)
     t_create = time.perf_counter() - t0
     A = haar_frames(n, d, k, rng) if k else np.zeros((n, d, 0))
     flats = Flats.from_parametric(A, rng.uniform(-1, 1, (n, d)))

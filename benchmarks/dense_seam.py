@@ -23,7 +23,7 @@ import numpy as np
 import timing  # noqa: F401  (the repository root on sys.path)
 from accuracy_by_kind import fill, nearest, setup
 
-from flatserve.atlas import COVER_TRAIN_DEG, Atlas
+from flatserve.atlas import COVER_TRAIN_DEG, DEFAULT_UNIT, Atlas
 
 
 def measure(atlas, A, c, f, Aq, cq, fq, knn):
@@ -41,10 +41,11 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
     k, d = map(int, args.kind.split(","))
-    net = Atlas.covering(k, d)
+    net = Atlas.covering(k, d, unit=DEFAULT_UNIT)  # (the seams in unit 1)
     step = Atlas.covering(k, d, relative=True, inner=net.inner, trusted=net.trusted,
-                          reach=net.reach, dense_reach=9.0, dense_after=25)
-    plain = Atlas.covering(k, d, relative=True, train_deg=COVER_TRAIN_DEG, reach=net.reach)
+                          reach=net.reach, dense_reach=9.0, dense_after=25, unit=DEFAULT_UNIT)
+    plain = Atlas.covering(k, d, relative=True, train_deg=COVER_TRAIN_DEG, reach=net.reach,
+                           unit=DEFAULT_UNIT)
     print(f"{k}-flats in R^{d}; net: {net.ncharts} charts, radii {net.inner:g}/{net.trusted:g}/"
           f"{net.reach:g}, beyond {net.dense_reach} a net of spacing {net.seam_spacing}; "
           f"step: {step.ncharts} charts, {step.dense_reach} after {step.dense_after} own "

@@ -37,7 +37,8 @@ import numpy as np
 
 from ._fieldbase import (FieldBase, corrupted, pack_header, part_key, read_header, read_part,
                          write_part)
-from .atlas import MAX_UNIT, MIN_UNIT, UNIT_RULES, Atlas, data_unit
+from .atlas import (FIT_MAX_DIM, MAX_UNIT, MIN_UNIT, UNIT_RULES, Atlas, data_unit,
+                    default_unit_rule)
 from .coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK, ROUNDTRIP_TOL
 from .errors import InvalidInputError, SnapshotError
 from .field import AddResult, Field, PreparedBatch, QueryResult, QueryRoute
@@ -996,31 +997,6 @@ FIT_EXTEND = 3
 def _chart_dim(k: int, d: int) -> int:
     """Dimensions of a chart's triangulation of k-flats in R^d (``m - 1``)."""
     return basis_size(k, d) - 1
-
-
-#: The most dimensions of a chart's triangulation (``basis_size(k, d) - 1``) for which
-#: a unit left out is fitted to the values (:func:`default_unit_rule`).
-FIT_MAX_DIM = 6
-
-
-def default_unit_rule(k: int, d: int) -> str:
-    """How a field of k-flats in R^d whose unit is left out chooses it (the service's
-    default, :data:`flatserve.atlas.UNIT_RULES`): ``"fit"`` (:func:`fitted_unit`)
-    while a chart's triangulation has at most :data:`FIT_MAX_DIM` dimensions
-    (every kind up to R^3, and in R^4), ``"data"`` (:func:`flatserve.atlas.data_unit`)
-    beyond, where a fit costs minutes (lines in R^5, 8 dimensions, a first batch
-    of 1,000 rows: its upload took 163 s with the fit, 70 s without, on a
-    loaded machine). Points (k = 0) take ``"data"``: their chart's coordinates are
-    the points' own scaled by the unit, and a uniform scale changes neither their
-    Delaunay cells nor the weights, so a fit could only cost time (1,500 points in
-    R^6: 35 s against 8 s, the same answers).
-
-    >>> default_unit_rule(1, 3), default_unit_rule(2, 4), default_unit_rule(1, 5)
-    ('fit', 'fit', 'data')
-    >>> default_unit_rule(0, 3)
-    'data'
-    """
-    return "fit" if k > 0 and _chart_dim(k, d) <= FIT_MAX_DIM else "data"
 
 
 def fit_max_rows(k: int, d: int) -> int:

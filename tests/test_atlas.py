@@ -797,15 +797,17 @@ def expected_net_counts(at, flats):
     return counts
 
 
+# (in a given unit: the expected counts are of the charts as built, which a unit
+# chosen from the first batch would rebuild)
 SEAMS = {
     # the default for planes in R^4: every sample up to 7 degrees, beyond that a net
-    "net": (dict(), expected_net_counts),
+    "net": (dict(unit=DEFAULT_UNIT), expected_net_counts),
     # a user's choice: the seam narrowed to 9 once a chart holds 25 own samples
     "dense": (dict(relative=True, inner=2.0, trusted=6.0, reach=14.0, dense_reach=9.0,
-                   dense_after=25), expected_dense_counts),
+                   dense_after=25, unit=DEFAULT_UNIT), expected_dense_counts),
     # both: a net beyond 7 while a chart holds fewer than 30 own samples, then nothing
     "both": (dict(relative=True, inner=2.0, trusted=6.0, reach=14.0, dense_reach=7.0,
-                  dense_after=30, seam_spacing=0.8), expected_net_counts),
+                  dense_after=30, seam_spacing=0.8, unit=DEFAULT_UNIT), expected_net_counts),
 }
 
 
@@ -882,7 +884,7 @@ def test_a_net_leaves_a_stored_sample_near_every_sample_it_drops():
     val = np.cos(f.quadrics()[1][:, :1])
     counts = []
     for scale in (1.0, 0.05):
-        at = Atlas.covering(2, 4, scale=scale)
+        at = Atlas.covering(2, 4, scale=scale, unit=DEFAULT_UNIT)  # the net as built
         fld = AtlasField(at, 1)
         fld.add(f, val)
         counts.append([g.nsamples for g in fld.fields])

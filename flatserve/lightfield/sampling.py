@@ -179,7 +179,8 @@ def build_atlas_field(origins, directions, values, *, atlas=None, chunk: int = B
     values : (n, C) float
     atlas : flatserve.atlas.Atlas, optional
         Default ``Atlas.covering(1, 3, oriented=True)`` (32 charts: every
-        direction; unit of length 1).
+        direction; the unit of length fitted to the first batch, the
+        library's and the service's default).
     chunk : int
         Rays per insertion batch.
     progress : callable(done, total), optional

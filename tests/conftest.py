@@ -59,7 +59,7 @@ def own_pg_cluster():
 # The markers are registered (and described) in pyproject.toml; `make test-fast` runs the
 # tests that carry none of them, `make test` runs all. They are given here, in one place:
 # by the fixtures a test uses, by a ``backend`` parameter naming PostgreSQL, and for the
-# tests whose harness is not a fixture, by the table LANES below.
+# tests whose harness is not a fixture and the slow ones, by the tables LANES and SLOW below.
 
 #: fixture -> lane: a test that uses the fixture is in the lane.
 FIXTURE_LANES = {
@@ -247,12 +247,12 @@ TESTS = os.path.dirname(os.path.abspath(__file__))
 
 
 def _lane_table() -> dict[str, set[str]]:
-    """LANES by ``path`` and ``path::function``, every path checked to exist."""
+    """LANES and SLOW by ``path`` and ``path::function``, every path checked to exist."""
     table: dict[str, set[str]] = {}
     for key, lanes in [*LANES.items(), *((key, ("slow",)) for key in SLOW)]:
         path = key.split("::")[0]
         if not os.path.isfile(os.path.join(TESTS, path)):
-            raise pytest.UsageError(f"tests/conftest.py LANES names {key!r}: no such module")
+            raise pytest.UsageError(f"tests/conftest.py (LANES or SLOW) names {key!r}: no such module")
         table.setdefault(key, set()).update(lanes)
     return table
 
@@ -275,4 +275,4 @@ def pytest_collection_modifyitems(config, items):
     for key in table:  # a test renamed would otherwise slip into the fast lane unseen
         path, _, name = key.partition("::")
         if name and modules.get(path) is not None and not hasattr(modules[path], name):
-            raise pytest.UsageError(f"tests/conftest.py LANES names {key!r}: no such test")
+            raise pytest.UsageError(f"tests/conftest.py (LANES or SLOW) names {key!r}: no such test")

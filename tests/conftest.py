@@ -252,7 +252,8 @@ def _lane_table() -> dict[str, set[str]]:
     for key, lanes in [*LANES.items(), *((key, ("slow",)) for key in SLOW)]:
         path = key.split("::")[0]
         if not os.path.isfile(os.path.join(TESTS, path)):
-            raise pytest.UsageError(f"tests/conftest.py (LANES or SLOW) names {key!r}: no such module")
+            raise pytest.UsageError(
+                f"tests/conftest.py (LANES or SLOW) names {key!r}: no such module")
         table.setdefault(key, set()).update(lanes)
     return table
 
@@ -275,4 +276,5 @@ def pytest_collection_modifyitems(config, items):
     for key in table:  # a test renamed would otherwise slip into the fast lane unseen
         path, _, name = key.partition("::")
         if name and modules.get(path) is not None and not hasattr(modules[path], name):
-            raise pytest.UsageError(f"tests/conftest.py (LANES or SLOW) names {key!r}: no such test")
+            raise pytest.UsageError(
+                f"tests/conftest.py (LANES or SLOW) names {key!r}: no such test")

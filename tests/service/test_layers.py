@@ -1,6 +1,8 @@
 """The package's layers: no module of ``flatserve`` imports, directly or through others,
 a module that imports it back (an import circle). Imports inside functions count: a
-circle closed by a late import is still two modules that each need the other.
+circle closed by a late import is still two modules that each need the other. And the
+calls between the cluster's processes are the methods of Protocols that mypy checks
+(:mod:`flatserve.service.cluster.wire`).
 
 The graph is read from the source (``ast``), not from ``sys.modules``: nothing is
 imported, and an import that only runs in some process (a Ray actor's) counts too.
@@ -8,6 +10,9 @@ imported, and an import that only runs in some process (a Ray actor's) counts to
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
 import flatserve
@@ -121,3 +126,41 @@ def test_circles_are_found():
 def test_no_import_circle_in_flatserve():
     found = circles(import_graph())
     assert found == [], "import circles: " + "; ".join(" <-> ".join(c) for c in found)
+
+
+def test_mypy_checks_the_wire(tmp_path):
+    """A shard worker and a tile's actor implement the calls between processes
+    (:mod:`flatserve.service.cluster.wire`), checked by mypy as the field contract is;
+    a class that lacks one fails."""
+    path = tmp_path / "check.py"
+    path.write_text(textwrap.dedent("""
+        from flatserve.service.cluster.shard import ShardWorker
+        from flatserve.service.cluster.tiles import TileActor
+        from flatserve.service.cluster.wire import ShardCalls, TileCalls
+
+
+        def check(worker: ShardWorker, tile: TileActor) -> None:
+            shard: ShardCalls = worker
+            held: TileCalls = tile
+
+
+        class NoParts:
+            def query(self, work: list, kw: dict, at_position: int, timeout: float) -> list:
+                return []
+
+            def applied(self, position: int, timeout: float) -> dict:
+                return {}
+
+            def status(self) -> dict:
+                return {}
+
+
+        wrong: ShardCalls = NoParts()
+    """))
+    got = subprocess.run(
+        [sys.executable, "-m", "mypy", "--follow-imports=silent", "--ignore-missing-imports",
+         "--no-error-summary", "--cache-dir", str(tmp_path / "cache"), str(path)],
+        capture_output=True, text=True, timeout=600, cwd=ROOT.parent)
+    errors = [line for line in got.stdout.splitlines() if ": error:" in line]
+    assert len(errors) == 1 and "check.py:23" in errors[0] and "parts" in got.stdout, \
+        got.stdout

@@ -19,6 +19,7 @@ from flatserve.basis import Basis
 from flatserve.contract import POINTER_MAGIC, load_field
 from flatserve.flats import Flats
 from flatserve.service.backend import open_backend
+from flatserve.service.cluster import wire
 from flatserve.service.cluster.remote import RemoteField
 from flatserve.service.cluster.shard import ShardWorker
 from flatserve.service.entry import FieldSpec
@@ -37,7 +38,7 @@ class LocalGroups:
         self.charts = [w.charts for w in workers]
 
     def call(self, calls, timeout):
-        return {g: getattr(self.workers[g], name)(*args) for g, (name, args) in calls.items()}
+        return {g: call.run(self.workers[g]) for g, call in calls.items()}
 
     def status(self):
         return [w.status() for w in self.workers]
@@ -49,7 +50,7 @@ class LocalGroups:
         pass
 
     def applied(self, position, timeout):
-        got = self.call({g: ("applied", (position, timeout)) for g in range(len(self.workers))},
+        got = self.call({g: wire.applied(position, timeout) for g in range(len(self.workers))},
                         timeout)
         return [got[g] for g in range(len(self.workers))]
 

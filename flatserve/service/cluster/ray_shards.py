@@ -26,10 +26,10 @@ cluster; :meth:`RayCluster.groups` gives a field's :class:`RayGroups` (a
   :meth:`RayGroups.call` waits on the calling thread,
   :meth:`RayGroups.call_async` on the event loop (Ray's results are
   awaitable): the same failover (:class:`_Fanout`);
-* a query travels as one pickled ``bytes`` each way (:data:`PACKED`): Ray's
-  cost of a small call grows with the objects it serialises (measured on 2
-  cores: four arguments and a list of results 1.8 ms a call, one blob each
-  way 1.3 ms, a call of nothing 1.2 ms);
+* a query travels as one pickled ``bytes`` each way
+  (:attr:`.wire.ShardCall.packed`): Ray's cost of a small call grows with the
+  objects it serialises (measured on 2 cores: four arguments and a list of
+  results 1.8 ms a call, one blob each way 1.3 ms, a call of nothing 1.2 ms);
 * a thread asks every actor for its status each second
   (:meth:`RayGroups.status` never waits for it; a copy not heard from yet is
   not counted live); :meth:`RayGroups.refresh` asks at once (describe), and
@@ -52,7 +52,9 @@ from urllib.parse import urlsplit
 from ..status import NotReadyError, ShardUnavailableError
 from .ray_env import (connect, machine_pin, node_cpus, node_id, nodes_with, one_machine,
                       probe_address, ray_api, task_cause)
+from . import wire
 from .shard import ShardWorker
+from .wire import ShardCall
 
 log = logging.getLogger("flatserve.service.cluster")
 
@@ -60,13 +62,11 @@ log = logging.getLogger("flatserve.service.cluster")
 STATUS_EVERY_S = 1.0
 #: concurrent calls an actor takes (queries beside its log follower and snapshots)
 ACTOR_CONCURRENCY = 16
-#: methods whose arguments and result travel as one pickled ``bytes`` each way (small,
-#: frequent calls; a snapshot's parts, large, keep Ray's own serialisation of their bytes)
-PACKED = frozenset({"query"})
 
 
 def pack(value) -> bytes:
-    """A call's arguments, or its result, as one blob (:data:`PACKED`)."""
+    """A packed call's arguments, or its result, as one blob
+    (:attr:`.wire.ShardCall.packed`)."""
     return pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
 
 
@@ -98,7 +98,8 @@ class ShardActor:
         os._exit(1)
 
     def query(self, request: bytes) -> bytes:
-        """:meth:`~.shard.ShardWorker.query`; arguments and answer packed (:data:`PACKED`)."""
+        """:meth:`~.shard.ShardWorker.query`; arguments and answer packed
+        (:attr:`.wire.ShardCall.packed`)."""
         return pack(self.worker.query(*pickle.loads(request)))
 
     def parts(self, position, known, timeout):
@@ -408,15 +409,15 @@ class RayGroups:
         ShardUnavailableError
             A group has no copy there within ``timeout`` (restoring, behind, none live).
         """
-        got = self.call({g: ("applied", (position, timeout)) for g in range(len(self.charts))},
+        got = self.call({g: wire.applied(position, timeout) for g in range(len(self.charts))},
                         timeout + 5.0)
         for g, st in got.items():
             self._note(g, st)
         return [got[g] for g in range(len(self.charts))]
 
-    def call(self, calls: dict[int, tuple[str, tuple]], timeout: float) -> dict[int, Any]:
-        """``{group: (method, args)}`` on one live copy of each group, waited for on this
-        thread (see the module doc)."""
+    def call(self, calls: dict[int, ShardCall], timeout: float) -> dict[int, Any]:
+        """``{group: call}`` (:mod:`.wire`) on one live copy of each group, waited for on
+        this thread (see the module doc)."""
         fan = _Fanout(self, calls, timeout)
         pending = {g: fan.submit(g) for g in calls}
         out: dict[int, Any] = {}
@@ -433,8 +434,7 @@ class RayGroups:
             raise
         return out
 
-    async def call_async(self, calls: dict[int, tuple[str, tuple]],
-                         timeout: float) -> dict[int, Any]:
+    async def call_async(self, calls: dict[int, ShardCall], timeout: float) -> dict[int, Any]:
         """:meth:`call` awaited on the event loop: the calls are submitted at once and
         their results awaited (Ray's object refs are awaitable), with the same failover;
         nothing blocks the loop but the submission (Ray's serialisation of the arguments:
@@ -494,6 +494,26 @@ class RayGroups:
                     pass
 
 
+class _Submit:
+    """A copy's actor as :class:`.wire.ShardCalls` whose methods submit the call (a
+    query packed, :meth:`ShardActor.query`) and return Ray's reference to its result."""
+
+    def __init__(self, actor) -> None:
+        self.actor = actor
+
+    def query(self, work, kw, at_position, timeout):
+        return self.actor.query.remote(pack((work, kw, at_position, timeout)))
+
+    def parts(self, position, known, timeout):
+        return self.actor.parts.remote(position, known, timeout)
+
+    def applied(self, position, timeout):
+        return self.actor.applied.remote(position, timeout)
+
+    def status(self):
+        return self.actor.status.remote()
+
+
 class _Fanout:
     """One request's calls to a field's groups, one copy of each (:meth:`RayGroups.call`
     and :meth:`RayGroups.call_async` wait for them; this is their failover).
@@ -506,8 +526,7 @@ class _Fanout:
     the request's.
     """
 
-    def __init__(self, groups: RayGroups, calls: dict[int, tuple[str, tuple]],
-                 timeout: float) -> None:
+    def __init__(self, groups: RayGroups, calls: dict[int, ShardCall], timeout: float) -> None:
         self.groups, self.calls = groups, calls
         self.deadline = time.monotonic() + timeout
         self.tried: dict[int, list[int]] = {g: [] for g in calls}
@@ -526,14 +545,12 @@ class _Fanout:
             Every copy of the group has been tried.
         """
         gr = self.groups
-        method, args = self.calls[g]
         for j in gr._order(g):
             if j in self.tried[g]:
                 continue
             self.tried[g].append(j)
             try:
-                fn = getattr(gr.actors[g][j], method)
-                return j, (fn.remote(pack(args)) if method in PACKED else fn.remote(*args))
+                return j, self.calls[g].run(_Submit(gr.actors[g][j]))
             except Exception as exc:  # the cluster unreachable
                 self.last[g] = f"{type(exc).__name__}: {exc}"
                 gr._alive[g][j] = False
@@ -542,7 +559,7 @@ class _Fanout:
     def answered(self, g: int, j: int, result):
         """Copy ``j`` of group ``g`` answered ``result``: its value."""
         self.groups._alive[g][j] = True
-        return pickle.loads(result) if self.calls[g][0] in PACKED else result
+        return pickle.loads(result) if self.calls[g].packed else result
 
     def failed(self, g: int, j: int, exc: Exception) -> tuple[int, Any]:
         """Copy ``j`` of group ``g`` failed with ``exc``: the call on the next copy

@@ -30,6 +30,8 @@ from ...field import AddResult, QueryResult, QueryRoute
 from ...flats import Flats
 from ...options import Interpolant, Order, Outside, choice
 from ..units import adopt_unit
+from . import wire
+from .wire import ShardCall
 from ..status import NotReadyError, ShardUnavailableError
 
 _NO_ROWS = np.empty(0, np.int64)
@@ -46,15 +48,14 @@ class ShardGroups(Protocol):
 
     charts: list[tuple[int, ...]]
 
-    def call(self, calls: dict[int, tuple[str, tuple]], timeout: float) -> dict[int, Any]:
-        """``{group: (method, args)}`` run on one live copy of each group, at once;
+    def call(self, calls: dict[int, ShardCall], timeout: float) -> dict[int, Any]:
+        """``{group: call}`` (:mod:`.wire`) run on one live copy of each group, at once;
         ``{group: result}``. Raises
         :class:`~flatserve.service.status.ShardUnavailableError` when a group has
         no live copy, or the error a worker raised."""
         ...
 
-    async def call_async(self, calls: dict[int, tuple[str, tuple]],
-                         timeout: float) -> dict[int, Any]:
+    async def call_async(self, calls: dict[int, ShardCall], timeout: float) -> dict[int, Any]:
         """:meth:`call` awaited on the event loop (nothing in it blocks the loop)."""
         ...
 
@@ -324,9 +325,9 @@ class RemoteField:
         return self._blend(route, calls, got, return_weights)
 
     def _fan_out(self, flats: Flats, outside, order, threads, return_weights, interpolant):
-        """The query's route and its calls: per group touched, ``("query", (work, kw,
-        position, timeout))`` with ``work`` the ``(chart, flats)`` of its charts (the
-        workers compute the gradient interpolant's slopes, beside their samples)."""
+        """The query's route and its calls: per group touched, :func:`.wire.query` of
+        ``work``, the ``(chart, flats)`` of its charts (the workers compute the
+        gradient interpolant's slopes, beside their samples)."""
         interpolant = choice(interpolant, Interpolant, "interpolant")
         route = self._shape.route_query(flats)
         kw = {"outside": outside, "order": order, "threads": threads,
@@ -340,13 +341,13 @@ class RemoteField:
                 per.setdefault(int(self._group_of[c]), []).append(
                     (c, flats if whole else flats.take(rows)))
         at = self._position()
-        return route, {g: ("query", (w, kw, at, self.timeout)) for g, w in per.items()}
+        return route, {g: wire.query(w, kw, at, self.timeout) for g, w in per.items()}
 
     def _blend(self, route: QueryRoute, calls: dict, got: dict, return_weights: bool):
         """The field's answer from each group's answers, in chart order."""
         results: list = [None] * len(route.rows)
-        for g, (_, (work, *_)) in calls.items():
-            for (c, _), res in zip(work, got[g]):
+        for g, call in calls.items():
+            for (c, _), res in zip(call.work, got[g]):
                 results[c] = res
         return self._shape.blend(route, results, return_weights=return_weights)
 
@@ -392,7 +393,7 @@ class RemoteField:
         pos = self._position()
         known = list(known)
         self.stored_bytes = 0
-        got = self.groups.call({g: ("parts", (pos, known, self.timeout))
+        got = self.groups.call({g: wire.parts(pos, known, self.timeout)
                                 for g in range(len(self.groups.charts))}, self.timeout + 60.0)
         self.stored_bytes = sum(r["stored"] for r in got.values())
         seqs = {r["seq"] for r in got.values()}

@@ -144,11 +144,42 @@ class TileActor:
         key, blob = TileHost().part(self.tile, gid, known)
         return key, 0 if blob is None else self.parts.put(key, blob)
 
-    def call(self, method: str, args: tuple, kw: dict | None = None):
-        return getattr(self.tile, method)(*args, **(kw or {}))
-
     def insert(self, points, values, own: bool):
         return self.tile.insert(points, values, own), self.state()
+
+    # -- the tile's own methods (:class:`~flatserve.tiles.Tile`) ---------------------------
+    def take(self, local):
+        return self.tile.take(local)
+
+    def own_flags(self):
+        return self.tile.own_flags()
+
+    def own_box(self):
+        return self.tile.own_box()
+
+    def own_rows(self):
+        return self.tile.own_rows()
+
+    def conflicts(self, lo, hi, start, skip: int, where: dict):
+        return self.tile.conflicts(lo, hi, start, skip, **where)
+
+    def answer(self, q, outside, order, threads, everywhere: bool):
+        return self.tile.answer(q, outside, order, threads, everywhere)
+
+    def locate(self, q, order, threads):
+        return self.tile.locate(q, order, threads)
+
+    def within(self, q, radius, threads):
+        return self.tile.within(q, radius, threads)
+
+    def count_cells(self) -> int:
+        return self.tile.count_cells()
+
+    def star_foreign(self) -> int:
+        return self.tile.star_foreign()
+
+    def record(self, gid):
+        return self.tile.record(gid)
 
     def node(self) -> dict:
         from .shard import rss_bytes
@@ -200,53 +231,56 @@ class RemoteTile:
             self._actor = self._host.spawn(self._ndim)
         return self._actor
 
-    def _call(self, method: str, *args, timeout: float = TILE_CALL_TIMEOUT_S, **kw):
-        return self._host.get(self._started().call.remote(method, args, kw), timeout)
-
     def insert(self, points, values, own: bool):
         res, state = self._host.get(self._started().insert.remote(points, values, own))
         self.npoints, self.generation, self.nchannels = state
         return res
 
     def take(self, local):
-        return self._call("take", local)
+        return self._host.get(self._started().take.remote(local))
 
     def own_flags(self):
-        return self._call("own_flags") if self._actor is not None else np.empty(0, np.uint8)
+        if self._actor is None:
+            return np.empty(0, np.uint8)
+        return self._host.get(self._actor.own_flags.remote())
 
     def own_box(self):
-        return self._call("own_box") if self._actor is not None else None
+        return self._host.get(self._actor.own_box.remote()) if self._actor is not None else None
 
     def own_rows(self):
         if self._actor is None:
             return np.empty(0, np.uint8), np.empty((0, self._ndim)), None
-        return self._call("own_rows")
+        return self._host.get(self._actor.own_rows.remote())
 
     def conflicts(self, lo, hi, start, skip: int, **where):
-        return self._call("conflicts", lo, hi, start, skip, **where)
+        return self._host.get(self._started().conflicts.remote(lo, hi, start, skip, where))
 
     def answer(self, q, outside, order, threads, everywhere: bool):
-        return self._call("answer", q, outside, order, threads, everywhere,
-                          timeout=QUERY_CALL_TIMEOUT_S)
+        return self._host.get(self._started().answer.remote(q, outside, order, threads,
+                                                            everywhere), QUERY_CALL_TIMEOUT_S)
 
     def locate(self, q, order, threads):
-        return self._call("locate", q, order, threads, timeout=QUERY_CALL_TIMEOUT_S)
+        return self._host.get(self._started().locate.remote(q, order, threads),
+                              QUERY_CALL_TIMEOUT_S)
 
     def within(self, q, radius, threads):
         if self._actor is None:
             return np.zeros(len(q), dtype=bool)
-        return self._call("within", q, radius, threads, timeout=QUERY_CALL_TIMEOUT_S)
+        return self._host.get(self._actor.within.remote(q, radius, threads),
+                              QUERY_CALL_TIMEOUT_S)
 
     def count_cells(self) -> int:
-        return self._call("count_cells") if self._actor is not None else 0
+        return self._host.get(self._actor.count_cells.remote()) if self._actor is not None else 0
 
     def star_foreign(self) -> int:
-        return self._call("star_foreign") if self._actor is not None else 0
+        if self._actor is None:
+            return 0
+        return self._host.get(self._actor.star_foreign.remote())
 
     def record(self, gid):
         if self._actor is None:
             return Tile(self._ndim).record(gid)
-        return self._call("record", gid)
+        return self._host.get(self._actor.record.remote(gid))
 
 
 class RayTileHost(TileHost):

@@ -1,0 +1,126 @@
+"""The calls between a cluster front and its shard workers, as methods of a Protocol.
+
+A front (:class:`~.remote.RemoteField`) asks a shard group for what
+:class:`ShardCalls` declares: a query's answers, a snapshot's parts, its
+status once a log position is applied, its status now. A
+:class:`~.shard.ShardWorker` implements them in its own process; the
+transport (:class:`~.ray_shards.RayGroups`: one live copy of each group, with
+failover) carries a :class:`ShardCall` to a worker's actor and its result
+back. A call is made by the functions of this module (:func:`query`,
+:func:`parts`, :func:`applied`, :func:`status`), never by a method's name.
+
+The tiles of a chart held in actors of their own are called through
+:class:`TileCalls` (:class:`~.tiles.TileActor` implements it).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol
+
+
+class ShardCalls(Protocol):
+    """What a front calls on a shard worker (:class:`~.shard.ShardWorker`)."""
+
+    def query(self, work: list, kw: dict, at_position: int, timeout: float) -> list:
+        """Its charts' answers on the rows routed to them, once the log up to
+        ``at_position`` is applied (:meth:`~.shard.ShardWorker.query`)."""
+        ...
+
+    def parts(self, position: int, known, timeout: float) -> dict:
+        """Its charts' snapshot parts at log ``position``, stored
+        (:meth:`~.shard.ShardWorker.parts`)."""
+        ...
+
+    def applied(self, position: int, timeout: float) -> dict:
+        """Its status once the log up to ``position`` is applied
+        (:meth:`~.shard.ShardWorker.applied`)."""
+        ...
+
+    def status(self) -> dict:
+        """What it holds and where it is in the log, now (:meth:`~.shard.ShardWorker.status`)."""
+        ...
+
+
+@dataclass(frozen=True)
+class ShardCall:
+    """One call of :class:`ShardCalls` with its arguments: ``run(target)`` makes it on
+    ``target`` (a worker, or a transport's stand-in for one that submits the call and
+    returns what the transport waits for).
+
+    Attributes
+    ----------
+    run : callable
+        Calls the method on its argument.
+    packed : bool
+        Its arguments and its result travel as one pickled ``bytes`` each way
+        (small, frequent calls: a query; a snapshot's parts, large, keep the
+        transport's own serialisation of their bytes).
+    work : list
+        A query's ``(chart, flats)`` pairs (empty for the other calls): the
+        answers come back in their order.
+    """
+
+    run: Callable[[Any], Any]
+    packed: bool = False
+    work: tuple = ()
+
+
+def query(work: list, kw: dict, at_position: int, timeout: float) -> ShardCall:
+    """:meth:`ShardCalls.query` (packed)."""
+    return ShardCall(lambda s: s.query(work, kw, at_position, timeout), packed=True,
+                     work=tuple(work))
+
+
+def parts(position: int, known, timeout: float) -> ShardCall:
+    """:meth:`ShardCalls.parts`."""
+    return ShardCall(lambda s: s.parts(position, known, timeout))
+
+
+def applied(position: int, timeout: float) -> ShardCall:
+    """:meth:`ShardCalls.applied`."""
+    return ShardCall(lambda s: s.applied(position, timeout))
+
+
+def status() -> ShardCall:
+    """:meth:`ShardCalls.status`."""
+    return ShardCall(lambda s: s.status())
+
+
+class TileCalls(Protocol):
+    """What a shard worker calls on a tile held in an actor of its own
+    (:class:`~.tiles.TileActor`, standing for a :class:`flatserve.tiles.Tile`; a call that
+    changes the tile returns its ``(npoints, generation, nchannels)`` beside its result)."""
+
+    def state(self) -> tuple[int, int, int]: ...
+
+    def load(self, record) -> tuple: ...
+
+    def load_part(self, key: str, source: str, what: str) -> tuple: ...
+
+    def store_part(self, gid, known) -> tuple[str, int]: ...
+
+    def insert(self, points, values, own: bool) -> tuple: ...
+
+    def take(self, local): ...
+
+    def own_flags(self): ...
+
+    def own_box(self): ...
+
+    def own_rows(self): ...
+
+    def conflicts(self, lo, hi, start, skip: int, where: dict): ...
+
+    def answer(self, q, outside, order, threads, everywhere: bool): ...
+
+    def locate(self, q, order, threads): ...
+
+    def within(self, q, radius, threads): ...
+
+    def count_cells(self) -> int: ...
+
+    def star_foreign(self) -> int: ...
+
+    def record(self, gid): ...
+
+    def node(self) -> dict: ...

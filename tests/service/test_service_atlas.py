@@ -724,7 +724,7 @@ def test_a_covering_atlas_takes_its_radii_at_create(api, rng):
     b = rng.uniform(-1, 1, (1500, 4))
     val = np.sin(3 * b[:, :1]) + A[:, :1, 0]
     qA, qb = haar_frames(300, 4, 3, rng), rng.uniform(-1, 1, (300, 4))
-    lib = AtlasField(Atlas.covering(3, 4, relative=True, inner=1, trusted=4, reach=9),
+    lib = AtlasField(Atlas.covering(3, 4, relative=True, inner=1, trusted=4, reach=9, unit=1.0),
                      channels=1)
     lib.add(Flats.from_parametric(A, b), val)
     want = lib.query(Flats.from_parametric(qA, qb))
@@ -830,7 +830,7 @@ def test_isometric_charts_of_planes_asked_for_at_create_answer_as_the_librarys(m
     b = rng.uniform(-1, 1, (1500, 3))
     val = np.sin(3 * b[:, :1]) + A[:, :1, 0]
     qA, qb = haar_frames(300, 3, 2, rng), rng.uniform(-1, 1, (300, 3))
-    lib = AtlasField(Atlas.covering(2, 3, isometric=True), channels=1)
+    lib = AtlasField(Atlas.covering(2, 3, isometric=True, unit=1.0), channels=1)
     lib.add(Flats.from_parametric(A, b), val)
     want = lib.query(Flats.from_parametric(qA, qb))
     assert want.inside.mean() > 0.8

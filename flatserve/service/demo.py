@@ -25,6 +25,7 @@ from .status import FieldExistsError, FieldNotFoundError
 from ..flats import Flats
 from ..lightfield.sampling import bunny_scene, orbit_samples
 from . import specs
+from .docs import DEMO_VIEWER_FIELD
 from .schemas import FieldCreate
 
 __all__ = ["DEMO_FIELD", "DEMO_SAMPLES", "DEMO_BATCH", "DEMO_REQUEST", "ensure_demo_field",
@@ -33,7 +34,7 @@ __all__ = ["DEMO_FIELD", "DEMO_SAMPLES", "DEMO_BATCH", "DEMO_REQUEST", "ensure_d
 log = logging.getLogger("flatserve.service")
 
 #: Name of the demo field.
-DEMO_FIELD = "bunny"
+DEMO_FIELD = DEMO_VIEWER_FIELD
 #: Rays sampled all around the bunny (README: build time on 2 cores).
 DEMO_SAMPLES = 400_000
 #: Rays per upload batch.

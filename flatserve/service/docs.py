@@ -5,6 +5,7 @@ are served by this server from the assets the ``fastapi-offline`` package ships
 references."""
 from __future__ import annotations
 
+import html
 from pathlib import Path
 from typing import Callable
 
@@ -56,9 +57,33 @@ def hoist_defs(doc: dict) -> dict:
     return doc
 
 
+#: The field the demo server makes (``flatserve serve --demo``; :data:`flatserve.service.demo.DEMO_FIELD`),
+#: for the home page's viewer link.
+DEMO_VIEWER_FIELD = "bunny"
+#: ``GET /``: where to go from the server's root (no field names: listing them needs a key).
+HOME_PAGE = """<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>{title}</title></head>
+<body>
+<h1>{title}</h1>
+<p>Values sampled on flats (points, lines, planes) interpolated over a Delaunay
+triangulation of their coordinates in an affine basis.</p>
+<ul>
+<li><a href="{root}/docs">API documentation</a> (Swagger UI; <a href="{root}/redoc">ReDoc</a>,
+<a href="{root}/openapi.json">the OpenAPI schema</a>)</li>
+<li><a href="{root}/v1/fields">The fields</a> (JSON; with the read key when one is set)</li>
+<li><a href="{root}/v1/limits">The limits</a> of this server (JSON)</li>
+<li><a href="{root}/viewer/{demo}">The light-field viewer</a> of the demo field
+(<code>{root}/viewer/&lt;field&gt;</code> for another)</li>
+<li><a href="{root}/healthz">Health</a>, <a href="{root}/readyz">readiness</a>,
+<a href="{root}/metrics">metrics</a></li>
+</ul>
+</body></html>
+"""
+
+
 def install(app: FastAPI) -> None:
-    """Serve ``/docs``, ``/redoc`` and their assets on ``app`` (created with
-    ``docs_url=None, redoc_url=None``)."""
+    """Serve ``/`` (a page of links: :data:`HOME_PAGE`), ``/docs``, ``/redoc`` and their
+    assets on ``app`` (created with ``docs_url=None, redoc_url=None``)."""
     app.mount(ASSETS_URL, StaticFiles(directory=ASSETS), name="docs-assets")
     pages = APIRouter(include_in_schema=False)
 
@@ -73,6 +98,14 @@ def install(app: FastAPI) -> None:
             openapi_url=spec, title=f"{app.title} - Swagger UI",
             swagger_js_url=asset("swagger-ui-bundle.js"), swagger_css_url=asset("swagger-ui.css"),
             swagger_favicon_url=asset("favicon.png"), swagger_ui_parameters=app.swagger_ui_parameters)
+
+    @pages.get("/", response_class=HTMLResponse)
+    def home(request: Request) -> HTMLResponse:
+        root = request.scope.get("root_path", "")
+        return HTMLResponse(HOME_PAGE.format(root=html.escape(root, quote=True),
+                                             title=html.escape(app.title),
+                                             demo=DEMO_VIEWER_FIELD),
+                            headers={"Cache-Control": "no-cache"})
 
     @pages.get("/redoc", response_class=HTMLResponse)
     def redoc(request: Request) -> HTMLResponse:

@@ -137,3 +137,19 @@ def test_docs_render_every_operation_without_a_network(live_server, offline_brow
     drv.get(f"{url}/redoc")
     _wait(lambda: "Upload a batch of samples" in drv.find_element("tag name", "body").text,
           "ReDoc's operations")
+
+
+def test_the_root_is_a_page_of_links_that_answer(make_app):
+    """``GET /`` is a page of links (the docs, the schema, the fields, the limits, the
+    viewer, health), each of which this server answers, and names no field it holds."""
+    with TestClient(make_app(), base_url="http://127.0.0.1") as tc:
+        r = tc.get("/")
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+        links = re.findall(r'href="([^"]+)"', r.text)
+        assert {"/docs", "/redoc", "/openapi.json", "/v1/fields", "/v1/limits", "/healthz",
+                "/readyz", "/metrics"} <= set(links)
+        for link in links:
+            if link.startswith("/viewer/"):
+                continue  # the demo's field: the page is static, the field may not exist
+            assert tc.get(link).status_code == 200, link
+        assert tc.get(next(u for u in links if u.startswith("/viewer/"))).status_code == 200

@@ -20,7 +20,10 @@ HEADER_TIMEOUT = 1.5
 BODY_TIMEOUT = 2.0
 BODY_MIN_RATE = 1000
 KEEPALIVE = 1.5
-SLACK = 1.5
+#: How late a timeout may close a connection: a loaded 2-core machine (CI beside other
+#: jobs) delays the server's timers by seconds (5.9 s for a 1.5 s keep-alive once); the
+#: bound still tells "closed by its timeout" from "held open" (the reads wait 10 s beyond).
+SLACK = 6.0
 
 
 @pytest.fixture(scope="module")

@@ -15,6 +15,9 @@ processes and throwaway PostgreSQL clusters for the tests and the benchmarks.
 * :mod:`tests.harness.service`: apps started in-process, uploads that go on while
   servers are killed and the check of what they stored, snapshots retried while
   another writer holds the lease;
+* :mod:`tests.harness.storage`: checks both storage backends' tests run;
+* :mod:`tests.harness.cluster`: rays over every chart and front processes on one
+  Ray cluster, for the cluster tests;
 * :mod:`tests.harness.hostile`: hand-made and fuzzed hostile ``.npy``/``.npz`` bodies;
 * :mod:`tests.harness.cells`, :mod:`tests.harness.charts`, :mod:`tests.harness.fig11`:
   answers compared cell by cell, rays stored in one chart alone, the paper's Fig. 11

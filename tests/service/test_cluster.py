@@ -28,17 +28,13 @@ from flatserve.service.blobs import split_batch
 from flatserve.service.entry import FieldSpec
 from flatserve.service.routes_lightfield import CameraSpec, render_frame
 from flatserve.service.settings import Settings
+from tests.harness.cluster import Fronts, sphere_rays
 from tests.harness.process import ServerProcess
 from tests.harness.raycluster import RayNodes, assigned_resources, unbuilt_checkout
 
 from tests.harness.fields import ONE_CHART, paper_rays
 from tests.harness.service import snapshot_soon
 
-
-
-def sphere_rays(rng, n):
-    """Rays in every direction (they land in every chart of a covering atlas)."""
-    return rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
 
 
 def fill(c: Client, rng, atlas: str, *, batches: int, rows: int, copies: int = 1) -> dict:
@@ -54,28 +50,6 @@ def fill(c: Client, rng, atlas: str, *, batches: int, rows: int, copies: int = 1
         o, d = paper_rays(rng, rows)
         c.upload_rays("one", o, d, rng.uniform(size=(rows, 2)), wait=bool(i % 2))
     return info
-
-
-class Fronts:
-    """Front processes on one database and one Ray cluster (killed when the test ends)."""
-
-    def __init__(self, tmp, url: str, address: str, stack: contextlib.ExitStack, **options):
-        self.tmp, self.url, self.address, self.stack = tmp, url, address, stack
-        self.options = {"snapshot_every": 0, "ray_shards": 4, "ray_shard_memory": 1 << 30,
-                        **options}
-        self.n = 0
-
-    def start(self, address: str | None = None) -> ServerProcess:
-        self.n += 1
-        srv = self.stack.enter_context(ServerProcess(
-            self.tmp / f"front{self.n}", self.tmp / f"front{self.n}.log", database_url=self.url,
-            ray=address or self.address, **self.options))
-        srv.wait_ready(180)
-        return srv
-
-    def logs(self) -> str:
-        return "\n".join(f"--- front{i} ---\n" + (self.tmp / f"front{i}.log").read_text()[-4000:]
-                         for i in range(1, self.n + 1))
 
 
 def oracle(url, name: str, upto: int | None = None):

@@ -22,9 +22,9 @@ import httpx
 import numpy as np
 
 from flatserve.client import Client, ServiceError
+from tests.harness.cluster import Fronts, sphere_rays
 from tests.harness.process import ServerProcess
 from tests.harness.raycluster import RayNodes
-from tests.service.test_cluster import Fronts, sphere_rays
 
 #: seconds each fault is left to play before the next
 SETTLE_S = 6.0

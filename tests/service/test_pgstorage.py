@@ -20,6 +20,7 @@ from flatserve.service.pgsnapshots import CHUNK_BYTES
 from flatserve.service.pgstorage import PostgresBackend, redact
 from flatserve.service.settings import Settings
 from tests.harness.service import save_bytes
+from tests.harness.storage import check_clean_up_under_field_leases
 
 BASIS = {"Q": np.eye(3)[None].repeat(5, 0), "r": np.zeros((5, 3))}
 
@@ -404,6 +405,4 @@ def test_a_lapsed_lease_is_not_renewed_even_when_free_again(two, pg_url):
 
 
 def test_clean_up_takes_each_fields_lease(two):
-    from .test_service_storage import check_clean_up_under_field_leases
-
     check_clean_up_under_field_leases(two[0])

@@ -15,6 +15,7 @@ from flatserve.flats import Flats
 
 from tests.harness.fields import KINDS, paper_rays
 from tests.harness.service import save_bytes, started as _started
+from tests.harness.storage import check_clean_up_under_field_leases
 
 with_kinds = pytest.mark.parametrize("kind", KINDS, ids=str)
 
@@ -383,31 +384,6 @@ def test_sqlite_lease_renewal_and_a_snapshot_removed_before_it_is_pointed_at(tmp
     finally:
         be.close()
         os.close(fd)
-
-
-def check_clean_up_under_field_leases(be):
-    """Shared by both backends' tests: each field's snapshot lease is its own, and
-    ``clean_orphans`` removes a live field's data not pointed at only under that
-    field's lease: a writer holding it keeps what it stored (the field points at
-    it), while a field nobody holds the lease of loses it (a dead writer's)."""
-    from flatserve.service.backend import snapshot_lease
-    from flatserve.service.status import StorageError
-
-    basis = {"Q": np.eye(3)[None].repeat(5, 0), "r": np.zeros((5, 3))}
-    held, free = (be.create_field(n, {"k": 1}, basis)[0] for n in ("held", "free"))
-    assert be.acquire_lease(snapshot_lease(held), "writer", 300)
-    assert be.acquire_lease(snapshot_lease(free), "another", 300)  # independent leases
-    assert not be.acquire_lease(snapshot_lease(held), "another", 300)
-    be.release_lease(snapshot_lease(free), "another")
-    assert be.renew_lease(snapshot_lease(held), "writer", 300)  # untouched by the release
-    info = be.write_snapshot(held, 0, 0, save_bytes(b"kept"), be.clean_orphans)
-    assert be.field(held).snapshot_file == info.file
-    assert be.load_snapshot(be.field(held), lambda p, _: p.read_bytes()) == b"kept"
-    with pytest.raises(StorageError):
-        be.write_snapshot(free, 0, 0, save_bytes(b"a dead writer's"), be.clean_orphans)
-    assert be.field(free).snapshot_file is None
-    be.release_lease(snapshot_lease(held), "writer")
-    assert be.clean_orphans() == 0
 
 
 def test_sqlite_clean_up_takes_each_fields_lease(tmp_path):

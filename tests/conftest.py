@@ -91,11 +91,16 @@ LANES = {
     "service/test_soak_script.py": ("server",),
     "service/test_soak_script.py::test_short_soak_on_postgresql_with_two_replicas": ("postgres",),
     "test_lightfield_orbit_service.py": ("server", "slow"),
+    # a real server (uvicorn on a loopback port) the captures are imported into
+    "test_lightfield_import.py": ("server", "slow"),
     "test_readme.py::test_readme_blocks_run_as_written_twice": ("server",),
     "test_docs_site.py::test_page_blocks_run_as_written_twice": ("server",),
     "service/test_service_answers.py::test_healthz_answers_within_a_second_during_worst_cases":
         ("server",),
     "service/test_datadir.py::test_second_server_on_a_data_dir_in_use_refuses_to_start":
+        ("server",),
+    # not a server process, but the machine itself: it mounts a tmpfs (root) to fill a disk
+    "service/test_datadir.py::test_full_disk_refuses_writes_with_507_and_reads_go_on":
         ("server",),
     "service/test_service_hostile_bodies.py::"
     "test_real_server_keeps_the_connection_after_hostile_bodies": ("server",),
@@ -171,7 +176,6 @@ SLOW = [
     # light fields: figures, orbits, captures imported over HTTP
     "test_lightfield_capture_figure.py::"
     "test_the_forward_rig_beats_the_two_plane_light_field_on_every_held_out_view",
-    "test_lightfield_import.py",
     "test_lightfield_orbit.py::test_ours_beats_the_nearest_rays_baseline_on_every_view",
     "test_lightfield_orbit.py::test_straddling_views_are_no_worse_than_inside_one_chart",
     "test_lightfield_render.py::test_baselines_on_the_same_samples",
@@ -185,6 +189,7 @@ SLOW = [
     "test_lightfield_service.py::test_render_png_matches_ground_truth",
     # the service in-process
     "service/test_client_batches.py::test_progress_callback_and_bar",
+    "service/test_layers.py::test_mypy_checks_the_wire",
     "service/test_docs.py::"
     "test_every_body_has_an_example_and_the_examples_are_valid_requests",
     "service/test_service_api.py::"

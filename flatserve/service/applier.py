@@ -98,6 +98,22 @@ def stored_flats(e: FieldEntry, form: str | None, arrays: dict) -> Flats:
     return Flats.from_arrays(arrays, k=e.spec.k, d=e.spec.d, form=form)
 
 
+def read_batch(storage: LogBackend, field_id: int, seq: int, spec: FieldSpec,
+               form: str | None = None) -> tuple[Flats, object, float | None]:
+    """A stored batch as every applier of the log inserts it (a replica's, a shard
+    worker's): its :class:`Flats` (the form inferred from its arrays' names when
+    None), its values, and the unit of length recorded with it
+    (:func:`.blobs.split_batch`).
+
+    Raises
+    ------
+    FieldNotFoundError
+        The field was deleted meanwhile.
+    """
+    arrays, values, unit = split_batch(storage.batch_arrays(field_id, seq))
+    return Flats.from_arrays(arrays, k=spec.k, d=spec.d, form=form), values, unit
+
+
 def entry_of(row: FieldRow, state: FieldState = FieldState.LOADING) -> FieldEntry:
     """The entry of a stored field's row (its field not built yet), its definition
     checked as a create's (:func:`.specs.stored_spec`) before anything is built
@@ -261,11 +277,9 @@ class LogApplier:
                     prepared, again = None, True
             if prepared is None:
                 try:
-                    arrays = dict(self.storage.batch_arrays(e.id, entry.seq))
+                    flats, values, unit = read_batch(self.storage, e.id, entry.seq, e.spec)
                 except FieldNotFoundError:
                     return None, None  # deleted meanwhile: its delete entry follows
-                arrays, values, unit = split_batch(arrays)
-                flats = stored_flats(e, None, arrays)
                 adopt_unit(e.field, batch_unit(e.field, flats, values, unit))
                 prepared = e.field.prepare(flats, values)
                 if again:  # the upload that handed it over answers with these decisions
@@ -394,9 +408,9 @@ class LogApplier:
             done, tlast, replayed = 0, time.perf_counter(), 0
             seq, pos = start, start_pos
             for b in todo:
-                arrays, values, unit = split_batch(self.storage.batch_arrays(e.id, b.seq))
+                flats, values, unit = read_batch(self.storage, e.id, b.seq, e.spec, b.form)
                 adopt_unit(fld, unit)
-                prepared = fld.prepare(stored_flats(e, b.form, arrays), values)
+                prepared = fld.prepare(flats, values)
                 replayed += int(fld.insert_prepared(  # (a tiled chart: each batch whole, settled)
                     prepared, slice_rows=self.settings.insert_slice_rows).accepted)
                 seq, pos = b.seq, b.position
@@ -444,9 +458,8 @@ class LogApplier:
         """A remote field whose unit its first batch chooses takes the unit recorded
         with that batch; a batch stored before a front recorded it: the unit each
         shard worker chose from it (:func:`flatserve.atlas_field.choose_unit`)."""
-        arrays, values, unit = split_batch(self.storage.batch_arrays(e.id, first.seq))
-        adopt_unit(e.field, batch_unit(e.field, stored_flats(e, first.form, arrays), values,
-                                       unit))
+        flats, values, unit = read_batch(self.storage, e.id, first.seq, e.spec, first.form)
+        adopt_unit(e.field, batch_unit(e.field, flats, values, unit))
 
     def rebuild(self, e: FieldEntry, upto: int, why: str) -> None:
         """Rebuild a field from storage up to log position ``upto`` (the follower's

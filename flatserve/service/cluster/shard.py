@@ -34,11 +34,9 @@ import time
 from collections import OrderedDict
 
 from ...contract import load_field, part_key
-from ...flats import Flats
 from ...tiles import TileHost, hosting
-from ..applier import RESTORE_RETRY_S, entry_of, until_reachable
+from ..applier import RESTORE_RETRY_S, entry_of, read_batch, until_reachable
 from ..backend import LogBackend, SnapshotGoneError, open_backend
-from ..blobs import split_batch
 from ..catalogue import FieldState
 from ..entry import FieldSpec
 from ..replica import IDLE_WAIT_S, READ_CHUNK
@@ -258,9 +256,8 @@ class ShardWorker:
     def _apply(self, en) -> None:
         spec = self.spec
         t0 = time.perf_counter()
-        arrays, values, unit = split_batch(self.storage.batch_arrays(self.field_id, en.seq))
+        flats, values, unit = read_batch(self.storage, self.field_id, en.seq, spec)
         adopt_unit(self.field, unit)
-        flats = Flats.from_arrays(arrays, k=spec.k, d=spec.d)
         t1 = time.perf_counter()
         prepared = self.field.prepare(flats, values, only=self.only)
         t2 = time.perf_counter()

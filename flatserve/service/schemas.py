@@ -483,6 +483,9 @@ class ShardGroupInfo(BaseModel):
                                     "with room hold them).")
     live: int = Field(description="Copies heard from and ready at the last status round (each "
                                   "second, and at each describe); 0 before any has reported.")
+    unplaced: Optional[str] = Field(None, description="With no live copy: why none can be "
+                                    "placed now (no live node has room for a shard) and what "
+                                    "would fix it; null otherwise.")
     position: Optional[int] = Field(None, description="Log position the most advanced copy "
                                                       "has applied.")
     samples: Optional[int] = Field(None, description="Distinct samples of its charts.")

@@ -189,6 +189,25 @@ class RayCluster:
         log.info("cluster mode: shards on the Ray cluster at %s (namespace %r)", self.address,
                  settings.ray_namespace)
 
+    def no_room(self) -> str | None:
+        """Why a shard that runs nowhere cannot be placed now, with what would fix it, or
+        None when the live nodes have room for one (it is starting, or its node is
+        being replaced). A shard reserves ``ray_shard_memory`` bytes of a node's
+        ``memory`` resource (:meth:`RayGroups._actor`); the nodes' free resources are
+        the cluster's (``ray.available_resources``)."""
+        need = {"memory": self.settings.ray_shard_memory, **self.pin}
+        try:
+            free = self.ray.available_resources()
+        except Exception:  # pragma: no cover - the cluster unreachable: said elsewhere
+            return None
+        if all(free.get(r, 0) >= v for r, v in need.items()):
+            return None
+        return (f"no live node has room for it: a shard reserves ray_shard_memory "
+                f"{need['memory']:,} bytes of a node's memory resource and the live nodes "
+                f"have {int(free.get('memory', 0)):,} bytes free in all; add a node, start the "
+                "nodes with a larger --memory, lower FLATSERVE_RAY_SHARD_MEMORY or "
+                "FLATSERVE_RAY_SHARDS, or delete a field")
+
     # -- a field's groups ----------------------------------------------------------------
     def groups(self, field_id: int, ncharts: int, copies: int) -> "RayGroups":
         """The field's groups of actors, made unless they exist (any front may ask)."""
@@ -360,10 +379,13 @@ class RayGroups:
         copy's log position, samples, memory and restore source as it last reported
         them (none yet: None)."""
         out = []
+        idle = [g for g in range(len(self.charts)) if not any(a is True for a in self._alive[g])]
+        why = self.cluster.no_room() if idle else None
         for g, charts in enumerate(self.charts):
             st = self._status[g] or {}
             out.append({"charts": list(charts), "copies": self.copies,
                         "live": sum(a is True for a in self._alive[g]),
+                        "unplaced": why if g in idle else None,
                         "position": st.get("through"),
                         "samples": st.get("nsamples"), "memory": st.get("rss"),
                         "node": st.get("node"), "restored_from": st.get("restored_from"),
@@ -472,10 +494,13 @@ class RayGroups:
         return sorted(rot, key=lambda j: rank[self._alive[g][j]])
 
     def _unavailable(self, g: int, last: dict[int, str]) -> ShardUnavailableError:
-        return ShardUnavailableError(
-            f"field {self.field_id}: shard group {g} (charts {list(self.charts[g])}) has no live "
-            f"copy of {len(self.actors[g])} now ({last.get(g, 'no answer')}); its actors are "
-            "restarted and restore themselves: retry shortly")
+        head = (f"field {self.field_id}: shard group {g} (charts {list(self.charts[g])}) has no "
+                f"live copy of {len(self.actors[g])} now ({last.get(g, 'no answer')})")
+        why = None if any(a is True for a in self._alive[g]) else self.cluster.no_room()
+        if why is not None:
+            return ShardUnavailableError(f"{head}; it cannot be placed: {why}")
+        return ShardUnavailableError(f"{head}; its actors are restarted and restore themselves: "
+                                     "retry shortly")
 
     def kill(self) -> None:
         ray = self.cluster.ray

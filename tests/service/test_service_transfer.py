@@ -4,14 +4,18 @@ rejected rows), survives a restart, a repeated import stores nothing twice and
 completes one that failed half-way, and a file that is not an export is a 4xx."""
 from __future__ import annotations
 
+import contextlib
 import io
 import json
+import math
 
 import numpy as np
 import pytest
 
+from flatserve.contract import expected_copies
 from flatserve.errors import InvalidInputError
 from flatserve.flats import Flats, to_parametric
+from flatserve.service.costs import cells_per_sample
 from flatserve.service.status import FieldExistsError
 
 from tests.harness.fields import ONE_CHART, paper_rays
@@ -441,25 +445,34 @@ def test_an_import_past_the_cost_guard_is_refused_whole(make_app, tmp_path, rng,
     the upload's own estimate: a file whose first batches would pass alone but not the
     whole is a 413 naming the field and leaves no field (it used to store the batches
     before the one refused). A repeated import counts only the batches still missing."""
-    ta, a = started(make_app(data_dir=tmp_path / "a"))
-    # lines in R^3 on one chart: D = 4, 28 cells per sample below 1,000 samples;
-    # the file's 1,050 rows (400, 300, 200, 150) are ~29,400 cells, its first 2 ~19,600
-    tb, b = started(make_app(data_dir=tmp_path / "b", max_simplices=22_400,
-                             min_field_samples=0))
-    tc, c = started(make_app(data_dir=tmp_path / "c", max_simplices=30_000,
-                             min_field_samples=0))
-    try:
+    with contextlib.ExitStack() as stack:
+        def server(name, **settings):
+            tc, c = started(make_app(data_dir=tmp_path / name, **settings))
+            stack.callback(tc.__exit__, None, None, None)
+            return tc, c
+
+        ta, a = server("a")
         a.create_field("f", channels=2, basis=ONE_CHART)
         _fill(a, "f", rng)
         data = a.export_field("f")
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            rows = [bt["rows"] for bt in json.loads(bytes(z["manifest"]))["batches"]]
+        # the guard's estimate for a new field: every row of the file, each stored in
+        # the charts holding it, times the cells per sample of the field's dimension
+        field = ta.app.state.rooms.catalogue.get("f").field
+        per_row = cells_per_sample(field.ndim) * expected_copies(field)
+        first_two, whole = sum(rows[:2]) * per_row, sum(rows) * per_row
+        # b: the first two batches would pass alone, the whole file not; c: the whole passes
+        tb, b = server("b", max_simplices=int((first_two + whole) / 2), min_field_samples=0)
+        tc, c = server("c", max_simplices=math.ceil(whole), min_field_samples=0)
         r = _post(tb, "x", data)
         assert r.status_code == 413, r.text
         assert b.list_fields() == [], "a refused import left a field"
         detail = r.json()["detail"]
         assert detail.startswith("field 'x': ") and "after this import" in detail, detail
-        assert "1050 new" in detail and "FLATSERVE_MAX_SIMPLICES" in detail, detail
-        # under 30,000 the whole file passes (an import half stored, then repeated:
-        # 640 samples held + the 350 rows missing, not the 1,050 of the file)
+        assert f"{sum(rows)} new" in detail and "FLATSERVE_MAX_SIMPLICES" in detail, detail
+        # the whole file passes c (an import half stored, then repeated: the samples
+        # held + the rows missing, fewer than the file's rows)
         uploads, calls = tc.app.state.rooms.uploads, []
         real = uploads.upload
 
@@ -473,9 +486,6 @@ def test_an_import_past_the_cost_guard_is_refused_whole(make_app, tmp_path, rng,
         with pytest.raises(OSError):
             c.import_field("x", data)
         monkeypatch.setattr(uploads, "upload", real)
-        assert [x["rows"] for x in c.batches("x")] == [400, 300]
+        assert [x["rows"] for x in c.batches("x")] == rows[:2]
         rep = c.import_field("x", data)
         assert rep["replayed_batches"] == 2 and rep["nsamples"] == a.describe("f")["nsamples"]
-    finally:
-        for t in (tc, tb, ta):
-            t.__exit__(None, None, None)

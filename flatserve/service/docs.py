@@ -31,9 +31,35 @@ def hoist_defs(doc: dict) -> dict:
     pydantic model's ``model_json_schema()`` given to a route's
     ``openapi_extra``) to ``components/schemas`` and point their ``#/$defs/``
     references there: resolved against the document's root, as OpenAPI does, such
-    a reference names nothing. A component of the same name already there is
-    kept (the same model). ``doc`` is changed in place and returned."""
+    a reference names nothing. A definition whose name is taken already (by a
+    component, or by another embedded schema's definition) must be the same schema
+    (once its references point at the components): it is then kept once.
+
+    Parameters
+    ----------
+    doc : dict
+        The OpenAPI document; changed in place.
+
+    Returns
+    -------
+    dict
+        ``doc``.
+
+    Raises
+    ------
+    ValueError
+        Two different schemas under one name (naming it): one of them would be
+        lost and the references to it would describe the other.
+    """
     found: dict[str, dict] = {}
+
+    def keep(name: str, sub: dict, taken: dict[str, dict], where: str) -> None:
+        if name not in taken:
+            taken[name] = sub
+        elif taken[name] != sub:
+            raise ValueError(
+                f"OpenAPI schema {name!r}: an embedded model's $defs entry differs from "
+                f"the {where} of that name (two models under one name)")
 
     def walk(node) -> None:
         if isinstance(node, dict):
@@ -45,7 +71,7 @@ def hoist_defs(doc: dict) -> dict:
                 walk(value)
             for name, sub in (defs or {}).items():
                 walk(sub)
-                found.setdefault(name, sub)
+                keep(name, sub, found, "$defs entry of another embedded model")
         elif isinstance(node, list):
             for value in node:
                 walk(value)
@@ -53,7 +79,7 @@ def hoist_defs(doc: dict) -> dict:
     walk(doc)
     comps = doc.setdefault("components", {}).setdefault("schemas", {})
     for name, sub in found.items():
-        comps.setdefault(name, sub)
+        keep(name, sub, comps, "component")
     return doc
 
 

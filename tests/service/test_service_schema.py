@@ -13,13 +13,14 @@ import pytest
 import schemathesis
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, Phase, settings
+from pydantic import BaseModel
 from schemathesis.checks import not_a_server_error
 from schemathesis.specs.openapi.checks import (content_type_conformance,
                                                response_schema_conformance,
                                                status_code_conformance)
 
 from flatserve.client import Client
-from flatserve.service import Settings, create_app
+from flatserve.service import Settings, create_app, docs
 
 from tests.harness.fields import paper_rays
 
@@ -150,6 +151,59 @@ def test_every_reference_of_the_openapi_document_resolves(served):
             dangling.append((where, ref))
     assert not dangling
     assert not [where for where, node in _walk(doc) if "$defs" in node]
+
+
+def _embedding(*models) -> dict:
+    """An OpenAPI document whose routes embed each model's ``model_json_schema()``
+    (its ``$defs`` with it), as a route's ``openapi_extra`` does."""
+    return {"paths": {f"/{i}": {"post": {"requestBody": {"content": {"application/json": {
+        "schema": m.model_json_schema()}}}}} for i, m in enumerate(models)}}
+
+
+def _two_parts():
+    """Body models ``One`` and ``Two`` of one model ``Part``, and ``Other`` of a
+    different model also named ``Part``."""
+    class Part(BaseModel):
+        a: int
+
+    class One(BaseModel):
+        part: Part
+
+    class Two(BaseModel):
+        part: Part
+
+    class Part(BaseModel):  # noqa: F811 (another model under the same name)
+        b: str
+
+    class Other(BaseModel):
+        part: Part
+
+    return One, Two, Other
+
+
+def test_a_definition_named_as_a_component_is_kept_once_when_it_is_the_same():
+    one, same, _ = _two_parts()
+    part = one.model_json_schema(ref_template=docs.COMPONENTS + "{model}")["$defs"]["Part"]
+    doc = _embedding(one, same)
+    doc["components"] = {"schemas": {"Part": part}}
+    docs.hoist_defs(doc)
+    assert doc["components"]["schemas"] == {"Part": part}
+    for route in doc["paths"].values():
+        schema = route["post"]["requestBody"]["content"]["application/json"]["schema"]
+        assert schema["properties"]["part"]["$ref"] == docs.COMPONENTS + "Part"
+
+
+@pytest.mark.parametrize("clash", ["component", "another embedded model"])
+def test_two_different_schemas_under_one_name_fail_the_schema_build(clash):
+    one, _, other = _two_parts()
+    if clash == "component":
+        doc = _embedding(other)
+        doc["components"] = {"schemas": one.model_json_schema(
+            ref_template=docs.COMPONENTS + "{model}")["$defs"]}
+    else:
+        doc = _embedding(one, other)
+    with pytest.raises(ValueError, match="'Part'"):
+        docs.hoist_defs(doc)
 
 
 # -- constraints the schema cannot state, described where it is read ------------------

@@ -544,7 +544,8 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
     o, v = sphere_rays(rng, 1500, spread=0.5)
     val = line_values(o, v)
     probe = sphere_rays(rng, 300, spread=0.4)
-    paper = AtlasField(Atlas.covering(1, 3, oriented=True, isometric=False), channels=C)
+    paper = AtlasField(Atlas.covering(1, 3, oriented=True, isometric=False, unit=1.0),
+                       channels=C)  # (unit 1: what an earlier version stored)
     paper.add(Flats.from_rays(o, v), val)
     iso = AtlasField(Atlas.covering(1, 3, oriented=True, unit="fit"), channels=C)
     iso.add(Flats.from_rays(o, v), val)
@@ -871,7 +872,7 @@ def test_a_relative_atlas_asked_for_at_create_answers_as_the_librarys(make_app, 
     b = rng.uniform(-1, 1, (1500, 4))
     val = np.sin(3 * b[:, :1]) + A[:, :1, 0]
     qA, qb = haar_frames(300, 4, 1, rng), rng.uniform(-1, 1, (300, 4))
-    lib = AtlasField(Atlas.covering(1, 4, relative=True), channels=1)
+    lib = AtlasField(Atlas.covering(1, 4, relative=True, unit=1.0), channels=1)
     lib.add(Flats.from_parametric(A, b), val)
     want = lib.query(Flats.from_parametric(qA, qb))
     assert want.inside.mean() > 0.3

@@ -205,9 +205,12 @@ class UploadService:
                 f"Idempotency-Key {idem_key!r} was used for a different batch")
         more = {}
         if wait:  # a retry with wait=true answers once its batch is visible
-            self.follower.await_applied(prev.position, f"batch {prev.seq} of {e.name!r}",
-                                        self.settings.apply_wait_timeout)
-            more = self._applied_everywhere(e, prev.position)
+            deadline = self._await_here(e, prev.seq, prev.position)
+            counts = self._applied_everywhere(e, prev.position, deadline)
+            # a complete response (of a wait=true upload) keeps the counts it was answered
+            # with; one acknowledged before its insert (wait=false) has them filled in
+            if not (prev.result is not None and prev.result.get("indexed")):
+                more = counts
         return self._stored_result(e, prev.seq, prev.form, prev.result).model_copy(
             update={"replayed": True, "indexed": prev.seq <= e.indexed_seq,
                     "position": prev.position, **more})
@@ -271,8 +274,7 @@ class UploadService:
     def _await_insert(self, e: FieldEntry, seq: int, pos: int, timings: dict) -> UploadResult:
         """wait=true: wait until the follower has inserted the committed batch here."""
         t2 = time.perf_counter()
-        self.follower.await_applied(pos, f"batch {seq} of {e.name!r}",
-                                    self.settings.apply_wait_timeout)
+        deadline = self._await_here(e, seq, pos)
         res, failed = self.follower.take_result(pos)
         if failed is not None:
             # the batch is committed but its insert failed: the follower rebuilt the field
@@ -289,19 +291,30 @@ class UploadService:
                 f"field {e.name!r}: batch {seq} is stored, but the field is not indexed on "
                 f"this replica now ({e.state}: {e.error}); it is restored from storage, which "
                 "indexes it: retry with the same Idempotency-Key for its response")
-        counts = self._applied_everywhere(e, pos)
+        counts = self._applied_everywhere(e, pos, deadline)
         timings["insert"] = time.perf_counter() - t2
         return upload_result(seq, res, nsamples=res.nsamples, indexed=True, pending=0,
                              position=pos).model_copy(update=counts)
 
-    def _applied_everywhere(self, e: FieldEntry, pos: int) -> dict:
+    def _await_here(self, e: FieldEntry, seq: int, pos: int) -> float:
+        """wait=true: wait until batch ``seq`` (at log ``pos``) is applied here, up to
+        ``apply_wait_timeout`` (NotReadyError, 503, past it); returns the end of that
+        timeout (:func:`time.monotonic`), which the wait for the field's shards
+        (:meth:`_applied_everywhere`) does not pass: one timeout for the request."""
+        deadline = time.monotonic() + self.settings.apply_wait_timeout
+        self.follower.await_applied(pos, f"batch {seq} of {e.name!r}",
+                                    self.settings.apply_wait_timeout)
+        return deadline
+
+    def _applied_everywhere(self, e: FieldEntry, pos: int, deadline: float) -> dict:
         """wait=true: once the batch at ``pos`` is applied where the field's shards live
-        (cluster mode: every shard group asked, up to ``apply_wait_timeout``;
-        ShardUnavailableError, 503, if one is not there), the response's ``nsamples``
-        and ``duplicates`` counted there; {} when this process holds the field (its
-        insert counted them)."""
+        (cluster mode: every shard group asked, until ``deadline`` on
+        :func:`time.monotonic`, the end of the request's ``apply_wait_timeout`` begun
+        by the wait here; ShardUnavailableError, 503, if one is not there by then), the
+        response's ``nsamples`` and ``duplicates`` counted there; {} when this process
+        holds the field (its insert counted them)."""
         counted = getattr(e.field, "applied_counts", None)
-        return {} if counted is None else counted(pos, self.settings.apply_wait_timeout)
+        return {} if counted is None else counted(pos, max(0.0, deadline - time.monotonic()))
 
     def _store_result(self, e: FieldEntry, seq: int, out: UploadResult) -> None:
         """Store the complete response of an indexed batch (wait=true), durably, before

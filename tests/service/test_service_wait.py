@@ -405,3 +405,78 @@ def test_a_field_failed_between_commit_and_insert_is_503_not_404(make_app, rng, 
     finally:
         gate.open()
         tc.__exit__(None, None, None)
+
+
+class _ShardCounts:
+    """Stands in for a cluster field's ``applied_counts`` (the counts its shard groups
+    give once they have applied a batch) on an in-process field: the field's samples
+    now and no duplicates (the test's rays are distinct); records the time each call
+    is given."""
+
+    def __init__(self, field):
+        self.field, self.timeouts = field, []
+
+    def __call__(self, position: int, timeout: float) -> dict:
+        self.timeouts.append(timeout)
+        return {"nsamples": self.field.nsamples, "duplicates": 0}
+
+
+def _counted_by_shards(tc, monkeypatch) -> _ShardCounts:
+    field = tc.app.state.rooms.catalogue.get("f").field
+    counts = _ShardCounts(field)
+    monkeypatch.setattr(field, "applied_counts", counts, raising=False)
+    return counts
+
+
+def test_a_retried_wait_true_upload_keeps_its_response_and_fills_in_a_wait_false_one(
+        make_app, rng, monkeypatch):
+    """A retry with wait=true of a batch answered whole (wait=true) gets that answer
+    again, its counts as they were, though the shards count more samples by now; a
+    retry of one acknowledged before its insert (wait=false) gets the shards' counts."""
+    tc, c = _started(make_app())
+    try:
+        c.create_field("f", channels=C)
+        counts = _counted_by_shards(tc, monkeypatch)
+        whole, early = _rays_with_rejects(rng, 200), _rays_with_rejects(rng, 200)
+        first = c.upload_rays("f", *whole, idempotency_key="whole")
+        acked = c.upload_rays("f", *early, idempotency_key="early", wait=False)
+        assert not acked["indexed"] and acked["duplicates"] is None
+        c.wait_indexed("f")
+        c.upload_rays("f", *_rays_with_rejects(rng, 200))  # the field grows past both
+        assert c.describe("f")["nsamples"] > first["nsamples"]
+        again = c.upload_rays("f", *whole, idempotency_key="whole")
+        assert again["replayed"]
+        assert (again["nsamples"], again["duplicates"]) == (first["nsamples"],
+                                                           first["duplicates"])
+        filled = c.upload_rays("f", *early, idempotency_key="early")
+        assert filled["replayed"] and filled["indexed"]
+        assert {k: filled[k] for k in ("nsamples", "duplicates")} == counts(0, 0.0)
+    finally:
+        tc.__exit__(None, None, None)
+
+
+def test_a_wait_true_upload_waits_for_the_shards_within_what_is_left_of_its_timeout(
+        make_app, rng, monkeypatch):
+    """The shards are given what is left of ``apply_wait_timeout`` after the wait
+    for the insert here, on an upload and on its retry: the 503 comes within the one
+    timeout, not two."""
+    timeout, here = 2.0, 0.4
+    tc, c = _started(make_app(apply_wait_timeout=timeout))
+    try:
+        c.create_field("f", channels=C)
+        counts = _counted_by_shards(tc, monkeypatch)
+        follower = tc.app.state.rooms.follower
+        real = follower.await_applied
+
+        def slow(*args, **kw):
+            threading.Event().wait(here)
+            return real(*args, **kw)
+
+        monkeypatch.setattr(follower, "await_applied", slow)
+        batch = _rays_with_rejects(rng, 200)
+        c.upload_rays("f", *batch, idempotency_key="k")
+        c.upload_rays("f", *batch, idempotency_key="k")
+        assert len(counts.timeouts) == 2
+        assert all(0 <= t <= timeout - here for t in counts.timeouts), counts.timeouts
+    finally:
+        tc.__exit__(None, None, None)

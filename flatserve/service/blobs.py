@@ -66,7 +66,7 @@ def content_hash(form: str, arrays: dict[str, np.ndarray]) -> str:
 #: charted in (:func:`flatserve.atlas_field.choose_unit` of the batch). A replica or
 #: front stores it with every batch it charts while the field has no unit there
 #: yet, so the first stored batch records the unit for every replica, restart
-#: and shard (:func:`split_batch`, :func:`flatserve.service.applier.adopt_unit`);
+#: and shard (:func:`split_batch`, :func:`flatserve.service.units.adopt_unit`);
 #: a later batch's is ignored. It is not part of the batch's content hash (what
 #: the client sent).
 UNIT_ARRAY = "unit"

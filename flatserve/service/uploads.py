@@ -229,7 +229,7 @@ class UploadService:
         # a field whose unit of length comes from the data and that has inserted no batch
         # here yet: this batch is charted in its own unit (choose_unit of its rows), which
         # is stored with it; the batch first in the log sets the field's unit everywhere
-        # (applier.adopt_unit; a batch charted here in another unit is charted again
+        # (units.adopt_unit; a batch charted here in another unit is charted again
         # when applied). The field itself is not changed here.
         record = {}
         target = e.field

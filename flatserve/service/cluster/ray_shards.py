@@ -181,6 +181,9 @@ class RayCluster:
         self._task_error = rx.RayTaskError
         self._remote = ray.remote(ShardActor)
         self._fields: dict[int, RayGroups] = {}
+        #: the cluster's free resources at the last status round (None: not read, or
+        #: the cluster unreachable then): :meth:`no_room`
+        self._free: dict | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._poller = threading.Thread(target=self._poll, name="flatserve-shard-status",
@@ -194,13 +197,12 @@ class RayCluster:
         None when the live nodes have room for one (it is starting, or its node is
         being replaced). A shard reserves ``ray_shard_memory`` bytes of a node's
         ``memory`` resource (:meth:`RayGroups._actor`); the nodes' free resources are
-        the cluster's (``ray.available_resources``)."""
+        the cluster's (``ray.available_resources``) as the status round last read them:
+        no call to the cluster here (a query's 503 may be made on the event loop, and a
+        cluster that went away would hold it); none known (the cluster unreachable): None."""
         need = {"memory": self.settings.ray_shard_memory, **self.pin}
-        try:
-            free = self.ray.available_resources()
-        except Exception:  # pragma: no cover - the cluster unreachable: said elsewhere
-            return None
-        if all(free.get(r, 0) >= v for r, v in need.items()):
+        free = self._free
+        if free is None or all(free.get(r, 0) >= v for r, v in need.items()):
             return None
         return (f"no live node has room for it: a shard reserves ray_shard_memory "
                 f"{need['memory']:,} bytes of a node's memory resource and the live nodes "
@@ -255,10 +257,15 @@ class RayCluster:
                     log.debug("status round failed", exc_info=True)
             try:
                 probe_address(self.address, timeout=2.0)
+                try:
+                    self._free = dict(self.ray.available_resources())
+                except Exception:  # pragma: no cover - lost between the probe and the call
+                    self._free = None
                 if lost:
                     log.warning("the Ray cluster at %s answers again", self.address)
                 lost = False
             except ShardUnavailableError as exc:
+                self._free = None
                 if not lost:
                     log.error("%s: queries answer 503 meanwhile; Ray ends this front after its "
                               "reconnect timeout (RAY_gcs_rpc_server_reconnect_timeout_s, 60 s by "
@@ -316,7 +323,8 @@ class RayGroups:
         self._next = [0] * len(self.charts)
         self.actors = [self._copies(g, placed) for g in range(len(self.charts))]
         #: per group, per copy: True (its last status or call answered, ready), False
-        #: (it did not), None (not heard from yet: unknown, not counted live)
+        #: (its last call failed, or it was not ready), None (not heard from yet, or
+        #: silent in the last status round: unknown, not counted live)
         self._alive: list[list[bool | None]] = [[None] * len(a) for a in self.actors]
 
     def _name(self, g: int, j: int | None = None) -> str:
@@ -406,20 +414,17 @@ class RayGroups:
                 for j, a in enumerate(copies)}
         ready, _ = ray.wait(list(refs.values()), num_returns=len(refs), timeout=timeout)
         ready = set(ready)
-        best: list[dict | None] = [None] * len(self.charts)
         for (g, j), ref in refs.items():
-            st = None
-            if ref in ready:
-                try:
-                    st = self.cluster.get(ref, 0.1)
-                except Exception:
-                    st = None
-            self._alive[g][j] = st is not None and st["state"] == "ready"
-            if st is not None and (best[g] is None or st["through"] > best[g]["through"]):
-                best[g] = st
-        for g, st in enumerate(best):
-            if st is not None:
-                self._status[g] = st
+            if ref not in ready:  # no answer this round: unknown (not live, not failed)
+                self._alive[g][j] = None
+                continue
+            try:
+                st = self.cluster.get(ref, 0.1)
+            except Exception:  # the call failed: not live
+                self._alive[g][j] = False
+                continue
+            self._alive[g][j] = st["state"] == "ready"
+            self._note(g, st)
 
     def applied(self, position: int, timeout: float) -> list[dict]:
         """Per group, the status of a copy once it has applied the log up to

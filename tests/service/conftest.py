@@ -2,8 +2,7 @@
 generator of random numbers. The helpers the tests share are in tests/harness/
 (:mod:`tests.harness.fields`: the kinds of field and the paper's rays;
 :mod:`tests.harness.service`: apps started in-process, uploads under kill -9 and
-their check); the names below are imported from there for the modules that still
-import them from here."""
+their check)."""
 from __future__ import annotations
 
 import numpy as np
@@ -12,10 +11,6 @@ from fastapi.testclient import TestClient
 
 from flatserve.client import Client
 from flatserve.service import Settings, create_app
-from tests.harness.fields import (  # noqa: F401  (re-exported)
-    DEFAULT, KINDS, ONE_CHART, SINGLE, Kind, add_rays, paper_rays, query_rays)
-from tests.harness.service import (  # noqa: F401  (re-exported)
-    assert_data_dir_refused, running, save_bytes, started, upload_until_stopped)
 
 
 @pytest.fixture

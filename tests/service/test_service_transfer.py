@@ -59,6 +59,19 @@ KINDS = {
 }
 
 
+def dies_at_the_third(upload):
+    """``upload`` failing at its third call (the disk gone mid-import), as it was before."""
+    calls = []
+
+    def upload_or_die(*args, **kw):
+        calls.append(1)
+        if len(calls) == 3:
+            raise OSError("the disk went away")
+        return upload(*args, **kw)
+
+    return upload_or_die
+
+
 @pytest.mark.parametrize("kind", sorted(KINDS))
 def test_an_imported_field_answers_bit_for_bit(deployments, rng, kind):
     (ta, a), (tb, b) = deployments
@@ -117,15 +130,8 @@ def test_a_repeated_import_completes_a_failed_one_and_stores_nothing_twice(deplo
     _fill(a, "f", rng)
     data = a.export_field("f")
     uploads = tb.app.state.rooms.uploads
-    real, calls = uploads.upload, []
-
-    def dies_at_the_third(*args, **kw):
-        calls.append(1)
-        if len(calls) == 3:
-            raise OSError("the disk went away")
-        return real(*args, **kw)
-
-    monkeypatch.setattr(uploads, "upload", dies_at_the_third)
+    real = uploads.upload
+    monkeypatch.setattr(uploads, "upload", dies_at_the_third(real))
     with pytest.raises(Exception):
         b.import_field("g", data)
     assert len(b.batches("g")) == 2
@@ -473,16 +479,9 @@ def test_an_import_past_the_cost_guard_is_refused_whole(make_app, tmp_path, rng,
         assert f"{sum(rows)} new" in detail and "FLATSERVE_MAX_SIMPLICES" in detail, detail
         # the whole file passes c (an import half stored, then repeated: the samples
         # held + the rows missing, fewer than the file's rows)
-        uploads, calls = tc.app.state.rooms.uploads, []
+        uploads = tc.app.state.rooms.uploads
         real = uploads.upload
-
-        def dies_at_the_third(*args, **kw):
-            calls.append(1)
-            if len(calls) == 3:
-                raise OSError("the disk went away")
-            return real(*args, **kw)
-
-        monkeypatch.setattr(uploads, "upload", dies_at_the_third)
+        monkeypatch.setattr(uploads, "upload", dies_at_the_third(real))
         with pytest.raises(OSError):
             c.import_field("x", data)
         monkeypatch.setattr(uploads, "upload", real)

@@ -47,6 +47,11 @@ class FieldSpec:
         its one copy otherwise).
     tiles : int or "auto"
         One chart: tiles of its triangulation (:mod:`flatserve.tiles`).
+    rig : dict or None
+        A light field with the depth channel: its capture's cameras
+        (``{"eyes": (m, 3), "center": (3,)}``, :class:`~.schemas.RigSpec`), through
+        which it renders; None: a plain field (not written by :meth:`to_dict`, so a
+        definition without one is stored as before).
     """
 
     k: int
@@ -57,15 +62,19 @@ class FieldSpec:
     atlas: Optional[dict] = None
     copies: int = 1
     tiles: int | str = 1
+    rig: Optional[dict] = None
 
     @classmethod
     def from_dict(cls, obj: dict) -> "FieldSpec":
         return cls(int(obj["k"]), int(obj["d"]), int(obj["channels"]), dict(obj.get("basis", {})),
                    obj.get("roundtrip_tol"), obj.get("atlas"), int(obj.get("copies", 1)),
-                   tile_setting(obj.get("tiles", 1)))
+                   tile_setting(obj.get("tiles", 1)), obj.get("rig"))
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        out = asdict(self)
+        if out["rig"] is None:  # (definitions without one stored as before it existed)
+            del out["rig"]
+        return out
 
     @property
     def oriented(self) -> bool:

@@ -115,7 +115,8 @@ class FieldService:
         charts = _charts(d)
         kind = {k: v for k, v in (("atlas", _atlas_info(d)),
                                   ("charts", charts if verbose else None),
-                                  ("shard_groups", d.get("placement")))
+                                  ("shard_groups", d.get("placement")),
+                                  ("rig", e.spec.rig))
                 if v is not None}  # (one chart: described by ``basis`` alone)
         flats = dict(Q=e.basis.Q.tolist(), r=e.basis.r.tolist()) if verbose else {}
         return FieldInfo(

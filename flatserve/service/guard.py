@@ -44,7 +44,7 @@ WILDCARD_HOSTS = ("0.0.0.0", "::", "")
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 #: headers of the service a browser page may read with CORS on
 EXPOSED_HEADERS = ["Flatserve-Position", "Server-Timing", "Retry-After", "X-Coverage",
-                   "X-Render-Seconds"]
+                   "X-Render-Seconds", "X-Render"]
 
 
 def allowed_hosts(settings: Settings) -> frozenset[str] | None:

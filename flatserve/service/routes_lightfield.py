@@ -16,7 +16,11 @@
   frame's aspect ratio). A bad pose is a 422 naming its member
   (``nerf.transform_matrix``, ``colmap.params``, ...).
   Timing split in ``Server-Timing`` (rays, coordinates, locate, encode) and
-  coverage in ``X-Coverage``. One-chart and atlas fields alike (the demo is an
+  coverage in ``X-Coverage``. A field created with a ``rig`` (a capture with
+  depth, its last channel the depth channel) renders through it
+  (:func:`flatserve.lightfield.depth.render_guided`: the frame has the colour
+  channels only; ``Server-Timing`` rays, guided, encode; ``interpolant`` linear
+  only, else 422); ``X-Render`` says which: ``depth-guided`` or ``field``. One-chart and atlas fields alike (the demo is an
   oriented covering atlas: the camera's rays keep their direction, and the
   view exists from every side); an atlas field charts the rays inside its
   query, so its ``coordinates`` are counted in ``locate``.
@@ -64,6 +68,8 @@ PNG = "image/png"
 PNG_COMPRESS_LEVEL = 1
 #: Largest rendered image side.
 MAX_SIDE = 2048
+#: The header naming what rendered a frame (:func:`render_kind`).
+RENDER_HEADER = "X-Render"
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 #: A number of a pose: finite (a JSON number; NaN and infinities refused).
@@ -316,26 +322,80 @@ class CameraSpec(BaseModel):
         return cam.scaled(w, h)
 
 
+#: ``X-Render`` of a frame rendered through the field's depth channel, and of one
+#: rendered by the field alone.
+RENDER_GUIDED, RENDER_FIELD = "depth-guided", "field"
+
+
+def render_kind(rig: dict | None) -> str:
+    """What renders a field's frames: :data:`RENDER_GUIDED` with a rig, else
+    :data:`RENDER_FIELD` (the ``X-Render`` header)."""
+    return RENDER_FIELD if rig is None else RENDER_GUIDED
+
+
 def render_frame(field, camera, fill: float = 0.0, fmt: str = "png",
-                 interpolant: Interpolant | str = Interpolant.LINEAR
+                 interpolant: Interpolant | str = Interpolant.LINEAR, rig: dict | None = None
                  ) -> tuple[bytes, str, dict, float]:
     """Render and encode one frame.
+
+    Parameters
+    ----------
+    field : a field of the contract
+        Lines in R^3.
+    camera : Camera or PinholeCamera
+    fill : float
+        Of PNG pixels without a valued ray (a ``.npy`` frame has NaN there).
+    fmt : {"png", "npy"}
+    interpolant : {"linear", "gradient"}
+        The field's (:func:`flatserve.lightfield.render.render_field`); with a
+        ``rig`` only ``"linear"``.
+    rig : dict, optional
+        The field's stored ``rig`` (:class:`~.schemas.RigSpec`): the frame is
+        rendered through its last channel, the depth channel
+        (:func:`flatserve.lightfield.depth.render_guided`), and has the other
+        channels, the colours.
 
     Returns
     -------
     body : bytes
     media_type : str
-    timings : dict of str to float (seconds: rays, coordinates, locate, encode)
+    timings : dict of str to float
+        Seconds: ``rays``, ``coordinates``, ``locate``, ``encode``; with a rig
+        ``rays``, ``guided`` (the field's lookups, the depth's refinement, the
+        blend and the pixels' resolve) and ``encode``.
     coverage : float
+
+    Raises
+    ------
+    InvalidInputError
+        Not a field of lines in R^3 (``name``); ``interpolant`` other than
+        linear with a rig.
     """
     from ..lightfield.figure import to_uint8
-    from ..lightfield.render import render_field
 
     if field.k != 1 or field.d != 3:
         raise InvalidInputError(f"render needs a field of lines in R^3 (k=1, d=3), this one has "
                                 f"k={field.k}, d={field.d}", "name")
-    frame = render_field(field, camera, fill=np.nan if fmt == "npy" else fill,
-                         interpolant=interpolant)
+    fill_value = np.nan if fmt == "npy" else fill
+    if rig is None:
+        from ..lightfield.render import render_field
+
+        frame = render_field(field, camera, fill=fill_value, interpolant=interpolant)
+        t = frame.timings
+        timings = {"rays": t["rays"], "coordinates": t["coordinates"],
+                   "locate": t["locate_interpolate"] + t["resolve"]}
+    else:
+        if Interpolant(interpolant) is not Interpolant.LINEAR:
+            raise InvalidInputError(
+                f"interpolant: a field with a rig renders through its depth channel, which "
+                f"blends the capture's nearest cameras' rays looked up linearly; "
+                f"{Interpolant(interpolant).value!r} is for fields without one (leave it "
+                f"out, or query the field's rays with it)", "interpolant")
+        from ..lightfield.depth import DepthRig, render_guided
+
+        frame = render_guided(field, camera, DepthRig.from_dict(rig), fill=fill_value)
+        t = frame.timings
+        timings = {"rays": t["rays"], "guided": t["guided"] + t["resolve"]}
     t0 = time.perf_counter()
     if fmt == "npy":
         body = codec.npy_bytes(frame.image.astype(np.float32))
@@ -349,9 +409,7 @@ def render_frame(field, camera, fill: float = 0.0, fmt: str = "png",
         buf = io.BytesIO()
         Image.fromarray(to_uint8(img)).save(buf, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
         body, media = buf.getvalue(), PNG
-    t = frame.timings
-    timings = {"rays": t["rays"], "coordinates": t["coordinates"],
-               "locate": t["locate_interpolate"] + t["resolve"], "encode": time.perf_counter() - t0}
+    timings["encode"] = time.perf_counter() - t0
     return body, media, timings, frame.coverage
 
 
@@ -363,9 +421,27 @@ viewer = APIRouter(include_in_schema=False)
     "/fields/{name}/render", dependencies=[ReadAccess],
     responses={**COMMON_RESPONSES, **FIELD_RESPONSES,
                200: {"content": {PNG: {}, codec.NPY: {}},
-                     "description": "The frame (PNG, or .npy float32 (H, W, C))."}},
+                     "description": "The frame (PNG, or .npy float32 (H, W, C)). "
+                                    "`X-Render`: `depth-guided` for a field with a `rig` "
+                                    "(C its channels but the last, the depth), `field` "
+                                    "otherwise.",
+                     "headers": {
+                         "X-Render": {"description": "What rendered the frame: "
+                                                     "`depth-guided` or `field`.",
+                                      "schema": {"type": "string",
+                                                 "enum": ["depth-guided", "field"]}},
+                         "X-Coverage": {"description": "The part of the frame's pixels "
+                                                       "whose rays all have a value.",
+                                        "schema": {"type": "string"}}}}},
     response_class=Response, openapi_extra=json_body_doc(CameraSpec),
-    summary="Render a camera's view of a light field (lines in R^3)")
+    summary="Render a camera's view of a light field (lines in R^3)",
+    description="A field created with a `rig` (a capture with depth: its last channel is "
+                "the depth channel) renders through it: each ray's depth interpolated by "
+                "the field and refined among the capture's nearest cameras, its colour "
+                "blended from their rays through the surface point "
+                "(flatserve.lightfield.depth.render_guided); the frame has the colour "
+                "channels only, and `interpolant` must be `linear` (422 otherwise). "
+                "Such a render looks the field up about 20 times per ray.")
 def render(e: ReadyField, camera: json_body(CameraSpec), settings: SettingsDep,
            accept: Annotated[Optional[str], Header()] = None) -> Response:
     t0 = time.perf_counter()
@@ -377,17 +453,19 @@ def render(e: ReadyField, camera: json_body(CameraSpec), settings: SettingsDep,
                                  f"{settings.max_batch_rows}: give a smaller width/height or "
                                  f"supersample")
     fmt = camera.format or ("npy" if accept and codec.NPY in accept else "png")
+    rig = e.spec.rig
     if fmt == "npy":  # float32 (H, W, C): bounded before it is rendered
-        codec.check_answer(cam.height * cam.width, e.spec.channels, "npy",
+        colours = e.spec.channels - (rig is not None)  # (a rig's depth channel is not drawn)
+        codec.check_answer(cam.height * cam.width, colours, "npy",
                            max_json=settings.max_json_answer_bytes,
                            max_binary=settings.max_answer_bytes, bytes_per_number=4)
     body, media, timings, coverage = render_frame(
         e.field, cam, fill=0.0 if camera.fill is None else camera.fill, fmt=fmt,
-        interpolant=camera.interpolant)
+        interpolant=camera.interpolant, rig=rig)
     total = time.perf_counter() - t0
     return Response(body, media_type=media, headers={
         "Server-Timing": server_timing({**timings, "total": total}),
-        "X-Coverage": f"{coverage:.6f}",
+        "X-Coverage": f"{coverage:.6f}", RENDER_HEADER: render_kind(rig),
         "X-Render-Seconds": f"{total:.6f}", "Cache-Control": "no-store"})
 
 

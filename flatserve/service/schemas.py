@@ -304,6 +304,26 @@ _EXAMPLE_RAYS = {"origins": [[0.1, 0.2, -3.0], [-0.2, 0.1, -3.0]],
                  "directions": [[0.0, 0.0, 1.0], [0.05, -0.02, 1.0]]}
 
 
+#: Most cameras of a field's ``rig``.
+MAX_RIG_EYES = 4096
+#: A finite JSON number (NaN and infinities refused).
+_Finite = Annotated[float, Field(allow_inf_nan=False)]
+_Point3 = Annotated[list[_Finite], Field(min_length=3, max_length=3)]
+
+
+class RigSpec(_Strict):
+    """The cameras of a capture whose field holds the depth channel
+    (:class:`flatserve.lightfield.depth.DepthRig`): renders of the field go through
+    it (:func:`flatserve.lightfield.depth.render_guided`)."""
+
+    eyes: Annotated[list[_Point3], Field(min_length=2, max_length=MAX_RIG_EYES)] = Field(
+        description=f"The capture's cameras' centres, (m, 3), 2 to {MAX_RIG_EYES} of them.")
+    center: _Point3 = Field(description="The point the depth channel is measured from (the "
+                                        "rig's centre): a sample's last value is its "
+                                        "surface point's position along its line, from the "
+                                        "line's point nearest this one.")
+
+
 class FieldCreate(_KD):
     model_config = _example({"name": "demo", "channels": 1})
     name: FieldName
@@ -370,6 +390,16 @@ class FieldCreate(_KD):
                     "samples). Only for one chart: with an atlas basis (the default) "
                     "anything but 1, \"auto\" included, is refused (422), since an atlas "
                     "field's charts are its shards and already use the cores.")
+    rig: Optional[RigSpec] = Field(
+        None,
+        description="A light field of a capture with depth (as `flatserve lightfield import` "
+                    "creates on a sparse rig all around an object): the capture's cameras. "
+                    "Only for oriented lines in R^3 (k = 1, d = 3, `oriented: true`) with at "
+                    "least 2 channels, the last being the depth channel "
+                    "(flatserve.lightfield.depth.depth_values); the others are the colours. "
+                    "A render of the field then goes through the depth "
+                    "(flatserve.lightfield.depth.render_guided) and has the colour channels "
+                    "only. Null or left out: a plain field.")
 
 
 class BasisInfo(BaseModel):
@@ -530,6 +560,9 @@ class FieldInfo(FieldSummary):
     charts: Optional[list[ChartInfo]] = Field(
         None, description="Atlas fields with `verbose=true`: per chart its centre, scale and "
                           "samples (absent by default, and for one chart, described by `basis`).")
+    rig: Optional[RigSpec] = Field(
+        None, description="The create request's `rig` (absent for a field without one): its "
+                          "renders go through its last channel, the depth channel.")
 
 
 class UploadResult(BaseModel):

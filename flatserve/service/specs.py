@@ -150,8 +150,37 @@ def field_spec(req, *, max_atlas_samples: int | None = None) -> tuple[FieldSpec,
     """
     basis, basis_spec, atlas = build_chart_basis(req, max_atlas_samples=max_atlas_samples)
     _check_tiles(req.tiles, atlas is not None, "tiles")
+    rig = rig_of(req, oriented_of(req), "rig")
     return FieldSpec(req.k, req.d, req.channels, basis_spec, req.roundtrip_tol, atlas,
-                     req.copies, req.tiles), basis
+                     req.copies, req.tiles, rig), basis
+
+
+def rig_of(req, oriented: bool, where: str) -> dict | None:
+    """A create request's ``rig`` (:class:`~.schemas.RigSpec`, its shapes already held
+    to the schema) as stored, or None: the one check of a field's rig, for a create
+    and for a stored definition alike (:func:`stored_spec`).
+
+    Raises
+    ------
+    InvalidInputError
+        Naming ``where``: a rig on a field that is not of oriented lines in R^3
+        (k = 1, d = 3, ``oriented``), or of fewer than 2 channels (the colours and
+        the depth channel, last).
+    """
+    rig = getattr(req, "rig", None)
+    if rig is None:
+        return None
+    if (req.k, req.d) != (1, 3) or not oriented:
+        kind = f"{'oriented ' if oriented else ''}{req.k}-flats in R^{req.d}"
+        raise InvalidInputError(
+            f"{where}: a rig (the cameras of a capture with depth) is for a light field: "
+            f"oriented lines in R^3 (k = 1, d = 3, \"oriented\": true); this field holds "
+            f"{kind}", where)
+    if req.channels < 2:
+        raise InvalidInputError(
+            f"{where}: a field with a rig holds the colours and, last, the depth channel: "
+            f"at least 2 channels, got {req.channels}", where)
+    return rig.model_dump()
 
 
 def _check_tiles(tiles, atlas: bool, where: str) -> None:
@@ -165,7 +194,7 @@ def _check_tiles(tiles, atlas: bool, where: str) -> None:
 
 #: The members of a stored definition (:meth:`~.entry.FieldSpec.to_dict`) that a create
 #: request gives as they are: held to :class:`~.schemas.FieldCreate`'s constraints.
-_REQUEST_MEMBERS = ("k", "d", "channels", "roundtrip_tol", "copies", "tiles")
+_REQUEST_MEMBERS = ("k", "d", "channels", "roundtrip_tol", "copies", "tiles", "rig")
 
 
 def stored_spec(spec, Q, r, *, where: str = "spec", max_charts: int | None = None,
@@ -221,8 +250,9 @@ def stored_spec(spec, Q, r, *, where: str = "spec", max_charts: int | None = Non
     except ValidationError as exc:
         raise _member_error(exc, where) from None
     with _within(where):
-        oriented_of(req)  # (lines only)
+        oriented = oriented_of(req)  # (lines only)
     _check_tiles(req.tiles, atlas is not None, f"{where}.tiles")
+    rig = rig_of(req, oriented, f"{where}.rig")
     if atlas is not None:
         _check_atlas(atlas, req.k, req.d, where, max_charts)
     names = {"Q": basis_names[0], "r": basis_names[1]}
@@ -238,7 +268,7 @@ def stored_spec(spec, Q, r, *, where: str = "spec", max_charts: int | None = Non
             msg = msg[len(exc.argument) + 1:].lstrip()
         raise InvalidInputError(f"{arg}: {msg}", arg) from None
     return FieldSpec(req.k, req.d, req.channels, dict(basis_spec), req.roundtrip_tol, atlas,
-                     req.copies, req.tiles), basis
+                     req.copies, req.tiles, rig), basis
 
 
 def _member_error(exc: ValidationError, where: str) -> InvalidInputError:

@@ -284,15 +284,16 @@ class Client:
                      basis: dict | None = None, oriented: bool | None = None,
                      roundtrip_tol: float | None = None, unit: float | str | None = None,
                      copies: int | None = None, tiles: int | str | None = None,
-                     exist_ok: bool = False,
+                     rig=None, exist_ok: bool = False,
                      verbose: bool = False) -> dict:
         """Create a field; returns its description (``verbose``: with the basis flats
         and every chart of an atlas, see :meth:`describe`).
 
         ``exist_ok=True``: a field of that name already there is not an error if it
-        has the same ``k``, ``d``, ``channels`` (and ``oriented``, when given): its
-        description is returned (its basis is not compared); one that differs
-        raises :class:`~flatserve.service.status.FieldExistsError` naming what differs.
+        has the same ``k``, ``d``, ``channels`` (and ``oriented`` and ``rig``, when
+        given): its description is returned (its basis is not compared); one that
+        differs raises :class:`~flatserve.service.status.FieldExistsError` naming
+        what differs.
 
         ``basis`` left out: a covering atlas (every orientation accepted), of rays
         when ``oriented`` (k = 1; uploads and queries must then be rays). One chart:
@@ -306,8 +307,15 @@ class Client:
         ``copies``: a server in cluster mode keeps that many copies of each shard,
         on different nodes (default 1). ``tiles``: a one-chart field's triangulation
         in that many tiles, built on the server's cores at once (default 1; ``"auto"``:
-        one per core once the field is large enough)."""
+        one per core once the field is large enough). ``rig``: a light field of a
+        capture with depth (oriented rays in R^3, the last of its ``channels`` the
+        depth channel): the capture's cameras, ``{"eyes": (m, 3), "center": (3,)}``
+        or a :class:`~flatserve.lightfield.depth.DepthRig`; its renders go through
+        the depth (:meth:`import_capture` gives it when the capture wants it)."""
         body: dict[str, Any] = {"name": name, "k": k, "d": d, "channels": channels}
+        if rig is not None:
+            rig = _rig_body(rig)
+            body["rig"] = rig
         if copies is not None:
             body["copies"] = copies
         if tiles is not None:
@@ -334,6 +342,8 @@ class Client:
             if oriented is not None:
                 want["oriented"] = oriented
             differ = {key: (info.get(key), v) for key, v in want.items() if info.get(key) != v}
+            if rig is not None and not _same_rig(info.get("rig"), rig):
+                differ["rig"] = (_rig_text(info.get("rig")), _rig_text(rig))
             if differ:
                 raise _error_type(409)(409, f"field {name!r} exists with " + ", ".join(
                     f"{key}={have!r} (asked {v!r})" for key, (have, v) in differ.items())) from None
@@ -645,7 +655,7 @@ class Client:
                        stride: int | None = None, target_rays: int | None = None,
                        holdout=(), background=0.0, batch_rays: int | None = None,
                        progress: Progress = True, create: bool = True,
-                       **field_options) -> dict:
+                       depth: bool | None = None, **field_options) -> dict:
         """Upload a real capture (posed photographs) as a light field: one ray per pixel.
 
         Reads the capture (:func:`flatserve.lightfield.capture.read_capture`: a NeRF
@@ -656,11 +666,18 @@ class Client:
         (:func:`~flatserve.lightfield.capture.capture_batches`: one image at a
         time, so memory is bounded by a batch, never the whole capture).
 
+        On a sparse rig all around an object
+        (:func:`flatserve.lightfield.depth.wants_depth`, or ``depth=True``) each
+        pixel's depth too, from the capture's own photographs
+        (:func:`flatserve.lightfield.depth.depth_map`), as the field's last
+        channel, and the field gets the ``rig`` its renders go through.
+
         Each batch carries an Idempotency-Key derived from the field's name, the
-        capture's format, its frames' names and poses, ``stride``, the channels
-        and the batch size (``capture-<hash>.<batch>``): the same call repeated
-        after an interruption replays what was stored (the service answers
-        ``replayed``) and stores only the rest; nothing is stored twice.
+        capture's format, its frames' names and poses, ``stride``, the channels,
+        the batch size and the depth's rig (``capture-<hash>.<batch>``,
+        :func:`capture_key`): the same call repeated after an interruption
+        replays what was stored (the service answers ``replayed``) and stores
+        only the rest; nothing is stored twice.
 
         Parameters
         ----------
@@ -690,15 +707,22 @@ class Client:
             called as ``progress(rays_done, rays_total)`` after each batch.
         create : bool
             Create the field (False: it must exist).
+        depth : bool, optional
+            Give the field the depth channel and the capture's ``rig`` (True),
+            not (False), or as :func:`~flatserve.lightfield.capture.field_options`
+            decides (None: on a sparse rig all around, where the depth-guided
+            render wins; not on a forward-facing rig, where the field alone does).
         **field_options
             Keyword arguments of :meth:`create_field` over the capture's own
-            (``channels``, ``basis``, ``unit``, ``oriented`` ...).
+            (``channels``: the colour channels, the depth channel not counted;
+            ``basis``, ``unit``, ``oriented`` ...).
 
         Returns
         -------
         dict
-            ``field``, ``format``, ``frames`` (imported), ``stride``, ``rays``
-            (sent), ``stored`` (accepted by batches stored now), ``rejected`` (rows
+            ``field``, ``format``, ``frames`` (imported), ``stride``, ``depth``
+            (whether the batches carry the depth channel), ``rays`` (sent),
+            ``stored`` (accepted by batches stored now), ``rejected`` (rows
             refused by batches stored now), ``batches``, ``replayed`` (batches
             stored before, by an earlier run), ``nsamples`` (the field's, after the
             last batch) and ``key`` (the keys' stem).
@@ -710,7 +734,8 @@ class Client:
         flatserve.lightfield.capture.CaptureError
             A bad capture, naming the file and the field.
         InvalidInputError
-            ``stride`` and ``target_rays`` both given, or a bad one.
+            ``stride`` and ``target_rays`` both given, or a bad one; ``depth``
+            not a bool or None, or True for a capture of one frame.
         """
         cap = _capture_module()
         if stride is not None and target_rays is not None:
@@ -734,21 +759,31 @@ class Client:
         if target_rays is not None:
             stride = capture.stride_for(int(target_rays))
         stride = int(stride or 1)
-        options = {**cap.field_options(capture), **field_options}
-        channels = int(options.get("channels", capture.channels))
+        # the capture's choices (channels: the colours, plus the depth channel with a
+        # rig), the caller's over them; the colours asked go to field_options itself
+        options = cap.field_options(capture, channels=field_options.get("channels"), depth=depth)
+        channels = int(options["channels"]) - ("rig" in options)  # the colour channels
+        options.update((k, v) for k, v in field_options.items() if k != "channels")
+        rig = options.get("rig")
+        if rig is not None and not isinstance(rig, dict):  # (a DepthRig given)
+            rig = rig.to_dict()
+        options["channels"] = channels + (rig is not None)
         if create:
             self.create_field(name, exist_ok=True, **options)
         if batch_rays is None:  # fixed, not the server's limits: the keys must not change
             batch_rays = cap.BATCH_RAYS  # (a batch too large for a request is split by upload)
+        depth_rig = None if rig is None else _depth_module().DepthRig.from_dict(rig)
         key = capture_key(name, capture, stride=stride, channels=channels,
-                          batch_rays=int(batch_rays), background=background)
+                          batch_rays=int(batch_rays), background=background,
+                          rig=None if depth_rig is None else depth_rig.to_dict())
         total = capture.nrays(stride)
         out = {"field": name, "format": capture.format, "frames": len(capture.frames),
-               "stride": stride, "rays": 0, "stored": 0, "rejected": 0, "batches": 0,
-               "replayed": 0, "nsamples": None, "key": key}
+               "stride": stride, "depth": depth_rig is not None, "rays": 0, "stored": 0,
+               "rejected": 0, "batches": 0, "replayed": 0, "nsamples": None, "key": key}
         with _progress_of(progress, total, name, unit="rays", verb="import") as tick:
             for batch in cap.capture_batches(capture, stride=stride, channels=channels,
-                                             background=background, batch_rays=int(batch_rays)):
+                                             background=background, batch_rays=int(batch_rays),
+                                             depth=depth_rig):
                 rep = self.upload(name, batch.values, origins=batch.origins,
                                   directions=batch.directions,
                                   idempotency_key=f"{key}.{batch.index}")
@@ -786,6 +821,46 @@ def _camera_body(camera) -> dict:
                             f"{type(camera).__name__}", "camera")
 
 
+def _rig_body(rig) -> dict:
+    """A create request's ``rig`` member: a dict (its arrays as lists) or a
+    :class:`~flatserve.lightfield.depth.DepthRig`; anything else is sent as given,
+    for the service to name what is wrong."""
+    if hasattr(rig, "to_dict") and not isinstance(rig, dict):
+        rig = rig.to_dict()
+    if isinstance(rig, dict):
+        return {k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in rig.items()}
+    return rig
+
+
+def _same_rig(have, want) -> bool:
+    """Whether a described field's ``rig`` is the one asked (the same numbers)."""
+    if not isinstance(have, dict) or not isinstance(want, dict):
+        return have == want
+    try:
+        return all(np.array_equal(np.asarray(have[k], np.float64), np.asarray(want[k], np.float64))
+                   for k in ("eyes", "center"))
+    except (KeyError, TypeError, ValueError):
+        return False
+
+
+def _rig_text(rig) -> str:
+    """A rig in a few words (an error's): its cameras and centre."""
+    if rig is None:
+        return "none"
+    try:
+        return (f"{len(rig['eyes'])} eyes, center "
+                f"{np.asarray(rig['center'], np.float64).round(6).tolist()}")
+    except (KeyError, TypeError, ValueError):
+        return repr(rig)[:80]
+
+
+def _depth_module():
+    """:mod:`flatserve.lightfield.depth` (the lightfield extra)."""
+    from .lightfield import depth
+
+    return depth
+
+
 def _capture_module():
     """:mod:`flatserve.lightfield.capture`, imported when a capture is read (Pillow is in
     the lightfield extra, not the client's)."""
@@ -798,20 +873,42 @@ def _capture_module():
 
 
 def capture_key(name: str, capture, *, stride: int, channels: int, batch_rays: int,
-                background=0.0) -> str:
-    """The stem of the Idempotency-Keys of a capture's import (:meth:`Client.import_capture`):
+                background=0.0, rig: dict | None = None) -> str:
+    """The stem of the Idempotency-Keys of a capture's import (:meth:`Client.import_capture`).
+
     ``capture-`` and 24 hex digits of a SHA-256 of the field's name, the capture's
-    format, its frames' names and poses, ``stride``, ``channels``, ``batch_rays``
-    and ``background`` when it is not 0 (it changes RGBA pixels' values);
-    batch ``i`` is sent under ``<stem>.<i>``. Not the images' pixels: a frame
-    whose image changed under the same key is refused by the service (its
-    content differs), never stored twice."""
+    format, its frames' names and poses, ``stride``, ``channels``, ``batch_rays``,
+    ``background`` when it is not 0 (it changes RGBA pixels' values) and ``rig``
+    when the batches carry the depth channel (an import with depth and one
+    without are different batches); batch ``i`` is sent under ``<stem>.<i>``.
+    Not the images' pixels: a frame whose image changed under the same key is
+    refused by the service (its content differs), never stored twice.
+
+    Parameters
+    ----------
+    name : str
+        The field.
+    capture : flatserve.lightfield.capture.Capture
+    stride, channels, batch_rays : int
+        As the import's (``channels``: the colour channels).
+    background : float or (3,) float
+    rig : dict, optional
+        The depth's rig (:meth:`flatserve.lightfield.depth.DepthRig.to_dict`);
+        None: no depth channel (the keys of imports before it existed).
+
+    Returns
+    -------
+    str
+    """
     doc = {"field": name, "format": capture.format, "stride": int(stride),
            "channels": int(channels), "batch_rays": int(batch_rays),
            "frames": [[f.name, f.camera.to_dict()] for f in capture.frames]}
     bg = _capture_module().check_background(background)
     if np.any(bg != 0):
         doc["background"] = bg.tolist()
+    if rig is not None:
+        doc["rig"] = {"eyes": np.asarray(rig["eyes"], np.float64).tolist(),
+                      "center": np.asarray(rig["center"], np.float64).tolist()}
     digest = hashlib.sha256(orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY)).hexdigest()
     return f"capture-{digest[:24]}"
 

@@ -12,12 +12,21 @@ are what the field stores; the held-out view rendered over HTTP is the library's
 :func:`~flatserve.lightfield.render.render_field` of a library field of those rays,
 the same from either format and either pose convention, and closer to the mesh's
 ground truth than the nearest captured photograph.
+
+A sparse rig all around (the capture results' 62-camera sphere at a quarter of its
+size, :func:`~flatserve.lightfield.capture_figure.synthetic_rig`) is imported with the
+depth channel and its rig: the stored values are the library's reading of the capture
+with depth, a held-out camera's render is the library's
+:func:`~flatserve.lightfield.depth.render_guided` of a library field of those rays,
+the same from either format; ``--no-depth`` imports the plain field, and an
+interrupted import with depth resumes without storing anything twice.
 """
 from __future__ import annotations
 
 import io
 import subprocess
 import sys
+from contextlib import redirect_stdout
 
 import httpx
 import numpy as np
@@ -25,16 +34,18 @@ import pytest
 
 from flatserve.atlas_field import AtlasField
 from flatserve.cli import main as cli_main
-from flatserve.client import Client
+from flatserve.client import Client, capture_key
 from flatserve.errors import InvalidInputError
 from flatserve.flats import Flats
 from flatserve.lightfield.camera import PinholeCamera
 from flatserve.lightfield.capture import CaptureError, capture_rays, read_capture, write_colmap, write_nerf
+from flatserve.lightfield.capture_figure import photograph as photograph_of, synthetic_rig
 from flatserve.lightfield.quality import psnr
 from flatserve.lightfield.render import render_field, render_truth
 from flatserve.lightfield.rig import capture_atlas, rig_unit
 from flatserve.lightfield.sampling import blocks_scene
 from flatserve.service import Settings, create_app
+from flatserve.service.status import FieldExistsError
 from tests.harness.browser import serving
 from tests.harness.process import free_port
 
@@ -565,3 +576,200 @@ def test_the_viewer_reads_a_pose_from_its_url(server):
     assert page.status_code == 200 and 'id="pose-note"' in page.text
     js = httpx.get(f"{url}/viewer/assets/viewer.js", timeout=WAIT_S).text
     assert 'get("camera")' in js and "poseBody" in js
+
+
+# -- a sparse rig all around: captures with depth ------------------------------------------------
+#: The rig of the capture results' 360-degree captures (62 cameras all around the blocks
+#: scene, 17-24 degrees apart) at a quarter of their side: 16 x 16 photographs.
+SPHERE_SIZE = 0.25
+#: The sphere's imports take every second pixel of every second row (3,968 rays).
+SPHERE_STRIDE = 2
+#: The interrupted import's stride and rays per batch (2 frames of 16 rays a batch).
+SPHERE_RESUME_STRIDE, SPHERE_RESUME_BATCH = 4, 40
+
+
+@pytest.fixture(scope="module")
+def sphere(tmp_path_factory):
+    """The sphere rig's capture written as NeRF and COLMAP (16-bit PNGs), its held-out
+    cameras (not in the capture), and the capture read back."""
+    cams, held = synthetic_rig("sphere", size=SPHERE_SIZE)
+    scene = blocks_scene()
+    images = [photograph_of(scene, cam) for cam in cams]
+    root = tmp_path_factory.mktemp("sphere")
+    write_nerf(root / "nerf", cams, images, bits=16)
+    write_colmap(root / "colmap", cams, images, bits=16)
+    return {"nerf": root / "nerf", "colmap": root / "colmap", "cameras": cams, "held": held,
+            "scene": scene, "capture": read_capture(root / "nerf")}
+
+
+@pytest.fixture(scope="module")
+def sphere_rays(sphere):
+    """The library's reading of the sphere capture with its depth channel: the field's
+    options (:func:`~flatserve.lightfield.capture.field_options`), its rig and its rays."""
+    from flatserve.lightfield.capture import field_options
+    from flatserve.lightfield.depth import DepthRig
+
+    options = field_options(sphere["capture"])
+    rig = DepthRig.from_dict(options["rig"])
+    return {"options": options, "rig": rig,
+            "rays": capture_rays(sphere["capture"], stride=SPHERE_STRIDE, depth=rig)}
+
+
+@pytest.fixture(scope="module")
+def sphere_imported(server, sphere, client):
+    """The NeRF capture imported by the client into ``sphere-nerf``, the COLMAP capture by
+    the command line (in this process) into ``sphere-colmap``, depth left to the rig."""
+    url, _ = server
+    report = client.import_capture("sphere-nerf", sphere["nerf"], stride=SPHERE_STRIDE,
+                                   progress=False)
+    out = io.StringIO()
+    with redirect_stdout(out):
+        status = cli_main(["lightfield", "import", str(sphere["colmap"]), "--url", url,
+                           "--field", "sphere-colmap", "--stride", str(SPHERE_STRIDE),
+                           "--no-progress"])
+    return {"nerf": report, "cli": (status, out.getvalue())}
+
+
+def render_response(url: str, name: str, body: dict) -> httpx.Response:
+    r = httpx.post(f"{url}/v1/fields/{name}/render", json=body, timeout=WAIT_S)
+    assert r.status_code == 200, r.text
+    return r
+
+
+def test_a_sparse_rig_all_around_is_imported_with_depth(sphere_imported, sphere, sphere_rays,
+                                                        client):
+    """The field gets the capture's rig and one channel more; the stored values are the
+    library's reading of the capture with its depth channel, bit for bit."""
+    cap, options = sphere["capture"], sphere_rays["options"]
+    n = cap.nrays(SPHERE_STRIDE)
+    rep = sphere_imported["nerf"]
+    assert rep["depth"] is True and rep["rays"] == rep["stored"] == rep["nsamples"] == n
+    assert options["channels"] == cap.channels + 1
+    for name in ("sphere-nerf", "sphere-colmap"):
+        info = client.describe(name)
+        assert info["channels"] == options["channels"] and info["oriented"]
+        assert info["rig"] == options["rig"] and info["nsamples"] == n
+    o, d, v = sphere_rays["rays"]
+    got = export_arrays(client, "sphere-nerf")
+    np.testing.assert_array_equal(got["rays_origins"], o)
+    np.testing.assert_array_equal(got["rays_directions"], d)
+    np.testing.assert_array_equal(got["values"], v)
+    status, out = sphere_imported["cli"]
+    assert status == 0 and "(colmap, stride 2), with the depth channel" in out, out
+
+
+def test_the_held_out_view_of_a_rig_field_is_the_depth_guided_render(sphere_imported, server,
+                                                                     sphere, sphere_rays):
+    """The render route on a field with a rig is the library's
+    :func:`~flatserve.lightfield.depth.render_guided` of a library field of the same
+    samples over the importer's atlas (the same numbers), colour channels only."""
+    from flatserve.lightfield.depth import render_guided
+
+    url, _ = server
+    o, d, v = sphere_rays["rays"]
+    ref = AtlasField(capture_atlas(sphere["cameras"]), channels=v.shape[1])
+    ref.add(Flats.from_rays(o, d), v)
+    assert sphere_imported["nerf"]["batches"] == 1
+    for cam in sphere["held"][:2]:
+        r = render_response(url, "sphere-nerf", {"nerf": cam.to_nerf(), "supersample": 1,
+                                                 "format": "npy"})
+        assert r.headers["X-Render"] == "depth-guided" and "guided" in r.headers["Server-Timing"]
+        got = np.load(io.BytesIO(r.content))
+        assert got.shape == (cam.height, cam.width, v.shape[1] - 1)
+        want = render_guided(ref, cam.with_(supersample=1), sphere_rays["rig"], fill=np.nan).image
+        np.testing.assert_array_equal(got, want.astype(np.float32))
+        # and a view of the scene: nearer its true photograph than its mean grey is
+        truth = photograph_of(sphere["scene"], cam)[..., 0]
+        seen = np.isfinite(got[..., 0])
+        assert seen.mean() > 0.5
+        image = np.where(seen, got[..., 0], 0.0)
+        ours = psnr(image, truth, mask=seen)
+        assert ours > psnr(np.full_like(truth, truth[seen].mean()), truth, mask=seen), ours
+    png = render_response(url, "sphere-nerf", {"nerf": sphere["held"][0].to_nerf(),
+                                               "supersample": 1, "format": "png"})
+    from PIL import Image
+
+    img = Image.open(io.BytesIO(png.content))
+    assert img.size == (16, 16) and img.mode == "L" and png.headers["X-Render"] == "depth-guided"
+
+
+def test_a_capture_with_depth_renders_the_same_pixels_from_either_format(sphere_imported, sphere,
+                                                                         client):
+    for cam in sphere["held"]:
+        a = client.render("sphere-nerf", {"nerf": cam.to_nerf(), "supersample": 1})
+        b = client.render("sphere-colmap", {"colmap": cam.to_colmap(), "supersample": 1})
+        assert a.shape == (cam.height, cam.width, 1)
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_rig_field_refuses_the_gradient_interpolant(sphere_imported, server, sphere):
+    url, _ = server
+    r = httpx.post(f"{url}/v1/fields/sphere-nerf/render", timeout=WAIT_S,
+                   json={"nerf": sphere["held"][0].to_nerf(), "interpolant": "gradient"})
+    assert r.status_code == 422, r.text
+    err = r.json()["detail"][0]
+    assert err["loc"] == ["body", "interpolant"] and "depth channel" in err["msg"]
+
+
+def test_no_depth_imports_the_plain_field(server, sphere, client, capsys):
+    """``--no-depth``: the colours alone, no rig, rendered by the field; the keys are not
+    those of the import with depth."""
+    url, _ = server
+    status, out, err = _cli(["lightfield", "import", str(sphere["nerf"]), "--url", url,
+                             "--field", "sphere-plain", "--stride", "4", "--no-depth",
+                             "--no-progress"], capsys)
+    assert status == 0 and "depth channel" not in out, err
+    info = client.describe("sphere-plain")
+    assert info["channels"] == 1 and "rig" not in info
+    r = render_response(url, "sphere-plain", {"nerf": sphere["held"][0].to_nerf(),
+                                              "supersample": 1, "format": "npy"})
+    assert r.headers["X-Render"] == "field"
+    # the same import asked with depth is another field's worth of batches: refused here
+    with pytest.raises(FieldExistsError, match="channels"):
+        client.import_capture("sphere-plain", sphere["nerf"], stride=4, depth=True,
+                              progress=False)
+
+
+def test_the_depth_choice_is_part_of_the_keys(sphere, sphere_rays):
+    cap = sphere["capture"]
+    kw = dict(stride=2, channels=1, batch_rays=1000)
+    plain = capture_key("f", cap, **kw)
+    assert capture_key("f", cap, rig=None, **kw) == plain  # (the keys before depth existed)
+    deep = capture_key("f", cap, rig=sphere_rays["rig"].to_dict(), **kw)
+    assert deep != plain and deep.startswith("capture-")
+    moved = sphere_rays["rig"].to_dict()
+    moved["center"] = np.add(moved["center"], 0.01).tolist()
+    assert capture_key("f", cap, rig=moved, **kw) != deep
+
+
+def test_an_interrupted_import_with_depth_resumes_without_storing_twice(server, sphere, client):
+    cap = sphere["capture"]
+    n = cap.nrays(SPHERE_RESUME_STRIDE)
+    per_frame = (cap.frames[0].camera.width // SPHERE_RESUME_STRIDE) ** 2
+    per_batch = (SPHERE_RESUME_BATCH // per_frame) * per_frame
+    nbatches = -(-n // per_batch)
+    ticks = []
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_two(done, total):
+        ticks.append((done, total))
+        if len(ticks) == 2:
+            raise Stop
+
+    kw = dict(stride=SPHERE_RESUME_STRIDE, batch_rays=SPHERE_RESUME_BATCH)
+    with pytest.raises(Stop):
+        client.import_capture("sphere-resumed", sphere["nerf"], progress=stop_after_two, **kw)
+    assert ticks == [(per_batch, n), (2 * per_batch, n)]
+    info = client.describe("sphere-resumed")
+    assert info["nsamples"] == 2 * per_batch and info["channels"] == 2 and "rig" in info
+    rep = client.import_capture("sphere-resumed", sphere["nerf"], progress=False, **kw)
+    assert rep["depth"] and rep["batches"] == nbatches and rep["replayed"] == 2
+    assert rep["stored"] == n - 2 * per_batch and rep["rays"] == n
+    assert client.describe("sphere-resumed")["nsamples"] == n == rep["nsamples"]
+    stored = client.batches("sphere-resumed")
+    keys = [b["idempotency_key"] for b in stored]
+    assert len(keys) == len(set(keys)) == nbatches
+    assert keys == [f"{rep['key']}.{i}" for i in range(nbatches)]
+    assert sum(b["rows"] for b in stored) == n

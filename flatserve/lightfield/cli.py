@@ -9,6 +9,8 @@ $ flatserve lightfield capture-figure --out figs-captures/  # synthetic captures
 ``import`` uploads a real capture (a NeRF ``transforms.json`` or a COLMAP text
 model beside its images) to a running service (:meth:`flatserve.client.Client.import_capture`);
 run again after an interruption, the same command stores only what is missing.
+On a sparse rig all around an object it also stores each pixel's depth (``--depth``
+to force it, ``--no-depth`` to leave it out), and the field renders through it.
 Its key is ``--api-key`` or ``FLATSERVE_API_KEY`` (the server's variable).
 Exit status 2 on a bad capture or a refused request (one line naming the file
 or the request and the field), 0 once every batch is stored.
@@ -120,6 +122,12 @@ def _import_arguments(sub) -> None:
     imp.add_argument("--holdout", nargs="+", action="extend", default=[], metavar="NAME",
                      help="frames left out (by name), e.g. to compare renders with them "
                           "(repeatable)")
+    imp.add_argument("--depth", action=argparse.BooleanOptionalAction, default=None,
+                     help="give the field the depth channel (each pixel's depth from the "
+                          "capture's own photographs) and render through it, or not "
+                          "(--no-depth); default: when the rig is sparse and all around an "
+                          "object (flatserve.lightfield.depth.wants_depth), not on a "
+                          "forward-facing rig")
     imp.add_argument("--api-key", default=None,
                      help=f"the service's read-write key (default ${API_KEY_ENV})")
     imp.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -157,7 +165,7 @@ def _run_import(args: argparse.Namespace) -> int:
         with Client(args.url, api_key=key) as c:
             rep = c.import_capture(args.field, args.dir, format=args.format, stride=args.stride,
                                    target_rays=args.target_rays, holdout=args.holdout,
-                                   progress=not args.no_progress)
+                                   depth=args.depth, progress=not args.no_progress)
             held = rep["nsamples"]
             if held is None:  # no batch (no rays): the field as it is
                 held = c.describe(args.field)["nsamples"]
@@ -171,9 +179,10 @@ def _run_import(args: argparse.Namespace) -> int:
     except httpx.HTTPError as exc:
         print(f"{command}: {args.url}: {_one_line(exc)}", file=sys.stderr)
         return 2
+    with_depth = ", with the depth channel" if rep.get("depth") else ""
     print(f"{command}: {rep['frames']} frames of {args.dir} ({rep['format']}, stride "
-          f"{rep['stride']}) into field {rep['field']!r} at {args.url}: {rep['rays']:,} rays in "
-          f"{rep['batches']} batches, {rep['stored']:,} stored now, {rep['replayed']} "
+          f"{rep['stride']}){with_depth} into field {rep['field']!r} at {args.url}: "
+          f"{rep['rays']:,} rays in {rep['batches']} batches, {rep['stored']:,} stored now, {rep['replayed']} "
           f"batches stored before, {rep['rejected']:,} refused; the field holds {held:,} samples")
     return 0
 

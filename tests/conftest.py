@@ -176,6 +176,8 @@ SLOW = [
     # light fields: figures, orbits, captures imported over HTTP
     "test_lightfield_capture_figure.py::"
     "test_the_forward_rig_beats_the_two_plane_light_field_on_every_held_out_view",
+    "test_lightfield_depth.py::test_the_sphere_rig_beats_the_two_sphere_light_field_on_every_held_out_view",
+    "test_lightfield_depth.py::test_a_rig_camera_renders_its_own_photograph",
     "test_lightfield_orbit.py::test_ours_beats_the_nearest_rays_baseline_on_every_view",
     "test_lightfield_orbit.py::test_straddling_views_are_no_worse_than_inside_one_chart",
     "test_lightfield_render.py::test_baselines_on_the_same_samples",

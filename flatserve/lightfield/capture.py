@@ -824,9 +824,8 @@ def check_background(background) -> np.ndarray:
     return bg
 
 
-def _frame_rays(frame: CaptureFrame, stride: int, channels: int, capture_channels: int,
-                background: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rays and values of one frame at ``stride``, its image read."""
+def _frame_image(frame: CaptureFrame, capture_channels: int) -> np.ndarray:
+    """A frame's image read and checked against its camera and the capture (H, W, C)."""
     cam = frame.camera
     img = read_image(frame.image)
     H, W, C = img.shape
@@ -834,15 +833,48 @@ def _frame_rays(frame: CaptureFrame, stride: int, channels: int, capture_channel
         raise CaptureError(frame.image, "size", f"the image is {W}x{H}, its camera {cam.width}x{cam.height}")
     if C != capture_channels:
         raise CaptureError(frame.image, "channels", f"{C} channel(s), the capture's images have {capture_channels}")
+    return img
+
+
+class _Images:
+    """A capture's images read on demand, the last few kept (a depth map asks for a
+    frame and its neighbours: never the whole capture in memory)."""
+
+    def __init__(self, capture: Capture, keep: int):
+        self.capture, self.keep = capture, keep
+        self.cache: dict[int, np.ndarray] = {}
+
+    def __call__(self, k: int) -> np.ndarray:
+        if k in self.cache:
+            self.cache[k] = self.cache.pop(k)  # most recently used last
+            return self.cache[k]
+        img = _frame_image(self.capture.frames[k], self.capture.channels)
+        self.cache[k] = img
+        while len(self.cache) > self.keep:
+            self.cache.pop(next(iter(self.cache)))
+        return img
+
+
+def _frame_rays(capture: Capture, k: int, stride: int, channels: int, background: np.ndarray,
+                images: "_Images", rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays and values of frame ``k`` at ``stride`` (the depth channel last with a ``rig``)."""
+    cam = capture.frames[k].camera
+    img = images(k)
+    H, W, C = img.shape
     cols = np.arange(_stride_first(W, stride), W, stride)
     rows = np.arange(_stride_first(H, stride), H, stride)
     o, d = cam.grid_rays(cols + 0.5, rows + 0.5)
-    values = img[rows[:, None], cols[None, :]].reshape(-1, C)
-    return o, d, _convert(values, channels, background)
+    values = _convert(img[rows[:, None], cols[None, :]].reshape(-1, C), channels, background)
+    if rig is None:
+        return o, d, values
+    from .depth import depth_map, depth_values
+
+    t = depth_map(k, capture.cameras, images, center=rig.center)[rows[:, None], cols[None, :]].reshape(-1)
+    return o, d, np.concatenate([values, depth_values(o, d, t, rig.center)[:, None]], axis=1)
 
 
 def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None = None, background=0.0,
-                    batch_rays: int = BATCH_RAYS) -> Iterator[RayBatch]:
+                    batch_rays: int = BATCH_RAYS, depth=None) -> Iterator[RayBatch]:
     """Stream a capture as batches of rays and values, reading one image at a time.
 
     The rays are those of the pixels ``(i, j)`` (column, row) with ``i = j =
@@ -867,12 +899,18 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
         Grey level or RGB colour in [0, 1] behind transparent pixels.
     batch_rays : int
         Most rays in a batch (:data:`BATCH_RAYS`).
+    depth : flatserve.lightfield.depth.DepthRig, optional
+        Append the depth channel: each frame's depth map
+        (:func:`flatserve.lightfield.depth.depth_map`, from the frame and its
+        nearest cameras' images, read as needed and a few kept) as
+        :func:`flatserve.lightfield.depth.depth_values` measured from the rig's
+        centre. :func:`field_options` gives the rig when the capture wants it.
 
     Yields
     ------
     RayBatch
-        ``origins``, ``directions`` (n, 3), ``values`` (n, channels), the
-        frames covered and the batch number.
+        ``origins``, ``directions`` (n, 3), ``values`` (n, channels, plus
+        one with ``depth``), the frames covered and the batch number.
 
     Raises
     ------
@@ -884,6 +922,8 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
     want, bg = _check_options(capture, channels, background)
     if isinstance(batch_rays, bool) or not isinstance(batch_rays, (int, np.integer)) or batch_rays < 1:
         raise InvalidInputError(f"batch_rays: expected a positive integer, got {batch_rays!r}", "batch_rays")
+    rig = _check_depth(capture, depth)
+    images = _Images(capture, keep=1 if rig is None else _depth_cache())
     index = 0
     pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     pending_rays = 0
@@ -901,7 +941,7 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
         if pending and pending_rays + n > batch_rays:
             yield flush(k)
             index += 1
-        rays = _frame_rays(frame, stride, want, capture.channels, bg)
+        rays = _frame_rays(capture, k, stride, want, bg, images, rig)
         if n > batch_rays:
             o, d, v = rays
             del rays
@@ -921,8 +961,26 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
         yield flush(len(capture.frames))
 
 
+def _depth_cache() -> int:
+    from .depth import NEIGHBOURS
+
+    return 2 * NEIGHBOURS + 2
+
+
+def _check_depth(capture: Capture, depth):
+    if depth is None:
+        return None
+    from .depth import DepthRig
+
+    if not isinstance(depth, DepthRig):
+        raise InvalidInputError(f"depth: expected a DepthRig or None, got {type(depth).__name__}", "depth")
+    if len(capture.frames) < 2:
+        raise InvalidInputError("depth: a depth map needs at least 2 frames", "depth")
+    return depth
+
+
 def capture_rays(capture: Capture, *, stride: int = 1, target_rays: int | None = None, channels: int | None = None,
-                 background=0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 background=0.0, depth=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A capture as rays and values in memory (without a server).
 
     Parameters
@@ -933,7 +991,7 @@ def capture_rays(capture: Capture, *, stride: int = 1, target_rays: int | None =
     target_rays : int, optional
         Instead of ``stride``: the smallest stride giving at most this many
         rays (:meth:`Capture.stride_for`).
-    channels, background
+    channels, background, depth
         As :func:`capture_batches`.
 
     Returns
@@ -942,7 +1000,7 @@ def capture_rays(capture: Capture, *, stride: int = 1, target_rays: int | None =
     directions : (n, 3) float64
         Unit.
     values : (n, C) float64
-        In [0, 1].
+        In [0, 1] (the depth channel last with ``depth``).
     """
     if target_rays is not None:
         if not (isinstance(stride, (int, np.integer)) and stride == 1):
@@ -951,31 +1009,52 @@ def capture_rays(capture: Capture, *, stride: int = 1, target_rays: int | None =
     stride = _check_stride(stride)
     want, _ = _check_options(capture, channels, background)
     n = capture.nrays(stride)
-    o, d, v = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, want))
+    o, d, v = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, want + (depth is not None)))
     at = 0
-    for batch in capture_batches(capture, stride=stride, channels=channels, background=background):
+    for batch in capture_batches(capture, stride=stride, channels=channels, background=background,
+                                 depth=depth):
         m = batch.origins.shape[0]
         o[at:at + m], d[at:at + m], v[at:at + m] = batch.origins, batch.directions, batch.values
         at += m
     return o, d, v
 
 
-def field_options(capture: Capture) -> dict:
+def field_options(capture: Capture, channels: int | None = None, depth: bool | None = None) -> dict:
     """Keyword arguments of ``create_field`` for a field that will hold this capture.
 
     The choices that won on captures (``docs/capture-results.md``): an oriented
     atlas with charts where the capture's rays are, through the point its
     cameras look at, in the unit that weighs a pixel's shift as a camera's
-    turn (:func:`flatserve.lightfield.rig.field_spec`).
+    turn (:func:`flatserve.lightfield.rig.field_spec`); on a sparse rig all
+    around (:func:`flatserve.lightfield.depth.wants_depth`) the depth channel
+    too and the ``rig`` it is measured from: the field's renders go through it.
+
+    Parameters
+    ----------
+    capture : Capture
+    channels : {1, 3, 4}, optional
+        The field's colour channels (default the images').
+    depth : bool, optional
+        Give the field the depth channel (True), not (False), or when the rig
+        wants it (None: :func:`flatserve.lightfield.depth.wants_depth`).
 
     Returns
     -------
     dict
-        ``channels``, ``oriented``, ``basis``, ``unit``.
+        ``channels`` (the colour channels, plus one for the depth channel),
+        ``oriented``, ``basis``, ``unit``, and ``rig`` (a
+        :meth:`flatserve.lightfield.depth.DepthRig.to_dict`) when the capture
+        gets depth: pass ``depth=DepthRig.from_dict(options["rig"])`` to
+        :func:`capture_batches`.
     """
     from .rig import field_spec
 
-    return field_spec(capture.cameras, capture.channels)
+    want = capture.channels if channels is None else channels
+    if depth not in (None, True, False):
+        raise InvalidInputError(f"depth: expected true, false or none, got {depth!r}", "depth")
+    if depth and len(capture.frames) < 2:
+        raise InvalidInputError("depth: a depth map needs at least 2 frames", "depth")
+    return field_spec(capture.cameras, want, depth=depth)
 
 
 # ---------------------------------------------------------------- writing

@@ -40,7 +40,7 @@ from ..errors import InvalidInputError
 from .camera import PinholeCamera, fibonacci_sphere
 from .quality import psnr, ssim
 
-__all__ = ["RIGS", "SCENES", "synthetic_rig", "photograph", "capture_field", "compare_rig",
+__all__ = ["RIGS", "SCENES", "synthetic_rig", "photograph", "capture_depth", "capture_field", "compare_rig",
            "capture_figure", "TWO_PLANE_SWEEP", "TWO_SPHERE_SWEEP"]
 
 #: The synthetic rigs: name -> (what it is, its sizes).
@@ -136,6 +136,21 @@ def _rays(scene, cameras):
     return np.concatenate(O), np.concatenate(D), np.concatenate(V)
 
 
+def capture_depth(cameras, photographs, origins, directions, rig) -> np.ndarray:
+    """The depth channel of a synthetic capture's rays (one per pixel, camera by
+    camera), as the importer computes it (:func:`flatserve.lightfield.depth.depth_map`).
+
+    Returns
+    -------
+    (n, 1) float64
+    """
+    from .depth import depth_map, depth_values
+
+    t = np.concatenate([depth_map(i, cameras, lambda j: photographs[j], center=rig.center).reshape(-1)
+                        for i in range(len(cameras))])
+    return depth_values(origins, directions, t, rig.center)[:, None]
+
+
 def capture_field(cameras, origins, directions, values, *, chunk: int = 100_000):
     """A field of a capture's rays over the atlas the importer gives it
     (:func:`flatserve.lightfield.rig.capture_atlas`).
@@ -205,29 +220,43 @@ def compare_rig(rig: str, scene, *, seed: int = 0, size: float = 1.0, progress=N
         ``median_gain_db``, ``worst_gain_db``, and the images (``ours_images``,
         ``baseline_images``, ``truth_images``) for a contact sheet.
     """
+    from .depth import render_guided
     from .render import render_field
+    from .rig import depth_rig
 
     cams, held = synthetic_rig(rig, seed=seed, size=size)
     o, d, v = _rays(scene, cams)
     truths = [photograph(scene, c) for c in held]
     say = progress or (lambda *_: None)
+    depth = depth_rig(cams)  # what the importer chooses for this rig
+    t0 = time.perf_counter()
+    if depth is not None:
+        say(f"{rig}: {len(cams)} cameras: depth maps")
+        photos = [photograph(scene, c) for c in cams]
+        v = np.concatenate([v, capture_depth(cams, photos, o, d, depth)], axis=1)
+        del photos
+    depth_seconds = time.perf_counter() - t0
     say(f"{rig}: {len(cams)} cameras, {len(o):,} rays: building the field")
     field, seconds = capture_field(cams, o, d, v)
-    frames = [render_field(field, c) for c in held]
+    C = truths[0].shape[2]
+    plain = [render_field(field, c) for c in held]  # the field alone (colour channels)
+    plain_psnr = [psnr(f.image[..., :C], t) for f, t in zip(plain, truths)]
+    frames = plain if depth is None else [render_guided(field, c, depth) for c in held]
     say(f"{rig}: the baseline's settings swept")
-    base = _best_baseline(rig, o, d, v, held, truths)
+    base = _best_baseline(rig, o, d, v[:, :C], held, truths)
     views = []
-    for f, b, t in zip(frames, base.images, truths):
-        views.append({"ours": psnr(f.image, t), "baseline": psnr(b, t),
-                      "ours_ssim": ssim(f.image, t), "baseline_ssim": ssim(b, t),
+    for f, b, t, p in zip(frames, base.images, truths, plain_psnr):
+        views.append({"ours": psnr(f.image[..., :C], t), "baseline": psnr(b, t), "field": p,
+                      "ours_ssim": ssim(f.image[..., :C], t), "baseline_ssim": ssim(b, t),
                       "coverage": f.coverage})
     gains = np.array([x["ours"] - x["baseline"] for x in views])
     return {"rig": rig, "description": RIGS[rig], "cameras": len(cams), "rays": int(len(o)),
             "unit": field.atlas.unit, "charts": field.atlas.ncharts,
             "copies": float(field.duplication), "build_seconds": seconds,
+            "render": "field" if depth is None else "depth-guided", "depth_seconds": depth_seconds,
             "baseline": {"name": base.name, "settings": base.settings}, "views": views,
             "median_gain_db": float(np.median(gains)), "worst_gain_db": float(gains.min()),
-            "ours_images": [f.image for f in frames], "baseline_images": base.images,
+            "ours_images": [f.image[..., :C] for f in frames], "baseline_images": base.images,
             "truth_images": truths}
 
 
@@ -267,16 +296,18 @@ def capture_figure(out, *, rigs=tuple(RIGS), scenes=("blocks",), seed: int = 0, 
 
 
 def _markdown(results: list[dict]) -> str:
-    lines = ["| rig | scene | rays | unit | charts | copies | baseline (settings in its favour) | "
-             "ours, PSNR per held-out view (dB) | baseline | ours - baseline | median gain | worst |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| rig | scene | rays | unit | charts | copies | render | baseline (settings in its favour) | "
+             "ours, PSNR per held-out view (dB) | baseline | ours - baseline | median gain | worst | "
+             "the field alone (median) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         b = r["baseline"]
         settings = ", ".join(f"{k} {v}" for k, v in b["settings"].items())
         ours = " ".join(f"{x['ours']:.2f}" for x in r["views"])
         base = " ".join(f"{x['baseline']:.2f}" for x in r["views"])
         gain = " ".join(f"{x['ours'] - x['baseline']:+.2f}" for x in r["views"])
+        plain = float(np.median([x["field"] for x in r["views"]]))
         lines.append(f"| {r['rig']} | {r['scene']} | {r['rays']:,} | {r['unit']:.3g} | {r['charts']} | "
-                     f"{r['copies']:.2f} | {b['name']} ({settings}) | {ours} | {base} | {gain} | "
-                     f"{r['median_gain_db']:+.2f} | {r['worst_gain_db']:+.2f} |")
+                     f"{r['copies']:.2f} | {r['render']} | {b['name']} ({settings}) | {ours} | {base} | {gain} | "
+                     f"{r['median_gain_db']:+.2f} | {r['worst_gain_db']:+.2f} | {plain:.2f} |")
     return "\n".join(lines) + "\n"

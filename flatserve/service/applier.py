@@ -13,7 +13,11 @@ with storage (an insert failed half-way) is rebuilt the same way
 
 Every replica applies the same entries through this code (chart, then insert
 in slices of ``insert_slice_rows``), so replicas at one position hold
-bit-identical fields.
+bit-identical fields. A cluster's shard worker (:mod:`.cluster.shard`) is this
+same applier restricted to one field (``fields``) and to its charts (its
+home's ``only``: :class:`LocalHome`), with no snapshot writer of its own
+(the field's snapshot is its front's, in parts): the same restore, the same
+retries, the same states, the same calls on those charts.
 """
 from __future__ import annotations
 
@@ -21,10 +25,14 @@ import logging
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from typing import Callable, TypeVar
 
+from ..contract import load_field
+from ..errors import SnapshotError
 from ..field import AddResult, PreparedBatch
 from ..flats import Flats
+from ..tiles import TileHost, hosting
 from .backend import FieldRow, LogBackend, LogEntry, SnapshotGoneError
 from .blobs import split_batch
 from .catalogue import FieldCatalogue, FieldState
@@ -32,7 +40,8 @@ from .entry import FieldEntry, FieldSpec, SampledField
 from .settings import Settings
 from .snapshots import SnapshotWriter
 from .specs import stored_spec
-from .status import FieldNotFoundError, StorageError, StorageUnavailableError
+from .status import (FieldNotFoundError, NotReadyError, ShardUnavailableError, StorageError,
+                     StorageUnavailableError)
 from .units import adopt_unit, batch_unit, unit_of
 
 log = logging.getLogger("flatserve.service")
@@ -55,7 +64,7 @@ def until_reachable(attempt: Callable[[], T], stopping: Callable[[], bool],
                     on_retry: Callable[[Exception], object] | None = None) -> T:
     """``attempt()``, tried again while the database is unreachable: the restore's
     retry, one rule for every process that restores from the log (a replica's
-    applier, a shard worker, :mod:`.cluster.shard`).
+    applier, which a shard worker, :mod:`.cluster.shard`, runs too).
 
     Parameters
     ----------
@@ -90,6 +99,13 @@ def decided(prepared) -> None:
     when they are first read (:class:`~flatserve.service.cluster.remote.RemoteField`),
     a local field's at once."""
     _ = prepared.accepted  # (the first read charts them)
+
+
+def prepare_for(fld, flats: Flats, values, only):
+    """``fld.prepare`` of a stored batch, for the charts in ``only`` alone (None: all)."""
+    if only is None:
+        return fld.prepare(flats, values)
+    return fld.prepare(flats, values, only=only)
 
 
 def stored_flats(e: FieldEntry, form: str | None, arrays: dict) -> Flats:
@@ -146,6 +162,69 @@ def failed_entry(row: FieldRow, exc: Exception) -> FieldEntry:
                       error=f"its stored definition cannot be read: {exc}")
 
 
+class LocalHome:
+    """Fields held in this process, built and restored by this applier (the default
+    home, :mod:`.homes`; a shard worker's, with ``only``, :mod:`.cluster.shard`).
+
+    Parameters
+    ----------
+    only : collection of int, optional
+        The charts held here (a shard worker's; a one-chart field's one shard is
+        chart 0): the others stay empty, a batch is charted for these only
+        (``prepare(only=)``) and a snapshot restores these only. Default: every one.
+    tile_host : TileHost, optional
+        Where a tiled field's tiles live (:func:`flatserve.tiles.hosting`); default:
+        this process.
+    """
+
+    #: the fields' shards live elsewhere: nothing to load or replay here
+    remote = False
+
+    def __init__(self, only=None, tile_host: TileHost | None = None) -> None:
+        self.only = None if only is None else frozenset(int(c) for c in only)
+        self.tile_host = tile_host
+
+    def _hosting(self):
+        return nullcontext() if self.tile_host is None else hosting(self.tile_host)
+
+    def field(self, e: FieldEntry, built: SampledField | None = None) -> SampledField:
+        """The field of entry ``e`` (``built``: the one its create request made)."""
+        if built is not None:
+            return built
+        with self._hosting():
+            return e.spec.new_field(e.basis)
+
+    def load(self, path, parts) -> SampledField:
+        """The field of a snapshot file (:func:`flatserve.contract.load_field`; its
+        charts in ``only`` alone).
+
+        Raises
+        ------
+        SnapshotError
+            Damaged, or (``only`` set) an older snapshot without its charts' own
+            samples (a shard restored alone could not count its share).
+        ShardUnavailableError
+            A tile of ``tile_host`` was lost meanwhile (not the snapshot's fault).
+        """
+        try:
+            with self._hosting():
+                fld = load_field(path, parts, only=self.only)
+        except Exception as exc:
+            lost = getattr(self.tile_host, "lost", None)
+            if lost:
+                raise ShardUnavailableError(f"a tile was lost: {lost}") from exc
+            raise
+        if self.only is not None and getattr(fld, "own_samples", ()) is None:
+            raise SnapshotError("an older snapshot without its charts' own samples")
+        return fld
+
+    def drop(self, e: FieldEntry) -> None:
+        """``e`` was deleted (its memory goes with the entry)."""
+
+    def close(self) -> None:
+        pass
+
+
 class LogApplier:
     """Applies log entries and restores fields (the follower's thread; see the module doc).
 
@@ -155,22 +234,38 @@ class LogApplier:
     storage : LogBackend
     catalogue : FieldCatalogue
         Where entries are registered.
-    snapshots : SnapshotWriter
-        Asked for a background snapshot after inserts (``snapshot_every``).
+    snapshots : SnapshotWriter or None
+        Asked for a background snapshot after inserts (``snapshot_every``); None:
+        this process writes no snapshot and cleans none up (a shard worker's).
     metrics : Metrics or None
     home : LocalHome or ClusterHome
         Where the fields' shards live (:mod:`.homes`), chosen by the composition
-        root (:meth:`.rooms.Rooms.open`, :func:`.homes.open_home`).
+        root (:meth:`.rooms.Rooms.open`, :func:`.homes.open_home`); a home with
+        ``only`` charts (a shard worker's) holds those charts alone.
+    fields : collection of int, optional
+        The ids of the fields applied here (a shard worker's one field); the log's
+        entries of any other are passed over. Default: every field.
+    on_batch : callable, optional
+        ``on_batch(field_id, position, result)`` after each batch inserted (by the
+        follower, or replayed by a restore), with its :class:`AddResult`.
     """
 
     def __init__(self, settings: Settings, storage: LogBackend, catalogue: FieldCatalogue,
-                 snapshots: SnapshotWriter, metrics, home) -> None:
+                 snapshots: SnapshotWriter | None, metrics, home, *, fields=None,
+                 on_batch: Callable[[int, int, AddResult], object] | None = None) -> None:
         self.settings = settings
         self.home = home
+        #: the charts held here (None: every one)
+        self.only = home.only
+        self.fields = None if fields is None else frozenset(int(f) for f in fields)
+        self.on_batch = on_batch
         self.storage = storage
         self.catalogue = catalogue
         self.snapshots = snapshots
         self.metrics = metrics
+        #: per field id, what its last restore started from (``"snapshot after batch
+        #: N"`` or ``"the log"``)
+        self.restored_from: dict[int, str] = {}
         #: fields this process built for its own create (field id -> field)
         self._built: dict[int, SampledField] = {}
         self._lock = threading.Lock()
@@ -209,7 +304,12 @@ class LogApplier:
                 if e is not None:
                     e.add_pending(en.position, en.nrows, keep=True)
 
+    def _mine(self, field_id: int) -> bool:
+        return self.fields is None or field_id in self.fields
+
     def apply_create(self, entry: LogEntry) -> None:
+        if not self._mine(entry.field_id):
+            return
         try:
             row = self.storage.field(entry.field_id)
         except FieldNotFoundError:
@@ -233,11 +333,12 @@ class LogApplier:
         with e.index_lock:
             e.deleted = True
         e.drop_pending()
+        self.restored_from.pop(e.id, None)
         self.home.drop(e)
 
     def apply_snapshot(self, entry: LogEntry) -> None:
         e = self.catalogue.by_id(entry.field_id)
-        if e is None:
+        if e is None or self.snapshots is None:
             return
         try:
             row = self.storage.field(entry.field_id)
@@ -281,7 +382,7 @@ class LogApplier:
                 except FieldNotFoundError:
                     return None, None  # deleted meanwhile: its delete entry follows
                 adopt_unit(e.field, batch_unit(e.field, flats, values, unit))
-                prepared = e.field.prepare(flats, values)
+                prepared = prepare_for(e.field, flats, values, self.only)
                 if again:  # the upload that handed it over answers with these decisions
                     decided(prepared)
             try:
@@ -292,6 +393,8 @@ class LogApplier:
                                                   slice_rows=self.settings.insert_slice_rows)
                     e.mark_indexed(entry.seq, entry.position)
                     e.new_samples += res.accepted
+                    if self.on_batch is not None:
+                        self.on_batch(e.id, entry.position, res)
             except Exception as exc:
                 # memory may hold part of the batch: rebuild the field from storage up
                 # to this entry (it holds every committed batch), then go on
@@ -306,7 +409,8 @@ class LogApplier:
         finally:
             if e is not None:
                 e.drop_pending(entry.position)
-        self.snapshots.maybe_snapshot(e)
+        if self.snapshots is not None:
+            self.snapshots.maybe_snapshot(e)
         return res, None
 
     def fail_field(self, field_id: int, why: str) -> None:
@@ -324,14 +428,17 @@ class LogApplier:
         """Register every stored field (``LOADING``) and restore each to the log head
         read with them; that head (None if stopped first). Waits for the database."""
         try:  # the database unreachable: wait for it (never ready otherwise)
-            head, rows = until_reachable(self.storage.state, lambda: self.stopping, time.sleep,
-                                         "restore", errors=(StorageError,))
+            head, rows = until_reachable(self.storage.state, lambda: self.stopping,
+                                         self._stopping.wait, "restore", errors=(StorageError,))
         except StorageError:  # (stopping)
             return None
         self._restore_head = head
-        self.snapshots.clean_orphans()
+        if self.snapshots is not None:
+            self.snapshots.clean_orphans()
         entries = []
         for row in rows:
+            if not self._mine(row.id):
+                continue
             try:
                 e = entry_of(row)
             except Exception as exc:  # (a spec this version cannot read): that field only
@@ -362,10 +469,12 @@ class LogApplier:
                 return None, row
             t0 = time.perf_counter()
             try:
-                fld = self.storage.load_snapshot(row, e.spec.load_field)
+                fld = self.storage.load_snapshot(row, self.home.load)
             except SnapshotGoneError:
                 row = self.storage.field(e.id)  # a newer one replaced it: take that
                 continue
+            except (StorageUnavailableError, NotReadyError):
+                raise  # the database unreachable (retried), a tile lost (failed)
             except Exception as exc:  # corrupt/missing snapshot: rebuild from batches
                 log.warning("field %r: snapshot %s unusable (%s); rebuilding from batches",
                             e.name, self.storage.snapshot_location(row), exc)
@@ -387,7 +496,7 @@ class LogApplier:
             upto = self._restore_head
         try:
             until_reachable(lambda: self._restore_once(e, row, upto, count),
-                            lambda: self.stopping, time.sleep,
+                            lambda: self.stopping, self._stopping.wait,
                             f"field {e.name!r}: restore interrupted")
         except StorageUnavailableError as exc:  # (stopping)
             e.mark_failed(str(exc))
@@ -400,8 +509,9 @@ class LogApplier:
             fld, row = self._load_snapshot(e, row, upto)
             start, start_pos = (row.snapshot_seq, row.snapshot_position) if fld is not None \
                 else (0, 0)
+            restored_from = "the log" if fld is None else f"snapshot after batch {start}"
             if fld is None:
-                fld = e.spec.new_field(e.basis)
+                fld = self.home.field(e)
             todo = self.storage.batches(e.id, after_seq=start, upto_position=upto)
             nb = self.storage.batch_stats(e.id)[0]
             log.info("field %r: replaying %d of %d stored batch(es)", e.name, len(todo), nb)
@@ -410,9 +520,12 @@ class LogApplier:
             for b in todo:
                 flats, values, unit = read_batch(self.storage, e.id, b.seq, e.spec, b.form)
                 adopt_unit(fld, unit)
-                prepared = fld.prepare(flats, values)
-                replayed += int(fld.insert_prepared(  # (a tiled chart: each batch whole, settled)
-                    prepared, slice_rows=self.settings.insert_slice_rows).accepted)
+                prepared = prepare_for(fld, flats, values, self.only)
+                res = fld.insert_prepared(  # (a tiled chart: each batch whole, settled)
+                    prepared, slice_rows=self.settings.insert_slice_rows)
+                replayed += int(res.accepted)
+                if self.on_batch is not None:
+                    self.on_batch(e.id, b.position, res)
                 seq, pos = b.seq, b.position
                 done += 1
                 if time.perf_counter() - tlast > PROGRESS_EVERY_S:
@@ -424,12 +537,14 @@ class LogApplier:
             e.snapshot_file = row.snapshot_file if start else None
             e.snapshot_seq, e.snapshot_position = start, start_pos
             e.new_samples = replayed
+            self.restored_from[e.id] = restored_from
             if count and self.metrics is not None and replayed:  # (a replica that
                 self.metrics.accepted(e.name, replayed)  # started late triangulates them)
             e.mark_ready()
             log.info("field %r: restored, %d samples, %d batches replayed in %.2f s", e.name,
                      fld.nsamples, done, time.perf_counter() - t0)
-            self.snapshots.maybe_snapshot(e)
+            if self.snapshots is not None:
+                self.snapshots.maybe_snapshot(e)
         except StorageUnavailableError:
             raise  # retried by _restore
         except Exception as exc:
@@ -473,7 +588,7 @@ class LogApplier:
                 if self.stopping:
                     e.mark_failed(str(exc))
                     return
-                time.sleep(RESTORE_RETRY_S)
+                self._stopping.wait(RESTORE_RETRY_S)
             except Exception as exc:
                 e.mark_failed(str(exc))
                 return

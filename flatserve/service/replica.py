@@ -20,6 +20,11 @@ request for its own commit (:meth:`Follower.await_applied`). The follower
 wakes at once on this process's own commits, else within ``log_poll_interval``
 (:meth:`.backend.LogBackend.wait_for_change`).
 
+A cluster's shard worker (:mod:`.cluster.shard`) is a follower too, over an
+applier restricted to one field and its charts: the same loop, the same
+retries; it holds the follower at a log position while its snapshot parts are
+stored (:meth:`Follower.held`).
+
 This module knows no SQL: the backend is behind :class:`.backend.LogBackend`.
 """
 from __future__ import annotations
@@ -27,7 +32,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Iterator
 
 from ..field import AddResult, PreparedBatch
 from .applier import LogApplier, Stopped
@@ -69,6 +76,10 @@ class Follower:
         self.backend = backend
         #: every entry up to this position is applied
         self.applied = 0
+        #: no entry after this position is applied (:meth:`held`), and the entry
+        #: being applied now
+        self._hold: int | None = None
+        self._applying: int | None = None
         self._cond = threading.Condition()
         self._handoff: dict[int, Handoff] = {}
         self._results: dict[int, tuple[AddResult | None, str | None]] = {}
@@ -119,6 +130,23 @@ class Follower:
         self.applier.stop()
         self.backend.wake()
         return drained
+
+    @contextmanager
+    def held(self, position: int) -> Iterator[None]:
+        """``with``: no entry after log ``position`` is applied meanwhile (an entry
+        after it being applied as this begins is finished first); one holder at a
+        time (the caller's to ensure)."""
+        with self._cond:
+            self._hold = position
+            while self._applying is not None and self._applying > position and \
+                    not self._stop:
+                self._cond.wait(0.5)
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._hold = None
+                self._cond.notify_all()
 
     def join(self, timeout: float) -> None:
         t = self._thread
@@ -249,8 +277,13 @@ class Follower:
                     continue
                 self.applier.note_pending(entries)
                 for entry in entries:
-                    if self._stop:
-                        return
+                    with self._cond:
+                        while self._hold is not None and entry.position > self._hold and \
+                                not self._stop:
+                            self._cond.wait(0.5)
+                        if self._stop:
+                            return
+                        self._applying = entry.position
                     try:
                         self._apply(entry)
                     except (Stopped, StorageError):
@@ -262,12 +295,15 @@ class Follower:
                         self.applier.fail_field(entry.field_id, f"log entry {entry.position} "
                                                             f"could not be applied: {exc}")
                     with self._cond:
-                        self.applied = entry.position
+                        self.applied, self._applying = entry.position, None
                         self._cond.notify_all()
                 failures = 0
             except Stopped:
                 return
             except Exception as exc:  # the database is unreachable: retry, never skip
+                with self._cond:
+                    self._applying = None
+                    self._cond.notify_all()
                 if self._stop:
                     return
                 failures += 1

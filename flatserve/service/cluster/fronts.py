@@ -16,6 +16,8 @@ class ClusterHome:
     """
 
     remote = True
+    #: every chart of a field is the cluster's (:class:`..applier.LocalHome`'s ``only``)
+    only = None
 
     def __init__(self, settings) -> None:
         self.settings = settings

@@ -1,24 +1,35 @@
-"""One shard group of one field, in a process of its own: restore, follow the log, answer.
+"""One shard group of one field, in a process of its own: the server's log engine on its charts.
 
 A :class:`ShardWorker` holds some charts of one field (``charts``; a one-chart
-field's one shard is chart 0). It needs no front:
+field's one shard is chart 0). It needs no front, and it has no log engine of
+its own: it is the server's :class:`~..replica.Follower` over a
+:class:`~..applier.LogApplier` restricted to its field (``fields``) and to its
+charts (a :class:`~..applier.LocalHome` with ``only=charts`` and the worker's
+tile host), as a Qdrant peer runs the same local shard code as every other.
+So its restore, its retries, its states (:class:`~..catalogue.FieldState`) and
+its constants are the server's:
 
-1. **Restore**: the field's newest snapshot, its own charts' parts only
-   (:func:`flatserve.contract.load_field` with ``only``), else an empty field;
-   the snapshot's log position is where it starts.
-2. **Follow**: it reads the shared log after that position, in order, and for
-   each ``batch`` entry of its field reads the batch, routes and charts the
-   rows of its own charts (``prepare(..., only=charts)``) and inserts them in
-   slices of ``insert_slice_rows``: exactly the calls the one-process field
-   makes on those charts, so a chart here holds the same bits as the same
-   chart of a field that applied the whole log (tested). A ``delete`` of its
-   field ends it.
+1. **Restore** (:meth:`~..applier.LogApplier.restore_all`): the field's newest
+   snapshot, its own charts' parts only (:func:`flatserve.contract.load_field`
+   with ``only``; an older atlas snapshot without its charts' own samples is
+   passed over), else an empty field; then its batches up to the log head
+   read with it, charted for its charts alone (``prepare(..., only=charts)``)
+   and inserted in slices of ``insert_slice_rows``: exactly the calls the
+   one-process field makes on those charts, so a chart here holds the same
+   bits as the same chart of a field that applied the whole log (tested).
+   The database unreachable meanwhile: tried again
+   (:func:`~..applier.until_reachable`), queries wait.
+2. **Follow** (:class:`~..replica.Follower`): the shared log after that head,
+   in order; its field's batches as in the restore, the other fields' entries
+   passed over. An insert that fails rebuilds its charts from storage, as a
+   replica rebuilds a field; a ``delete`` of its field fails it ("the field was
+   deleted").
 3. **Answer**: :meth:`ShardWorker.query` (its charts' answers on the rows a
    front routed to them, once it has applied the log position the front asks
    for), :meth:`ShardWorker.parts` (its charts' snapshot parts at one log
-   position: a front assembles the field's snapshot from every group's), and
-   :meth:`ShardWorker.status` (now, or once it has applied a log position:
-   :meth:`ShardWorker.applied`).
+   position, the follower held there: a front assembles the field's snapshot
+   from every group's), and :meth:`ShardWorker.status` (now, or once it has
+   applied a log position: :meth:`ShardWorker.applied`).
 
 Where a worker lives (a Ray actor, :mod:`.ray_shards`; a thread in tests) is
 not this module's business.
@@ -33,16 +44,13 @@ import threading
 import time
 from collections import OrderedDict
 
-from ...contract import load_field, part_key
-from ...tiles import TileHost, hosting
-from ..applier import RESTORE_RETRY_S, entry_of, read_batch, until_reachable
-from ..backend import LogBackend, SnapshotGoneError, open_backend
-from ..catalogue import FieldState
-from ..entry import FieldSpec
-from ..replica import IDLE_WAIT_S, READ_CHUNK
-from ..status import (FieldNotFoundError, NotReadyError, ShardUnavailableError, StorageError,
-                      StorageUnavailableError)
-from ..units import adopt_unit
+from ...contract import part_key
+from ...tiles import TileHost
+from ..applier import LocalHome, LogApplier, until_reachable
+from ..backend import LogBackend, open_backend
+from ..catalogue import FieldCatalogue, FieldState
+from ..replica import Follower
+from ..status import NotReadyError, ShardUnavailableError, StorageError
 
 log = logging.getLogger("flatserve.service.shard")
 
@@ -82,7 +90,8 @@ class ShardWorker:
         The charts this worker holds.
     storage : LogBackend, optional
         Default: :func:`~flatserve.service.backend.open_backend` of ``settings``, a
-        follower (it never writes the log).
+        follower (it never writes the log), opened by the worker's thread (the
+        database unreachable: tried again).
     tile_host : TileHost, optional
         Where a tiled field's tiles live (:func:`flatserve.tiles.hosting`; in a Ray
         actor: :class:`~.tiles.RayTileHost`, each tile in an actor of its own);
@@ -96,30 +105,20 @@ class ShardWorker:
         self.settings = settings
         self.field_id = int(field_id)
         self.charts = tuple(sorted(int(c) for c in charts))
-        self.only = frozenset(self.charts)
-        self._storage = storage
         self.tile_host = tile_host or TileHost()
-        self.field = None
-        self.spec: FieldSpec | None = None
-        #: every log entry up to this position is applied
-        self.through = 0
-        #: the field's last batch applied: its seq and log position
-        self.seq = 0
-        self.position = 0
-        #: ``LOADING`` (restoring), ``READY`` (following the log, answering) or
-        #: ``FAILED`` (``error`` says why: a defect, or the field was deleted)
-        self.state = FieldState.LOADING
-        #: the field's cells after the last batch applied (counted then: a tiled
-        #: field counts its tiles' cells under its lock, which an insert holds)
-        self.cells = 0
-        self.error: str | None = None
-        self.restored_from: str | None = None
+        #: where its charts live: this process, its tiles with ``tile_host``
+        self.home = LocalHome(only=self.charts, tile_host=self.tile_host)
+        self._storage = storage
+        #: its one field's entry (state, field, last batch applied), as a replica's
+        self.catalogue = FieldCatalogue()
+        #: the server's follower over an applier of its field and charts (made by
+        #: the worker's thread once the log is open)
+        self.follower: Follower | None = None
         #: per log position of a batch applied here (the latest :data:`KEEP_DUPLICATES`),
         #: the rows of its charts' own that coincided with a sample already held
         self._duplicates: OrderedDict[int, int] = OrderedDict()
-        self._cond = threading.Condition()
-        self._hold: int | None = None
-        #: one snapshot's parts at a time: each holds the worker at its own position
+        self._lock = threading.Lock()
+        #: one snapshot's parts at a time: each holds the follower at its own position
         #: and counts the bytes its tiles stored
         self._parts_lock = threading.Lock()
         self._stop = threading.Event()
@@ -127,171 +126,122 @@ class ShardWorker:
         if start:
             self.start()
 
-    @property
-    def storage(self) -> LogBackend:
-        if self._storage is None:
-            self._storage = open_backend(self.settings, follower=True)
-        return self._storage
-
     def start(self) -> None:
         self._thread.start()
 
     def stop(self, timeout: float = 10.0) -> None:
-        """Stop following (between two batches) and close the storage."""
+        """Stop following (between two entries) and close the storage."""
         self._stop.set()
-        with self._cond:
-            self._cond.notify_all()
-        if self._storage is not None:
+        with self._lock:
+            fo = self.follower
+        if fo is not None:
+            fo.stop(0.0)
+        elif self._storage is not None:
             self._storage.wake()
         if self._thread.is_alive():
             self._thread.join(timeout)
+        if fo is not None:
+            fo.join(timeout)
         if self._storage is not None:
             self._storage.close()
 
-    # -- restore and follow ---------------------------------------------------------------
+    @property
+    def storage(self) -> LogBackend:
+        return self._open()
+
+    # -- the engine: the server's ---------------------------------------------------------
+    def _open(self) -> LogBackend:
+        if self._storage is None:
+            self._storage = open_backend(self.settings, follower=True)
+        return self._storage
+
     def _run(self) -> None:
-        what = f"shard {self.charts} of field {self.field_id}"
+        what = f"shard {list(self.charts)} of field {self.field_id}"
         try:  # the database unreachable: tried again (queries wait)
-            until_reachable(self._restore, self._stop.is_set, self._stop.wait,
-                            f"{what}: restore", errors=(StorageError,),
-                            on_retry=lambda exc: self._set_state(FieldState.LOADING, str(exc)))
-        except FieldNotFoundError:
-            self._set_state(FieldState.FAILED, "the field was deleted")
-            return
+            storage = until_reachable(self._open, self._stop.is_set, self._stop.wait,
+                                      f"{what}: opening the log", errors=(StorageError,))
         except StorageError:  # (stopping)
             return
-        except Exception as exc:  # a defect: say so, never answer from a half field
-            log.exception("%s: restore failed", what)
-            self._set_state(FieldState.FAILED, f"restore failed: {exc}")
-            return
-        self._set_state(FieldState.READY, None)
-        while not self._stop.is_set():
-            try:
-                if not self._follow_once():
-                    self.storage.wait_for_change(IDLE_WAIT_S)
-            except FieldNotFoundError:
-                self._set_state(FieldState.FAILED, "the field was deleted")
-                return
-            except StorageError as exc:  # the log unreachable: try again (queries wait)
-                log.warning("%s: following the log: %s", what, exc)
-                self._stop.wait(RESTORE_RETRY_S)
-            except Exception as exc:
-                log.exception("%s: applying the log failed", what)
-                self._set_state(FieldState.FAILED, f"applying the log failed: {exc}")
-                return
-
-    def _set_state(self, state: FieldState, error: str | None) -> None:
-        with self._cond:
-            self.state, self.error = state, error
-            self._cond.notify_all()
-
-    def _restore(self) -> None:
-        t0 = time.perf_counter()
-        for _ in range(5):
-            row = self.storage.field(self.field_id)
-            # checked as a create's (a definition no create makes fails this worker
-            # with a named error, never a crash Ray would restart again and again)
-            e = entry_of(row)
-            spec = e.spec
-            fld = None
-            if row.snapshot_file:
-                try:
-                    with hosting(self.tile_host):
-                        fld = self.storage.load_snapshot(
-                            row, lambda path, parts: load_field(path, parts, only=self.only))
-                except SnapshotGoneError:
-                    continue  # replaced meanwhile: take the new one
-                except StorageError:
-                    raise
-                except Exception as exc:  # damaged: the log has every batch
-                    if getattr(self.tile_host, "lost", None):  # a tile lost, not the snapshot
-                        raise
-                    log.warning("shard %s of field %d: snapshot unusable (%s); replaying the "
-                                "log", self.charts, self.field_id, exc)
-                    fld = None
-                if fld is not None and getattr(fld, "own_samples", ()) is None:
-                    fld = None  # an older snapshot without its charts' own samples
-            break
-        else:
-            raise StorageUnavailableError("the field's snapshot kept being replaced")
-        if fld is None:
-            with hosting(self.tile_host):
-                fld = spec.new_field(e.basis)
-            start, seq = row.position, 0
-            self.restored_from = "the log"
-        else:
-            start, seq = row.snapshot_position, row.snapshot_seq
-            self.restored_from = f"snapshot after batch {seq}"
-        cells = int(fld.nsimplex)
-        with self._cond:
-            self.spec, self.field, self.cells = spec, fld, cells
-            self.through, self.seq, self.position = start, seq, start if seq else 0
-            self._cond.notify_all()
-        log.info("shard %s of field %d: restored from %s in %.2f s", self.charts,
-                 self.field_id, self.restored_from, time.perf_counter() - t0)
-
-    def _follow_once(self) -> bool:
-        """Apply the next entries of the log; False if there were none."""
-        entries = self.storage.read_log(self.through, READ_CHUNK)
-        for en in entries:
+        applier = LogApplier(self.settings, storage, self.catalogue, None, None, self.home,
+                             fields=(self.field_id,), on_batch=self._batch_applied)
+        with self._lock:
             if self._stop.is_set():
-                return True
-            if en.field_id == self.field_id:
-                if en.kind == "batch" and en.seq > self.seq:
-                    self._wait_hold(en.position)
-                    self._apply(en)
-                elif en.kind == "delete":
-                    raise FieldNotFoundError(f"field {self.field_id} deleted")
-            with self._cond:
-                self.through = en.position
-                self._cond.notify_all()
-        return bool(entries)
+                return
+            self.follower = Follower(storage, applier)
+        self.follower.restore_and_follow()
 
-    def _wait_hold(self, position: int) -> None:
-        """A snapshot holds this worker at a position before ``position``: wait."""
-        with self._cond:
-            while self._hold is not None and position > self._hold and not self._stop.is_set():
-                self._cond.wait(0.5)
-
-    def _apply(self, en) -> None:
-        spec = self.spec
-        t0 = time.perf_counter()
-        flats, values, unit = read_batch(self.storage, self.field_id, en.seq, spec)
-        adopt_unit(self.field, unit)
-        t1 = time.perf_counter()
-        prepared = self.field.prepare(flats, values, only=self.only)
-        t2 = time.perf_counter()
-        res = self.field.insert_prepared(prepared, slice_rows=self.settings.insert_slice_rows)
-        cells = int(self.field.nsimplex)
-        with self._cond:
-            self.seq, self.position, self.cells = en.seq, en.position, cells
-            self._duplicates[en.position] = int(res.duplicates)
+    def _batch_applied(self, field_id: int, position: int, res) -> None:
+        with self._lock:
+            self._duplicates[position] = int(res.duplicates)
             while len(self._duplicates) > KEEP_DUPLICATES:
                 self._duplicates.popitem(last=False)
-            self._cond.notify_all()
-        log.debug("shard %s of field %d: batch %d (%d rows) applied: read %.3f s, prepare "
-                  "%.3f s, insert %.3f s", self.charts, self.field_id, en.seq, en.nrows,
-                  t1 - t0, t2 - t1, time.perf_counter() - t2)
+
+    @property
+    def _entry(self):
+        return self.catalogue.by_id(self.field_id)
+
+    def _state(self) -> tuple[FieldState, str | None]:
+        """``LOADING`` (opening the log, restoring, rebuilding), ``READY`` (following
+        the log, answering) or ``FAILED``, and why (a defect, or the field was deleted)."""
+        e = self._entry
+        if e is not None:
+            return e.state, e.error
+        if self.catalogue.ready.is_set():  # restored and following, and no entry
+            return FieldState.FAILED, "the field was deleted"
+        return FieldState.LOADING, None
+
+    @property
+    def field(self):
+        """Its charts' field (None until restored)."""
+        e = self._entry
+        return None if e is None else e.field
+
+    @property
+    def through(self) -> int:
+        """Every log entry up to this position is applied here."""
+        fo = self.follower
+        return 0 if fo is None else fo.applied
+
+    @property
+    def seq(self) -> int:
+        """The field's last batch applied here (and :attr:`position`, its log position)."""
+        e = self._entry
+        return 0 if e is None else e.indexed_seq
+
+    @property
+    def position(self) -> int:
+        e = self._entry
+        return 0 if e is None else e.indexed_position
+
+    @property
+    def restored_from(self) -> str | None:
+        """``"snapshot after batch N"`` or ``"the log"`` (None: not restored yet)."""
+        fo = self.follower
+        return None if fo is None else fo.applier.restored_from.get(self.field_id)
 
     # -- answers --------------------------------------------------------------------------
     def _await(self, position: int, timeout: float, what: str) -> None:
         """Wait until every log entry up to ``position`` is applied here."""
         end = time.monotonic() + timeout
-        with self._cond:
-            while True:
-                if self.state is FieldState.FAILED:
-                    raise ShardUnavailableError(f"shard {list(self.charts)} of field "
-                                                f"{self.field_id}: {self.error}")
-                if self.state is FieldState.READY and self.through >= position:
-                    return
-                left = end - time.monotonic()
-                if left <= 0:
-                    where = "restoring" if self.state is not FieldState.READY else \
-                        f"at log position {self.through}"
-                    raise ShardUnavailableError(
-                        f"shard {list(self.charts)} of field {self.field_id}: {what} needs log "
-                        f"position {position}; the shard is {where} (waited {timeout:g} s)")
-                self._cond.wait(min(left, 0.5))
+        while True:
+            state, error = self._state()
+            fo, through = self.follower, self.through
+            if state is FieldState.FAILED or self._stop.is_set():
+                raise ShardUnavailableError(f"shard {list(self.charts)} of field "
+                                            f"{self.field_id}: {error or 'stopping'}")
+            if state is FieldState.READY and through >= position:
+                return
+            left = end - time.monotonic()
+            if left <= 0:
+                where = "restoring" if state is not FieldState.READY else \
+                    f"at log position {through}"
+                raise ShardUnavailableError(
+                    f"shard {list(self.charts)} of field {self.field_id}: {what} needs log "
+                    f"position {position}; the shard is {where} (waited {timeout:g} s)")
+            if fo is not None and through < position:
+                fo.wait_applied(position, min(left, 0.5))  # (woken once applied)
+            else:  # opening the log, restoring, rebuilding
+                self._stop.wait(min(left, 0.05))
 
     def query(self, work, kw: dict, at_position: int, timeout: float):
         """Its charts' answers on the rows routed to them, once the log up to
@@ -329,7 +279,7 @@ class ShardWorker:
             Not there within ``timeout`` (restoring, or behind), or failed.
         """
         self._await(position, timeout, "an upload")
-        with self._cond:
+        with self._lock:
             dups = self._duplicates.get(position)
         return {**self.status(), "duplicates": dups}
 
@@ -374,14 +324,16 @@ class ShardWorker:
 
     def _parts(self, position: int, known, timeout: float) -> dict:
         """:meth:`parts`, one call at a time."""
-        with self._cond:
+        end = time.monotonic() + timeout
+        if self.follower is None:  # (the log not open yet)
+            self._await(position, timeout, "a snapshot")
+        assert self.follower is not None
+        with self.follower.held(position):
             if self.position > position:
                 raise ShardAheadError(
                     f"shard {list(self.charts)} of field {self.field_id} is at log position "
                     f"{self.position}, past {position}; retry the snapshot")
-            self._hold = position
-        try:
-            self._await(position, timeout, "a snapshot")
+            self._await(position, max(0.0, end - time.monotonic()), "a snapshot")
             fld, known, stored = self.field, frozenset(known), 0
             own = getattr(fld, "own_samples", None)
             parts, whole, tiles = [], None, []
@@ -418,23 +370,24 @@ class ShardWorker:
                     "unit": unit,
                     "own": None if own is None else [own[c] for c in self.charts],
                     "nrejected": fld.nrejected, "stored": stored}
-        finally:
-            with self._cond:
-                self._hold = None
-                self._cond.notify_all()
 
     def status(self) -> dict:
         """What the worker holds and where it is in the log (cheap; never waits)."""
-        fld = self.field
+        e = self._entry
+        fld = None if e is None else e.field
+        state, error = self._state()
         own = getattr(fld, "own_samples", None) if fld is not None else None
         return {
-            "field_id": self.field_id, "charts": list(self.charts), "state": self.state.value,
-            "error": self.error, "through": self.through, "seq": self.seq,
-            "position": self.position,
+            "field_id": self.field_id, "charts": list(self.charts), "state": state.value,
+            "error": error, "through": self.through,
+            "seq": 0 if e is None else e.indexed_seq,
+            "position": 0 if e is None else e.indexed_position,
             "nsamples": (sum(own[c] for c in self.charts) if own is not None
                          else (fld.nsamples if fld is not None else 0)),
             "nstored": int(fld.nstored) if fld is not None else 0,
-            "nsimplex": self.cells,
+            # the cells after the last batch applied (counted then: a tiled field
+            # counts its tiles' cells under its lock, which an insert holds)
+            "nsimplex": 0 if e is None else e.complete_size[1],
             "nrejected": int(fld.nrejected) if fld is not None else 0,
             "chart_samples": [int(fld.shards[c].nsamples) for c in self.charts]
             if fld is not None else [0] * len(self.charts),

@@ -69,6 +69,8 @@ CANDIDATES = 6
 BLEND = 4
 #: Cosine above which a camera's ray through a point is the ray itself (its eye on the ray).
 ON_RAY_COS = 1.0 - 1e-12
+#: Candidate depths closer than this share of the depth are one (tested once).
+SAME_DEPTH = 0.002
 #: Decimals the plane sweep's costs are rounded to before the least is taken.
 COST_DIGITS = 9
 #: Side (pixels) of the median filter over a rendered image's chosen depths.
@@ -272,7 +274,9 @@ def guided_values(query: Callable, origins, directions, rig: DepthRig, *, candid
     camera's). A camera whose eye is on the ray sees it whatever the depth (its
     ray is the ray: a capture's own rays answer their photographs). A ray no
     camera sees keeps the field's own colour. Each ray asks the field
-    ``1 + candidates * (candidates + 2)`` times.
+    ``1 + candidates`` times, and ``candidates`` more for each candidate depth
+    not within :data:`SAME_DEPTH` of one tried (on a smooth surface the
+    cameras agree: few), and for a depth the median filter moved.
 
     Parameters
     ----------
@@ -317,16 +321,19 @@ def guided_values(query: Callable, origins, directions, rig: DepthRig, *, candid
     K = min(candidates, rig.eyes.shape[0])
     tol = float(visibility_tol)
     blocks = [slice(lo, lo + block_rays) for lo in range(0, o.shape[0], block_rays)]
-    chosen = [_choose(query, o[b], d[b], rig, K, tol) for b in blocks]
-    if not chosen:
+    parts = [_choose(query, o[b], d[b], rig, K, tol) for b in blocks]
+    if not parts:
         return np.empty((0, 0)), np.empty(0, dtype=bool)
-    colour0, inside, t = (np.concatenate([c[i] for c in chosen]) for i in range(3))
+    colour0, inside, chosen, nb, seen = (np.concatenate([c[i] for c in parts]) for i in range(5))
+    del parts
+    t = chosen
     if raster is not None and DEPTH_FILTER > 1:
         from scipy.ndimage import median_filter
 
-        t = np.where(inside, median_filter(t.reshape(rows, cols), DEPTH_FILTER, mode="nearest").reshape(-1), t)
-    values = np.concatenate([_blend(query, o[b], d[b], t[b], colour0[b], inside[b], rig, K,
-                                    min(blend, K), tol) for b in blocks])
+        t = np.where(inside, median_filter(chosen.reshape(rows, cols), DEPTH_FILTER,
+                                           mode="nearest").reshape(-1), chosen)
+    values = np.concatenate([_blend(query, o[b], d[b], t[b], chosen[b], nb[b], seen[b], colour0[b],
+                                    inside[b], rig, min(blend, K), tol) for b in blocks])
     return values, inside
 
 
@@ -363,7 +370,8 @@ def _seen(query, o, d, p, nb, rig: DepthRig, tol: float, C: int):
 
 
 def _choose(query, o, d, rig: DepthRig, K: int, tol: float):
-    """Per ray: the field's colour, inside, and the depth the candidates' test chooses."""
+    """Per ray: the field's colour, inside, the depth the candidates' test chooses, the
+    cameras tested (n, K) and their colours at that depth (n, K, C)."""
     n = o.shape[0]
     first, inside = query(o, d)
     first = np.asarray(first, dtype=np.float64)
@@ -374,29 +382,45 @@ def _choose(query, o, d, rig: DepthRig, K: int, tol: float):
     nb = np.argsort(_angles(rig.eyes, p0, d), axis=1)[:, :K]
     cols0, reach = _seen(query, o, d, p0, nb, rig, tol, C)
     T = np.concatenate([t[:, None], np.where(np.isfinite(reach), reach, t[:, None])], axis=1)
-    best_cost, best_t = np.full(n, np.inf), t.copy()
+    best_cost, best_t, best_cols = np.full(n, np.inf), t.copy(), cols0
+    same = SAME_DEPTH * np.maximum(np.abs(T), 1e-300)
     for m in range(T.shape[1]):
-        cols = cols0 if m == 0 else _seen(query, o, d, o + T[:, m, None] * d, nb, rig, tol, C)[0]
+        # a candidate within SAME_DEPTH of one already tried is that one (not asked again)
+        rows = np.arange(n) if m == 0 else np.flatnonzero(
+            (np.abs(T[:, m, None] - T[:, :m]) > same[:, m, None]).all(axis=1) & inside)
+        if rows.size == 0:
+            continue
+        if m == 0:
+            cols = cols0
+        else:
+            cols = _seen(query, o[rows], d[rows], o[rows] + T[rows, m, None] * d[rows], nb[rows], rig, tol, C)[0]
         count = np.isfinite(cols[:, :, 0]).sum(axis=1)
         spread = np.nansum(np.nanstd(np.where(count[:, None, None] >= 2, cols, 0.0), axis=1), axis=1)
         cost = np.where(count >= 2, spread, np.inf if m else 1e300)
         if m == 0:
             cost = cost - 1e-3  # the field's own depth wins a tie
-        better = cost < best_cost
-        best_cost = np.where(better, cost, best_cost)
-        best_t = np.where(better, T[:, m], best_t)
-    return first[:, :-1], inside, best_t
+        better = cost < best_cost[rows]
+        win = rows[better]
+        best_cost[win] = cost[better]
+        best_t[win] = T[win, m]
+        best_cols[win] = cols[better]
+    return first[:, :-1], inside, best_t, nb, best_cols
 
 
-def _blend(query, o, d, t, colour0, inside, rig: DepthRig, K: int, B: int, tol: float):
-    """The colours at depths ``t``: the ``B`` seeing cameras of the ``K`` nearest in angle,
-    the unstructured lumigraph's weights; the field's own colour where none sees."""
+def _blend(query, o, d, t, chosen, nb, chosen_cols, colour0, inside, rig: DepthRig, B: int, tol: float):
+    """The colours at depths ``t``: the ``B`` seeing cameras of ``nb`` nearest in angle, the
+    unstructured lumigraph's weights; the field's own colour where none sees. Rays whose
+    depth is still the ``chosen`` one reuse the colours seen there."""
     n, C = colour0.shape
+    K = nb.shape[1]
     p = o + t[:, None] * d
-    a = _angles(rig.eyes, p, d)
-    nb = np.argsort(a, axis=1)[:, :K]
-    cols, _ = _seen(query, o, d, p, nb, rig, tol, C)
-    a = np.take_along_axis(a, nb, axis=1)
+    cols = chosen_cols.copy()
+    moved = np.flatnonzero(t != chosen)
+    if moved.size:
+        cols[moved] = _seen(query, o[moved], d[moved], p[moved], nb[moved], rig, tol, C)[0]
+    v = p[:, None, :] - rig.eyes[nb]
+    v /= np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-300)
+    a = np.arccos(np.clip(np.einsum("nkj,nj->nk", v, d), -1.0, 1.0))
     a = np.where(np.isfinite(cols[:, :, 0]), a, np.inf)
     order = np.argsort(a, axis=1)
     a = np.take_along_axis(a, order, axis=1)

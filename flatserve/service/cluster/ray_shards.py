@@ -1,4 +1,4 @@
-"""Shard workers as Ray actors: placement, copies, calls with failover, status.
+"""Shard workers as Ray actors, the front's side: placement, copies, calls with failover, status.
 
 Ray's own calls for connecting and for the nodes are :mod:`.ray_env`'s (the
 ``cluster`` extra). :class:`RayCluster` is a front's connection to the
@@ -14,7 +14,8 @@ cluster; :meth:`RayCluster.groups` gives a field's :class:`RayGroups` (a
   (they outlive the front that made them: any front finds them by name) and
   restarted by Ray wherever there is room when their node dies
   (``max_restarts=-1``); a restarted actor restores itself
-  (:class:`~.shard.ShardWorker`);
+  (:class:`~.actor.ShardActor`, holding a :class:`~.shard.ShardWorker`: the one
+  class that runs in the actor's process);
 * each actor reserves ``ray_shard_memory`` bytes of its node's ``memory``
   resource, so a node holds shards up to its budget, and inserts and answers
   on as many threads as its node has CPUs (``shard_threads`` if set); the copies of a group are
@@ -41,8 +42,6 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import logging
-import os
-import pickle
 import threading
 import time
 from pathlib import Path
@@ -50,72 +49,16 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from ..status import NotReadyError, ShardUnavailableError
-from .ray_env import (connect, machine_pin, node_cpus, node_id, nodes_with, one_machine,
-                      probe_address, ray_api, task_cause)
+from .actor import STATUS_EVERY_S, ShardActor
+from .ray_env import (connect, machine_pin, nodes_with, one_machine, probe_address, ray_api,
+                      task_cause)
 from . import wire
-from .shard import ShardWorker
-from .wire import ShardCall
+from .wire import ShardCall, pack, unpack
 
 log = logging.getLogger("flatserve.service.cluster")
 
-#: seconds between two status rounds
-STATUS_EVERY_S = 1.0
 #: concurrent calls an actor takes (queries beside its log follower and snapshots)
 ACTOR_CONCURRENCY = 16
-
-
-def pack(value) -> bytes:
-    """A packed call's arguments, or its result, as one blob
-    (:attr:`.wire.ShardCall.packed`)."""
-    return pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
-
-
-class ShardActor:
-    """A :class:`~.shard.ShardWorker` as a Ray actor (one process)."""
-
-    def __init__(self, settings, field_id: int, charts) -> None:
-        from ...parallel import set_shard_threads
-        from .. import logs
-        from .tiles import RayTileHost, TileParts
-
-        logs.configure(settings.log_level, settings.log_format)
-        set_shard_threads(settings.shard_threads or node_cpus())
-        self.tiles = RayTileHost(settings, TileParts(settings, field_id))
-        self._tiles_at: list[dict] = []
-        self.worker = ShardWorker(settings, field_id, charts, tile_host=self.tiles)
-        threading.Thread(target=self._watch, name="flatserve-tiles-watch", daemon=True).start()
-
-    def _watch(self) -> None:
-        """Where the tiles are, each :data:`STATUS_EVERY_S` (for :meth:`status`, which
-        never waits). A lost tile cannot be rebuilt alone (its halo came from the
-        exchange): this actor then ends, and Ray restarts it to restore from the
-        snapshot and the log."""
-        while self.tiles.lost is None:
-            self._tiles_at = self.tiles.placement()
-            time.sleep(STATUS_EVERY_S)
-        log.error("shard %s of field %d: %s; restarting to restore", self.worker.charts,
-                  self.worker.field_id, self.tiles.lost)
-        os._exit(1)
-
-    def query(self, request: bytes) -> bytes:
-        """:meth:`~.shard.ShardWorker.query`; arguments and answer packed
-        (:attr:`.wire.ShardCall.packed`)."""
-        return pack(self.worker.query(*pickle.loads(request)))
-
-    def parts(self, position, known, timeout):
-        return self.worker.parts(position, known, timeout)
-
-    def applied(self, position: int, timeout: float) -> dict:
-        """:meth:`status` once the worker has applied the log up to ``position``
-        (:meth:`~.shard.ShardWorker.applied`)."""
-        got = self.worker.applied(position, timeout)
-        return {**self.status(), "duplicates": got["duplicates"]}
-
-    def status(self) -> dict:
-        st = self.worker.status()
-        if self.tiles.lost:  # (this actor ends, to be restarted: say why meanwhile)
-            st["error"] = f"restarting: {self.tiles.lost}"
-        return {**st, "node": node_id(), "tiles": self._tiles_at}
 
 
 def deal(ncharts: int, ngroups: int) -> list[tuple[int, ...]]:
@@ -526,7 +469,7 @@ class RayGroups:
 
 class _Submit:
     """A copy's actor as :class:`.wire.ShardCalls` whose methods submit the call (a
-    query packed, :meth:`ShardActor.query`) and return Ray's reference to its result."""
+    query packed, :meth:`.actor.ShardActor.query`) and return Ray's reference to its result."""
 
     def __init__(self, actor) -> None:
         self.actor = actor
@@ -589,7 +532,7 @@ class _Fanout:
     def answered(self, g: int, j: int, result):
         """Copy ``j`` of group ``g`` answered ``result``: its value."""
         self.groups._alive[g][j] = True
-        return pickle.loads(result) if self.calls[g].packed else result
+        return unpack(result) if self.calls[g].packed else result
 
     def failed(self, g: int, j: int, exc: Exception) -> tuple[int, Any]:
         """Copy ``j`` of group ``g`` failed with ``exc``: the call on the next copy

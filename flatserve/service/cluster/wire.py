@@ -7,13 +7,15 @@ status once a log position is applied, its status now. A
 transport (:class:`~.ray_shards.RayGroups`: one live copy of each group, with
 failover) carries a :class:`ShardCall` to a worker's actor and its result
 back. A call is made by the functions of this module (:func:`query`,
-:func:`parts`, :func:`applied`, :func:`status`), never by a method's name.
+:func:`parts`, :func:`applied`, :func:`status`), never by a method's name; a
+packed call's bytes are made and read here alone (:func:`pack`, :func:`unpack`).
 
 The tiles of a chart held in actors of their own are called through
 :class:`TileCalls` (:class:`~.tiles.TileActor` implements it).
 """
 from __future__ import annotations
 
+import pickle
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol
 
@@ -63,6 +65,17 @@ class ShardCall:
     run: Callable[[Any], Any]
     packed: bool = False
     work: tuple = ()
+
+
+def pack(value) -> bytes:
+    """A packed call's arguments, or its result, as one blob (:attr:`ShardCall.packed`:
+    the front packs a query's arguments, :class:`~.actor.ShardActor` its answer)."""
+    return pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def unpack(blob: bytes):
+    """What :func:`pack` packed."""
+    return pickle.loads(blob)
 
 
 def query(work: list, kw: dict, at_position: int, timeout: float) -> ShardCall:

@@ -310,7 +310,7 @@ class Client:
         one per core once the field is large enough). ``rig``: a light field of a
         capture with depth (oriented rays in R^3, the last of its ``channels`` the
         depth channel): the capture's cameras, ``{"eyes": (m, 3), "center": (3,)}``
-        or a :class:`~flatserve.lightfield.depth.DepthRig`; its renders go through
+        or a :class:`~flatserve.lightfield.rig.DepthRig`; its renders go through
         the depth (:meth:`import_capture` gives it when the capture wants it)."""
         body: dict[str, Any] = {"name": name, "k": k, "d": d, "channels": channels}
         if rig is not None:
@@ -667,7 +667,7 @@ class Client:
         time, so memory is bounded by a batch, never the whole capture).
 
         On a sparse rig all around an object
-        (:func:`flatserve.lightfield.depth.wants_depth`, or ``depth=True``) each
+        (:func:`flatserve.lightfield.rig.wants_depth`, or ``depth=True``) each
         pixel's depth too, from the capture's own photographs
         (:func:`flatserve.lightfield.depth.depth_map`), as the field's last
         channel, and the field gets the ``rig`` its renders go through.
@@ -823,7 +823,7 @@ def _camera_body(camera) -> dict:
 
 def _rig_body(rig) -> dict:
     """A create request's ``rig`` member: a dict (its arrays as lists) or a
-    :class:`~flatserve.lightfield.depth.DepthRig`; anything else is sent as given,
+    :class:`~flatserve.lightfield.rig.DepthRig`; anything else is sent as given,
     for the service to name what is wrong."""
     if hasattr(rig, "to_dict") and not isinstance(rig, dict):
         rig = rig.to_dict()
@@ -893,7 +893,7 @@ def capture_key(name: str, capture, *, stride: int, channels: int, batch_rays: i
         As the import's (``channels``: the colour channels).
     background : float or (3,) float
     rig : dict, optional
-        The depth's rig (:meth:`flatserve.lightfield.depth.DepthRig.to_dict`);
+        The depth's rig (:meth:`flatserve.lightfield.rig.DepthRig.to_dict`);
         None: no depth channel (the keys of imports before it existed).
 
     Returns

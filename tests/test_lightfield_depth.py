@@ -15,9 +15,11 @@ from flatserve.lightfield import capture as capture_module
 from flatserve.lightfield.camera import PinholeCamera
 from flatserve.lightfield.capture import capture_batches, field_options, read_capture, write_nerf
 from flatserve.lightfield.capture_figure import photograph, synthetic_rig
-from flatserve.lightfield.depth import (DEPTH_PLANES, DepthRig, depth_map, depth_values, guided_values,
-                                        rig_spacing_deg, sweep_range, wants_depth)
-from flatserve.lightfield.rig import capture_atlas, depth_rig, field_spec
+from flatserve.lightfield.depth import (DEPTH_PLANES, depth_map, depth_values, guided_values, render_guided,
+                                        sweep_range)
+from flatserve.lightfield.render import render_field
+from flatserve.lightfield.rig import (DepthRig, capture_atlas, depth_rig, field_spec, rig_spacing_deg,
+                                      wants_depth)
 from flatserve.lightfield.sampling import blocks_scene
 
 
@@ -109,11 +111,17 @@ def _field(cams, photos, rig, scene):
     return field
 
 
-def test_a_rig_camera_renders_its_own_photograph(scene, sphere):
+@pytest.fixture(scope="module")
+def sphere_field(scene, sphere):
+    cams, _, photos, rig = sphere
+    return _field(cams, photos, rig, scene)
+
+
+def test_a_rig_camera_renders_its_own_photograph(sphere, sphere_field):
     """At a capture's own rays the guided render answers the photograph: the camera itself
     is the one nearest in angle (weight 1 / 0) and sees its own depth."""
     cams, _, photos, rig = sphere
-    field = _field(cams, photos, rig, scene)
+    field = sphere_field
 
     def query(o, d):
         r = field.query(Flats.from_rays(o, d))
@@ -126,6 +134,27 @@ def test_a_rig_camera_renders_its_own_photograph(scene, sphere):
         ok = inside & np.isfinite(values[:, 0])
         assert ok.mean() > 0.99
         np.testing.assert_allclose(values[ok, 0], photos[i].reshape(-1)[ok], atol=1e-5)
+
+
+def test_a_view_from_a_rig_eye_with_rays_the_field_has_no_value_for(sphere, sphere_field):
+    """An eye on a rig camera's, looking half away from the scene: the rays without a value
+    stay without one (NaN, not a depth of 0 at the eye), the others are rendered."""
+    cams, _, photos, rig = sphere
+    cam = cams[5].with_(rotation=cams[5].rotation @ np.array(
+        [[math.cos(0.3), 0, math.sin(0.3)], [0, 1, 0], [-math.sin(0.3), 0, math.cos(0.3)]]))
+    frame = render_guided(sphere_field, cam, rig, fill=np.nan)
+    plain = render_field(sphere_field, cam, fill=np.nan)
+    assert 0 < frame.coverage < 1
+    np.testing.assert_array_equal(np.isnan(frame.image[..., 0]), np.isnan(plain.image[..., 0]))
+    assert np.isfinite(frame.image[frame.covered]).all()
+
+
+def test_a_query_without_the_depth_channel_is_refused(sphere):
+    cams, _, _, rig = sphere
+    o, d = cams[0].rays()
+    with pytest.raises(InvalidInputError) as exc:
+        guided_values(lambda o, d: (np.zeros((len(o), 1)), np.ones(len(o), dtype=bool)), o, d, rig)
+    assert exc.value.argument == "query"
 
 
 def test_the_sphere_rig_beats_the_two_sphere_light_field_on_every_held_out_view(tmp_path):
@@ -152,6 +181,10 @@ def test_capture_batches_append_the_depth_channel(tmp_path, sphere):
     assert options["channels"] == 2
     got = list(capture_batches(cap, stride=2, depth=rig, batch_rays=200))
     plain = list(capture_batches(cap, stride=2, batch_rays=200))
+    split = list(capture_batches(cap, stride=2, depth=rig, batch_rays=40))  # frames cut in two
+    assert len(split) > len(got)
+    np.testing.assert_array_equal(np.concatenate([b.values for b in split]),
+                                  np.concatenate([b.values for b in got]))
     images = [capture_module.read_image(f.image) for f in cap.frames]
     for b, p in zip(got, plain):
         np.testing.assert_array_equal(b.values[:, :1], p.values)
@@ -213,3 +246,32 @@ def test_bad_arguments_name_their_field(sphere):
     with pytest.raises(InvalidInputError) as exc:
         guided_values(query, o, d, rig, visibility_tol=0)
     assert exc.value.argument == "visibility_tol"
+
+
+def test_small_rgba_and_two_camera_captures_take_depth(tmp_path, sphere):
+    """Two cameras (each the other's one neighbour), RGBA images: the depth channel is the
+    fifth; transparent pixels match as what they are stored as."""
+    cams, _, photos, _ = sphere
+    rgba = [np.concatenate([np.repeat(p, 3, axis=2), (p > 0).astype(float)], axis=2) for p in photos[:2]]
+    write_nerf(tmp_path, cams[:2], rgba, angle=False)
+    cap = read_capture(tmp_path)
+    options = field_options(cap, depth=True)
+    assert options["channels"] == 5
+    (batch,) = capture_batches(cap, depth=DepthRig.from_dict(options["rig"]))
+    assert batch.values.shape == (2 * 16 * 16, 5) and np.isfinite(batch.values).all()
+
+
+def test_depth_is_asked_for_only_where_it_can_be(tmp_path, sphere):
+    cams, _, photos, _ = sphere
+    write_nerf(tmp_path / "a", cams[:3], photos[:3], angle=False)
+    cap = read_capture(tmp_path / "a")
+    for bad in (1, 0, "yes"):
+        with pytest.raises(InvalidInputError) as exc:
+            field_options(cap, depth=bad)
+        assert exc.value.argument == "depth"
+    parallel = [PinholeCamera.look_at((x, 0.0, -3.0), (x, 0.0, 0.0), fx=20, fy=20, cx=8, cy=8, width=16,
+                                      height=16) for x in (-1.0, 0.0, 1.0)]
+    assert depth_rig(parallel) is None
+    with pytest.raises(InvalidInputError) as exc:
+        depth_rig(parallel, depth=True)
+    assert exc.value.argument == "depth"

@@ -607,7 +607,7 @@ def sphere_rays(sphere):
     """The library's reading of the sphere capture with its depth channel: the field's
     options (:func:`~flatserve.lightfield.capture.field_options`), its rig and its rays."""
     from flatserve.lightfield.capture import field_options
-    from flatserve.lightfield.depth import DepthRig
+    from flatserve.lightfield.rig import DepthRig
 
     options = field_options(sphere["capture"])
     rig = DepthRig.from_dict(options["rig"])

@@ -59,6 +59,9 @@ __all__ = [
 #: Most rays in one batch of :func:`capture_batches` (about 11 MB of float64
 #: origins, directions and RGB values).
 BATCH_RAYS = 200_000
+#: Small grey views of frames (``depth.mvs_view``, at most ``MVS_SIDE`` pixels a side) a depth
+#: channel's import keeps: a frame's neighbours are asked for again soon after it.
+DEPTH_VIEWS = 64
 #: Capture formats :func:`read_capture` reads.
 FORMATS = ("nerf", "colmap")
 #: Extensions tried, in this order, for a NeRF ``file_path`` without one.
@@ -837,8 +840,7 @@ def _frame_image(frame: CaptureFrame, capture_channels: int) -> np.ndarray:
 
 
 class _Images:
-    """A capture's images read on demand, the last few kept (a depth map asks for a
-    frame and its neighbours: never the whole capture in memory)."""
+    """A capture's images read on demand, the last ``keep`` kept."""
 
     def __init__(self, capture: Capture, keep: int):
         self.capture, self.keep = capture, keep
@@ -855,8 +857,28 @@ class _Images:
         return img
 
 
+class _Recent(dict):
+    """A mapping that keeps its ``keep`` most recently used entries (the depth maps' small
+    grey views of the frames: bounded by their size, not the photographs')."""
+
+    def __init__(self, keep: int):
+        super().__init__()
+        self.keep = keep
+
+    def __getitem__(self, k):
+        v = super().pop(k)
+        super().__setitem__(k, v)
+        return v
+
+    def __setitem__(self, k, v):
+        super().pop(k, None)
+        super().__setitem__(k, v)
+        while len(self) > self.keep:
+            super().pop(next(iter(self)))
+
+
 def _frame_rays(capture: Capture, k: int, stride: int, channels: int, background: np.ndarray,
-                images: "_Images", rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                images: "_Images", rig, views) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays and values of frame ``k`` at ``stride`` (the depth channel last with a ``rig``)."""
     cam = capture.frames[k].camera
     img = images(k)
@@ -869,7 +891,8 @@ def _frame_rays(capture: Capture, k: int, stride: int, channels: int, background
         return o, d, values
     from .depth import depth_map, depth_values
 
-    t = depth_map(k, capture.cameras, images, center=rig.center)[rows[:, None], cols[None, :]].reshape(-1)
+    t = depth_map(k, capture.cameras, images, center=rig.center, views=views)[rows[:, None], cols[None, :]]
+    t = t.reshape(-1)
     return o, d, np.concatenate([values, depth_values(o, d, t, rig.center)[:, None]], axis=1)
 
 
@@ -899,10 +922,11 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
         Grey level or RGB colour in [0, 1] behind transparent pixels.
     batch_rays : int
         Most rays in a batch (:data:`BATCH_RAYS`).
-    depth : flatserve.lightfield.depth.DepthRig, optional
+    depth : flatserve.lightfield.rig.DepthRig, optional
         Append the depth channel: each frame's depth map
         (:func:`flatserve.lightfield.depth.depth_map`, from the frame and its
-        nearest cameras' images, read as needed and a few kept) as
+        nearest cameras' images, read as needed; their small grey views, at
+        most :data:`DEPTH_VIEWS`, kept) as
         :func:`flatserve.lightfield.depth.depth_values` measured from the rig's
         centre. :func:`field_options` gives the rig when the capture wants it.
 
@@ -923,7 +947,8 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
     if isinstance(batch_rays, bool) or not isinstance(batch_rays, (int, np.integer)) or batch_rays < 1:
         raise InvalidInputError(f"batch_rays: expected a positive integer, got {batch_rays!r}", "batch_rays")
     rig = _check_depth(capture, depth)
-    images = _Images(capture, keep=1 if rig is None else _depth_cache())
+    images = _Images(capture, keep=1)
+    views = None if rig is None else _Recent(DEPTH_VIEWS)
     index = 0
     pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     pending_rays = 0
@@ -941,7 +966,7 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
         if pending and pending_rays + n > batch_rays:
             yield flush(k)
             index += 1
-        rays = _frame_rays(capture, k, stride, want, bg, images, rig)
+        rays = _frame_rays(capture, k, stride, want, bg, images, rig, views)
         if n > batch_rays:
             o, d, v = rays
             del rays
@@ -961,16 +986,10 @@ def capture_batches(capture: Capture, *, stride: int = 1, channels: int | None =
         yield flush(len(capture.frames))
 
 
-def _depth_cache() -> int:
-    from .depth import NEIGHBOURS
-
-    return 2 * NEIGHBOURS + 2
-
-
 def _check_depth(capture: Capture, depth):
     if depth is None:
         return None
-    from .depth import DepthRig
+    from .rig import DepthRig
 
     if not isinstance(depth, DepthRig):
         raise InvalidInputError(f"depth: expected a DepthRig or None, got {type(depth).__name__}", "depth")
@@ -1026,7 +1045,7 @@ def field_options(capture: Capture, channels: int | None = None, depth: bool | N
     atlas with charts where the capture's rays are, through the point its
     cameras look at, in the unit that weighs a pixel's shift as a camera's
     turn (:func:`flatserve.lightfield.rig.field_spec`); on a sparse rig all
-    around (:func:`flatserve.lightfield.depth.wants_depth`) the depth channel
+    around (:func:`flatserve.lightfield.rig.wants_depth`) the depth channel
     too and the ``rig`` it is measured from: the field's renders go through it.
 
     Parameters
@@ -1036,21 +1055,21 @@ def field_options(capture: Capture, channels: int | None = None, depth: bool | N
         The field's colour channels (default the images').
     depth : bool, optional
         Give the field the depth channel (True), not (False), or when the rig
-        wants it (None: :func:`flatserve.lightfield.depth.wants_depth`).
+        wants it (None: :func:`flatserve.lightfield.rig.wants_depth`).
 
     Returns
     -------
     dict
         ``channels`` (the colour channels, plus one for the depth channel),
         ``oriented``, ``basis``, ``unit``, and ``rig`` (a
-        :meth:`flatserve.lightfield.depth.DepthRig.to_dict`) when the capture
+        :meth:`flatserve.lightfield.rig.DepthRig.to_dict`) when the capture
         gets depth: pass ``depth=DepthRig.from_dict(options["rig"])`` to
         :func:`capture_batches`.
     """
     from .rig import field_spec
 
     want = capture.channels if channels is None else channels
-    if depth not in (None, True, False):
+    if depth is not None and not isinstance(depth, bool):
         raise InvalidInputError(f"depth: expected true, false or none, got {depth!r}", "depth")
     if depth and len(capture.frames) < 2:
         raise InvalidInputError("depth: a depth map needs at least 2 frames", "depth")

@@ -126,7 +126,7 @@ def _import_arguments(sub) -> None:
                      help="give the field the depth channel (each pixel's depth from the "
                           "capture's own photographs) and render through it, or not "
                           "(--no-depth); default: when the rig is sparse and all around an "
-                          "object (flatserve.lightfield.depth.wants_depth), not on a "
+                          "object (flatserve.lightfield.rig.wants_depth), not on a "
                           "forward-facing rig")
     imp.add_argument("--api-key", default=None,
                      help=f"the service's read-write key (default ${API_KEY_ENV})")

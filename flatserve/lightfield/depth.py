@@ -27,12 +27,13 @@ alone and renders with it, the field still doing the interpolation:
   reaches the point), with the unstructured lumigraph's angle weights
   (Buehler et al. 2001).
 
-:func:`wants_depth` says when a rig is sparse enough for it to win (measured in
+:func:`flatserve.lightfield.rig.wants_depth` says when a rig is sparse enough for it to win (measured in
 ``docs/capture-results.md``: all around, not forward-facing).
 
 >>> from flatserve.lightfield.capture import read_capture    # doctest: +SKIP
+>>> from flatserve.lightfield.rig import depth_rig            # doctest: +SKIP
 >>> cap = read_capture("scene")                               # doctest: +SKIP
->>> rig = DepthRig.of(cap.cameras)                            # doctest: +SKIP
+>>> rig = depth_rig(cap.cameras)                              # doctest: +SKIP
 """
 from __future__ import annotations
 
@@ -45,10 +46,10 @@ import numpy as np
 from .._validate import as_array
 from ..errors import InvalidInputError
 from .camera import PinholeCamera
-from .rig import SPARSE_DEG, DepthRig, rig_spacing_deg, wants_depth
+from .rig import DepthRig
 
-__all__ = ["DEPTH_PLANES", "NEIGHBOURS", "WINDOW", "BEST", "MVS_SIDE", "SPARSE_DEG", "VISIBILITY_TOL", "CANDIDATES",
-           "BLEND", "DEPTH_FILTER", "DepthRig", "rig_spacing_deg", "wants_depth", "sweep_range", "depth_map",
+__all__ = ["mvs_view", "DEPTH_PLANES", "NEIGHBOURS", "WINDOW", "BEST", "MVS_SIDE", "VISIBILITY_TOL", "CANDIDATES",
+           "BLEND", "DEPTH_FILTER", "sweep_range", "depth_map",
            "depth_values", "guided_values", "render_guided"]
 
 #: Depths tried along each ray by :func:`depth_map` (uniform over the sweep range).
@@ -75,8 +76,14 @@ SAME_DEPTH = 0.002
 COST_DIGITS = 9
 #: Side (pixels) of the median filter over a rendered image's chosen depths.
 DEPTH_FILTER = 3
-#: Rays per block of :func:`guided_values` (bounds its (rays x cameras) arrays).
+#: Rays per block of :func:`guided_values`.
 BLOCK_RAYS = 16384
+#: (ray, camera) pairs per block of :func:`guided_values` (fewer rays a block for a rig of
+#: many cameras: its nearest-camera search is (rays x cameras)).
+BLOCK_PAIRS = 1 << 20
+#: A point closer to a camera's eye than this share of the eye's distance from the rig's
+#: centre is at the eye (no ray from the camera through it).
+ON_EYE = 1e-9
 
 
 def sweep_range(camera: PinholeCamera, center) -> tuple[float, float]:
@@ -91,7 +98,7 @@ def sweep_range(camera: PinholeCamera, center) -> tuple[float, float]:
     -------
     near, far : float
     """
-    D = float(np.linalg.norm(np.asarray(center, dtype=np.float64) - camera.eye))
+    D = float(np.linalg.norm(as_array(center, "center", (3,)) - camera.eye))
     if not D > 0:
         raise InvalidInputError("center: the rig's centre is at a camera's eye", "center")
     R = D * math.hypot(camera.width / (2 * camera.fx), camera.height / (2 * camera.fy))
@@ -122,22 +129,46 @@ def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray):
 
 
 def _grey(img: np.ndarray) -> np.ndarray:
+    """Grey values of an (H, W), (H, W, 1), (H, W, 3) or (H, W, 4) image; RGBA over black
+    (transparent pixels match as the background they are stored as, a plain colour)."""
     img = np.asarray(img, dtype=np.float64)
     if img.ndim == 2:
         return img
-    return img[..., :3].mean(axis=2) if img.shape[2] >= 3 else img[..., 0]
+    if img.shape[2] >= 3:
+        g = img[..., :3].mean(axis=2)
+        return g * img[..., 3] if img.shape[2] == 4 else g
+    return img[..., 0]
 
 
-def _small(cam: PinholeCamera, img: np.ndarray, side: int) -> tuple[PinholeCamera, np.ndarray]:
-    """The camera and its grey image at most ``side`` pixels on the long side (box-averaged)."""
-    g = _grey(img)
-    f = int(math.ceil(max(cam.width, cam.height) / side))
-    if f <= 1:
-        return cam, g
-    H, W = (cam.height // f) * f, (cam.width // f) * f
-    g = g[:H, :W].reshape(H // f, f, W // f, f).mean(axis=(1, 3))
-    return cam.with_(width=W // f, height=H // f, fx=cam.fx / f, fy=cam.fy / f, cx=cam.cx / f,
-                     cy=cam.cy / f), g
+def mvs_view(camera: PinholeCamera, image, side: int = MVS_SIDE) -> tuple[PinholeCamera, np.ndarray]:
+    """A photograph as :func:`depth_map` compares it: grey, at most ``side`` pixels on its long side.
+
+    Sampled down by a whole factor ``f`` (box average over ``f`` x ``f`` pixels, the
+    right and bottom remainders cropped), with the camera scaled to match (one ray a pixel).
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    image : (H, W) or (H, W, C) float
+        Its photograph, ``H, W`` the camera's.
+    side : int
+
+    Returns
+    -------
+    camera : PinholeCamera
+        Of the small image (``supersample`` 1).
+    grey : (h, w) float32
+    """
+    g = _grey(image)
+    if g.shape != (camera.height, camera.width):
+        raise InvalidInputError(f"image: expected ({camera.height}, {camera.width}) pixels as its camera, "
+                                f"got {g.shape[:2]}", "image")
+    f = max(1, int(math.ceil(max(camera.width, camera.height) / side)))
+    H, W = (camera.height // f) * f, (camera.width // f) * f
+    if f > 1:
+        g = g[:H, :W].reshape(H // f, f, W // f, f).mean(axis=(1, 3))
+    return camera.with_(width=W // f, height=H // f, fx=camera.fx / f, fy=camera.fy / f, cx=camera.cx / f,
+                        cy=camera.cy / f, supersample=1), g.astype(np.float32)
 
 
 def _box(a: np.ndarray, window: int) -> np.ndarray:
@@ -148,7 +179,7 @@ def _box(a: np.ndarray, window: int) -> np.ndarray:
 
 def depth_map(index: int, cameras: Sequence[PinholeCamera], image_of: Callable[[int], np.ndarray], *,
               center, planes: int = DEPTH_PLANES, neighbours: int = NEIGHBOURS, window: int = WINDOW,
-              best: int = BEST, side: int = MVS_SIDE) -> np.ndarray:
+              best: int = BEST, side: int = MVS_SIDE, views=None) -> np.ndarray:
     """Depth along each ray of camera ``index``'s photograph, by plane sweep.
 
     For each of ``planes`` depths ``t`` in :func:`sweep_range`, each pixel's
@@ -157,8 +188,8 @@ def depth_map(index: int, cameras: Sequence[PinholeCamera], image_of: Callable[[
     differences with the pixel's own value are averaged over a ``window`` x
     ``window`` patch per neighbour (points outside a neighbour's image count 1),
     the ``best`` smallest averaged; the depth of the least is the pixel's.
-    Works on the photographs sampled down to at most ``side`` pixels on the
-    long side, then read back at each pixel (nearest).
+    Works on the photographs as :func:`mvs_view` makes them (grey, at most
+    ``side`` pixels on the long side), then read back at each pixel (nearest).
 
     Parameters
     ----------
@@ -174,6 +205,10 @@ def depth_map(index: int, cameras: Sequence[PinholeCamera], image_of: Callable[[
     planes, neighbours, window, best, side : int
         :data:`DEPTH_PLANES`, :data:`NEIGHBOURS`, :data:`WINDOW`, :data:`BEST`,
         :data:`MVS_SIDE`.
+    views : mutable mapping, optional
+        Frame -> :func:`mvs_view`, read and filled: a caller computing every
+        frame's map keeps the small grey views here (bounded by ``side``, not
+        by the photographs) and each photograph is asked for once.
 
     Returns
     -------
@@ -185,15 +220,26 @@ def depth_map(index: int, cameras: Sequence[PinholeCamera], image_of: Callable[[
                         ("best", best, 1), ("side", side, 8)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
             raise InvalidInputError(f"{name}: expected an integer >= {lo}, got {v!r}", name)
-    if not 0 <= index < len(cams) or len(cams) < 2:
+    if not (isinstance(index, (int, np.integer)) and 0 <= index < len(cams)) or len(cams) < 2:
         raise InvalidInputError(f"index: expected a camera of {len(cams)} (at least 2), got {index!r}", "index")
+    center = as_array(center, "center", (3,))
     cam = cams[index]
     eyes = np.stack([c.eye for c in cams])
     dist = np.linalg.norm(eyes - cam.eye, axis=1)
     dist[index] = np.inf
     nb = [int(j) for j in np.argsort(dist)[:min(neighbours, len(cams) - 1)]]
-    small, me = _small(cam, image_of(index), side)
-    others = [_small(cams[j], image_of(j), side) for j in nb]
+
+    def view(j):
+        if views is not None and j in views:
+            return views[j]
+        v = mvs_view(cams[j], image_of(j), side)
+        if views is not None:
+            views[j] = v
+        return v
+
+    small, me = view(index)
+    others = [view(j) for j in nb]
+    f = max(1, int(math.ceil(max(cam.width, cam.height) / side)))  # mvs_view's factor
     o, d = small.rays()
     h, w = small.height, small.width
     near, far = sweep_range(cam, center)
@@ -217,8 +263,8 @@ def depth_map(index: int, cameras: Sequence[PinholeCamera], image_of: Callable[[
     depth = ts[np.round(cost, COST_DIGITS).argmin(axis=0)]
     if (h, w) == (cam.height, cam.width):
         return depth
-    rows = np.minimum(((np.arange(cam.height) + 0.5) * h / cam.height).astype(np.int64), h - 1)
-    cols = np.minimum(((np.arange(cam.width) + 0.5) * w / cam.width).astype(np.int64), w - 1)
+    rows = np.minimum(np.arange(cam.height) // f, h - 1)
+    cols = np.minimum(np.arange(cam.width) // f, w - 1)
     return depth[rows[:, None], cols[None, :]]
 
 
@@ -273,10 +319,11 @@ def guided_values(query: Callable, origins, directions, rig: DepthRig, *, candid
     lumigraph's ``(1 - a / a_k) / a`` (``a`` the angle, ``a_k`` the next
     camera's). A camera whose eye is on the ray sees it whatever the depth (its
     ray is the ray: a capture's own rays answer their photographs). A ray no
-    camera sees keeps the field's own colour. Each ray asks the field
-    ``1 + candidates`` times, and ``candidates`` more for each candidate depth
-    not within :data:`SAME_DEPTH` of one tried (on a smooth surface the
-    cameras agree: few), and for a depth the median filter moved.
+    camera sees, or whose depth is not in front of its origin, keeps the
+    field's own colour. Each ray asks the field ``1 + 2 * candidates`` times,
+    and ``candidates`` more for each candidate depth not within
+    :data:`SAME_DEPTH` of one tried: at most ``1 + candidates * (candidates +
+    2)`` (49 with the defaults; 44 a ray measured on the sphere rig).
 
     Parameters
     ----------
@@ -320,28 +367,29 @@ def guided_values(query: Callable, origins, directions, rig: DepthRig, *, candid
             raise InvalidInputError(f"raster: {rows} x {cols} is not the {o.shape[0]} rays", "raster")
     K = min(candidates, rig.eyes.shape[0])
     tol = float(visibility_tol)
-    blocks = [slice(lo, lo + block_rays) for lo in range(0, o.shape[0], block_rays)]
-    parts = [_choose(query, o[b], d[b], rig, K, tol) for b in blocks]
-    if not parts:
+    # a block's (rays x eyes) arrays are bounded whatever the rig
+    step = max(1, min(block_rays, BLOCK_PAIRS // rig.eyes.shape[0]))
+    blocks = [slice(lo, lo + step) for lo in range(0, o.shape[0], step)]
+    if not blocks:
         return np.empty((0, 0)), np.empty(0, dtype=bool)
-    colour0, inside, chosen, nb, seen = (np.concatenate([c[i] for c in parts]) for i in range(5))
+    parts = [_choose(query, o[b], d[b], rig, K, tol) for b in blocks]
+    first, inside, t = (np.concatenate([c[i] for c in parts]) for i in range(3))
     del parts
-    t = chosen
     if raster is not None and DEPTH_FILTER > 1:
-        from scipy.ndimage import median_filter
-
-        t = np.where(inside, median_filter(chosen.reshape(rows, cols), DEPTH_FILTER,
-                                           mode="nearest").reshape(-1), chosen)
-    values = np.concatenate([_blend(query, o[b], d[b], t[b], chosen[b], nb[b], seen[b], colour0[b],
-                                    inside[b], rig, min(blend, K), tol) for b in blocks])
+        t = _nan_median(t.reshape(rows, cols), DEPTH_FILTER).reshape(-1)
+    values = np.concatenate([_blend(query, o[b], d[b], t[b], first[b], inside[b], rig, K, min(blend, K), tol)
+                             for b in blocks])
     return values, inside
 
 
-def _angles(eyes, p, d):
-    """Angles (n, m) between each ray's direction and the directions from the eyes to its point."""
+def _nearest(eyes, p, d, K: int) -> np.ndarray:
+    """Per ray, the ``K`` eyes whose rays through its point ``p`` are nearest in angle to it (n, K)."""
     v = p[:, None, :] - eyes[None]
     v /= np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-300)
-    return np.arccos(np.clip(np.einsum("nkj,nj->nk", v, d), -1.0, 1.0))
+    cos = np.einsum("nkj,nj->nk", v, d)
+    if K >= eyes.shape[0]:
+        return np.argsort(-cos, axis=1)
+    return np.argpartition(-cos, K - 1, axis=1)[:, :K]
 
 
 def _seen(query, o, d, p, nb, rig: DepthRig, tol: float, C: int):
@@ -354,10 +402,12 @@ def _seen(query, o, d, p, nb, rig: DepthRig, tol: float, C: int):
         e = rig.eyes[nb[:, k]]
         ray = p - e
         dist = np.linalg.norm(ray, axis=1)
-        u = ray / np.maximum(dist, 1e-300)[:, None]
+        away = dist > ON_EYE * np.maximum(np.linalg.norm(e - rig.center, axis=1), 1e-300)
+        # a point at the eye has no ray from it: not seen (the query's own direction is asked)
+        u = np.where(away[:, None], ray / np.where(away, dist, 1.0)[:, None], d)
         vals, ok = query(e, u)
         vals = np.asarray(vals, dtype=np.float64)
-        ok = np.asarray(ok, dtype=bool) & np.isfinite(vals).all(axis=1)
+        ok = np.asarray(ok, dtype=bool) & np.isfinite(vals).all(axis=1) & away
         dep = np.where(ok, _depth_back(e, u, np.where(ok, vals[:, -1], 0.0), rig.center), np.nan)
         # a camera whose eye the ray passes through sees the ray's own first surface
         # whatever the depth (the unstructured lumigraph's epipole consistency)
@@ -369,55 +419,69 @@ def _seen(query, o, d, p, nb, rig: DepthRig, tol: float, C: int):
     return cols, reach
 
 
+def _answer(query, o, d):
+    vals, ok = query(o, d)
+    vals = np.asarray(vals, dtype=np.float64)
+    if vals.ndim != 2 or vals.shape[0] != o.shape[0] or vals.shape[1] < 2:
+        raise InvalidInputError(f"query: expected values of shape ({o.shape[0]}, C + 1), colours and the "
+                                f"depth channel last, got {vals.shape}", "query")
+    return vals, np.asarray(ok, dtype=bool) & np.isfinite(vals).all(axis=1)
+
+
 def _choose(query, o, d, rig: DepthRig, K: int, tol: float):
-    """Per ray: the field's colour, inside, the depth the candidates' test chooses, the
-    cameras tested (n, K) and their colours at that depth (n, K, C)."""
+    """Per ray: the field's values (colours, depth), whether it has them, and the depth the
+    candidates' test chooses (NaN: none; the ray keeps the field's colour)."""
     n = o.shape[0]
-    first, inside = query(o, d)
-    first = np.asarray(first, dtype=np.float64)
+    first, inside = _answer(query, o, d)
+    t = np.full(n, np.nan)
+    rows = np.flatnonzero(inside)
+    t[rows] = _depth_back(o[rows], d[rows], first[rows, -1], rig.center)
+    rows = rows[t[rows] > 0]  # a surface behind the eye is no depth to test
+    if rows.size == 0:
+        return first, inside, t
     C = first.shape[1] - 1
-    inside = np.asarray(inside, dtype=bool) & np.isfinite(first).all(axis=1)
-    t = np.where(inside, _depth_back(o, d, np.where(inside, first[:, -1], 0.0), rig.center), 0.0)
-    p0 = o + t[:, None] * d
-    nb = np.argsort(_angles(rig.eyes, p0, d), axis=1)[:, :K]
+    o, d, t0 = o[rows], d[rows], t[rows]
+    m = rows.size
+    p0 = o + t0[:, None] * d
+    nb = _nearest(rig.eyes, p0, d, K)
     cols0, reach = _seen(query, o, d, p0, nb, rig, tol, C)
-    T = np.concatenate([t[:, None], np.where(np.isfinite(reach), reach, t[:, None])], axis=1)
-    best_cost, best_t, best_cols = np.full(n, np.inf), t.copy(), cols0
-    same = SAME_DEPTH * np.maximum(np.abs(T), 1e-300)
-    for m in range(T.shape[1]):
+    T = np.concatenate([t0[:, None], np.where(np.isfinite(reach) & (reach > 0), reach, t0[:, None])], axis=1)
+    best_cost, best_t = np.full(m, np.inf), t0.copy()
+    same = SAME_DEPTH * np.abs(T)
+    for c in range(T.shape[1]):
         # a candidate within SAME_DEPTH of one already tried is that one (not asked again)
-        rows = np.arange(n) if m == 0 else np.flatnonzero(
-            (np.abs(T[:, m, None] - T[:, :m]) > same[:, m, None]).all(axis=1) & inside)
-        if rows.size == 0:
+        pick = np.arange(m) if c == 0 else np.flatnonzero(
+            (np.abs(T[:, c, None] - T[:, :c]) > same[:, c, None]).all(axis=1))
+        if pick.size == 0:
             continue
-        if m == 0:
-            cols = cols0
-        else:
-            cols = _seen(query, o[rows], d[rows], o[rows] + T[rows, m, None] * d[rows], nb[rows], rig, tol, C)[0]
+        cols = cols0 if c == 0 else _seen(query, o[pick], d[pick], o[pick] + T[pick, c, None] * d[pick],
+                                          nb[pick], rig, tol, C)[0]
         count = np.isfinite(cols[:, :, 0]).sum(axis=1)
         spread = np.nansum(np.nanstd(np.where(count[:, None, None] >= 2, cols, 0.0), axis=1), axis=1)
-        cost = np.where(count >= 2, spread, np.inf if m else 1e300)
-        if m == 0:
+        cost = np.where(count >= 2, spread, np.inf if c else 1e300)
+        if c == 0:
             cost = cost - 1e-3  # the field's own depth wins a tie
-        better = cost < best_cost[rows]
-        win = rows[better]
-        best_cost[win] = cost[better]
-        best_t[win] = T[win, m]
-        best_cols[win] = cols[better]
-    return first[:, :-1], inside, best_t, nb, best_cols
+        better = cost < best_cost[pick]
+        best_cost[pick[better]] = cost[better]
+        best_t[pick[better]] = T[pick[better], c]
+    t[rows] = best_t
+    return first, inside, t
 
 
-def _blend(query, o, d, t, chosen, nb, chosen_cols, colour0, inside, rig: DepthRig, B: int, tol: float):
-    """The colours at depths ``t``: the ``B`` seeing cameras of ``nb`` nearest in angle, the
-    unstructured lumigraph's weights; the field's own colour where none sees. Rays whose
-    depth is still the ``chosen`` one reuse the colours seen there."""
-    n, C = colour0.shape
-    K = nb.shape[1]
+def _blend(query, o, d, t, first, inside, rig: DepthRig, K: int, B: int, tol: float):
+    """The colours at depths ``t``: the ``B`` seeing cameras of the ``K`` nearest in angle,
+    the unstructured lumigraph's weights; the field's own colour where none sees or ``t``
+    is NaN."""
+    C = first.shape[1] - 1
+    values = np.where(inside[:, None], first[:, :-1], np.nan)
+    rows = np.flatnonzero(inside & np.isfinite(t))
+    if rows.size == 0:
+        return values
+    o, d, t = o[rows], d[rows], t[rows]
+    n = rows.size
     p = o + t[:, None] * d
-    cols = chosen_cols.copy()
-    moved = np.flatnonzero(t != chosen)
-    if moved.size:
-        cols[moved] = _seen(query, o[moved], d[moved], p[moved], nb[moved], rig, tol, C)[0]
+    nb = _nearest(rig.eyes, p, d, K)
+    cols, _ = _seen(query, o, d, p, nb, rig, tol, C)
     v = p[:, None, :] - rig.eyes[nb]
     v /= np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-300)
     a = np.arccos(np.clip(np.einsum("nkj,nj->nk", v, d), -1.0, 1.0))
@@ -433,8 +497,23 @@ def _blend(query, o, d, t, chosen, nb, chosen_cols, colour0, inside, rig: DepthR
     w = np.where(finite, w, 0.0)
     total = w.sum(axis=1)
     mixed = np.einsum("nk,nkc->nc", w, np.nan_to_num(cols[:, :B])) / np.where(total > 0, total, 1.0)[:, None]
-    values = np.where((total > 0)[:, None], mixed, colour0)
-    return np.where(inside[:, None], values, np.nan)
+    values[rows] = np.where((total > 0)[:, None], mixed, values[rows])
+    return values
+
+
+def _nan_median(img: np.ndarray, size: int) -> np.ndarray:
+    """Median over ``size`` x ``size`` neighbourhoods of the finite values (NaN stays NaN)."""
+    r = size // 2
+    H, W = img.shape
+    pad = np.pad(img, r, mode="constant", constant_values=np.nan)
+    stack = np.stack([pad[i:i + H, j:j + W] for i in range(size) for j in range(size)])
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out = np.nanmedian(stack, axis=0)
+    return np.where(np.isfinite(img), out, np.nan)
 
 
 def render_guided(field, camera, rig: DepthRig, *, fill=0.0, threads: int | None = None, **options):

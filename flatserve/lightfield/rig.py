@@ -324,7 +324,8 @@ def depth_rig(cameras: Sequence[PinholeCamera], depth: bool | None = None):
     cameras : sequence of PinholeCamera
     depth : bool, optional
         True: the rig whatever :func:`wants_depth`
-        says (at least 2 cameras); False: None.
+        says (at least 2 cameras that look at a common point, else an
+        :class:`~flatserve.errors.InvalidInputError` naming ``depth``); False: None.
 
     Returns
     -------
@@ -333,6 +334,10 @@ def depth_rig(cameras: Sequence[PinholeCamera], depth: bool | None = None):
     cams = _cameras(cameras)
     if depth is False or (depth is None and not wants_depth(cams)) or len(cams) < 2:
         return None
+    if rig_unit(cams) is None:  # asked for: a sweep needs the point the cameras look at
+        raise InvalidInputError("depth: these cameras look at no common point (nearly parallel, or "
+                                "the point is behind a camera): a depth sweep needs one; import "
+                                "without depth", "depth")
     eyes, center = np.stack([c.eye for c in cams]), rig_center(cams)
     # on one grid for the whole rig (DIGITS significant digits of its size), not digit by
     # coordinate: a centre at the origin read from either format is rounding noise (1e-16

@@ -313,7 +313,7 @@ _Point3 = Annotated[list[_Finite], Field(min_length=3, max_length=3)]
 
 class RigSpec(_Strict):
     """The cameras of a capture whose field holds the depth channel
-    (:class:`flatserve.lightfield.depth.DepthRig`): renders of the field go through
+    (:class:`flatserve.lightfield.rig.DepthRig`): renders of the field go through
     it (:func:`flatserve.lightfield.depth.render_guided`)."""
 
     eyes: Annotated[list[_Point3], Field(min_length=2, max_length=MAX_RIG_EYES)] = Field(

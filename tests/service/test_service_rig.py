@@ -46,7 +46,7 @@ def test_a_field_created_with_a_rig_describes_it(api, rng):
     assert r.json()["rig"] == rig
     assert c.describe("lf")["rig"] == rig and c.describe("lf", verbose=True)["rig"] == rig
     # the same from the client, a DepthRig too; a field without one describes none
-    from flatserve.lightfield.depth import DepthRig
+    from flatserve.lightfield.rig import DepthRig
 
     other = random_rig(rng, 7)
     info = c.create_field("lf2", channels=4, oriented=True, rig=DepthRig.from_dict(other))

@@ -878,7 +878,8 @@ def capture_key(name: str, capture, *, stride: int, channels: int, batch_rays: i
 
     ``capture-`` and 24 hex digits of a SHA-256 of the field's name, the capture's
     format, its frames' names and poses, ``stride``, ``channels``, ``batch_rays``,
-    ``background`` when it is not 0 (it changes RGBA pixels' values) and ``rig``
+    ``background`` when it is not 0 (it changes RGBA pixels' values), and ``rig``
+    and the depth's parameters (:data:`flatserve.lightfield.depth.DEPTH_METHOD`)
     when the batches carry the depth channel (an import with depth and one
     without are different batches); batch ``i`` is sent under ``<stem>.<i>``.
     Not the images' pixels: a frame whose image changed under the same key is
@@ -907,8 +908,11 @@ def capture_key(name: str, capture, *, stride: int, channels: int, batch_rays: i
     if np.any(bg != 0):
         doc["background"] = bg.tolist()
     if rig is not None:
+        from .lightfield.depth import DEPTH_METHOD
+
         doc["rig"] = {"eyes": np.asarray(rig["eyes"], np.float64).tolist(),
                       "center": np.asarray(rig["center"], np.float64).tolist()}
+        doc["depth"] = DEPTH_METHOD
     digest = hashlib.sha256(orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY)).hexdigest()
     return f"capture-{digest[:24]}"
 

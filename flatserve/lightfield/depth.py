@@ -48,7 +48,7 @@ from ..errors import InvalidInputError
 from .camera import PinholeCamera
 from .rig import DepthRig
 
-__all__ = ["mvs_view", "DEPTH_PLANES", "NEIGHBOURS", "WINDOW", "BEST", "MVS_SIDE", "VISIBILITY_TOL", "CANDIDATES",
+__all__ = ["mvs_view", "DEPTH_METHOD", "DEPTH_PLANES", "NEIGHBOURS", "WINDOW", "BEST", "MVS_SIDE", "VISIBILITY_TOL", "CANDIDATES",
            "BLEND", "DEPTH_FILTER", "sweep_range", "depth_map",
            "depth_values", "guided_values", "render_guided"]
 
@@ -76,6 +76,10 @@ SAME_DEPTH = 0.002
 COST_DIGITS = 9
 #: Side (pixels) of the median filter over a rendered image's chosen depths.
 DEPTH_FILTER = 3
+#: What the depth channel's values depend on besides the photographs and poses: part of a
+#: capture import's keys (a resumed import after this changes stores new batches).
+DEPTH_METHOD = {"method": "plane-sweep", "version": 1, "planes": DEPTH_PLANES, "neighbours": NEIGHBOURS,
+                "window": WINDOW, "best": BEST, "side": MVS_SIDE}
 #: Rays per block of :func:`guided_values`.
 BLOCK_RAYS = 16384
 #: (ray, camera) pairs per block of :func:`guided_values` (fewer rays a block for a rig of

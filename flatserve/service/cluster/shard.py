@@ -31,7 +31,7 @@ its constants are the server's:
    from every group's), and :meth:`ShardWorker.status` (now, or once it has
    applied a log position: :meth:`ShardWorker.applied`).
 
-Where a worker lives (a Ray actor, :mod:`.ray_shards`; a thread in tests) is
+Where a worker lives (a Ray actor, :mod:`.actor`; a thread in tests) is
 not this module's business.
 """
 from __future__ import annotations

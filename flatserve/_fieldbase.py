@@ -136,6 +136,67 @@ class FieldBase:
     channels: int
     #: the answers blend several shards (ids / weights of shape (q, P, D+1))
     blends: bool = False
+    #: the shards' triangulations are held in this process (a cluster front's
+    #: ``RemoteField``: False, its answers come from other processes, :meth:`query_async`)
+    holds_shards: bool = True
+    #: bytes of snapshot parts the field's shards stored themselves for the last
+    #: ``write_parts`` (0: every part was written to ``stage``)
+    stored_bytes: int = 0
+
+    # ------------------------------------------------ the unit of length (neutral)
+    # A field whose unit of length is chosen from its first batch (an atlas field
+    # made with ``unit="auto"``) overrides these; every other field has no unit to
+    # choose: it never waits for one and ignores one offered.
+    @property
+    def unit_pending(self) -> bool:
+        """The field's unit of length is still to be chosen from its first samples
+        (False: it has one, or charts in no unit)."""
+        return False
+
+    @property
+    def unit_from_data(self) -> bool:
+        """The field may still take a unit of length (:meth:`settle_unit`)."""
+        return False
+
+    @property
+    def unit(self) -> float | None:
+        """The unit of length the field charts in; None while it is still to be
+        chosen, and for a field without one (a one-chart field)."""
+        return None
+
+    def settle_unit(self, unit: float, *, if_empty: bool = False) -> bool:
+        """Take ``unit`` as the field's unit of length while it may
+        (:attr:`unit_from_data`); whether it changed anything (here: never)."""
+        return False
+
+    def in_unit(self, unit: float) -> Any:
+        """What charts a batch in ``unit`` (a field that takes no unit: itself)."""
+        return self
+
+    # ------------------------------------------------------- counts (neutral)
+    @property
+    def own_samples(self) -> list[int] | None:
+        """Per shard, the distinct samples whose nearest shard it is (their sum is
+        ``nsamples``): a one-chart field's one shard owns them all. None only for an
+        atlas field read from a file that did not record them."""
+        return [int(self.nsamples)]  # type: ignore[attr-defined]
+
+    @property
+    def ntiles(self) -> int | None:
+        """Tiles of the one chart's triangulation held here; None for a field of
+        several charts."""
+        return None
+
+    def applied_counts(self, position: int, timeout: float) -> dict:
+        """Once the batch at log ``position`` is applied where the shards live, the
+        response's ``nsamples`` and ``duplicates`` counted there: ``{}`` for a field
+        whose shards are held here (its insert counted them)."""
+        return {}
+
+    async def query_async(self, flats, **kw) -> Any:
+        """:meth:`query` awaited: a field held here answers at once without waiting for
+        an insert (``blocking=False``: None while a writer is in)."""
+        return self.query(flats, blocking=False, **kw)  # type: ignore[attr-defined]
 
     # ------------------------------------------------------------------ writers
     def _values(self, values, n: int) -> np.ndarray:

@@ -241,6 +241,12 @@ class AtlasField(FieldBase):
         return self.atlas.unit_from_data
 
     @property
+    def unit(self) -> float | None:
+        """The charts' unit of length (the atlas's); None while it is still to be
+        chosen (:attr:`unit_pending`)."""
+        return None if self.unit_pending else self.atlas.unit
+
+    @property
     def unit_from_data(self) -> bool:
         """The field may still take a unit (:meth:`settle_unit`): its definition leaves
         the unit to its first samples (``Atlas(unit=None)``) and no batch has been

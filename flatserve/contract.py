@@ -40,7 +40,7 @@ True
 from __future__ import annotations
 
 import os
-from typing import Callable, Collection, Protocol, Sequence, Union, runtime_checkable
+from typing import Any, Callable, Collection, Protocol, Sequence, Union, runtime_checkable
 
 import numpy as np
 
@@ -185,6 +185,74 @@ class SampledField(Protocol):
         """``nsamples``, ``nstored``, ``nsimplex``, ``nrejected``, ``duplication``,
         ``shards``, ``atlas``, ``charts`` (see ``FieldBase.describe``)."""
         ...
+
+    # ------------------------------------------- where the shards are held
+    #: The shards' triangulations are held in this process (False: a cluster
+    #: front's ``RemoteField``, whose answers come from other processes: the
+    #: service answers it on the event loop with :meth:`query_async`).
+    holds_shards: bool
+
+    async def query_async(self, flats: Flats, *, outside: Outside | str = Outside.NAN,
+                          order: Order | str = Order.HILBERT, threads: int | None = None,
+                          return_weights: bool = False,
+                          interpolant: Interpolant | str = Interpolant.LINEAR
+                          ) -> QueryResult | None:
+        """``query(flats, **kw)`` awaited; a field held here answers at once, never
+        waiting for an insert (``blocking=False``: None while a writer is in)."""
+        ...
+
+    def applied_counts(self, position: int, timeout: float) -> dict:
+        """Once the batch at log ``position`` is applied where the shards live (at
+        most ``timeout`` s), the upload response's ``nsamples`` and ``duplicates``
+        counted there; ``{}`` for a field held here (its insert counted them)."""
+        ...
+
+    @property
+    def own_samples(self) -> list[int] | None:
+        """Per shard, the distinct samples whose nearest shard it is (their sum is
+        ``nsamples``; a one-chart field: ``[nsamples]``); None for an atlas field
+        read from a file that did not record them."""
+        ...
+
+    @property
+    def ntiles(self) -> int | None:
+        """Tiles of a one-chart field's triangulation held here; None otherwise."""
+        ...
+
+    # ------------------------------------------------------ the unit of length
+    # A field whose unit of length its first batch chooses (an atlas made with
+    # ``unit="auto"``); every other field: ``unit_pending`` and ``unit_from_data``
+    # False, ``unit`` None, ``settle_unit`` a no-op returning False, ``in_unit``
+    # itself.
+    @property
+    def unit_pending(self) -> bool:
+        """The unit is still to be chosen from the first samples."""
+        ...
+
+    @property
+    def unit_from_data(self) -> bool:
+        """The field may still take a unit (:meth:`settle_unit`): no batch inserted yet."""
+        ...
+
+    @property
+    def unit(self) -> float | None:
+        """The unit the field charts in; None while pending, or for a field without one."""
+        ...
+
+    def settle_unit(self, unit: float, *, if_empty: bool = False) -> bool:
+        """Take ``unit`` (the one recorded with the field's first batch) while it may;
+        whether the field changed (a writer)."""
+        ...
+
+    def in_unit(self, unit: float) -> Any:
+        """What charts a batch in ``unit`` (its ``prepare``): the field itself when
+        ``unit`` is its own, else an empty field of the same definition in ``unit``
+        whose prepared batches carry it. Reads the definition only."""
+        ...
+
+    #: Bytes of snapshot parts the shards stored themselves for the last
+    #: :meth:`write_parts` (0: every part was written to ``stage``).
+    stored_bytes: int
 
     # ---------------------------------------------------------- persistence
     def write_to(self, fh) -> int:

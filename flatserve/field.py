@@ -337,6 +337,11 @@ class Field(FieldBase):
         return self._nrejected
 
     @property
+    def ntiles(self) -> int | None:
+        """Tiles of the triangulation now (1 for one triangulation; see ``tiles``)."""
+        return self.triangulation.ntiles
+
+    @property
     def points(self) -> np.ndarray:
         """(nsamples, D) embedded coordinates of the samples, in sample-id order."""
         return self._tri.points

@@ -70,11 +70,16 @@ def test_mypy_verifies_both_kinds_implement_the_protocol(tmp_path):
         from flatserve.atlas import Atlas
         from flatserve.atlas_field import AtlasField
         from flatserve.contract import SampledField, load_field, new_field
+        from flatserve.service.cluster.remote import RemoteField
 
         one: SampledField = Field(Basis.around_axis())
         many: SampledField = AtlasField(Atlas.covering(1, 3))
         made: SampledField = new_field(1, basis=Basis.around_axis())
         read: SampledField = load_field("f.snap")
+
+
+        def front(remote: RemoteField) -> None:  # a cluster front's field
+            held: SampledField = remote
 
 
         class Incomplete:  # no copies, no shards, ...
@@ -251,3 +256,29 @@ def test_prepare_defer_and_insert_per_kind(kind):
     assert res.accepted == batch.accepted and res.nsamples == kind.nsamples
     with pytest.raises(InvalidInputError, match="slice_rows"):
         kind.insert_prepared(batch, slice_rows=0)
+
+
+def test_capabilities_of_each_kind(kind):
+    """Where the shards are, the counts and the unit of length: a real answer on both
+    kinds (a one-chart field's neutral ones)."""
+    import asyncio
+    assert kind.holds_shards is True and kind.stored_bytes == 0
+    assert kind.applied_counts(0, 0.0) == {}
+    f = filled(kind, seed=5, n=400)
+    assert sum(kind.own_samples) == kind.nsamples
+    got = asyncio.run(kind.query_async(f.take(np.arange(20))))
+    want = kind.query(f.take(np.arange(20)))
+    np.testing.assert_array_equal(got.values, want.values)
+    assert kind.unit_pending is False and kind.unit_from_data is False
+    if kind.blends:
+        assert kind.ntiles is None and kind.unit == kind.atlas.unit
+    else:
+        assert kind.ntiles == 1 and kind.unit is None and kind.own_samples == [kind.nsamples]
+        assert kind.settle_unit(2.0) is False and kind.in_unit(2.0) is kind
+
+
+def test_an_atlas_field_with_a_unit_from_its_data_has_none_until_its_first_batch():
+    field = new_field(2, atlas=Atlas.covering(1, 3, oriented=True, unit=None))
+    assert field.unit_pending and field.unit_from_data and field.unit is None
+    filled(field, seed=6, n=300)
+    assert not field.unit_pending and field.unit == field.atlas.unit

@@ -214,7 +214,7 @@ class LocalHome:
             if lost:
                 raise ShardUnavailableError(f"a tile was lost: {lost}") from exc
             raise
-        if self.only is not None and getattr(fld, "own_samples", ()) is None:
+        if self.only is not None and fld.own_samples is None:
             raise SnapshotError("an older snapshot without its charts' own samples")
         return fld
 
@@ -558,7 +558,7 @@ class LogApplier:
             done = self.storage.batches(e.id, upto_position=upto)
             seq, pos = (done[-1].seq, done[-1].position) if done else (0, 0)
             e.field = self.home.field(e)
-            if done and getattr(e.field, "unit_pending", False):
+            if done and e.field.unit_pending:
                 self._first_unit(e, done[0])
             e.mark_indexed(seq, pos)
             e.mark_ready()

@@ -12,7 +12,6 @@ import logging
 from dataclasses import dataclass
 
 from ..basis import Basis
-from ..field import Field as OneChart
 from .applier import LogApplier
 from .backend import LogBackend
 from .catalogue import FieldCatalogue
@@ -127,7 +126,7 @@ class FieldService:
             created=e.created, error=e.error,
             basis=BasisInfo(m=m, dim=m - 1, spec=e.spec.basis, **flats),
             ncharts=len(charts) if charts is not None else 1, tiles=e.spec.tiles,
-            ntiles=f.triangulation.ntiles if isinstance(f, OneChart) else None,
+            ntiles=f.ntiles if f is not None else None,
             storage=StorageInfo(batches=nb, batch_rows=nrows, batch_bytes=nbytes,
                                 last_batch=last,
                                 snapshot_batch=e.snapshot_seq if e.snapshot_file else 0,

@@ -130,13 +130,12 @@ class QueryService:
         InvalidInputError, ShardUnavailableError
             As :meth:`query`, and the field's ``query_async``.
         """
-        query_async = getattr(e.field, "query_async", None)
-        if query_async is None:
+        if e.field.holds_shards:  # (the one place a query asks where the shards are)
             if kw.get("interpolant", Interpolant.LINEAR) is not Interpolant.LINEAR:
                 return None  # its first query after an insert builds a k-d tree: not here
             return self.query(e, flats, weights=weights, blocking=False, **kw)
         self._check(e, flats, weights, kw)
-        return self._counted(e, await query_async(flats, return_weights=weights, **kw))
+        return self._counted(e, await e.field.query_async(flats, return_weights=weights, **kw))
 
     def _check(self, e: FieldEntry, flats: Flats, weights: bool, kw: dict) -> None:
         """A query's checks before it runs (and one native thread for small ones)."""

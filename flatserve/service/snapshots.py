@@ -284,7 +284,7 @@ class _Frozen:
             self.lease.check(renew=False)  # (no database round trip under the field's lock)
             keys = self.e.field.save_parts(path, stage, self.known)
             # parts a field's shards stored themselves (cluster mode), not in ``stage``
-            self.stored = getattr(self.e.field, "stored_bytes", 0)
+            self.stored = self.e.field.stored_bytes
             return keys
         finally:
             self.release()

@@ -293,11 +293,11 @@ def _settled(e: FieldEntry) -> dict:
     exported beside it stays the one stored at its creation, chart 0's as described)."""
     spec = e.spec.to_dict()
     f, at = e.field, (spec.get("atlas") or None)
-    if at is None or not at.get("unit_from_data") or getattr(f, "unit_pending", True):
+    if at is None or not at.get("unit_from_data") or f is None or f.unit_pending:
         return spec
     rule = at.get("unit_rule", "data")
     at = {k: v for k, v in at.items() if k not in ("unit_from_data", "unit_rule", "warps")}
-    at["unit"] = f.atlas.unit
+    at["unit"] = f.unit
     at["info"] = {**at.get("info", {}), "unit_from": rule}
     return {**spec, "atlas": at}
 

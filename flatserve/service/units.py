@@ -21,7 +21,7 @@ def adopt_unit(field, unit: float | None) -> None:
     (:meth:`flatserve.atlas_field.AtlasField.settle_unit`), so that it charts its
     first batch in the unit the replica that stored the batch chose, not one of
     its own (a replica, a restart, a shard of a cluster). Other fields: nothing."""
-    if unit is not None and getattr(field, "unit_from_data", False):
+    if unit is not None and field.unit_from_data:
         field.settle_unit(unit, if_empty=True)
 
 
@@ -30,7 +30,7 @@ def batch_unit(field, flats: Flats, values, unit: float | None) -> float | None:
     one recorded with it (``unit``, :func:`.blobs.split_batch`), or for a batch
     stored without one (by an older server) the one the field chooses from its
     rows (:func:`flatserve.atlas_field.choose_unit`), as every shard worker does."""
-    if unit is None and getattr(field, "unit_pending", False):
+    if unit is None and field.unit_pending:
         return choose_unit(field.atlas, flats, values)
     return unit
 
@@ -38,6 +38,4 @@ def batch_unit(field, flats: Flats, values, unit: float | None) -> float | None:
 def unit_of(field) -> float | None:
     """An atlas field's unit of length; None while it is still to be chosen (or for a
     field without one)."""
-    if getattr(field, "unit_pending", False):
-        return None
-    return getattr(getattr(field, "atlas", None), "unit", None)
+    return field.unit

@@ -233,7 +233,7 @@ class UploadService:
         # when applied). The field itself is not changed here.
         record = {}
         target = e.field
-        if getattr(e.field, "unit_from_data", False):
+        if e.field.unit_from_data:
             e.field.prepare(flats, values, defer=True)  # validates (raises) first
             unit = choose_unit(e.field.atlas, flats, values)  # (a fit: seconds, a thread)
             target, record = e.field.in_unit(unit), {UNIT_ARRAY: np.array([unit])}
@@ -313,8 +313,7 @@ class UploadService:
         by the wait here; ShardUnavailableError, 503, if one is not there by then), the
         response's ``nsamples`` and ``duplicates`` counted there; {} when this process
         holds the field (its insert counted them)."""
-        counted = getattr(e.field, "applied_counts", None)
-        return {} if counted is None else counted(pos, max(0.0, deadline - time.monotonic()))
+        return e.field.applied_counts(pos, max(0.0, deadline - time.monotonic()))
 
     def _store_result(self, e: FieldEntry, seq: int, out: UploadResult) -> None:
         """Store the complete response of an indexed batch (wait=true), durably, before

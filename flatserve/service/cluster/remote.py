@@ -163,6 +163,9 @@ class RemoteField:
         #: bytes of parts the groups stored for the last :meth:`write_parts`
         self.stored_bytes = 0
 
+    #: the shards live in other processes: answers are awaited (:meth:`query_async`)
+    holds_shards = False
+
     # -- sizes (the workers' last reports: never waits; describe asks them first) ---------
     def _statuses(self) -> list[dict]:
         return [s for s in self.groups.status() if s is not None]
@@ -189,6 +192,27 @@ class RemoteField:
         """The definition's shards (empty here: their sizes are :meth:`describe`'s)."""
         return self._shape.shards
 
+    @property
+    def own_samples(self) -> list[int] | None:
+        """Per chart, its own samples as its shard last reported them (None until
+        every chart's shard has reported them; a one-chart field: ``[nsamples]``)."""
+        if not self.blends:
+            return [self.nsamples]
+        own = self._chart_own()
+        return None if any(n is None for n in own) else [int(n) for n in own if n is not None]
+
+    @property
+    def ntiles(self) -> int | None:
+        """None: the tiles of a chart held elsewhere are not counted here."""
+        return None
+
+    def _chart_own(self) -> list[int | None]:
+        own: list[int | None] = [None] * len(self._shape.shards)
+        for s in self._statuses():
+            for c, n in zip(s["charts"], s.get("chart_own", ())):
+                own[c] = n
+        return own
+
     # -- routing and blending: the definition's -------------------------------------------
     def route(self, flats: Flats) -> list[np.ndarray]:
         return self._shape.route(flats)
@@ -206,11 +230,7 @@ class RemoteField:
         has not reported counts as sparse: more copies, the safe side)."""
         if not self.blends:  # one chart: nothing to judge
             return self._shape.copies(flats)
-        own: list[int | None] = [None] * len(self._shape.shards)
-        for s in self._statuses():
-            for c, n in zip(s["charts"], s.get("chart_own", ())):
-                own[c] = n
-        return self._shape.copies(flats, own=own)
+        return self._shape.copies(flats, own=self._chart_own())
 
     # -- the unit of length of a field whose first batch chooses it -----------------------
     # The upload room chooses it once, here, and stores it with the batch; the shard
@@ -225,12 +245,20 @@ class RemoteField:
     @property
     def unit_pending(self) -> bool:
         """The field's unit is still to be taken from its first batch."""
-        return bool(getattr(self._shape, "unit_pending", False))
+        return bool(self._shape.unit_pending)
 
-    #: (the upload room's test) a batch charted now may set the field's unit: the
-    #: definition has none yet (the front's definition holds no samples: unlike
-    #: an AtlasField's, its unit is fixed by the first batch in the log)
-    unit_from_data = unit_pending
+    @property
+    def unit_from_data(self) -> bool:
+        """(the upload room's test) a batch charted now may set the field's unit: the
+        definition has none yet (the front's definition holds no samples: unlike
+        an AtlasField's, its unit is fixed by the first batch in the log):
+        :attr:`unit_pending`."""
+        return self.unit_pending
+
+    @property
+    def unit(self) -> float | None:
+        """The definition's unit of length (None while pending, or for one chart)."""
+        return self._shape.unit
 
     def settle_unit(self, unit: float, *, if_empty: bool = False) -> bool:
         """Take ``unit`` (recorded with the field's first batch) while the field has

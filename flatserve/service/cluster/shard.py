@@ -335,9 +335,11 @@ class ShardWorker:
                     f"{self.position}, past {position}; retry the snapshot")
             self._await(position, max(0.0, end - time.monotonic()), "a snapshot")
             fld, known, stored = self.field, frozenset(known), 0
-            own = getattr(fld, "own_samples", None)
+            own = None
             parts, whole, tiles = [], None, []
-            if hasattr(fld, "chart_parts"):
+            # (the one place a shard asks its field's kind: how its snapshot is cut)
+            if fld.blends:  # an atlas field: a part per chart, with its own samples
+                own = fld.own_samples
                 for c in self.charts:
                     ((_, key, blob),) = fld.chart_parts([c], known)
                     if blob is not None:
@@ -364,7 +366,7 @@ class ShardWorker:
                 if whole not in known:
                     stored += self.storage.store_part(self.field_id, whole, blob)
                 del blob
-            unit = None if getattr(fld, "unit_pending", True) else fld.atlas.unit
+            unit = fld.unit
             return {"seq": self.seq, "parts": None if whole else parts, "whole": whole,
                     "tiles": tiles,
                     "unit": unit,
@@ -376,7 +378,7 @@ class ShardWorker:
         e = self._entry
         fld = None if e is None else e.field
         state, error = self._state()
-        own = getattr(fld, "own_samples", None) if fld is not None else None
+        own = fld.own_samples if fld is not None else None
         return {
             "field_id": self.field_id, "charts": list(self.charts), "state": state.value,
             "error": error, "through": self.through,

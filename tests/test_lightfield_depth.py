@@ -90,6 +90,25 @@ def test_plane_sweep_finds_the_scenes_depth(scene):
     assert np.mean(e <= 4 * max(steps)) > 0.7
 
 
+def test_a_plain_background_is_far(scene, sphere):
+    """Where many depths match (the background, 0 in every photograph) the farthest of them
+    is taken: mostly behind the rig's centre, not in front of the scene (the nearest tie
+    stood in front of the scene for every ray passing an object's edge)."""
+    cams, _, photos, rig = sphere
+    got = depth_map(7, cams, lambda j: photos[j], center=rig.center)
+    o, d = cams[7].rays()
+    miss = ~np.isfinite(scene.cast(o, d).t.reshape(got.shape))
+    near, far = sweep_range(cams[7], rig.center)
+    # pixels whose whole patch is background in this photograph
+    from scipy.ndimage import binary_erosion
+
+    deep = binary_erosion(miss, np.ones((7, 7)), border_value=1)
+    assert deep.sum() > 10
+    middle = np.linalg.norm(cams[7].eye - rig.center)
+    # (the nearest tie: a median of 2.66 here, some at 1.99, in front of the scene's middle)
+    assert np.median(got[deep]) > middle and (got[deep] <= far + 1e-9).all(), (got[deep], middle)
+
+
 def test_depth_maps_read_a_frame_and_its_neighbours_only(sphere):
     cams, _, photos, rig = sphere
     asked = []

@@ -63,7 +63,7 @@ BEST = 2
 #: Longest image side :func:`depth_map` works at (larger photographs are sampled down).
 MVS_SIDE = 256
 #: A camera sees a point when its ray's depth there is within this share of its distance.
-VISIBILITY_TOL = 0.05
+VISIBILITY_TOL = 0.1
 #: Cameras a novel ray's depth is checked against and its colour drawn from.
 CANDIDATES = 6
 #: Of the visible :data:`CANDIDATES`, the colours of this many nearest by angle are blended.
@@ -263,8 +263,11 @@ def depth_map(index: int, cameras: Sequence[PinholeCamera], image_of: Callable[[
         per.sort(axis=0)
         cost[k] = per[:keep].mean(axis=0)
     # rounded before the least is taken: the same capture read from either format (poses that
-    # differ by rounding) picks the same depths where costs tie (a plain background)
-    depth = ts[np.round(cost, COST_DIGITS).argmin(axis=0)]
+    # differ by rounding) picks the same depths where costs tie; a tie (a plain background,
+    # where every depth matches) takes the farthest depth, as a background is far: a near one
+    # would stand in front of the scene for every ray that passes the object's edge
+    rounded = np.round(cost, COST_DIGITS)
+    depth = ts[planes - 1 - rounded[::-1].argmin(axis=0)]
     if (h, w) == (cam.height, cam.width):
         return depth
     rows = np.minimum(np.arange(cam.height) // f, h - 1)

@@ -18,6 +18,10 @@ import sys
 import time
 
 
+#: Starts of a server whose free port was taken before it bound it (:meth:`ServerProcess.wait_ready`).
+PORT_TRIES = 3
+
+
 def free_port(host: str = "127.0.0.1") -> int:
     """A TCP port that is free on ``host`` right now."""
     with socket.socket() as s:
@@ -52,31 +56,53 @@ class ServerProcess:
 
     def __init__(self, data_dir, log_path, *, log_level: str = "info",
                  command: list[str] | None = None, cwd=None, **options):
+        self._args = [*(command or [sys.executable, "-m", "flatserve.service"])]
+        self._rest = ["--data-dir", str(data_dir), "--log-level", log_level]
+        for k, v in options.items():
+            self._rest += [f"--{k.replace('_', '-')}", str(v)]
+        self._fds = (options["lock_fd"],) if options.get("lock_fd") is not None else ()
+        self._cwd = cwd
+        self.log_path = log_path
+        self.log = open(log_path, "ab")
+        self._spawn()
+
+    def _spawn(self) -> None:
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        cmd = [*(command or [sys.executable, "-m", "flatserve.service"]), "--port", str(self.port),
-               "--data-dir", str(data_dir), "--log-level", log_level]
-        for k, v in options.items():
-            cmd += [f"--{k.replace('_', '-')}", str(v)]
-        self.log = open(log_path, "ab")
-        fds = (options["lock_fd"],) if options.get("lock_fd") is not None else ()
-        self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=subprocess.STDOUT,
-                                     start_new_session=True, pass_fds=fds, cwd=cwd)
+        self._log_from = self.log.tell()
+        self.proc = subprocess.Popen([*self._args, "--port", str(self.port), *self._rest], stdout=self.log,
+                                     stderr=subprocess.STDOUT, start_new_session=True, pass_fds=self._fds,
+                                     cwd=self._cwd)
+
+    def _port_was_taken(self) -> bool:
+        """The process exited because its port was taken between :func:`free_port`
+        and its bind (another process took it: a Ray node's, a parallel test's)."""
+        with open(self.log_path, "rb") as fh:
+            fh.seek(self._log_from)
+            return b"address already in use" in fh.read()
 
     def wait_ready(self, timeout: float = 90.0, interval: float = 0.05) -> None:
         """Wait until ``/readyz`` says ready; RuntimeError if the process exits,
-        TimeoutError after ``timeout`` seconds."""
+        TimeoutError after ``timeout`` seconds. A process that exits because its
+        free port was taken before it bound it is started again on another one (at
+        most :data:`PORT_TRIES` times): ``port`` and ``url`` are then the new ones."""
         from flatserve.client import Client
 
-        with Client(self.url, retries=0, timeout=5) as c:
-            end = time.monotonic() + timeout
-            while time.monotonic() < end:
-                if self.proc.poll() is not None:
-                    raise RuntimeError(f"server exited with status {self.proc.returncode}")
-                if c.ready():
-                    return
-                time.sleep(interval)
-        raise TimeoutError(f"server not ready after {timeout} s")
+        end = time.monotonic() + timeout
+        for attempt in range(PORT_TRIES):
+            with Client(self.url, retries=0, timeout=5) as c:
+                while time.monotonic() < end:
+                    if self.proc.poll() is not None:
+                        break
+                    if c.ready():
+                        return
+                    time.sleep(interval)
+                else:
+                    raise TimeoutError(f"server not ready after {timeout} s")
+            if attempt + 1 == PORT_TRIES or not self._port_was_taken():
+                raise RuntimeError(f"server exited with status {self.proc.returncode}")
+            self._spawn()
+        raise AssertionError("unreachable")
 
     def kill9(self) -> None:
         """``kill -9`` the process and its process group (replicas of ``processes``)

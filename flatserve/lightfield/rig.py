@@ -113,6 +113,14 @@ def rig_center(cameras: Sequence[PinholeCamera]) -> np.ndarray:
     return np.linalg.pinv(Q.sum(axis=0)) @ np.einsum("nij,nj->i", Q, e)
 
 
+def _neighbour_turns(u: np.ndarray) -> np.ndarray:
+    """Per camera, the angle (radians) to the nearest other camera, for unit directions
+    ``u`` (m, 3) from the rig's centre to the eyes."""
+    cos = np.clip(u @ u.T, -1.0, 1.0)
+    np.fill_diagonal(cos, -2.0)  # not a camera's own neighbour
+    return np.arccos(np.clip(cos.max(axis=1), -1.0, 1.0))
+
+
 def rig_unit(cameras: Sequence[PinholeCamera], center=None) -> float | None:
     """The unit of length for a field of a rig's rays: a pixel's shift over a camera's turn.
 
@@ -158,10 +166,7 @@ def rig_unit(cameras: Sequence[PinholeCamera], center=None) -> float | None:
     # a centre behind a camera is not what the rig looks at
     if len(cams) < 2 or not (dist > 0).all() or (np.einsum("ij,ij->i", -e, f) <= 0).any():
         return None
-    u = e / dist[:, None]
-    cos = np.clip(u @ u.T, -1.0, 1.0)
-    np.fill_diagonal(cos, -2.0)  # not a camera's own neighbour
-    turn = np.arccos(np.clip(cos.max(axis=1), -1.0, 1.0))
+    turn = _neighbour_turns(e / dist[:, None])
     focal = np.array([0.5 * (cam.fx + cam.fy) for cam in cams])
     t = float(np.median(turn))
     if not (math.isfinite(t) and t > 1e-9):
@@ -288,10 +293,7 @@ def rig_spacing_deg(cameras: Sequence[PinholeCamera], center=None) -> float:
     n = np.linalg.norm(e, axis=1)
     if not (n > 0).all():
         return 0.0
-    u = e / n[:, None]
-    cos = np.clip(u @ u.T, -1.0, 1.0)
-    np.fill_diagonal(cos, -2.0)
-    return float(np.degrees(np.median(np.arccos(np.clip(cos.max(axis=1), -1.0, 1.0)))))
+    return float(np.degrees(np.median(_neighbour_turns(e / n[:, None]))))
 
 
 def wants_depth(cameras: Sequence[PinholeCamera], sparse_deg: float = SPARSE_DEG) -> bool:

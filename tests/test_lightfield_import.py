@@ -216,23 +216,29 @@ def test_either_format_stores_the_same_rays(imported, client):
     np.testing.assert_array_equal(a["values"], b["values"])
 
 
+class _Stop(Exception):
+    """An import's progress callback cutting it off (an interruption)."""
+
+
+def _stop_after(n: int, ticks: list):
+    """A progress callback recording its calls in ``ticks`` that raises :class:`_Stop` at the ``n``-th."""
+    def progress(done, total):
+        ticks.append((done, total))
+        if len(ticks) == n:
+            raise _Stop
+    return progress
+
+
 def test_an_interrupted_import_resumes_without_storing_twice(server, captures, client):
     cap = training(captures, "nerf")
     n = cap.nrays(2)
     per_batch = 2 * (WIDTH // 2) * (HEIGHT // 2)
     nbatches = -(-(len(RIG) - 1) // 2)
     ticks = []
-
-    class Stop(Exception):
-        pass
-
-    def stop_after_two(done, total):
-        ticks.append((done, total))
-        if len(ticks) == 2:
-            raise Stop
+    stop_after_two = _stop_after(2, ticks)
 
     kw = dict(stride=2, holdout=[HELD], batch_rays=RESUME_BATCH)
-    with pytest.raises(Stop):
+    with pytest.raises(_Stop):
         client.import_capture("resumed", captures["nerf"], progress=stop_after_two, **kw)
     assert ticks == [(per_batch, n), (2 * per_batch, n)]
     assert client.describe("resumed")["nsamples"] == 2 * per_batch
@@ -749,17 +755,10 @@ def test_an_interrupted_import_with_depth_resumes_without_storing_twice(server, 
     per_batch = (SPHERE_RESUME_BATCH // per_frame) * per_frame
     nbatches = -(-n // per_batch)
     ticks = []
-
-    class Stop(Exception):
-        pass
-
-    def stop_after_two(done, total):
-        ticks.append((done, total))
-        if len(ticks) == 2:
-            raise Stop
+    stop_after_two = _stop_after(2, ticks)
 
     kw = dict(stride=SPHERE_RESUME_STRIDE, batch_rays=SPHERE_RESUME_BATCH)
-    with pytest.raises(Stop):
+    with pytest.raises(_Stop):
         client.import_capture("sphere-resumed", sphere["nerf"], progress=stop_after_two, **kw)
     assert ticks == [(per_batch, n), (2 * per_batch, n)]
     info = client.describe("sphere-resumed")

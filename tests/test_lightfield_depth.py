@@ -7,18 +7,17 @@ import math
 import numpy as np
 import pytest
 
-from flatserve.atlas_field import AtlasField
 from flatserve.cli import main as cli_main
 from flatserve.errors import InvalidInputError
 from flatserve.flats import Flats
 from flatserve.lightfield import capture as capture_module
 from flatserve.lightfield.camera import PinholeCamera
 from flatserve.lightfield.capture import capture_batches, field_options, read_capture, write_nerf
-from flatserve.lightfield.capture_figure import photograph, synthetic_rig
+from flatserve.lightfield.capture_figure import capture_depth, capture_field, photograph, synthetic_rig
 from flatserve.lightfield.depth import (DEPTH_PLANES, depth_map, depth_values, guided_values, render_guided,
                                         sweep_range)
 from flatserve.lightfield.render import render_field
-from flatserve.lightfield.rig import (DepthRig, capture_atlas, depth_rig, field_spec, rig_spacing_deg,
+from flatserve.lightfield.rig import (DepthRig, depth_rig, field_spec, rig_spacing_deg,
                                       wants_depth)
 from flatserve.lightfield.sampling import blocks_scene
 
@@ -119,14 +118,11 @@ def test_depth_maps_read_a_frame_and_its_neighbours_only(sphere):
 
 
 def _field(cams, photos, rig, scene):
+    """The field the importer makes of the rig (colour and depth channel)."""
     o = np.concatenate([c.rays()[0] for c in cams])
     d = np.concatenate([c.rays()[1] for c in cams])
     v = np.concatenate([scene.shade(*c.rays()) for c in cams])
-    t = np.concatenate([depth_map(i, cams, lambda j: photos[j], center=rig.center).reshape(-1)
-                        for i in range(len(cams))])
-    field = AtlasField(capture_atlas(cams), channels=2)
-    field.add(Flats.from_rays(o, d), np.c_[v, depth_values(o, d, t, rig.center)])
-    field.settle()
+    field, _ = capture_field(cams, o, d, np.c_[v, capture_depth(cams, photos, o, d, rig)])
     return field
 
 

@@ -146,8 +146,9 @@ def capture_depth(cameras, photographs, origins, directions, rig) -> np.ndarray:
     """
     from .depth import depth_map, depth_values
 
-    t = np.concatenate([depth_map(i, cameras, lambda j: photographs[j], center=rig.center).reshape(-1)
-                        for i in range(len(cameras))])
+    views: dict = {}  # each photograph's small grey view made once, not once per neighbour
+    t = np.concatenate([depth_map(i, cameras, lambda j: photographs[j], center=rig.center,
+                                  views=views).reshape(-1) for i in range(len(cameras))])
     return depth_values(origins, directions, t, rig.center)[:, None]
 
 

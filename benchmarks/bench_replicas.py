@@ -39,7 +39,7 @@ from bench_service import paper_rays, small_queries_wrk
 import timing  # noqa: F401  (first: the repository root on sys.path, for tests.harness)
 from flatserve.client import Client
 from flatserve.field import Field
-from flatserve.service import specs
+from flatserve.service.rooms import specs
 from tests.harness.process import ServerProcess
 from flatserve.service.server import limit_blas_threads
 
@@ -57,7 +57,7 @@ class Group:
         self.data = os.path.join(tmp, "data")
         self.fd = None
         if database_url is None:
-            from flatserve.service.storage import lock_data_dir
+            from flatserve.service.log.storage import lock_data_dir
 
             self.fd = lock_data_dir(self.data)
         self.procs = []

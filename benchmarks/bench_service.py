@@ -40,7 +40,7 @@ from timing import median_time  # first: the repository root on sys.path (tests.
 from flatserve.client import Client
 from tests.harness.process import free_port
 from flatserve.field import Field
-from flatserve.service import specs
+from flatserve.service.rooms import specs
 from flatserve.service.server import limit_blas_threads
 
 #: The paper's single chart, as the in-process reference (a field without `basis` is

@@ -17,7 +17,7 @@ its own, pinned with ``taskset`` to its cores, interleaved, medians of
 
 ``--ray``: only the build and the queries of 2 tiles each in a Ray actor of its
 own, on the two worker nodes (1 CPU each) of a cluster on loopback (cluster
-mode's tiles: ``flatserve/service/cluster/tiles.py``; the building process keeps
+mode's tiles: ``flatserve/service/cluster/worker/tiles.py``; the building process keeps
 the bookkeeping and routes the exchange), against 2 tiles in one process and the
 unsplit field, on this machine's 2 cores; the answers checked equal (bits).
 
@@ -76,7 +76,7 @@ def one(side: int, tiles: int | str, cores: int, queries: int, out: str,
     if ray_address:
         import ray
 
-        from flatserve.service.cluster.tiles import RayTileHost
+        from flatserve.service.cluster.worker.tiles import RayTileHost
         from flatserve.service.settings import Settings
         from flatserve.tiles import hosting
 

@@ -51,7 +51,7 @@ def measure(k: int, d: int, n: int, seed: int = 0) -> dict:
     from flatserve.atlas import DEFAULT_UNIT, Atlas
     from flatserve.contract import new_field
     from flatserve.grassmann import haar_frames
-    from flatserve.service import specs
+    from flatserve.service.rooms import specs
 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()

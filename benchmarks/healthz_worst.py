@@ -23,7 +23,8 @@ import numpy as np
 
 import timing  # noqa: F401  (the repository root on sys.path, for tests.harness)
 from flatserve.client import Client
-from flatserve.service import Settings, codec
+from flatserve.service import Settings
+from flatserve.service.http import codec
 from tests.harness.process import ServerProcess
 
 MiB = 1 << 20

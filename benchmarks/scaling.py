@@ -45,7 +45,7 @@ def paper_rays(rng, n):
 
 def one(n: int, pg_url: str | None) -> dict:
     from flatserve import Basis, Field
-    from flatserve.service.blobs import pack_arrays
+    from flatserve.service.log.blobs import pack_arrays
 
     rng = np.random.default_rng(n)
     basis = Basis.around_axis(axis=2, scale=0.01)
@@ -87,8 +87,8 @@ def through_postgres(url: str, snap: Path, batches, n: int) -> dict:
     import psycopg
 
     from flatserve.field import Field
-    from flatserve.service.blobs import content_hash, pack_arrays
-    from flatserve.service.pgstorage import PostgresBackend
+    from flatserve.service.log.blobs import content_hash, pack_arrays
+    from flatserve.service.log.pgstorage import PostgresBackend
 
     be = PostgresBackend(url)
     be.check()

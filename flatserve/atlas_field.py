@@ -354,7 +354,7 @@ class AtlasField(FieldBase):
         own : sequence of (int or None), optional
             Per chart, its own samples (None: not known, sparse) instead of this
             field's: a field whose charts are held elsewhere
-            (:class:`flatserve.service.cluster.remote.RemoteField`).
+            (:class:`flatserve.service.cluster.front.remote.RemoteField`).
         """
         at = self.atlas
         n = at.check_flats(flats).n

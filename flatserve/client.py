@@ -1,7 +1,7 @@
 """Python client of the flatserve HTTP service: NumPy in, NumPy out.
 
 Bulk arrays travel as ``.npy`` / ``.npz`` bodies (see
-:mod:`flatserve.service.codec` for the layouts); JSON only for small documents.
+:mod:`flatserve.service.http.codec` for the layouts); JSON only for small documents.
 
 Example
 -------

@@ -403,7 +403,7 @@ def read_record(record) -> tuple[np.ndarray, np.ndarray, memoryview]:
 class TileHost:
     """Where a :class:`TiledTriangulation` keeps its tiles: this process (this
     class). A host that places tiles elsewhere (in cluster mode: a Ray actor per
-    tile, :mod:`flatserve.service.cluster.tiles`) returns objects with
+    tile, :mod:`flatserve.service.cluster.worker.tiles`) returns objects with
     :class:`Tile`'s methods and attributes ``npoints``, ``generation``,
     ``nchannels``, and may have its tiles store and read their own snapshot parts
     (:meth:`part`, :meth:`load_part`); :func:`hosting` makes it the host of the

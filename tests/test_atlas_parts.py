@@ -122,7 +122,7 @@ def test_damaged_or_missing_parts_are_snapshot_errors(field, tmp_path):
 
 
 def test_a_one_chart_field_writes_its_whole_file_and_no_parts(tmp_path):
-    from flatserve.service import specs
+    from flatserve.service.rooms import specs
 
     f = Field(specs.build_basis(None, 1, 3), channels=1)
     rng = np.random.default_rng(2)

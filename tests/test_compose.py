@@ -11,7 +11,7 @@ from pathlib import Path
 
 import yaml
 
-from flatserve.service.backend import backend_class
+from flatserve.service.log.backend import backend_class
 from flatserve.service.settings import Settings
 
 DOCKER = Path(__file__).resolve().parent.parent / "docker"

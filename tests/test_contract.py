@@ -70,7 +70,7 @@ def test_mypy_verifies_both_kinds_implement_the_protocol(tmp_path):
         from flatserve.atlas import Atlas
         from flatserve.atlas_field import AtlasField
         from flatserve.contract import SampledField, load_field, new_field
-        from flatserve.service.cluster.remote import RemoteField
+        from flatserve.service.cluster.front.remote import RemoteField
 
         one: SampledField = Field(Basis.around_axis())
         many: SampledField = AtlasField(Atlas.covering(1, 3))

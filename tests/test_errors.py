@@ -30,7 +30,7 @@ def test_status_of_walks_the_mro(exc, status):
 
 
 def test_service_uses_the_library_table():
-    from flatserve.service import errors as se
+    from flatserve.service.http import errors as se
     for cls in fe.HTTP_STATUS:
         assert se.status_of(cls("x")) == fe.HTTP_STATUS[cls]
     assert se.status_of(se.ApiError(415, "x")) == 415

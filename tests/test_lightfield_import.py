@@ -451,7 +451,7 @@ def test_the_client_names_a_bad_pose(imported, client):
 def test_a_photographs_pose_renders_at_a_size_given(imported, server):
     """A frame larger than a render may be (a 4032 x 3024 photograph) renders at the body's
     size; without one it is a 422 naming the side and saying what to do."""
-    from flatserve.service.routes_lightfield import MAX_SIDE
+    from flatserve.service.http.routes_lightfield import MAX_SIDE
 
     big = HELD_CAMERA.scaled(4032, 3024)
     small = HELD_CAMERA.scaled(40, 30).to_colmap()
@@ -469,7 +469,7 @@ def test_a_photographs_pose_renders_at_a_size_given(imported, server):
 
 
 def test_a_pose_too_large_is_413(server):
-    from flatserve.service.routes_lightfield import MAX_SIDE
+    from flatserve.service.http.routes_lightfield import MAX_SIDE
 
     r = httpx.post(f"{server[0]}/v1/fields/nerf/render",
                    json=_colmap(width=MAX_SIDE, height=MAX_SIDE), timeout=WAIT_S)

@@ -9,13 +9,13 @@ from fastapi import FastAPI
 
 from .. import __version__
 from .status import BodyTooLargeError
-from . import docs, errors
-from .fastpath import FastQueryMiddleware
+from .http import docs, errors
+from .http.fastpath import FastQueryMiddleware
 from .logs import AccessLogMiddleware
-from .guard import RequestGuardMiddleware
-from .metrics import Metrics, MetricsMiddleware
-from .rooms import Rooms
-from .routes import api, health
+from .http.guard import RequestGuardMiddleware
+from .http.metrics import Metrics, MetricsMiddleware
+from .assembly import Rooms
+from .http.routes import api, health
 from .settings import Settings
 
 log = logging.getLogger("flatserve.service")
@@ -101,7 +101,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = Metrics(replica=settings.replica)
     app.state.metrics.watch(_EntriesOf(app))
-    from .routes_lightfield import lightfield_api, viewer  # light-field render + viewer page
+    from .http.routes_lightfield import lightfield_api, viewer  # light-field render + viewer page
     routers = (api, health, lightfield_api, viewer)
     errors.install(app, routers)
     for router in routers:
@@ -129,7 +129,7 @@ def _openapi(app: FastAPI):
     would have put them."""
     from fastapi.openapi.utils import get_openapi
 
-    from .deps import JSON_BODY_MODELS
+    from .http.deps import JSON_BODY_MODELS
 
     def openapi() -> dict:
         if app.openapi_schema is None:

@@ -24,8 +24,8 @@ from ..atlas import object_unit
 from .status import FieldExistsError, FieldNotFoundError
 from ..flats import Flats
 from ..lightfield.sampling import bunny_scene, orbit_samples
-from . import specs
-from .docs import DEMO_VIEWER_FIELD
+from .rooms import specs
+from .http.docs import DEMO_VIEWER_FIELD
 from .schemas import FieldCreate
 
 __all__ = ["DEMO_FIELD", "DEMO_SAMPLES", "DEMO_BATCH", "DEMO_REQUEST", "ensure_demo_field",
@@ -76,7 +76,7 @@ def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES
 
     Parameters
     ----------
-    rooms : flatserve.service.rooms.Rooms
+    rooms : flatserve.service.assembly.Rooms
         Must have started restoring (:meth:`~.rooms.Rooms.start`); this waits
         until it is ready.
     name : str
@@ -178,7 +178,7 @@ def start_demo_field(rooms, host: str, port: int, *, name: str = DEMO_FIELD,
 
     Parameters
     ----------
-    rooms : flatserve.service.rooms.Rooms
+    rooms : flatserve.service.assembly.Rooms
     host, port : the address the server listens on (for the URL)
     name, samples : see :func:`ensure_demo_field`
     announce : callable(str)

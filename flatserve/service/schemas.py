@@ -15,7 +15,7 @@ from ..atlas_field import FIT_MIN_ROWS
 from ..coordinates import REASONS
 from ..flats import FORMS, basis_size
 from ..options import Form
-from .catalogue import FieldState
+from .rooms.catalogue import FieldState
 from .settings import FIELD_NAME_PATTERN
 
 Vec = list[float]

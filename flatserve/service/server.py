@@ -66,7 +66,7 @@ def serve(settings: Settings | None = None, listen_fd: int | None = None) -> Non
     if host != settings.host and listen_fd is None:
         log.warning("no API key set: binding to %s instead of %s", host, settings.host)
     from .status import StorageError
-    from .backend import open_backend
+    from .log.backend import open_backend
 
     if settings.processes > 1 and listen_fd is None:
         from .supervisor import Supervisor
@@ -81,7 +81,7 @@ def serve(settings: Settings | None = None, listen_fd: int | None = None) -> Non
         log.debug("BLAS threads capped at %d (%s)", settings.blas_threads, how)
     pool = set_shard_threads(settings.shard_threads)
     log.debug("a field's shards on %d threads", pool.threads)
-    from .connections import connection_cap, guarded_protocol
+    from .http.connections import connection_cap, guarded_protocol
 
     try:  # refuse at once, with a clear message, rather than in the middle of start-up
         storage = open_backend(settings)

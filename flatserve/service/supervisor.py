@@ -28,7 +28,7 @@ import time
 from prometheus_client import multiprocess
 from pydantic import SecretStr
 
-from .metrics import MULTIPROC_ENV
+from .http.metrics import MULTIPROC_ENV
 from .settings import Settings
 
 log = logging.getLogger("flatserve.service")
@@ -126,7 +126,7 @@ class Supervisor:
         s = self.settings
         lock_fd = None
         if not s.database_url:
-            from .storage import SQLiteBackend, lock_data_dir
+            from .log.storage import SQLiteBackend, lock_data_dir
 
             lock_fd = lock_data_dir(s.data_dir)  # DataDirInUseError: refused as one server
             SQLiteBackend(s.data_dir, lock_fd=lock_fd).close()  # create / migrate once

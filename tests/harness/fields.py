@@ -11,7 +11,7 @@ from flatserve.atlas import Atlas
 from flatserve.atlas_field import AtlasField
 from flatserve.field import Field
 from flatserve.flats import Flats
-from flatserve.service import specs
+from flatserve.service.rooms import specs
 from flatserve.service.schemas import TangentSimplexBasis
 
 #: The paper's single chart: the tangent simplex around the z-axis, scale 0.01.

@@ -46,7 +46,7 @@ class ServerProcess:
     **options
         More settings as ``flatserve serve`` options (``snapshot_every=3000`` gives
         ``--snapshot-every 3000``). ``lock_fd`` (from
-        :func:`flatserve.service.storage.lock_data_dir`) is inherited: the process
+        :func:`flatserve.service.log.storage.lock_data_dir`) is inherited: the process
         joins that replica group on the data directory. ``processes=N``: N
         replica processes behind this one port (their supervisor is ``proc``).
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flatserve.service.backend import snapshot_lease
+from flatserve.service.log.backend import snapshot_lease
 from flatserve.service.status import StorageError
 from tests.harness.service import save_bytes
 
@@ -19,8 +19,8 @@ def check_clean_up_under_field_leases(be):
     Parameters
     ----------
     be
-        An open backend (:class:`~flatserve.service.storage.SQLiteBackend` or
-        :class:`~flatserve.service.pgstorage.PostgresBackend`) with no field named
+        An open backend (:class:`~flatserve.service.log.storage.SQLiteBackend` or
+        :class:`~flatserve.service.log.pgstorage.PostgresBackend`) with no field named
         "held" or "free".
     """
     basis = {"Q": np.eye(3)[None].repeat(5, 0), "r": np.zeros((5, 3))}

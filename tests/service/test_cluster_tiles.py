@@ -1,4 +1,4 @@
-"""Tiles of a chart in Ray actors of their own (flatserve/service/cluster/tiles.py), on a
+"""Tiles of a chart in Ray actors of their own (flatserve/service/cluster/worker/tiles.py), on a
 REAL multi-node Ray cluster on loopback (tests/harness/raycluster.py).
 
 The oracle is the unsplit triangulation in this process: the tiled triangulation whose
@@ -17,8 +17,8 @@ import pytest
 
 from flatserve.contract import part_key
 from flatserve.errors import SnapshotError
-from flatserve.service.backend import open_backend
-from flatserve.service.cluster.tiles import RayTileHost, TileParts
+from flatserve.service.log.backend import open_backend
+from flatserve.service.cluster.worker.tiles import RayTileHost, TileParts
 from flatserve.service.settings import Settings
 from flatserve.service.status import ShardUnavailableError
 from flatserve.tiles import TiledTriangulation, hosting

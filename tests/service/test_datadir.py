@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from flatserve.service.status import DataDirInUseError
-from flatserve.service.storage import Storage
+from flatserve.service.log.storage import Storage
 from tests.harness.fields import paper_rays
 from tests.harness.process import ServerProcess
 from tests.harness.service import assert_data_dir_refused, started

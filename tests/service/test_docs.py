@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from flatserve.service import Settings, create_app
-from flatserve.service.docs import ASSETS_URL
+from flatserve.service.http.docs import ASSETS_URL
 from tests.harness.browser import chromium, serving, wait_for
 from tests.harness.process import free_port
 

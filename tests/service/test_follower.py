@@ -1,4 +1,4 @@
-"""The log follower's hold (``flatserve/service/replica.py``, ``Follower.held``): what a
+"""The log follower's hold (``flatserve/service/rooms/replica.py``, ``Follower.held``): what a
 cluster shard worker's snapshot parts rely on, on a log in memory (no storage).
 
 Oracle: the positions the applier was handed, in order, against the hold's position.
@@ -8,12 +8,12 @@ from __future__ import annotations
 import threading
 import time
 
-from flatserve.service.backend import LogEntry
-from flatserve.service.replica import Follower
+from flatserve.service.log.backend import LogEntry
+from flatserve.service.rooms.replica import Follower
 
 
 class MemoryLog:
-    """The part of :class:`~flatserve.service.backend.LogBackend` a follower reads."""
+    """The part of :class:`~flatserve.service.log.backend.LogBackend` a follower reads."""
 
     kind = "memory"
 

@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from flatserve.service import Settings
-from flatserve.service.guard import allowed_hosts, host_name
+from flatserve.service.http.guard import allowed_hosts, host_name
 from flatserve.service.supervisor import settings_env
 from tests.harness.fields import paper_rays
 

@@ -111,9 +111,9 @@ def circles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 def test_the_graph_sees_the_service_and_the_cluster_wing():
     g = import_graph()
-    assert "flatserve.service.applier" in g["flatserve.service.replica"]
+    assert "flatserve.service.rooms.applier" in g["flatserve.service.rooms.replica"]
     # a late import (inside a function) counts
-    assert "flatserve.service.cluster.fronts" in g["flatserve.service.homes"]
+    assert "flatserve.service.cluster.front.home" in g["flatserve.service.assembly"]
     # the extension is not a module of the package: no edge to the package itself
     assert "flatserve" not in g["flatserve._native"]
 
@@ -134,8 +134,8 @@ def test_mypy_checks_the_wire(tmp_path):
     a class that lacks one fails."""
     path = tmp_path / "check.py"
     path.write_text(textwrap.dedent("""
-        from flatserve.service.cluster.shard import ShardWorker
-        from flatserve.service.cluster.tiles import TileActor
+        from flatserve.service.cluster.worker.shard import ShardWorker
+        from flatserve.service.cluster.worker.tiles import TileActor
         from flatserve.service.cluster.wire import ShardCalls, TileCalls
 
 

@@ -1,4 +1,4 @@
-"""The PostgreSQL backend of the replica log (flatserve/service/pgstorage.py)
+"""The PostgreSQL backend of the replica log (flatserve/service/log/pgstorage.py)
 against a real PostgreSQL (a throwaway cluster, tests/conftest.py): the log's
 order under concurrent writers of two backends, idempotency across them,
 LISTEN/NOTIFY, snapshots as chunked rows, leases, and a restart of PostgreSQL
@@ -13,11 +13,11 @@ import psycopg
 import pytest
 
 from flatserve.service import status as fe
-from flatserve.service.backend import (KeyTakenError, SnapshotGoneError, open_backend,
+from flatserve.service.log.backend import (KeyTakenError, SnapshotGoneError, open_backend,
                                        snapshot_lease)
-from flatserve.service.blobs import pack_arrays, unpack_arrays
-from flatserve.service.pgsnapshots import CHUNK_BYTES
-from flatserve.service.pgstorage import PostgresBackend, redact
+from flatserve.service.log.blobs import pack_arrays, unpack_arrays
+from flatserve.service.log.pgsnapshots import CHUNK_BYTES
+from flatserve.service.log.pgstorage import PostgresBackend, redact
 from flatserve.service.settings import Settings
 from tests.harness.service import save_bytes
 from tests.harness.storage import check_clean_up_under_field_leases
@@ -257,7 +257,7 @@ def test_a_restart_of_postgresql_is_survived(own_pg_cluster):
     """Writes while PostgreSQL is down are refused with StorageUnavailableError (503
     with Retry-After); once it is back the same backend reads, writes and follows
     again, and every acknowledged batch is there."""
-    from flatserve.service.errors import error_response
+    from flatserve.service.http.errors import error_response
 
     url = own_pg_cluster.create_database("restart")
     a, b = PostgresBackend(url), PostgresBackend(url)
@@ -321,8 +321,8 @@ def test_staging_directories_of_dead_processes_are_removed_at_start(tmp_path):
     import sys
     import time
 
-    from flatserve.service.pgsnapshots import STAGE_ORPHAN_AGE
-    from flatserve.service.pgstorage import PostgresBackend
+    from flatserve.service.log.pgsnapshots import STAGE_ORPHAN_AGE
+    from flatserve.service.log.pgstorage import PostgresBackend
 
     holder = ("import fcntl, os, sys, time\n"
               "fd = os.open(sys.argv[1], os.O_RDWR)\n"

@@ -12,7 +12,7 @@ import httpx
 import numpy as np
 
 from flatserve import flats as flats_mod
-from flatserve.service import codec
+from flatserve.service.http import codec
 from tests.harness.fields import SINGLE, paper_rays
 from tests.harness.process import ServerProcess
 from tests.harness.service import running, started

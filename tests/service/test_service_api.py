@@ -15,7 +15,7 @@ from flatserve.client import Client, ServiceError
 from flatserve.coordinates import NO_SAMPLES, NOT_REPRESENTABLE, OK
 from flatserve.errors import InvalidInputError as InvalidError
 from flatserve.field import Field
-from flatserve.service import specs
+from flatserve.service.rooms import specs
 from flatserve.service.status import FieldExistsError as ConflictError
 from flatserve.service.status import FieldNotFoundError as NotFoundError
 from tests.harness.fields import KINDS, add_rays, paper_rays, query_rays

@@ -539,7 +539,7 @@ def test_a_field_stored_before_isometric_charts_restores_as_it_was_built(make_ap
     import json
     import sqlite3
 
-    from flatserve.service.storage import DB_NAME
+    from flatserve.service.log.storage import DB_NAME
 
     o, v = sphere_rays(rng, 1500, spread=0.5)
     val = line_values(o, v)

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from flatserve.service import applier as applier_mod
+from flatserve.service.rooms import applier as applier_mod
 from tests.harness.fields import SINGLE, paper_rays
 from tests.harness.service import started
 

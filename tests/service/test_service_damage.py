@@ -206,7 +206,7 @@ def test_file_descriptor_exhaustion_recovers(tmp_path):
     ((4096, 4096), 0, "4032 None"),
 ])
 def test_connection_cap_fits_the_open_files_limit(limits, requested, want):
-    code = ("from flatserve.service.connections import connection_cap\n"
+    code = ("from flatserve.service.http.connections import connection_cap\n"
             f"cap, note = connection_cap({requested})\nprint(cap, note)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, limits),

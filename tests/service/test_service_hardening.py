@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flatserve.service import errors
-from flatserve.service.sqlrules import Failure, storage_failure
+from flatserve.service.http import errors
+from flatserve.service.log.sqlrules import Failure, storage_failure
 from tests.harness.fields import paper_rays
 from tests.harness.service import started
 
@@ -72,7 +72,7 @@ def test_paths_with_control_characters_are_404(api, rng, suffix):
 
 
 def test_lean_path_pattern_matches_whole_paths():
-    from flatserve.service.fastpath import _PATH
+    from flatserve.service.http.fastpath import _PATH
 
     assert _PATH.fullmatch("/v1/fields/abc/query")
     assert not _PATH.fullmatch("/v1/fields/abc/query\n")
@@ -103,7 +103,7 @@ def test_a_killed_unreaped_lease_owner_is_dead():
     import sys
     import time
 
-    from flatserve.service.datadir import owner_dead
+    from flatserve.service.log.datadir import owner_dead
 
     p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     owner = f"{socket.gethostname()}:{p.pid}:abcd1234"

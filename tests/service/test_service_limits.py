@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from flatserve.service import applier as applier_mod
+from flatserve.service.rooms import applier as applier_mod
 from tests.harness.fields import KINDS, paper_rays
 from tests.harness.process import ServerProcess
 from tests.harness.service import started

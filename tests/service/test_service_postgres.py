@@ -21,7 +21,7 @@ import pytest
 
 from flatserve.client import Client, ServiceError
 from flatserve.field import Field
-from flatserve.service import specs
+from flatserve.service.rooms import specs
 from tests.harness.fields import ONE_CHART, paper_rays
 from tests.harness.process import ServerProcess
 from tests.harness.service import snapshot_soon
@@ -367,7 +367,7 @@ def test_a_database_outage_during_the_restore_is_waited_out(tmp_path, own_pg_clu
     from fastapi.testclient import TestClient
 
     from flatserve.service import Settings, create_app
-    from flatserve.service import applier as applier_mod
+    from flatserve.service.rooms import applier as applier_mod
 
     url = own_pg_cluster.create_database("outage")
 

@@ -18,11 +18,11 @@ import pytest
 
 from flatserve.client import Client
 from flatserve.field import Field
-from flatserve.service import specs
-from flatserve.service.backend import snapshot_lease
-from flatserve.service.blobs import content_hash, pack_arrays
+from flatserve.service.rooms import specs
+from flatserve.service.log.backend import snapshot_lease
+from flatserve.service.log.blobs import content_hash, pack_arrays
 from flatserve.service.status import FieldNotFoundError, NotReadyError
-from flatserve.service.storage import DB_NAME, lock_data_dir
+from flatserve.service.log.storage import DB_NAME, lock_data_dir
 from tests.harness.fields import DEFAULT, KINDS, ONE_CHART, add_rays, paper_rays, query_rays
 from tests.harness.process import ServerProcess, children, kill9_and_await_restart
 from tests.harness.service import (assert_data_dir_refused, started, upload_until_stopped,
@@ -145,7 +145,7 @@ def test_a_read_waits_a_bounded_time_for_a_position_then_503(make_app, rng, monk
     """A position not yet applied here: 503 with Retry-After after read_wait_timeout
     (the follower is held, as a replica behind would be); a position beyond the
     log's head was never returned by a write: 422 at once."""
-    from flatserve.service import applier as applier_mod
+    from flatserve.service.rooms import applier as applier_mod
 
     gate = threading.Event()
     monkeypatch.setattr(applier_mod.LogApplier, "_before_index",
@@ -297,7 +297,7 @@ def test_processes_2_share_one_port_and_one_data_dir(tmp_path, rng):
 def test_schema_2_data_dir_opens_with_every_batch(tmp_path, make_app, rng):
     """A data directory written before the log (schema 2) is migrated: the log is
     backfilled and every batch restored."""
-    from flatserve.service.storage import _SCHEMA_V2
+    from flatserve.service.log.storage import _SCHEMA_V2
 
     data = tmp_path / "data"
     data.mkdir()

@@ -1,6 +1,6 @@
 """A field's ``rig`` (the cameras of a capture with depth, :class:`~flatserve.service.schemas.RigSpec`):
 checked at create and wherever a stored definition is read (one check,
-:func:`flatserve.service.specs.rig_of`), stored with the field, described, kept by a
+:func:`flatserve.service.rooms.specs.rig_of`), stored with the field, described, kept by a
 restart, a replica applying the log and an export/import, and compared by a
 same-name create with ``exist_ok``.
 
@@ -18,7 +18,7 @@ import pytest
 
 from flatserve.service.schemas import MAX_RIG_EYES
 from flatserve.service.status import FieldExistsError
-from flatserve.service.storage import lock_data_dir
+from flatserve.service.log.storage import lock_data_dir
 from tests.harness.fields import paper_rays
 from tests.harness.service import started
 

@@ -20,7 +20,8 @@ from schemathesis.specs.openapi.checks import (content_type_conformance,
                                                status_code_conformance)
 
 from flatserve.client import Client
-from flatserve.service import Settings, create_app, docs
+from flatserve.service import Settings, create_app
+from flatserve.service.http import docs
 
 from tests.harness.fields import paper_rays
 

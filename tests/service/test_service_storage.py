@@ -223,7 +223,7 @@ def test_restore_never_goes_past_its_log_position_postgresql(make_app, rng, pg_u
 
 
 def _restore_to_its_position(app, rng, kind):
-    from flatserve.service import applier as applier_mod
+    from flatserve.service.rooms import applier as applier_mod
 
     tc, c = _started(app)
     try:
@@ -279,7 +279,7 @@ def test_a_stored_field_this_version_cannot_read_fails_alone(make_app, rng, tmp_
     failed_fields, its own requests get 503 naming the error, and it can be deleted."""
     import sqlite3
 
-    from flatserve.service.storage import DB_NAME
+    from flatserve.service.log.storage import DB_NAME
 
     tc, c = _started(make_app())
     try:
@@ -317,7 +317,7 @@ def test_a_stored_field_this_version_cannot_read_fails_alone(make_app, rng, tmp_
 
 
 def _open_at_once(data, fd, start, out):
-    from flatserve.service.storage import SQLiteBackend
+    from flatserve.service.log.storage import SQLiteBackend
 
     start.wait()
     try:
@@ -333,7 +333,7 @@ def test_replicas_opening_a_new_data_dir_at_once_all_open(tmp_path):
     with 'database is locked' (a replica of --processes N would exit)."""
     import multiprocessing as mp
 
-    from flatserve.service.storage import lock_data_dir
+    from flatserve.service.log.storage import lock_data_dir
 
     ctx = mp.get_context("fork")
     for rnd in range(20):
@@ -358,7 +358,7 @@ def test_sqlite_lease_renewal_and_a_snapshot_removed_before_it_is_pointed_at(tmp
     import time
 
     from flatserve.service.status import StorageError
-    from flatserve.service.storage import SQLiteBackend, lock_data_dir
+    from flatserve.service.log.storage import SQLiteBackend, lock_data_dir
 
     fd = lock_data_dir(tmp_path / "data")
     be = SQLiteBackend(tmp_path / "data", lock_fd=fd)
@@ -387,7 +387,7 @@ def test_sqlite_lease_renewal_and_a_snapshot_removed_before_it_is_pointed_at(tmp
 
 
 def test_sqlite_clean_up_takes_each_fields_lease(tmp_path):
-    from flatserve.service.storage import SQLiteBackend, lock_data_dir
+    from flatserve.service.log.storage import SQLiteBackend, lock_data_dir
 
     fd = lock_data_dir(tmp_path / "data")
     be = SQLiteBackend(tmp_path / "data", lock_fd=fd)

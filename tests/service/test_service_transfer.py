@@ -15,7 +15,7 @@ import pytest
 from flatserve.contract import expected_copies
 from flatserve.errors import InvalidInputError
 from flatserve.flats import Flats, to_parametric
-from flatserve.service.costs import cells_per_sample
+from flatserve.service.rooms.costs import cells_per_sample
 from flatserve.service.status import FieldExistsError
 
 from tests.harness.fields import ONE_CHART, paper_rays

@@ -12,9 +12,9 @@ from fastapi.testclient import TestClient
 from flatserve import flats
 from flatserve.client import Client
 from flatserve.field import Field
-from flatserve.service import applier as applier_mod
-from flatserve.service import rooms as rooms_mod
-from flatserve.service import specs
+from flatserve.service.rooms import applier as applier_mod
+from flatserve.service import assembly as rooms_mod
+from flatserve.service.rooms import specs
 from flatserve.service.status import NotReadyError
 from tests.harness.fields import DEFAULT, KINDS, add_rays, paper_rays, query_rays
 from tests.harness.service import started as _started

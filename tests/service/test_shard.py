@@ -1,4 +1,4 @@
-"""Shard workers (``flatserve/service/cluster/shard.py``) in this process, on a REAL
+"""Shard workers (``flatserve/service/cluster/worker/shard.py``) in this process, on a REAL
 PostgreSQL log, behind a front's :class:`RemoteField` with the groups called
 directly (no Ray: tests/service/test_cluster.py runs them as actors).
 
@@ -18,11 +18,11 @@ import pytest
 from flatserve.basis import Basis
 from flatserve.contract import POINTER_MAGIC, load_field
 from flatserve.flats import Flats
-from flatserve.service.backend import open_backend
+from flatserve.service.log.backend import open_backend
 from flatserve.service.cluster import wire
-from flatserve.service.cluster.remote import RemoteField
-from flatserve.service.cluster.shard import ShardWorker
-from flatserve.service.entry import FieldSpec
+from flatserve.service.cluster.front.remote import RemoteField
+from flatserve.service.cluster.worker.shard import ShardWorker
+from flatserve.service.rooms.entry import FieldSpec
 from flatserve.service.settings import Settings
 
 from tests.harness.fields import ONE_CHART, paper_rays
@@ -30,7 +30,7 @@ from tests.harness.service import started
 
 
 class LocalGroups:
-    """:class:`~flatserve.service.cluster.remote.ShardGroups` over workers of this
+    """:class:`~flatserve.service.cluster.front.remote.ShardGroups` over workers of this
     process, one copy per group."""
 
     def __init__(self, workers):
@@ -218,7 +218,7 @@ def test_store_part_stores_once(tmp_path, request, backend):
 
 
 class _OneWorker:
-    """:class:`~flatserve.service.cluster.remote.ShardGroups` of one group holding every
+    """:class:`~flatserve.service.cluster.front.remote.ShardGroups` of one group holding every
     chart of ``field`` (a library field), as a shard worker reports at batch ``seq``;
     the parts it stores land in ``store``."""
 
@@ -250,7 +250,7 @@ def test_a_shard_restored_after_the_first_batch_keeps_its_unit_and_samples(rng):
 
     from flatserve.atlas import Atlas
     from flatserve.atlas_field import AtlasField
-    from flatserve.service.units import adopt_unit
+    from flatserve.service.rooms.units import adopt_unit
 
     def batch(n):
         o, v = rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3))
@@ -294,7 +294,7 @@ def test_a_remote_fields_decisions_are_charted_when_read(rng):
     the rows its definition rejects are reported, as a local field reports them."""
     from flatserve.atlas import Atlas
     from flatserve.atlas_field import AtlasField
-    from flatserve.service.applier import decided
+    from flatserve.service.rooms.applier import decided
 
     n = 300
     v = rng.normal(size=(n, 3)) * [0.2, 0.2, 1.0]

@@ -1,4 +1,4 @@
-"""The rulebook of the SQL backends (flatserve/service/sqlrules.py, sqlschema.py),
+"""The rulebook of the SQL backends (flatserve/service/log/sqlrules.py, sqlschema.py),
 tested once over both: batch numbers, idempotency, deleting a field, pointing a
 field at a snapshot, responses, and the schema each dialect gets."""
 from __future__ import annotations
@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flatserve.service import sqlschema
+from flatserve.service.log import sqlschema
 from flatserve.service import status as fe
-from flatserve.service.backend import KeyTakenError
-from flatserve.service.blobs import pack_arrays
+from flatserve.service.log.backend import KeyTakenError
+from flatserve.service.log.blobs import pack_arrays
 from tests.harness.service import save_bytes
 
 BASIS = {"Q": np.eye(3)[None].repeat(5, 0), "r": np.zeros((5, 3))}
@@ -18,11 +18,11 @@ BASIS = {"Q": np.eye(3)[None].repeat(5, 0), "r": np.zeros((5, 3))}
 @pytest.fixture(params=["sqlite", "postgresql"])
 def backend(request, tmp_path):
     if request.param == "sqlite":
-        from flatserve.service.storage import SQLiteBackend
+        from flatserve.service.log.storage import SQLiteBackend
 
         be = SQLiteBackend(tmp_path / "data")
     else:
-        from flatserve.service.pgstorage import PostgresBackend
+        from flatserve.service.log.pgstorage import PostgresBackend
 
         be = PostgresBackend(request.getfixturevalue("pg_url"), tmp_dir=tmp_path)
     be.check()

@@ -8,7 +8,7 @@ from __future__ import annotations
 import threading
 import time
 
-from flatserve.service.log.backend import LogEntry
+from flatserve.service.log.rows import LogEntry
 from flatserve.service.rooms.replica import Follower
 
 

@@ -13,8 +13,8 @@ import psycopg
 import pytest
 
 from flatserve.service import status as fe
-from flatserve.service.log.backend import (KeyTakenError, SnapshotGoneError, open_backend,
-                                       snapshot_lease)
+from flatserve.service.log.backend import open_backend, snapshot_lease
+from flatserve.service.log.rows import KeyTakenError, SnapshotGoneError
 from flatserve.service.log.blobs import pack_arrays, unpack_arrays
 from flatserve.service.log.pgsnapshots import CHUNK_BYTES
 from flatserve.service.log.pgstorage import PostgresBackend, redact

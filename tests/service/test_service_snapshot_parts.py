@@ -170,7 +170,7 @@ def test_parts_are_read_when_asked_and_a_replaced_snapshot_is_gone(make_app, rng
     the same failure on the field's current snapshot is the load's own error."""
     from flatserve.contract import load_field, part_key
     from flatserve.errors import SnapshotError
-    from flatserve.service.log.backend import SnapshotGoneError
+    from flatserve.service.log.rows import SnapshotGoneError
 
     tc, c = started(make_app(**_opts(request, backend)))
     try:

@@ -8,7 +8,7 @@ import pytest
 
 from flatserve.service.log import sqlschema
 from flatserve.service import status as fe
-from flatserve.service.log.backend import KeyTakenError
+from flatserve.service.log.rows import KeyTakenError
 from flatserve.service.log.blobs import pack_arrays
 from tests.harness.service import save_bytes
 

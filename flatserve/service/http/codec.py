@@ -49,7 +49,7 @@ from ..logs import note
 from .errors import ApiError
 from .responses import model_body
 from ..rooms.specs import kind_of
-from ..schemas import QueryResponse
+from ..reports import QueryResponse
 
 NPY = "application/x-npy"
 NPZ = "application/x-npz"

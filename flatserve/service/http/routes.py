@@ -26,10 +26,10 @@ from .errors import (BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, FIELD_WR
 from ..logs import note
 from ..rooms.query import QueryParams, answer, server_timing
 from .responses import model_body
-from ..schemas import (MIN_POSITION_DESCRIPTION, BatchList, CoordinatesRequest,
-                      CoordinatesResult, FieldCreate, FieldInfo, FieldList, Health,
-                      ImportResult, Limits, ProjectRequest, ProjectResult, QueryBody,
-                      QueryResponse, SnapshotResult, UploadBody, UploadResult)
+from ..schemas import (MIN_POSITION_DESCRIPTION, CoordinatesRequest, FieldCreate, ProjectRequest,
+                       QueryBody, UploadBody)
+from ..reports import (BatchList, CoordinatesResult, FieldInfo, FieldList, Health, ImportResult,
+                       Limits, ProjectResult, QueryResponse, SnapshotResult, UploadResult)
 
 #: header carrying the log position of a write (uploads carry it in the body too)
 POSITION_HEADER = "Flatserve-Position"

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Callable, TypeVar
 
 from ...errors import SnapshotError
-from .backend import FieldRow, SnapshotGoneError, SnapshotInfo
+from .rows import FieldRow, SnapshotGoneError, SnapshotInfo
 from .sqlrules import snapshot_failure, snapshot_name
 from ..status import StorageError
 

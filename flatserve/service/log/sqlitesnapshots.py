@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Callable, TypeVar
 
 from ...errors import SnapshotError
-from .backend import FieldRow, SnapshotInfo
+from .rows import FieldRow, SnapshotInfo
 from .datadir import fsync_path
 from .sqlrules import snapshot_failure, snapshot_name
 from ..status import StorageError

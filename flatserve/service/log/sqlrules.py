@@ -41,7 +41,8 @@ from typing import Callable, TypeVar
 
 import numpy as np
 
-from .backend import BatchRow, FieldRow, KeyTakenError, LogBackend, LogEntry
+from .backend import LogBackend
+from .rows import BatchRow, FieldRow, KeyTakenError, LogEntry
 from .blobs import pack_arrays, unpack_arrays
 from ..status import (FieldExistsError, FieldNotFoundError, StorageError, StorageFullError,
                      StorageUnavailableError)

@@ -33,7 +33,8 @@ from ...errors import SnapshotError
 from ...field import AddResult, PreparedBatch
 from ...flats import Flats
 from ...tiles import TileHost, hosting
-from ..log.backend import FieldRow, LogBackend, LogEntry, SnapshotGoneError
+from ..log.backend import LogBackend
+from ..log.rows import FieldRow, LogEntry, SnapshotGoneError
 from ..log.blobs import split_batch
 from .catalogue import FieldCatalogue, FieldState
 from .entry import FieldEntry, FieldSpec, SampledField

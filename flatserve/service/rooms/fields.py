@@ -18,8 +18,8 @@ from .catalogue import FieldCatalogue
 from .costs import check_capacity
 from .entry import FieldEntry, FieldSpec
 from .replica import Follower
-from ..schemas import (AtlasInfo, BasisInfo, ChartCenter, ChartInfo, FieldInfo, FieldSummary,
-                      StorageInfo)
+from ..reports import (AtlasInfo, BasisInfo, ChartCenter, ChartInfo, FieldInfo, FieldSummary,
+                       StorageInfo)
 from ..settings import Settings
 from ..status import FieldNotFoundError, StorageError
 

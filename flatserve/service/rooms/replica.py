@@ -38,7 +38,8 @@ from typing import Iterator
 
 from ...field import AddResult, PreparedBatch
 from .applier import LogApplier, Stopped
-from ..log.backend import LogBackend, LogEntry
+from ..log.backend import LogBackend
+from ..log.rows import LogEntry
 from ..status import InvalidParameterError, NotReadyError, ReplicaBehindError, StorageError
 
 log = logging.getLogger("flatserve.service")

@@ -19,8 +19,9 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Iterator
 
-from ..schemas import SnapshotResult
-from ..log.backend import FieldRow, LogBackend, lease_owner, snapshot_lease
+from ..reports import SnapshotResult
+from ..log.backend import LogBackend, lease_owner, snapshot_lease
+from ..log.rows import FieldRow
 from .catalogue import FieldState
 from .entry import FieldEntry
 from ..settings import Settings

@@ -54,7 +54,7 @@ from ..binary import load_npz
 from .catalogue import FieldCatalogue
 from .entry import FieldEntry, FieldSpec
 from .fields import FieldService
-from ..schemas import ImportResult
+from ..reports import ImportResult
 from ..settings import FIELD_NAME_PATTERN, Settings
 from .specs import MAX_ATLAS_CENTERS
 from ..status import (BatchTooLargeError, FieldExistsError, FieldNotFoundError,

@@ -36,12 +36,13 @@ from ...contract import SampledField
 from ...field import AddResult, PreparedBatch
 from ...flats import Flats
 from .applier import stored_flats
-from ..log.backend import BatchRow, KeyTakenError, LogBackend
+from ..log.backend import LogBackend
+from ..log.rows import BatchRow, KeyTakenError
 from ..log.blobs import UNIT_ARRAY, content_hash, pack_arrays, split_batch
 from .costs import COST_MIN_SAMPLES, cells_per_sample
 from .entry import FieldEntry
 from .replica import Follower
-from ..schemas import BatchInfo, UploadResult
+from ..reports import BatchInfo, UploadResult
 from ..settings import Settings
 from ..status import (BacklogFullError, CostLimitError, CostPendingError, FieldNotFoundError,
                      IdempotencyConflictError, NotReadyError, StorageError)

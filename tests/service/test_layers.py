@@ -135,7 +135,7 @@ def test_mypy_checks_the_wire(tmp_path):
     path = tmp_path / "check.py"
     path.write_text(textwrap.dedent("""
         from flatserve.service.cluster.worker.shard import ShardWorker
-        from flatserve.service.cluster.worker.tiles import TileActor
+        from flatserve.service.cluster.worker.tile_actor import TileActor
         from flatserve.service.cluster.wire import ShardCalls, TileCalls
 
 

@@ -180,3 +180,15 @@ def one_machine(ray, settings) -> None:
             f"this machine ({here}), whose data directory {settings.data_dir} the shards read; "
             f"nodes at {', '.join(away)} are elsewhere: name a PostgreSQL database in "
             "database_url for a cluster of several machines")
+
+
+def rss_bytes() -> int:
+    """Resident memory of this process (``/proc/self/status``; 0 where unknown)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:  # pragma: no cover - not Linux
+        pass
+    return 0

@@ -11,13 +11,16 @@ back. A call is made by the functions of this module (:func:`query`,
 packed call's bytes are made and read here alone (:func:`pack`, :func:`unpack`).
 
 The tiles of a chart held in actors of their own are called through
-:class:`TileCalls` (:class:`~.tiles.TileActor` implements it).
+:class:`TileCalls` (:class:`~.worker.tile_actor.TileActor` implements it).
 """
 from __future__ import annotations
 
 import pickle
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import TYPE_CHECKING, Any, Callable, Protocol
+
+if TYPE_CHECKING:
+    from ...tiles import Tile
 
 
 class ShardCalls(Protocol):
@@ -101,8 +104,11 @@ def status() -> ShardCall:
 
 class TileCalls(Protocol):
     """What a shard worker calls on a tile held in an actor of its own
-    (:class:`~.tiles.TileActor`, standing for a :class:`flatserve.tiles.Tile`; a call that
-    changes the tile returns its ``(npoints, generation, nchannels)`` beside its result)."""
+    (:class:`~.worker.tile_actor.TileActor`, standing for a
+    :class:`flatserve.tiles.Tile`): the calls that change the tile return its
+    ``(npoints, generation, nchannels)`` beside their result; every read of the
+    tile is one function of it (``run(lambda t: t.take(local))``,
+    :class:`~.worker.tiles.RemoteTile`), typed against the tile's own methods."""
 
     def state(self) -> tuple[int, int, int]: ...
 
@@ -114,26 +120,6 @@ class TileCalls(Protocol):
 
     def insert(self, points, values, own: bool) -> tuple: ...
 
-    def take(self, local): ...
-
-    def own_flags(self): ...
-
-    def own_box(self): ...
-
-    def own_rows(self): ...
-
-    def conflicts(self, lo, hi, start, skip: int, where: dict): ...
-
-    def answer(self, q, outside, order, threads, everywhere: bool): ...
-
-    def locate(self, q, order, threads): ...
-
-    def within(self, q, radius, threads): ...
-
-    def count_cells(self) -> int: ...
-
-    def star_foreign(self) -> int: ...
-
-    def record(self, gid): ...
+    def run(self, read: Callable[["Tile"], Any]) -> Any: ...
 
     def node(self) -> dict: ...

@@ -51,6 +51,7 @@ from ...log.backend import LogBackend, open_backend
 from ...rooms.catalogue import FieldCatalogue, FieldState
 from ...rooms.replica import Follower
 from ...status import NotReadyError, ShardUnavailableError, StorageError
+from ..ray_env import rss_bytes
 
 log = logging.getLogger("flatserve.service.shard")
 
@@ -62,18 +63,6 @@ KEEP_DUPLICATES = 256
 class ShardAheadError(NotReadyError):
     """A snapshot asked a shard for its charts at a log position it has passed
     (the field's other shards are behind it): the snapshot is tried again later."""
-
-
-def rss_bytes() -> int:
-    """Resident memory of this process (``/proc/self/status``; 0 where unknown)."""
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:  # pragma: no cover - not Linux
-        pass
-    return 0
 
 
 class ShardWorker:

@@ -3,7 +3,7 @@
 In cluster mode a one-chart field made with ``tiles`` is held by one shard group
 (:mod:`.ray_shards`) whose worker keeps only the tiling's bookkeeping (global
 ids, owners, boxes); each tile (its triangulation, own points and halo) is a
-:class:`TileActor` of its own, placed by Ray's ``SPREAD`` strategy over the
+:class:`~.tile_actor.TileActor` of its own, placed by Ray's ``SPREAD`` strategy over the
 nodes with room (each reserves ``ray_shard_memory`` of its node's ``memory``).
 So a chart's memory and its inserts spread over as many nodes as it has tiles:
 
@@ -19,7 +19,7 @@ So a chart's memory and its inserts spread over as many nodes as it has tiles:
 * a query is answered by the tile whose box holds it (handed on once if its
   cell has no own vertex there), each tile's rows in one call;
 * a snapshot's part of a tile is that tile's record, serialised and stored by
-  its actor (:class:`TileParts`: the field's storage, opened in the actor's
+  its actor (:class:`~.tile_actor.TileParts`: the field's storage, opened in the actor's
   process); a restore has each new actor read its tile's part itself, at once:
   a tile's bytes never pass through the group's process, which sends and
   receives only the tile's global ids and own flags (9 bytes a point);
@@ -41,16 +41,17 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import threading
 import weakref
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable
 
 import numpy as np
 
 from ....tiles import Tile, TileHost
 from ...status import ShardUnavailableError
-from ..ray_env import machine_pin, node_cpus, node_id, nodes_with, ray_api, task_cause
+from ..ray_env import machine_pin, nodes_with, ray_api, task_cause
+from .tile_actor import TileActor, TileParts
 
 log = logging.getLogger("flatserve.service.cluster")
 
@@ -72,157 +73,24 @@ MAX_TILES = 64
 STATUS_WAIT_S = 2.0
 
 
-class TileParts:
-    """Where the tiles of one field store and read their snapshot parts: the
-    field's storage (:func:`~flatserve.service.log.backend.open_backend` of the
-    settings, as a shard worker opens it), opened in the process that uses it
-    for each part and closed again (a snapshot or a restore is rare; an open
-    backend per tile would hold a database connection per tile for good);
-    pickled as its settings and the field's id. Every node holding tiles must
-    reach the database (or, SQLite, the data directory).
-
-    Parameters
-    ----------
-    settings : Settings
-    field_id : int
-    """
-
-    def __init__(self, settings, field_id: int) -> None:
-        self.settings, self.field_id = settings, int(field_id)
-
-    def _backend(self):
-        from ...log.backend import open_backend
-
-        return contextlib.closing(open_backend(self.settings, follower=True))
-
-    def get(self, key: str) -> bytes:
-        """The part's bytes (:meth:`~flatserve.service.log.backend.LogBackend.read_part`)."""
-        with self._backend() as b:
-            return b.read_part(self.field_id, key)
-
-    def put(self, key: str, data: bytes) -> int:
-        """Store the part (:meth:`~flatserve.service.log.backend.LogBackend.store_part`):
-        bytes written, 0 if it was there."""
-        with self._backend() as b:
-            return b.store_part(self.field_id, key, data)
-
-
-class TileActor:
-    """A :class:`~flatserve.tiles.Tile` in a Ray actor (one process): empty at
-    first, loaded by :meth:`load` or :meth:`load_part` (so that a damaged part is
-    an error of the call, not the actor's death). A call that changes the tile
-    (``insert``, the loads) returns its ``(npoints, generation, nchannels)`` with
-    its result, so that the proxy (:class:`RemoteTile`) answers those without a
-    call. With ``parts``, it stores and reads its own snapshot parts."""
-
-    def __init__(self, ndim: int, threads: int | None, parts: TileParts | None = None) -> None:
-        from ....parallel import set_shard_threads
-
-        set_shard_threads(threads or node_cpus())
-        self.ndim = ndim
-        self.tile = Tile(ndim)
-        self.parts = parts
-
-    def state(self) -> tuple[int, int, int]:
-        t = self.tile
-        return t.npoints, t.generation, t.nchannels
-
-    def load(self, record):
-        """The tile from its record; its global ids, own flags and state."""
-        self.tile, gid, own = TileHost().load(self.ndim, record)
-        return gid, own, self.state()
-
-    def load_part(self, key: str, source: str, what: str):
-        """:meth:`load` of the part ``key``, read from the field's storage here."""
-        self.tile, gid, own = TileHost().load_part(self.ndim, key, self.parts.get, source, what)
-        return gid, own, self.state()
-
-    def store_part(self, gid, known) -> tuple[str, int]:
-        """Its record as a snapshot part, stored here unless ``known``: its key and
-        the bytes stored."""
-        key, blob = TileHost().part(self.tile, gid, known)
-        return key, 0 if blob is None else self.parts.put(key, blob)
-
-    def insert(self, points, values, own: bool):
-        return self.tile.insert(points, values, own), self.state()
-
-    # -- the tile's own methods (:class:`~flatserve.tiles.Tile`) ---------------------------
-    def take(self, local):
-        return self.tile.take(local)
-
-    def own_flags(self):
-        return self.tile.own_flags()
-
-    def own_box(self):
-        return self.tile.own_box()
-
-    def own_rows(self):
-        return self.tile.own_rows()
-
-    def conflicts(self, lo, hi, start, skip: int, where: dict):
-        return self.tile.conflicts(lo, hi, start, skip, **where)
-
-    def answer(self, q, outside, order, threads, everywhere: bool):
-        return self.tile.answer(q, outside, order, threads, everywhere)
-
-    def locate(self, q, order, threads):
-        return self.tile.locate(q, order, threads)
-
-    def within(self, q, radius, threads):
-        return self.tile.within(q, radius, threads)
-
-    def count_cells(self) -> int:
-        return self.tile.count_cells()
-
-    def star_foreign(self) -> int:
-        return self.tile.star_foreign()
-
-    def record(self, gid):
-        return self.tile.record(gid)
-
-    def node(self) -> dict:
-        from .shard import rss_bytes
-
-        return {"node": node_id(), "pid": os.getpid(),
-                "memory": rss_bytes(), "npoints": self.tile.npoints}
-
-
 class RemoteTile:
-    """A tile in a :class:`TileActor`, with :class:`~flatserve.tiles.Tile`'s methods
-    (made by :class:`RayTileHost`). The actor is started on the first call (an
-    empty tile that is never used costs nothing). Its ``npoints``, ``generation``
-    and ``nchannels`` are those the last insert (or the load) returned: only
-    those change them, and the tiled triangulation never runs one beside
-    another call that reads them."""
+    """A tile in a :class:`~.tile_actor.TileActor`, with :class:`~flatserve.tiles.Tile`'s
+    methods (made by :class:`RayTileHost`): each is one call of the actor's
+    (:class:`~..wire.TileCalls`), a read of the tile as a function of it
+    (:meth:`~.tile_actor.TileActor.run`). The actor is started on the first call that
+    needs it (an empty tile that is never used costs nothing: its reads answer
+    here). Its ``npoints``, ``generation`` and ``nchannels`` are those the last
+    insert (or the load) returned: only those change them, and the tiled
+    triangulation never runs one beside another call that reads them."""
 
     def __init__(self, host: "RayTileHost", ndim: int) -> None:
         self._host, self._ndim = host, ndim
         self._actor = None
         self.npoints = self.generation = self.nchannels = 0
 
-    def load(self, record) -> tuple[np.ndarray, np.ndarray]:
-        """Load the tile from its record (sent to the actor): its global ids and own
-        flags."""
-        gid, own, state = self._host.get(self._started().load.remote(bytes(record)))
-        self.npoints, self.generation, self.nchannels = state
-        return gid, own
-
-    def load_part(self, key: str, source: str, what: str) -> tuple[np.ndarray, np.ndarray]:
-        """Load the tile from its snapshot part, read by the actor: its global ids
-        and own flags."""
-        gid, own, state = self._host.get(self._started().load_part.remote(key, source, what))
-        self.npoints, self.generation, self.nchannels = state
-        return gid, own
-
-    def store_part(self, gid, known) -> tuple[str, int]:
-        """Its record stored by the actor as a snapshot part (unless ``known``): the
-        key and the bytes stored."""
-        return self._host.get(self._started().store_part.remote(
-            np.ascontiguousarray(gid, np.int64), frozenset(known)))
-
     @property
     def actor(self):
-        """The :class:`TileActor`'s handle (None: not started)."""
+        """The :class:`~.tile_actor.TileActor`'s handle (None: not started)."""
         return self._actor
 
     def _started(self):
@@ -230,60 +98,77 @@ class RemoteTile:
             self._actor = self._host.spawn(self._ndim)
         return self._actor
 
-    def insert(self, points, values, own: bool):
-        res, state = self._host.get(self._started().insert.remote(points, values, own))
-        self.npoints, self.generation, self.nchannels = state
+    def _changed(self, ref):
+        """The result of a call that changes the tile; its state kept."""
+        res, (self.npoints, self.generation, self.nchannels) = self._host.get(ref)
         return res
 
-    def take(self, local):
-        return self._host.get(self._started().take.remote(local))
+    def _run(self, read: Callable[[Tile], Any], timeout: float = TILE_CALL_TIMEOUT_S):
+        return self._host.get(self._started().run.remote(read), timeout)
 
+    def load(self, record) -> tuple[np.ndarray, np.ndarray]:
+        """Load the tile from its record (sent to the actor): its global ids and own
+        flags."""
+        return self._changed(self._started().load.remote(bytes(record)))
+
+    def load_part(self, key: str, source: str, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """Load the tile from its snapshot part, read by the actor: its global ids
+        and own flags."""
+        return self._changed(self._started().load_part.remote(key, source, what))
+
+    def store_part(self, gid, known) -> tuple[str, int]:
+        """Its record stored by the actor as a snapshot part (unless ``known``): the
+        key and the bytes stored."""
+        return self._host.get(self._started().store_part.remote(
+            np.ascontiguousarray(gid, np.int64), frozenset(known)))
+
+    def insert(self, points, values, own: bool):
+        return self._changed(self._started().insert.remote(points, values, own))
+
+    def take(self, local):
+        return self._run(lambda t: t.take(local))
+
+    def conflicts(self, lo, hi, start, skip: int, **where):
+        return self._run(lambda t: t.conflicts(lo, hi, start, skip, **where))
+
+    def answer(self, q, outside, order, threads, everywhere: bool):
+        return self._run(lambda t: t.answer(q, outside, order, threads, everywhere),
+                         QUERY_CALL_TIMEOUT_S)
+
+    def locate(self, q, order, threads):
+        return self._run(lambda t: t.locate(q, order, threads), QUERY_CALL_TIMEOUT_S)
+
+    # -- reads an empty tile answers here (no actor started) --------------------------------
     def own_flags(self):
-        if self._actor is None:
-            return np.empty(0, np.uint8)
-        return self._host.get(self._actor.own_flags.remote())
+        return np.empty(0, np.uint8) if self._actor is None else self._run(Tile.own_flags)
 
     def own_box(self):
-        return self._host.get(self._actor.own_box.remote()) if self._actor is not None else None
+        return None if self._actor is None else self._run(Tile.own_box)
 
     def own_rows(self):
         if self._actor is None:
             return np.empty(0, np.uint8), np.empty((0, self._ndim)), None
-        return self._host.get(self._actor.own_rows.remote())
-
-    def conflicts(self, lo, hi, start, skip: int, **where):
-        return self._host.get(self._started().conflicts.remote(lo, hi, start, skip, where))
-
-    def answer(self, q, outside, order, threads, everywhere: bool):
-        return self._host.get(self._started().answer.remote(q, outside, order, threads,
-                                                            everywhere), QUERY_CALL_TIMEOUT_S)
-
-    def locate(self, q, order, threads):
-        return self._host.get(self._started().locate.remote(q, order, threads),
-                              QUERY_CALL_TIMEOUT_S)
+        return self._run(Tile.own_rows)
 
     def within(self, q, radius, threads):
         if self._actor is None:
             return np.zeros(len(q), dtype=bool)
-        return self._host.get(self._actor.within.remote(q, radius, threads),
-                              QUERY_CALL_TIMEOUT_S)
+        return self._run(lambda t: t.within(q, radius, threads), QUERY_CALL_TIMEOUT_S)
 
     def count_cells(self) -> int:
-        return self._host.get(self._actor.count_cells.remote()) if self._actor is not None else 0
+        return 0 if self._actor is None else self._run(Tile.count_cells)
 
     def star_foreign(self) -> int:
-        if self._actor is None:
-            return 0
-        return self._host.get(self._actor.star_foreign.remote())
+        return 0 if self._actor is None else self._run(Tile.star_foreign)
 
     def record(self, gid):
         if self._actor is None:
             return Tile(self._ndim).record(gid)
-        return self._host.get(self._actor.record.remote(gid))
+        return self._run(lambda t: t.record(gid))
 
 
 class RayTileHost(TileHost):
-    """Tiles in :class:`TileActor` s on the Ray cluster this process is connected
+    """Tiles in :class:`~.tile_actor.TileActor` s on the Ray cluster this process is connected
     to (see the module doc).
 
     Parameters
@@ -333,7 +218,7 @@ class RayTileHost(TileHost):
         self._lock = threading.Lock()
 
     def spawn(self, ndim: int):
-        """A new, empty :class:`TileActor`, once it answers.
+        """A new, empty :class:`~.tile_actor.TileActor`, once it answers.
 
         Raises
         ------

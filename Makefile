@@ -7,6 +7,9 @@ SHELL := /bin/bash
 VENV   := .venv
 BIN    := $(VENV)/bin
 NATIVE := $(wildcard native/*.cpp native/*.hpp native/CMakeLists.txt)
+# The editable install maps each module of the package to its file when it is made:
+# a module added, moved or removed makes it anew (a stamp named by the list's hash).
+MODULES := $(BIN)/.modules-$(shell find flatserve -name '*.py' -not -path '*/__pycache__/*' | LC_ALL=C sort | md5sum | cut -c1-12)
 HOST   ?= 127.0.0.1
 PORT   ?= 8000
 DATA   ?= data
@@ -33,13 +36,16 @@ $(BIN)/.deps: pyproject.toml constraints.txt scripts/install-system-deps.sh
 # The package with the extras `make run` needs (pyproject.toml: the library
 # itself needs NumPy only).
 # -v: CMake's and ninja's lines ([3/12] Building CXX ...) while the extension compiles.
-$(BIN)/.built: $(BIN)/.deps $(NATIVE) pyproject.toml constraints.txt
+$(BIN)/.built: $(BIN)/.deps $(NATIVE) pyproject.toml constraints.txt $(MODULES)
 	@echo "==> flatserve, its C++ extension (CGAL: about 4 minutes on 2 cores) and the extras service, lightfield"
 	$(BIN)/python -m pip install -v --progress-bar off $(PIN) --no-build-isolation -e ".[service,lightfield]" \
 	    | grep --line-buffered -E '^\s*(\[[0-9]+/[0-9]+\]|-- (Build files|Configuring done)|Successfully|Collecting|Installing|ERROR|\*\*\*)'
 	touch $@
 
 build: $(BIN)/.built
+
+$(BIN)/.modules-%:
+	@mkdir -p $(BIN) && rm -f $(BIN)/.modules-* && touch $@
 
 # The type stub of the extension, generated from the built module and checked
 # in; tests/test_native.py fails when it differs from a fresh one (nanobind is

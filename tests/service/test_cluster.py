@@ -497,7 +497,7 @@ def test_copies_above_the_live_nodes_placed_as_far_as_they_go_and_answers_tell_t
 def test_a_group_is_placed_as_far_as_the_nodes_hold_its_copies():
     """``copies`` as far as the live nodes hold them, never fewer than 1: a definition
     stored with 0 (or fewer) copies never reaches the group's ordering as 0."""
-    from flatserve.service.cluster.front.ray_shards import placed_copies
+    from flatserve.service.cluster.front.placement import placed_copies
 
     assert [placed_copies(c, 3) for c in (1, 2, 3, 8, 1000)] == [1, 2, 3, 3, 3]
     assert [placed_copies(c, 3) for c in (0, -3)] == [1, 1]

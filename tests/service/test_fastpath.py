@@ -9,7 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from flatserve.client import Client
-from flatserve.service.rooms import query
+from flatserve.service.http import query
 from tests.harness.fields import KINDS, paper_rays
 
 # an unknown query parameter makes the fast path pass the request on to FastAPI

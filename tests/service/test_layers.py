@@ -164,3 +164,63 @@ def test_mypy_checks_the_wire(tmp_path):
     errors = [line for line in got.stdout.splitlines() if ": error:" in line]
     assert len(errors) == 1 and "check.py:23" in errors[0] and "parts" in got.stdout, \
         got.stdout
+
+
+SERVICE = ROOT / "service"
+#: the most modules directly in ``flatserve/service/`` (the rest are in its rooms by
+#: process: ``http/``, ``rooms/``, ``log/``, ``cluster/``)
+MAX_TOP_MODULES = 15
+#: the most lines of one service module
+MAX_MODULE_LINES = 600
+
+
+def test_the_service_is_laid_out_by_process():
+    top = sorted(p.name for p in SERVICE.glob("*.py"))
+    assert len(top) <= MAX_TOP_MODULES, top
+    for room in ("http", "rooms", "log", "cluster", "cluster/front", "cluster/worker"):
+        assert (SERVICE / room / "__init__.py").exists(), room
+
+
+def test_no_service_module_is_longer_than_the_cap():
+    long = {str(p.relative_to(ROOT)): n for p in SERVICE.rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert long == {}, long
+
+
+def calls_of(path: Path, name: str) -> int:
+    """Calls of a method or function named ``name`` in the module at ``path``."""
+    return sum(1 for node in ast.walk(ast.parse(path.read_text()))
+               if isinstance(node, ast.Call)
+               and getattr(node.func, "attr", getattr(node.func, "id", None)) == name)
+
+
+def test_one_service_module_reads_the_log():
+    """The follower reads the shared log (a shard worker runs the same follower); the
+    storage room only implements the reading."""
+    readers = sorted(str(p.relative_to(SERVICE)) for p in SERVICE.rglob("*.py")
+                     if "log" not in p.relative_to(SERVICE).parts[:1]
+                     and (calls_of(p, "read_log") or calls_of(p, "wait_for_change")))
+    assert readers == ["rooms/replica.py"], readers
+
+
+def test_no_call_between_processes_is_named_by_a_string():
+    """The cluster wing calls no method by a computed name (``getattr(actor, name)``):
+    every call between processes is a method of a Protocol (:mod:`..cluster.wire`)."""
+    found = []
+    for path in (SERVICE / "cluster").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Call) and getattr(node.func, "id", None) == "getattr"
+                    and not (len(node.args) > 1 and isinstance(node.args[1], ast.Constant))):
+                found.append(f"{path.name}:{node.lineno}")
+    assert found == [], found
+
+
+def test_a_worker_module_never_imports_the_front():
+    """What runs in actors (``cluster/worker``) needs nothing of what runs in a server
+    (``cluster/front``); a front makes actors of the worker's classes."""
+    g = import_graph()
+    worker = "flatserve.service.cluster.worker"
+    front = "flatserve.service.cluster.front"
+    wrong = {m: sorted(d for d in deps if d.startswith(front))
+             for m, deps in g.items() if m.startswith(worker)}
+    assert all(not v for v in wrong.values()), wrong

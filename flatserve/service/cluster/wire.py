@@ -1,11 +1,11 @@
 """The calls between a cluster front and its shard workers, as methods of a Protocol.
 
-A front (:class:`~.remote.RemoteField`) asks a shard group for what
+A front (:class:`~.front.remote.RemoteField`) asks a shard group for what
 :class:`ShardCalls` declares: a query's answers, a snapshot's parts, its
 status once a log position is applied, its status now. A
-:class:`~.shard.ShardWorker` implements them in its own process; the
-transport (:class:`~.ray_shards.RayGroups`: one live copy of each group, with
-failover) carries a :class:`ShardCall` to a worker's actor and its result
+:class:`~.worker.shard.ShardWorker` implements them in its own process; the
+transport (:mod:`.front.transport`, to one live copy of each group:
+:mod:`.front.failover`) carries a :class:`ShardCall` to a worker's actor and its result
 back. A call is made by the functions of this module (:func:`query`,
 :func:`parts`, :func:`applied`, :func:`status`), never by a method's name; a
 packed call's bytes are made and read here alone (:func:`pack`, :func:`unpack`).

@@ -19,7 +19,7 @@ from pydantic import ValidationError
 
 from . import errors
 from .deps import authorize, presented_key, read_body
-from ..rooms.query import QueryParams, answer
+from .query import QueryParams, answer
 from ..settings import FIELD_NAME_PATTERN
 
 log = logging.getLogger("flatserve.service")

@@ -24,7 +24,7 @@ from .deps import (AnyField, BodyDep, CatalogueDep, FieldNamePath, FieldsDep, Fo
 from .errors import (BODY_RESPONSES, COMMON_RESPONSES, FIELD_RESPONSES, FIELD_WRITE_RESPONSES,
                      GUARD_RESPONSES, UPLOAD_RESPONSES, WRITE_RESPONSES, ApiError)
 from ..logs import note
-from ..rooms.query import QueryParams, answer, server_timing
+from .query import QueryParams, answer, server_timing
 from .responses import model_body
 from ..schemas import (MIN_POSITION_DESCRIPTION, CoordinatesRequest, FieldCreate, ProjectRequest,
                        QueryBody, UploadBody)

@@ -55,10 +55,11 @@ from ...flats import MAX_ENTRY
 from ...options import Interpolant
 from ..status import BatchTooLargeError
 from . import codec
-from .deps import FieldNamePath, NoBody, ReadAccess, ReadyField, SettingsDep, json_body, json_body_doc
+from .deps import (FieldNamePath, NoBody, ReadAccess, ReadyField, SettingsDep, json_body,
+                   json_body_doc)
 from .errors import COMMON_RESPONSES, FIELD_RESPONSES
 from ..logs import note
-from ..rooms.query import server_timing
+from .query import server_timing
 
 __all__ = ["lightfield_api", "viewer", "CameraSpec", "NerfPose", "ColmapPose", "render_frame"]
 

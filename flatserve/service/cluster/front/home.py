@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from ...rooms.entry import FieldEntry
-from .ray_shards import RayCluster
+from .placement import RayCluster
 from .remote import RemoteField
 
 

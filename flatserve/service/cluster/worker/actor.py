@@ -1,6 +1,6 @@
 """A shard worker as a Ray actor: the one class of the cluster wing that runs in a
 shard's own process (the front's side, placement, calls and failover, is
-:mod:`.ray_shards`'s).
+:mod:`..front.placement`'s).
 
 :class:`ShardActor` holds a :class:`~.shard.ShardWorker` whose tiles (a field
 made with ``tiles``) live in actors of their own (:class:`~.tiles.RayTileHost`),
@@ -22,7 +22,7 @@ from ..wire import pack, unpack
 
 log = logging.getLogger("flatserve.service.cluster")
 
-#: seconds between two status rounds (a front's, :class:`~.ray_shards.RayCluster`;
+#: seconds between two status rounds (a front's, :class:`~..front.health.StatusRound`;
 #: an actor's look at where its tiles are)
 STATUS_EVERY_S = 1.0
 

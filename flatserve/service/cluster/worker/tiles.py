@@ -1,7 +1,7 @@
 """Tiles of a chart in Ray actors of their own: a :class:`~flatserve.tiles.TileHost`.
 
 In cluster mode a one-chart field made with ``tiles`` is held by one shard group
-(:mod:`.ray_shards`) whose worker keeps only the tiling's bookkeeping (global
+(:mod:`..front.placement`) whose worker keeps only the tiling's bookkeeping (global
 ids, owners, boxes); each tile (its triangulation, own points and halo) is a
 :class:`~.tile_actor.TileActor` of its own, placed by Ray's ``SPREAD`` strategy over the
 nodes with room (each reserves ``ray_shard_memory`` of its node's ``memory``).

@@ -1,0 +1,339 @@
+"""Shard workers as Ray actors, the front's side: where a field's shard groups live.
+
+Ray's own calls for connecting and for the nodes are :mod:`..ray_env`'s (the
+``cluster`` extra). :class:`RayCluster` is a front's connection to the
+cluster; :meth:`RayCluster.groups` gives a field's :class:`RayGroups` (a
+:class:`~.remote.ShardGroups`):
+
+* a field's charts are dealt round-robin into ``ray_shards`` groups (a
+  one-chart field: one group); each group has ``copies`` actors (the field's
+  spec) as far as the live nodes with room hold them, one a node
+  (:func:`placed_copies`: never more, never fewer than 1), named
+  ``field-<log>-<id>-g<group>-c<copy>`` in ``ray_namespace``
+  (``<log>``: :func:`log_tag`, the log's location), detached
+  (they outlive the front that made them: any front finds them by name) and
+  restarted by Ray wherever there is room when their node dies
+  (``max_restarts=-1``); a restarted actor restores itself
+  (:class:`~..worker.actor.ShardActor`, holding a
+  :class:`~..worker.shard.ShardWorker`);
+* each actor reserves ``ray_shard_memory`` bytes of its node's ``memory``
+  resource, so a node holds shards up to its budget, and inserts and answers
+  on as many threads as its node has CPUs (``shard_threads`` if set); the copies of a group are
+  placed on different nodes (a ``STRICT_SPREAD`` placement group), the groups
+  of a field spread over the nodes (``SPREAD``).
+
+The rest is in modules of their own: a call reaches a copy through
+:mod:`.transport` (a query as one pickled blob each way: Ray's cost of a small call
+grows with the objects it serialises; measured on 2 cores, four arguments and a list
+of results 1.8 ms a call, one blob each way 1.3 ms, a call of nothing 1.2 ms), on
+one live copy of each group with :mod:`.failover`; what is known of each copy, and
+the status round each second that learns it, is :mod:`.health`
+(:meth:`RayGroups.status` never waits for it; :meth:`RayGroups.refresh` asks at once,
+for describe; :meth:`RayGroups.applied` once a log position is applied, for an upload
+with ``wait=true``).
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import threading
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+from ...status import ShardUnavailableError
+from .. import wire
+from ..ray_env import connect, machine_pin, nodes_with, one_machine, ray_api
+from ..wire import ShardCall
+from ..worker.actor import ShardActor
+from . import failover
+from .health import GroupHealth, StatusRound
+from .transport import RayTransport
+
+log = logging.getLogger("flatserve.service.cluster")
+
+#: concurrent calls an actor takes (queries beside its log follower and snapshots)
+ACTOR_CONCURRENCY = 16
+
+
+def deal(ncharts: int, ngroups: int) -> list[tuple[int, ...]]:
+    """Charts dealt round-robin into at most ``ngroups`` groups (neighbouring charts,
+    which share their overlap's samples, go to different groups: the load is even).
+
+    >>> deal(5, 2)
+    [(0, 2, 4), (1, 3)]
+    """
+    n = max(1, min(ngroups, ncharts))
+    return [tuple(range(g, ncharts, n)) for g in range(n)]
+
+
+def log_tag(settings) -> str:
+    """Eight hex digits naming the log a front follows (PostgreSQL's host, port and
+    database; or the SQLite data directory's absolute path), in its actors' names:
+    two deployments sharing one Ray cluster and namespace never take each other's
+    actors for their own fields of the same id (detached actors outlive their
+    front, and fronts find them by name). Every front of a deployment names its
+    database alike (one set of actors per spelling of the host)."""
+    url = settings.database_url
+    if url:
+        u = urlsplit(url)
+        where = f"pg:{u.hostname}:{u.port}:{u.path}"
+    else:
+        where = f"sqlite:{Path(settings.data_dir).resolve()}"
+    return hashlib.sha256(where.encode()).hexdigest()[:8]
+
+
+class RayCluster:
+    """A front's connection to the Ray cluster holding the shards (see the module doc).
+
+    Parameters
+    ----------
+    settings : Settings
+        ``ray`` (the address), ``ray_namespace``, ``ray_shards``,
+        ``ray_shard_memory``, and what the workers need (``database_url``; unset:
+        SQLite in ``data_dir``, for a cluster whose nodes are all on this machine).
+
+    Raises
+    ------
+    ShardUnavailableError
+        The cluster cannot be reached (the message names the address), or, on
+        SQLite, has a node on another machine.
+    """
+
+    def __init__(self, settings) -> None:
+        connect(settings)
+        ray = ray_api()
+
+        self.ray = ray
+        if settings.database_url is None:  # SQLite: the workers read this data directory
+            settings = settings.model_copy(update={"data_dir": Path(settings.data_dir).resolve()})
+            one_machine(ray, settings)
+        self.settings = settings
+        #: resources each actor asks for beside its memory (SQLite: this machine's nodes)
+        self.pin = machine_pin(ray, settings)
+        self.log_tag = log_tag(settings)
+        self.address = settings.ray
+        self.transport = RayTransport(ray)
+        self.actor_class = ray.remote(ShardActor)
+        self._fields: dict[int, RayGroups] = {}
+        self._lock = threading.Lock()
+        self.status_round = StatusRound(ray, self.address, self._refreshers)
+        log.info("cluster mode: shards on the Ray cluster at %s (namespace %r)", self.address,
+                 settings.ray_namespace)
+
+    def no_room(self) -> str | None:
+        """Why a shard that runs nowhere cannot be placed now, or None when the live
+        nodes have room for one (:meth:`~.health.StatusRound.no_room`: a shard reserves
+        ``ray_shard_memory`` bytes of a node's ``memory``, :meth:`RayGroups._actor`)."""
+        need = {"memory": self.settings.ray_shard_memory, **self.pin}
+        return self.status_round.no_room(need, self.settings.ray_shard_memory)
+
+    def _refreshers(self) -> list:
+        with self._lock:
+            return [g.refresh for g in self._fields.values()]
+
+    # -- a field's groups ----------------------------------------------------------------
+    def groups(self, field_id: int, ncharts: int, copies: int) -> "RayGroups":
+        """The field's groups of actors, made unless they exist (any front may ask)."""
+        with self._lock:
+            g = self._fields.get(field_id)
+            if g is None:
+                g = self._fields[field_id] = RayGroups(self, field_id, ncharts, copies)
+            return g
+
+    def drop(self, field_id: int) -> None:
+        """The field was deleted: its actors and placement groups go."""
+        with self._lock:
+            g = self._fields.pop(field_id, None)
+        if g is not None:
+            g.kill()
+
+    def close(self) -> None:
+        self.status_round.close()
+
+
+def placed_copies(asked: int, room: int | None) -> int:
+    """How many copies of a shard group a front places: the field's ``copies``
+    (``asked``) as far as the cluster's live nodes with room for one (``room``;
+    None: unknown, as asked) hold them, one a node, and never fewer than 1 (a
+    stored definition asking 0 or fewer still gets its one copy).
+
+    >>> placed_copies(3, 2), placed_copies(8, 3), placed_copies(0, 3), placed_copies(2, 0)
+    (2, 3, 1, 1)
+    """
+    n = max(1, int(asked))
+    return n if room is None else max(1, min(n, int(room)))
+
+
+class RayGroups:
+    """One field's shard groups on the cluster (a :class:`~.remote.ShardGroups`).
+
+    A group has :func:`placed_copies` copies: the field's ``copies`` as far as the
+    live nodes with room hold them when its placement group is first made (every
+    front takes that count from the placement group then: the copies are
+    ``c0``-``c<n-1>`` everywhere). Describe's ``copies`` is the field's ``copies``
+    (what it asks) and ``live`` the copies that answered a status round or a call:
+    0 until one has (a copy is not counted live before it is heard from).
+    """
+
+    def __init__(self, cluster: RayCluster, field_id: int, ncharts: int, copies: int) -> None:
+        self.cluster = cluster
+        self.field_id = field_id
+        #: the copies the field's definition asks for (at least 1)
+        self.copies = max(1, int(copies))
+        s = cluster.settings
+        self.charts = deal(ncharts, s.ray_shards)
+        try:
+            room: int | None = len(nodes_with(cluster.ray, {"memory": s.ray_shard_memory,
+                                                            **cluster.pin}))
+        except Exception:  # pragma: no cover - the cluster unreachable: as asked
+            room = None
+        placed = placed_copies(copies, room)
+        if int(copies) < 1:
+            log.error("field %d: its definition asks for %r copies of each shard; placing 1",
+                      field_id, copies)
+        elif placed < self.copies:
+            log.warning("field %d asks for %d copies of each shard but %d live node(s) have "
+                        "room for one (ray_shard_memory %d bytes): %d placed (describe's "
+                        "shard_groups say how many are live)", field_id, self.copies, room,
+                        s.ray_shard_memory, placed)
+        self.actors = [self._copies(g, placed) for g in range(len(self.charts))]
+        self.transport = cluster.transport
+        #: what is known of each copy, and each group's newest report
+        self.health = GroupHealth([len(a) for a in self.actors])
+
+    def _name(self, g: int, j: int | None = None) -> str:
+        base = f"field-{self.cluster.log_tag}-{self.field_id}-g{g}"
+        return base if j is None else f"{base}-c{j}"
+
+    def _copies(self, g: int, placed: int) -> list:
+        """Group ``g``'s actors: ``placed`` of them, or as many as its placement group
+        (made by any front, earlier) has bundles; a field asking for several copies
+        has one, even when one copy is placed now."""
+        if self.copies == 1:
+            return [self._actor(g, 0, None)]
+        pg = self._placement(g, placed)
+        try:
+            n = max(1, int(pg.bundle_count))
+        except Exception:  # pragma: no cover - the cluster unreachable: as made here
+            n = placed
+        return [self._actor(g, j, pg) for j in range(n)]
+
+    def _placement(self, g: int, n: int):
+        """The group's placement group (``n`` bundles if made here): its copies on
+        different nodes."""
+        util = self.cluster.ray.util
+        get_placement_group, placement_group = util.get_placement_group, util.placement_group
+        name = self._name(g)
+        try:
+            return get_placement_group(name)
+        except ValueError:
+            pass
+        mem = self.cluster.settings.ray_shard_memory
+        try:
+            return placement_group([{"memory": mem, **self.cluster.pin}] * n,
+                                   strategy="STRICT_SPREAD",
+                                   name=name, lifetime="detached")
+        except Exception:  # made by another front meanwhile
+            return get_placement_group(name)
+
+    def _actor(self, g: int, j: int, pg):
+        s = self.cluster.settings
+        opts: dict[str, Any] = dict(
+            name=self._name(g, j), namespace=s.ray_namespace, lifetime="detached",
+            get_if_exists=True, max_restarts=-1, max_task_retries=0,
+            max_concurrency=ACTOR_CONCURRENCY, num_cpus=0, memory=s.ray_shard_memory)
+        if self.cluster.pin:  # (with copies, from its bundle, which holds as much)
+            opts["resources"] = dict(self.cluster.pin)
+        if pg is not None:
+            strategies = self.cluster.ray.util.scheduling_strategies
+            opts["scheduling_strategy"] = strategies.PlacementGroupSchedulingStrategy(
+                pg, placement_group_bundle_index=j)
+        else:
+            opts["scheduling_strategy"] = "SPREAD"
+        return self.cluster.actor_class.options(**opts).remote(s, self.field_id, self.charts[g])
+
+    def status(self) -> list[dict | None]:
+        return list(self.health.reports)
+
+    def placement(self) -> list[dict]:
+        """Per group: its charts, the copies the field asks for, the copies live (heard
+        from, ready: a copy not heard from yet is not counted), and the most advanced
+        copy's log position, samples, memory and restore source as it last reported
+        them (none yet: None)."""
+        out = []
+        h = self.health
+        why = self.cluster.no_room() if any(h.idle(g) for g in range(len(self.charts))) else None
+        for g, charts in enumerate(self.charts):
+            st = h.reports[g] or {}
+            out.append({"charts": list(charts), "copies": self.copies, "live": h.live(g),
+                        "unplaced": why if h.idle(g) else None,
+                        "position": st.get("through"),
+                        "samples": st.get("nsamples"), "memory": st.get("rss"),
+                        "node": st.get("node"), "restored_from": st.get("restored_from"),
+                        "tiles": st.get("tiles") or None})
+        return out
+
+    def refresh(self, timeout: float = 2.0) -> None:
+        """Ask every actor for its status (one round, at most ``timeout`` s)."""
+        self.health.refresh(self.cluster.ray, self.actors, self.transport.get, timeout)
+
+    def applied(self, position: int, timeout: float) -> list[dict]:
+        """Per group, the status of a copy once it has applied the log up to
+        ``position`` (asked now, one live copy of each group, with failover; each
+        group's report afterwards).
+
+        Raises
+        ------
+        ShardUnavailableError
+            A group has no copy there within ``timeout`` (restoring, behind, none live).
+        """
+        got = self.call({g: wire.applied(position, timeout) for g in range(len(self.charts))},
+                        timeout + 5.0)
+        for g, st in got.items():
+            self.health.note(g, st)
+        return [got[g] for g in range(len(self.charts))]
+
+    def call(self, calls: dict[int, ShardCall], timeout: float) -> dict[int, Any]:
+        """``{group: call}`` (:mod:`..wire`) on one live copy of each group, waited for
+        on this thread (:func:`.failover.call`)."""
+        return failover.call(self, calls, timeout)
+
+    async def call_async(self, calls: dict[int, ShardCall], timeout: float) -> dict[int, Any]:
+        """:meth:`call` awaited on the event loop (:func:`.failover.call_async`)."""
+        return await failover.call_async(self, calls, timeout)
+
+    # -- what failover asks (:class:`.failover.Copies`) --------------------------------------
+    def order(self, g: int) -> list[int]:
+        return self.health.order(g)
+
+    def actor(self, g: int, j: int):
+        return self.actors[g][j]
+
+    def mark(self, g: int, j: int, alive: bool) -> None:
+        self.health.mark(g, j, alive)
+
+    def unavailable(self, g: int, last: str) -> ShardUnavailableError:
+        head = (f"field {self.field_id}: shard group {g} (charts {list(self.charts[g])}) has no "
+                f"live copy of {len(self.actors[g])} now ({last})")
+        why = self.cluster.no_room() if self.health.idle(g) else None
+        if why is not None:
+            return ShardUnavailableError(f"{head}; it cannot be placed: {why}")
+        return ShardUnavailableError(f"{head}; its actors are restarted and restore themselves: "
+                                     "retry shortly")
+
+    def kill(self) -> None:
+        ray = self.cluster.ray
+        for copies in self.actors:
+            for a in copies:
+                try:
+                    ray.kill(a, no_restart=True)
+                except Exception:
+                    pass
+        if self.copies > 1:  # (a placement group per group: _copies)
+            util = ray.util
+            for g in range(len(self.charts)):
+                try:
+                    util.remove_placement_group(util.get_placement_group(self._name(g)))
+                except Exception:
+                    pass

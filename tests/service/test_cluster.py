@@ -542,6 +542,7 @@ def test_the_cluster_lost_while_running_503_then_a_front_restarted_on_the_new_cl
                 with pytest.raises(ServiceError) as err:
                     c.query_rays("f", probe[0][rows], probe[1][rows])
                 assert err.value.status == 503 and "no live copy" in str(err.value)
+                assert "field 'f'" in str(err.value)  # named as the client knows it
                 assert c.last_response.headers.get("retry-after")
             o, d = sphere_rays(rng, 300)  # the log still takes uploads (wait=false: no
             acked = c.upload_rays("f", o, d, rng.uniform(size=(300, 2)),  # shard has it)

@@ -1,4 +1,4 @@
-"""A front's home for fields whose shards live on a Ray cluster (see :mod:`..homes`)."""
+"""A front's home for fields whose shards live on a Ray cluster (see :mod:`flatserve.service.assembly`)."""
 from __future__ import annotations
 
 from ...rooms.entry import FieldEntry
@@ -25,7 +25,7 @@ class ClusterHome:
 
     def field(self, e: FieldEntry, built=None) -> RemoteField:
         shape = built if built is not None else e.spec.new_field(e.basis)
-        groups = self.cluster.groups(e.id, len(shape.shards), e.spec.copies)
+        groups = self.cluster.groups(e.id, len(shape.shards), e.spec.copies, e.name)
         return RemoteField(shape, groups, lambda: e.indexed_position,
                            self.settings.read_wait_timeout)
 

@@ -133,12 +133,13 @@ class RayCluster:
             return [g.refresh for g in self._fields.values()]
 
     # -- a field's groups ----------------------------------------------------------------
-    def groups(self, field_id: int, ncharts: int, copies: int) -> "RayGroups":
+    def groups(self, field_id: int, ncharts: int, copies: int,
+               name: str | None = None) -> "RayGroups":
         """The field's groups of actors, made unless they exist (any front may ask)."""
         with self._lock:
             g = self._fields.get(field_id)
             if g is None:
-                g = self._fields[field_id] = RayGroups(self, field_id, ncharts, copies)
+                g = self._fields[field_id] = RayGroups(self, field_id, ncharts, copies, name)
             return g
 
     def drop(self, field_id: int) -> None:
@@ -176,9 +177,12 @@ class RayGroups:
     0 until one has (a copy is not counted live before it is heard from).
     """
 
-    def __init__(self, cluster: RayCluster, field_id: int, ncharts: int, copies: int) -> None:
+    def __init__(self, cluster: RayCluster, field_id: int, ncharts: int, copies: int,
+                 name: str | None = None) -> None:
         self.cluster = cluster
         self.field_id = field_id
+        #: how errors name the field: its name (the actors are named by its id)
+        self.label = f"field {name!r}" if name is not None else f"field {field_id}"
         #: the copies the field's definition asks for (at least 1)
         self.copies = max(1, int(copies))
         s = cluster.settings
@@ -190,12 +194,12 @@ class RayGroups:
             room = None
         placed = placed_copies(copies, room)
         if int(copies) < 1:
-            log.error("field %d: its definition asks for %r copies of each shard; placing 1",
-                      field_id, copies)
+            log.error("%s: its definition asks for %r copies of each shard; placing 1",
+                      self.label, copies)
         elif placed < self.copies:
-            log.warning("field %d asks for %d copies of each shard but %d live node(s) have "
+            log.warning("%s asks for %d copies of each shard but %d live node(s) have "
                         "room for one (ray_shard_memory %d bytes): %d placed (describe's "
-                        "shard_groups say how many are live)", field_id, self.copies, room,
+                        "shard_groups say how many are live)", self.label, self.copies, room,
                         s.ray_shard_memory, placed)
         self.actors = [self._copies(g, placed) for g in range(len(self.charts))]
         self.transport = cluster.transport
@@ -314,7 +318,7 @@ class RayGroups:
         self.health.mark(g, j, alive)
 
     def unavailable(self, g: int, last: str) -> ShardUnavailableError:
-        head = (f"field {self.field_id}: shard group {g} (charts {list(self.charts[g])}) has no "
+        head = (f"{self.label}: shard group {g} (charts {list(self.charts[g])}) has no "
                 f"live copy of {len(self.actors[g])} now ({last})")
         why = self.cluster.no_room() if self.health.idle(g) else None
         if why is not None:

@@ -307,7 +307,7 @@ def depth_values(origins, directions, depth, center) -> np.ndarray:
 
 
 def _depth_back(o, d, s, c):
-    return s + np.einsum("ij,ij->i", c - o, d)
+    return s + np.einsum("...j,...j->...", c - o, d)
 
 
 def guided_values(query: Callable, origins, directions, rig: DepthRig, *, candidates: int = CANDIDATES,
@@ -401,28 +401,26 @@ def _nearest(eyes, p, d, K: int) -> np.ndarray:
 
 def _seen(query, o, d, p, nb, rig: DepthRig, tol: float, C: int):
     """Colours (n, K, C) of points ``p`` from cameras ``nb`` (NaN: not seen there), and per
-    camera where its ray through ``p`` says the surface is, as a depth along ``(o, d)``."""
+    camera where its ray through ``p`` says the surface is, as a depth along ``(o, d)``.
+    The ``n * K`` cameras' rays are asked of the field in one query."""
     n, K = nb.shape
-    cols = np.full((n, K, C), np.nan)
-    reach = np.full((n, K), np.nan)
-    for k in range(K):
-        e = rig.eyes[nb[:, k]]
-        ray = p - e
-        dist = np.linalg.norm(ray, axis=1)
-        away = dist > ON_EYE * np.maximum(np.linalg.norm(e - rig.center, axis=1), 1e-300)
-        # a point at the eye has no ray from it: not seen (the query's own direction is asked)
-        u = np.where(away[:, None], ray / np.where(away, dist, 1.0)[:, None], d)
-        vals, ok = query(e, u)
-        vals = np.asarray(vals, dtype=np.float64)
-        ok = np.asarray(ok, dtype=bool) & np.isfinite(vals).all(axis=1) & away
-        dep = np.where(ok, _depth_back(e, u, np.where(ok, vals[:, -1], 0.0), rig.center), np.nan)
-        # a camera whose eye the ray passes through sees the ray's own first surface
-        # whatever the depth (the unstructured lumigraph's epipole consistency)
-        through = np.einsum("ij,ij->i", u, d) > ON_RAY_COS
-        vis = ok & ((np.abs(dep - dist) < tol * dist) | through)
-        cols[:, k] = np.where(vis[:, None], vals[:, :-1], np.nan)
-        q = e + np.nan_to_num(dep)[:, None] * u
-        reach[:, k] = np.where(ok, np.einsum("ij,ij->i", q - o, d), np.nan)
+    e = rig.eyes[nb]  # (n, K, 3)
+    ray = p[:, None, :] - e
+    dist = np.linalg.norm(ray, axis=2)
+    away = dist > ON_EYE * np.maximum(np.linalg.norm(e - rig.center, axis=2), 1e-300)
+    # a point at the eye has no ray from it: not seen (the query's own direction is asked)
+    u = np.where(away[:, :, None], ray / np.where(away, dist, 1.0)[:, :, None], d[:, None, :])
+    vals, ok = query(e.reshape(-1, 3), u.reshape(-1, 3))
+    vals = np.asarray(vals, dtype=np.float64).reshape(n, K, -1)
+    ok = np.asarray(ok, dtype=bool).reshape(n, K) & np.isfinite(vals).all(axis=2) & away
+    dep = np.where(ok, _depth_back(e, u, np.where(ok, vals[:, :, -1], 0.0), rig.center), np.nan)
+    # a camera whose eye the ray passes through sees the ray's own first surface
+    # whatever the depth (the unstructured lumigraph's epipole consistency)
+    through = np.einsum("nkj,nj->nk", u, d) > ON_RAY_COS
+    vis = ok & ((np.abs(dep - dist) < tol * dist) | through)
+    cols = np.where(vis[:, :, None], vals[:, :, :-1], np.nan)
+    q = e + np.nan_to_num(dep)[:, :, None] * u
+    reach = np.where(ok, np.einsum("nkj,nj->nk", q - o[:, None, :], d), np.nan)
     return cols, reach
 
 
@@ -455,14 +453,21 @@ def _choose(query, o, d, rig: DepthRig, K: int, tol: float):
     T = np.concatenate([t0[:, None], np.where(np.isfinite(reach) & (reach > 0), reach, t0[:, None])], axis=1)
     best_cost, best_t = np.full(m, np.inf), t0.copy()
     same = SAME_DEPTH * np.abs(T)
-    for c in range(T.shape[1]):
-        # a candidate within SAME_DEPTH of one already tried is that one (not asked again)
-        pick = np.arange(m) if c == 0 else np.flatnonzero(
-            (np.abs(T[:, c, None] - T[:, :c]) > same[:, c, None]).all(axis=1))
+    # a candidate within SAME_DEPTH of one already tried is that one (not asked again);
+    # the others of every candidate are asked of the field in one query
+    picks = [np.arange(m)] + [np.flatnonzero((np.abs(T[:, c, None] - T[:, :c]) > same[:, c, None]).all(axis=1))
+                              for c in range(1, T.shape[1])]
+    more = np.concatenate(picks[1:])
+    if more.size:
+        at = o[more] + np.concatenate([T[pk, c] for c, pk in enumerate(picks) if c])[:, None] * d[more]
+        split = np.cumsum([pk.size for pk in picks[1:]])[:-1]
+        rest = np.split(_seen(query, o[more], d[more], at, nb[more], rig, tol, C)[0], split)
+    else:
+        rest = [cols0[:0]] * (T.shape[1] - 1)
+    for c, pick in enumerate(picks):
         if pick.size == 0:
             continue
-        cols = cols0 if c == 0 else _seen(query, o[pick], d[pick], o[pick] + T[pick, c, None] * d[pick],
-                                          nb[pick], rig, tol, C)[0]
+        cols = cols0 if c == 0 else rest[c - 1]
         count = np.isfinite(cols[:, :, 0]).sum(axis=1)
         spread = np.nansum(np.nanstd(np.where(count[:, None, None] >= 2, cols, 0.0), axis=1), axis=1)
         cost = np.where(count >= 2, spread, np.inf if c else 1e300)

@@ -32,7 +32,7 @@ class BodyLimitMiddleware:
     """The one body-size limit, for every route: 413 before reading anything when
     ``Content-Length`` exceeds it, and as soon as the bytes received pass it
     (chunked bodies have no length): ``receive`` is wrapped to count them and
-    raises :class:`~.BodyTooLargeError`, which every reader of the body
+    raises :class:`~.status.BodyTooLargeError`, which every reader of the body
     turns into a 413."""
 
     def __init__(self, app, limit: int):
@@ -125,7 +125,7 @@ def app_ready(app: FastAPI) -> bool:
 
 def _openapi(app: FastAPI):
     """FastAPI's OpenAPI document plus the models of the JSON bodies parsed off the
-    event loop (:func:`.deps.json_body`), under ``components/schemas`` as FastAPI
+    event loop (:func:`.http.deps.json_body`), under ``components/schemas`` as FastAPI
     would have put them."""
     from fastapi.openapi.utils import get_openapi
 

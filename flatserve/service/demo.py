@@ -77,7 +77,7 @@ def ensure_demo_field(rooms, name: str = DEMO_FIELD, samples: int = DEMO_SAMPLES
     Parameters
     ----------
     rooms : flatserve.service.assembly.Rooms
-        Must have started restoring (:meth:`~.rooms.Rooms.start`); this waits
+        Must have started restoring (:meth:`~.assembly.Rooms.start`); this waits
         until it is ready.
     name : str
         Field name.

@@ -3,7 +3,7 @@ request bodies); the answers are :mod:`.reports`.
 
 Bulk arrays (upload and query bodies) are NOT parsed through these models: the
 ``*Body`` models below only document the JSON form in OpenAPI; the service
-decodes them with orjson + NumPy (see :mod:`.codec`).
+decodes them with orjson + NumPy (see :mod:`.http.codec`).
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ Vec = list[float]
 Mat = list[list[float]]
 Mats = list[list[list[float]]]
 #: A batch's per-row array, (n, W) or (n, a, b): every batch has at least one row.
-#: Said in the schema only (``minItems``); the service's decoder (:mod:`.codec`,
+#: Said in the schema only (``minItems``); the service's decoder (:mod:`.http.codec`,
 #: :class:`flatserve.flats.Flats`) refuses an empty one, naming the array.
 Rows = Annotated[Mat, Field(json_schema_extra={"minItems": 1})]
 RowMats = Annotated[Mats, Field(json_schema_extra={"minItems": 1})]

@@ -3,17 +3,17 @@
 A field is a set of shards (:class:`flatserve.contract.SampledField`: an atlas
 field's charts; a one-chart field is one shard). In cluster mode the charts of
 a field are split into *shard groups*, each held by one or more *shard
-workers* (:class:`~.shard.ShardWorker`) in processes of their own (Ray actors
+workers* (:class:`~.worker.shard.ShardWorker`) in processes of their own (Ray actors
 on the cluster's nodes, :mod:`.front.placement`). A worker restores its charts
 from the field's newest snapshot (only its own parts) and then follows the
 shared log for its own rows: the log (PostgreSQL; SQLite for a cluster on one
 machine) stays the one truth.
 
 The server processes become stateless *fronts*: a field's entry holds a
-:class:`~.remote.RemoteField`, which implements the field contract by routing
+:class:`~.front.remote.RemoteField`, which implements the field contract by routing
 (a pure function of the field's definition), fanning out to one live copy of
 each shard group a request touches, and blending, exactly as the one-process
 field does; so the service's rooms are unchanged. Ray is imported only when a
 front connects or an actor runs (:mod:`.ray_env`, :mod:`.front.placement`,
-:mod:`.tiles`): the library and the one-machine service do not need it.
+:mod:`.worker.tiles`): the library and the one-machine service do not need it.
 """

@@ -162,7 +162,7 @@ def nodes_with(ray, need: dict[str, float]) -> list[dict]:
 
 def one_machine(ray, settings) -> None:
     """Cluster mode on SQLite: every node of the cluster is on this machine (the
-    shard workers read the data directory this server holds, :class:`~.shard.ShardWorker`).
+    shard workers read the data directory this server holds, :class:`~.worker.shard.ShardWorker`).
     A node that joins from elsewhere later is not refused, but holds no actor of
     this deployment's (:func:`machine_pin`).
 

@@ -24,25 +24,25 @@ if TYPE_CHECKING:
 
 
 class ShardCalls(Protocol):
-    """What a front calls on a shard worker (:class:`~.shard.ShardWorker`)."""
+    """What a front calls on a shard worker (:class:`~.worker.shard.ShardWorker`)."""
 
     def query(self, work: list, kw: dict, at_position: int, timeout: float) -> list:
         """Its charts' answers on the rows routed to them, once the log up to
-        ``at_position`` is applied (:meth:`~.shard.ShardWorker.query`)."""
+        ``at_position`` is applied (:meth:`~.worker.shard.ShardWorker.query`)."""
         ...
 
     def parts(self, position: int, known, timeout: float) -> dict:
         """Its charts' snapshot parts at log ``position``, stored
-        (:meth:`~.shard.ShardWorker.parts`)."""
+        (:meth:`~.worker.shard.ShardWorker.parts`)."""
         ...
 
     def applied(self, position: int, timeout: float) -> dict:
         """Its status once the log up to ``position`` is applied
-        (:meth:`~.shard.ShardWorker.applied`)."""
+        (:meth:`~.worker.shard.ShardWorker.applied`)."""
         ...
 
     def status(self) -> dict:
-        """What it holds and where it is in the log, now (:meth:`~.shard.ShardWorker.status`)."""
+        """What it holds and where it is in the log, now (:meth:`~.worker.shard.ShardWorker.status`)."""
         ...
 
 
@@ -72,7 +72,7 @@ class ShardCall:
 
 def pack(value) -> bytes:
     """A packed call's arguments, or its result, as one blob (:attr:`ShardCall.packed`:
-    the front packs a query's arguments, :class:`~.actor.ShardActor` its answer)."""
+    the front packs a query's arguments, :class:`~.worker.actor.ShardActor` its answer)."""
     return pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
 
 

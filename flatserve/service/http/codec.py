@@ -19,7 +19,7 @@ field of points (k = 0).
 
 ``application/x-npz``: an ``.npz`` (``numpy.savez`` or ``numpy.savez_compressed``)
 with named arrays: ``origins`` + ``directions``, or ``A`` + ``b``, or ``Q`` + ``r``, or
-``points``; ``values`` for uploads. Both binary bodies are read by :mod:`.binary`, which judges
+``points``; ``values`` for uploads. Both binary bodies are read by :mod:`..binary`, which judges
 every header (and every ``.npz`` member) before it reads or inflates any data.
 
 Query responses per ``Accept``: ``application/json`` (default), ``application/x-npy``

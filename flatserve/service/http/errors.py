@@ -1,6 +1,6 @@
 """Where exceptions become HTTP responses.
 
-The library raises :mod:`flatserve.errors` and the service :mod:`.status`, whose
+The library raises :mod:`flatserve.errors` and the service :mod:`..status`, whose
 ``HTTP_STATUS`` table gives the status; the service raises :class:`ApiError` for HTTP-only conditions
 (content type, auth). Bad input is always a 4xx: a 422 names the offending
 argument in ``detail[].loc`` (FastAPI's ``HTTPValidationError`` shape, so it

@@ -351,7 +351,7 @@ def render_frame(field, camera, fill: float = 0.0, fmt: str = "png",
         The field's (:func:`flatserve.lightfield.render.render_field`); with a
         ``rig`` only ``"linear"``.
     rig : dict, optional
-        The field's stored ``rig`` (:class:`~.schemas.RigSpec`): the frame is
+        The field's stored ``rig`` (:class:`~..schemas.RigSpec`): the frame is
         rendered through its last channel, the depth channel
         (:func:`flatserve.lightfield.depth.render_guided`), and has the other
         channels, the colours.

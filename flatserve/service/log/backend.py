@@ -2,7 +2,7 @@
 
 Every server process is a *replica*: it restores each field from the newest
 snapshot plus the log after it, then follows the log and applies its entries
-in log order (:mod:`.replica`, written once for every backend). What a backend
+in log order (:mod:`..rooms.replica`, written once for every backend). What a backend
 stores, and how, is behind :class:`LogBackend`; the SQL lives in the backend
 classes only:
 

@@ -20,7 +20,7 @@ The rules
   removed are never numbered again); drawn inside the write transaction, after
   the field's row is locked.
 * **Idempotency.** A batch whose key the field already stores is refused inside
-  that transaction with :class:`~flatserve.service.log.backend.KeyTakenError`
+  that transaction with :class:`~.rows.KeyTakenError`
   carrying the stored batch (nothing is written).
 * **Pointing a field at a snapshot** happens in one transaction that refuses a
   deleted field (:class:`~flatserve.service.status.FieldNotFoundError`) and data

@@ -27,7 +27,7 @@ Several processes may use one database: the replicas of one ``flatserve serve
 ``lock_fd``). Any other server finds the lock taken and refuses to start
 (:class:`~flatserve.service.status.DataDirInUseError`). A *follower*
 (``follower=True``: a shard worker of a one-machine cluster,
-:mod:`.cluster.shard`) takes no lock: it reads the log of the server that holds
+:mod:`..cluster.worker.shard`) takes no lock: it reads the log of the server that holds
 the directory and stores snapshot parts (files), and never writes the database.
 
 Schema versions: a new database is created at 3 (:func:`.sqlschema.ddl`); 2

@@ -13,7 +13,7 @@ with storage (an insert failed half-way) is rebuilt the same way
 
 Every replica applies the same entries through this code (chart, then insert
 in slices of ``insert_slice_rows``), so replicas at one position hold
-bit-identical fields. A cluster's shard worker (:mod:`.cluster.shard`) is this
+bit-identical fields. A cluster's shard worker (:mod:`..cluster.worker.shard`) is this
 same applier restricted to one field (``fields``) and to its charts (its
 home's ``only``: :class:`LocalHome`), with no snapshot writer of its own
 (the field's snapshot is its front's, in parts): the same restore, the same
@@ -65,7 +65,7 @@ def until_reachable(attempt: Callable[[], T], stopping: Callable[[], bool],
                     on_retry: Callable[[Exception], object] | None = None) -> T:
     """``attempt()``, tried again while the database is unreachable: the restore's
     retry, one rule for every process that restores from the log (a replica's
-    applier, which a shard worker, :mod:`.cluster.shard`, runs too).
+    applier, which a shard worker, :mod:`..cluster.worker.shard`, runs too).
 
     Parameters
     ----------
@@ -79,7 +79,7 @@ def until_reachable(attempt: Callable[[], T], stopping: Callable[[], bool],
         The warning's subject (``"field 'x': restore interrupted"``).
     errors : tuple of exception types
         Those that mean "unreachable, try again" (default
-        :class:`~.status.StorageUnavailableError`); any other is raised at once.
+        :class:`~..status.StorageUnavailableError`); any other is raised at once.
     on_retry : callable, optional
         Told of each such error before the wait.
     """
@@ -120,7 +120,7 @@ def read_batch(storage: LogBackend, field_id: int, seq: int, spec: FieldSpec,
     """A stored batch as every applier of the log inserts it (a replica's, a shard
     worker's): its :class:`Flats` (the form inferred from its arrays' names when
     None), its values, and the unit of length recorded with it
-    (:func:`.blobs.split_batch`).
+    (:func:`..log.blobs.split_batch`).
 
     Raises
     ------
@@ -165,7 +165,7 @@ def failed_entry(row: FieldRow, exc: Exception) -> FieldEntry:
 
 class LocalHome:
     """Fields held in this process, built and restored by this applier (the default
-    home, :mod:`.homes`; a shard worker's, with ``only``, :mod:`.cluster.shard`).
+    home, :mod:`..assembly`; a shard worker's, with ``only``, :mod:`..cluster.worker.shard`).
 
     Parameters
     ----------
@@ -240,8 +240,8 @@ class LogApplier:
         this process writes no snapshot and cleans none up (a shard worker's).
     metrics : Metrics or None
     home : LocalHome or ClusterHome
-        Where the fields' shards live (:mod:`.homes`), chosen by the composition
-        root (:meth:`.rooms.Rooms.open`, :func:`.homes.open_home`); a home with
+        Where the fields' shards live (:mod:`..assembly`), chosen by the composition
+        root (:meth:`..assembly.Rooms.open`, :func:`..assembly.open_home`); a home with
         ``only`` charts (a shard worker's) holds those charts alone.
     fields : collection of int, optional
         The ids of the fields applied here (a shard worker's one field); the log's

@@ -49,7 +49,7 @@ class FieldSpec:
         One chart: tiles of its triangulation (:mod:`flatserve.tiles`).
     rig : dict or None
         A light field with the depth channel: its capture's cameras
-        (``{"eyes": (m, 3), "center": (3,)}``, :class:`~.schemas.RigSpec`), through
+        (``{"eyes": (m, 3), "center": (3,)}``, :class:`~..schemas.RigSpec`), through
         which it renders; None: a plain field (not written by :meth:`to_dict`, so a
         definition without one is stored as before).
     """

@@ -1,6 +1,6 @@
 """The log follower of a replica: applies the shared log's entries in log order.
 
-Every server process is a replica (see :mod:`.backend`). After the restore
+Every server process is a replica (see :mod:`..log.backend`). After the restore
 (each field from its newest snapshot plus its batches up to the log position
 the restore read, :meth:`.applier.LogApplier.restore_all`), one thread per
 process, the :class:`Follower`, reads the log after that position and has its
@@ -18,14 +18,14 @@ fields, duplicates included.
 ``min_position`` wait for it (:meth:`Follower.wait_position`), and a write's
 request for its own commit (:meth:`Follower.await_applied`). The follower
 wakes at once on this process's own commits, else within ``log_poll_interval``
-(:meth:`.backend.LogBackend.wait_for_change`).
+(:meth:`..log.backend.LogBackend.wait_for_change`).
 
-A cluster's shard worker (:mod:`.cluster.shard`) is a follower too, over an
+A cluster's shard worker (:mod:`..cluster.worker.shard`) is a follower too, over an
 applier restricted to one field and its charts: the same loop, the same
 retries; it holds the follower at a log position while its snapshot parts are
 stored (:meth:`Follower.held`).
 
-This module knows no SQL: the backend is behind :class:`.backend.LogBackend`.
+This module knows no SQL: the backend is behind :class:`..log.backend.LogBackend`.
 """
 from __future__ import annotations
 

@@ -1,14 +1,14 @@
 """The snapshot writer: a field's state written to storage under its snapshot lease.
 
 One room for the snapshot protocol: the field's lease
-(:func:`~.backend.snapshot_lease`: one writer of a field at a time, across
+(:func:`~..log.backend.snapshot_lease`: one writer of a field at a time, across
 replicas and within this one; writers of different fields run at once;
 renewed while a long snapshot is written; a writer whose lease lapsed abandons
 its snapshot, because the new holder's clean-up removes whatever the field does
 not point at), the field's lock (held from reading the field's log position until the
 field is serialised, never during the database part), background snapshots
 every ``snapshot_every`` new samples, and the clean-up of data a dead writer
-left. Storage does the writing (:meth:`.backend.LogBackend.write_snapshot`).
+left. Storage does the writing (:meth:`..log.backend.LogBackend.write_snapshot`).
 """
 from __future__ import annotations
 
@@ -223,7 +223,7 @@ class SnapshotWriter:
     def clean_orphans(self) -> None:
         """Remove snapshot data left by a writer that died (a live field's under the
         field's lease: never a snapshot another writer is writing;
-        :meth:`~.backend.LogBackend.clean_orphans`). Best effort."""
+        :meth:`~..log.backend.LogBackend.clean_orphans`). Best effort."""
         try:
             n = self.storage.clean_orphans()
             if n:

@@ -125,7 +125,7 @@ def build_basis(spec, k: int, d: int) -> Basis:
 
 
 def oriented_of(req) -> bool:
-    """A field's ``oriented`` (:class:`~.schemas.FieldCreate`): given at the top level,
+    """A field's ``oriented`` (:class:`~..schemas.FieldCreate`): given at the top level,
     or (requests written before it) as ``basis.oriented``; both must agree. Only atlas
     fields of lines (k = 1) may be oriented (errors name where it was given)."""
     top, basis = req.oriented, req.basis
@@ -148,7 +148,7 @@ def oriented_of(req) -> bool:
 
 
 def field_spec(req, *, max_atlas_samples: int | None = None) -> tuple[FieldSpec, Basis]:
-    """What a create request (:class:`~.schemas.FieldCreate`) stores: the field's spec
+    """What a create request (:class:`~..schemas.FieldCreate`) stores: the field's spec
     and its (chart 0's) basis, for :meth:`~.fields.FieldService.create`.
 
     Example: the demo's oriented covering atlas of grey rays is
@@ -162,7 +162,7 @@ def field_spec(req, *, max_atlas_samples: int | None = None) -> tuple[FieldSpec,
 
 
 def rig_of(req, oriented: bool, where: str) -> dict | None:
-    """A create request's ``rig`` (:class:`~.schemas.RigSpec`, its shapes already held
+    """A create request's ``rig`` (:class:`~..schemas.RigSpec`, its shapes already held
     to the schema) as stored, or None: the one check of a field's rig, for a create
     and for a stored definition alike (:func:`stored_spec`).
 
@@ -199,7 +199,7 @@ def _check_tiles(tiles, atlas: bool, where: str) -> None:
 
 
 #: The members of a stored definition (:meth:`~.entry.FieldSpec.to_dict`) that a create
-#: request gives as they are: held to :class:`~.schemas.FieldCreate`'s constraints.
+#: request gives as they are: held to :class:`~..schemas.FieldCreate`'s constraints.
 _REQUEST_MEMBERS = ("k", "d", "channels", "roundtrip_tol", "copies", "tiles", "rig")
 
 
@@ -212,7 +212,7 @@ def stored_spec(spec, Q, r, *, where: str = "spec", max_charts: int | None = Non
     restart restoring it). Nothing in it may be beyond what a create could have stored,
     so that no definition can make a server build something unbounded or unanswerable
     (``tiles`` 1-64 or ``"auto"``, ``copies`` 1-3, ``channels`` 1-64, ``k`` < ``d`` up
-    to :data:`~.schemas.MAX_D`, ...: :class:`~.schemas.FieldCreate` itself judges them).
+    to :data:`~..schemas.MAX_D`, ...: :class:`~..schemas.FieldCreate` itself judges them).
 
     Parameters
     ----------
@@ -278,7 +278,7 @@ def stored_spec(spec, Q, r, *, where: str = "spec", max_charts: int | None = Non
 
 
 def _member_error(exc: ValidationError, where: str) -> InvalidInputError:
-    """The first member a :class:`~.schemas.FieldCreate` refused, as one 422 naming it
+    """The first member a :class:`~..schemas.FieldCreate` refused, as one 422 naming it
     (the messages of each alternative of a union together) and the value given."""
     errs = exc.errors()
     loc = errs[0]["loc"][:1]
@@ -316,7 +316,7 @@ def _check_atlas(atlas: dict, k: int, d: int, where: str, max_charts: int | None
 
 def build_chart_basis(req, *, max_atlas_samples: int | None = None
                       ) -> tuple[Basis, dict, dict | None]:
-    """A field's basis from its create request (:class:`~.schemas.FieldCreate`).
+    """A field's basis from its create request (:class:`~..schemas.FieldCreate`).
 
     Returns
     -------

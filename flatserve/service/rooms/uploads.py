@@ -71,7 +71,7 @@ def check_cost(name: str, field: SampledField, size: tuple[int, int], pending: i
     an import (all its batches at once, before the first is stored).
 
     The estimate is the field's size when it last held its batches whole (``size``:
-    :attr:`.FieldEntry.complete_size`, set by :meth:`.FieldEntry.mark_indexed`;
+    :attr:`.entry.FieldEntry.complete_size`, set by :meth:`.entry.FieldEntry.mark_indexed`;
     never a triangulation with a batch half inserted, whose cells per sample are far
     from the final ones) plus the ``pending`` samples and the new ``rows``, times the
     cells per sample measured then (:func:`.costs.cells_per_sample` below

@@ -16,7 +16,7 @@ class ClusterHome:
     """
 
     remote = True
-    #: every chart of a field is the cluster's (:class:`..applier.LocalHome`'s ``only``)
+    #: every chart of a field is the cluster's (:class:`...rooms.applier.LocalHome`'s ``only``)
     only = None
 
     def __init__(self, settings) -> None:

@@ -10,7 +10,7 @@ answer is the one-process field's, bit for bit: the same rows reach the same
 charts' ``query`` and the front blends them in chart order.
 
 Writes are not sent anywhere: the shard workers follow the shared log
-themselves (:mod:`.shard`). So :meth:`RemoteField.insert_prepared` only
+themselves (:mod:`..worker.shard`). So :meth:`RemoteField.insert_prepared` only
 reports the batch's decisions, and a query is answered once every shard it
 touches has applied the field's log position the front has seen (the entry's
 ``indexed_position``): read-your-writes through any front. An upload with
@@ -49,7 +49,7 @@ class ShardGroups(Protocol):
     charts: list[tuple[int, ...]]
 
     def call(self, calls: dict[int, ShardCall], timeout: float) -> dict[int, Any]:
-        """``{group: call}`` (:mod:`.wire`) run on one live copy of each group, at once;
+        """``{group: call}`` (:mod:`..wire`) run on one live copy of each group, at once;
         ``{group: result}``. Raises
         :class:`~flatserve.service.status.ShardUnavailableError` when a group has
         no live copy, or the error a worker raised."""
@@ -353,7 +353,7 @@ class RemoteField:
         return self._blend(route, calls, got, return_weights)
 
     def _fan_out(self, flats: Flats, outside, order, threads, return_weights, interpolant):
-        """The query's route and its calls: per group touched, :func:`.wire.query` of
+        """The query's route and its calls: per group touched, :func:`..wire.query` of
         ``work``, the ``(chart, flats)`` of its charts (the workers compute the
         gradient interpolant's slopes, beside their samples)."""
         interpolant = choice(interpolant, Interpolant, "interpolant")
@@ -406,7 +406,7 @@ class RemoteField:
     def write_parts(self, fh, stage: str | os.PathLike, known: Collection[str] = ()) -> list[str]:
         """The field's snapshot at the front's log position for it: every group's
         charts held at that position and their changed parts stored by the
-        groups themselves (:meth:`.shard.ShardWorker.parts`: no part passes
+        groups themselves (:meth:`..worker.shard.ShardWorker.parts`: no part passes
         through here, and ``stage`` stays empty); the field file naming them
         written to ``fh`` (a one-chart field's:
         :func:`flatserve.contract.part_pointer` of its one part). The bytes the

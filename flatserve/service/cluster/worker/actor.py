@@ -4,8 +4,8 @@ shard's own process (the front's side, placement, calls and failover, is
 
 :class:`ShardActor` holds a :class:`~.shard.ShardWorker` whose tiles (a field
 made with ``tiles``) live in actors of their own (:class:`~.tiles.RayTileHost`),
-answers the calls of :class:`.wire.ShardCalls` (a query's arguments and answer
-packed, :func:`.wire.pack`), and adds where it runs to its status (its node,
+answers the calls of :class:`..wire.ShardCalls` (a query's arguments and answer
+packed, :func:`..wire.pack`), and adds where it runs to its status (its node,
 its tiles' places). A tile that is lost ends the actor, for Ray to restart it:
 it restores from the snapshot and the log.
 """
@@ -56,7 +56,7 @@ class ShardActor:
 
     def query(self, request: bytes) -> bytes:
         """:meth:`~.shard.ShardWorker.query`; arguments and answer packed
-        (:attr:`.wire.ShardCall.packed`)."""
+        (:attr:`..wire.ShardCall.packed`)."""
         return pack(self.worker.query(*unpack(request)))
 
     def parts(self, position, known, timeout):

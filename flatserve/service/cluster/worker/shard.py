@@ -2,14 +2,14 @@
 
 A :class:`ShardWorker` holds some charts of one field (``charts``; a one-chart
 field's one shard is chart 0). It needs no front, and it has no log engine of
-its own: it is the server's :class:`~..replica.Follower` over a
-:class:`~..applier.LogApplier` restricted to its field (``fields``) and to its
-charts (a :class:`~..applier.LocalHome` with ``only=charts`` and the worker's
+its own: it is the server's :class:`~...rooms.replica.Follower` over a
+:class:`~...rooms.applier.LogApplier` restricted to its field (``fields``) and to its
+charts (a :class:`~...rooms.applier.LocalHome` with ``only=charts`` and the worker's
 tile host), as a Qdrant peer runs the same local shard code as every other.
-So its restore, its retries, its states (:class:`~..catalogue.FieldState`) and
+So its restore, its retries, its states (:class:`~...rooms.catalogue.FieldState`) and
 its constants are the server's:
 
-1. **Restore** (:meth:`~..applier.LogApplier.restore_all`): the field's newest
+1. **Restore** (:meth:`~...rooms.applier.LogApplier.restore_all`): the field's newest
    snapshot, its own charts' parts only (:func:`flatserve.contract.load_field`
    with ``only``; an older atlas snapshot without its charts' own samples is
    passed over), else an empty field; then its batches up to the log head
@@ -18,8 +18,8 @@ its constants are the server's:
    one-process field makes on those charts, so a chart here holds the same
    bits as the same chart of a field that applied the whole log (tested).
    The database unreachable meanwhile: tried again
-   (:func:`~..applier.until_reachable`), queries wait.
-2. **Follow** (:class:`~..replica.Follower`): the shared log after that head,
+   (:func:`~...rooms.applier.until_reachable`), queries wait.
+2. **Follow** (:class:`~...rooms.replica.Follower`): the shared log after that head,
    in order; its field's batches as in the restore, the other fields' entries
    passed over. An insert that fails rebuilds its charts from storage, as a
    replica rebuilds a field; a ``delete`` of its field fails it ("the field was

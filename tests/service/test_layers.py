@@ -10,6 +10,7 @@ imported, and an import that only runs in some process (a Ray actor's) counts to
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 import textwrap
@@ -224,3 +225,50 @@ def test_a_worker_module_never_imports_the_front():
     wrong = {m: sorted(d for d in deps if d.startswith(front))
              for m, deps in g.items() if m.startswith(worker)}
     assert all(not v for v in wrong.values()), wrong
+
+
+def defined_names(path: Path) -> set[str]:
+    """The names a module defines or imports at any level (classes, functions,
+    assignments, attributes set on ``self``, imported names)."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            for t in (node.targets if isinstance(node, ast.Assign) else [node.target]):
+                if isinstance(t, ast.Name):
+                    names.add(t.id)
+                elif isinstance(t, ast.Attribute):
+                    names.add(t.attr)
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names.update((a.asname or a.name).split(".")[0] for a in node.names)
+    return names
+
+
+REFERENCE = re.compile(r":(?:mod|class|func|meth|data|attr|exc):`~?([.\w]+)`")
+
+
+def test_the_module_docs_cross_references_resolve():
+    """Every ``:class:`~.x.Y``` (relative, or ``flatserve.``) of the package's docs names
+    a module that exists and a name it defines: a module moved takes its readers along."""
+    mods = modules()
+    names = {m: defined_names(p) for m, p in mods.items()}
+    bad = []
+    for m, path in mods.items():
+        base = m.split(".") if path.name == "__init__.py" else m.split(".")[:-1]
+        for lineno, line in enumerate(path.read_text().splitlines(), 1):
+            for ref in REFERENCE.findall(line):
+                if ref.startswith("."):
+                    level = len(ref) - len(ref.lstrip("."))
+                    full = ".".join(base[:len(base) - (level - 1)] + [ref.lstrip(".")]).rstrip(".")
+                elif ref.startswith("flatserve."):
+                    full = ref
+                else:
+                    continue
+                parts = full.split(".")
+                found = next((k for k in range(len(parts), 0, -1)
+                              if ".".join(parts[:k]) in mods), None)
+                if found is None or (parts[found:] and
+                                     parts[found] not in names[".".join(parts[:found])]):
+                    bad.append(f"{path.relative_to(ROOT.parent)}:{lineno}: {ref}")
+    assert bad == [], "\n".join(bad)

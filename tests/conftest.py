@@ -73,21 +73,21 @@ LANES = {
     # browser: Debian's headless Chromium (tests/harness/browser.py)
     "test_lightfield_viewer.py": ("browser", "slow"),
     "test_lightfield_viewer_keys.py": ("browser",),
-    "service/test_docs.py::test_docs_render_every_operation_without_a_network": ("browser",),
+    "service/http/test_docs.py::test_docs_render_every_operation_without_a_network": ("browser",),
     # docker: the container image built and run (with PostgreSQL and Ray inside)
     "test_docker.py": ("docker", "slow"),
     # ray: a Ray cluster of several nodes on this machine (tests/harness/raycluster.py)
-    "service/test_cluster.py": ("ray", "server", "slow"),
-    "service/test_cluster_tiles.py": ("ray", "slow"),
-    "service/test_cluster_faults.py": ("ray", "server", "slow"),
+    "service/cluster/test_cluster.py": ("ray", "server", "slow"),
+    "service/cluster/test_cluster_tiles.py": ("ray", "slow"),
+    "service/cluster/test_cluster_faults.py": ("ray", "server", "slow"),
     # postgres: tests that start PostgreSQL clusters of their own (not through a fixture)
     "service/test_pgcluster.py": ("postgres",),
     "service/test_service_postgres.py": ("postgres", "server", "slow"),
     # server: real server processes (tests/harness/process.py), kill -9, replicas
     "service/test_service_crash.py": ("server", "slow"),
     "service/test_service_damage.py": ("server",),
-    "service/test_connections.py": ("server",),
-    "service/test_metrics.py": ("server",),
+    "service/http/test_connections.py": ("server",),
+    "service/http/test_metrics.py": ("server",),
     "service/test_soak_script.py": ("server",),
     "service/test_soak_script.py::test_short_soak_on_postgresql_with_two_replicas": ("postgres",),
     "test_lightfield_orbit_service.py": ("server", "slow"),
@@ -97,10 +97,10 @@ LANES = {
     "test_docs_site.py::test_page_blocks_run_as_written_twice": ("server",),
     "service/test_service_answers.py::test_healthz_answers_within_a_second_during_worst_cases":
         ("server",),
-    "service/test_datadir.py::test_second_server_on_a_data_dir_in_use_refuses_to_start":
+    "service/log/test_datadir.py::test_second_server_on_a_data_dir_in_use_refuses_to_start":
         ("server",),
     # not a server process, but the machine itself: it mounts a tmpfs (root) to fill a disk
-    "service/test_datadir.py::test_full_disk_refuses_writes_with_507_and_reads_go_on":
+    "service/log/test_datadir.py::test_full_disk_refuses_writes_with_507_and_reads_go_on":
         ("server",),
     "service/test_service_hostile_bodies.py::"
     "test_real_server_keeps_the_connection_after_hostile_bodies": ("server",),
@@ -192,7 +192,7 @@ SLOW = [
     # the service in-process
     "service/test_client_batches.py::test_progress_callback_and_bar",
     "service/test_layers.py::test_mypy_checks_the_wire",
-    "service/test_docs.py::"
+    "service/http/test_docs.py::"
     "test_every_body_has_an_example_and_the_examples_are_valid_requests",
     "service/test_service_api.py::"
     "test_status_tells_empty_charts_from_unreachable_flats",
@@ -226,9 +226,9 @@ SLOW = [
     "test_wait_false_acknowledges_then_indexes_in_commit_order",
     "service/test_service_wait.py::"
     "test_a_committed_upload_waits_a_bounded_time_then_503_stored",
-    "service/test_codec_hostile.py::test_fuzz_npy",
-    "service/test_codec_hostile.py::test_fuzz_npz",
-    "service/test_codec_hostile.py::test_fuzz_strategies_reach_every_outcome",
+    "service/http/test_codec_hostile.py::test_fuzz_npy",
+    "service/http/test_codec_hostile.py::test_fuzz_npz",
+    "service/http/test_codec_hostile.py::test_fuzz_strategies_reach_every_outcome",
     "service/test_service_api.py::test_upload_forms_match_in_process_field",
     "service/test_service_atlas.py::"
     "test_a_unit_from_the_data_is_chosen_once_and_recorded_with_the_batches",

@@ -1,6 +1,6 @@
 """Shard workers (``flatserve/service/cluster/worker/shard.py``) in this process, on a REAL
 PostgreSQL log, behind a front's :class:`RemoteField` with the groups called
-directly (no Ray: tests/service/test_cluster.py runs them as actors).
+directly (no Ray: tests/service/cluster/test_cluster.py runs them as actors).
 
 A snapshot of a field held by shard workers: the workers store their own charts'
 parts in the database and the front's snapshot writer receives none of their

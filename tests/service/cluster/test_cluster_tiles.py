@@ -5,7 +5,7 @@ The oracle is the unsplit triangulation in this process: the tiled triangulation
 tiles live in actors must answer its bits (values, sample ids, weights), across
 batches that cross tile borders, after a snapshot is loaded into new actors, and
 after a re-cut of the tiles. The end-to-end path (a front, a shard group holding a
-one-chart field of 2 tiles, PostgreSQL) is tests/service/test_cluster.py's.
+one-chart field of 2 tiles, PostgreSQL) is tests/service/cluster/test_cluster.py's.
 """
 from __future__ import annotations
 

@@ -16,7 +16,7 @@ from tests.harness.browser import chromium, serving, wait_for
 from tests.harness.process import free_port
 
 #: The page of the service's limits (its tables of what a client gets past each).
-LIMITS_PAGE = Path(__file__).resolve().parents[2] / "docs" / "service.md"
+LIMITS_PAGE = Path(__file__).resolve().parents[3] / "docs" / "service.md"
 #: No network but the server: every other host name fails to resolve.
 OFFLINE_FLAGS = ["--window-size=1200,900",
                  "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1"]

@@ -97,6 +97,10 @@ def test_tiles_in_actors_on_different_nodes_answer_the_unsplit_bits(host, rng):
     q = rng.normal(size=(3000, D)) * 1.2
     _same(tt, tri, q)
     assert tt.halo.min() > 0 and tt.nsimplex == tri.nsimplex
+    # the exchange's bytes: every point sent was fetched from its owner's actor and sent
+    # to the receiver's (its D coordinates and 2 values, 8 bytes each), beside the scans
+    assert tt.stats.sent > 0 and sum(tt.stats.rounds) > 0
+    assert host.exchanged >= 2 * tt.stats.sent * (D + 2) * 8
     # each tile in an actor of its own, spread over the nodes
     where = _placed(host, 3)
     assert len(where) == 3 and sum(w["npoints"] for w in where) == tt.npoints + tt.halo.sum()

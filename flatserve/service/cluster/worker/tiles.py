@@ -73,6 +73,10 @@ MAX_TILES = 64
 STATUS_WAIT_S = 2.0
 
 
+def _nbytes(*arrays) -> int:
+    return sum(int(a.nbytes) for a in arrays if a is not None)
+
+
 class RemoteTile:
     """A tile in a :class:`~.tile_actor.TileActor`, with :class:`~flatserve.tiles.Tile`'s
     methods (made by :class:`RayTileHost`): each is one call of the actor's
@@ -123,13 +127,19 @@ class RemoteTile:
             np.ascontiguousarray(gid, np.int64), frozenset(known)))
 
     def insert(self, points, values, own: bool):
+        if not own:  # an exchange round's points, sent to the tile that needs them
+            self._host.moved(_nbytes(points, values))
         return self._changed(self._started().insert.remote(points, values, own))
 
     def take(self, local):
-        return self._run(lambda t: t.take(local))
+        got = self._run(lambda t: t.take(local))
+        self._host.moved(_nbytes(*got))  # points an exchange round fetches from their owner
+        return got
 
     def conflicts(self, lo, hi, start, skip: int, **where):
-        return self._run(lambda t: t.conflicts(lo, hi, start, skip, **where))
+        got = self._run(lambda t: t.conflicts(lo, hi, start, skip, **where))
+        self._host.moved(_nbytes(*got))  # a scan's answer: which vertices each tile needs
+        return got
 
     def answer(self, q, outside, order, threads, everywhere: bool):
         return self._run(lambda t: t.answer(q, outside, order, threads, everywhere),
@@ -193,6 +203,11 @@ class RayTileHost(TileHost):
         answer.
     stored : int
         Bytes of snapshot parts the tiles stored themselves.
+    exchanged : int
+        Bytes the exchange rounds moved between this process and the tiles' actors
+        (each scan's answer, the points fetched from their owners and sent to the
+        tiles that need them), beside the tiling's own counts
+        (:attr:`flatserve.tiles.TiledTriangulation.stats`: rounds, points sent).
     """
 
     def __init__(self, settings, parts: TileParts | None = None, *,
@@ -204,6 +219,7 @@ class RayTileHost(TileHost):
         self.parts = parts
         self.start_timeout = float(start_timeout)
         self.stored = 0
+        self.exchanged = 0
         self._remote = ray.remote(TileActor)
         #: resources each tile's actor asks for beside its memory (SQLite: this machine)
         self.pin = machine_pin(ray, settings)
@@ -318,6 +334,11 @@ class RayTileHost(TileHost):
         with self._lock:
             self.stored += stored
         return key, None
+
+    def moved(self, nbytes: int) -> None:
+        """Count ``nbytes`` of an exchange round (:attr:`exchanged`)."""
+        with self._lock:
+            self.exchanged += nbytes
 
     def get(self, ref, timeout: float = TILE_CALL_TIMEOUT_S):
         """``ray.get``: a tile's own error raised as itself; a lost tile as

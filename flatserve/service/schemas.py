@@ -294,7 +294,7 @@ class _KD(_Strict):
 def _example(example: dict) -> ConfigDict:
     """The request example of a body model, shown in the OpenAPI document (``/docs``);
     the examples of the request models are valid requests that follow one another
-    (create ``demo``, upload to it, query it; tests/service/test_docs.py)."""
+    (create ``demo``, upload to it, query it; tests/service/http/test_docs.py)."""
     return ConfigDict(json_schema_extra={"examples": [example]})
 
 

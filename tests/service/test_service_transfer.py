@@ -488,3 +488,70 @@ def test_an_import_past_the_cost_guard_is_refused_whole(make_app, tmp_path, rng,
         assert [x["rows"] for x in c.batches("x")] == rows[:2]
         rep = c.import_field("x", data)
         assert rep["replayed_batches"] == 2 and rep["nsamples"] == a.describe("f")["nsamples"]
+
+
+def test_two_imports_into_one_field_at_once_are_judged_one_after_the_other(
+        make_app, tmp_path, rng, monkeypatch):
+    """Two files of one definition imported into one field at once, each within
+    ``max_simplices`` alone but not both: the second is judged once the first's batches
+    are stored, and refused whole (it used to be judged against the field as it was
+    before either, and both were stored); an upload while an import stores its batches
+    counts the rows the import has yet to store."""
+    import threading
+
+    from flatserve.service.status import CostLimitError, CostPendingError
+
+    with contextlib.ExitStack() as stack:
+        def server(name, **settings):
+            tc, c = started(make_app(data_dir=tmp_path / name, **settings))
+            stack.callback(tc.__exit__, None, None, None)
+            return tc, c
+
+        ta, a = server("a")
+        files = []
+        for name in ("f", "g"):
+            a.create_field(name, channels=2, basis=ONE_CHART)
+            _fill(a, name, rng)
+            files.append(a.export_field(name))
+        field = ta.app.state.rooms.catalogue.get("f").field
+        rows = a.describe("f")["nsamples"] + 60  # (the rejected rows count in the estimate)
+        one = rows * cells_per_sample(field.ndim) * expected_copies(field)
+        tb, b = server("b", max_simplices=math.ceil(1.5 * one), min_field_samples=0)
+        rooms = tb.app.state.rooms
+        # the first import's first batch waits until the second import has started
+        started_second, first_in = threading.Event(), threading.Event()
+        real = rooms.uploads.upload
+
+        def upload(*args, **kw):
+            if not first_in.is_set():
+                first_in.set()
+                started_second.wait(10)
+                # and an upload now counts the rows the import holds
+                e = rooms.catalogue.get("x")
+                assert e.reserved > 0
+            return real(*args, **kw)
+
+        monkeypatch.setattr(rooms.uploads, "upload", upload)
+        got: dict = {}
+
+        def run(i):
+            try:
+                got[i] = rooms.transfer.import_field("x", files[i])
+            except Exception as exc:  # noqa: BLE001 (the outcome is the test's)
+                got[i] = exc
+
+        first = threading.Thread(target=run, args=(0,))
+        first.start()
+        assert first_in.wait(30)
+        second = threading.Thread(target=run, args=(1,))
+        second.start()
+        second.join(1.0)  # it waits for the first: it cannot have been judged yet
+        assert second.is_alive() and 1 not in got
+        started_second.set()
+        first.join(120)
+        second.join(120)
+        assert not isinstance(got[0], Exception), got[0]
+        assert isinstance(got[1], (CostLimitError, CostPendingError)), got[1]
+        assert "field 'x'" in str(got[1])
+        assert b.describe("x")["nsamples"] == a.describe("f")["nsamples"]
+        assert rooms.catalogue.get("x").reserved == 0

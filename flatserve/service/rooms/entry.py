@@ -151,6 +151,9 @@ class FieldEntry:
     #: batches committed (here or by another replica) and not yet applied here:
     #: log position -> accepted samples (rows for another replica's batch)
     pending: dict = dc_field(default_factory=dict)
+    #: rows an import running here has passed the cost guard with and not stored yet
+    #: (an upload meanwhile counts them as pending: :meth:`pending_counts`)
+    reserved: int = 0
     pending_lock: threading.Lock = dc_field(default_factory=threading.Lock)
     upload_lock: threading.Lock = dc_field(default_factory=threading.Lock)
     index_lock: threading.Lock = dc_field(default_factory=threading.Lock)
@@ -200,9 +203,15 @@ class FieldEntry:
                 self.pending.pop(position, None)
 
     def pending_counts(self) -> tuple[int, int]:
-        """``(pending batches, their samples)``."""
+        """``(pending batches, their samples)``; the samples count the rows an import
+        has reserved (:attr:`reserved`)."""
         with self.pending_lock:
-            return len(self.pending), sum(self.pending.values())
+            return len(self.pending), sum(self.pending.values()) + self.reserved
+
+    def reserve(self, rows: int) -> None:
+        """Add ``rows`` (negative: release them) to :attr:`reserved`."""
+        with self.pending_lock:
+            self.reserved = max(0, self.reserved + int(rows))
 
     def check_writable(self) -> None:
         """Raise unless uploads may change this field now."""

@@ -29,17 +29,22 @@ upload will check it, one at a time (a batch decoded at a time beside the file's
 arrays; the store pass decodes each again), and the cost of all its batches not yet
 stored at once as an upload's (:func:`.uploads.check_cost`, ``max_simplices``): a
 refused file leaves no field. The batches are then stored without a cost check of
-their own, which could refuse one part-way with an estimate measured meanwhile.
+their own, which could refuse one part-way with an estimate measured meanwhile;
+instead their rows are reserved (:meth:`.entry.FieldEntry.reserve`): an upload
+meanwhile counts them as pending, and a second import into the same field waits
+for the first (this process's imports; replicas judge each against what they hold).
 """
 from __future__ import annotations
 
 import io
 import json
 import re
+import threading
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from dataclasses import field as dc_field
 
 import numpy as np
 
@@ -101,6 +106,9 @@ class TransferService:
     catalogue: FieldCatalogue
     fields: FieldService
     uploads: UploadService
+    _import_locks: dict = dc_field(default_factory=dict, init=False, repr=False)
+    _locks_lock: threading.Lock = dc_field(default_factory=threading.Lock, init=False,
+                                           repr=False)
 
     def export(self, e: FieldEntry) -> bytes:
         """The export file of field ``e`` (its stored batches at this moment)."""
@@ -150,32 +158,58 @@ class TransferService:
             ``name`` exists with another definition (409).
         """
         plan = read_export(body, self.settings)
-        e = self._existing(name, plan.spec, plan.basis)
-        self._check_cost(name, plan, e)
-        if e is None:
-            e = self._field(name, plan.spec, plan.basis)
-        accepted = replayed = 0
-        out = None
-        for b, flats, values in plan.each():
-            out = self.uploads.upload(e, flats, values, plan.key(b), wait=True,
-                                      cost_checked=True)
-            accepted += out.accepted if not out.replayed else 0
-            replayed += bool(out.replayed)
+        with self._importing(name):  # imports into one field judged one after another
+            e = self._existing(name, plan.spec, plan.basis)
+            self._check_cost(name, plan, e)
+            if e is None:
+                e = self._field(name, plan.spec, plan.basis)
+            with e.upload_lock:  # judged again with the uploads stopped, and reserved
+                left = self._check_cost(name, plan, e)
+                e.reserve(left)
+            accepted = replayed = 0
+            out = None
+            try:
+                for b, flats, values in plan.each():
+                    out = self.uploads.upload(e, flats, values, plan.key(b), wait=True,
+                                              cost_checked=True)
+                    accepted += out.accepted if not out.replayed else 0
+                    replayed += bool(out.replayed)
+                    if not out.replayed:
+                        e.reserve(-len(flats))
+                        left -= len(flats)
+            finally:
+                e.reserve(-left)
         return ImportResult(name=name, source=plan.source, batches=len(plan.batches),
                             replayed_batches=replayed, accepted=accepted,
                             nsamples=e.field.nsamples if e.field is not None else 0,
                             position=out.position if out is not None else 0)
 
-    def _check_cost(self, name: str, plan: "ExportPlan", e: FieldEntry | None) -> None:
+    @contextmanager
+    def _importing(self, name: str):
+        """Hold field ``name`` for one import at a time in this process: the second
+        is judged by the cost guard once the first's batches are stored."""
+        with self._locks_lock:  # name -> [its lock, the imports holding or awaiting it]
+            held = self._import_locks.setdefault(name, [threading.Lock(), 0])
+            held[1] += 1
+        try:
+            with held[0]:
+                yield
+        finally:
+            with self._locks_lock:
+                held[1] -= 1
+                if not held[1]:
+                    del self._import_locks[name]
+
+    def _check_cost(self, name: str, plan: "ExportPlan", e: FieldEntry | None) -> int:
         """The cost guard of the upload (:func:`.uploads.check_cost`) for the file's
         batches not yet stored in field ``e`` (all of them for a new field, ``None``),
-        at once, before any is stored."""
+        at once, before any is stored: their rows."""
         stored = set() if e is None else {b.idem_key for b in self.storage.batches(e.id)}
         new = [(b["rows"], c) for b, c in zip(plan.batches, plan.copies)
                if plan.key(b) not in stored]
         rows = sum(n for n, _ in new)
         if not rows:
-            return
+            return 0
         copies = sum(n * c for n, c in new) / rows
         if e is None:
             check_cost(name, plan.field, (0, 0), 0, rows, copies, self.settings.max_simplices,
@@ -183,6 +217,7 @@ class TransferService:
         else:
             check_cost(name, e.field, e.complete_size, e.pending_counts()[1], rows, copies,
                        self.settings.max_simplices, what="this import")
+        return rows
 
     def _existing(self, name: str, spec: FieldSpec, basis: Basis) -> FieldEntry | None:
         """The existing field ``name`` if its definition is the file's; None if there

@@ -152,7 +152,7 @@ class FieldEntry:
     #: log position -> accepted samples (rows for another replica's batch)
     pending: dict = dc_field(default_factory=dict)
     #: rows an import running here has passed the cost guard with and not stored yet
-    #: (an upload meanwhile counts them as pending: :meth:`pending_counts`)
+    #: (an upload's cost guard meanwhile counts them as pending)
     reserved: int = 0
     pending_lock: threading.Lock = dc_field(default_factory=threading.Lock)
     upload_lock: threading.Lock = dc_field(default_factory=threading.Lock)
@@ -203,10 +203,9 @@ class FieldEntry:
                 self.pending.pop(position, None)
 
     def pending_counts(self) -> tuple[int, int]:
-        """``(pending batches, their samples)``; the samples count the rows an import
-        has reserved (:attr:`reserved`)."""
+        """``(pending batches, their samples)``."""
         with self.pending_lock:
-            return len(self.pending), sum(self.pending.values()) + self.reserved
+            return len(self.pending), sum(self.pending.values())
 
     def reserve(self, rows: int) -> None:
         """Add ``rows`` (negative: release them) to :attr:`reserved`."""

@@ -215,7 +215,8 @@ class TransferService:
             check_cost(name, plan.field, (0, 0), 0, rows, copies, self.settings.max_simplices,
                        what="this import")
         else:
-            check_cost(name, e.field, e.complete_size, e.pending_counts()[1], rows, copies,
+            pending = e.pending_counts()[1] + e.reserved
+            check_cost(name, e.field, e.complete_size, pending, rows, copies,
                        self.settings.max_simplices, what="this import")
         return rows
 

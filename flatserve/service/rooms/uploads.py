@@ -173,9 +173,9 @@ class UploadService:
             prev = self.storage.find_batch(e.id, idem_key) if idem_key is not None else None
             if prev is None:
                 pending = e.pending_counts()[1]
-                if not cost_checked:
-                    check_cost(e.name, e.field, e.complete_size, pending, len(flats),
-                               e.field.copies(flats), self.settings.max_simplices)
+                if not cost_checked:  # (an import's rows not stored yet count as pending)
+                    check_cost(e.name, e.field, e.complete_size, pending + e.reserved,
+                               len(flats), e.field.copies(flats), self.settings.max_simplices)
                 if not wait and pending + len(flats) > self.settings.max_pending_samples:
                     raise BacklogFullError(
                         f"field {e.name!r}: {pending} acknowledged samples wait for their "

@@ -453,7 +453,8 @@ def test_copies_above_the_live_nodes_placed_as_far_as_they_go_and_answers_tell_t
     (a copy a node; describe: ``copies`` 3, ``live`` 2) and answers, where a placement
     group of 3 bundles would never be placed (503 forever). Before any copy is heard
     from none is counted live. A ``wait=true`` upload is answered once every shard has
-    the batch, with the field's samples then; describe counts what the shards hold."""
+    the batch, with the field's samples then; describe counts what the shards hold. A
+    third node joins: each group gets its third copy there."""
     data = tmp_path / "front1"
     probe = sphere_rays(rng, 1000)
     with contextlib.ExitStack() as stack:
@@ -492,6 +493,18 @@ def test_copies_above_the_live_nodes_placed_as_far_as_they_go_and_answers_tell_t
                     break
                 time.sleep(1)
         assert [(g["copies"], g["live"]) for g in groups] == [(3, 2), (3, 2)], groups
+        # a node joins: each group gets its third copy there, which restores itself
+        nodes.add_worker()
+        with Client(a.url, retries=0) as c:
+            end = time.monotonic() + 240
+            while True:
+                groups = c.describe("f")["shard_groups"]
+                if all(g["live"] == 3 for g in groups) or time.monotonic() > end:
+                    break
+                time.sleep(1)
+        assert [(g["copies"], g["live"]) for g in groups] == [(3, 3), (3, 3)], groups
+        assert "gets its copy 3 on a node that joined" in (tmp_path / "front1.log").read_text()
+        assert_same(data, a, "f", probe)
 
 
 def test_a_group_is_placed_as_far_as_the_nodes_hold_its_copies():

@@ -35,7 +35,14 @@ class GroupHealth:
     def __init__(self, ncopies: list[int]) -> None:
         self.reports: list[dict | None] = [None] * len(ncopies)
         self.alive: list[list[bool | None]] = [[None] * n for n in ncopies]
+        #: per group, per copy: the node its last status named (None: not heard from)
+        self.nodes: list[list[str | None]] = [[None] * n for n in ncopies]
         self._next = [0] * len(ncopies)
+
+    def add_copy(self, g: int) -> None:
+        """Group ``g`` has one more copy (not heard from yet)."""
+        self.alive[g] = [*self.alive[g], None]
+        self.nodes[g] = [*self.nodes[g], None]
 
     def note(self, g: int, st: dict) -> None:
         """A copy of group ``g`` reported ``st``: the group's report unless an earlier
@@ -81,6 +88,7 @@ class GroupHealth:
                 self.alive[g][j] = False
                 continue
             self.alive[g][j] = st["state"] == "ready"
+            self.nodes[g][j] = st.get("node")
             self.note(g, st)
 
 

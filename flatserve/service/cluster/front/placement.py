@@ -205,6 +205,7 @@ class RayGroups:
         self.transport = cluster.transport
         #: what is known of each copy, and each group's newest report
         self.health = GroupHealth([len(a) for a in self.actors])
+        self._growing = threading.Lock()
 
     def _name(self, g: int, j: int | None = None) -> str:
         base = f"field-{self.cluster.log_tag}-{self.field_id}-g{g}"
@@ -241,7 +242,10 @@ class RayGroups:
         except Exception:  # made by another front meanwhile
             return get_placement_group(name)
 
-    def _actor(self, g: int, j: int, pg):
+    def _actor(self, g: int, j: int, pg, node: str | None = None):
+        """Copy ``j`` of group ``g`` (made unless it exists): in bundle ``j`` of the
+        placement group ``pg``, else on ``node`` (preferred: elsewhere when it is gone
+        or full), else spread."""
         s = self.cluster.settings
         opts: dict[str, Any] = dict(
             name=self._name(g, j), namespace=s.ray_namespace, lifetime="detached",
@@ -253,9 +257,49 @@ class RayGroups:
             strategies = self.cluster.ray.util.scheduling_strategies
             opts["scheduling_strategy"] = strategies.PlacementGroupSchedulingStrategy(
                 pg, placement_group_bundle_index=j)
+        elif node is not None:
+            strategies = self.cluster.ray.util.scheduling_strategies
+            opts["scheduling_strategy"] = strategies.NodeAffinitySchedulingStrategy(node,
+                                                                                   soft=True)
         else:
             opts["scheduling_strategy"] = "SPREAD"
         return self.cluster.actor_class.options(**opts).remote(s, self.field_id, self.charts[g])
+
+    def grow(self) -> None:
+        """Place a copy a group lacks (its field asks for more copies than the live nodes
+        with room held when the group was placed) on a live node with room that holds
+        none of the group's copies, once one has joined: one copy a group a round, named
+        as the next copy (any front finds it, and makes it at most once). The copies'
+        nodes are those their status reports named (a copy not heard from yet keeps a
+        round from placing another)."""
+        short = [g for g, a in enumerate(self.actors) if len(a) < self.copies]
+        if not short or not self._growing.acquire(blocking=False):  # (one round at a time)
+            return
+        try:
+            self._grow(short)
+        finally:
+            self._growing.release()
+
+    def _grow(self, short: list[int]) -> None:
+        ray, s = self.cluster.ray, self.cluster.settings
+        try:
+            room = [n["NodeID"] for n in nodes_with(ray, {"memory": s.ray_shard_memory,
+                                                          **self.cluster.pin})]
+        except Exception:  # the cluster unreachable: the next round tries again
+            return
+        for g in short:
+            held = self.health.nodes[g]
+            if None in held:  # a copy's node not known yet
+                continue
+            free = [n for n in room if n not in held]
+            if not free:
+                continue
+            j = len(self.actors[g])
+            log.info("%s: shard group %d gets its copy %d on a node that joined (asked: %d)",
+                     self.label, g, j + 1, self.copies)
+            actor = self._actor(g, j, None, free[0])
+            self.health.add_copy(g)  # (the lists grow whole: readers see one or the other)
+            self.actors[g] = [*self.actors[g], actor]
 
     def status(self) -> list[dict | None]:
         return list(self.health.reports)
@@ -279,8 +323,10 @@ class RayGroups:
         return out
 
     def refresh(self, timeout: float = 2.0) -> None:
-        """Ask every actor for its status (one round, at most ``timeout`` s)."""
+        """Ask every actor for its status (one round, at most ``timeout`` s), then place
+        the copies a group lacks where nodes have joined (:meth:`grow`)."""
         self.health.refresh(self.cluster.ray, self.actors, self.transport.get, timeout)
+        self.grow()
 
     def applied(self, position: int, timeout: float) -> list[dict]:
         """Per group, the status of a copy once it has applied the log up to
@@ -309,7 +355,8 @@ class RayGroups:
 
     # -- what failover asks (:class:`.failover.Copies`) --------------------------------------
     def order(self, g: int) -> list[int]:
-        return self.health.order(g)
+        n = len(self.actors[g])  # (a copy being added is counted once it is made)
+        return [j for j in self.health.order(g) if j < n]
 
     def actor(self, g: int, j: int):
         return self.actors[g][j]

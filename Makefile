@@ -71,7 +71,7 @@ $(BIN)/.docker: scripts/install-system-deps.sh
 	touch $@
 
 # Debian's PostgreSQL server, for the tests of the PostgreSQL backend (they run
-# their own throwaway clusters: flatserve/service/pgcluster.py).
+# their own throwaway clusters: tests/harness/pgcluster.py).
 $(BIN)/.postgres: scripts/install-system-deps.sh
 	bash scripts/install-system-deps.sh --postgres
 	touch $@

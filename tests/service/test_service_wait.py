@@ -13,7 +13,7 @@ from flatserve import flats
 from flatserve.client import Client
 from flatserve.field import Field
 from flatserve.service.rooms import applier as applier_mod
-from flatserve.service import assembly as rooms_mod
+from flatserve.service import assembly
 from flatserve.service.rooms import specs
 from flatserve.service.status import NotReadyError
 from tests.harness.fields import DEFAULT, KINDS, add_rays, paper_rays, query_rays
@@ -193,7 +193,7 @@ def test_wait_true_after_wait_false_sees_every_earlier_batch(make_app, rng, kind
 @with_kinds
 def test_shutdown_leaves_pending_batches_to_the_replay(make_app, rng, monkeypatch, kind):
     """A batch acknowledged with wait=false but not indexed at shutdown is replayed."""
-    monkeypatch.setattr(rooms_mod, "DRAIN_TIMEOUT_S", 0.2)
+    monkeypatch.setattr(assembly, "DRAIN_TIMEOUT_S", 0.2)
     gate = _Gate(monkeypatch)
     ref = kind.reference(C)
     tc, c = _started(make_app())

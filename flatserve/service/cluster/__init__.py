@@ -1,4 +1,4 @@
-"""A field's shards in other processes: the cluster mode (``serve --ray-address``).
+"""A field's shards in other processes: the cluster mode (``serve --ray``).
 
 A field is a set of shards (:class:`flatserve.contract.SampledField`: an atlas
 field's charts; a one-chart field is one shard). In cluster mode the charts of
@@ -13,7 +13,9 @@ The server processes become stateless *fronts*: a field's entry holds a
 :class:`~.front.remote.RemoteField`, which implements the field contract by routing
 (a pure function of the field's definition), fanning out to one live copy of
 each shard group a request touches, and blending, exactly as the one-process
-field does; so the service's rooms are unchanged. Ray is imported only when a
-front connects or an actor runs (:mod:`.ray_env`, :mod:`.front.placement`,
-:mod:`.worker.tiles`): the library and the one-machine service do not need it.
+field does; so the service's rooms are unchanged. Ray is imported only by
+:mod:`.ray_env`, on first use (a front connecting, an actor running): the library
+and the one-machine service do not need it. What runs in a server is
+:mod:`.front`; what runs in Ray actors, :mod:`.worker`; the calls between them,
+:mod:`.wire`.
 """

@@ -2,7 +2,7 @@
 the body, API keys.
 
 A route names the rooms it uses (``FieldsDep``, ``UploadsDep``, ``QueriesDep``,
-``SnapshotsDep``, ``FollowerDep``, ``CatalogueDep``); none reaches one room
+``SnapshotsDep``, ``FollowerDep``, ``CatalogueDep``, ``TransferDep``); none reaches one room
 through another.
 
 All are ``async def``: they never block, and FastAPI would run a plain ``def``

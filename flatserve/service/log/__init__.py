@@ -5,5 +5,5 @@ The interface (:mod:`.backend`), its SQLite backend (:mod:`.storage`,
 and its PostgreSQL backend (:mod:`.pgstorage`, :mod:`.pgsession`, :mod:`.pgsnapshots`),
 the rules and the schema both follow (:mod:`.sqlrules`, :mod:`.sqlschema`) and how a
 batch's arrays are stored (:mod:`.blobs`). Storage only: what an entry means is the
-rooms' (:mod:`flatserve.service.assembly`).
+rooms' (:mod:`flatserve.service.rooms`).
 """

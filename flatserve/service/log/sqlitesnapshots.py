@@ -10,7 +10,7 @@ database points the field at the snapshot (:mod:`.sqlrules`); then the former
 snapshot file goes, then the field's parts the new one does not name.
 
 A reader of a snapshot replaced meanwhile finds its file gone and is told so
-(:class:`~.backend.SnapshotGoneError`: it reads the new one). A field's writer
+(:class:`~.rows.SnapshotGoneError`: it reads the new one). A field's writer
 holds the field's snapshot lease (:func:`~.backend.snapshot_lease`: one writer
 of a field at a time; different fields' writers run at once). Every file a
 writer makes carries its field's id: the snapshot under

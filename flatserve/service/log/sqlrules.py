@@ -4,9 +4,9 @@
 :class:`~flatserve.service.log.backend.LogBackend` that are the same for every SQL
 database: how batches are numbered, the idempotency check, deleting a field,
 pointing a field at its snapshot, the column lists and the mapping of rows to
-:class:`~flatserve.service.log.backend.FieldRow`,
-:class:`~flatserve.service.log.backend.BatchRow` and
-:class:`~flatserve.service.log.backend.LogEntry`, and the mapping of failures to the
+:class:`~.rows.FieldRow`,
+:class:`~.rows.BatchRow` and
+:class:`~.rows.LogEntry`, and the mapping of failures to the
 service's errors (:func:`storage_failure`). What differs between databases is a
 small :class:`Dialect` (placeholders, row locks, the legacy column of SQLite)
 and a few hooks each backend implements (``_write``, ``_read``, ``_append`` and

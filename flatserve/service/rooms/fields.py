@@ -4,7 +4,7 @@ A create or delete is committed to the shared log and answered once this
 replica's follower has applied it (:mod:`.applier`), as every replica applies
 it; descriptions read the catalogue (:mod:`.catalogue`), the field's own
 :meth:`describe` (the library's contract, :mod:`flatserve.contract`) and the
-storage figures. Every answer is a model of :mod:`..schemas`.
+storage figures. Every answer is a model of :mod:`..reports`.
 """
 from __future__ import annotations
 

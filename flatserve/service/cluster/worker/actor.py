@@ -1,6 +1,6 @@
 """A shard worker as a Ray actor: the one class of the cluster wing that runs in a
-shard's own process (the front's side, placement, calls and failover, is
-:mod:`..front.placement`'s).
+shard's own process (the front's side is :mod:`..front`: placement, transport,
+failover, health).
 
 :class:`ShardActor` holds a :class:`~.shard.ShardWorker` whose tiles (a field
 made with ``tiles``) live in actors of their own (:class:`~.tiles.RayTileHost`),

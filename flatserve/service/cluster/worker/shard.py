@@ -53,7 +53,7 @@ from ...rooms.replica import Follower
 from ...status import NotReadyError, ShardUnavailableError, StorageError
 from ..ray_env import rss_bytes
 
-log = logging.getLogger("flatserve.service.shard")
+log = logging.getLogger("flatserve.service.cluster")
 
 #: batches whose duplicates a worker remembers (the latest applied; an upload with
 #: ``wait=true`` asks for its own at once)

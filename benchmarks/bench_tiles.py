@@ -19,7 +19,9 @@ its own, pinned with ``taskset`` to its cores, interleaved, medians of
 own, on the two worker nodes (1 CPU each) of a cluster on loopback (cluster
 mode's tiles: ``flatserve/service/cluster/worker/tiles.py``; the building process keeps
 the bookkeeping and routes the exchange), against 2 tiles in one process and the
-unsplit field, on this machine's 2 cores; the answers checked equal (bits).
+unsplit field, on this machine's 2 cores; the answers checked equal (bits); the
+exchange's rounds and the bytes it moved between the building process and the
+tiles' actors, in all and per batch.
 
 ``--sizes S ...``: only the build of 2 tiles against the unsplit field on 2
 cores at S^2 rays each (where tiles start to pay: ``tiles="auto"``,
@@ -118,7 +120,9 @@ def one(side: int, tiles: int | str, cores: int, queries: int, out: str,
     if host is not None:
         where = host.placement()
         info.update(tile_nodes=len({w["node"] for w in where}),
-                    tile_rss=[w["memory"] for w in where])
+                    tile_rss=[w["memory"] for w in where],
+                    # what the exchange moved between this process and the tiles' actors
+                    exchanged=host.exchanged, batches=-(-len(o) // BATCH))
     return info
 
 
@@ -223,7 +227,10 @@ def in_actors(args) -> None:
                     assert np.array_equal(np.load(out), np.load(ref), equal_nan=True), \
                         f"{key}: answers differ from the unsplit field's"
                 extra = (f", tiles on {x['tile_nodes']} nodes, their resident memory "
-                         f"{[round(m / 2**30, 2) for m in x['tile_rss']]} GiB"
+                         f"{[round(m / 2**30, 2) for m in x['tile_rss']]} GiB; the exchange: "
+                         f"{x['rounds']} rounds, {x['exchanged'] / 2**20:.1f} MiB between this "
+                         f"process and the tiles ({x['exchanged'] / x['batches'] / 2**20:.1f} "
+                         f"MiB a batch of {BATCH:,})"
                          if "tile_rss" in x else "")
                 print(f"run {r + 1}: {key}: build {x['build_s']:.1f} s, query "
                       f"{x['queries'] / x['query_s']:,.0f}/s, this process's peak "

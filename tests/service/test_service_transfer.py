@@ -446,16 +446,24 @@ def test_a_stored_definition_beyond_the_create_limits_fails_its_field_only(make_
         tc.__exit__(None, None, None)
 
 
+def _servers(stack, make_app, tmp_path):
+    """``server(name, **settings)``: a server on its own data directory, closed with
+    ``stack``: its ``(TestClient, Client)``."""
+    def server(name, **settings):
+        tc, c = started(make_app(data_dir=tmp_path / name, **settings))
+        stack.callback(tc.__exit__, None, None, None)
+        return tc, c
+
+    return server
+
+
 def test_an_import_past_the_cost_guard_is_refused_whole(make_app, tmp_path, rng, monkeypatch):
     """``max_simplices`` judges all the file's batches at once, before any is stored, by
     the upload's own estimate: a file whose first batches would pass alone but not the
     whole is a 413 naming the field and leaves no field (it used to store the batches
     before the one refused). A repeated import counts only the batches still missing."""
     with contextlib.ExitStack() as stack:
-        def server(name, **settings):
-            tc, c = started(make_app(data_dir=tmp_path / name, **settings))
-            stack.callback(tc.__exit__, None, None, None)
-            return tc, c
+        server = _servers(stack, make_app, tmp_path)
 
         ta, a = server("a")
         a.create_field("f", channels=2, basis=ONE_CHART)
@@ -502,10 +510,7 @@ def test_two_imports_into_one_field_at_once_are_judged_one_after_the_other(
     from flatserve.service.status import CostLimitError, CostPendingError
 
     with contextlib.ExitStack() as stack:
-        def server(name, **settings):
-            tc, c = started(make_app(data_dir=tmp_path / name, **settings))
-            stack.callback(tc.__exit__, None, None, None)
-            return tc, c
+        server = _servers(stack, make_app, tmp_path)
 
         ta, a = server("a")
         files = []

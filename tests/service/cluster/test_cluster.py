@@ -447,6 +447,18 @@ def test_a_front_started_inside_an_unbuilt_checkout_its_shards_import_the_instal
         assert got.inside.mean() > 0.9
 
 
+def _groups_when_live(front, name: str, live: int, timeout: float) -> list[dict]:
+    """The field's ``shard_groups`` once every group has ``live`` copies live, or as they
+    are after ``timeout`` seconds."""
+    end = time.monotonic() + timeout
+    with Client(front.url, retries=0) as c:
+        while True:
+            groups = c.describe(name)["shard_groups"]
+            if all(g["live"] == live for g in groups) or time.monotonic() > end:
+                return groups
+            time.sleep(1)
+
+
 def test_copies_above_the_live_nodes_placed_as_far_as_they_go_and_answers_tell_the_truth(
         tmp_path, rng):
     """A field asking for 3 copies on a cluster of 2 nodes: each group is placed on both
@@ -485,23 +497,11 @@ def test_copies_above_the_live_nodes_placed_as_far_as_they_go_and_answers_tell_t
         assert got["nsamples"] == want.nsamples, (got["nsamples"], want.nsamples)
         assert all(g["position"] >= answers[-1]["position"] for g in got["shard_groups"]), got
         assert_same(data, a, "f", probe)
-        with Client(a.url, retries=0) as c:
-            end = time.monotonic() + 120
-            while True:
-                groups = c.describe("f")["shard_groups"]
-                if all(g["live"] == 2 for g in groups) or time.monotonic() > end:
-                    break
-                time.sleep(1)
+        groups = _groups_when_live(a, "f", 2, 120)
         assert [(g["copies"], g["live"]) for g in groups] == [(3, 2), (3, 2)], groups
         # a node joins: each group gets its third copy there, which restores itself
         nodes.add_worker()
-        with Client(a.url, retries=0) as c:
-            end = time.monotonic() + 240
-            while True:
-                groups = c.describe("f")["shard_groups"]
-                if all(g["live"] == 3 for g in groups) or time.monotonic() > end:
-                    break
-                time.sleep(1)
+        groups = _groups_when_live(a, "f", 3, 240)
         assert [(g["copies"], g["live"]) for g in groups] == [(3, 3), (3, 3)], groups
         assert "gets its copy 3 on a node that joined" in (tmp_path / "front1.log").read_text()
         assert_same(data, a, "f", probe)

@@ -23,6 +23,20 @@ unsplit field, on this machine's 2 cores; the answers checked equal (bits); the
 exchange's rounds and the bytes it moved between the building process and the
 tiles' actors, in all and per batch.
 
+``--http``: the service (issue 40): the same field, ``--side``^2 rays (548^2 =
+300,304 by default here), uploaded over HTTP in batches of ``--batch`` rows
+(``wait=false``, the last ``wait=true``: every batch applied, in log order; several
+sizes: a 2-core configuration each, the 1-core one with the first) to a
+real server on 127.0.0.1 (a temporary SQLite data directory), timed from the
+first upload to the last one's response: a server pinned to one core
+(``taskset -c 0``, ``shard_threads=1``) holding the field unsplit, against one on
+2 cores (``shard_threads=2``) holding it in ``"tiles": --http-tiles`` (2 or
+``auto``); a fresh server for each upload, interleaved, medians of ``--runs``;
+the answers to a few thousand query rays checked equal (bits, the weights and
+sample ids too). ``--old DIR``: also the 2-core server run from the checkout
+``DIR`` (its ``flatserve``, the extension copied in; e.g. a ``git worktree`` of
+an earlier commit), interleaved with the others: before and after in one run.
+
 ``--sizes S ...``: only the build of 2 tiles against the unsplit field on 2
 cores at S^2 rays each (where tiles start to pay: ``tiles="auto"``,
 ``flatserve.tiles.AUTO_MIN_SAMPLES``).
@@ -33,10 +47,13 @@ Every tiled answer is checked equal (bits) to the unsplit field's.
     .venv/bin/python benchmarks/bench_tiles.py --halo-only [--side 1000] [--halo 2 4 8 16]
     .venv/bin/python benchmarks/bench_tiles.py --sizes 150 224 316 447 [--runs 3]
     .venv/bin/python benchmarks/bench_tiles.py --ray [--side 632] [--runs 3]
+    .venv/bin/python benchmarks/bench_tiles.py --http [--side 548] [--batch 50000 [150000 ...]] [--runs 3]
+        [--http-tiles 2|auto] [--old /tmp/old-checkout]
 """
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import statistics
@@ -247,6 +264,238 @@ def in_actors(args) -> None:
         print("every answer equal (bits) to the unsplit field's")
 
 
+def _server_command(cores: int, src: str | None, profile: str | None = None) -> list[str]:
+    """``python -m flatserve.service`` pinned to the first ``cores`` cores; from the
+    checkout ``src`` (its ``flatserve`` first, not this one's editable install);
+    ``profile``: timed (:func:`serve_profiled`), its events written there."""
+    pin = ["taskset", "-c", ",".join(str(c) for c in range(cores))]
+    if profile is not None:
+        return [*pin, sys.executable, __file__, "--serve-profiled", profile]
+    if src is None:
+        return [*pin, sys.executable, "-m", "flatserve.service"]
+    boot = ("import runpy, sys; sys.meta_path[:] = [f for f in sys.meta_path if 'editable' "
+            f"not in type(f).__module__]; sys.path.insert(0, {src!r}); "
+            "runpy.run_module('flatserve.service', run_name='__main__', alter_sys=True)")
+    return [*pin, sys.executable, "-c", boot]
+
+
+def _http_ingest(tmp: Path, label: str, cores: int, tiles, src: str | None, o, d, v, q,
+                 batch: int, profile: str | None = None) -> tuple[float, dict, dict]:
+    """A fresh server (``cores``, from ``src``), the field created with ``tiles`` and
+    every ray uploaded: seconds from the first upload to the last one's response,
+    the answers to ``q`` and the server's own figures."""
+    import shutil
+
+    from flatserve.client import Client
+    from tests.harness.process import ServerProcess
+
+    data = tmp / f"data-{label}"
+    shutil.rmtree(data, ignore_errors=True)
+    with ServerProcess(data, tmp / f"{label}.log", log_level="warning",
+                       command=_server_command(cores, src, profile), shard_threads=cores,
+                       snapshot_every=0, apply_wait_timeout=600,
+                       read_wait_timeout=600) as srv:
+        srv.wait_ready(120)
+        with Client(srv.url, retries=0, timeout=600) as c:
+            from flatserve.lightfield.sampling import BASIS_SCALE
+
+            c.create_field("f", basis={"kind": "tangent_simplex", "scale": BASIS_SCALE},
+                           channels=v.shape[1], tiles=tiles)
+            t0 = time.perf_counter()
+            n = len(o)
+            for i in range(0, n, batch):
+                last = i + batch >= n
+                c.upload_rays("f", o[i:i + batch], d[i:i + batch], v[i:i + batch], wait=last)
+            took = time.perf_counter() - t0
+            res = c.query_rays("f", q.origins, q.directions, weights=True)
+            # a cell's weights come in its vertex order, which differs between
+            # triangulations: compared as (id, weight) pairs sorted by id per row; beyond
+            # the hull (NaN) the facet a walk ends at is no answer: not compared
+            by = np.argsort(res.ids, axis=1)
+            inside = np.isfinite(res.values).all(axis=1)
+            got = {"values": res.values, "inside": inside,
+                   "ids": np.take_along_axis(res.ids, by, 1)[inside],
+                   "weights": np.take_along_axis(res.weights, by, 1)[inside]}
+            desc = c.describe("f")
+    return took, got, desc
+
+
+#: what ``--profile`` times in the 2-core server: (module, class or None, function, label)
+PROFILED = [
+    ("flatserve.service.http.codec", None, "decode", "decode"),
+    ("flatserve.service.rooms.uploads", "UploadService", "upload", "upload (request)"),
+    ("flatserve.service.rooms.uploads", "UploadService", "_commit_and_chart",
+     "chart + pack + commit"),
+    ("flatserve.service.log.sqlrules", "SQLBackend", "add_batch", "commit (SQLite)"),
+    ("flatserve.service.rooms.applier", "LogApplier", "apply_batch", "apply (follower)"),
+    ("flatserve.field", "Field", "insert_prepared", "insert_prepared"),
+    ("flatserve.tiles", "TiledTriangulation", "_insert", "tiles: own inserts"),
+    ("flatserve.tiles", "TiledTriangulation", "_exchange", "tiles: exchange"),
+    ("flatserve.tiles", "Tile", "insert", None),  # own / halo, per tile thread
+    ("flatserve.tiles", "Tile", "conflicts", "tile: scan"),
+]
+
+
+def serve_profiled(out: str, argv: list[str]) -> None:
+    """The server (``python -m flatserve.service argv``) with the calls of
+    :data:`PROFILED` timed: ``(label, thread, start, end, rows)`` events written
+    to ``out`` (JSON) every half second."""
+    import importlib
+    import runpy
+    import threading
+
+    events: list = []
+
+    def wrap(owner, name, label):
+        f = getattr(owner, name)
+
+        def timed(*a, **k):
+            t0 = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                lab = label or ("tile: insert own" if a[3] else "tile: insert halo")
+                rows = len(a[1]) if label is None else 0
+                events.append((lab, threading.current_thread().name, t0,
+                               time.perf_counter(), rows))
+        setattr(owner, name, timed)
+
+    for mod, cls, name, label in PROFILED:
+        m = importlib.import_module(mod)
+        wrap(getattr(m, cls) if cls else m, name, label)
+
+    def dump():
+        while True:
+            time.sleep(0.5)
+            with open(out + ".tmp", "w") as fh:
+                json.dump(list(events), fh)
+            os.replace(out + ".tmp", out)
+
+    threading.Thread(target=dump, daemon=True).start()
+    sys.argv = ["flatserve.service", *argv]
+    runpy.run_module("flatserve.service", run_name="__main__", alter_sys=True)
+
+
+def _busy(iv) -> float:
+    """Seconds covered by the union of intervals ``[(start, end)]``."""
+    tot, end = 0.0, -1e300
+    for a, b in sorted(iv):
+        if b > end:
+            tot += b - max(a, end)
+            end = b
+    return tot
+
+
+def print_profile(path: str) -> None:
+    """Where the profiled server's time went (:func:`serve_profiled`'s events)."""
+    with open(path) as fh:
+        ev = json.load(fh)
+    if not ev:
+        print("  (no events)")
+        return
+    t0 = min(e[2] for e in ev if e[0] == "upload (request)")
+    t1 = max(e[3] for e in ev if e[0] == "apply (follower)")
+    wall = t1 - t0
+    print(f"  profile of the 2-core server (first upload's arrival to last apply: {wall:.2f} s):")
+    labels = list(dict.fromkeys(e[0] for e in ev))
+    for lab in labels:
+        xs = [e for e in ev if e[0] == lab]
+        threads = sorted({e[1] for e in xs})
+        per = {t: sum(e[3] - e[2] for e in xs if e[1] == t) for t in threads}
+        rows = sum(e[4] for e in xs)
+        print(f"    {lab:24s} {len(xs):4d} calls, {sum(per.values()):7.2f} s summed, "
+              f"{_busy([(e[2], e[3]) for e in xs]):7.2f} s of wall"
+              + (f", {rows:,} points" if rows else "")
+              + (f"; per thread {', '.join(f'{v:.2f}' for v in per.values())}"
+                 if len(per) > 1 else ""))
+    app = sorted((e[2], e[3]) for e in ev if e[0] == "apply (follower)")
+    idle = sum(max(0.0, b[0] - a[1]) for a, b in itertools.pairwise(app)) + (
+        app[0][0] - t0)
+    print(f"    the follower idle (waiting for the next committed batch) {idle:.2f} s; "
+          f"applying {_busy(app):.2f} s")
+    ins = sorted((e[2], e[3]) for e in ev if e[0] == "insert_prepared")
+    own = sorted((e[2], e[3]) for e in ev if e[0] == "tiles: own inserts")
+    exch = sorted((e[2], e[3]) for e in ev if e[0] == "tiles: exchange")
+    print("    per batch (s): apply = before the insert + own inserts + exchange")
+    for i, (a, b) in enumerate(app):
+        x = [iv for iv in ins if a <= iv[0] <= b]
+        o = [iv[1] - iv[0] for iv in own if a <= iv[0] <= b]
+        xx = [iv[1] - iv[0] for iv in exch if a <= iv[0] <= b]
+        print(f"      {i + 1}: {b - a:6.2f} = {(x[0][0] - a) if x else 0:5.2f} + "
+              f"{sum(o):6.2f} + {sum(xx):5.2f}")
+    req = [(e[2], e[3]) for e in ev if e[0] == "upload (request)"]
+    both = 0.0
+    for a, b in req:  # request work overlapping the follower's
+        for c, d in app:
+            both += max(0.0, min(b, d) - max(a, c))
+    print(f"    requests' work overlapping an apply {both:.2f} s of "
+          f"{_busy(req):.2f} s of requests")
+
+
+def over_http(args) -> None:
+    """Issue 40: the Fig. 11 field uploaded over HTTP, 1-core unsplit against 2-core
+    tiled servers (and, with ``--old``, the 2-core server of an earlier checkout)."""
+    from flatserve.lightfield.camera import paper_samples
+    from flatserve.lightfield.sampling import bunny_scene, sample_scene
+
+    side = args.side or 548
+    samples, values = sample_scene(bunny_scene(), side, seed=0)
+    perm = np.random.default_rng(0).permutation(len(values))
+    o, d, v = samples.origins[perm], samples.directions[perm], values[perm]
+    v = np.repeat(v, 3, axis=1) if v.shape[1] == 1 else v
+    q = paper_samples(60, np.random.default_rng(1))  # 3,600 query rays
+    tiles = args.http_tiles
+    b0 = args.batch[0]
+    configs = [(f"unsplit, 1 core, batches of {b0:,}", 1, 1, None, b0)]
+    for b in args.batch:
+        configs.append((f"tiles {tiles}, 2 cores, batches of {b:,}", 2, tiles, None, b))
+        if args.old:
+            configs.append((f"tiles {tiles}, 2 cores, batches of {b:,}, {Path(args.old).name}",
+                            2, tiles, args.old, b))
+    print(f"Fig. 11 field over HTTP: {len(o):,} rays in batches of "
+          f"{' or '.join(f'{b:,}' for b in args.batch)} rows (wait=false, "
+          f"the last wait=true), a fresh server each; {os.cpu_count()} cores here; "
+          f"medians of {args.runs}; load {os.getloadavg()[0]:.2f}", flush=True)
+    times: dict = {c[0]: [] for c in configs}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        ref = None
+        if args.profile:  # one profiled upload to the 2-core server first (not timed)
+            prof = "/tmp/bench_tiles_http_profile.json"  # (kept: its events)
+            took, _, _ = _http_ingest(tmp, "prof", 2, tiles, None, o, d, v, q, b0, prof)
+            time.sleep(1.0)  # (its last events written)
+            print(f"profiled run (not in the medians): tiles {tiles}, 2 cores: {took:.2f} s")
+            print_profile(prof)
+            if not args.runs:
+                return
+        for r in range(args.runs):
+            for k, (label, cores, t, src, b) in enumerate(configs):
+                took, got, desc = _http_ingest(tmp, f"c{k}", cores, t, src, o, d, v, q, b)
+                times[label].append(took)
+                if ref is None:
+                    ref = got
+                else:
+                    for key, a in ref.items():
+                        b = got[key]
+                        if not np.array_equal(a, b, equal_nan=True):
+                            np.savez("/tmp/bench_tiles_http_differ.npz",
+                                     **{f"ref_{k}": x for k, x in ref.items()},
+                                     **{f"got_{k}": x for k, x in got.items()})
+                        assert np.array_equal(a, b, equal_nan=True), \
+                            f"{label}: {key} differ from the first server's"
+                print(f"run {r + 1}: {label}: {took:.2f} s ({desc.get('ntiles', 1)} tile(s), "
+                      f"{desc.get('nsamples', '?'):,} samples; load "
+                      f"{os.getloadavg()[0]:.2f})", flush=True)
+    med = {k: statistics.median(x) for k, x in times.items()}
+    base = med[configs[0][0]]
+    print()
+    for label, *_ in configs:
+        print(f"{label}: median {med[label]:.2f} s (runs {', '.join(f'{x:.2f}' for x in times[label])})"
+              + ("" if label == configs[0][0] else f": {base / med[label]:.2f}x the 1-core server"))
+    print(f"every answer equal (bits: values; weights and sample ids inside the hull) on "
+          f"{len(q.origins):,} query rays ({int(ref['inside'].sum()):,} inside)")
+
+
 def run(args, tiles: int | str, cores: int, out: str, *, side: int | None = None,
         queries: int | None = None, ray: str | None = None) -> dict:
     cpus = ",".join(str(c) for c in range(cores))
@@ -258,8 +507,12 @@ def run(args, tiles: int | str, cores: int, out: str, *, side: int | None = None
 
 
 def main() -> int:
+    if sys.argv[1:2] == ["--serve-profiled"]:
+        serve_profiled(sys.argv[2], sys.argv[3:])
+        return 0
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--side", type=int, default=1000, help="rays: side^2")
+    ap.add_argument("--side", type=int, default=None,
+                    help="rays: side^2 (default 1000; 548 with --http)")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--queries", type=int, default=250_000)
     ap.add_argument("--halo", type=int, nargs="*", default=[2, 4, 8, 16])
@@ -274,11 +527,24 @@ def main() -> int:
                     help='only tiles="auto" on one core (one tile) against the unsplit field')
     ap.add_argument("--ray", action="store_true",
                     help="only 2 tiles in Ray actors against 2 tiles in one process and unsplit")
+    ap.add_argument("--http", action="store_true",
+                    help="only the upload over HTTP: 1-core unsplit against 2-core tiled servers")
+    ap.add_argument("--batch", type=int, nargs="+", default=[50_000],
+                    help="--http: rows per upload (several: each a 2-core configuration)")
+    ap.add_argument("--http-tiles", type=lambda s: s if s == "auto" else int(s), default=2,
+                    help="--http: the 2-core server's field's tiles (2 or auto)")
+    ap.add_argument("--old", help="--http: also the 2-core server from this checkout")
+    ap.add_argument("--profile", action="store_true",
+                    help="--http: first one profiled upload to the 2-core server")
     ap.add_argument("--ray-address", help=argparse.SUPPRESS)
     ap.add_argument("--one", type=lambda s: s if s == "auto" else int(s), help=argparse.SUPPRESS)
     ap.add_argument("--cores", type=int, default=2, help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.http:
+        over_http(args)
+        return 0
+    args.side = args.side or 1000
     if args.one:
         print(json.dumps(one(args.side, args.one, args.cores, args.queries, args.out,
                              args.ray_address)))

@@ -132,17 +132,21 @@ def test_no_import_circle_in_flatserve():
 def test_mypy_checks_the_wire(tmp_path):
     """A shard worker and a tile's actor implement the calls between processes
     (:mod:`flatserve.service.cluster.wire`), checked by mypy as the field contract is;
-    a class that lacks one fails."""
+    a class that lacks one fails, and a tile's proxy reads with the tile's own
+    signatures (a read called with a missing argument fails)."""
     path = tmp_path / "check.py"
     path.write_text(textwrap.dedent("""
         from flatserve.service.cluster.worker.shard import ShardWorker
         from flatserve.service.cluster.worker.tile_actor import TileActor
+        from flatserve.service.cluster.worker.tiles import RemoteTile
         from flatserve.service.cluster.wire import ShardCalls, TileCalls
 
 
-        def check(worker: ShardWorker, tile: TileActor) -> None:
+        def check(worker: ShardWorker, tile: TileActor, proxy: RemoteTile) -> None:
             shard: ShardCalls = worker
             held: TileCalls = tile
+            n: int = proxy.count_cells()
+            proxy.within([[0.0]], 1.0)
 
 
         class NoParts:
@@ -163,8 +167,9 @@ def test_mypy_checks_the_wire(tmp_path):
          "--no-error-summary", "--cache-dir", str(tmp_path / "cache"), str(path)],
         capture_output=True, text=True, timeout=600, cwd=ROOT.parent)
     errors = [line for line in got.stdout.splitlines() if ": error:" in line]
-    assert len(errors) == 1 and "check.py:23" in errors[0] and "parts" in got.stdout, \
+    assert len(errors) == 2 and "check.py:12: error: Too few arguments" in errors[0], \
         got.stdout
+    assert "check.py:26" in errors[1] and "parts" in got.stdout, got.stdout
 
 
 SERVICE = ROOT / "service"

@@ -1,21 +1,7 @@
-"""A field's shards in other processes: the cluster mode (``serve --ray``).
+"""Cluster mode (``serve --ray``): a field's shards in Ray actors, the servers stateless fronts.
 
-A field is a set of shards (:class:`flatserve.contract.SampledField`: an atlas
-field's charts; a one-chart field is one shard). In cluster mode the charts of
-a field are split into *shard groups*, each held by one or more *shard
-workers* (:class:`~.worker.shard.ShardWorker`) in processes of their own (Ray actors
-on the cluster's nodes, :mod:`.front.placement`). A worker restores its charts
-from the field's newest snapshot (only its own parts) and then follows the
-shared log for its own rows: the log (PostgreSQL; SQLite for a cluster on one
-machine) stays the one truth.
-
-The server processes become stateless *fronts*: a field's entry holds a
-:class:`~.front.remote.RemoteField`, which implements the field contract by routing
-(a pure function of the field's definition), fanning out to one live copy of
-each shard group a request touches, and blending, exactly as the one-process
-field does; so the service's rooms are unchanged. Ray is imported only by
-:mod:`.ray_env`, on first use (a front connecting, an actor running): the library
-and the one-machine service do not need it. What runs in a server is
-:mod:`.front`; what runs in Ray actors, :mod:`.worker`; the calls between them,
-:mod:`.wire`.
+What runs in a server is :mod:`.front`; what runs in Ray actors, :mod:`.worker`; the
+calls between them, :mod:`.wire`; Ray itself is imported by :mod:`.ray_env` alone, on
+first use. The log stays the one truth: the shard workers follow it. The process
+map and its rules: docs/design.md, "Cluster mode".
 """

@@ -1,15 +1,8 @@
-"""The cluster mode's one door to Ray: connecting a front, and what its actors ask of Ray.
-
-Every module of the cluster wing that needs Ray's own calls (connecting, the
-nodes and their resources, the cause inside a ``RayTaskError``) finds them
-here: :func:`connect` (a front's connection, its runtime environment
-:data:`WORKER_ENV` and the fast probe of the head's address),
-:func:`machine_pin`, :func:`nodes_with` and :func:`one_machine` (where the
-actors of a deployment on SQLite may go), :func:`node_cpus` (an actor's
-threads, :func:`node_id`) and :func:`task_cause`. Ray itself is imported
-here only, on first use (:func:`ray_api`; the ``cluster`` extra: the library
-and the one-machine service do not need it), so that a missing extra is a
-named error of :func:`connect`.
+"""The cluster mode's one door to Ray: connecting a front (:func:`connect`, its
+workers' runtime environment :data:`WORKER_ENV`), where actors may go
+(:func:`machine_pin`, :func:`nodes_with`, :func:`one_machine`), an actor's node
+(:func:`node_id`, :func:`node_cpus`) and a worker's own error (:func:`task_cause`).
+Ray is imported here only, on first use (:func:`ray_api`; the ``cluster`` extra).
 """
 from __future__ import annotations
 
@@ -19,15 +12,8 @@ from ..status import ShardUnavailableError
 
 
 def ray_api():
-    """Ray, with the parts of it the cluster wing calls (``ray.exceptions``,
-    ``ray.util``, ``ray.util.scheduling_strategies``): the one place the cluster
-    mode imports it, on first use (the ``cluster`` extra).
-
-    Raises
-    ------
-    ImportError
-        Ray is not installed (:func:`connect` names the extra).
-    """
+    """Ray, with ``ray.exceptions``, ``ray.util`` and its scheduling strategies
+    (ImportError without the ``cluster`` extra: :func:`connect` names it)."""
     import ray
     import ray.exceptions
     import ray.util
@@ -49,8 +35,7 @@ def task_cause(exc: Exception) -> Exception:
 
 def node_cpus() -> int:
     """The CPUs of the Ray node this process runs on (its ``num_cpus``, not the
-    machine's cores): the threads of a shard actor's pool, so that a node of one
-    CPU inserts on one thread (at least 1)."""
+    machine's cores; at least 1): the threads of an actor's pool."""
     me = node_id()
     for n in ray_api().nodes():
         if n.get("NodeID") == me:
@@ -85,24 +70,15 @@ def probe_address(address: str, timeout: float = PROBE_TIMEOUT_S) -> None:
 
 
 def import_installed() -> None:
-    """Run first in every worker process of a front's job (Ray's
-    ``worker_process_setup_hook``, :data:`WORKER_ENV`): importing this module
-    imports ``flatserve`` and its extension from where the worker's interpreter
-    finds them, the installed package, before the worker runs its first task.
-
-    Ray puts the driver's working directory (and script directory) first on its
-    workers' ``sys.path`` when they take their first task; a front started inside a
-    source checkout would have its actors import the checkout, whose extension is
-    not built (``cannot import name '_core'``): every shard actor would die at
-    creation. Once imported here, ``flatserve`` stays the installed package in that
-    process whatever comes first on ``sys.path`` later.
-    """
+    """Run first in every worker process of a front's job (:data:`WORKER_ENV`): it
+    imports ``flatserve`` and its extension, the installed package, before Ray puts
+    the front's working directory first on ``sys.path`` (a source checkout, whose
+    extension is not built: docs/design.md, "Workers import the installed package")."""
     from ... import _core  # noqa: F401  (the extension: fails here, named, if missing)
 
 
-#: the runtime environment of a front's Ray job: its shard and tile actors (tile
-#: actors inherit it from the shard actor that makes them) import the installed
-#: package whatever the front's working directory (:func:`import_installed`)
+#: the runtime environment of a front's Ray job (tile actors inherit it from the shard
+#: actor that makes them): :func:`import_installed` first
 WORKER_ENV = {"worker_process_setup_hook": f"{__name__}.import_installed"}
 
 
@@ -139,15 +115,9 @@ PIN_SHARE = 0.0001
 
 
 def machine_pin(ray, settings) -> dict[str, float]:
-    """The resources that keep an actor on this machine's nodes in cluster mode on
-    SQLite (its shard and tile workers read this machine's data directory): a
-    share of the ``node:<address>`` resource Ray gives every node of this
-    machine's address, so that a node that joins from elsewhere later holds none
-    of them. Empty with a ``database_url`` (every node reaches the database).
-
-    Called by a front (its own address) and by a shard actor for its tiles (the
-    shard's node, itself pinned to the front's machine).
-    """
+    """The resources that keep an actor on this machine's nodes on SQLite (its
+    workers read this machine's data directory): a share of the ``node:<address>``
+    resource Ray gives every node of this address. Empty with a ``database_url``."""
     if settings.database_url is not None:
         return {}
     return {f"node:{ray.util.get_node_ip_address()}": PIN_SHARE}
@@ -161,10 +131,9 @@ def nodes_with(ray, need: dict[str, float]) -> list[dict]:
 
 
 def one_machine(ray, settings) -> None:
-    """Cluster mode on SQLite: every node of the cluster is on this machine (the
-    shard workers read the data directory this server holds, :class:`~.worker.shard.ShardWorker`).
-    A node that joins from elsewhere later is not refused, but holds no actor of
-    this deployment's (:func:`machine_pin`).
+    """Cluster mode on SQLite: every node of the cluster is on this machine (the shard
+    workers read its data directory; a node that joins from elsewhere later holds no
+    actor of this deployment's, :func:`machine_pin`).
 
     Raises
     ------

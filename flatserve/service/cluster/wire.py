@@ -1,17 +1,11 @@
-"""The calls between a cluster front and its shard workers, as methods of a Protocol.
+"""The calls between a cluster front and its actors, as methods of Protocols.
 
-A front (:class:`~.front.remote.RemoteField`) asks a shard group for what
-:class:`ShardCalls` declares: a query's answers, a snapshot's parts, its
-status once a log position is applied, its status now. A
-:class:`~.worker.shard.ShardWorker` implements them in its own process; the
-transport (:mod:`.front.transport`, to one live copy of each group:
-:mod:`.front.failover`) carries a :class:`ShardCall` to a worker's actor and its result
-back. A call is made by the functions of this module (:func:`query`,
-:func:`parts`, :func:`applied`, :func:`status`), never by a method's name; a
-packed call's bytes are made and read here alone (:func:`pack`, :func:`unpack`).
-
-The tiles of a chart held in actors of their own are called through
-:class:`TileCalls` (:class:`~.worker.tile_actor.TileActor` implements it).
+A front asks a shard group for what :class:`ShardCalls` declares
+(:class:`~.worker.shard.ShardWorker` implements it); a call is made by this module's
+functions (:func:`query`, :func:`parts`, :func:`applied`, :func:`status`), never by a
+method's name, and a packed call's bytes are made and read here alone
+(:func:`pack`, :func:`unpack`). A shard worker calls its tiles' actors through
+:class:`TileCalls` (:class:`~.worker.tile_actor.TileActor`).
 """
 from __future__ import annotations
 
@@ -49,20 +43,17 @@ class ShardCalls(Protocol):
 @dataclass(frozen=True)
 class ShardCall:
     """One call of :class:`ShardCalls` with its arguments: ``run(target)`` makes it on
-    ``target`` (a worker, or a transport's stand-in for one that submits the call and
-    returns what the transport waits for).
+    ``target`` (a worker, or the transport's stand-in that submits it).
 
     Attributes
     ----------
     run : callable
-        Calls the method on its argument.
     packed : bool
-        Its arguments and its result travel as one pickled ``bytes`` each way
-        (small, frequent calls: a query; a snapshot's parts, large, keep the
-        transport's own serialisation of their bytes).
-    work : list
-        A query's ``(chart, flats)`` pairs (empty for the other calls): the
-        answers come back in their order.
+        Arguments and result travel as one pickled ``bytes`` each way (a query:
+        small and frequent; Ray's cost of a call grows with the objects it
+        serialises).
+    work : tuple
+        A query's ``(chart, flats)`` pairs (empty otherwise), in its answers' order.
     """
 
     run: Callable[[Any], Any]
@@ -103,12 +94,10 @@ def status() -> ShardCall:
 
 
 class TileCalls(Protocol):
-    """What a shard worker calls on a tile held in an actor of its own
-    (:class:`~.worker.tile_actor.TileActor`, standing for a
-    :class:`flatserve.tiles.Tile`): the calls that change the tile return its
-    ``(npoints, generation, nchannels)`` beside their result; every read of the
-    tile is one function of it (``run(lambda t: t.take(local))``,
-    :class:`~.worker.tiles.RemoteTile`), typed against the tile's own methods."""
+    """What a shard worker calls on a tile in an actor of its own: the calls that
+    change the tile return its ``(npoints, generation, nchannels)`` beside their
+    result; every read is one function of the tile (``run``), typed against
+    :class:`flatserve.tiles.Tile`'s own methods (:class:`~.worker.tiles.RemoteTile`)."""
 
     def state(self) -> tuple[int, int, int]: ...
 

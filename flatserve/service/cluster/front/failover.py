@@ -1,15 +1,11 @@
 """Failover, written once: one live copy of each shard group a request touches.
 
 A request's calls (``{group: call}``, :mod:`..wire`) go to one copy of each group
-(:class:`Copies`: the copies in the order to try them, and what is known of each);
-a copy's answer marks it alive. A copy that is dead, restarting or unreachable (the
-transport's :attr:`~.transport.RayTransport.lost`), or that answers
-:class:`~flatserve.service.status.ShardUnavailableError` (restoring, behind), is
-passed over for the group's next copy not tried yet; a group with none left fails
-the request with ``ShardUnavailableError``. Any other error of a worker
-(:class:`~flatserve.service.status.NotReadyError` included) is the request's.
-:func:`call` waits on the calling thread, :func:`call_async` on the event loop (the
-transport's results are awaitable): the same failover (:class:`Fanout`).
+(:class:`Copies`, in the order to try them); a copy that is lost (the transport's
+:attr:`~.transport.RayTransport.lost`) or answers ``ShardUnavailableError``
+(restoring, behind) is passed over for the group's next copy; a group with none left
+fails the request. Any other error of a worker is the request's. :func:`call_async`
+awaits the answers on the event loop; :func:`call` runs it on the calling thread.
 """
 from __future__ import annotations
 
@@ -96,28 +92,14 @@ class Fanout:
 
 
 def call(copies: Copies, calls: dict[int, ShardCall], timeout: float) -> dict[int, Any]:
-    """``{group: call}`` on one live copy of each group, waited for on this thread."""
-    fan = Fanout(copies, calls, timeout)
-    pending = {g: fan.submit(g) for g in calls}
-    out: dict[int, Any] = {}
-    try:
-        while pending:
-            g, (j, ref) = next(iter(pending.items()))
-            del pending[g]
-            try:
-                out[g] = fan.answered(g, j, fan.transport.get(ref, fan.left()))
-            except Exception as exc:
-                pending[g] = fan.failed(g, j, exc)
-    except BaseException:
-        fan.transport.cancel(ref for _, ref in pending.values())
-        raise
-    return out
+    """:func:`call_async` waited for on this thread (never the event loop's)."""
+    return asyncio.run(call_async(copies, calls, timeout))
 
 
 async def call_async(copies: Copies, calls: dict[int, ShardCall], timeout: float) -> dict[int, Any]:
-    """:func:`call` awaited on the event loop: the calls are submitted at once and their
-    results awaited, with the same failover; nothing blocks the loop but the
-    submission (the transport's serialisation of the arguments: small calls only)."""
+    """``{group: call}`` on one live copy of each group: submitted at once, their
+    results awaited; nothing blocks the loop but the submission (the transport's
+    serialisation of the arguments: small calls only on a server's event loop)."""
     fan = Fanout(copies, calls, timeout)
     first = {g: fan.submit(g) for g in calls}
     live: dict[int, Any] = {}

@@ -1,13 +1,7 @@
-"""What a front knows of its shard actors' health, and the round that asks them.
-
-Per field, :class:`GroupHealth` keeps each copy's liveness (True: its last status or
-call answered, ready; False: its last call failed, or it was not ready; None: not
-heard from yet, or silent in the last status round: unknown, not counted live) and
-each group's newest report; it orders a group's copies for a call (alive first) and
-says why a group with no live copy is unavailable. :class:`StatusRound` is the
-front's thread that asks every actor for its status each
-:data:`~..worker.actor.STATUS_EVERY_S` and reads the cluster's free resources,
-so that a 503 names what would give a shard room without a call to the cluster.
+"""What a front knows of its shard actors: :class:`GroupHealth` (per field, each copy's
+liveness and each group's newest report) and :class:`StatusRound` (the thread that
+asks every actor for its status each :data:`~..worker.actor.STATUS_EVERY_S` and reads
+the cluster's free resources, so that a 503 names what would give a shard room).
 """
 from __future__ import annotations
 
@@ -16,21 +10,19 @@ import threading
 from typing import Callable
 
 from ...status import ShardUnavailableError
+from .. import wire
 from ..ray_env import probe_address
+from .transport import RayTransport
 from ..worker.actor import STATUS_EVERY_S
 
 log = logging.getLogger("flatserve.service.cluster")
 
 
 class GroupHealth:
-    """The liveness of a field's copies and its groups' newest reports (see the
-    module doc).
-
-    Parameters
-    ----------
-    ncopies : list of int
-        Per group, its copies.
-    """
+    """The liveness of a field's copies (``ncopies``: per group) and its groups' newest
+    reports. A copy is alive (True) once its last status or call answered, ready;
+    False once its last call failed or it was not ready; None (not counted live)
+    while not heard from, or silent in the last status round."""
 
     def __init__(self, ncopies: list[int]) -> None:
         self.reports: list[dict | None] = [None] * len(ncopies)
@@ -71,19 +63,20 @@ class GroupHealth:
         rank = {True: 0, None: 1, False: 2}
         return sorted(rot, key=lambda j: rank[self.alive[g][j]])
 
-    def refresh(self, ray, actors: list[list], get: Callable, timeout: float = 2.0) -> None:
+    def refresh(self, transport: RayTransport, actors: list[list], timeout: float = 2.0) -> None:
         """Ask every actor (``actors[g][j]``) for its status: one round, at most
-        ``timeout`` s; ``get`` reads an answer."""
-        refs = {(g, j): a.status.remote() for g, copies in enumerate(actors)
+        ``timeout`` s."""
+        refs = {(g, j): transport.submit(a, wire.status()) for g, copies in enumerate(actors)
                 for j, a in enumerate(copies)}
-        ready, _ = ray.wait(list(refs.values()), num_returns=len(refs), timeout=timeout)
+        ready, _ = transport.ray.wait(list(refs.values()), num_returns=len(refs),
+                                      timeout=timeout)
         ready = set(ready)
         for (g, j), ref in refs.items():
             if ref not in ready:  # no answer this round: unknown (not live, not failed)
                 self.alive[g][j] = None
                 continue
             try:
-                st = get(ref, 0.1)
+                st = transport.result(wire.status(), transport.get(ref, 0.1))
             except Exception:  # the call failed: not live
                 self.alive[g][j] = False
                 continue
@@ -93,19 +86,10 @@ class GroupHealth:
 
 
 class StatusRound:
-    """The front's status round, in a thread of its own: each field's
-    :meth:`refresh` (a callable per field, ``fields()``), then the cluster's free
-    resources (:attr:`free`; None while unknown, the cluster unreachable).
-
-    Parameters
-    ----------
-    ray : module
-        The connected Ray API.
-    address : str
-        The cluster's address (probed each round: a cluster gone is logged once).
-    fields : callable
-        The fields' refresh callables now.
-    """
+    """The front's status round, in a thread of its own: each field's refresh (the
+    callables ``fields()`` gives), then the cluster's free resources (:attr:`free`;
+    None while unknown); the cluster at ``address`` is probed each round (a cluster
+    gone is logged once)."""
 
     def __init__(self, ray, address: str, fields: Callable[[], list[Callable[[], None]]]) -> None:
         self.ray, self.address, self.fields = ray, address, fields
@@ -116,12 +100,10 @@ class StatusRound:
         self._thread.start()
 
     def no_room(self, need: dict[str, float], memory: int) -> str | None:
-        """Why a shard that runs nowhere cannot be placed now (it needs ``need`` of a
-        node's resources), with what would fix it, or None when the live nodes have
-        room for one (it is starting, or its node is being replaced). The free
-        resources are those of the last round: no call to the cluster here (a query's
-        503 may be made on the event loop, and a cluster that went away would hold
-        it); none known (the cluster unreachable): None."""
+        """Why a shard that runs nowhere (it needs ``need`` of a node's resources)
+        cannot be placed now, with what would fix it, or None (room, or nothing known).
+        From the last round's figures: no call to the cluster (a query's 503 may be
+        made on the event loop)."""
         free = self.free
         if free is None or all(free.get(r, 0) >= v for r, v in need.items()):
             return None

@@ -1,36 +1,12 @@
-"""Shard workers as Ray actors, the front's side: where a field's shard groups live.
+"""Where a field's shard groups live: :class:`RayCluster` (a front's connection) and
+:class:`RayGroups` (one field's groups, a :class:`~.remote.ShardGroups`).
 
-Ray's own calls for connecting and for the nodes are :mod:`..ray_env`'s (the
-``cluster`` extra). :class:`RayCluster` is a front's connection to the
-cluster; :meth:`RayCluster.groups` gives a field's :class:`RayGroups` (a
-:class:`~.remote.ShardGroups`):
-
-* a field's charts are dealt round-robin into ``ray_shards`` groups (a
-  one-chart field: one group); each group has ``copies`` actors (the field's
-  spec) as far as the live nodes with room hold them, one a node
-  (:func:`placed_copies`: never more, never fewer than 1), named
-  ``field-<log>-<id>-g<group>-c<copy>`` in ``ray_namespace``
-  (``<log>``: :func:`log_tag`, the log's location), detached
-  (they outlive the front that made them: any front finds them by name) and
-  restarted by Ray wherever there is room when their node dies
-  (``max_restarts=-1``); a restarted actor restores itself
-  (:class:`~..worker.actor.ShardActor`, holding a
-  :class:`~..worker.shard.ShardWorker`);
-* each actor reserves ``ray_shard_memory`` bytes of its node's ``memory``
-  resource, so a node holds shards up to its budget, and inserts and answers
-  on as many threads as its node has CPUs (``shard_threads`` if set); the copies of a group are
-  placed on different nodes (a ``STRICT_SPREAD`` placement group), the groups
-  of a field spread over the nodes (``SPREAD``).
-
-The rest is in modules of their own: a call reaches a copy through
-:mod:`.transport` (a query as one pickled blob each way: Ray's cost of a small call
-grows with the objects it serialises; measured on 2 cores, four arguments and a list
-of results 1.8 ms a call, one blob each way 1.3 ms, a call of nothing 1.2 ms), on
-one live copy of each group with :mod:`.failover`; what is known of each copy, and
-the status round each second that learns it, is :mod:`.health`
-(:meth:`RayGroups.status` never waits for it; :meth:`RayGroups.refresh` asks at once,
-for describe; :meth:`RayGroups.applied` once a log position is applied, for an upload
-with ``wait=true``).
+A field's charts are dealt round-robin into ``ray_shards`` groups (:func:`deal`);
+each group has :func:`placed_copies` detached actors (``max_restarts=-1``) named
+``field-<log>-<id>-g<group>-c<copy>`` (:func:`log_tag`), on different nodes (a
+``STRICT_SPREAD`` placement group), each reserving ``ray_shard_memory`` of its
+node's ``memory``. Calls go through :mod:`.transport` with :mod:`.failover`; what is
+known of each copy is :mod:`.health`'s (docs/design.md, "Shard groups").
 """
 from __future__ import annotations
 
@@ -69,11 +45,8 @@ def deal(ncharts: int, ngroups: int) -> list[tuple[int, ...]]:
 
 def log_tag(settings) -> str:
     """Eight hex digits naming the log a front follows (PostgreSQL's host, port and
-    database; or the SQLite data directory's absolute path), in its actors' names:
-    two deployments sharing one Ray cluster and namespace never take each other's
-    actors for their own fields of the same id (detached actors outlive their
-    front, and fronts find them by name). Every front of a deployment names its
-    database alike (one set of actors per spelling of the host)."""
+    database, or the SQLite data directory), in its actors' names: two deployments
+    sharing a Ray namespace never take each other's actors for their own."""
     url = settings.database_url
     if url:
         u = urlsplit(url)
@@ -84,21 +57,10 @@ def log_tag(settings) -> str:
 
 
 class RayCluster:
-    """A front's connection to the Ray cluster holding the shards (see the module doc).
-
-    Parameters
-    ----------
-    settings : Settings
-        ``ray`` (the address), ``ray_namespace``, ``ray_shards``,
-        ``ray_shard_memory``, and what the workers need (``database_url``; unset:
-        SQLite in ``data_dir``, for a cluster whose nodes are all on this machine).
-
-    Raises
-    ------
-    ShardUnavailableError
-        The cluster cannot be reached (the message names the address), or, on
-        SQLite, has a node on another machine.
-    """
+    """A front's connection to the Ray cluster at ``settings.ray`` holding the shards
+    (``ray_namespace``, ``ray_shards``, ``ray_shard_memory``; ``database_url`` unset:
+    SQLite in ``data_dir``, every node on this machine). ShardUnavailableError: the
+    cluster cannot be reached, or, on SQLite, has a node on another machine."""
 
     def __init__(self, settings) -> None:
         connect(settings)
@@ -122,9 +84,8 @@ class RayCluster:
                  settings.ray_namespace)
 
     def no_room(self) -> str | None:
-        """Why a shard that runs nowhere cannot be placed now, or None when the live
-        nodes have room for one (:meth:`~.health.StatusRound.no_room`: a shard reserves
-        ``ray_shard_memory`` bytes of a node's ``memory``, :meth:`RayGroups._actor`)."""
+        """Why a shard that runs nowhere cannot be placed now, or None
+        (:meth:`~.health.StatusRound.no_room`)."""
         need = {"memory": self.settings.ray_shard_memory, **self.pin}
         return self.status_round.no_room(need, self.settings.ray_shard_memory)
 
@@ -154,10 +115,8 @@ class RayCluster:
 
 
 def placed_copies(asked: int, room: int | None) -> int:
-    """How many copies of a shard group a front places: the field's ``copies``
-    (``asked``) as far as the cluster's live nodes with room for one (``room``;
-    None: unknown, as asked) hold them, one a node, and never fewer than 1 (a
-    stored definition asking 0 or fewer still gets its one copy).
+    """The copies of a shard group a front places: ``asked`` as far as the live nodes
+    with room for one (``room``; None: unknown) hold them, one a node, at least 1.
 
     >>> placed_copies(3, 2), placed_copies(8, 3), placed_copies(0, 3), placed_copies(2, 0)
     (2, 3, 1, 1)
@@ -167,15 +126,9 @@ def placed_copies(asked: int, room: int | None) -> int:
 
 
 class RayGroups:
-    """One field's shard groups on the cluster (a :class:`~.remote.ShardGroups`).
-
-    A group has :func:`placed_copies` copies: the field's ``copies`` as far as the
-    live nodes with room hold them when its placement group is first made (every
-    front takes that count from the placement group then: the copies are
-    ``c0``-``c<n-1>`` everywhere). Describe's ``copies`` is the field's ``copies``
-    (what it asks) and ``live`` the copies that answered a status round or a call:
-    0 until one has (a copy is not counted live before it is heard from).
-    """
+    """One field's shard groups on the cluster (a :class:`~.remote.ShardGroups`): a
+    group's copies are counted when its placement group is first made (every front
+    takes the count from it); more are placed as nodes join (:meth:`grow`)."""
 
     def __init__(self, cluster: RayCluster, field_id: int, ncharts: int, copies: int,
                  name: str | None = None) -> None:
@@ -212,9 +165,8 @@ class RayGroups:
         return base if j is None else f"{base}-c{j}"
 
     def _copies(self, g: int, placed: int) -> list:
-        """Group ``g``'s actors: ``placed`` of them, or as many as its placement group
-        (made by any front, earlier) has bundles; a field asking for several copies
-        has one, even when one copy is placed now."""
+        """Group ``g``'s actors: as many as its placement group (made here with
+        ``placed`` bundles, or by any front earlier) has bundles."""
         if self.copies == 1:
             return [self._actor(g, 0, None)]
         pg = self._placement(g, placed)
@@ -246,32 +198,24 @@ class RayGroups:
         """Copy ``j`` of group ``g`` (made unless it exists): in bundle ``j`` of the
         placement group ``pg``, else on ``node`` (preferred: elsewhere when it is gone
         or full), else spread."""
-        s = self.cluster.settings
+        s, ways = self.cluster.settings, self.cluster.ray.util.scheduling_strategies
+        strategy: Any = "SPREAD"
+        if pg is not None:
+            strategy = ways.PlacementGroupSchedulingStrategy(pg, placement_group_bundle_index=j)
+        elif node is not None:
+            strategy = ways.NodeAffinitySchedulingStrategy(node, soft=True)
         opts: dict[str, Any] = dict(
             name=self._name(g, j), namespace=s.ray_namespace, lifetime="detached",
-            get_if_exists=True, max_restarts=-1, max_task_retries=0,
+            get_if_exists=True, max_restarts=-1, max_task_retries=0, scheduling_strategy=strategy,
             max_concurrency=ACTOR_CONCURRENCY, num_cpus=0, memory=s.ray_shard_memory)
         if self.cluster.pin:  # (with copies, from its bundle, which holds as much)
             opts["resources"] = dict(self.cluster.pin)
-        if pg is not None:
-            strategies = self.cluster.ray.util.scheduling_strategies
-            opts["scheduling_strategy"] = strategies.PlacementGroupSchedulingStrategy(
-                pg, placement_group_bundle_index=j)
-        elif node is not None:
-            strategies = self.cluster.ray.util.scheduling_strategies
-            opts["scheduling_strategy"] = strategies.NodeAffinitySchedulingStrategy(node,
-                                                                                   soft=True)
-        else:
-            opts["scheduling_strategy"] = "SPREAD"
         return self.cluster.actor_class.options(**opts).remote(s, self.field_id, self.charts[g])
 
     def grow(self) -> None:
-        """Place a copy a group lacks (its field asks for more copies than the live nodes
-        with room held when the group was placed) on a live node with room that holds
-        none of the group's copies, once one has joined: one copy a group a round, named
-        as the next copy (any front finds it, and makes it at most once). The copies'
-        nodes are those their status reports named (a copy not heard from yet keeps a
-        round from placing another)."""
+        """Place a copy a group lacks on a live node with room that holds none of its
+        copies (as their status reports named them), once one has joined: one copy a
+        group a round, named as the next copy (any front finds it; made once)."""
         short = [g for g, a in enumerate(self.actors) if len(a) < self.copies]
         if not short or not self._growing.acquire(blocking=False):  # (one round at a time)
             return
@@ -305,10 +249,8 @@ class RayGroups:
         return list(self.health.reports)
 
     def placement(self) -> list[dict]:
-        """Per group: its charts, the copies the field asks for, the copies live (heard
-        from, ready: a copy not heard from yet is not counted), and the most advanced
-        copy's log position, samples, memory and restore source as it last reported
-        them (none yet: None)."""
+        """Per group: its charts, the copies asked for and live, and the most advanced
+        copy's last report (log position, samples, memory, node, restore source)."""
         out = []
         h = self.health
         why = self.cluster.no_room() if any(h.idle(g) for g in range(len(self.charts))) else None
@@ -325,19 +267,12 @@ class RayGroups:
     def refresh(self, timeout: float = 2.0) -> None:
         """Ask every actor for its status (one round, at most ``timeout`` s), then place
         the copies a group lacks where nodes have joined (:meth:`grow`)."""
-        self.health.refresh(self.cluster.ray, self.actors, self.transport.get, timeout)
+        self.health.refresh(self.transport, self.actors, timeout)
         self.grow()
 
     def applied(self, position: int, timeout: float) -> list[dict]:
-        """Per group, the status of a copy once it has applied the log up to
-        ``position`` (asked now, one live copy of each group, with failover; each
-        group's report afterwards).
-
-        Raises
-        ------
-        ShardUnavailableError
-            A group has no copy there within ``timeout`` (restoring, behind, none live).
-        """
+        """Per group, a copy's status once it has applied the log up to ``position``
+        (ShardUnavailableError: none there within ``timeout``)."""
         got = self.call({g: wire.applied(position, timeout) for g in range(len(self.charts))},
                         timeout + 5.0)
         for g, st in got.items():

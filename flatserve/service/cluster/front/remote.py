@@ -1,25 +1,15 @@
 """The front's view of a field whose shards live elsewhere: :class:`RemoteField`.
 
-A :class:`RemoteField` implements the field contract
-(:class:`flatserve.contract.SampledField`) for a server process that holds no
-triangulation: routing, charting decisions and blending use an empty field of
-the same definition (they need only the definition), and each shard's half of
-a query or a snapshot runs where the shard lives, through a
-:class:`ShardGroups` (one live copy of each group a request touches). The
-answer is the one-process field's, bit for bit: the same rows reach the same
-charts' ``query`` and the front blends them in chart order.
-
-Writes are not sent anywhere: the shard workers follow the shared log
-themselves (:mod:`..worker.shard`). So :meth:`RemoteField.insert_prepared` only
-reports the batch's decisions, and a query is answered once every shard it
-touches has applied the field's log position the front has seen (the entry's
-``indexed_position``): read-your-writes through any front. An upload with
-``wait=true`` is answered once every shard group has applied its batch, with
-the field's samples counted then (:meth:`RemoteField.applied_counts`); describe
-asks the groups for their sizes first (:meth:`RemoteField.describe`).
+It implements the field contract (:class:`flatserve.contract.SampledField`) with no
+triangulation: routing, charting decisions and blending use an empty field of the
+definition; each group's half of a query or a snapshot runs where the group lives
+(:class:`ShardGroups`). Writes go nowhere: the shard workers follow the log. A query
+waits until every shard it touches has applied the front's log position for the
+field (read-your-writes through any front). docs/design.md, "Fronts".
 """
 from __future__ import annotations
 
+import functools
 import os
 from typing import Any, Callable, Collection, Protocol, Sequence
 
@@ -49,10 +39,8 @@ class ShardGroups(Protocol):
     charts: list[tuple[int, ...]]
 
     def call(self, calls: dict[int, ShardCall], timeout: float) -> dict[int, Any]:
-        """``{group: call}`` (:mod:`..wire`) run on one live copy of each group, at once;
-        ``{group: result}``. Raises
-        :class:`~flatserve.service.status.ShardUnavailableError` when a group has
-        no live copy, or the error a worker raised."""
+        """``{group: call}`` (:mod:`..wire`) on one live copy of each group, at once:
+        ``{group: result}`` (ShardUnavailableError: a group has no live copy)."""
         ...
 
     async def call_async(self, calls: dict[int, ShardCall], timeout: float) -> dict[int, Any]:
@@ -68,48 +56,31 @@ class ShardGroups(Protocol):
         ...
 
     def refresh(self) -> None:
-        """Ask every copy for its status now (a round of a few seconds at most; a group
-        none of whose copies answers keeps its last report)."""
+        """Ask every copy for its status now (a round of a few seconds at most)."""
         ...
 
     def applied(self, position: int, timeout: float) -> list[dict]:
-        """Per group, the status of a copy once it has applied the log up to
-        ``position``, asked now (one live copy of each group, with failover). Raises
-        :class:`~flatserve.service.status.ShardUnavailableError` when a group has
-        no copy there within ``timeout``."""
+        """Per group, a copy's status once it has applied the log up to ``position``
+        (ShardUnavailableError: none there within ``timeout``)."""
         ...
 
 
 class _Lazy:
     """A batch's decisions, charted on first use (an upload's response needs them;
-    the follower's hand-over of another front's batch never does)."""
+    the follower's hand-over of another front's batch never does). ``unit``: the
+    unit of length it is charted in, when it is to become the field's."""
 
     def __init__(self, chart: Callable[[], Any], nrows: int, unit: float | None = None) -> None:
-        self._chart, self.nrows, self._done = chart, nrows, None
-        #: the unit of length the batch is charted in, when it is to become the
-        #: field's (:func:`~flatserve.service.rooms.units.adopt_unit`)
-        self.unit = unit
+        self._chart, self.nrows, self.unit, self.decided = chart, nrows, unit, False
 
-    @property
-    def decided(self) -> bool:
-        return self._done is not None
+    @functools.cached_property
+    def _done(self):
+        self.decided = True
+        return self._chart()
 
-    def _get(self):
-        if self._done is None:
-            self._done = self._chart()
-        return self._done
-
-    @property
-    def accepted(self) -> int:
-        return self._get().accepted
-
-    @property
-    def rejected(self) -> np.ndarray:
-        return self._get().rejected
-
-    @property
-    def reasons(self) -> list:
-        return self._get().reasons
+    accepted = property(lambda self: self._done.accepted)
+    rejected = property(lambda self: self._done.rejected)
+    reasons = property(lambda self: self._done.reasons)
 
 
 def _lazy_prepare(shape, flats: Flats, values, defer: bool, only, unit: float | None):
@@ -170,17 +141,12 @@ class RemoteField:
     def _statuses(self) -> list[dict]:
         return [s for s in self.groups.status() if s is not None]
 
-    @property
-    def nsamples(self) -> int:
-        return int(sum(s["nsamples"] for s in self._statuses()))
+    def _sum(self, key: str) -> int:
+        return int(sum(s[key] for s in self._statuses()))
 
-    @property
-    def nstored(self) -> int:
-        return int(sum(s["nstored"] for s in self._statuses()))
-
-    @property
-    def nsimplex(self) -> int:
-        return int(sum(s["nsimplex"] for s in self._statuses()))
+    nsamples = property(lambda self: self._sum("nsamples"))
+    nstored = property(lambda self: self._sum("nstored"))
+    nsimplex = property(lambda self: self._sum("nsimplex"))
 
     @property
     def nrejected(self) -> int:
@@ -232,14 +198,11 @@ class RemoteField:
             return self._shape.copies(flats)
         return self._shape.copies(flats, own=self._chart_own())
 
-    # -- the unit of length of a field whose first batch chooses it -----------------------
-    # The upload room chooses it once, here, and stores it with the batch; the shard
-    # workers and the applier take it from there (units.adopt_unit), so no shard
-    # chooses it again, and a front restarted takes it from the first stored batch.
+    # -- the unit of length of a field whose first batch chooses it: the upload room
+    # chooses it here and stores it with the batch; the workers take it from there
     @property
     def atlas(self):
-        """The definition's atlas (atlas fields; AttributeError otherwise), in the unit
-        the field took."""
+        """The definition's atlas (atlas fields), in the unit the field took."""
         return self._shape.atlas
 
     @property
@@ -249,10 +212,8 @@ class RemoteField:
 
     @property
     def unit_from_data(self) -> bool:
-        """(the upload room's test) a batch charted now may set the field's unit: the
-        definition has none yet (the front's definition holds no samples: unlike
-        an AtlasField's, its unit is fixed by the first batch in the log):
-        :attr:`unit_pending`."""
+        """A batch charted now may set the field's unit (:attr:`unit_pending`: the
+        front's definition holds no samples; the first batch in the log fixes it)."""
         return self.unit_pending
 
     @property
@@ -268,9 +229,8 @@ class RemoteField:
         return self._shape.settle_unit(unit, if_empty=if_empty)
 
     def in_unit(self, unit: float):
-        """This field, or one that charts a batch's decisions in ``unit``
-        (:meth:`flatserve.atlas_field.AtlasField.in_unit`; its prepared batches
-        carry the unit)."""
+        """This field, or one that charts a batch's decisions in ``unit`` (its prepared
+        batches carry the unit)."""
         shape = self._shape.in_unit(unit)
         return self if shape is self._shape else _InUnit(shape, float(unit))
 
@@ -288,12 +248,10 @@ class RemoteField:
                          nsamples=self.nsamples)
 
     def applied_counts(self, position: int, timeout: float) -> dict:
-        """Once every shard group has applied the batch at log ``position`` (asked of
-        the groups now): the field's ``nsamples`` then and the batch's
-        ``duplicates`` (the groups' sum; None when a copy that answered restored
-        itself past the batch). An upload with ``wait=true`` is answered with them
-        (the batch is then in every shard that holds its rows, and visible to
-        queries through any front).
+        """Once every group has applied the batch at log ``position`` (asked now): the
+        field's ``nsamples`` then and the batch's ``duplicates`` (the groups' sum; None
+        when a copy that answered restored itself past the batch), for an upload with
+        ``wait=true``.
 
         Raises
         ------
@@ -345,9 +303,8 @@ class RemoteField:
                           order: Order | str = Order.HILBERT, threads: int | None = None,
                           return_weights: bool = False,
                           interpolant: Interpolant | str = Interpolant.LINEAR) -> QueryResult:
-        """:meth:`query` with the shards' answers awaited on the event loop, for small
-        queries: routing, the calls' submission and blending run on the loop (a
-        fraction of a millisecond for a few rows); the same failover and errors."""
+        """:meth:`query` with the shards' answers awaited on the event loop (small
+        queries: routing, submission and blending take a fraction of a millisecond)."""
         route, calls = self._fan_out(flats, outside, order, threads, return_weights, interpolant)
         got = await self.groups.call_async(calls, self.timeout + 5.0)
         return self._blend(route, calls, got, return_weights)
@@ -380,23 +337,17 @@ class RemoteField:
         return self._shape.blend(route, results, return_weights=return_weights)
 
     def describe(self) -> dict:
-        """The contract's keys counted from the workers' reports, asked now (a status
-        round of every copy first, :meth:`ShardGroups.refresh`: a group none of whose
-        copies answers keeps its last report), and ``placement``: per shard group its
-        ``charts``, ``copies`` (the field's), ``live`` copies (heard from, ready),
-        ``position`` (the log position its report counts: where its ``samples`` were
-        taken), ``samples``, ``memory`` (bytes resident) and ``restored_from``."""
+        """The contract's keys counted from the workers' reports, asked now
+        (:meth:`ShardGroups.refresh`), and per group its ``placement``
+        (:meth:`ShardGroups.placement`)."""
         self.groups.refresh()
         out = self._shape.describe()
-        st = self._statuses()
         n, stored = self.nsamples, self.nstored
-        per_chart = {}
-        for s in st:
-            per_chart.update(zip(s["charts"], s.get("chart_samples", [])))
+        per_chart = {c: k for s in self._statuses()
+                     for c, k in zip(s["charts"], s.get("chart_samples", []))}
         shards = [{"samples": per_chart.get(c)} for c in range(len(self._shape.shards))]
-        if out.get("charts"):
-            for chart, sh in zip(out["charts"], shards):
-                chart["samples"] = sh["samples"]
+        for chart, sh in zip(out.get("charts") or (), shards):
+            chart["samples"] = sh["samples"]
         out.update(nsamples=n, nstored=stored, nsimplex=self.nsimplex, nrejected=self.nrejected,
                    duplication=stored / n if n else None, shards=shards,
                    placement=self.groups.placement())
@@ -404,13 +355,11 @@ class RemoteField:
 
     # -- snapshots: every group's parts at one log position, stored by the groups ---------
     def write_parts(self, fh, stage: str | os.PathLike, known: Collection[str] = ()) -> list[str]:
-        """The field's snapshot at the front's log position for it: every group's
-        charts held at that position and their changed parts stored by the
-        groups themselves (:meth:`..worker.shard.ShardWorker.parts`: no part passes
-        through here, and ``stage`` stays empty); the field file naming them
-        written to ``fh`` (a one-chart field's:
-        :func:`flatserve.contract.part_pointer` of its one part). The bytes the
-        groups stored are :attr:`stored_bytes` afterwards.
+        """The field's snapshot at the front's log position for it: every group held
+        there stores its changed parts itself (:meth:`..worker.shard.ShardWorker.parts`:
+        ``stage`` stays empty); the field file naming them is written to ``fh`` (a
+        one-chart field's: :func:`flatserve.contract.part_pointer` of its one part);
+        the bytes the groups stored are :attr:`stored_bytes` afterwards.
 
         Raises
         ------
@@ -461,13 +410,12 @@ class RemoteField:
             os.fsync(fh.fileno())
         return keys
 
-    def write_to(self, fh) -> int:
-        raise NotReadyError("a field whose shards live in a cluster is written as a snapshot "
-                            "in parts (write_parts), never whole")
-
     def to_bytes(self) -> bytes:
         raise NotReadyError("a field whose shards live in a cluster is written as a snapshot "
                             "in parts (write_parts), never whole")
+
+    def write_to(self, fh) -> int:
+        return len(self.to_bytes())
 
     def save(self, path) -> None:
         self.to_bytes()

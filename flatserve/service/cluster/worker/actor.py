@@ -1,13 +1,7 @@
-"""A shard worker as a Ray actor: the one class of the cluster wing that runs in a
-shard's own process (the front's side is :mod:`..front`: placement, transport,
-failover, health).
-
-:class:`ShardActor` holds a :class:`~.shard.ShardWorker` whose tiles (a field
-made with ``tiles``) live in actors of their own (:class:`~.tiles.RayTileHost`),
-answers the calls of :class:`..wire.ShardCalls` (a query's arguments and answer
-packed, :func:`..wire.pack`), and adds where it runs to its status (its node,
-its tiles' places). A tile that is lost ends the actor, for Ray to restart it:
-it restores from the snapshot and the log.
+"""A shard worker as a Ray actor (:class:`ShardActor`): it holds a
+:class:`~.shard.ShardWorker` whose tiles live in actors of their own
+(:class:`~.tiles.RayTileHost`), answers :class:`..wire.ShardCalls` and adds where it
+runs to its status. A lost tile ends the actor, for Ray to restart it.
 """
 from __future__ import annotations
 

@@ -1,38 +1,14 @@
 """One shard group of one field, in a process of its own: the server's log engine on its charts.
 
-A :class:`ShardWorker` holds some charts of one field (``charts``; a one-chart
-field's one shard is chart 0). It needs no front, and it has no log engine of
-its own: it is the server's :class:`~...rooms.replica.Follower` over a
-:class:`~...rooms.applier.LogApplier` restricted to its field (``fields``) and to its
-charts (a :class:`~...rooms.applier.LocalHome` with ``only=charts`` and the worker's
-tile host), as a Qdrant peer runs the same local shard code as every other.
-So its restore, its retries, its states (:class:`~...rooms.catalogue.FieldState`) and
-its constants are the server's:
-
-1. **Restore** (:meth:`~...rooms.applier.LogApplier.restore_all`): the field's newest
-   snapshot, its own charts' parts only (:func:`flatserve.contract.load_field`
-   with ``only``; an older atlas snapshot without its charts' own samples is
-   passed over), else an empty field; then its batches up to the log head
-   read with it, charted for its charts alone (``prepare(..., only=charts)``)
-   and inserted in slices of ``insert_slice_rows``: exactly the calls the
-   one-process field makes on those charts, so a chart here holds the same
-   bits as the same chart of a field that applied the whole log (tested).
-   The database unreachable meanwhile: tried again
-   (:func:`~...rooms.applier.until_reachable`), queries wait.
-2. **Follow** (:class:`~...rooms.replica.Follower`): the shared log after that head,
-   in order; its field's batches as in the restore, the other fields' entries
-   passed over. An insert that fails rebuilds its charts from storage, as a
-   replica rebuilds a field; a ``delete`` of its field fails it ("the field was
-   deleted").
-3. **Answer**: :meth:`ShardWorker.query` (its charts' answers on the rows a
-   front routed to them, once it has applied the log position the front asks
-   for), :meth:`ShardWorker.parts` (its charts' snapshot parts at one log
-   position, the follower held there: a front assembles the field's snapshot
-   from every group's), and :meth:`ShardWorker.status` (now, or once it has
-   applied a log position: :meth:`ShardWorker.applied`).
-
-Where a worker lives (a Ray actor, :mod:`.actor`; a thread in tests) is
-not this module's business.
+A :class:`ShardWorker` has no log engine of its own: it is the server's
+:class:`~...rooms.replica.Follower` over a :class:`~...rooms.applier.LogApplier`
+restricted to its field and to its charts (a :class:`~...rooms.applier.LocalHome`
+with ``only=charts``), as every Qdrant peer runs the same local shard code: it
+restores, retries, follows and fails by the server's rules and states. What it
+adds are its answers (:class:`..wire.ShardCalls`: :meth:`~ShardWorker.query`,
+:meth:`~ShardWorker.applied`, :meth:`~ShardWorker.parts`, :meth:`~ShardWorker.status`).
+Where it lives (a Ray actor, :mod:`.actor`; a thread in tests) is not its business.
+docs/design.md, "A shard worker".
 """
 from __future__ import annotations
 
@@ -71,19 +47,16 @@ class ShardWorker:
     Parameters
     ----------
     settings : Settings
-        ``database_url`` (the shared log; unset: the SQLite database of ``data_dir``,
-        read as a follower), ``insert_slice_rows`` (the same as the
-        fronts': the slices of an insert decide the bits of a chart).
+        ``database_url`` (unset: the SQLite database of ``data_dir``, read as a
+        follower), ``insert_slice_rows`` (the fronts': a chart's bits depend on it).
     field_id : int
     charts : sequence of int
         The charts this worker holds.
     storage : LogBackend, optional
-        Default: :func:`~flatserve.service.log.backend.open_backend` of ``settings``, a
-        follower (it never writes the log), opened by the worker's thread (the
-        database unreachable: tried again).
+        Default: :func:`~flatserve.service.log.backend.open_backend` of ``settings`` as
+        a follower, opened by the worker's thread (unreachable: tried again).
     tile_host : TileHost, optional
-        Where a tiled field's tiles live (:func:`flatserve.tiles.hosting`; in a Ray
-        actor: :class:`~.tiles.RayTileHost`, each tile in an actor of its own);
+        Where a tiled field's tiles live (a Ray actor's: :class:`~.tiles.RayTileHost`);
         default: this process.
     start : bool
         Start restoring and following at once (default).
@@ -233,66 +206,37 @@ class ShardWorker:
                 self._stop.wait(min(left, 0.05))
 
     def query(self, work, kw: dict, at_position: int, timeout: float):
-        """Its charts' answers on the rows routed to them, once the log up to
-        ``at_position`` is applied here (:meth:`flatserve.contract.SampledField.query_shards`).
-
-        Parameters
-        ----------
-        work : list of (int, Flats)
-            ``(chart, flats)`` pairs of this worker's charts.
-        kw : dict
-            ``outside``, ``order``, ``threads``, ``return_weights``, ``interpolant``.
-        at_position : int
-        timeout : float
-            Seconds to wait for ``at_position``.
-
-        Raises
-        ------
-        ShardUnavailableError
-            Not there within ``timeout`` (restoring, or behind), or failed.
-        """
+        """Its charts' answers (:meth:`flatserve.contract.SampledField.query_shards` of
+        ``work``, ``(chart, flats)`` pairs, with ``kw``) once the log up to
+        ``at_position`` is applied here (ShardUnavailableError: not within
+        ``timeout``, or failed)."""
         self._await(at_position, timeout, "a query")
         return self.field.query_shards(work, **kw)
 
     def applied(self, position: int, timeout: float) -> dict:
-        """:meth:`status` once the log up to ``position`` is applied here (an upload
-        with ``wait=true`` is answered once every group has its batch: its samples
-        are then the field's), with ``duplicates``: the rows of the batch at
-        ``position`` that coincided with a sample already in their own chart here
-        (each row's own chart is in one group: the groups' sum is the field's),
-        None when this worker did not apply that batch itself (restored past it).
-
-        Raises
-        ------
-        ShardUnavailableError
-            Not there within ``timeout`` (restoring, or behind), or failed.
-        """
+        """:meth:`status` once the log up to ``position`` is applied here, with
+        ``duplicates``: the rows of the batch at ``position`` that coincided with a
+        sample already in their own chart here (None: this worker restored past
+        that batch). ShardUnavailableError: not within ``timeout``, or failed."""
         self._await(position, timeout, "an upload")
         with self._lock:
             dups = self._duplicates.get(position)
         return {**self.status(), "duplicates": dups}
 
     def parts(self, position: int, known, timeout: float) -> dict:
-        """Store its charts' snapshot parts with exactly the field's batches up to
-        log ``position`` (:meth:`~flatserve.service.log.backend.LogBackend.store_part`:
-        the parts go from here to the database, never through the front that
-        writes the snapshot); the worker is held there (it applies no later batch
-        of its field) while it serialises. Charts are serialised and stored one
-        at a time (memory: one chart's part), and those whose part is ``known``
-        (stored already) not at all. Calls run one at a time (a second waits up to
-        ``timeout`` for the first): each holds the worker at its own position.
+        """Store its charts' snapshot parts with exactly the field's batches up to log
+        ``position``, held there meanwhile (from here to the database, never through
+        the front), one chart at a time and those ``known`` not at all; one call at a
+        time (a second waits up to ``timeout``).
 
         Returns
         -------
         dict
             ``seq`` (the field's last batch up to ``position``), ``parts``
-            (``[(chart, key), ...]``) or, for a one-chart field, ``whole`` (the
-            key of the part holding the whole field file: the snapshot file is
-            :func:`flatserve.contract.part_pointer` of it; for a field in tiles,
-            the field file names a part per tile, ``tiles``, each stored only
-            when its tile changed), ``own`` (per chart
-            its own samples), ``nrejected``, ``stored`` (bytes this call stored),
-            ``unit`` (an atlas field's unit of length, once chosen; else None).
+            (``[(chart, key), ...]``) or, for a one-chart field, ``whole`` (the key
+            of the part holding the field file; in tiles, it names a part per tile,
+            ``tiles``), ``own`` (per chart its own samples), ``nrejected``,
+            ``stored`` (bytes stored), ``unit`` (an atlas field's unit, once chosen).
 
         Raises
         ------
@@ -323,67 +267,63 @@ class ShardWorker:
                     f"shard {list(self.charts)} of field {self.field_id} is at log position "
                     f"{self.position}, past {position}; retry the snapshot")
             self._await(position, max(0.0, end - time.monotonic()), "a snapshot")
-            fld, known, stored = self.field, frozenset(known), 0
-            own = None
-            parts, whole, tiles = [], None, []
+            fld, known = self.field, frozenset(known)
+            stored, parts, whole, tiles, own = 0, [], None, [], None
+
+            def put(key: str, blob: bytes | None) -> None:
+                nonlocal stored
+                if blob is not None and key not in known:
+                    stored += self.storage.store_part(self.field_id, key, blob)
+
             # (the one place a shard asks its field's kind: how its snapshot is cut)
             if fld.blends:  # an atlas field: a part per chart, with its own samples
                 own = fld.own_samples
                 for c in self.charts:
                     ((_, key, blob),) = fld.chart_parts([c], known)
-                    if blob is not None:
-                        stored += self.storage.store_part(self.field_id, key, blob)
+                    put(key, blob)
                     parts.append((c, key))
-            elif fld.tiles != 1:  # one chart in tiles: a part per tile, and the field file
-                with tempfile.TemporaryDirectory(prefix="flatserve-tiles-") as stage:
-                    buf = io.BytesIO()
-                    before = self.tile_host.stored  # (tiles that store their own parts)
-                    tiles = fld.write_parts(buf, stage, known)
-                    stored += self.tile_host.stored - before
-                    for key in tiles:  # those changed since their part was stored
-                        path = os.path.join(stage, key)
-                        if os.path.exists(path):
-                            with open(path, "rb") as fh:
-                                stored += self.storage.store_part(self.field_id, key, fh.read())
-                blob = buf.getvalue()
+            else:  # one chart: its file is the field's (in tiles: naming a part per tile)
+                if fld.tiles == 1:
+                    blob = fld.to_bytes()
+                else:
+                    with tempfile.TemporaryDirectory(prefix="flatserve-tiles-") as stage:
+                        buf, before = io.BytesIO(), self.tile_host.stored
+                        tiles = fld.write_parts(buf, stage, known)
+                        stored += self.tile_host.stored - before  # (tiles storing their own)
+                        for key in tiles:  # those changed since their part was stored
+                            path = os.path.join(stage, key)
+                            if os.path.exists(path):
+                                with open(path, "rb") as fh:
+                                    put(key, fh.read())
+                    blob = buf.getvalue()
                 whole = part_key(blob)
-                if whole not in known:
-                    stored += self.storage.store_part(self.field_id, whole, blob)
-            else:  # one chart: its file is the field's
-                blob = fld.to_bytes()
-                whole = part_key(blob)
-                if whole not in known:
-                    stored += self.storage.store_part(self.field_id, whole, blob)
+                put(whole, blob)
                 del blob
-            unit = fld.unit
             return {"seq": self.seq, "parts": None if whole else parts, "whole": whole,
-                    "tiles": tiles,
-                    "unit": unit,
+                    "tiles": tiles, "unit": fld.unit, "nrejected": fld.nrejected,
                     "own": None if own is None else [own[c] for c in self.charts],
-                    "nrejected": fld.nrejected, "stored": stored}
+                    "stored": stored}
 
     def status(self) -> dict:
         """What the worker holds and where it is in the log (cheap; never waits)."""
-        e = self._entry
+        e, (state, error) = self._entry, self._state()
+        st = {"field_id": self.field_id, "charts": list(self.charts), "state": state.value,
+              "error": error, "through": self.through, "seq": self.seq,
+              "position": self.position, "restored_from": self.restored_from,
+              "rss": rss_bytes(), "pid": os.getpid()}
         fld = None if e is None else e.field
-        state, error = self._state()
-        own = fld.own_samples if fld is not None else None
+        if fld is None:
+            return {**st, "nsamples": 0, "nstored": 0, "nsimplex": 0, "nrejected": 0,
+                    "chart_samples": [0] * len(self.charts),
+                    "chart_own": [None] * len(self.charts)}
+        own = fld.own_samples  # (per chart: a dense seam's charts narrow after enough)
         return {
-            "field_id": self.field_id, "charts": list(self.charts), "state": state.value,
-            "error": error, "through": self.through,
-            "seq": 0 if e is None else e.indexed_seq,
-            "position": 0 if e is None else e.indexed_position,
-            "nsamples": (sum(own[c] for c in self.charts) if own is not None
-                         else (fld.nsamples if fld is not None else 0)),
-            "nstored": int(fld.nstored) if fld is not None else 0,
+            **st, "nstored": int(fld.nstored), "nrejected": int(fld.nrejected),
+            "nsamples": sum(own[c] for c in self.charts) if own is not None else fld.nsamples,
             # the cells after the last batch applied (counted then: a tiled field
             # counts its tiles' cells under its lock, which an insert holds)
-            "nsimplex": 0 if e is None else e.complete_size[1],
-            "nrejected": int(fld.nrejected) if fld is not None else 0,
-            "chart_samples": [int(fld.shards[c].nsamples) for c in self.charts]
-            if fld is not None else [0] * len(self.charts),
-            # per chart, its own samples (a dense seam's charts narrow after enough)
+            "nsimplex": e.complete_size[1],
+            "chart_samples": [int(fld.shards[c].nsamples) for c in self.charts],
             "chart_own": [int(own[c]) for c in self.charts] if own is not None
             else [None] * len(self.charts),
-            "restored_from": self.restored_from, "rss": rss_bytes(), "pid": os.getpid(),
         }

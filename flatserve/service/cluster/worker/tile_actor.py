@@ -1,10 +1,6 @@
-"""A tile of a chart in a Ray actor of its own: the one class of the cluster wing
-that runs in a tile's process (:class:`TileActor`), and where it stores and reads
-its snapshot parts (:class:`TileParts`).
-
-The shard worker that owns the tile calls it through :class:`~.tiles.RemoteTile`
-(:class:`~..wire.TileCalls`): the calls that change the tile by name, every read as
-a function of the tile (:meth:`TileActor.run`).
+"""A tile of a chart in a Ray actor of its own (:class:`TileActor`, called through
+:class:`~.tiles.RemoteTile`), and where it stores and reads its snapshot parts
+(:class:`TileParts`).
 """
 from __future__ import annotations
 
@@ -18,19 +14,11 @@ from ..ray_env import node_cpus, node_id, rss_bytes
 
 
 class TileParts:
-    """Where the tiles of one field store and read their snapshot parts: the
-    field's storage (:func:`~flatserve.service.log.backend.open_backend` of the
-    settings, as a shard worker opens it), opened in the process that uses it
-    for each part and closed again (a snapshot or a restore is rare; an open
-    backend per tile would hold a database connection per tile for good);
-    pickled as its settings and the field's id. Every node holding tiles must
-    reach the database (or, SQLite, the data directory).
-
-    Parameters
-    ----------
-    settings : Settings
-    field_id : int
-    """
+    """The field's storage (:func:`~flatserve.service.log.backend.open_backend`, as a
+    shard worker opens it), opened in the tile's process for each part and closed
+    again (an open backend per tile would hold a database connection per tile for
+    good); pickled as the settings and the field's id. Every node holding tiles must
+    reach the database (or, SQLite, the data directory)."""
 
     def __init__(self, settings, field_id: int) -> None:
         self.settings, self.field_id = settings, int(field_id)
@@ -41,31 +29,26 @@ class TileParts:
         return contextlib.closing(open_backend(self.settings, follower=True))
 
     def get(self, key: str) -> bytes:
-        """The part's bytes (:meth:`~flatserve.service.log.backend.LogBackend.read_part`)."""
+        """The part's bytes."""
         with self._backend() as b:
             return b.read_part(self.field_id, key)
 
     def put(self, key: str, data: bytes) -> int:
-        """Store the part (:meth:`~flatserve.service.log.backend.LogBackend.store_part`):
-        bytes written, 0 if it was there."""
+        """Store the part: bytes written, 0 if it was there."""
         with self._backend() as b:
             return b.store_part(self.field_id, key, data)
 
 
 class TileActor:
-    """A :class:`~flatserve.tiles.Tile` in a Ray actor (one process): empty at
-    first, loaded by :meth:`load` or :meth:`load_part` (so that a damaged part is
-    an error of the call, not the actor's death). A call that changes the tile
-    (``insert``, the loads) returns its result with the tile's ``(npoints,
-    generation, nchannels)``, so that the proxy (:class:`~.tiles.RemoteTile`)
-    answers those without a call. With ``parts``, it stores and reads its own
-    snapshot parts."""
+    """A :class:`~flatserve.tiles.Tile` in a Ray actor (:class:`~..wire.TileCalls`):
+    empty at first, loaded by a call (a damaged part is an error of the call, not
+    the actor's death). A call that changes the tile returns its result with the
+    tile's ``(npoints, generation, nchannels)``; every read is one function of the
+    tile (:meth:`run`)."""
 
     def __init__(self, ndim: int, threads: int | None, parts: TileParts | None = None) -> None:
         set_shard_threads(threads or node_cpus())
-        self.ndim = ndim
-        self.tile = Tile(ndim)
-        self.parts = parts
+        self.ndim, self.tile, self.parts = ndim, Tile(ndim), parts
 
     def state(self) -> tuple[int, int, int]:
         t = self.tile
@@ -92,9 +75,8 @@ class TileActor:
         return self.tile.insert(points, values, own), self.state()
 
     def run(self, read: Callable[[Tile], Any]) -> Any:
-        """``read(tile)``: a call of the tile that changes nothing but its halo's
-        bookkeeping (:class:`~.tiles.RemoteTile` sends each of
-        :class:`~flatserve.tiles.Tile`'s reads as one)."""
+        """``read(tile)``: a read of the tile (it changes nothing but its halo's
+        bookkeeping)."""
         return read(self.tile)
 
     def node(self) -> dict:

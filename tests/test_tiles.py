@@ -11,7 +11,7 @@ import pytest
 
 from flatserve.errors import InvalidInputError
 from flatserve.parallel import ShardPool
-from flatserve.tiles import TiledTriangulation, Tiling
+from flatserve.tiles import TiledTriangulation, Tiling, spread
 from flatserve.triangulation import Triangulation
 from tests.harness.cells import assert_same_cells
 from tests.harness.fig11 import fig11_rays
@@ -172,6 +172,20 @@ def test_tiling_cuts_equal_counts_and_routes_every_point():
         assert counts.max() - counts.min() <= T
         far = rng.normal(size=(100, 4)) * 1e6  # any point of R^D has a tile
         assert ((tl.tile_of(far) >= 0) & (tl.tile_of(far) < T)).all()
+
+
+def test_tiling_cuts_the_axis_of_the_widest_bulk_not_of_the_farthest_point():
+    """The extent of embedded coordinates is set by a few far points; the cut goes
+    across the axis whose middle half is widest (less halo: docs/scaling.md)."""
+    rng = np.random.default_rng(12)
+    pts = rng.random((2000, 3)) * [1.0, 10.0, 3.0]
+    pts[0, 0] = 1e7  # one point far out on axis 0: the widest extent
+    tl = Tiling.split(pts, 2)
+    assert tl.axis[0] == 1
+    assert np.array_equal(spread(pts).argsort(), [0, 2, 1])
+    same = np.zeros((100, 2))
+    same[:3] = [[5.0, 1.0], [-5.0, 2.0], [1.0, 0.0]]  # every interquartile range 0
+    assert Tiling.split(same, 2).axis[0] == 0  # the extent decides
 
 
 def test_bad_input_is_named():

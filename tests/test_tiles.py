@@ -186,6 +186,10 @@ def test_tiling_cuts_the_axis_of_the_widest_bulk_not_of_the_farthest_point():
     same = np.zeros((100, 2))
     same[:3] = [[5.0, 1.0], [-5.0, 2.0], [1.0, 0.0]]  # every interquartile range 0
     assert Tiling.split(same, 2).axis[0] == 0  # the extent decides
+    tied = np.column_stack([rng.random(1000) * 10, rng.random(1000) * 4])
+    tied[:400, 0] = 5.0  # the widest bulk, 40 % of it at its median
+    tl = Tiling.split(tied, 2)
+    assert tl.axis[0] == 1 and np.bincount(tl.tile_of(tied)).tolist() == [500, 500]
 
 
 def test_bad_input_is_named():

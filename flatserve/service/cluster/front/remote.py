@@ -9,7 +9,6 @@ field (read-your-writes through any front). docs/design.md, "Fronts".
 """
 from __future__ import annotations
 
-import functools
 import os
 from typing import Any, Callable, Collection, Protocol, Sequence
 
@@ -71,16 +70,20 @@ class _Lazy:
     unit of length it is charted in, when it is to become the field's."""
 
     def __init__(self, chart: Callable[[], Any], nrows: int, unit: float | None = None) -> None:
-        self._chart, self.nrows, self.unit, self.decided = chart, nrows, unit, False
+        self._chart, self.nrows, self.unit, self._done = chart, nrows, unit, None
 
-    @functools.cached_property
-    def _done(self):
-        self.decided = True
-        return self._chart()
+    @property
+    def decided(self) -> bool:
+        return self._done is not None
 
-    accepted = property(lambda self: self._done.accepted)
-    rejected = property(lambda self: self._done.rejected)
-    reasons = property(lambda self: self._done.reasons)
+    def _get(self):  # (no lock: two threads may chart it twice, the same decisions)
+        if self._done is None:
+            self._done = self._chart()
+        return self._done
+
+    accepted = property(lambda self: self._get().accepted)
+    rejected = property(lambda self: self._get().rejected)
+    reasons = property(lambda self: self._get().reasons)
 
 
 def _lazy_prepare(shape, flats: Flats, values, defer: bool, only, unit: float | None):

@@ -469,19 +469,18 @@ def over_http(args) -> None:
             if not args.runs:
                 return
         for r in range(args.runs):
-            for k, (label, cores, t, src, b) in enumerate(configs):
-                took, got, desc = _http_ingest(tmp, f"c{k}", cores, t, src, o, d, v, q, b)
+            for k, (label, cores, t, src, rows) in enumerate(configs):
+                took, got, desc = _http_ingest(tmp, f"c{k}", cores, t, src, o, d, v, q, rows)
                 times[label].append(took)
                 if ref is None:
                     ref = got
                 else:
-                    for key, a in ref.items():
-                        b = got[key]
-                        if not np.array_equal(a, b, equal_nan=True):
+                    for key, want in ref.items():
+                        if not np.array_equal(want, got[key], equal_nan=True):
                             np.savez("/tmp/bench_tiles_http_differ.npz",
-                                     **{f"ref_{k}": x for k, x in ref.items()},
-                                     **{f"got_{k}": x for k, x in got.items()})
-                        assert np.array_equal(a, b, equal_nan=True), \
+                                     **{f"ref_{n}": x for n, x in ref.items()},
+                                     **{f"got_{n}": x for n, x in got.items()})
+                        assert np.array_equal(want, got[key], equal_nan=True), \
                             f"{label}: {key} differ from the first server's"
                 print(f"run {r + 1}: {label}: {took:.2f} s ({desc.get('ntiles', 1)} tile(s), "
                       f"{desc.get('nsamples', '?'):,} samples; load "

@@ -4,8 +4,8 @@ A chart's points are split into tiles, boxes of equal counts cut at the
 medians of the axis of the widest interquartile range (a k-d tree:
 :class:`Tiling`). Each tile holds a Delaunay triangulation of its own points
 and of the foreign points it needs (its halo), found by exchange rounds until
-the star of every one of its own vertices is exact, that is the star the vertex has in the triangulation of all the
-points (Caraffa, Memari, Yirci, Brédif, "Tile & Merge: distributed Delaunay
+the star of every one of its own vertices is exact, that is the star the vertex
+has in the triangulation of all the points (Caraffa, Memari, Yirci, Brédif, "Tile & Merge: distributed Delaunay
 triangulations for cloud computing", IEEE BigData 2019; the proof of
 consistency in ISPRS Annals 2020):
 

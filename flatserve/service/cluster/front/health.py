@@ -66,7 +66,8 @@ class GroupHealth:
     def refresh(self, transport: RayTransport, actors: list[list], timeout: float = 2.0) -> None:
         """Ask every actor (``actors[g][j]``) for its status: one round, at most
         ``timeout`` s."""
-        refs = {(g, j): transport.submit(a, wire.status()) for g, copies in enumerate(actors)
+        call = wire.status()
+        refs = {(g, j): transport.submit(a, call) for g, copies in enumerate(actors)
                 for j, a in enumerate(copies)}
         ready, _ = transport.ray.wait(list(refs.values()), num_returns=len(refs),
                                       timeout=timeout)
@@ -76,7 +77,7 @@ class GroupHealth:
                 self.alive[g][j] = None
                 continue
             try:
-                st = transport.result(wire.status(), transport.get(ref, 0.1))
+                st = transport.result(call, transport.get(ref, 0.1))
             except Exception:  # the call failed: not live
                 self.alive[g][j] = False
                 continue

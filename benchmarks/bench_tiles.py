@@ -13,7 +13,9 @@ its own, pinned with ``taskset`` to its cores, interleaved, medians of
    (forwarding included), tiled against unsplit        -> target >= 0.8x;
    the share of queries forwarded to another tile
 3. memory: per tile count of ``--halo``, the halo (foreign points held) over
-   own points, the exchange rounds, the process's resident memory
+   own points, beside the least (the stars' foreign vertices) and the points
+   sent (those the receivers left out: no neighbours of their own points), the
+   exchange rounds, the process's resident memory
 
 ``--ray``: only the build and the queries of 2 tiles each in a Ray actor of its
 own, on the two worker nodes (1 CPU each) of a cluster on loopback (cluster
@@ -133,6 +135,7 @@ def one(side: int, tiles: int | str, cores: int, queries: int, out: str,
         info.update(halo=tri.halo.tolist(), own=tri.own_counts.tolist(),
                     star_halo=tri.star_halo().tolist(),
                     rounds=tri.stats.rounds, retiled=tri.stats.retiled,
+                    sent=tri.stats.sent, left_out=tri.stats.left_out,
                     forwarded=tri.stats.forwarded / (3 * len(qf)))
     if host is not None:
         where = host.placement()
@@ -610,7 +613,9 @@ def main() -> int:
             halo, own, star = np.array(x["halo"]), np.array(x["own"]), np.array(x["star_halo"])
             print(f"  {T:2d} tiles: halo {100 * halo.sum() / own.sum():5.1f} % (tile max "
                   f"{100 * (halo / own).max():5.1f} %; the stars' least "
-                  f"{100 * star.sum() / own.sum():5.1f} %), own points {own.min():,}-{own.max():,}, "
+                  f"{100 * star.sum() / own.sum():5.1f} %; sent {100 * x['sent'] / own.sum():5.1f} "
+                  f"%, of which left out {100 * x['left_out'] / own.sum():5.1f} %), own points "
+                  f"{own.min():,}-{own.max():,}, "
                   f"exchange rounds {x['rounds']} ({x['exchange_s']:.1f} s), re-tiled "
                   f"{x['retiled']}, peak resident {x['rss'] / 2**20:,.0f} MiB, build "
                   f"{x['build_s']:.1f} s, "

@@ -68,7 +68,10 @@ class Triangulation:
 
     def nfinite_cells(self) -> int: ...
 
-    def insert(self, points: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)]) -> tuple[NDArray[numpy.int64], int]: ...
+    def insert(self, points: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], own: Annotated[NDArray[numpy.uint8], dict(shape=(None,), order='C', device='cpu', writable=False)] | None = None) -> tuple[NDArray[numpy.int64], int]:
+        """
+        Inserts the points (n, D); with own (one byte per vertex), only those that become neighbours of a vertex with own[id] (the others: id -1).
+        """
 
     def locate(self, xi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], hilbert: bool = True, threads: int = 0) -> tuple[NDArray[numpy.int64], NDArray[numpy.float64], NDArray[numpy.int8], NDArray[numpy.int64]]: ...
 
@@ -91,7 +94,7 @@ class Triangulation:
 
     def conflicts(self, own: Annotated[NDArray[numpy.uint8], dict(shape=(None,), order='C', device='cpu', writable=False)], lo: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], hi: Annotated[NDArray[numpy.float64], dict(shape=(None, None), order='C', device='cpu', writable=False)], start: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)], skip: int = -1, seeds: Annotated[NDArray[numpy.int64], dict(shape=(None,), order='C', device='cpu', writable=False)] | None = None, since: int = -1) -> list:
         """
-        Tile & Merge's exchange: per group of boxes (lo, hi: (nbox, D); group g is boxes start[g]:start[g+1], its bounding box first), the sorted ids of the vertices of the cells with a vertex with own[id] whose circumscribed ball (half-space beyond the hull facet for an infinite cell) meets one of its boxes; every cell, those made by the inserts after generation since (one pass over the cells), or those incident to the seed vertices; group skip untested.
+        Tile & Merge's exchange: per group of boxes (lo, hi: (nbox, D); group g is boxes start[g]:start[g+1], its bounding box first), the sorted ids of the vertices of the cells with a vertex with own[id] whose circumscribed ball (half-space beyond the hull facet for an infinite cell) meets one of its boxes; every cell (a search from the boxes' centres), those made by the inserts after generation since (one pass over the cells), or those incident to the seed vertices; group skip untested.
         """
 
     def points(self) -> NDArray[numpy.float64]: ...

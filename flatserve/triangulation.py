@@ -73,7 +73,8 @@ class InsertResult:
     n_new : int
         Vertices added.
     n_duplicates : int
-        Rows that landed on an existing vertex (``n - n_new``).
+        Rows that landed on an existing vertex (``n - n_new``, less the rows
+        left out by ``neighbours_of``: id -1).
     """
 
     ids: np.ndarray
@@ -375,7 +376,7 @@ class Triangulation:
                 f"nchannels={self.nchannels})")
 
     # ------------------------------------------------------------------ insert
-    def insert(self, points, values=None) -> InsertResult:
+    def insert(self, points, values=None, *, neighbours_of=None) -> InsertResult:
         """Insert a batch of samples.
 
         Parameters
@@ -386,6 +387,14 @@ class Triangulation:
             Values at the points (float64; float32 accepted). Required once the
             triangulation has values; C must match earlier batches. A 1-D array
             means C = 1.
+        neighbours_of : ndarray of bool or uint8, shape (npoints,), optional
+            Insert only the points that become neighbours of a marked vertex
+            (Tile & Merge's halo: a tile needs the foreign points in the stars of
+            its own vertices); the others are left out, with id -1. A point that
+            is no neighbour of a vertex in the triangulation of some points is
+            none in that of more points, so a point left out is never needed
+            later. Below full dimension (and in R^1) every point is inserted. A
+            duplicate of a vertex lands on it.
 
         Returns
         -------
@@ -408,8 +417,14 @@ class Triangulation:
         elif self._values_buf is not None:
             raise InvalidInputError(
                 f"values: required, shape ({n}, {self.nchannels})", "values")
+        near = None
+        if neighbours_of is not None:
+            near = np.ascontiguousarray(neighbours_of, dtype=np.uint8)
         with _Writing(self._lock):
-            ids, n_new = self._core.insert(pts)
+            if near is not None and near.shape != (self._n,):
+                raise InvalidInputError(f"neighbours_of: expected shape ({self._n},), "
+                                        f"got {near.shape}", "neighbours_of")
+            ids, n_new = self._core.insert(pts, near)
             n_new = int(n_new)
             old = self._n
             new_n = old + n_new
@@ -421,17 +436,19 @@ class Triangulation:
             # New ids are old..new_n-1 in input row order.
             fresh = ids >= old
             self._points_buf[ids[fresh]] = pts[fresh]
+            kept = ids >= 0
             if vals is not None:
                 # later row wins: keep the last occurrence of each id
                 rev_ids = ids[::-1]
                 uniq, first_in_rev = np.unique(rev_ids, return_index=True)
                 last_rows = n - 1 - first_in_rev
-                self._values_buf[uniq] = vals[last_rows]
+                self._values_buf[uniq[uniq >= 0]] = vals[last_rows[uniq >= 0]]
             self._n = new_n
             self._simplices = None
             self._state = fresh_state()
         ids.flags.writeable = False
-        return InsertResult(ids=ids, n_new=n_new, n_duplicates=n - n_new)
+        return InsertResult(ids=ids, n_new=n_new,
+                            n_duplicates=int(kept.sum()) - n_new)
 
     def _held_arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """Points and values as they are (read-only views; under a lock)."""
@@ -697,7 +714,10 @@ class Triangulation:
             Scan only the cells made by the inserts after :attr:`generation` was
             ``since`` (the same cells as the seeds of those inserts' new
             vertices), found in one pass over every cell: for many vertices.
-            Default (neither): every cell.
+            Default (neither): every cell, found by a search from the cells
+            holding the boxes' centres through the cells whose ball meets a box
+            (they are connected: the cells whose ball holds a point are, and a
+            box is convex), so that only those and their neighbours are tested.
 
         Returns
         -------

@@ -114,18 +114,23 @@ void bind_triangulation(nb::module_& m) {
              return s.t->number_of_finite_cells();
            })
       .def("insert",
-           [](PyTriangulation& s, CArr2 pts) {
+           [](PyTriangulation& s, CArr2 pts, std::optional<U8Arr1> own) {
              check_cols(pts, s.t->dimension(), "points");
              const std::size_t n = pts.shape(0);
+             if (own && own->shape(0) != s.t->number_of_vertices())
+               throw std::invalid_argument("own: one entry per vertex expected");
              OutArray<std::int64_t> ids({n});
              std::size_t added;
              {
                nb::gil_scoped_release r;
-               added = s.t->insert(pts.data(), n, ids.data);
+               added = s.t->insert(pts.data(), n, ids.data, own ? own->data() : nullptr,
+                                   own ? own->shape(0) : 0);
              }
              return std::make_tuple(ids.release(), added);
            },
-           nb::arg("points"))
+           nb::arg("points"), nb::arg("own").none() = nb::none(),
+           "Inserts the points (n, D); with own (one byte per vertex), only those that "
+           "become neighbours of a vertex with own[id] (the others: id -1).")
       .def("locate",
            [](const PyTriangulation& s, CArr2 q, bool hilbert, int threads) {
              const int D = s.t->dimension();
@@ -246,7 +251,8 @@ void bind_triangulation(nb::module_& m) {
            "boxes start[g]:start[g+1], its bounding box first), the sorted ids of the "
            "vertices of the cells with a vertex with own[id] whose circumscribed ball "
            "(half-space beyond the hull facet for an infinite cell) meets one of its boxes; "
-           "every cell, those made by the inserts after generation since (one pass over "
+           "every cell (a search from the boxes' centres), those made by the inserts after "
+           "generation since (one pass over "
            "the cells), or those incident to the seed vertices; group skip untested.")
       .def("points",
            [](const PyTriangulation& s) {

@@ -115,8 +115,13 @@ class TriangulationBase {
   virtual std::size_t number_of_full_cells() const = 0;  // infinite ones included
   virtual std::size_t number_of_finite_cells() const = 0;
   // pts: n x D row-major. out_ids[i]: sample id row i landed on. Returns the
-  // number of new vertices (n - returned = duplicates).
-  virtual std::size_t insert(const double* pts, std::size_t n, std::int64_t* out_ids) = 0;
+  // number of new vertices (n - returned = duplicates and points left out).
+  // own (may be null; nown entries, one per sample id, later ids not own):
+  // Tile & Merge's halo, a point is inserted only if it becomes a neighbour of
+  // a vertex with own[id] != 0 (its conflict zone has a cell with one), else
+  // left out with out_ids[i] = -1 (a duplicate of a vertex always lands on it).
+  virtual std::size_t insert(const double* pts, std::size_t n, std::int64_t* out_ids,
+                             const std::uint8_t* own = nullptr, std::size_t nown = 0) = 0;
   // q: n x D. ids, w: n x (D+1); kind: n. Outside the convex hull the weights
   // are the clamped ones of the hull facet the walk ended at (0 at the
   // infinite vertex); outside the affine hull ids are -1 and weights NaN.
@@ -148,7 +153,9 @@ class TriangulationBase {
   // closed; group g's boxes are start[g] .. start[g+1]-1, the first of them
   // their bounding box, tested first), the ids of its finite vertices go to
   // out[g] (sorted, unique); group `skip` is not tested (-1: none). Cells
-  // scanned: every cell (seeds null and since < 0), those made by the inserts
+  // scanned: every cell (seeds null and since < 0: a search from the cell
+  // holding each box's centre through the cells whose ball meets a box, which
+  // are connected; their neighbours are tested too), those made by the inserts
   // after generation `since` (seeds null; one pass over the cells), or those
   // incident to the seed vertices (the cells an insertion of those vertices
   // created; a walk around each). Conservative: a ball

@@ -215,7 +215,8 @@ class Triangulation final : public TriangulationBase {
   // ------------------------------------------------------------ insertion
   std::uint32_t generation() const override { return gen_; }
 
-  std::size_t insert(const double* pts, std::size_t n, std::int64_t* out_ids) override {
+  std::size_t insert(const double* pts, std::size_t n, std::int64_t* out_ids,
+                     const std::uint8_t* own, std::size_t nown) override {
     GenerationScope stamp(++gen_);  // the cells this insert makes
     const int dim_before = dt_.current_dimension();
     std::vector<Point> P;
@@ -233,8 +234,43 @@ class Triangulation final : public TriangulationBase {
     constexpr std::int64_t kNew = -2;
     std::vector<Vertex_handle> row_vertex(n);
     Full_cell_handle hint;
+    // own: a point joins only if its conflict zone has a cell with an own
+    // vertex (it then becomes a neighbour of one); otherwise it is left out
+    // (id -1). A point that is no neighbour of an own vertex in the
+    // triangulation of some of the points is none in that of all of them.
+    const bool filter = own != nullptr && dt_.current_dimension() == D_ && D_ >= 2;
+    const Vertex_handle inf = dt_.infinite_vertex();
+    std::vector<Full_cell_handle> zone;
+    auto owned = [&](Vertex_handle v) {
+      if (v == inf) return false;
+      const std::int64_t id = v->data().id;
+      return id >= 0 && static_cast<std::size_t>(id) < nown && own[id] != 0;
+    };
     for (std::size_t idx : order) {
-      Vertex_handle v = dt_.insert(P[idx], hint);
+      Vertex_handle v;
+      if (!filter) {
+        v = dt_.insert(P[idx], hint);
+      } else {
+        typename DT::Locate_type lt;
+        typename DT::Face f(dt_.maximal_dimension());
+        typename DT::Facet ft;
+        Full_cell_handle s = dt_.locate(P[idx], lt, f, ft, hint);
+        if (lt == DT::ON_VERTEX) {
+          v = dt_.insert(P[idx], lt, f, ft, s);
+        } else {
+          zone.clear();
+          ft = dt_.compute_conflict_zone(P[idx], s, std::back_inserter(zone));
+          bool near = false;
+          for (std::size_t c = 0; c < zone.size() && !near; ++c)
+            for (int k = 0; k <= D_ && !near; ++k) near = owned(zone[c]->vertex(k));
+          if (!near) {
+            row_vertex[idx] = Vertex_handle();
+            hint = s;
+            continue;
+          }
+          v = dt_.insert_in_hole(P[idx], zone.begin(), zone.end(), ft);
+        }
+      }
       if (v->data().id == -1) v->data().id = kNew;
       row_vertex[idx] = v;
       hint = v->full_cell();
@@ -246,6 +282,10 @@ class Triangulation final : public TriangulationBase {
     std::size_t added = 0;
     for (std::size_t idx = 0; idx < n; ++idx) {
       Vertex_handle v = row_vertex[idx];
+      if (v == Vertex_handle()) {
+        out_ids[idx] = -1;
+        continue;
+      }
       if (v->data().id == kNew) {
         v->data().id = static_cast<std::int64_t>(by_id_.size());
         by_id_.push_back(v);
@@ -404,15 +444,17 @@ class Triangulation final : public TriangulationBase {
         if (v != inf) mark[b][static_cast<std::size_t>(v->data().id)] = 1;
       }
     };
-    auto visit = [&](Full_cell_handle c) {
+    // the cell's vertices go to every group its ball meets (if one of them is
+    // own); true if it meets one (every: tested even without an own vertex)
+    auto visit = [&](Full_cell_handle c, bool every) {
       int fi = -1;
-      bool mine = false;
+      bool mine = false, hit = false;
       for (int k = 0; k <= D; ++k) {
         Vertex_handle v = c->vertex(k);
         if (v == inf) fi = k;
         else mine = mine || own[v->data().id];
       }
-      if (!mine) return;
+      if (!mine && !every) return false;
       if (fi < 0) {
         // circumcentre x of p0..pD: 2 (pi - p0) . (x - p0) = |pi - p0|^2
         const Point& p0 = c->vertex(0)->point();
@@ -444,9 +486,11 @@ class Triangulation final : public TriangulationBase {
           return d2 <= rr * (1 + 1e-9);  // conservative: an extra point costs little
         };
         for (std::size_t g = 0; g < ngroups; ++g)
-          if (static_cast<std::int64_t>(g) != skip && (!finite || meets_group(g, ball_meets)))
-            send(c, g);
-        return;
+          if (static_cast<std::int64_t>(g) != skip && (!finite || meets_group(g, ball_meets))) {
+            hit = true;
+            if (mine) send(c, g);
+          }
+        return hit;
       }
       // infinite cell: the half-space beyond the hull facet (normal n pointing
       // away from the opposite finite vertex)
@@ -495,14 +539,65 @@ class Triangulation final : public TriangulationBase {
         return top >= -1e-9 * nn * std::max(sc, 1e-300);
       };
       for (std::size_t g = 0; g < ngroups; ++g)
-        if (static_cast<std::int64_t>(g) != skip && (!finite || meets_group(g, half_meets)))
-          send(c, g);
+        if (static_cast<std::int64_t>(g) != skip && (!finite || meets_group(g, half_meets))) {
+          hit = true;
+          if (mine) send(c, g);
+        }
+      return hit;
     };
     // cells changed in place by a rise of the dimension after `since` are new too
     if (since >= 0 && since < static_cast<std::int64_t>(dim_gen_)) since = -1;
-    if (seeds == nullptr) {
+    if (seeds == nullptr && since < 0) {
+      // every cell: those whose ball meets a box are connected (across facets:
+      // the cells whose ball holds a point are, and a box is convex), so a
+      // search from the cell holding each box's centre finds them all and
+      // tests only them and their neighbours. A search costs about 1.5 times
+      // a pass's test a cell (its cells are scattered in memory): past a third
+      // of the cells, the cells not reached are passed over instead.
+      ensure_numbered();
+      const std::size_t ncells = dt.number_of_full_cells();
+      std::size_t budget = ncells / 3;
+      std::vector<std::uint8_t> seen(ncells, 0);
+      std::vector<Full_cell_handle> todo;
+      std::vector<double> mid(D);
+      for (std::size_t g = 0; g < ngroups; ++g) {
+        if (static_cast<std::int64_t>(g) == skip) continue;
+        for (auto b = static_cast<std::size_t>(start[g]); b < static_cast<std::size_t>(start[g + 1]);
+             ++b) {
+          bool empty = false;
+          for (int k = 0; k < D; ++k) {
+            empty = empty || !(lo[b * D + k] <= hi[b * D + k]);
+            mid[k] = 0.5 * (lo[b * D + k] + hi[b * D + k]);
+          }
+          if (empty) continue;
+          Full_cell_handle c = dt.locate(Point(mid.begin(), mid.end()));
+          if (!seen[c->data().index]) {
+            seen[c->data().index] = 1;
+            todo.push_back(c);
+          }
+        }
+      }
+      while (!todo.empty() && budget) {
+        Full_cell_handle c = todo.back();
+        todo.pop_back();
+        --budget;
+        if (!visit(c, true)) continue;
+        for (int k = 0; k <= D; ++k) {
+          Full_cell_handle n = c->neighbor(k);
+          if (!seen[n->data().index]) {
+            seen[n->data().index] = 1;
+            todo.push_back(n);
+          }
+        }
+      }
+      if (!todo.empty()) {  // over budget: the cells found, then those not reached
+        for (const Full_cell_handle& c : todo) visit(c, false);
+        for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it)
+          if (!seen[it->data().index]) visit(it, false);
+      }
+    } else if (seeds == nullptr) {
       for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it)
-        if (since < 0 || static_cast<std::int64_t>(it->data().gen) > since) visit(it);
+        if (static_cast<std::int64_t>(it->data().gen) > since) visit(it, false);
     } else {
       std::vector<Full_cell_handle> cells;
       for (std::size_t i = 0; i < nseeds; ++i) {
@@ -515,7 +610,7 @@ class Triangulation final : public TriangulationBase {
       std::sort(cells.begin(), cells.end(),
                 [](Full_cell_handle x, Full_cell_handle y) { return &*x < &*y; });
       cells.erase(std::unique(cells.begin(), cells.end()), cells.end());
-      for (const Full_cell_handle& c : cells) visit(c);
+      for (const Full_cell_handle& c : cells) visit(c, false);
     }
     for (std::size_t g = 0; g < ngroups; ++g)
       for (std::size_t i = 0; i < mark[g].size(); ++i)

@@ -156,7 +156,9 @@ def test_halo_and_forwarding_are_reported():
     tt = TiledTriangulation(3, 2)
     tt.insert(rng.random((4000, 3)), rng.random((4000, 1)))
     assert (tt.halo > 0).all() and (tt.halo < tt.own_counts).all()
-    assert tt.stats.sent == int(tt.halo.sum())
+    assert tt.stats.sent == int(tt.halo.sum()) + tt.stats.left_out
+    assert tt.stats.left_out > 0  # (points sent that are in no star of the receiver's)
+    assert (tt.halo >= tt.star_halo()).all()
     tt.query(rng.random((5000, 3)))
     assert tt.stats.unresolved == 0
     assert 0 <= tt.stats.forwarded < 500
@@ -418,6 +420,76 @@ def test_conflicts_since_a_generation_are_the_seeds_ones(D):
         tri.conflicts(own, lo, hi, start, since=4)
     with pytest.raises(InvalidInputError, match="seeds, since: give one of them"):
         tri.conflicts(own, lo, hi, start, seeds=[0], since=0)
+
+
+@pytest.mark.parametrize("D", [2, 3, 4])
+def test_conflicts_of_every_cell_are_those_of_a_walk_around_every_vertex(D):
+    """Every cell (neither seeds nor since) is a search from the cells holding the
+    boxes' centres through the cells whose ball meets a box (then, past a third
+    of the cells, a pass over the others): it finds what a walk around every
+    vertex finds (every cell once), for points in a cube and heavy-tailed ones,
+    boxes inside the hull, across it and beyond it."""
+    rng = np.random.default_rng(20 + D)
+    for heavy in (False, True):
+        pts = rng.standard_t(2, (3000, D)) if heavy else rng.random((3000, D))
+        tri = Triangulation(D)
+        tri.insert(pts)
+        own = (pts[:, 0] < np.median(pts[:, 0])).astype(np.uint8)
+        mine, other = pts[own == 1], pts[own == 0]
+        far = pts.max(axis=0) + 1
+        lo = np.stack([mine.min(0), other.min(0), np.quantile(pts, 0.4, axis=0), far])
+        hi = np.stack([mine.max(0), other.max(0), np.quantile(pts, 0.45, axis=0), far + 1])
+        for rows in ([0, 1, 2, 3], [0, 2, 3]):  # (the other half: past the search's
+            start = np.arange(len(rows) + 1)    # budget, the rest in a pass)
+            every = tri.conflicts(own, lo[rows], hi[rows], start, skip=0)
+            walk = tri.conflicts(own, lo[rows], hi[rows], start, skip=0,
+                                 seeds=np.arange(len(pts)))
+            assert all(np.array_equal(a, b) for a, b in zip(every, walk))
+            assert all(len(a) for a in every[1:])
+
+
+@pytest.mark.parametrize("D", [2, 3, 4])
+def test_insert_neighbours_of_leaves_out_exactly_the_points_no_marked_vertex_neighbours(D):
+    """``neighbours_of``: a point is inserted when, inserted alone, it would be a
+    neighbour of a marked vertex, else left out (id -1, nothing stored); the
+    oracle is a plain insert of each point into a copy."""
+    rng = np.random.default_rng(30 + D)
+    base = rng.random((400, D))
+    mark = (base[:, 0] < 0.5).astype(np.uint8)
+    cand = rng.random((60, D)) * [1.6] + [[-0.3] + [0.0] * (D - 1)]
+    expect = []
+    for p in cand:
+        t = Triangulation(D)
+        t.insert(base)
+        new = t.insert(p[None]).ids[0]
+        s = t.simplices
+        nb = np.unique(s[(s == new).any(axis=1)])
+        expect.append(bool(mark[nb[nb < len(base)]].any()))
+    expect = np.array(expect)
+    assert expect.any() and not expect.all()
+    for p, want in zip(cand, expect):  # one at a time: the same question as the oracle's
+        t = Triangulation(D)
+        t.insert(base, np.zeros((len(base), 1)))
+        res = t.insert(p[None], np.ones((1, 1)), neighbours_of=mark)
+        assert (res.ids[0] >= 0) == want and res.n_new == int(want) and res.n_duplicates == 0
+        assert t.npoints == len(base) + int(want)
+    t = Triangulation(D)  # a batch: a point left out would be no neighbour of a
+    t.insert(base)  # marked vertex with every point kept (nor with more points)
+    res = t.insert(cand, neighbours_of=mark)
+    kept = res.ids >= 0
+    assert kept.any() and not kept.all()
+    assert not kept[~expect].any()
+    for p in cand[~kept]:
+        u = Triangulation(D)
+        u.insert(t.points)
+        new = u.insert(p[None]).ids[0]
+        s = u.simplices
+        nb = np.unique(s[(s == new).any(axis=1)])
+        assert not mark[nb[nb < len(base)]].any()
+    again = t.insert(base[:3], neighbours_of=np.zeros(t.npoints, np.uint8))
+    assert list(again.ids) == [0, 1, 2] and again.n_duplicates == 3  # duplicates land
+    with pytest.raises(InvalidInputError, match=r"neighbours_of: expected shape \("):
+        t.insert(cand[:1], neighbours_of=mark[:5])
 
 
 def test_tiles_as_snapshot_parts_only_the_changed_ones():

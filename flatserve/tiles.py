@@ -109,8 +109,9 @@ SCAN_SHARE = 0.005
 #: and more) is memory for little time
 AUTO_MIN_SAMPLES = 20_000
 #: ``tiles="auto"`` gives at most this many tiles: the halo grows with the tiles
-#: (at 1M rays of Fig. 11: 11 % of the own points for 2 tiles, 32 % for 4, 70 %
-#: for 8), and only 2 tiles on 2 cores could be timed here
+#: (at 1M rays of Fig. 11: 9 % of the own points for 2 tiles, 22 % for 4, 42 %
+#: for 8, and the points sent 11, 32 and 70 %), and only 2 tiles on 2 cores
+#: could be timed here
 AUTO_MAX_TILES = 4
 
 

@@ -26,9 +26,9 @@ The halo a tile holds is therefore close to the least (the foreign vertices of
 its own vertices' stars: :meth:`TiledTriangulation.star_halo`), and a point
 left out costs its conflict zone, not a place in the triangulation (at 200k
 rays of Fig. 11 in 2 tiles: 26.8k points held of 34.7k sent, 22.3k least).
-The first round tests every cell whose ball meets another tile's box, found by
-a search from the box (:meth:`flatserve.Triangulation.conflicts`), not by a
-pass over every cell.
+When every cell must be scanned (a new tiling, or a box that grew), the cells
+whose ball meets another tile's box are found by a search from the box
+(:meth:`flatserve.Triangulation.conflicts`), not by a pass over every cell.
 
 An insert puts its points in their tiles at once and leaves the exchange
 pending (:attr:`TiledTriangulation.settled` is then False); the exchange runs

@@ -392,9 +392,9 @@ class Triangulation:
             (Tile & Merge's halo: a tile needs the foreign points in the stars of
             its own vertices); the others are left out, with id -1. A point that
             is no neighbour of a vertex in the triangulation of some points is
-            none in that of more points, so a point left out is never needed
-            later. Below full dimension (and in R^1) every point is inserted. A
-            duplicate of a vertex lands on it.
+            none in that of more points, so a point left out is not needed
+            later as long as no vertex is newly marked. Below full dimension
+            every point is inserted. A duplicate of a vertex lands on it.
 
         Returns
         -------
@@ -717,7 +717,10 @@ class Triangulation:
             Default (neither): every cell, found by a search from the cells
             holding the boxes' centres through the cells whose ball meets a box
             (they are connected: the cells whose ball holds a point are, and a
-            box is convex), so that only those and their neighbours are tested.
+            box is convex), so that only those and their neighbours are tested
+            (a ball that cannot be computed then meets every group once
+            reached); past a third of the cells, or with a box not finite, a
+            pass over the cells.
 
         Returns
         -------

@@ -155,11 +155,12 @@ class TriangulationBase {
   // out[g] (sorted, unique); group `skip` is not tested (-1: none). Cells
   // scanned: every cell (seeds null and since < 0: a search from the cell
   // holding each box's centre through the cells whose ball meets a box, which
-  // are connected; their neighbours are tested too), those made by the inserts
+  // are connected, their neighbours tested too; a pass when a box is not
+  // finite), those made by the inserts
   // after generation `since` (seeds null; one pass over the cells), or those
   // incident to the seed vertices (the cells an insertion of those vertices
-  // created; a walk around each). Conservative: a ball
-  // that cannot be computed meets every group. Below full dimension every
+  // created; a walk around each). Conservative: a ball that cannot be
+  // computed meets every group (in the search: once reached). Below full dimension every
   // vertex goes to every group.
   // Finite cells whose lexicographically first vertex has own[id] != 0: over
   // tiles that hold every cell around their own vertices, each cell of the

@@ -547,7 +547,22 @@ class Triangulation final : public TriangulationBase {
     };
     // cells changed in place by a rise of the dimension after `since` are new too
     if (since >= 0 && since < static_cast<std::int64_t>(dim_gen_)) since = -1;
-    if (seeds == nullptr && since < 0) {
+    // the search needs finite boxes (a centre to start from)
+    bool bounded = true;
+    for (std::size_t g = 0; g < ngroups; ++g) {
+      if (static_cast<std::int64_t>(g) == skip) continue;
+      for (auto b = static_cast<std::size_t>(start[g]); b < static_cast<std::size_t>(start[g + 1]);
+           ++b) {
+        bool empty = false, finite = true;
+        for (int k = 0; k < D; ++k) {
+          empty = empty || !(lo[b * D + k] <= hi[b * D + k]);
+          finite = finite && std::isfinite(lo[b * D + k]) && std::isfinite(hi[b * D + k]) &&
+                   std::isfinite(hi[b * D + k] - lo[b * D + k]);
+        }
+        bounded = bounded && (empty || finite);
+      }
+    }
+    if (seeds == nullptr && since < 0 && bounded) {
       // every cell: those whose ball meets a box are connected (across facets:
       // the cells whose ball holds a point are, and a box is convex), so a
       // search from the cell holding each box's centre finds them all and
@@ -560,6 +575,7 @@ class Triangulation final : public TriangulationBase {
       std::vector<std::uint8_t> seen(ncells, 0);
       std::vector<Full_cell_handle> todo;
       std::vector<double> mid(D);
+      Scratch sc(D);
       for (std::size_t g = 0; g < ngroups; ++g) {
         if (static_cast<std::int64_t>(g) == skip) continue;
         for (auto b = static_cast<std::size_t>(start[g]); b < static_cast<std::size_t>(start[g + 1]);
@@ -567,10 +583,12 @@ class Triangulation final : public TriangulationBase {
           bool empty = false;
           for (int k = 0; k < D; ++k) {
             empty = empty || !(lo[b * D + k] <= hi[b * D + k]);
-            mid[k] = 0.5 * (lo[b * D + k] + hi[b * D + k]);
+            mid[k] = lo[b * D + k] + 0.5 * (hi[b * D + k] - lo[b * D + k]);
           }
           if (empty) continue;
-          Full_cell_handle c = dt.locate(Point(mid.begin(), mid.end()));
+          // the cell holding the centre (its ball holds it), or the hull
+          // facet's infinite cell beyond which it lies (our walk: no state)
+          Full_cell_handle c = locate_one(mid.data(), Full_cell_handle(), sc);
           if (!seen[c->data().index]) {
             seen[c->data().index] = 1;
             todo.push_back(c);
@@ -597,7 +615,7 @@ class Triangulation final : public TriangulationBase {
       }
     } else if (seeds == nullptr) {
       for (auto it = dt.full_cells_begin(); it != dt.full_cells_end(); ++it)
-        if (static_cast<std::int64_t>(it->data().gen) > since) visit(it, false);
+        if (since < 0 || static_cast<std::int64_t>(it->data().gen) > since) visit(it, false);
     } else {
       std::vector<Full_cell_handle> cells;
       for (std::size_t i = 0; i < nseeds; ++i) {

@@ -428,7 +428,7 @@ def test_conflicts_of_every_cell_are_those_of_a_walk_around_every_vertex(D):
     boxes' centres through the cells whose ball meets a box (then, past a third
     of the cells, a pass over the others): it finds what a walk around every
     vertex finds (every cell once), for points in a cube and heavy-tailed ones,
-    boxes inside the hull, across it and beyond it."""
+    boxes inside the hull, across it, beyond it and unbounded."""
     rng = np.random.default_rng(20 + D)
     for heavy in (False, True):
         pts = rng.standard_t(2, (3000, D)) if heavy else rng.random((3000, D))
@@ -446,6 +446,13 @@ def test_conflicts_of_every_cell_are_those_of_a_walk_around_every_vertex(D):
                                  seeds=np.arange(len(pts)))
             assert all(np.array_equal(a, b) for a, b in zip(every, walk))
             assert all(len(a) for a in every[1:])
+        open_lo = np.stack([mine.min(0), np.full(D, 0.5), np.full(D, -np.inf)])
+        open_hi = np.stack([mine.max(0), np.full(D, np.inf), np.full(D, np.inf)])
+        every = tri.conflicts(own, open_lo, open_hi, np.arange(4), skip=0)  # (no centre:
+        walk = tri.conflicts(own, open_lo, open_hi, np.arange(4), skip=0,   # a pass)
+                             seeds=np.arange(len(pts)))
+        assert all(np.array_equal(a, b) for a, b in zip(every, walk))
+        assert all(len(a) for a in every[1:])
 
 
 @pytest.mark.parametrize("D", [2, 3, 4])

@@ -441,8 +441,8 @@ class Triangulation:
                 # later row wins: keep the last occurrence of each id
                 rev_ids = ids[::-1]
                 uniq, first_in_rev = np.unique(rev_ids, return_index=True)
-                last_rows = n - 1 - first_in_rev
-                self._values_buf[uniq[uniq >= 0]] = vals[last_rows[uniq >= 0]]
+                held = uniq >= 0  # (rows left out by neighbours_of: -1)
+                self._values_buf[uniq[held]] = vals[n - 1 - first_in_rev[held]]
             self._n = new_n
             self._simplices = None
             self._state = fresh_state()

@@ -547,18 +547,21 @@ class Triangulation final : public TriangulationBase {
     };
     // cells changed in place by a rise of the dimension after `since` are new too
     if (since >= 0 && since < static_cast<std::int64_t>(dim_gen_)) since = -1;
-    // the search needs finite boxes (a centre to start from)
+    // the search starts from each non-empty box's centre (finite boxes only)
     bool bounded = true;
+    std::vector<double> mids, mid(D);
     for (std::size_t g = 0; g < ngroups; ++g) {
       if (static_cast<std::int64_t>(g) == skip) continue;
       for (auto b = static_cast<std::size_t>(start[g]); b < static_cast<std::size_t>(start[g + 1]);
            ++b) {
         bool empty = false, finite = true;
         for (int k = 0; k < D; ++k) {
-          empty = empty || !(lo[b * D + k] <= hi[b * D + k]);
-          finite = finite && std::isfinite(lo[b * D + k]) && std::isfinite(hi[b * D + k]) &&
-                   std::isfinite(hi[b * D + k] - lo[b * D + k]);
+          const double l = lo[b * D + k], h = hi[b * D + k];
+          empty = empty || !(l <= h);
+          finite = finite && std::isfinite(l) && std::isfinite(h) && std::isfinite(h - l);
+          mid[k] = l + 0.5 * (h - l);
         }
+        if (!empty) mids.insert(mids.end(), mid.begin(), mid.end());
         bounded = bounded && (empty || finite);
       }
     }
@@ -574,25 +577,14 @@ class Triangulation final : public TriangulationBase {
       std::size_t budget = ncells / 3;
       std::vector<std::uint8_t> seen(ncells, 0);
       std::vector<Full_cell_handle> todo;
-      std::vector<double> mid(D);
       Scratch sc(D);
-      for (std::size_t g = 0; g < ngroups; ++g) {
-        if (static_cast<std::int64_t>(g) == skip) continue;
-        for (auto b = static_cast<std::size_t>(start[g]); b < static_cast<std::size_t>(start[g + 1]);
-             ++b) {
-          bool empty = false;
-          for (int k = 0; k < D; ++k) {
-            empty = empty || !(lo[b * D + k] <= hi[b * D + k]);
-            mid[k] = lo[b * D + k] + 0.5 * (hi[b * D + k] - lo[b * D + k]);
-          }
-          if (empty) continue;
-          // the cell holding the centre (its ball holds it), or the hull
-          // facet's infinite cell beyond which it lies (our walk: no state)
-          Full_cell_handle c = locate_one(mid.data(), Full_cell_handle(), sc);
-          if (!seen[c->data().index]) {
-            seen[c->data().index] = 1;
-            todo.push_back(c);
-          }
+      for (std::size_t m = 0; m < mids.size(); m += static_cast<std::size_t>(D)) {
+        // the cell holding the centre (its ball holds it), or the hull facet's
+        // infinite cell beyond which it lies (our walk: no shared state)
+        Full_cell_handle c = locate_one(mids.data() + m, Full_cell_handle(), sc);
+        if (!seen[c->data().index]) {
+          seen[c->data().index] = 1;
+          todo.push_back(c);
         }
       }
       while (!todo.empty() && budget) {

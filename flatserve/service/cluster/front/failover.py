@@ -111,6 +111,7 @@ async def call_async(copies: Copies, calls: dict[int, ShardCall], timeout: float
             try:
                 return g, fan.answered(g, j, await fan.transport.aget(ref, fan.left()))
             except Exception as exc:
+                fan.transport.cancel([ref])  # (a copy that timed out may still be at it)
                 j, ref = fan.failed(g, j, exc)
 
     tasks = [asyncio.ensure_future(one(g)) for g in calls]

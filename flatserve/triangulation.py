@@ -354,7 +354,9 @@ class Triangulation:
     @property
     def generation(self) -> int:
         """Inserts so far (0 for a triangulation just built or loaded): the cells
-        an insert makes carry its number, for :meth:`conflicts` ``since``."""
+        an insert makes carry its number, for :meth:`conflicts` ``since``. An
+        insert whose every row was left out (``neighbours_of``) changes nothing
+        and is not counted."""
         return int(self._core.generation)
 
     #: One triangulation (a :class:`~flatserve.tiles.TiledTriangulation` has several).

@@ -170,7 +170,8 @@ class TriangulationBase {
                          const std::int64_t* start, std::size_t ngroups, std::int64_t skip,
                          const std::int64_t* seeds, std::size_t nseeds, std::int64_t since,
                          std::vector<std::vector<std::int64_t>>& out) const = 0;
-  // Inserts so far: the cells an insert makes carry its generation (conflicts).
+  // Inserts so far that held a row (one whose rows were all left out does not
+  // count): the cells an insert makes carry its generation (conflicts).
   virtual std::uint32_t generation() const = 0;
   virtual void points(double* out) const = 0;       // n x D, row = sample id
   virtual void simplices(std::int64_t* out) const = 0;  // finite cells x (D+1), numbered order

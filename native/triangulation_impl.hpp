@@ -279,13 +279,14 @@ class Triangulation final : public TriangulationBase {
     // Raising the dimension changes the cells that were there in place (CGAL
     // associates the new vertex with them): they keep their old generation.
     if (dt_.current_dimension() > dim_before) dim_gen_ = gen_;
-    std::size_t added = 0;
+    std::size_t added = 0, held = 0;
     for (std::size_t idx = 0; idx < n; ++idx) {
       Vertex_handle v = row_vertex[idx];
       if (v == Vertex_handle()) {
         out_ids[idx] = -1;
         continue;
       }
+      ++held;
       if (v->data().id == kNew) {
         v->data().id = static_cast<std::int64_t>(by_id_.size());
         by_id_.push_back(v);
@@ -293,6 +294,9 @@ class Triangulation final : public TriangulationBase {
       }
       out_ids[idx] = v->data().id;
     }
+    // Every row left out: nothing changed, no cell carries this generation, so
+    // the triangulation keeps its generation (a snapshot part stays current).
+    if (held == 0 && n > 0) --gen_;
     return added;
   }
 

@@ -477,9 +477,11 @@ def test_insert_neighbours_of_leaves_out_exactly_the_points_no_marked_vertex_nei
     for p, want in zip(cand, expect):  # one at a time: the same question as the oracle's
         t = Triangulation(D)
         t.insert(base, np.zeros((len(base), 1)))
+        g0 = t.generation
         res = t.insert(p[None], np.ones((1, 1)), neighbours_of=mark)
         assert (res.ids[0] >= 0) == want and res.n_new == int(want) and res.n_duplicates == 0
         assert t.npoints == len(base) + int(want)
+        assert t.generation == g0 + int(want)  # (nothing held: nothing changed)
     t = Triangulation(D)  # a batch: a point left out would be no neighbour of a
     t.insert(base)  # marked vertex with every point kept (nor with more points)
     res = t.insert(cand, neighbours_of=mark)
@@ -493,8 +495,10 @@ def test_insert_neighbours_of_leaves_out_exactly_the_points_no_marked_vertex_nei
         s = u.simplices
         nb = np.unique(s[(s == new).any(axis=1)])
         assert not mark[nb[nb < len(base)]].any()
+    g0 = t.generation
     again = t.insert(base[:3], neighbours_of=np.zeros(t.npoints, np.uint8))
     assert list(again.ids) == [0, 1, 2] and again.n_duplicates == 3  # duplicates land
+    assert t.generation == g0 + 1  # (their values may change: a new generation)
     with pytest.raises(InvalidInputError, match=r"neighbours_of: expected shape \("):
         t.insert(cand[:1], neighbours_of=mark[:5])
 

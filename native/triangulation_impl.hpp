@@ -551,10 +551,12 @@ class Triangulation final : public TriangulationBase {
     };
     // cells changed in place by a rise of the dimension after `since` are new too
     if (since >= 0 && since < static_cast<std::int64_t>(dim_gen_)) since = -1;
-    // the search starts from each non-empty box's centre (finite boxes only)
-    bool bounded = true;
+    // every cell: the search starts from each non-empty box's centre (finite
+    // boxes only; the centres are needed for that scan alone)
+    const bool every = seeds == nullptr && since < 0;
+    bool bounded = every;
     std::vector<double> mids, mid(D);
-    for (std::size_t g = 0; g < ngroups; ++g) {
+    for (std::size_t g = 0; every && g < ngroups; ++g) {
       if (static_cast<std::int64_t>(g) == skip) continue;
       for (auto b = static_cast<std::size_t>(start[g]); b < static_cast<std::size_t>(start[g + 1]);
            ++b) {
@@ -569,7 +571,7 @@ class Triangulation final : public TriangulationBase {
         bounded = bounded && (empty || finite);
       }
     }
-    if (seeds == nullptr && since < 0 && bounded) {
+    if (every && bounded) {
       // every cell: those whose ball meets a box are connected (across facets:
       // the cells whose ball holds a point are, and a box is convex), so a
       // search from the cell holding each box's centre finds them all and
